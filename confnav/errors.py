@@ -1,0 +1,35 @@
+"""Exception hierarchy: every error confnav raises derives from :class:`ConfnavError`.
+
+Services turn these into error replies / status codes on the wire; the CLI prints their
+message and exits non-zero.
+"""
+
+from __future__ import annotations
+
+
+class ConfnavError(Exception):
+    """Root of all confnav errors."""
+
+
+class WorkspaceError(ConfnavError, ValueError):
+    """The workspace definition is invalid (names the polygon and the problem)."""
+
+
+class SolverError(ConfnavError, RuntimeError):
+    """The conformal map could not be computed to the requested accuracy."""
+
+
+class CrowdingError(SolverError):
+    """Some circle of the circle domain is too small for double precision (crowding)."""
+
+
+class ConvergenceError(SolverError):
+    """An iteration (GMRES or the Koebe-type sweeps) did not converge."""
+
+
+class NavigationError(ConfnavError, ValueError):
+    """A navigation request is invalid (goal outside free space, bad parameter, ...)."""
+
+
+class SerializationError(ConfnavError, ValueError):
+    """A serialized map or workspace cannot be loaded (wrong format, version or content)."""

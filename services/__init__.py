@@ -1,0 +1,1 @@
+"""Zenoh service processes (thin shells around the core); installed as ``confnav.services``."""
