@@ -1,0 +1,265 @@
+"""Wire messages of confnav: strict, versioned pydantic v2 models.
+
+Every message is JSON on the wire and in MCAP. Each carries ``type`` (``"confnav.<Model>"``)
+and ``schema_version`` so that a payload names its own model. Timestamps are integer
+nanoseconds since the Unix epoch (``time.time_ns()``); positions and velocities are in the
+workspace frame, metres and metres per second; angles in radians.
+
+Validate from bytes with ``Model.model_validate_json(data)`` (or :func:`confnav.schemas.decode`,
+which also enforces the size limit). Models are strict (no coercion), reject unknown fields
+and non-finite numbers, and are frozen.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, ClassVar, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, JsonValue, StringConstraints
+
+SCHEMA_VERSION: int = 1
+"""Version of every model below; bump (and keep a reader for the old one) on breaking change."""
+
+MAX_VERTICES = 4096
+MAX_OBSTACLES = 256
+MAX_ROBOTS_PER_CONFIG = 1024
+
+Id = Annotated[
+    str,
+    StringConstraints(min_length=1, max_length=64, pattern=r"^[^*$#?/\s@][^*$#?/\s]*$"),
+]
+"""A key chunk: no ``* $ # ? /``, no whitespace, not starting with ``@``."""
+
+Finite = Annotated[float, Field(allow_inf_nan=False)]
+Positive = Annotated[float, Field(gt=0.0, allow_inf_nan=False)]
+TimeNs = Annotated[int, Field(ge=0)]
+Point = tuple[Finite, Finite]
+"""A point or planar vector ``[x, y]``."""
+Polygon = Annotated[list[Point], Field(min_length=3, max_length=MAX_VERTICES)]
+
+
+class Message(BaseModel):
+    """Base of all wire messages (strict, frozen, no extra fields, finite numbers)."""
+
+    model_config = ConfigDict(
+        strict=True,
+        extra="forbid",
+        frozen=True,
+        allow_inf_nan=False,
+        json_schema_serialization_defaults_required=True,
+    )
+    TYPE: ClassVar[str] = ""
+
+
+class WorkspaceDefinition(Message):
+    """A polygonal workspace to be solved, put on ``{prefix}/ws/{ws}/definition``.
+
+    ``outer`` is the outer polygon, ``obstacles`` the holes (any orientation, no repeated
+    closing vertex); ``anchor`` the point mapped to 0 (None: maximal clearance); ``tol`` the
+    solver tolerance.
+    """
+
+    TYPE: ClassVar[str] = "confnav.WorkspaceDefinition"
+    type: Literal["confnav.WorkspaceDefinition"] = "confnav.WorkspaceDefinition"
+    schema_version: Literal[1] = 1
+    ws_id: Id
+    outer: Polygon
+    obstacles: Annotated[list[Polygon], Field(max_length=MAX_OBSTACLES)] = []
+    anchor: Point | None = None
+    tol: Annotated[float, Field(gt=0.0, le=1e-3)] = 1e-10
+    stamp_ns: TimeNs = 0
+
+
+class SolveDiagnostics(Message):
+    """Solver diagnostics copied from :class:`confnav.ConformalMap.diagnostics`."""
+
+    TYPE: ClassVar[str] = "confnav.SolveDiagnostics"
+    type: Literal["confnav.SolveDiagnostics"] = "confnav.SolveDiagnostics"
+    schema_version: Literal[1] = 1
+    sweeps: Annotated[int, Field(ge=0)]
+    error_estimate: Annotated[float, Field(ge=0.0)]
+    wall_time: Annotated[float, Field(ge=0.0)]
+    tol: Annotated[float, Field(ge=0.0)]
+    nodes: list[Annotated[int, Field(ge=0)]] = []
+
+
+class TransformSolution(Message):
+    """A solved map, put on ``{prefix}/ws/{ws}/transform`` and served by its queryable.
+
+    ``revision`` is the content hash of the coefficients (:attr:`ConformalMap.revision`),
+    ``definition_hash`` that of the workspace definition it was solved from. ``coefficients``
+    is :meth:`ConformalMap.to_dict` (lossless); ``centers``/``radii`` the circle domain.
+    """
+
+    TYPE: ClassVar[str] = "confnav.TransformSolution"
+    type: Literal["confnav.TransformSolution"] = "confnav.TransformSolution"
+    schema_version: Literal[1] = 1
+    ws_id: Id
+    revision: Annotated[str, Field(min_length=1, max_length=128)]
+    definition_hash: Annotated[str, Field(min_length=1, max_length=128)]
+    stamp_ns: TimeNs
+    anchor: Point
+    centers: list[Point]
+    radii: list[Annotated[float, Field(gt=0.0, allow_inf_nan=False)]]
+    diagnostics: SolveDiagnostics
+    coefficients: dict[str, JsonValue]
+
+
+class TransformStatus(Message):
+    """State of one workspace in the transform service, on ``{prefix}/ws/{ws}/status``."""
+
+    TYPE: ClassVar[str] = "confnav.TransformStatus"
+    type: Literal["confnav.TransformStatus"] = "confnav.TransformStatus"
+    schema_version: Literal[1] = 1
+    ws_id: Id
+    stamp_ns: TimeNs
+    state: Literal["solving", "solved", "failed"]
+    definition_hash: str
+    revision: str | None = None
+    message: Annotated[str, Field(max_length=4096)] = ""
+
+
+NavFnName = Literal["harmonic", "kr"]
+
+
+class Goal(Message):
+    """Navigation goal of one robot, on ``{prefix}/robot/{r}/goal``.
+
+    ``navfn`` names the navigation function (``harmonic``: tuning free; ``kr``:
+    Koditschek-Rimon with exponent ``k``, None for the library's certified default);
+    ``gain`` is K of the control law, ``v_max`` the speed limit (m/s), ``tolerance`` the arrival
+    radius (m).
+    """
+
+    TYPE: ClassVar[str] = "confnav.Goal"
+    type: Literal["confnav.Goal"] = "confnav.Goal"
+    schema_version: Literal[1] = 1
+    robot_id: Id
+    ws_id: Id
+    goal: Point
+    navfn: NavFnName = "harmonic"
+    k: Annotated[float, Field(ge=1.0, le=1000.0)] | None = None
+    gain: Positive = 1.0
+    v_max: Positive = 0.5
+    tolerance: Positive = 0.02
+    stamp_ns: TimeNs = 0
+
+
+class Pose(Message):
+    """Timestamped robot pose, on ``{prefix}/robot/{r}/pose``; ``seq`` counts poses."""
+
+    TYPE: ClassVar[str] = "confnav.Pose"
+    type: Literal["confnav.Pose"] = "confnav.Pose"
+    schema_version: Literal[1] = 1
+    robot_id: Id
+    stamp_ns: TimeNs
+    seq: Annotated[int, Field(ge=0)] = 0
+    x: Finite
+    y: Finite
+    theta: Finite = 0.0
+
+
+class VelocityCommand(Message):
+    """Twist-like command, on ``{prefix}/robot/{r}/cmd_vel``.
+
+    ``linear`` is ``[vx, vy]`` in the workspace frame (m/s), ``angular`` the yaw rate (rad/s);
+    ``pose_seq``/``pose_stamp_ns`` identify the pose it answers (-1/0: none, e.g. watchdog stop).
+    """
+
+    TYPE: ClassVar[str] = "confnav.VelocityCommand"
+    type: Literal["confnav.VelocityCommand"] = "confnav.VelocityCommand"
+    schema_version: Literal[1] = 1
+    robot_id: Id
+    stamp_ns: TimeNs
+    linear: Point
+    angular: Finite = 0.0
+    pose_seq: Annotated[int, Field(ge=-1)] = -1
+    pose_stamp_ns: TimeNs = 0
+    map_revision: str | None = None
+
+
+RobotState = Literal["idle", "navigating", "arrived", "stopped"]
+StatusReason = Literal[
+    "ok",
+    "no_goal",
+    "arrived",
+    "stale_pose",
+    "missing_map",
+    "nan_input",
+    "invalid_input",
+    "transform_service_dead",
+    "outside_workspace",
+    "solve_failed",
+    "navigation_error",
+]
+
+
+class RobotStatus(Message):
+    """Controller's view of one robot, on ``{prefix}/robot/{r}/status``.
+
+    ``state`` ``stopped`` always comes with a ``reason`` saying why the command is zero.
+    """
+
+    TYPE: ClassVar[str] = "confnav.RobotStatus"
+    type: Literal["confnav.RobotStatus"] = "confnav.RobotStatus"
+    schema_version: Literal[1] = 1
+    robot_id: Id
+    stamp_ns: TimeNs
+    state: RobotState
+    reason: StatusReason
+    message: Annotated[str, Field(max_length=4096)] = ""
+    ws_id: str | None = None
+    map_revision: str | None = None
+    position: Point | None = None
+    distance_to_goal: Finite | None = None
+
+
+class CollisionEvent(Message):
+    """Simulator report: the robot left the free space (``clearance`` <= 0, metres)."""
+
+    TYPE: ClassVar[str] = "confnav.CollisionEvent"
+    type: Literal["confnav.CollisionEvent"] = "confnav.CollisionEvent"
+    schema_version: Literal[1] = 1
+    robot_id: Id
+    ws_id: Id
+    stamp_ns: TimeNs
+    position: Point
+    clearance: Finite
+
+
+class SpawnRequest(Message):
+    """Ask the simulator ``{prefix}/sim/{sim}/spawn`` to add (or move) a robot."""
+
+    TYPE: ClassVar[str] = "confnav.SpawnRequest"
+    type: Literal["confnav.SpawnRequest"] = "confnav.SpawnRequest"
+    schema_version: Literal[1] = 1
+    robot_id: Id
+    ws_id: Id
+    position: Point
+    theta: Finite = 0.0
+    stamp_ns: TimeNs = 0
+
+
+class SimControl(Message):
+    """Pause, resume or reset the simulator (``robot_id`` None: all robots)."""
+
+    TYPE: ClassVar[str] = "confnav.SimControl"
+    type: Literal["confnav.SimControl"] = "confnav.SimControl"
+    schema_version: Literal[1] = 1
+    action: Literal["pause", "resume", "reset", "remove"]
+    robot_id: Id | None = None
+    stamp_ns: TimeNs = 0
+
+
+class ServiceHealth(Message):
+    """Periodic health of a service process, on ``{prefix}/health/{service}/{zid}``."""
+
+    TYPE: ClassVar[str] = "confnav.ServiceHealth"
+    type: Literal["confnav.ServiceHealth"] = "confnav.ServiceHealth"
+    schema_version: Literal[1] = 1
+    service: Id
+    zid: Id
+    stamp_ns: TimeNs
+    state: Literal["ok", "degraded"]
+    uptime_s: Annotated[float, Field(ge=0.0)]
+    counters: dict[str, int] = {}
+    detail: Annotated[str, Field(max_length=4096)] = ""
