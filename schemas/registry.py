@@ -105,9 +105,7 @@ def decode(model: type[M], payload: bytes | bytearray | memoryview, limit: int |
             reason = "schema_version"
         else:
             reason = "invalid_input"
-        short = "; ".join(
-            f"{'.'.join(str(p) for p in e['loc'])}: {e['msg']}" for e in errors[:3]
-        )
+        short = "; ".join(f"{'.'.join(str(p) for p in e['loc'])}: {e['msg']}" for e in errors[:3])
         raise DecodeError(reason, f"{model.TYPE}: {short}") from None
 
 

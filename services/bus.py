@@ -1,0 +1,452 @@
+"""The one small interface services talk through: publish, subscribe, query, queryable,
+liveliness. :class:`ZenohBus` is the real one; :class:`InMemoryBus` (on a shared
+:class:`InMemoryNetwork`) runs service logic in one process for fast tests.
+
+Threading contract (both implementations): handlers never run on a Zenoh thread. The Zenoh
+callbacks only append to an unbounded queue (never block, never drop); one dispatcher thread
+per subscription / queryable calls the handler in arrival order. Handlers may publish and
+query. A handler that raises is logged and the subscription carries on.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import queue
+import threading
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+import zenoh
+
+log = logging.getLogger(__name__)
+
+Handler = Callable[[str, bytes], None]
+"""Called with (concrete key, payload bytes)."""
+QueryHandler = Callable[[str, bytes | None], bytes]
+"""Called with (concrete key queried, query payload); returns the reply payload for that key,
+or raises :class:`QueryError` whose message goes back as ``reply_err``."""
+LivelinessHandler = Callable[[str, bool], None]
+"""Called with (token key, alive)."""
+
+
+class QueryError(Exception):
+    """Raised by a query handler: the message is sent back with ``reply_err``."""
+
+
+@dataclass(frozen=True)
+class Reply:
+    """One reply to a query: ``payload`` on success, else ``error`` (the ``reply_err`` text)."""
+
+    key: str
+    payload: bytes | None = None
+    error: str | None = None
+
+    @property
+    def ok(self) -> bool:
+        return self.error is None
+
+
+class Closeable(Protocol):
+    def close(self) -> None: ...
+
+
+class Bus(Protocol):
+    """What a service needs from the middleware."""
+
+    @property
+    def zid(self) -> str: ...
+
+    def publish(self, key: str, payload: bytes) -> None: ...
+
+    def subscribe(self, keyexpr: str, handler: Handler) -> Closeable: ...
+
+    def query(
+        self, selector: str, timeout: float = 2.0, payload: bytes | None = None
+    ) -> list[Reply]: ...
+
+    def queryable(self, keyexpr: str, handler: QueryHandler) -> Closeable: ...
+
+    def declare_token(self, key: str) -> Closeable: ...
+
+    def subscribe_liveliness(self, keyexpr: str, handler: LivelinessHandler) -> Closeable: ...
+
+    def alive(self, keyexpr: str, timeout: float = 1.0) -> list[str]: ...
+
+    def close(self) -> None: ...
+
+
+# ------------------------------------------------------------------------------------------
+# dispatching
+# ------------------------------------------------------------------------------------------
+_STOP = object()
+
+
+class _Dispatcher:
+    """Unbounded FIFO + one daemon thread calling ``fn(item)`` for each item."""
+
+    def __init__(self, name: str, fn: Callable[[Any], None]) -> None:
+        self._q: queue.SimpleQueue[Any] = queue.SimpleQueue()
+        self._fn = fn
+        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
+        self._thread.start()
+
+    def put(self, item: Any) -> None:
+        self._q.put(item)
+
+    def _run(self) -> None:
+        while True:
+            item = self._q.get()
+            if item is _STOP:
+                return
+            try:
+                self._fn(item)
+            except Exception:
+                log.exception("handler failed in %s", self._thread.name)
+
+    def stop(self, timeout: float = 2.0) -> None:
+        self._q.put(_STOP)
+        if threading.current_thread() is not self._thread:
+            self._thread.join(timeout)
+
+
+class _Handle:
+    def __init__(self, close: Callable[[], None]) -> None:
+        self._close = close
+        self._closed = False
+        self._lock = threading.Lock()
+
+    def close(self) -> None:
+        with self._lock:
+            if self._closed:
+                return
+            self._closed = True
+        self._close()
+
+
+# ------------------------------------------------------------------------------------------
+# Zenoh
+# ------------------------------------------------------------------------------------------
+def zenoh_config(
+    mode: str = "peer",
+    listen: Sequence[str] = (),
+    connect: Sequence[str] = (),
+    config_file: str | None = None,
+    multicast: bool = False,
+) -> zenoh.Config:
+    """A Zenoh config: explicit endpoints, multicast scouting off unless asked for."""
+    conf = zenoh.Config.from_file(config_file) if config_file else zenoh.Config()
+    conf.insert_json5("mode", json.dumps(mode))
+    conf.insert_json5("scouting/multicast/enabled", json.dumps(multicast))
+    if listen:
+        conf.insert_json5("listen/endpoints", json.dumps(list(listen)))
+    if connect:
+        conf.insert_json5("connect/endpoints", json.dumps(list(connect)))
+    return conf
+
+
+class ZenohBus:
+    """:class:`Bus` over a Zenoh session that this object opens and closes.
+
+    Use as a context manager (``with ZenohBus(conf) as bus``) so the session is always closed.
+    Puts use congestion control BLOCK (reliable, no silent drops); never publish from a Zenoh
+    callback (this class never does: handlers run on dispatcher threads).
+    """
+
+    def __init__(self, conf: zenoh.Config) -> None:
+        self._session = zenoh.open(conf)
+        self._zid = str(self._session.zid())
+        self._lock = threading.Lock()
+        self._handles: list[_Handle] = []
+        self._publishers: dict[str, zenoh.Publisher] = {}
+        self._closed = False
+
+    @property
+    def zid(self) -> str:
+        return self._zid
+
+    @property
+    def session(self) -> zenoh.Session:
+        return self._session
+
+    def __enter__(self) -> ZenohBus:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def _track(self, handle: _Handle) -> _Handle:
+        with self._lock:
+            self._handles.append(handle)
+        return handle
+
+    def publish(self, key: str, payload: bytes) -> None:
+        pub = self._publishers.get(key)
+        if pub is None:
+            with self._lock:
+                if self._closed:
+                    return
+                pub = self._publishers.get(key)
+                if pub is None:
+                    pub = self._session.declare_publisher(
+                        key,
+                        encoding=zenoh.Encoding.APPLICATION_JSON,
+                        congestion_control=zenoh.CongestionControl.BLOCK,
+                    )
+                    if len(self._publishers) > 4096:  # bound the cache (many robots)
+                        old = self._publishers.pop(next(iter(self._publishers)))
+                        old.undeclare()
+                    self._publishers[key] = pub
+        pub.put(payload)
+
+    def subscribe(self, keyexpr: str, handler: Handler) -> Closeable:
+        disp = _Dispatcher(f"sub:{keyexpr}", lambda item: handler(item[0], item[1]))
+
+        def on_sample(sample: zenoh.Sample) -> None:  # Zenoh thread: enqueue only
+            disp.put((str(sample.key_expr), sample.payload.to_bytes()))
+
+        sub = self._session.declare_subscriber(keyexpr, on_sample)
+
+        def close() -> None:
+            sub.undeclare()
+            disp.stop()
+
+        return self._track(_Handle(close))
+
+    def query(
+        self, selector: str, timeout: float = 2.0, payload: bytes | None = None
+    ) -> list[Reply]:
+        out: list[Reply] = []
+        replies = self._session.get(selector, timeout=timeout, payload=payload)
+        for rep in replies:
+            if rep.ok is not None:
+                out.append(Reply(str(rep.ok.key_expr), rep.ok.payload.to_bytes()))
+            elif rep.err is not None:
+                text = rep.err.payload.to_bytes().decode("utf-8", "replace")
+                out.append(Reply(selector, None, text))
+        return out
+
+    def queryable(self, keyexpr: str, handler: QueryHandler) -> Closeable:
+        def answer(q: zenoh.Query) -> None:
+            key = str(q.key_expr)
+            try:
+                body = q.payload.to_bytes() if q.payload is not None else None
+                data = handler(key, body)
+            except QueryError as exc:
+                q.reply_err(str(exc).encode())
+            except Exception as exc:  # a queryable that raises sends nothing: answer anyway
+                log.exception("query handler failed for %s", key)
+                q.reply_err(f"internal error: {exc}".encode())
+            else:
+                q.reply(key, data, encoding=zenoh.Encoding.APPLICATION_JSON)
+            finally:
+                q.drop()
+
+        disp = _Dispatcher(f"qbl:{keyexpr}", answer)
+        qbl = self._session.declare_queryable(keyexpr, disp.put, complete=True)
+
+        def close() -> None:
+            qbl.undeclare()
+            disp.stop()
+
+        return self._track(_Handle(close))
+
+    def declare_token(self, key: str) -> Closeable:
+        token = self._session.liveliness().declare_token(key)
+        return self._track(_Handle(token.undeclare))
+
+    def subscribe_liveliness(self, keyexpr: str, handler: LivelinessHandler) -> Closeable:
+        disp = _Dispatcher(f"live:{keyexpr}", lambda item: handler(item[0], item[1]))
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            disp.put((str(sample.key_expr), sample.kind == zenoh.SampleKind.PUT))
+
+        sub = self._session.liveliness().declare_subscriber(keyexpr, on_sample, history=True)
+
+        def close() -> None:
+            sub.undeclare()
+            disp.stop()
+
+        return self._track(_Handle(close))
+
+    def alive(self, keyexpr: str, timeout: float = 1.0) -> list[str]:
+        return sorted(
+            str(r.ok.key_expr)
+            for r in self._session.liveliness().get(keyexpr, timeout=timeout)
+            if r.ok is not None
+        )
+
+    def close(self) -> None:
+        with self._lock:
+            if self._closed:
+                return
+            self._closed = True
+            handles = list(self._handles)
+            pubs = list(self._publishers.values())
+            self._publishers.clear()
+        for h in handles:
+            try:
+                h.close()
+            except Exception:  # pragma: no cover - closing twice after session death
+                log.debug("close failed", exc_info=True)
+        for p in pubs:
+            try:
+                p.undeclare()
+            except Exception:  # pragma: no cover
+                log.debug("undeclare failed", exc_info=True)
+        self._session.close()
+
+
+# ------------------------------------------------------------------------------------------
+# in memory
+# ------------------------------------------------------------------------------------------
+def key_matches(expr: str, key: str) -> bool:
+    """Whether concrete ``key`` matches ``expr`` (``*`` one chunk, ``**`` any number)."""
+    e = expr.split("/")
+    k = key.split("/")
+
+    def rec(i: int, j: int) -> bool:
+        if i == len(e):
+            return j == len(k)
+        if e[i] == "**":
+            return any(rec(i + 1, jj) for jj in range(j, len(k) + 1))
+        if j == len(k):
+            return False
+        if e[i] == "*" or e[i] == k[j]:
+            return rec(i + 1, j + 1)
+        return False
+
+    return rec(0, 0)
+
+
+@dataclass
+class InMemoryNetwork:
+    """A shared in-process 'network' for :class:`InMemoryBus` instances."""
+
+    lock: threading.RLock = field(default_factory=threading.RLock)
+    subs: list[tuple[str, _Dispatcher]] = field(default_factory=list)
+    queryables: list[tuple[str, QueryHandler]] = field(default_factory=list)
+    tokens: dict[str, int] = field(default_factory=dict)
+    live_subs: list[tuple[str, _Dispatcher]] = field(default_factory=list)
+    published: list[tuple[str, bytes]] = field(default_factory=list)
+
+    def bus(self, name: str = "mem") -> InMemoryBus:
+        return InMemoryBus(self, name)
+
+
+class InMemoryBus:
+    """:class:`Bus` on an :class:`InMemoryNetwork`: same threading contract, no sockets."""
+
+    _count = 0
+
+    def __init__(self, net: InMemoryNetwork, name: str = "mem") -> None:
+        InMemoryBus._count += 1
+        self._net = net
+        self._zid = f"{name}{InMemoryBus._count}"
+        self._handles: list[_Handle] = []
+
+    @property
+    def zid(self) -> str:
+        return self._zid
+
+    def __enter__(self) -> InMemoryBus:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def publish(self, key: str, payload: bytes) -> None:
+        with self._net.lock:
+            self._net.published.append((key, bytes(payload)))
+            targets = [d for e, d in self._net.subs if key_matches(e, key)]
+        for d in targets:
+            d.put((key, bytes(payload)))
+
+    def subscribe(self, keyexpr: str, handler: Handler) -> Closeable:
+        disp = _Dispatcher(f"memsub:{keyexpr}", lambda item: handler(item[0], item[1]))
+        entry = (keyexpr, disp)
+        with self._net.lock:
+            self._net.subs.append(entry)
+
+        def close() -> None:
+            with self._net.lock:
+                self._net.subs.remove(entry)
+            disp.stop()
+
+        h = _Handle(close)
+        self._handles.append(h)
+        return h
+
+    def query(
+        self, selector: str, timeout: float = 2.0, payload: bytes | None = None
+    ) -> list[Reply]:
+        with self._net.lock:
+            targets = [(e, h) for e, h in self._net.queryables if key_matches(e, selector)]
+        out = []
+        for _e, h in targets:
+            try:
+                out.append(Reply(selector, h(selector, payload)))
+            except QueryError as exc:
+                out.append(Reply(selector, None, str(exc)))
+            except Exception as exc:
+                out.append(Reply(selector, None, f"internal error: {exc}"))
+        return out
+
+    def queryable(self, keyexpr: str, handler: QueryHandler) -> Closeable:
+        entry = (keyexpr, handler)
+        with self._net.lock:
+            self._net.queryables.append(entry)
+
+        def close() -> None:
+            with self._net.lock:
+                self._net.queryables.remove(entry)
+
+        h = _Handle(close)
+        self._handles.append(h)
+        return h
+
+    def declare_token(self, key: str) -> Closeable:
+        self._token_change(key, +1)
+        h = _Handle(lambda: self._token_change(key, -1))
+        self._handles.append(h)
+        return h
+
+    def _token_change(self, key: str, delta: int) -> None:
+        with self._net.lock:
+            n = self._net.tokens.get(key, 0) + delta
+            if n > 0:
+                self._net.tokens[key] = n
+            else:
+                self._net.tokens.pop(key, None)
+            changed = (delta > 0 and n == 1) or (delta < 0 and n <= 0)
+            targets = [d for e, d in self._net.live_subs if key_matches(e, key)] if changed else []
+        for d in targets:
+            d.put((key, delta > 0))
+
+    def subscribe_liveliness(self, keyexpr: str, handler: LivelinessHandler) -> Closeable:
+        disp = _Dispatcher(f"memlive:{keyexpr}", lambda item: handler(item[0], item[1]))
+        entry = (keyexpr, disp)
+        with self._net.lock:
+            self._net.live_subs.append(entry)
+            current = [k for k in self._net.tokens if key_matches(keyexpr, k)]
+        for k in current:
+            disp.put((k, True))
+
+        def close() -> None:
+            with self._net.lock:
+                self._net.live_subs.remove(entry)
+            disp.stop()
+
+        h = _Handle(close)
+        self._handles.append(h)
+        return h
+
+    def alive(self, keyexpr: str, timeout: float = 1.0) -> list[str]:
+        with self._net.lock:
+            return sorted(k for k in self._net.tokens if key_matches(keyexpr, k))
+
+    def close(self) -> None:
+        handles, self._handles = self._handles, []
+        for h in handles:
+            h.close()
