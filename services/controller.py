@@ -1,0 +1,406 @@
+"""Controller service: per robot, goal + map + pose -> velocity command and status.
+
+Subscribes ``{prefix}/robot/*/goal``, ``{prefix}/robot/*/pose``, ``{prefix}/ws/*/transform``
+and the liveliness of ``{prefix}/alive/transform/*``; fetches missing maps with a query on
+``{prefix}/ws/{ws}/transform``; publishes ``cmd_vel`` and ``status`` per robot. A re-solved
+map is loaded and the robots' controllers rebuilt off the pose path, then swapped in
+atomically: robots keep moving on the old map until the new one is ready.
+
+Watchdog (zero velocity and a status saying why): stale pose (none for ``stale_after`` s),
+missing map, NaN or invalid pose, position outside the map, no live transform service.
+Many robots per process; ``robots`` restricts which ones this process drives.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+from confnav.schemas import (
+    DecodeError,
+    Goal,
+    Pose,
+    RobotStatus,
+    TransformSolution,
+    VelocityCommand,
+    decode,
+    encode,
+)
+from confnav.services import navigation
+from confnav.services.bus import Bus
+from confnav.services.keys import KeyError_, Keys
+from confnav.services.runtime import Service, add_zenoh_args, run_until_signal
+
+log = logging.getLogger(__name__)
+
+MapLoader = Callable[[TransformSolution], Any]
+ControllerFactory = Callable[[Any, Goal], navigation.ControllerLike]
+
+
+@dataclass
+class _Map:
+    revision: str
+    cmap: Any
+
+
+@dataclass
+class _Robot:
+    robot_id: str
+    goal: Goal | None = None
+    ctrl: navigation.ControllerLike | None = None
+    ctrl_revision: str | None = None
+    ctrl_error: str = ""
+    last_pose_t: float | None = None  # monotonic receive time
+    position: tuple[float, float] | None = None
+    status_key: tuple[str, str, str | None] = ("", "", None)
+    status_t: float = 0.0
+    stale_reported: bool = False
+    lock: threading.Lock = field(default_factory=threading.Lock)
+
+
+class ControllerService(Service):
+    """See the module docstring."""
+
+    name = "controller"
+
+    def __init__(
+        self,
+        bus: Bus,
+        keys: Keys | None = None,
+        robots: set[str] | None = None,
+        stale_after: float = 0.5,
+        status_period: float = 0.25,
+        fetch_period: float = 0.5,
+        require_transform: bool = True,
+        map_loader: MapLoader = navigation.load_map,
+        controller_factory: ControllerFactory = navigation.make_controller,
+        health_period: float = 1.0,
+    ) -> None:
+        super().__init__(bus, keys, health_period)
+        self.only = robots
+        self.stale_after = stale_after
+        self.status_period = status_period
+        self.fetch_period = fetch_period
+        self.require_transform = require_transform
+        self._load_map = map_loader
+        self._make_ctrl = controller_factory
+        self._lock = threading.Lock()
+        self._robots: dict[str, _Robot] = {}
+        self._maps: dict[str, _Map] = {}
+        self._map_errors: dict[str, str] = {}
+        self._transform_alive: set[str] = set()
+        self._wake_fetch = threading.Event()
+        self.swapped = threading.Event()  # set on each hot swap (tests)
+
+    def _start(self) -> None:
+        k = self.keys
+        self._handles.append(self.bus.subscribe_liveliness(k.alive_of("transform"), self._on_live))
+        self._handles.append(self.bus.subscribe(k.any_ws("transform"), self._on_transform))
+        self._handles.append(self.bus.subscribe(k.any_robot("goal"), self._on_goal))
+        self._handles.append(self.bus.subscribe(k.any_robot("pose"), self._on_pose))
+        self.spawn(self._fetch_loop, "fetch")
+        self.spawn(self._watchdog_loop, "watchdog")
+
+    def health_detail(self) -> tuple[str, str]:
+        if self.require_transform and not self.transform_alive:
+            return "degraded", "no transform service alive"
+        return "ok", ""
+
+    @property
+    def transform_alive(self) -> bool:
+        return bool(self._transform_alive)
+
+    # liveliness and maps -----------------------------------------------------------------
+    def _on_live(self, key: str, alive: bool) -> None:
+        if alive:
+            self._transform_alive.add(key)
+        else:
+            self._transform_alive.discard(key)
+        log.info("transform service %s %s", key, "alive" if alive else "gone")
+        self._wake_fetch.set()
+
+    def _on_transform(self, key: str, payload: bytes) -> None:
+        try:
+            ws_id = self.keys.parse(key).ident
+            sol = decode(TransformSolution, payload)
+        except (KeyError_, DecodeError) as exc:
+            self.count("rejected")
+            log.warning("rejected transform on %s: %s", key, exc)
+            return
+        if sol.ws_id != ws_id:
+            self.count("rejected")
+            return
+        self._install(sol)
+
+    def _install(self, sol: TransformSolution) -> None:
+        """Load a solution and rebuild the controllers of its robots, then swap (hot)."""
+        ws_id = sol.ws_id
+        cur = self._maps.get(ws_id)
+        if cur is not None and cur.revision == sol.revision:
+            return
+        try:
+            cmap = self._load_map(sol)
+        except Exception as exc:
+            self.count("map_load_errors")
+            self._map_errors[ws_id] = f"cannot load map: {exc}"
+            log.error("workspace %r: cannot load map %s: %s", ws_id, sol.revision[:12], exc)
+            return
+        new = _Map(sol.revision, cmap)
+        with self._lock:
+            robots = [r for r in self._robots.values() if r.goal and r.goal.ws_id == ws_id]
+        built = {r.robot_id: self._build(new, r.goal) for r in robots if r.goal}
+        with self._lock:
+            self._maps[ws_id] = new
+            self._map_errors.pop(ws_id, None)
+            for r in robots:
+                ctrl, err = built[r.robot_id]
+                with r.lock:
+                    if r.goal is None or r.goal.ws_id != ws_id:
+                        continue
+                    r.ctrl, r.ctrl_revision, r.ctrl_error = ctrl, new.revision, err
+        self.count("maps_installed")
+        log.info(
+            "workspace %r: map %s installed (%d robots)", ws_id, sol.revision[:12], len(robots)
+        )
+        self.swapped.set()
+
+    def _build(self, m: _Map, goal: Goal) -> tuple[navigation.ControllerLike | None, str]:
+        try:
+            return self._make_ctrl(m.cmap, goal), ""
+        except Exception as exc:
+            self.count("navigation_errors")
+            return None, f"{type(exc).__name__}: {exc}"
+
+    def _fetch_loop(self) -> None:
+        while not self._stop.is_set():
+            self._wake_fetch.wait(self.fetch_period)
+            self._wake_fetch.clear()
+            if self._stop.is_set():
+                return
+            with self._lock:
+                needed = {
+                    r.goal.ws_id
+                    for r in self._robots.values()
+                    if r.goal is not None and r.goal.ws_id not in self._maps
+                }
+            for ws_id in sorted(needed):
+                self._fetch(ws_id)
+
+    def _fetch(self, ws_id: str) -> None:
+        self.count("queries")
+        try:
+            replies = self.bus.query(self.keys.ws(ws_id, "transform"), timeout=2.0)
+        except Exception as exc:
+            self._map_errors[ws_id] = f"query failed: {exc}"
+            return
+        if not replies:
+            self._map_errors[ws_id] = "no transform service answered"
+            return
+        for rep in replies:
+            if not rep.ok or rep.payload is None:
+                self._map_errors[ws_id] = rep.error or "error"
+                continue
+            try:
+                sol = decode(TransformSolution, rep.payload)
+            except DecodeError as exc:
+                self._map_errors[ws_id] = str(exc)
+                continue
+            self._install(sol)
+            return
+
+    # goals -------------------------------------------------------------------------------
+    def _robot(self, rid: str) -> _Robot | None:
+        if self.only is not None and rid not in self.only:
+            return None
+        with self._lock:
+            r = self._robots.get(rid)
+            if r is None:
+                r = self._robots[rid] = _Robot(rid)
+            return r
+
+    def _on_goal(self, key: str, payload: bytes) -> None:
+        try:
+            rid = self.keys.parse(key).ident
+            goal = decode(Goal, payload)
+        except (KeyError_, DecodeError) as exc:
+            self.count("rejected")
+            log.warning("rejected goal on %s: %s", key, exc)
+            return
+        if goal.robot_id != rid:
+            self.count("rejected")
+            log.warning("goal on %s names robot %r: ignored", key, goal.robot_id)
+            return
+        r = self._robot(rid)
+        if r is None:
+            return
+        self.count("goals")
+        m = self._maps.get(goal.ws_id)
+        ctrl, err = self._build(m, goal) if m is not None else (None, "")
+        with r.lock:
+            r.goal, r.ctrl, r.ctrl_error = goal, ctrl, err
+            r.ctrl_revision = m.revision if m is not None else None
+            r.stale_reported = False
+            r.status_key = ("", "", None)
+        if m is None:
+            self._wake_fetch.set()
+        log.info("robot %r: goal %s on %r", rid, goal.goal, goal.ws_id)
+
+    # poses (hot path) -------------------------------------------------------------------------
+    def _on_pose(self, key: str, payload: bytes) -> None:
+        self.count("poses")
+        try:
+            rid = self.keys.parse(key).ident
+        except KeyError_:
+            self.count("rejected")
+            return
+        with self._lock:
+            r = self._robots.get(rid)
+        if r is None or r.goal is None:
+            return
+        now = time.monotonic()
+        try:
+            pose = decode(Pose, payload)
+            if pose.robot_id != rid:
+                raise DecodeError("invalid_input", f"pose on {key} names robot {pose.robot_id!r}")
+        except DecodeError as exc:
+            self.count("rejected")
+            reason = "nan_input" if exc.reason == "nan_input" else "invalid_input"
+            with r.lock:
+                r.last_pose_t = now  # the robot is alive, but its input is unusable
+                self._stop_robot(r, reason, str(exc), now)
+            return
+        with r.lock:
+            r.last_pose_t = now
+            r.position = (pose.x, pose.y)
+            r.stale_reported = False
+            blocker = self._blocker(r)
+            if blocker is not None:
+                self._stop_robot(r, blocker[0], blocker[1], now, pose)
+                return
+            assert r.ctrl is not None and r.goal is not None
+            try:
+                u, code = navigation.command(r.ctrl, pose.x, pose.y)
+            except Exception as exc:
+                self.count("navigation_errors")
+                self._stop_robot(r, "navigation_error", f"{type(exc).__name__}: {exc}", now, pose)
+                return
+            if code == navigation.ERROR or u != u:  # NaN guard
+                self._stop_robot(
+                    r, "outside_workspace", "pose outside the mapped free space", now, pose
+                )
+                return
+            if code == navigation.ARRIVED:
+                self._publish_cmd(r, 0j, pose)
+                self._status(r, "arrived", "arrived", "", now)
+                return
+            self._publish_cmd(r, u, pose)
+            self._status(
+                r,
+                "navigating",
+                "ok",
+                "stalled at a saddle" if code == navigation.STALLED else "",
+                now,
+            )
+
+    def _blocker(self, r: _Robot) -> tuple[str, str] | None:
+        """Why this robot must not move now, or None."""
+        if self.require_transform and not self._transform_alive:
+            return "transform_service_dead", "no transform service is alive"
+        if r.ctrl is None:
+            assert r.goal is not None
+            if r.ctrl_error:
+                return "navigation_error", r.ctrl_error
+            err = self._map_errors.get(r.goal.ws_id, "waiting for the map")
+            return "missing_map", err
+        return None
+
+    def _stop_robot(
+        self, r: _Robot, reason: str, message: str, now: float, pose: Pose | None = None
+    ) -> None:
+        self.count(f"stops_{reason}")
+        self._publish_cmd(r, 0j, pose)
+        self._status(r, "stopped", reason, message, now)
+
+    def _publish_cmd(self, r: _Robot, u: complex, pose: Pose | None) -> None:
+        cmd = VelocityCommand(
+            robot_id=r.robot_id,
+            stamp_ns=time.time_ns(),
+            linear=(u.real, u.imag),
+            pose_seq=pose.seq if pose is not None else -1,
+            pose_stamp_ns=pose.stamp_ns if pose is not None else 0,
+            map_revision=r.ctrl_revision,
+        )
+        self.bus.publish(self.keys.robot(r.robot_id, "cmd_vel"), encode(cmd))
+        self.count("commands")
+
+    def _status(self, r: _Robot, state: str, reason: str, message: str, now: float) -> None:
+        skey = (state, reason, r.ctrl_revision)
+        if skey == r.status_key and now - r.status_t < self.status_period:
+            return
+        r.status_key, r.status_t = skey, now
+        dist = None
+        if r.position is not None and r.goal is not None:
+            dx, dy = r.position[0] - r.goal.goal[0], r.position[1] - r.goal.goal[1]
+            dist = (dx * dx + dy * dy) ** 0.5
+        status = RobotStatus(
+            robot_id=r.robot_id,
+            stamp_ns=time.time_ns(),
+            state=state,  # type: ignore[arg-type]
+            reason=reason,  # type: ignore[arg-type]
+            message=message[:4000],
+            ws_id=r.goal.ws_id if r.goal else None,
+            map_revision=r.ctrl_revision,
+            position=r.position,
+            distance_to_goal=dist,
+        )
+        self.bus.publish(self.keys.robot(r.robot_id, "status"), encode(status))
+
+    # watchdog -------------------------------------------------------------------------------
+    def _watchdog_loop(self) -> None:
+        period = min(0.05, self.stale_after / 4)
+        while not self._stop.wait(period):
+            now = time.monotonic()
+            with self._lock:
+                robots = list(self._robots.values())
+            for r in robots:
+                with r.lock:
+                    if r.goal is None:
+                        continue
+                    if r.last_pose_t is None or now - r.last_pose_t > self.stale_after:
+                        if not r.stale_reported:
+                            r.stale_reported = True
+                            self._stop_robot(
+                                r, "stale_pose", f"no pose for {self.stale_after:g} s", now
+                            )
+                        else:
+                            self._status(r, "stopped", "stale_pose", "", now)
+                        continue
+                    blocker = self._blocker(r)
+                    if blocker is not None:  # poses still come: the pose path reports it too
+                        self._status(r, "stopped", blocker[0], blocker[1], now)
+
+    def robot_state(self, rid: str) -> tuple[str, str] | None:
+        """(state, reason) last published for a robot (tests)."""
+        with self._lock:
+            r = self._robots.get(rid)
+        return None if r is None else (r.status_key[0], r.status_key[1])
+
+
+def add_parser(sub: Any) -> None:
+    p: argparse.ArgumentParser = sub.add_parser("controller", help="run the controller service")
+    add_zenoh_args(p)
+    p.add_argument("--robots", default=None, help="comma-separated robot ids (default: all)")
+    p.add_argument("--stale-after", type=float, default=0.5, help="pose timeout, s")
+    p.set_defaults(func=main)
+
+
+def main(args: argparse.Namespace) -> int:
+    robots = set(args.robots.split(",")) if args.robots else None
+    return run_until_signal(
+        lambda bus, keys: ControllerService(bus, keys, robots, stale_after=args.stale_after), args
+    )

@@ -1,0 +1,56 @@
+"""The one place services touch the navigation library: load a map from a
+``TransformSolution`` and build the Theorem 2 controller for a ``Goal``. No math here."""
+
+from __future__ import annotations
+
+from typing import Any, Protocol
+
+import numpy as np
+
+from confnav.schemas import Goal, TransformSolution
+
+# Status codes of confnav.control.Status (kept as ints so tests can fake the controller).
+MOVING, ARRIVED, STALLED, ERROR = 0, 1, 2, 3
+
+
+class ControlOutputLike(Protocol):
+    @property
+    def u(self) -> Any: ...
+
+    @property
+    def status(self) -> Any: ...
+
+
+class ControllerLike(Protocol):
+    """``confnav.control.Controller``: called on positions (complex array), returns u and
+    status codes (MOVING, ARRIVED, STALLED, ERROR)."""
+
+    def __call__(self, z: Any) -> ControlOutputLike: ...
+
+
+def load_map(solution: TransformSolution) -> Any:
+    """The :class:`confnav.ConformalMap` of a solution message (bit-identical to the solver's)."""
+    from confnav.cmap import ConformalMap
+
+    return ConformalMap.from_dict(solution.coefficients)
+
+
+def make_controller(cmap: Any, goal: Goal) -> ControllerLike:
+    """The feedback law for ``goal`` on ``cmap`` (raises ``NavigationError`` for a bad goal)."""
+    from confnav.control import Controller
+
+    return Controller(
+        cmap,
+        complex(goal.goal[0], goal.goal[1]),
+        navfn=goal.navfn,
+        k="auto" if goal.k is None else goal.k,
+        gain=goal.gain,
+        v_max=goal.v_max,
+        goal_tol=goal.tolerance,
+    )
+
+
+def command(ctrl: ControllerLike, x: float, y: float) -> tuple[complex, int]:
+    """(u, status) for one robot at (x, y)."""
+    out = ctrl(np.asarray(complex(x, y)))
+    return complex(np.asarray(out.u).item()), int(np.asarray(out.status).item())

@@ -1,0 +1,159 @@
+"""What every service process shares: Zenoh command-line options, the liveliness token,
+periodic health, counters, and running until SIGINT/SIGTERM with the session always closed."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import signal
+import threading
+import time
+from collections import Counter
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from types import FrameType
+
+from confnav.schemas import ServiceHealth, encode
+from confnav.services.bus import Bus, Closeable, ZenohBus, zenoh_config
+from confnav.services.keys import DEFAULT_PREFIX, Keys
+
+log = logging.getLogger(__name__)
+
+
+def add_zenoh_args(parser: argparse.ArgumentParser) -> None:
+    """``--mode --listen --connect --zenoh-config --prefix`` (the same for every service)."""
+    g = parser.add_argument_group("zenoh")
+    g.add_argument("--mode", default="client", choices=("client", "peer", "router"))
+    g.add_argument("--listen", action="append", default=[], metavar="ENDPOINT")
+    g.add_argument("--connect", action="append", default=[], metavar="ENDPOINT")
+    g.add_argument("--zenoh-config", default=None, metavar="FILE", help="zenoh JSON5 config")
+    g.add_argument("--prefix", default=DEFAULT_PREFIX, help="key prefix (default %(default)s)")
+
+
+def bus_from_args(args: argparse.Namespace) -> ZenohBus:
+    conf = zenoh_config(args.mode, args.listen, args.connect, args.zenoh_config)
+    return ZenohBus(conf)
+
+
+class Service:
+    """Base of the services: liveliness token ``{prefix}/alive/{name}/{zid}``, counters, and a
+    health message on ``{prefix}/health/{name}/{zid}`` every ``health_period`` seconds.
+
+    Subclasses implement :meth:`_start` (declare subscriptions etc.) and may extend
+    :meth:`stop` and :meth:`health_detail`.
+    """
+
+    name = "service"
+
+    def __init__(self, bus: Bus, keys: Keys | None = None, health_period: float = 1.0) -> None:
+        self.bus = bus
+        self.keys = keys or Keys()
+        self.counters: Counter[str] = Counter()
+        self._counter_lock = threading.Lock()
+        self._handles: list[Closeable] = []
+        self._stop = threading.Event()
+        self._threads: list[threading.Thread] = []
+        self._health_period = health_period
+        self._t0 = time.monotonic()
+
+    # lifecycle -------------------------------------------------------------------------
+    def start(self) -> None:
+        self._start()
+        self._handles.append(self.bus.declare_token(self.keys.alive(self.name, self.bus.zid)))
+        if self._health_period > 0:
+            self.spawn(self._health_loop, "health")
+        log.info("%s service started (zid %s)", self.name, self.bus.zid)
+
+    def _start(self) -> None:
+        raise NotImplementedError
+
+    def spawn(self, fn: Callable[[], None], what: str) -> threading.Thread:
+        t = threading.Thread(target=fn, name=f"{self.name}:{what}", daemon=True)
+        t.start()
+        self._threads.append(t)
+        return t
+
+    def stop(self) -> None:
+        self._stop.set()
+        for h in reversed(self._handles):
+            try:
+                h.close()
+            except Exception:
+                log.debug("closing handle failed", exc_info=True)
+        self._handles.clear()
+        for t in self._threads:
+            if t is not threading.current_thread():
+                t.join(timeout=2.0)
+
+    @property
+    def stopped(self) -> bool:
+        return self._stop.is_set()
+
+    def __enter__(self) -> Service:
+        self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    # counters and health ----------------------------------------------------------------
+    def count(self, what: str, n: int = 1) -> None:
+        with self._counter_lock:
+            self.counters[what] += n
+
+    def health_detail(self) -> tuple[str, str]:
+        """(state, detail) for the health message; override to report degradation."""
+        return "ok", ""
+
+    def health(self) -> ServiceHealth:
+        state, detail = self.health_detail()
+        with self._counter_lock:
+            counters = dict(self.counters)
+        return ServiceHealth(
+            service=self.name,
+            zid=self.bus.zid,
+            stamp_ns=time.time_ns(),
+            state="ok" if state == "ok" else "degraded",
+            uptime_s=time.monotonic() - self._t0,
+            counters=counters,
+            detail=detail[:4000],
+        )
+
+    def _health_loop(self) -> None:
+        key = self.keys.health(self.name, self.bus.zid)
+        while not self._stop.wait(self._health_period):
+            try:
+                self.bus.publish(key, encode(self.health()))
+            except Exception:
+                log.exception("publishing health failed")
+
+
+@contextmanager
+def stop_on_signals() -> Iterator[threading.Event]:
+    """An event set by SIGINT or SIGTERM (previous handlers restored afterwards)."""
+    ev = threading.Event()
+
+    def handler(signum: int, frame: FrameType | None) -> None:
+        log.info("signal %d: stopping", signum)
+        ev.set()
+
+    old = {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield ev
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)
+
+
+def run_until_signal(make: Callable[[Bus, Keys], Service], args: argparse.Namespace) -> int:
+    """Open the session, start the service, wait for SIGINT/SIGTERM, stop, close. Exit code."""
+    keys = Keys(args.prefix)
+    with stop_on_signals() as ev, bus_from_args(args) as bus:
+        service = make(bus, keys)
+        service.start()
+        try:
+            while not ev.wait(0.5):
+                pass
+        finally:
+            service.stop()
+    return 0
