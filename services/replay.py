@@ -1,0 +1,214 @@
+"""``confnav replay FILE.mcap``: republish a recording onto Zenoh with its original timing.
+
+Messages are sent in log-time order, each to its recorded key (the channel topic) or, with
+``prefix``, to the same key under a new prefix. Message ``i`` goes out at
+``t_start + (log_time_i - log_time_0) / speed`` on the monotonic clock (``speed=None``: as fast
+as possible); payloads are the recorded bytes, unchanged. Puts use congestion control BLOCK
+(no silent drops) and encoding ``application/json``.
+
+Not replayed by default: liveliness keys (``{prefix}/alive/**``, tokens, not puts) and the
+Foxglove visualisation channels (``{prefix}/viz/**``, made by the recorder, not Zenoh traffic).
+``include``/``exclude`` take key expressions (``*`` one chunk, ``**`` any), matched against the
+recorded topics; an explicit ``include`` overrides the default exclusions.
+
+Before sending, replay waits up to ``wait_subscribers`` seconds until every replayed key has a
+matching subscriber (Zenoh matching status), so a recorder or controller started just before
+does not miss the first messages; keys nobody listens to are reported.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import threading
+import time
+from collections import Counter
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import zenoh
+
+from confnav.errors import ConfnavError
+from confnav.services.bus import key_matches
+from confnav.services.foxglove import is_viz_topic
+from confnav.services.inspection import Recording, RecordingError
+
+logger = logging.getLogger(__name__)
+
+NS_PER_S = 1_000_000_000
+
+
+class ReplayError(ConfnavError):
+    """Bad replay options (no topic selected, bad prefix, ...)."""
+
+
+@dataclass
+class ReplayReport:
+    """Outcome of a replay: messages sent per key (after remapping), keys without subscribers,
+    wall-clock duration and the largest lateness against the schedule (s)."""
+
+    published: Counter[str] = field(default_factory=Counter)
+    unmatched_keys: list[str] = field(default_factory=list)
+    wall_time_s: float = 0.0
+    max_lateness_s: float = 0.0
+    recorded_duration_s: float = 0.0
+    interrupted: bool = False
+
+    @property
+    def total(self) -> int:
+        return sum(self.published.values())
+
+    def summary(self) -> str:
+        lines = [
+            f"replayed {self.total} messages on {len(self.published)} keys in "
+            f"{self.wall_time_s:.3f} s (recorded span {self.recorded_duration_s:.3f} s, "
+            f"max lateness {1e3 * self.max_lateness_s:.1f} ms)"
+            + (" - interrupted" if self.interrupted else "")
+        ]
+        for key, n in sorted(self.published.items()):
+            lines.append(f"  {n:>7}  {key}")
+        if self.unmatched_keys:
+            lines.append(f"no subscriber for: {', '.join(sorted(self.unmatched_keys))}")
+        return "\n".join(lines)
+
+
+def select_topics(
+    topics: Sequence[str],
+    prefix: str,
+    include: Sequence[str] = (),
+    exclude: Sequence[str] = (),
+) -> list[str]:
+    """Recorded topics to replay: ``include`` (default: all but alive/viz) minus ``exclude``."""
+    chosen = []
+    for topic in topics:
+        if include:
+            if not any(key_matches(expr, topic) for expr in include):
+                continue
+        elif topic.startswith(f"{prefix}/alive/") or is_viz_topic(topic, prefix):
+            continue
+        if any(key_matches(expr, topic) for expr in exclude):
+            continue
+        chosen.append(topic)
+    return chosen
+
+
+def remap(topic: str, old_prefix: str, new_prefix: str | None) -> str:
+    """``topic`` with its leading ``old_prefix`` replaced by ``new_prefix`` (None: unchanged)."""
+    if new_prefix is None or new_prefix == old_prefix:
+        return topic
+    if topic.startswith(old_prefix + "/"):
+        return new_prefix + topic[len(old_prefix) :]
+    return f"{new_prefix}/{topic}"
+
+
+def _matching(publisher: zenoh.Publisher) -> bool:
+    """Whether a subscriber matches (the stubs say bool, zenoh 1.x returns MatchingStatus)."""
+    status: object = publisher.matching_status
+    return bool(getattr(status, "matching", status))
+
+
+def _wait_matching(
+    publishers: dict[str, zenoh.Publisher], timeout: float, stop: threading.Event
+) -> list[str]:
+    """Wait until each publisher has a matching subscriber; return the keys still unmatched."""
+    deadline = time.monotonic() + timeout
+    pending = dict(publishers)
+    while pending and not stop.is_set():
+        pending = {k: p for k, p in pending.items() if not _matching(p)}
+        if not pending or time.monotonic() >= deadline:
+            break
+        time.sleep(0.01)
+    return sorted(pending)
+
+
+def replay(
+    path: str | os.PathLike[str],
+    conf: zenoh.Config,
+    *,
+    speed: float | None = 1.0,
+    include: Sequence[str] = (),
+    exclude: Sequence[str] = (),
+    prefix: str | None = None,
+    wait_subscribers: float = 1.0,
+    stop: threading.Event | None = None,
+    on_message: Callable[[str, int], None] | None = None,
+) -> ReplayReport:
+    """Republish the recording ``path`` on a Zenoh session opened from ``conf``.
+
+    Parameters
+    ----------
+    speed : playback rate (2.0: twice as fast); None: as fast as possible.
+    include, exclude : key expressions selecting recorded topics (see module docstring).
+    prefix : new key prefix replacing the recorded one (None: the recorded keys).
+    wait_subscribers : seconds to wait for subscribers on the replayed keys before sending.
+    stop : set it to end the replay early (the report says ``interrupted``).
+    on_message : called with (key, log_time_ns) after each put (progress, tests).
+    """
+    if speed is not None and not (speed > 0 and speed < float("inf")):
+        raise ReplayError(f"speed must be a positive finite number, got {speed}")
+    if prefix is not None:
+        from confnav.services.keys import KeyError_, validate_prefix
+
+        try:
+            validate_prefix(prefix)
+        except KeyError_ as exc:
+            raise ReplayError(f"bad prefix: {exc}") from exc
+    stop = stop or threading.Event()
+    report = ReplayReport()
+    with Recording(path) as rec:
+        topics = select_topics(rec.topics(), rec.prefix, include, exclude)
+        if not topics:
+            raise ReplayError(
+                f"{rec.path}: no recorded topic selected (recorded: {', '.join(rec.topics())})"
+            )
+        keys = {t: remap(t, rec.prefix, prefix) for t in topics}
+        report.recorded_duration_s = rec.duration_s
+        with zenoh.open(conf) as session:
+            publishers: dict[str, zenoh.Publisher] = {}
+            try:
+                for key in sorted(set(keys.values())):
+                    try:
+                        publishers[key] = session.declare_publisher(
+                            key,
+                            encoding=zenoh.Encoding.APPLICATION_JSON,
+                            congestion_control=zenoh.CongestionControl.BLOCK,
+                        )
+                    except zenoh.ZError as exc:
+                        raise RecordingError(
+                            f"recorded topic {key!r} is not a Zenoh key: {exc}"
+                        ) from None
+                if wait_subscribers > 0:
+                    report.unmatched_keys = _wait_matching(publishers, wait_subscribers, stop)
+                    for key in report.unmatched_keys:
+                        logger.warning("no subscriber for %s", key)
+                t_start = time.monotonic()
+                t0_ns: int | None = None
+                for msg in rec.iter_messages(topics):
+                    if stop.is_set():
+                        report.interrupted = True
+                        break
+                    if t0_ns is None:
+                        t0_ns = msg.log_time_ns
+                    if speed is not None:
+                        due = t_start + (msg.log_time_ns - t0_ns) / NS_PER_S / speed
+                        delay = due - time.monotonic()
+                        if delay > 0:
+                            if stop.wait(delay):
+                                report.interrupted = True
+                                break
+                        else:
+                            report.max_lateness_s = max(report.max_lateness_s, -delay)
+                    key = keys[msg.topic]
+                    publishers[key].put(msg.data)
+                    report.published[key] += 1
+                    if on_message is not None:
+                        on_message(key, msg.log_time_ns)
+                report.wall_time_s = time.monotonic() - t_start
+            finally:
+                for pub in publishers.values():
+                    pub.undeclare()  # type: ignore[no-untyped-call]
+    logger.info("replayed %d messages from %s", report.total, path)
+    return report
+
+
+__all__ = ["ReplayError", "ReplayReport", "remap", "replay", "select_topics"]
