@@ -24,9 +24,9 @@ log = logging.getLogger(__name__)
 
 Handler = Callable[[str, bytes], None]
 """Called with (concrete key, payload bytes)."""
-QueryHandler = Callable[[str, bytes | None], bytes]
-"""Called with (concrete key queried, query payload); returns the reply payload for that key,
-or raises :class:`QueryError` whose message goes back as ``reply_err``."""
+QueryHandler = Callable[[str, bytes | None], list[tuple[str, bytes]]]
+"""Called with (queried key expression, query payload); returns the replies as (concrete key,
+payload) pairs, or raises :class:`QueryError` whose message goes back as ``reply_err``."""
 LivelinessHandler = Callable[[str, bool], None]
 """Called with (token key, alive)."""
 
@@ -105,7 +105,7 @@ class _Dispatcher:
             except Exception:
                 log.exception("handler failed in %s", self._thread.name)
 
-    def stop(self, timeout: float = 2.0) -> None:
+    def stop(self, timeout: float = 10.0) -> None:
         self._q.put(_STOP)
         if threading.current_thread() is not self._thread:
             self._thread.join(timeout)
@@ -232,14 +232,15 @@ class ZenohBus:
             key = str(q.key_expr)
             try:
                 body = q.payload.to_bytes() if q.payload is not None else None
-                data = handler(key, body)
+                replies = handler(key, body)
             except QueryError as exc:
                 q.reply_err(str(exc).encode())
             except Exception as exc:  # a queryable that raises sends nothing: answer anyway
                 log.exception("query handler failed for %s", key)
                 q.reply_err(f"internal error: {exc}".encode())
             else:
-                q.reply(key, data, encoding=zenoh.Encoding.APPLICATION_JSON)
+                for rkey, data in replies:  # always concrete keys
+                    q.reply(rkey, data, encoding=zenoh.Encoding.APPLICATION_JSON)
             finally:
                 q.drop()
 
@@ -386,7 +387,7 @@ class InMemoryBus:
         out = []
         for _e, h in targets:
             try:
-                out.append(Reply(selector, h(selector, payload)))
+                out.extend(Reply(k, data) for k, data in h(selector, payload))
             except QueryError as exc:
                 out.append(Reply(selector, None, str(exc)))
             except Exception as exc:

@@ -113,7 +113,8 @@ def solve_definition(defn_json: str) -> dict[str, Any]:
             "tol": float(getattr(diag, "tol", defn.tol)),
             "nodes": [int(n) for n in nodes],
         },
-        "coefficients": cmap.to_dict(),
+        # through JSON so that the result is plain JSON values (lists, not tuples/arrays)
+        "coefficients": json.loads(cmap.to_json()),
     }
 
 

@@ -1,0 +1,299 @@
+"""Simulator service: kinematic point robots ``x' = u`` driven by the last ``cmd_vel``.
+
+Robots come from the config or from ``SpawnRequest`` on ``{prefix}/sim/{sim}/spawn``. Every
+tick (``rate_hz``, sim time step ``1/rate_hz``; ``time_scale`` > 1 runs faster than real time)
+each robot moves by ``u * dt`` with its last command (zero once no command came for
+``cmd_timeout`` wall seconds), a timestamped ``Pose`` is published on
+``{prefix}/robot/{r}/pose``, and leaving the free space (``Workspace.clearance`` <= 0, the
+core's exact polygon distance) is reported once as a ``CollisionEvent``; a collided robot stays
+where it hit. ``SimControl`` on ``{prefix}/sim/{sim}/control`` pauses, resumes, resets (back to
+the spawn pose) or removes robots. Workspaces for the collision check come from files or from
+``{prefix}/ws/*/definition``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import math
+import threading
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from confnav.schemas import (
+    CollisionEvent,
+    DecodeError,
+    Pose,
+    SimControl,
+    SpawnRequest,
+    VelocityCommand,
+    WorkspaceDefinition,
+    decode,
+    encode,
+)
+from confnav.services.bus import Bus
+from confnav.services.keys import KeyError_, Keys, validate_id
+from confnav.services.runtime import Service, add_zenoh_args, run_until_signal
+from confnav.services.transform import load_definition, parse_sources, workspace_of
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class SimRobot:
+    robot_id: str
+    ws_id: str
+    z: complex
+    theta: float = 0.0
+    start: complex = 0j
+    start_theta: float = 0.0
+    u: complex = 0j
+    cmd_t: float = -1e18  # monotonic time of the last command
+    seq: int = 0
+    collided: bool = False
+    sim_time: float = 0.0
+
+
+class SimulatorService(Service):
+    """See the module docstring. ``robots``: (robot id, ws id, x, y) at start."""
+
+    name = "simulator"
+
+    def __init__(
+        self,
+        bus: Bus,
+        keys: Keys | None = None,
+        sim_id: str = "sim",
+        robots: list[tuple[str, str, float, float]] | None = None,
+        sources: dict[str, str] | None = None,
+        rate_hz: float = 50.0,
+        time_scale: float = 1.0,
+        cmd_timeout: float = 0.25,
+        health_period: float = 1.0,
+    ) -> None:
+        super().__init__(bus, keys, health_period)
+        self.sim_id = validate_id(sim_id, "simulator id")
+        self.rate_hz = rate_hz
+        self.time_scale = time_scale
+        self.cmd_timeout = cmd_timeout
+        self.paused = False
+        self._lock = threading.Lock()
+        self._robots: dict[str, SimRobot] = {}
+        self._workspaces: dict[str, Any] = {}
+        self._sources = dict(sources or {})
+        self.collisions: list[CollisionEvent] = []
+        self.ticks = 0
+        for rid, ws, x, y in robots or []:
+            self.spawn_robot(rid, ws, complex(x, y))
+
+    def spawn_robot(self, rid: str, ws_id: str, z: complex, theta: float = 0.0) -> None:
+        validate_id(rid, "robot id")
+        validate_id(ws_id, "workspace id")
+        with self._lock:
+            self._robots[rid] = SimRobot(rid, ws_id, z, theta, z, theta)
+        log.info("robot %r spawned at %s on %r", rid, z, ws_id)
+
+    def _start(self) -> None:
+        for ws_id, src in self._sources.items():
+            try:
+                self._workspaces[ws_id] = workspace_of(load_definition(ws_id, src))
+            except Exception as exc:
+                log.error("cannot load workspace %r from %s: %s", ws_id, src, exc)
+        k = self.keys
+        self._handles.append(self.bus.subscribe(k.any_ws("definition"), self._on_definition))
+        self._handles.append(self.bus.subscribe(k.any_robot("cmd_vel"), self._on_cmd))
+        self._handles.append(self.bus.subscribe(k.sim(self.sim_id, "spawn"), self._on_spawn))
+        self._handles.append(self.bus.subscribe(k.sim(self.sim_id, "control"), self._on_control))
+        self.spawn(self._loop, "loop")
+
+    def health_detail(self) -> tuple[str, str]:
+        with self._lock:
+            missing = sorted({r.ws_id for r in self._robots.values()} - set(self._workspaces))
+        if missing:
+            return "degraded", f"no workspace for collision checks: {missing}"
+        return "ok", "paused" if self.paused else ""
+
+    # inputs ----------------------------------------------------------------------------
+    def _on_definition(self, key: str, payload: bytes) -> None:
+        try:
+            ws_id = self.keys.parse(key).ident
+            defn = decode(WorkspaceDefinition, payload)
+            if defn.ws_id != ws_id:
+                raise DecodeError("invalid_input", "ws id differs from key")
+            ws = workspace_of(defn)
+        except Exception as exc:
+            self.count("rejected")
+            log.warning("rejected definition on %s: %s", key, exc)
+            return
+        with self._lock:
+            self._workspaces[ws_id] = ws
+
+    def _on_cmd(self, key: str, payload: bytes) -> None:
+        try:
+            rid = self.keys.parse(key).ident
+            cmd = decode(VelocityCommand, payload)
+        except (KeyError_, DecodeError) as exc:
+            self.count("rejected")
+            log.debug("rejected command on %s: %s", key, exc)
+            return
+        with self._lock:
+            r = self._robots.get(rid)
+            if r is None or cmd.robot_id != rid:
+                return
+            r.u = complex(cmd.linear[0], cmd.linear[1])
+            r.cmd_t = time.monotonic()
+        self.count("commands")
+
+    def _on_spawn(self, key: str, payload: bytes) -> None:
+        try:
+            req = decode(SpawnRequest, payload)
+        except DecodeError as exc:
+            self.count("rejected")
+            log.warning("rejected spawn request: %s", exc)
+            return
+        self.spawn_robot(req.robot_id, req.ws_id, complex(*req.position), req.theta)
+
+    def _on_control(self, key: str, payload: bytes) -> None:
+        try:
+            ctl = decode(SimControl, payload)
+        except DecodeError as exc:
+            self.count("rejected")
+            log.warning("rejected control: %s", exc)
+            return
+        with self._lock:
+            targets = [r for r in self._robots.values() if ctl.robot_id in (None, r.robot_id)]
+            if ctl.action == "pause":
+                self.paused = True
+            elif ctl.action == "resume":
+                self.paused = False
+            elif ctl.action == "reset":
+                for r in targets:
+                    r.z, r.theta, r.u, r.collided = r.start, r.start_theta, 0j, False
+                    r.cmd_t = -1e18
+            elif ctl.action == "remove":
+                for r in targets:
+                    self._robots.pop(r.robot_id, None)
+        log.info("simulator %s: %s %s", self.sim_id, ctl.action, ctl.robot_id or "all")
+
+    # integration -------------------------------------------------------------------------
+    def step(self, dt: float) -> None:
+        """Advance every robot by ``dt`` sim seconds and publish the poses."""
+        now = time.monotonic()
+        with self._lock:
+            robots = list(self._robots.values())
+            workspaces = dict(self._workspaces)
+            paused = self.paused
+        hits: list[CollisionEvent] = []
+        if not paused:
+            by_ws: dict[str, list[SimRobot]] = {}
+            for r in robots:
+                if r.collided:
+                    continue
+                u = r.u if now - r.cmd_t <= self.cmd_timeout else 0j
+                if u != 0j:
+                    r.z += u * dt
+                    r.theta = math.atan2(u.imag, u.real)
+                r.sim_time += dt
+                by_ws.setdefault(r.ws_id, []).append(r)
+            for ws_id, group in by_ws.items():
+                ws = workspaces.get(ws_id)
+                if ws is None:
+                    continue
+                clear = np.asarray(ws.clearance(np.array([r.z for r in group])), dtype=float)
+                for r, c in zip(group, clear, strict=True):
+                    if not c > 0.0:  # also NaN
+                        r.collided = True
+                        hits.append(
+                            CollisionEvent(
+                                robot_id=r.robot_id,
+                                ws_id=ws_id,
+                                stamp_ns=time.time_ns(),
+                                position=(r.z.real, r.z.imag),
+                                clearance=float(c) if math.isfinite(c) else -1.0,
+                            )
+                        )
+        stamp = time.time_ns()
+        for r in robots:
+            pose = Pose(
+                robot_id=r.robot_id,
+                stamp_ns=stamp,
+                seq=r.seq,
+                x=r.z.real,
+                y=r.z.imag,
+                theta=r.theta,
+            )
+            r.seq += 1
+            self.bus.publish(self.keys.robot(r.robot_id, "pose"), encode(pose))
+        self.count("poses", len(robots))
+        for ev in hits:
+            log.warning("robot %r collided at %s", ev.robot_id, ev.position)
+            self.collisions.append(ev)
+            self.bus.publish(self.keys.robot(ev.robot_id, "collision"), encode(ev))
+        self.ticks += 1
+
+    def _loop(self) -> None:
+        dt = 1.0 / self.rate_hz
+        period = dt / self.time_scale
+        next_t = time.monotonic()
+        while not self._stop.is_set():
+            try:
+                self.step(dt)
+            except Exception:
+                log.exception("simulation step failed")
+            next_t += period
+            delay = next_t - time.monotonic()
+            if delay < -10 * period:  # fell far behind: do not try to catch up in a burst
+                next_t = time.monotonic()
+            elif delay > 0 and self._stop.wait(delay):
+                return
+
+    def positions(self) -> dict[str, complex]:
+        with self._lock:
+            return {rid: r.z for rid, r in self._robots.items()}
+
+
+def parse_robots(items: list[str]) -> list[tuple[str, str, float, float]]:
+    """``ID=WS:X,Y`` items."""
+    out = []
+    for item in items:
+        try:
+            rid, rest = item.split("=", 1)
+            ws, xy = rest.split(":", 1)
+            x, y = (float(v) for v in xy.split(","))
+        except ValueError:
+            raise SystemExit(f"--robot expects ID=WS:X,Y, got {item!r}") from None
+        out.append((rid, ws, x, y))
+    return out
+
+
+def add_parser(sub: Any) -> None:
+    p: argparse.ArgumentParser = sub.add_parser("simulator", help="run the simulator service")
+    add_zenoh_args(p)
+    p.add_argument("--sim-id", default="sim")
+    p.add_argument("--robot", action="append", default=[], metavar="ID=WS:X,Y")
+    p.add_argument("--workspace", action="append", default=[], metavar="ID=PATH")
+    p.add_argument("--rate", type=float, default=50.0, help="steps per sim second")
+    p.add_argument("--time-scale", type=float, default=1.0, help=">1: faster than real time")
+    p.add_argument("--cmd-timeout", type=float, default=0.25, help="s without command -> stop")
+    p.set_defaults(func=main)
+
+
+def main(args: argparse.Namespace) -> int:
+    robots = parse_robots(args.robot)
+    sources = parse_sources(args.workspace)
+    return run_until_signal(
+        lambda bus, keys: SimulatorService(
+            bus,
+            keys,
+            args.sim_id,
+            robots,
+            sources,
+            rate_hz=args.rate,
+            time_scale=args.time_scale,
+            cmd_timeout=args.cmd_timeout,
+        ),
+        args,
+    )

@@ -1,0 +1,157 @@
+"""Shared fixtures for the service tests: Zenoh over unix sockets in short temp dirs (multicast
+off, sessions always closed), a fake solver and an exact stand-in map (a circle domain maps to
+itself by the identity), and polling helpers."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import sys
+import tempfile
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from confnav.schemas import WorkspaceDefinition
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def wait_for(pred: Callable[[], Any], timeout: float = 5.0, interval: float = 0.02) -> Any:
+    """Poll ``pred`` until truthy; return its value or fail the test after ``timeout`` s."""
+    deadline = time.monotonic() + timeout
+    while True:
+        value = pred()
+        if value:
+            return value
+        if time.monotonic() > deadline:
+            raise AssertionError(f"condition not met within {timeout} s")
+        time.sleep(interval)
+
+
+# ------------------------------------------------------------------------------------------
+# an exact map for fast tests: the circle domain itself, T = identity
+# ------------------------------------------------------------------------------------------
+class IdentityMap:
+    """The identity of a circle domain (|w|<1 minus disks): an exact conformal map of the
+    domain onto itself, with the ConformalMap surface the controller uses."""
+
+    def __init__(self, centers: list[complex], radii: list[float]) -> None:
+        self.centers = np.asarray(centers, dtype=complex)
+        self.radii = np.asarray(radii, dtype=float)
+
+    def _inside(self, z: np.ndarray) -> np.ndarray:
+        ok = np.abs(z) < 1
+        for c, r in zip(self.centers, self.radii, strict=True):
+            ok &= np.abs(z - c) > r
+        return ok
+
+    def T_and_dT(self, z: Any) -> tuple[np.ndarray, np.ndarray]:
+        z = np.asarray(z, dtype=complex)
+        ok = self._inside(z)
+        return np.where(ok, z, np.nan), np.where(ok, 1.0 + 0j, np.nan)
+
+    def T(self, z: Any) -> np.ndarray:
+        return self.T_and_dT(z)[0]
+
+
+def fake_solve(defn_json: str) -> dict[str, Any]:
+    """Stand-in for ``solve_definition``: the 'map' of a workspace whose obstacles are given
+    by their first vertex as a circle centre (radius 0.1); revision = content of the input."""
+    import hashlib
+
+    d = WorkspaceDefinition.model_validate_json(defn_json)
+    centers = [(o[0][0], o[0][1]) for o in d.obstacles]
+    radii = [0.1] * len(centers)
+    rev = hashlib.sha256(repr((centers, radii)).encode()).hexdigest()
+    return {
+        "revision": rev,
+        "anchor": (0.0, 0.0),
+        "centers": centers,
+        "radii": radii,
+        "diagnostics": {"sweeps": 1, "error_estimate": 0.0, "wall_time": 0.0, "tol": d.tol},
+        "coefficients": {"centers": [list(c) for c in centers], "radii": radii},
+    }
+
+
+def identity_loader(sol: Any) -> IdentityMap:
+    c = sol.coefficients
+    return IdentityMap([complex(x, y) for x, y in c["centers"]], list(c["radii"]))
+
+
+def square_definition(ws_id: str, holes: list[tuple[float, float]] = ()) -> WorkspaceDefinition:  # type: ignore[assignment]
+    """A square room [-0.7, 0.7]^2 with small square holes at the given points."""
+    obstacles = [[(x, y), (x + 0.05, y), (x + 0.05, y + 0.05), (x, y + 0.05)] for x, y in holes]
+    return WorkspaceDefinition(
+        ws_id=ws_id,
+        outer=[(-0.7, -0.7), (0.7, -0.7), (0.7, 0.7), (-0.7, 0.7)],
+        obstacles=obstacles,
+    )
+
+
+# ------------------------------------------------------------------------------------------
+# Zenoh
+# ------------------------------------------------------------------------------------------
+@pytest.fixture
+def sockdir() -> Iterator[Path]:
+    """A short temp dir for unix sockets (paths must stay under ~100 characters)."""
+    d = Path(tempfile.mkdtemp(prefix="cnz", dir="/tmp"))
+    try:
+        yield d
+    finally:
+        shutil.rmtree(d, ignore_errors=True)
+
+
+@pytest.fixture
+def zenoh_endpoint(sockdir: Path) -> str:
+    return f"unixsock-stream/{sockdir}/router.sock"
+
+
+@pytest.fixture
+def zenoh_router(zenoh_endpoint: str) -> Iterator[str]:
+    """An in-process Zenoh router listening on a unix socket; yields its endpoint."""
+    import zenoh
+
+    from confnav.services.bus import zenoh_config
+
+    with zenoh.open(zenoh_config("router", listen=[zenoh_endpoint])):
+        yield zenoh_endpoint
+
+
+@pytest.fixture
+def make_bus(zenoh_router: str) -> Iterator[Callable[[], Any]]:
+    """Factory of ZenohBus clients of the router; all closed at teardown."""
+    from confnav.services.bus import ZenohBus, zenoh_config
+
+    buses: list[ZenohBus] = []
+
+    def make() -> ZenohBus:
+        bus = ZenohBus(zenoh_config("client", connect=[zenoh_router]))
+        buses.append(bus)
+        return bus
+
+    yield make
+    for b in reversed(buses):
+        b.close()
+
+
+@pytest.fixture
+def mem_net() -> Any:
+    from confnav.services.bus import InMemoryNetwork
+
+    return InMemoryNetwork()
+
+
+def confnav_cmd(*args: str) -> list[str]:
+    """Command line running the confnav CLI with this interpreter."""
+    return [sys.executable, "-m", "confnav.cli", *args]
+
+
+def subprocess_env() -> dict[str, str]:
+    env = dict(os.environ)
+    env["PYTHONUNBUFFERED"] = "1"
+    return env
