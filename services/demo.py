@@ -1,0 +1,331 @@
+"""``confnav demo``: the whole system on the default workspace with the seed's four robots.
+
+Starts a router (unix socket in a temp dir) and the recorder, transform, controller and
+simulator as separate processes, waits for the map, sends the four goals, shows progress,
+stops when every robot has arrived or collided (or at the timeout), and writes
+``OUT/demo.mcap`` and ``OUT/demo.png``; prints a summary table. Exit code 0 only if every
+robot arrived without collision.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import shutil
+import tempfile
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from confnav.schemas import (
+    CollisionEvent,
+    DecodeError,
+    Goal,
+    Pose,
+    RobotStatus,
+    decode,
+    encode,
+)
+from confnav.services.launcher import LaunchConfig, Launcher, ServiceSpec
+from confnav.services.runtime import stop_on_signals
+
+log = logging.getLogger(__name__)
+
+WS_ID = "default"
+
+
+@dataclass
+class Track:
+    robot_id: str
+    start: complex
+    goal: complex
+    path: list[complex] = field(default_factory=list)
+    state: str = "waiting"
+    reason: str = ""
+    arrived_at: float | None = None
+    collided: CollisionEvent | None = None
+
+    @property
+    def position(self) -> complex:
+        return self.path[-1] if self.path else self.start
+
+    @property
+    def distance(self) -> float:
+        return abs(self.position - self.goal)
+
+    @property
+    def length(self) -> float:
+        return sum(abs(b - a) for a, b in zip(self.path, self.path[1:], strict=False))
+
+
+class DemoMonitor:
+    """Collects poses, statuses and collisions of the demo robots (bus handlers)."""
+
+    def __init__(self, tracks: dict[str, Track]) -> None:
+        self.tracks = tracks
+        self.lock = threading.Lock()
+        self.t0 = time.monotonic()
+
+    def on_pose(self, key: str, payload: bytes) -> None:
+        try:
+            p = decode(Pose, payload)
+        except DecodeError:
+            return
+        with self.lock:
+            t = self.tracks.get(p.robot_id)
+            if t is not None:
+                t.path.append(complex(p.x, p.y))
+
+    def on_status(self, key: str, payload: bytes) -> None:
+        try:
+            s = decode(RobotStatus, payload)
+        except DecodeError:
+            return
+        with self.lock:
+            t = self.tracks.get(s.robot_id)
+            if t is None:
+                return
+            t.state, t.reason = s.state, s.reason
+            if s.state == "arrived" and t.arrived_at is None:
+                t.arrived_at = time.monotonic() - self.t0
+
+    def on_collision(self, key: str, payload: bytes) -> None:
+        try:
+            c = decode(CollisionEvent, payload)
+        except DecodeError:
+            return
+        with self.lock:
+            t = self.tracks.get(c.robot_id)
+            if t is not None and t.collided is None:
+                t.collided = c
+
+    def done(self) -> bool:
+        with self.lock:
+            return all(t.arrived_at is not None or t.collided for t in self.tracks.values())
+
+
+def demo_config(
+    sock: str, out: Path, starts: dict[str, complex], time_scale: float, cache_dir: str | None
+) -> LaunchConfig:
+    sim_args = ["--workspace", f"{WS_ID}=builtin:default", "--time-scale", str(time_scale)]
+    for rid, z in starts.items():
+        sim_args += ["--robot", f"{rid}={WS_ID}:{z.real!r},{z.imag!r}"]
+    tr_args = ["--workspace", f"{WS_ID}=builtin:default"]
+    if cache_dir:
+        tr_args += ["--cache-dir", cache_dir]
+    return LaunchConfig(
+        listen=[sock],
+        services=[
+            ServiceSpec("recorder", ["--out", str(out / "demo.mcap"), "--foxglove"]),
+            ServiceSpec("transform", tr_args),
+            ServiceSpec("controller", []),
+            ServiceSpec("simulator", sim_args),
+        ],
+        startup_timeout=60.0,
+        log_dir=str(out / "logs"),
+    )
+
+
+def wait_for_map(launcher: Launcher, timeout: float, stop: threading.Event) -> str:
+    """Query the transform queryable until it answers with a solution; return its revision."""
+    assert launcher.bus is not None
+    key = launcher.keys.ws(WS_ID, "transform")
+    deadline = time.monotonic() + timeout
+    last = ""
+    while time.monotonic() < deadline and not stop.is_set():
+        for rep in launcher.bus.query(key, timeout=5.0):
+            if rep.ok and rep.payload is not None:
+                from confnav.schemas import TransformSolution
+
+                return decode(TransformSolution, rep.payload).revision
+            last = rep.error or ""
+        stop.wait(0.5)
+    raise RuntimeError(f"no map for {WS_ID!r} after {timeout:g} s: {last}")
+
+
+def plot_demo(tracks: dict[str, Track], path: Path) -> None:
+    """Workspace, start/goal and trajectory of every robot (matplotlib Agg)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from confnav.workspaces import default_workspace
+
+    ws = default_workspace()
+    fig, ax = plt.subplots(figsize=(6, 6))
+    outer = [*list(ws.outer), ws.outer[0]]
+    ax.plot([z.real for z in outer], [z.imag for z in outer], "k-", lw=1.5)
+    for ob in ws.obstacles:
+        ax.fill([z.real for z in ob], [z.imag for z in ob], color="0.6", ec="k")
+    for i, t in enumerate(tracks.values()):
+        c = f"C{i}"
+        if t.path:
+            ax.plot(
+                [z.real for z in t.path],
+                [z.imag for z in t.path],
+                "-",
+                color=c,
+                lw=1.5,
+                label=t.robot_id,
+            )
+        ax.plot(t.start.real, t.start.imag, "o", color=c)
+        if t.collided is not None:
+            ax.plot(*t.collided.position, "rx", ms=10)
+    goals = {t.goal for t in tracks.values()}
+    for g in goals:
+        ax.plot(g.real, g.imag, "k*", ms=14)
+    ax.set_aspect("equal")
+    ax.set_title("confnav demo: default workspace, four robots")
+    ax.legend(loc="upper right", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def summary(tracks: dict[str, Track]) -> tuple[str, bool]:
+    from confnav.workspaces import default_workspace
+
+    ws = default_workspace()
+    rows = [("robot", "start", "final", "dist", "arrived (s)", "path (m)", "min clear", "result")]
+    ok = True
+    for t in tracks.values():
+        import numpy as np
+
+        clear = float(np.min(ws.clearance(np.asarray(t.path)))) if t.path else float("nan")
+        good = t.arrived_at is not None and t.collided is None
+        ok &= good
+        result = (
+            "COLLIDED" if t.collided else ("arrived" if good else f"FAILED ({t.reason or t.state})")
+        )
+        rows.append(
+            (
+                t.robot_id,
+                f"({t.start.real:+.2f},{t.start.imag:+.2f})",
+                f"({t.position.real:+.3f},{t.position.imag:+.3f})",
+                f"{t.distance:.3f}",
+                "-" if t.arrived_at is None else f"{t.arrived_at:.1f}",
+                f"{t.length:.2f}",
+                f"{clear:.3f}",
+                result,
+            )
+        )
+    widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
+    lines = ["  ".join(c.ljust(w) for c, w in zip(r, widths, strict=True)) for r in rows]
+    lines.insert(1, "  ".join("-" * w for w in widths))
+    return "\n".join(lines), ok
+
+
+def run_demo(
+    out: Path,
+    timeout: float = 120.0,
+    time_scale: float = 1.0,
+    navfn: str = "harmonic",
+    gain: float = 1.0,
+    v_max: float = 0.5,
+    tolerance: float = 0.02,
+    cache_dir: str | None = None,
+    verbose: int = 0,
+) -> int:
+    from confnav.workspaces import DEFAULT_GOAL, DEFAULT_STARTS
+
+    out.mkdir(parents=True, exist_ok=True)
+    starts = {f"r{i + 1}": z for i, z in enumerate(DEFAULT_STARTS)}
+    tracks = {rid: Track(rid, z, DEFAULT_GOAL) for rid, z in starts.items()}
+    sockdir = tempfile.mkdtemp(prefix="confnav-demo-")
+    sock = f"unixsock-stream/{sockdir}/router.sock"
+    launcher = Launcher(demo_config(sock, out, starts, time_scale, cache_dir), verbose=verbose)
+    mon = DemoMonitor(tracks)
+    t_start = time.monotonic()
+    try:
+        with stop_on_signals() as stop:
+            print(
+                f"confnav demo: starting router and 4 services (logs in {out / 'logs'})", flush=True
+            )
+            launcher.start()
+            assert launcher.bus is not None
+            bus, keys = launcher.bus, launcher.keys
+            bus.subscribe(keys.any_robot("pose"), mon.on_pose)
+            bus.subscribe(keys.any_robot("status"), mon.on_status)
+            bus.subscribe(keys.any_robot("collision"), mon.on_collision)
+            print(
+                "confnav demo: waiting for the conformal map of the default workspace...",
+                flush=True,
+            )
+            rev = wait_for_map(launcher, timeout, stop)
+            print(
+                f"confnav demo: map {rev[:12]} ready after {time.monotonic() - t_start:.1f} s;"
+                " sending goals",
+                flush=True,
+            )
+            mon.t0 = time.monotonic()
+            for rid in starts:
+                goal = Goal(
+                    robot_id=rid,
+                    ws_id=WS_ID,
+                    goal=(DEFAULT_GOAL.real, DEFAULT_GOAL.imag),
+                    navfn=navfn,  # type: ignore[arg-type]
+                    gain=gain,
+                    v_max=v_max,
+                    tolerance=tolerance,
+                    stamp_ns=time.time_ns(),
+                )
+                bus.publish(keys.robot(rid, "goal"), encode(goal))
+            deadline = mon.t0 + timeout
+            next_print = 0.0
+            while not stop.is_set() and time.monotonic() < deadline and not mon.done():
+                launcher.check()
+                now = time.monotonic()
+                if now >= next_print:
+                    next_print = now + 1.0
+                    with mon.lock:
+                        parts = [
+                            f"{t.robot_id}: {t.distance:5.2f} m {t.state}" for t in tracks.values()
+                        ]
+                    print(f"[{now - mon.t0:5.1f} s] " + " | ".join(parts), flush=True)
+                stop.wait(0.1)
+            if stop.is_set():
+                print("confnav demo: interrupted", flush=True)
+    finally:
+        launcher.shutdown()
+        shutil.rmtree(sockdir, ignore_errors=True)
+    with mon.lock:
+        plot_demo(tracks, out / "demo.png")
+        table, ok = summary(tracks)
+    print()
+    print(table)
+    print()
+    print(f"recording: {out / 'demo.mcap'}   plot: {out / 'demo.png'}")
+    print("result:", "all robots arrived without collision" if ok else "FAILED")
+    return 0 if ok else 1
+
+
+def add_parser(sub: Any) -> None:
+    p: argparse.ArgumentParser = sub.add_parser(
+        "demo", help="run the whole system on the default workspace with four robots"
+    )
+    p.add_argument("--out", default="out", help="output folder (default %(default)s)")
+    p.add_argument("--timeout", type=float, default=120.0, help="seconds (default %(default)s)")
+    p.add_argument("--time-scale", type=float, default=1.0, help=">1: faster than real time")
+    p.add_argument("--navfn", default="harmonic", choices=("harmonic", "kr"))
+    p.add_argument("--gain", type=float, default=1.0)
+    p.add_argument("--v-max", type=float, default=0.5)
+    p.add_argument("--tolerance", type=float, default=0.02)
+    p.add_argument("--cache-dir", default=None, help="transform solution cache")
+    p.set_defaults(func=main)
+
+
+def main(args: argparse.Namespace) -> int:
+    return run_demo(
+        Path(args.out),
+        timeout=args.timeout,
+        time_scale=args.time_scale,
+        navfn=args.navfn,
+        gain=args.gain,
+        v_max=args.v_max,
+        tolerance=args.tolerance,
+        cache_dir=args.cache_dir,
+        verbose=getattr(args, "verbose", 0),
+    )
