@@ -1,0 +1,133 @@
+"""Harmonic navigation function phi_H = exp(2 G) from the circle domain's Green's function."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from numpy.testing import assert_allclose
+
+from confnav.critical import find_critical_points
+from confnav.errors import NavigationError
+from confnav.harmonic import GreenFunction, HarmonicNavigation
+from confnav.navfn import CircleDomain, make_navfn
+
+SEED = CircleDomain(
+    np.array([0.4227371 + 0.2466153j, -0.4018952 + 0.2782662j, -0.4826272 - 0.3720324j,
+              0.0160941 - 0.3776479j]),
+    np.array([0.1420658, 0.1593344, 0.1413721, 0.2170942]),
+)  # fmt: skip
+DISK = CircleDomain(np.zeros(0, complex), np.zeros(0))
+
+
+def mobius(a: complex):
+    return lambda w: (w - a) / (1 - np.conj(a) * w)
+
+
+def image_domain(dom: CircleDomain, a: complex) -> CircleDomain:
+    """The circle domain m(dom) for the disk automorphism m = mobius(a) (exact)."""
+    m = mobius(a)
+    cs, rs = [], []
+    for c, r in zip(dom.centers, dom.radii, strict=True):
+        # the circle |w - c| = r is symmetric about the line through 0 and c... not after m;
+        # take the image of three points and their circumcircle
+        p1, p2, p3 = m(c + r * np.exp(2j * np.pi * np.array([0, 1 / 3, 2 / 3])))
+        d = 2 * (p1.real * (p2.imag - p3.imag) + p2.real * (p3.imag - p1.imag)
+                 + p3.real * (p1.imag - p2.imag))  # fmt: skip
+        ux = (abs(p1) ** 2 * (p2.imag - p3.imag) + abs(p2) ** 2 * (p3.imag - p1.imag)
+              + abs(p3) ** 2 * (p1.imag - p2.imag)) / d  # fmt: skip
+        uy = (abs(p1) ** 2 * (p3.real - p2.real) + abs(p2) ** 2 * (p1.real - p3.real)
+              + abs(p3) ** 2 * (p2.real - p1.real)) / d  # fmt: skip
+        cs.append(ux + 1j * uy)
+        rs.append(abs(p1 - (ux + 1j * uy)))
+    return CircleDomain(np.array(cs), np.array(rs))
+
+
+def interior_points(dom: CircleDomain, n: int, margin: float, seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    w = rng.uniform(-1, 1, 8 * n) + 1j * rng.uniform(-1, 1, 8 * n)
+    return w[dom.clearance(w) > margin][:n]
+
+
+def test_disk_matches_closed_form() -> None:
+    wd = 0.3 - 0.2j
+    nf = HarmonicNavigation(DISK, wd)
+    w = interior_points(DISK, 300, 0.0)
+    exact = np.abs((w - wd) / (1 - np.conj(wd) * w)) ** 2
+    assert_allclose(nf.value(w), exact, rtol=1e-12, atol=1e-15)
+
+
+@pytest.mark.parametrize("goal", [0j, 0.3 + 0.5j, -0.05 + 0.7j, 0.02 - 0.1j])
+def test_one_on_every_boundary_circle(goal: complex) -> None:
+    nf = HarmonicNavigation(SEED, goal)
+    assert nf.diagnostics.converged
+    e = np.exp(2j * np.pi * (np.arange(997) + 0.37) / 997)  # not the collocation points
+    for b in [e] + [c + r * e for c, r in zip(SEED.centers, SEED.radii, strict=True)]:
+        # |d phi| <= 2 |dh| phi on the boundary; tol 1e-10 on h
+        assert_allclose(nf.green.h(b), np.log(np.abs(b - goal)), atol=2e-10)
+    w = interior_points(SEED, 3000, 1e-9)
+    v = nf.value(w)
+    assert np.all((v >= 0) & (v < 1))
+
+
+def test_series_converges_geometrically() -> None:
+    hist = GreenFunction(SEED, 0.1j, tol=1e-13).diagnostics.history
+    res = np.array([r for _, r in hist])
+    assert res[-1] < 1e-12
+    # every doubling of the number of terms gains at least 1.5 digits
+    assert np.all(res[1:] < 3e-2 * res[:-1])
+
+
+def test_green_function_is_symmetric() -> None:
+    # G(w, p) = log|w - p| - h_p(w) is symmetric in (w, p), so h_p(w) = h_w(p)
+    pts = interior_points(SEED, 6, 0.05, seed=4)
+    hs = np.array([GreenFunction(SEED, p).h(pts) for p in pts])
+    assert_allclose(hs, hs.T, atol=1e-9)
+
+
+def test_conformal_invariance_under_disk_automorphisms() -> None:
+    # m maps SEED onto another circle domain D2 and G_D2(m w, m p) = G_SEED(w, p)
+    a = 0.25 - 0.15j
+    m = mobius(a)
+    d2 = image_domain(SEED, a)
+    goal = 0.05 + 0.1j
+    nf1 = HarmonicNavigation(SEED, goal)
+    nf2 = HarmonicNavigation(d2, complex(m(goal)))
+    w = interior_points(SEED, 500, 1e-4)
+    assert_allclose(nf2.value(m(w)), nf1.value(w), rtol=1e-9, atol=1e-12)
+
+
+@pytest.mark.parametrize("goal", [0j, 0.3 + 0.5j])
+def test_gradient_matches_finite_differences(goal: complex) -> None:
+    nf = HarmonicNavigation(SEED, goal)
+    w = interior_points(SEED, 400, 1e-3)
+    g = nf.gradient(w)
+    h = 1e-6
+    fd = (nf.value(w + h) - nf.value(w - h)) / (2 * h) + 1j * (
+        nf.value(w + 1j * h) - nf.value(w - 1j * h)
+    ) / (2 * h)
+    assert_allclose(g, fd, rtol=1e-6, atol=1e-8 * np.max(np.abs(g)))
+    # smooth through the goal: gradient 2 e^{-2h} (w - w_d) + O(|w - w_d|^2)
+    assert nf.gradient(goal) == 0
+    e = 1e-7 * np.exp(1j * np.array([0.0, 1.0, 2.0]))
+    assert_allclose(nf.gradient(goal + e), 2 * np.exp(-2 * nf.green.h(goal)) * e, rtol=1e-5)
+
+
+def test_one_minimum_and_m_saddles() -> None:
+    for goal in (0j, 0.3 + 0.5j, -0.7 + 0.1j):
+        cp = find_critical_points(make_navfn("harmonic", SEED, goal))
+        assert cp.ok and cp.index_consistent, cp.message
+        assert_allclose(cp.minima, [goal], atol=1e-12)
+
+
+def test_goal_outside_raises() -> None:
+    with pytest.raises(NavigationError):
+        HarmonicNavigation(SEED, SEED.centers[0])
+    with pytest.raises(NavigationError):
+        HarmonicNavigation(SEED, 1.0 + 0j)
+
+
+def test_with_goal_gives_the_new_function() -> None:
+    nf = HarmonicNavigation(SEED, 0j)
+    nf2 = nf.with_goal(0.3 + 0.5j)
+    assert nf2.goal == 0.3 + 0.5j and nf2.domain is SEED
+    assert nf2.value(0.3 + 0.5j) == 0
