@@ -30,7 +30,7 @@ import json
 import logging
 import math
 from collections import deque
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from functools import cache
 from importlib import resources
@@ -522,6 +522,8 @@ class SceneBuilder:
     prefix : key prefix of the recording (default ``confnav``).
     period_ns : minimum log-time interval between two scenes of one workspace (ns).
     trail_length : number of poses kept per robot trail.
+    map_loader : transform message (dict) -> map with ``T``, ``centers``, ``radii`` (default:
+        :class:`confnav.ConformalMap` from the ``coefficients``); None result: circles only.
     """
 
     def __init__(
@@ -530,9 +532,11 @@ class SceneBuilder:
         *,
         period_ns: int = DEFAULT_PERIOD_NS,
         trail_length: int = DEFAULT_TRAIL_LENGTH,
+        map_loader: Callable[[Mapping[str, Any]], Any] | None = None,
     ) -> None:
         if period_ns < 0:
             raise ValueError("period_ns must be >= 0")
+        self._load_map = map_loader or _load_cmap
         self.prefix = prefix
         self.period_ns = int(period_ns)
         self.trail_length = int(trail_length)
@@ -562,7 +566,7 @@ class SceneBuilder:
             ws = self._ws.get(ident)
             if ws is None:
                 # a transform before (or without) its definition: take polygons from the map
-                cmap = _load_cmap(payload)
+                cmap = self._load_map(payload)
                 if cmap is None:
                     return []
                 outer = [(z.real, z.imag) for z in cmap.workspace.outer]
@@ -570,7 +574,7 @@ class SceneBuilder:
                 ws = self._ws[ident] = _Ws(outer=outer, obstacles=obstacles)
                 ws.cmap = cmap
             else:
-                ws.cmap = _load_cmap(payload)
+                ws.cmap = self._load_map(payload)
             ws.centers, ws.radii = _circles(payload, ws.cmap)
             ws.dirty = True
         elif kind == "robot":
