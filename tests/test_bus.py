@@ -1,0 +1,130 @@
+"""The Bus interface: key matching, the in-memory bus, and the Zenoh bus over unix sockets."""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable
+from typing import Any
+
+import pytest
+
+from confnav.services.bus import InMemoryNetwork, QueryError, key_matches
+from conftest import wait_for
+
+
+@pytest.mark.parametrize(
+    ("expr", "key", "match"),
+    [
+        ("a/**", "a/b/c", True),
+        ("a/**", "a", True),
+        ("a/*/c", "a/b/c", True),
+        ("a/*/c", "a/b/d/c", False),
+        ("a/**/c", "a/b/d/c", True),
+        ("a/b", "a/b/c", False),
+        ("*/b", "a/b", True),
+    ],
+)
+def test_key_matches(expr: str, key: str, match: bool) -> None:
+    assert key_matches(expr, key) is match
+
+
+def _queryable(key: str, payload: bytes | None) -> list[tuple[str, bytes]]:
+    if "bad" in key:
+        raise QueryError(f"unknown workspace in {key}")
+    if "boom" in key:
+        raise RuntimeError("bug")
+    return [(key, b'{"ok": true}')]
+
+
+def _exercise(make: Callable[[], Any]) -> None:
+    """The same contract checked on both implementations."""
+    a, b = make(), make()
+    got: list[tuple[str, bytes]] = []
+    fails = {"n": 0}
+
+    def handler(key: str, payload: bytes) -> None:
+        if payload == b"raise":
+            fails["n"] += 1
+            raise ValueError("handler bug")
+        got.append((key, payload))
+        if payload == b"echo":  # handlers may publish (not on a Zenoh thread)
+            b.publish("t/echo/back", b"pong")
+
+    b.subscribe("t/**", handler)
+    b.queryable("t/ws/*/transform", _queryable)
+    time.sleep(0.3)
+    a.publish("t/x/1", b"raise")  # the subscription survives a failing handler
+    a.publish("t/x/1", b"one")
+    a.publish("t/y/2", b"echo")
+    wait_for(lambda: ("t/echo/back", b"pong") in got, 5)
+    assert got[:2] == [("t/x/1", b"one"), ("t/y/2", b"echo")]
+    assert fails["n"] == 1
+
+    ok = a.query("t/ws/w1/transform", timeout=2.0)
+    assert [(r.key, r.payload, r.ok) for r in ok] == [("t/ws/w1/transform", b'{"ok": true}', True)]
+    err = a.query("t/ws/bad/transform", timeout=2.0)
+    assert len(err) == 1 and not err[0].ok
+    assert "unknown workspace" in (err[0].error or "")
+    boom = a.query("t/ws/boom/transform", timeout=2.0)
+    assert len(boom) == 1 and "internal error" in (boom[0].error or "")
+
+    events: list[tuple[str, bool]] = []
+    a.subscribe_liveliness("t/alive/**", lambda k, alive: events.append((k, alive)))
+    tok = b.declare_token("t/alive/svc/1")
+    wait_for(lambda: ("t/alive/svc/1", True) in events, 5)
+    # a liveliness query may lag the subscriber's event by a few ms: poll
+    wait_for(lambda: a.alive("t/alive/**") == ["t/alive/svc/1"], 5)
+    tok.close()
+    wait_for(lambda: ("t/alive/svc/1", False) in events, 5)
+    wait_for(lambda: a.alive("t/alive/**") == [], 5)
+
+
+def test_in_memory_bus(mem_net: InMemoryNetwork) -> None:
+    buses = []
+
+    def make() -> Any:
+        buses.append(mem_net.bus())
+        return buses[-1]
+
+    try:
+        _exercise(make)
+    finally:
+        for b in buses:
+            b.close()
+
+
+@pytest.mark.timeout(60)
+def test_zenoh_bus(make_bus: Callable[[], Any]) -> None:
+    _exercise(make_bus)
+
+
+@pytest.mark.timeout(60)
+def test_zenoh_bus_delivers_in_order_without_loss(make_bus: Callable[[], Any]) -> None:
+    a, b = make_bus(), make_bus()
+    got: list[int] = []
+    done = threading.Event()
+
+    def handler(key: str, payload: bytes) -> None:
+        got.append(int(payload))
+        time.sleep(0.0001)  # a slow handler must not make Zenoh drop anything
+        if len(got) == 5000:
+            done.set()
+
+    b.subscribe("t/seq", handler)
+    time.sleep(0.3)
+    for i in range(5000):
+        a.publish("t/seq", str(i).encode())
+    assert done.wait(20)
+    assert got == list(range(5000))
+
+
+@pytest.mark.timeout(60)
+def test_zenoh_session_closed_on_exit(zenoh_router: str) -> None:
+    from confnav.services.bus import ZenohBus, zenoh_config
+
+    with ZenohBus(zenoh_config("client", connect=[zenoh_router])) as bus:
+        bus.subscribe("t/**", lambda k, p: None)
+        tok = bus.declare_token("t/alive/x")
+    assert bus.session.is_closed()
+    tok.close()  # closing handles after the session is fine
