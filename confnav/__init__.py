@@ -1,2 +1,39 @@
-"""confnav: conformal navigation transformation for polygonal workspaces."""
+"""confnav: provably correct navigation in polygonal workspaces by conformal maps.
+
+The conformal navigation transformation ``T`` maps the free space of a polygonal workspace onto
+a circle domain (unit disk minus disjoint disks); navigation functions on the circle domain are
+pulled back through ``T`` to drive robots.
+"""
+
+from confnav.cmap import ConformalMap, SolveDiagnostics
+from confnav.errors import (
+    ConfnavError,
+    ConvergenceError,
+    CrowdingError,
+    NavigationError,
+    SerializationError,
+    SolverError,
+    WorkspaceError,
+)
+from confnav.geometry import Workspace
+from confnav.solver import AccuracyWarning, solve
+from confnav.workspaces import default_workspace
+
 __version__ = "0.1.0"
+
+__all__ = [
+    "AccuracyWarning",
+    "ConfnavError",
+    "ConformalMap",
+    "ConvergenceError",
+    "CrowdingError",
+    "NavigationError",
+    "SerializationError",
+    "SolveDiagnostics",
+    "SolverError",
+    "Workspace",
+    "WorkspaceError",
+    "__version__",
+    "default_workspace",
+    "solve",
+]

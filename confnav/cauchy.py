@@ -1,0 +1,87 @@
+"""Fast Cauchy sums ``sum_k q_k / (z - zeta_k)``: direct for small problems, FMM for large.
+
+Every kernel sum of the integral equation and every evaluation of a map is a Cauchy sum. The
+2-D Laplace FMM of pyfmmlib (``lfmm2dparttarg``) computes, for complex charges q_k at sources
+zeta_k, the field ``E = -grad sum q_k log|z - zeta_k|``; its complex form ``E_x - i E_y`` equals
+``sum_k q_k / (z - zeta_k)`` (checked against direct summation to 1e-15 in tests).
+
+References
+----------
+.. [1] L. Greengard, V. Rokhlin, "A fast algorithm for particle simulations",
+   J. Comput. Phys. 73 (1987) 325-348.
+.. [2] M. M. S. Nasser, "Fast solution of boundary integral equations with the generalized
+   Neumann kernel", ETNA 44 (2015) 189-229, sec. 4 (FMM for the GNK matrix-vector product).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+ComplexArray = NDArray[np.complex128]
+
+#: Above this many source-target interactions the FMM is used.
+FMM_THRESHOLD = 4_000_000
+#: pyfmmlib precision flag: 3 gives ~1e-12 relative, 4 gives ~1e-15 (measured, 9000 points).
+FMM_IPREC = 4
+
+try:  # pragma: no cover - availability depends on the platform wheel
+    from pyfmmlib import lfmm2dparttarg as _lfmm
+
+    HAVE_FMM = True
+except ImportError:  # pragma: no cover
+    HAVE_FMM = False
+
+
+def _fmm(
+    sources: ComplexArray, charges: ComplexArray, targets: ComplexArray | None
+) -> ComplexArray:
+    """FMM Cauchy sum at the sources (self term excluded) or at the targets."""
+    src = np.ascontiguousarray(np.vstack([sources.real, sources.imag]))
+    q = np.ascontiguousarray(charges, dtype=np.complex128)
+    ns = sources.size
+    if targets is None:
+        tgt = np.zeros((2, 1))
+        nt = 1
+    else:
+        tgt = np.ascontiguousarray(np.vstack([targets.real, targets.imag]))
+        nt = targets.size
+    ier, _pot, fld, _h, _pt, fldt, _ht = _lfmm(
+        iprec=FMM_IPREC, source=src, ifcharge=1, charge=q, ifdipole=0,
+        dipstr=np.zeros(ns, np.complex128), dipvec=np.zeros((2, ns)), ifpot=0,
+        iffld=int(targets is None), ifhess=0, ntarget=nt, target=tgt, ifpottarg=0,
+        pottarg=np.zeros(nt, np.complex128), iffldtarg=int(targets is not None),
+        fldtarg=np.zeros((2, nt), np.complex128), ifhesstarg=0,
+        hesstarg=np.zeros((3, nt), np.complex128),
+    )
+    if ier != 0:
+        raise RuntimeError(f"pyfmmlib lfmm2dparttarg failed with ier={ier}")
+    f = fld if targets is None else fldt
+    return np.asarray(f[0] - 1j * f[1], dtype=np.complex128)
+
+
+def cauchy_self(z: ComplexArray, q: ComplexArray) -> ComplexArray:
+    """``c_i = sum_{k != i} q_k / (z_i - z_k)`` for distinct nodes z."""
+    n = z.size
+    if HAVE_FMM and n * n > FMM_THRESHOLD:
+        return _fmm(z, q, None)
+    d = z[:, None] - z[None, :]
+    np.fill_diagonal(d, 1.0)
+    m = q[None, :] / d
+    np.fill_diagonal(m, 0.0)
+    return np.asarray(m.sum(axis=1))
+
+
+def cauchy_targets(sources: ComplexArray, q: ComplexArray, targets: ComplexArray) -> ComplexArray:
+    """``c_j = sum_k q_k / (x_j - z_k)`` at targets distinct from every source."""
+    if HAVE_FMM and sources.size * targets.size > FMM_THRESHOLD and targets.size > 64:
+        return _fmm(sources, q, targets)
+    out = np.empty(targets.size, np.complex128)
+    step = max(1, 2_000_000 // max(sources.size, 1))  # bound the temporary's memory
+    for s in range(0, targets.size, step):
+        tt = targets[s : s + step]
+        out[s : s + step] = (q[None, :] / (tt[:, None] - sources[None, :])).sum(axis=1)
+    return out
+
+
+__all__ = ["HAVE_FMM", "cauchy_self", "cauchy_targets"]

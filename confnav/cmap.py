@@ -1,0 +1,297 @@
+"""The solved conformal navigation transformation: T, T', T^-1 and lossless serialisation.
+
+The map is stored as its boundary correspondence: for every boundary node ``eta_k`` (outer
+counter-clockwise, holes clockwise, on the graded mesh) its image ``W_k = T(eta_k)`` and the
+t-derivatives ``eta'_k`` and ``W'_k = T'(eta_k) eta'_k``. Evaluation is the barycentric Cauchy
+formula over all boundary components (weights ``2pi/n_j``), accurate up to the boundary:
+
+    T(z)   = sum w W eta'/(eta - z) / sum w eta'/(eta - z),
+    T'(z)  = sum w W'    /(eta - z) / sum w eta'/(eta - z),
+    T^-1(w) = sum w eta W'/(W - w)  / sum w W'/(W - w)        (roles of eta and W swapped).
+
+References
+----------
+.. [1] DESIGN.md sec. 2, "Cauchy evaluation (barycentric form)".
+.. [2] A. P. Austin, P. Kravanja, L. N. Trefethen, "Numerical algorithms based on analytic
+   function values at roots of unity", SIAM J. Numer. Anal. 52 (2014) 1795-1821, sec. 4.
+"""
+
+from __future__ import annotations
+
+import base64
+import hashlib
+import json
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import numpy as np
+import shapely
+from numpy.typing import ArrayLike
+
+from confnav.cauchy import FMM_THRESHOLD, HAVE_FMM, cauchy_targets
+from confnav.errors import SerializationError
+from confnav.geometry import ComplexArray, FloatArray, Workspace
+
+FORMAT = "confnav.map"
+FORMAT_VERSION = 1
+
+
+@dataclass
+class SolveDiagnostics:
+    """How the map was obtained and how accurate it is believed to be.
+
+    ``error_estimate`` is the largest change of any centre or radius between the final solve and
+    a solve on a coarser mesh (an upper bound in practice, since the error decays like n^-5).
+    """
+
+    tol: float
+    error_estimate: float
+    tol_met: bool
+    sweeps: int
+    history: list[float]
+    nodes: list[int]
+    nodes_per_side: int
+    circularity: float
+    gmres_iterations: int
+    wall_time: float
+    refinements: list[dict[str, float]] = field(default_factory=list)
+
+    def table(self) -> str:
+        rows = [
+            ("requested tolerance", f"{self.tol:.1e}"),
+            ("estimated error (centres, radii)", f"{self.error_estimate:.1e}"),
+            ("tolerance met", "yes" if self.tol_met else "NO"),
+            ("Koebe sweeps (final solve)", str(self.sweeps)),
+            ("last sweep change", f"{self.history[-1]:.1e}" if self.history else "-"),
+            ("boundary circularity residual", f"{self.circularity:.1e}"),
+            ("nodes per side", str(self.nodes_per_side)),
+            ("nodes per boundary", ", ".join(str(n) for n in self.nodes)),
+            ("GMRES iterations (total)", str(self.gmres_iterations)),
+            ("wall time", f"{self.wall_time:.2f} s"),
+        ]
+        w = max(len(r[0]) for r in rows)
+        return "\n".join(f"{a:<{w}}  {b}" for a, b in rows)
+
+
+def _pack(z: np.ndarray) -> dict[str, str]:
+    arr = np.ascontiguousarray(z)
+    dtype = "<c16" if arr.dtype.kind == "c" else "<f8"
+    return {"dtype": dtype, "data": base64.b64encode(arr.astype(dtype).tobytes()).decode()}
+
+
+def _unpack(d: Any, name: str) -> np.ndarray:
+    try:
+        dtype = np.dtype(d["dtype"])
+        if dtype.str not in ("<c16", "<f8"):
+            raise ValueError(f"unsupported dtype {dtype}")
+        arr = np.frombuffer(base64.b64decode(d["data"], validate=True), dtype=dtype)
+    except (KeyError, TypeError, ValueError) as exc:
+        raise SerializationError(f"map field {name!r} is not a packed array: {exc}") from exc
+    if not np.all(np.isfinite(arr)):
+        raise SerializationError(f"map field {name!r} contains NaN or inf")
+    return arr.astype(np.complex128 if dtype.kind == "c" else np.float64)
+
+
+class ConformalMap:
+    """The conformal map T of a workspace's free space onto a circle domain.
+
+    The outer boundary goes to the unit circle, obstacle j to the circle
+    ``|w - centers[j]| = radii[j]``; ``T(anchor) = 0`` and ``T'(anchor) > 0``.
+    All evaluation methods are vectorized over complex arrays of any shape; points outside the
+    closed free space (resp. the closed circle domain) give NaN.
+    """
+
+    def __init__(
+        self,
+        workspace: Workspace,
+        eta: list[ComplexArray],
+        deta: list[ComplexArray],
+        W: list[ComplexArray],
+        dW: list[ComplexArray],
+        centers: ComplexArray,
+        radii: FloatArray,
+        diagnostics: SolveDiagnostics,
+    ) -> None:
+        self.workspace = workspace
+        self.anchor = workspace.anchor
+        self.centers = np.asarray(centers, dtype=np.complex128)
+        self.radii = np.asarray(radii, dtype=np.float64)
+        self.diagnostics = diagnostics
+        self._parts = (eta, deta, W, dW)
+        wts = np.concatenate([np.full(e.size, 2 * np.pi / e.size) for e in eta])
+        self._eta = np.concatenate(eta)
+        self._W = np.concatenate(W)
+        # charges of the barycentric sums (weights folded in)
+        self._q_deta = wts * np.concatenate(deta)
+        self._q_W = self._q_deta * self._W
+        self._q_dW = wts * np.concatenate(dW)
+        self._q_etadW = self._q_dW * self._eta
+        self._revision: str | None = None
+
+    # ------------------------------------------------------------------ evaluation
+    @property
+    def n_obstacles(self) -> int:
+        return int(self.centers.size)
+
+    def _bary(
+        self, nodes: ComplexArray, z: ComplexArray, charges: list[ComplexArray]
+    ) -> list[ComplexArray]:
+        """sum_k q_k/(nodes_k - z) for each charge vector."""
+        if HAVE_FMM and z.size * nodes.size > FMM_THRESHOLD and z.size > 64:
+            return [-cauchy_targets(nodes, q, z) for q in charges]
+        R = 1.0 / (nodes[None, :] - z[:, None])
+        P = R @ np.column_stack(charges)
+        return [P[:, j] for j in range(len(charges))]
+
+    def _forward(
+        self, z: ArrayLike, derivative: bool, check: bool
+    ) -> tuple[ComplexArray, ComplexArray | None]:
+        zz = np.asarray(z, dtype=np.complex128)
+        shape = zz.shape
+        flat = zz.ravel()
+        w = np.full(flat.size, np.nan + 0j)
+        dw = np.full(flat.size, np.nan + 0j) if derivative else None
+        ok = np.isfinite(flat)
+        if check:
+            ok &= np.asarray(
+                shapely.intersects_xy(self.workspace.polygon, flat.real, flat.imag), dtype=bool
+            )
+        idx = np.flatnonzero(ok)
+        if idx.size:
+            pts = flat[idx]
+            charges = [self._q_W, self._q_deta] + ([self._q_dW] if derivative else [])
+            with np.errstate(divide="ignore", invalid="ignore"):
+                sums = self._bary(self._eta, pts, charges)
+                w[idx] = sums[0] / sums[1]
+                if dw is not None:
+                    dw[idx] = sums[2] / sums[1]
+            self._fix_nodes(pts, idx, w, dw)
+        return w.reshape(shape), (dw.reshape(shape) if dw is not None else None)
+
+    def _fix_nodes(
+        self, pts: ComplexArray, idx: np.ndarray, w: ComplexArray, dw: ComplexArray | None
+    ) -> None:
+        """Points that coincide with a boundary node take the node's value (0/0 otherwise)."""
+        bad = ~np.isfinite(w[idx])
+        if not bad.any():
+            return
+        for j in np.flatnonzero(bad):  # rare: exact hits of nodes only
+            k = int(np.argmin(np.abs(self._eta - pts[j])))
+            w[idx[j]] = self._W[k]
+            if dw is not None:
+                dk = self._q_deta[k]
+                dw[idx[j]] = self._q_dW[k] / dk if dk != 0 else np.nan
+
+    def T(self, z: ArrayLike, check: bool = True) -> ComplexArray:
+        """T(z). With ``check=False`` the free-space test is skipped (caller guarantees it)."""
+        return self._forward(z, False, check)[0]
+
+    def dT(self, z: ArrayLike, check: bool = True) -> ComplexArray:
+        """The complex derivative T'(z)."""
+        d = self._forward(z, True, check)[1]
+        assert d is not None
+        return d
+
+    def T_and_dT(self, z: ArrayLike, check: bool = True) -> tuple[ComplexArray, ComplexArray]:
+        """T(z) and T'(z) from one pass over the boundary nodes."""
+        w, d = self._forward(z, True, check)
+        assert d is not None
+        return w, d
+
+    def in_circle_domain(self, w: ArrayLike) -> np.ndarray:
+        """True for points of the closed circle domain."""
+        ww = np.asarray(w, dtype=np.complex128)
+        ok = np.isfinite(ww) & (np.abs(ww) <= 1.0 + 1e-12)
+        for c, r in zip(self.centers, self.radii, strict=True):
+            ok &= np.abs(ww - c) >= r - 1e-12
+        return np.asarray(ok)
+
+    def inverse(self, w: ArrayLike, check: bool = True) -> ComplexArray:
+        """T^-1(w) for points of the circle domain."""
+        ww = np.asarray(w, dtype=np.complex128)
+        shape = ww.shape
+        flat = ww.ravel()
+        out = np.full(flat.size, np.nan + 0j)
+        ok = self.in_circle_domain(flat) if check else np.isfinite(flat)
+        idx = np.flatnonzero(ok)
+        if idx.size:
+            pts = flat[idx]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                num, den = self._bary(self._W, pts, [self._q_etadW, self._q_dW])
+                out[idx] = num / den
+            bad = ~np.isfinite(out[idx])
+            for j in np.flatnonzero(bad):
+                out[idx[j]] = self._eta[int(np.argmin(np.abs(self._W - pts[j])))]
+        return out.reshape(shape)
+
+    # ------------------------------------------------------------------ serialisation
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-able, lossless: arrays are base64 little-endian float64/complex128."""
+        eta, deta, W, dW = self._parts
+        return {
+            "format": FORMAT,
+            "version": FORMAT_VERSION,
+            "workspace": self.workspace.to_dict(),
+            "centers": _pack(self.centers),
+            "radii": _pack(self.radii),
+            "boundaries": [
+                {"eta": _pack(e), "deta": _pack(d), "W": _pack(w), "dW": _pack(dw)}
+                for e, d, w, dw in zip(eta, deta, W, dW, strict=True)
+            ],
+            "diagnostics": asdict(self.diagnostics),
+        }
+
+    @classmethod
+    def from_dict(cls, d: Any) -> ConformalMap:
+        if not isinstance(d, dict) or d.get("format") != FORMAT:
+            raise SerializationError(f"not a confnav map (expected format {FORMAT!r})")
+        if d.get("version") != FORMAT_VERSION:
+            raise SerializationError(
+                f"map format version {d.get('version')!r} is not supported "
+                f"(this confnav reads version {FORMAT_VERSION})"
+            )
+        try:
+            ws = Workspace.from_dict(d["workspace"])
+            bnd = d["boundaries"]
+            parts = [[_unpack(b[k], k) for b in bnd] for k in ("eta", "deta", "W", "dW")]
+            centers = _unpack(d["centers"], "centers")
+            radii = _unpack(d["radii"], "radii")
+            diag = SolveDiagnostics(**d["diagnostics"])
+        except (KeyError, TypeError) as exc:
+            raise SerializationError(f"map is missing or has a malformed field: {exc}") from exc
+        if len(bnd) != ws.n_obstacles + 1 or centers.size != ws.n_obstacles:
+            raise SerializationError("map boundaries do not match its workspace")
+        for e, de, w, dw in zip(*parts, strict=True):
+            if not (e.size == de.size == w.size == dw.size):
+                raise SerializationError("map boundary arrays have inconsistent sizes")
+        return cls(ws, parts[0], parts[1], parts[2], parts[3], centers, radii, diag)
+
+    def to_json(self) -> str:
+        return json.dumps(self.to_dict())
+
+    @classmethod
+    def from_json(cls, text: str | bytes) -> ConformalMap:
+        try:
+            d = json.loads(text)
+        except json.JSONDecodeError as exc:
+            raise SerializationError(f"map is not valid JSON: {exc}") from exc
+        return cls.from_dict(d)
+
+    @property
+    def revision(self) -> str:
+        """sha256 of the workspace and coefficients (not of the diagnostics)."""
+        if self._revision is None:
+            h = hashlib.sha256(self.workspace.content_hash().encode())
+            for arr in (*self._parts[2], *self._parts[3], self.centers, self.radii):
+                h.update(np.ascontiguousarray(arr).tobytes())
+            self._revision = h.hexdigest()
+        return self._revision
+
+    def __repr__(self) -> str:
+        return (
+            f"ConformalMap(obstacles={self.n_obstacles}, anchor={self.anchor:.6g}, "
+            f"error_estimate={self.diagnostics.error_estimate:.1e})"
+        )
+
+
+__all__ = ["ConformalMap", "SolveDiagnostics"]

@@ -1,0 +1,157 @@
+"""The generalized Neumann kernel (GNK) boundary integral equation on one closed curve.
+
+For a curve ``eta(t)``, a complex function ``A`` on it and a real ``gamma``, there are a unique
+real function ``mu`` and a real constant ``h`` such that ``A f = gamma + h + i mu`` are the
+boundary values of a function ``f`` analytic in the domain; they solve
+
+    (I - N) mu = -M gamma,        h = [M mu - (I - N) gamma] / 2,
+
+with the kernels (``s, t`` parameters on the curve)
+
+    N(s, t) = (1/pi) Im( A(s) eta'(t) / (A(t) (eta(t) - eta(s))) ),
+    M(s, t) = (1/pi) Re( A(s) eta'(t) / (A(t) (eta(t) - eta(s))) ).
+
+Discretisation: Nystrom with the trapezoidal rule (weight 2pi/n) on the graded mesh. The
+singularities are removed with ``N 1 = -1`` and ``M 1 = 0``:
+
+    [(I - N) x]_i = 2 x_i - sum_{k != i} N_ik (x_k - x_i),
+    [M x]_i       = sum_{k != i} M_ik (x_k - x_i) + (2/n) x'(t_i),
+
+where ``x'`` is the spectral (FFT) derivative. The system is solved by GMRES; a matrix-vector
+product is one Cauchy sum (direct or FMM, see :mod:`confnav.cauchy`), so a solve costs
+O(n^2) dense or O(n) with the FMM. (The seed's eqs. (integral equation) and (c) swap the known
+and unknown functions -- DESIGN.md sec. 6 errata; this module follows DESIGN.md sec. 2.)
+
+References
+----------
+.. [1] R. Wegmann, M. M. S. Nasser, "The Riemann-Hilbert problem and the generalized Neumann
+   kernel on multiply connected regions", J. Comput. Appl. Math. 214 (2008) 36-57, Thm. 5.
+.. [2] M. M. S. Nasser, "Fast solution of boundary integral equations with the generalized
+   Neumann kernel", ETNA 44 (2015) 189-229, secs. 2-4 (Nystrom, singularity removal, FMM).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.sparse.linalg import LinearOperator, gmres
+
+from confnav.cauchy import FMM_THRESHOLD, HAVE_FMM, cauchy_self, cauchy_targets
+from confnav.errors import ConvergenceError
+from confnav.geometry import ComplexArray, FloatArray
+
+#: Relative GMRES residual; well below the map accuracies asked for (1e-6 .. 1e-13).
+GMRES_RTOL = 1e-14
+GMRES_RESTART = 80
+GMRES_MAXITER = 20
+
+
+def spectral_derivative(x: FloatArray) -> FloatArray:
+    """d x / d t for samples of a smooth 2pi-periodic function at t_i = 2pi i/n (FFT)."""
+    n = x.size
+    k = np.fft.rfftfreq(n, d=1.0 / n)
+    xh = np.fft.rfft(x) * 1j * k
+    if n % 2 == 0:
+        xh[-1] = 0.0  # the Nyquist mode has no derivative in a real expansion
+    return np.fft.irfft(xh, n)
+
+
+@dataclass(frozen=True)
+class GNKSolution:
+    """Solution of one GNK equation: ``mu`` at the nodes, ``h``, and diagnostics."""
+
+    mu: FloatArray
+    h: float
+    h_spread: float  # max - min of the pointwise h: a residual check (0 in exact arithmetic)
+    iterations: int
+
+
+#: A node whose quadrature weight |eta'| 2pi/n is below this fraction of the curve's size lies
+#: within rounding of its neighbours (graded nodes next to a corner, and their images under maps
+#: that compress the corner); it carries no information as a source and is dropped as one.
+DEAD_NODE_RTOL = 1e-15
+
+
+class _Operator:
+    """Discrete GNK operators for one curve: S(x) = sum_{k!=i} K_ik (x_k - x_i) etc."""
+
+    def __init__(self, eta: ComplexArray, deta: ComplexArray, A: ComplexArray) -> None:
+        self.n = n = eta.size
+        self.eta, self.A = eta, A
+        size = float(np.max(np.abs(eta - eta.mean())))
+        self.alive = np.abs(deta) * (2 * np.pi / n) > DEAD_NODE_RTOL * size
+        self.q0 = np.where(self.alive, deta / A, 0.0)
+        self.dense = not (HAVE_FMM and n * n > FMM_THRESHOLD)
+        if self.dense:
+            d = eta[None, :] - eta[:, None]  # eta_k - eta_i
+            np.fill_diagonal(d, np.inf)
+            d[d == 0] = np.inf  # coincident image nodes (both dead): no mutual term
+            K = (2.0 / n) * A[:, None] * self.q0[None, :] / d
+            self.Kr = np.ascontiguousarray(K.real)
+            self.Ki = np.ascontiguousarray(K.imag)
+            self.rowr = self.Kr.sum(axis=1)
+            self.rowi = self.Ki.sum(axis=1)
+        else:
+            self.c0 = self._cauchy(self.q0)
+
+    def _cauchy(self, q: ComplexArray) -> ComplexArray:
+        """sum over alive k != i of q_k/(eta_i - eta_k), at every node i (FMM)."""
+        a = self.alive
+        out = np.empty(self.n, np.complex128)
+        out[a] = cauchy_self(self.eta[a], q[a])
+        if not a.all():
+            out[~a] = cauchy_targets(self.eta[a], q[a], self.eta[~a])
+        return out
+
+    def S(self, x: FloatArray) -> ComplexArray:
+        """sum_{k != i} K_ik (x_k - x_i), complex (Re -> M part, Im -> N part)."""
+        if self.dense:
+            return (self.Kr @ x - self.rowr * x) + 1j * (self.Ki @ x - self.rowi * x)
+        cx = self._cauchy(self.q0 * x)
+        return -(2.0 / self.n) * self.A * (cx - x * self.c0)
+
+    def I_minus_N(self, x: FloatArray) -> FloatArray:
+        if self.dense:
+            return np.asarray(2 * x - (self.Ki @ x - self.rowi * x))
+        return np.asarray(2 * x - self.S(x).imag)
+
+    def M(self, x: FloatArray) -> FloatArray:
+        if self.dense:
+            mx = self.Kr @ x - self.rowr * x
+        else:
+            mx = self.S(x).real
+        return np.asarray(mx + (2.0 / self.n) * spectral_derivative(x))
+
+
+def solve_gnk(
+    eta: ComplexArray, deta: ComplexArray, A: ComplexArray, gamma: FloatArray
+) -> GNKSolution:
+    """Solve ``(I - N) mu = -M gamma`` and return ``mu`` and ``h`` (see module docstring)."""
+    op = _Operator(eta, deta, A)
+    n = eta.size
+    rhs = -op.M(gamma)
+    lin = LinearOperator((n, n), matvec=op.I_minus_N, dtype=np.float64)
+    count = [0]
+
+    def _cb(_: object) -> None:
+        count[0] += 1
+
+    mu, info = gmres(
+        lin, rhs, rtol=GMRES_RTOL, atol=0.0, restart=GMRES_RESTART, maxiter=GMRES_MAXITER,
+        callback=_cb, callback_type="pr_norm",
+    )
+    if info > 0:
+        res = np.linalg.norm(op.I_minus_N(mu) - rhs) / max(np.linalg.norm(rhs), 1e-300)
+        if res > 1e-10:
+            raise ConvergenceError(
+                f"GMRES did not converge for the GNK equation (n={n}, residual {res:.2e})"
+            )
+    hpt = 0.5 * (op.M(mu) - op.I_minus_N(gamma))
+    return GNKSolution(
+        mu=np.asarray(mu), h=float(np.mean(hpt)), h_spread=float(np.ptp(hpt)),
+        iterations=count[0],
+    )
+
+
+__all__ = ["GNKSolution", "solve_gnk", "spectral_derivative"]
