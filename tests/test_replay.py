@@ -1,0 +1,225 @@
+"""``confnav replay``: recorded messages go back onto Zenoh with their timing, to the recorded
+keys or under a new prefix; replaying through a live recorder reproduces every channel."""
+
+from __future__ import annotations
+
+import importlib.util
+import subprocess
+import threading
+import time
+from collections import defaultdict
+from pathlib import Path
+from types import ModuleType
+from typing import Any
+
+import pytest
+from conftest import confnav_cmd, subprocess_env, wait_for
+from mcap.writer import Writer
+
+from confnav.schemas import Pose, encode
+from confnav.services import mcap_layout as L
+from confnav.services.bus import zenoh_config
+from confnav.services.foxglove import is_viz_topic
+from confnav.services.inspection import Recording
+from confnav.services.keys import Keys
+from confnav.services.recorder import Recorder
+from confnav.services.replay import ReplayError, remap, replay, select_topics
+
+DATA = Path(__file__).resolve().parent / "data"
+T0 = 1_700_000_000_000_000_000
+
+
+def _make_golden() -> ModuleType:
+    spec = importlib.util.spec_from_file_location("confnav_make_golden", DATA / "make_golden.py")
+    assert spec is not None and spec.loader is not None
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def _per_channel(path: Path) -> dict[str, list[bytes]]:
+    """Payloads per topic (log-time order), Foxglove scene channels left out."""
+    out: dict[str, list[bytes]] = defaultdict(list)
+    with Recording(path) as rec:
+        for m in rec.iter_messages():
+            if not is_viz_topic(m.topic):
+                out[m.topic].append(m.data)
+    return dict(out)
+
+
+@pytest.fixture(scope="module")
+def run_file(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    path = tmp_path_factory.mktemp("replay") / "run.mcap"
+    _make_golden().run_pipeline(path, solver="fake", time_scale=4.0)
+    return path
+
+
+def _timed(path: Path, n: int = 26, step_ns: int = 20_000_000) -> list[bytes]:
+    """n poses, ``step_ns`` apart in log time (0.5 s in all by default)."""
+    payloads = []
+    with open(path, "wb") as f:
+        w = Writer(f)
+        w.start(L.PROFILE, "test")
+        sid = w.register_schema(L.schema_name(Pose), L.SCHEMA_ENCODING, L.schema_data(Pose))
+        cid = w.register_channel("confnav/robot/r1/pose", L.MESSAGE_ENCODING, sid)
+        aid = w.register_channel("confnav/alive/recorder/abc", L.MESSAGE_ENCODING, sid)
+        for i in range(n):
+            t = T0 + step_ns * i
+            data = encode(Pose(robot_id="r1", stamp_ns=t, seq=i, x=0.01 * i, y=0.0))
+            w.add_message(cid, t, data, t)
+            payloads.append(data)
+        w.add_message(aid, T0, b"{}", T0)
+        w.finish()
+    return payloads
+
+
+def test_select_and_remap() -> None:
+    topics = [
+        "confnav/alive/controller/z1",
+        "confnav/robot/r1/cmd_vel",
+        "confnav/robot/r1/pose",
+        "confnav/robot/r2/pose",
+        "confnav/viz/w1/scene",
+        "confnav/ws/w1/transform",
+    ]
+    assert select_topics(topics, "confnav") == [
+        "confnav/robot/r1/cmd_vel",
+        "confnav/robot/r1/pose",
+        "confnav/robot/r2/pose",
+        "confnav/ws/w1/transform",
+    ]
+    assert select_topics(topics, "confnav", include=["confnav/robot/*/pose"]) == [
+        "confnav/robot/r1/pose",
+        "confnav/robot/r2/pose",
+    ]
+    assert select_topics(topics, "confnav", exclude=["**/cmd_vel", "confnav/ws/**"]) == [
+        "confnav/robot/r1/pose",
+        "confnav/robot/r2/pose",
+    ]
+    assert select_topics(topics, "confnav", include=["confnav/viz/**"]) == ["confnav/viz/w1/scene"]
+    assert remap("confnav/robot/r1/pose", "confnav", "lab/a") == "lab/a/robot/r1/pose"
+    assert remap("confnav/robot/r1/pose", "confnav", None) == "confnav/robot/r1/pose"
+
+
+def _collect(make_bus: Any, keyexpr: str) -> tuple[list[tuple[float, str, bytes]], Any]:
+    got: list[tuple[float, str, bytes]] = []
+    lock = threading.Lock()
+    bus = make_bus()
+
+    def on(key: str, payload: bytes) -> None:
+        with lock:
+            got.append((time.monotonic(), key, payload))
+
+    bus.subscribe(keyexpr, on)
+    return got, bus
+
+
+@pytest.mark.parametrize("speed", [1.0, 2.5, None], ids=["x1", "x2.5", "max"])
+def test_timing_follows_the_recording(
+    tmp_path: Path, zenoh_router: str, make_bus: Any, speed: float | None
+) -> None:
+    path = tmp_path / "timed.mcap"
+    payloads = _timed(path)
+    got, _bus = _collect(make_bus, "confnav/**")
+    report = replay(
+        path, zenoh_config("client", connect=[zenoh_router]), speed=speed, wait_subscribers=5.0
+    )
+    wait_for(lambda: len(got) >= len(payloads), timeout=10)
+    assert report.unmatched_keys == [] and report.total == len(payloads)
+    assert [p for _t, _k, p in got] == payloads  # alive keys are not replayed
+    assert {k for _t, k, _p in got} == {"confnav/robot/r1/pose"}
+    span = got[-1][0] - got[0][0]
+    if speed is None:
+        assert span < 0.2
+    else:
+        expected = 0.5 / speed
+        assert expected * 0.9 <= span <= expected + 0.2, span
+        assert report.wall_time_s >= expected * 0.95
+
+
+def test_prefix_and_include(tmp_path: Path, zenoh_router: str, make_bus: Any) -> None:
+    path = tmp_path / "timed.mcap"
+    payloads = _timed(path, n=10, step_ns=1_000_000)
+    got, _bus = _collect(make_bus, "lab/**")
+    report = replay(
+        path,
+        zenoh_config("client", connect=[zenoh_router]),
+        speed=None,
+        prefix="lab",
+        include=["confnav/robot/**"],
+        wait_subscribers=5.0,
+    )
+    wait_for(lambda: len(got) >= 10, timeout=10)
+    assert dict(report.published) == {"lab/robot/r1/pose": 10}
+    assert [p for _t, _k, p in got] == payloads
+    with pytest.raises(ReplayError, match="no recorded topic selected"):
+        replay(path, zenoh_config("client", connect=[zenoh_router]), include=["nothing/**"])
+    with pytest.raises(ReplayError, match="speed"):
+        replay(path, zenoh_config("client", connect=[zenoh_router]), speed=0.0)
+
+
+def test_replay_through_a_live_recorder_reproduces_every_channel(
+    run_file: Path, tmp_path: Path, zenoh_router: str, make_bus: Any
+) -> None:
+    """``confnav replay --max`` (a real process) into a recorder on Zenoh: the new recording
+    has the same channels, counts and byte-identical payloads in the same order."""
+    again = tmp_path / "again.mcap"
+    rec = Recorder(make_bus(), Keys(), again, {}, foxglove=True, health_period=0)
+    rec.start()
+    try:
+        res = subprocess.run(
+            confnav_cmd(
+                "replay",
+                str(run_file),
+                "--max",
+                "--mode",
+                "client",
+                "--connect",
+                zenoh_router,
+                "--wait-subscribers",
+                "5",
+            ),
+            capture_output=True,
+            text=True,
+            timeout=60,
+            env=subprocess_env(),
+        )
+        assert res.returncode == 0, res.stderr
+        original = _per_channel(run_file)
+        total = sum(len(v) for v in original.values())
+        wait_for(lambda: rec.recorded >= total, timeout=20)
+    finally:
+        rec.stop()
+    assert _per_channel(again) == original
+    with Recording(again) as r:  # and the recorder drew the scenes again from replayed data
+        assert {c.topic for c in r.channels.values() if is_viz_topic(c.topic)} == {
+            "confnav/viz/w1/scene",
+            "confnav/viz/w1/circle_domain",
+        }
+
+
+def test_replay_at_recorded_speed_keeps_relative_timing(
+    run_file: Path, tmp_path: Path, zenoh_router: str, make_bus: Any
+) -> None:
+    """At speed 1 the re-recorded log times follow the original ones (within scheduling)."""
+    again = tmp_path / "again1.mcap"
+    rec = Recorder(make_bus(), Keys(), again, {}, health_period=0)
+    rec.start()
+    try:
+        report = replay(
+            run_file, zenoh_config("client", connect=[zenoh_router]), wait_subscribers=5.0
+        )
+        wait_for(lambda: rec.recorded >= report.total, timeout=20)
+    finally:
+        rec.stop()
+
+    def times(path: Path) -> list[int]:
+        with Recording(path) as r:
+            return [m.log_time_ns for m in r.iter_messages() if not is_viz_topic(m.topic)]
+
+    a, b = times(run_file), times(again)
+    assert len(a) == len(b)
+    rel_a = [t - a[0] for t in a]
+    rel_b = [t - b[0] for t in b]
+    worst = max(abs(x - y) for x, y in zip(rel_a, rel_b, strict=True))
+    assert worst < 100_000_000, worst  # 0.1 s on a loaded 2-core machine
