@@ -124,12 +124,13 @@ class Controller:
         wd = complex(np.asarray(cmap.T_and_dT(np.asarray(self.goal))[0]))
         if not np.isfinite(wd):
             raise NavigationError(f"goal {self.goal:.6g} is not in the free space (T is NaN)")
-        self.domain = CircleDomain.of(cmap)
         if isinstance(navfn, NavigationFunction):
+            self.domain = navfn.domain
             if abs(navfn.goal - wd) > 1e-9:
                 raise NavigationError("navigation function goal differs from T(goal)")
             self.navfn = navfn
         else:
+            self.domain = CircleDomain.of(cmap)
             self.navfn = make_navfn(navfn, self.domain, wd, k=k)
         self.goal_w = wd
 
@@ -173,7 +174,8 @@ class Controller:
         u = -self.gain * np.conj(dw) * g
         s = np.abs(u)
         sat = s > self.v_max
-        u = np.where(sat, u * (self.v_max / np.maximum(s, 1e-300)), u)
+        with np.errstate(invalid="ignore"):
+            u = np.where(sat, u * (self.v_max / np.maximum(s, 1e-300)), u)
         arrived = ~bad & (np.abs(z - self.goal) <= self.goal_tol)
         stalled = ~bad & ~arrived & (np.abs(g) < self.stall_tol)
         status = np.full(z.shape, Status.MOVING, dtype=np.int8)

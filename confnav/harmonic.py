@@ -5,12 +5,14 @@
 real series (logarithmic conjugation / Laurent expansion in each hole [1]_ [2]_):
 
     h(w) = a_0 + Re sum_n a_n w^n + sum_j [ b_j log|w - c_j| + Re sum_n b_jn (r_j/(w-c_j))^n ]
-           + s_0 log|1 - conj(w_d) w| + sum_j s_j log|w - p_j|,
+           + log|1 - conj(w_d) w| + sum_j log|w - p_j|,
 
-where the last terms are the image charges of the pole in each circle (exact for one circle,
-``p_j = c_j + r_j^2 / conj(w_d - c_j)``); they only speed up convergence.  The real
-coefficients are fitted by least squares on equispaced collocation points of every circle and
-the number of terms doubles until the boundary error, measured on points in between, is below
+where the last terms, fixed, are the image charges of the pole in each circle (exact for one
+circle, ``p_j = c_j + r_j^2 / conj(w_d - c_j)``): they take the near-singular part of the
+boundary data when the goal is close to a circle, so the fitted series stays well conditioned.
+The real coefficients are fitted by least squares on equispaced collocation points of every
+circle and the number of terms grows (extrapolating the observed geometric rate) until the
+boundary error, measured on points in between, is below
 ``tol``; convergence is geometric in the number of terms [2]_.
 
 ``phi_H = |w - w_d|^2 e^{-2h} = e^{2G}`` is 1 on every boundary circle, has a single minimum
@@ -29,6 +31,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.linalg
 from numpy.typing import ArrayLike, NDArray
 
 from confnav.errors import NavigationError
@@ -76,38 +79,65 @@ class GreenFunction:
     """
 
     def __init__(
-        self, domain: CircleDomain, pole: complex, *, tol: float = 1e-10, max_terms: int = 256
+        self, domain: CircleDomain, pole: complex, *, tol: float = 1e-9, max_terms: int = 256
     ) -> None:
         self.domain = domain
         self.pole = complex(pole)
         c, r = domain.centers, domain.radii
-        # image charges of the pole in each circle
+        # image charges of the pole in each circle, with fixed unit coefficients
         self._images = c + r**2 / np.conj(self.pole - c)
+        self._s0 = 1.0
+        self._s = np.ones(c.size)
         history: list[tuple[int, float]] = []
-        n = 8
+        n = 12
         while True:
-            p = 4 * n + 16
+            p = 3 * n + 16
             zeta = self._boundary_points(p, offset=0.0)
             a = self._design(zeta, n)
-            rhs = np.log(np.abs(zeta - self.pole))
+            rhs = np.log(np.abs(zeta - self.pole)) - self._image_part(zeta)
             scale = np.linalg.norm(a, axis=0)
             scale[scale == 0] = 1.0
-            coef, *_ = np.linalg.lstsq(a / scale, rhs, rcond=None)
+            a /= scale
+            # the basis is well conditioned (each family orthogonal on its own circle, the
+            # near-singular image parts taken out), so the normal equations are accurate
+            gram = a.T @ a
+            try:
+                coef = scipy.linalg.solve(gram, a.T @ rhs, assume_a="pos", check_finite=False)
+            except (np.linalg.LinAlgError, ValueError):
+                coef = scipy.linalg.lstsq(a, rhs, lapack_driver="gelsy", check_finite=False)[0]
             coef = coef / scale
             self._n = n
             self._unpack(coef, n)
             zc = self._boundary_points(p, offset=0.5)
             res = float(np.max(np.abs(self.h(zc) - np.log(np.abs(zc - self.pole)))))
             history.append((n, res))
-            if res <= tol or 2 * n > max_terms:
+            if res <= tol or n >= max_terms:
                 break
-            n *= 2
+            n = min(self._next_n(history, tol), max_terms)
         self.diagnostics = GreenDiagnostics(n, p, res, tol, res <= tol, tuple(history))
         if res > 100 * tol:
             raise NavigationError(
                 f"Green's function series did not converge: boundary error {res:.2e} with "
                 f"{n} terms per circle (circles too close to each other or to the goal?)"
             )
+
+    def _image_part(self, z: CArray) -> FArray:
+        """``log|1 - conj(w_d) z| + sum_j log|z - p_j|`` (fixed part of h)."""
+        out = np.log(np.abs(1.0 - np.conj(self.pole) * z))
+        if self._images.size:
+            out = out + np.log(np.abs(z[:, None] - self._images)).sum(axis=1)
+        return np.asarray(out, dtype=np.float64)
+
+    @staticmethod
+    def _next_n(history: list[tuple[int, float]], tol: float) -> int:
+        """Next number of terms: extrapolate the geometric rate of the last two attempts."""
+        n, res = history[-1]
+        if len(history) < 2 or not res < history[-2][1]:
+            return 2 * n
+        n0, res0 = history[-2]
+        per_term = np.log(res / res0) / (n - n0)  # log of the rate per term (< 0)
+        need = n + np.log(tol / res) / per_term
+        return int(np.clip(np.ceil(1.1 * need) + 2, n + 4, 2 * n))
 
     def _boundary_points(self, p: int, offset: float) -> CArray:
         e = np.exp(2j * np.pi * (np.arange(p) + offset) / p)
@@ -122,11 +152,9 @@ class GreenFunction:
         cols: list[FArray] = [np.ones(z.shape)]
         wp = z[:, None] ** np.arange(1, n + 1)
         cols += [wp.real, wp.imag]
-        cols.append(np.log(np.abs(1.0 - np.conj(self.pole) * z))[:, None])
         if c.size:
             d = z[:, None] - c  # (P, M)
             cols.append(np.log(np.abs(d)))
-            cols.append(np.log(np.abs(z[:, None] - self._images)))
             u = (r / d)[:, :, None] ** np.arange(1, n + 1)  # (P, M, n)
             cols += [u.real.reshape(z.size, -1), u.imag.reshape(z.size, -1)]
         return np.column_stack([x[:, None] if x.ndim == 1 else x for x in cols])
@@ -139,11 +167,7 @@ class GreenFunction:
         # Re(p w^n) + Im(...) q  ==  Re((p - i q) w^n)
         self._a = coef[i : i + n] - 1j * coef[i + n : i + 2 * n]
         i += 2 * n
-        self._s0 = float(coef[i])
-        i += 1
         self._b = coef[i : i + m]
-        i += m
-        self._s = coef[i : i + m]
         i += m
         bre = coef[i : i + m * n].reshape(m, n)
         bim = coef[i + m * n : i + 2 * m * n].reshape(m, n)
@@ -172,6 +196,10 @@ class GreenFunction:
         return self.h_and_gradient(w)[0]
 
     def _eval(self, z: CArray) -> tuple[FArray, CArray]:
+        with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+            return self._eval_unchecked(z)
+
+    def _eval_unchecked(self, z: CArray) -> tuple[FArray, CArray]:
         # Variables u_0 = w (outer circle), u_j = r_j / (w - c_j); F = sum_j sum_n B_jn u_j^n,
         # F' = sum_j u_j'(w) sum_n n B_jn u_j^(n-1) with u_0' = 1, u_j' = -u_j^2 / r_j.
         # For h = Re F with F analytic, grad h = conj(F'); for log|w - q|, grad = 1/conj(w - q).
@@ -208,7 +236,7 @@ class HarmonicNavigation(NavigationFunction):
 
     name = "harmonic"
 
-    def __init__(self, domain: CircleDomain, goal: complex, *, tol: float = 1e-10) -> None:
+    def __init__(self, domain: CircleDomain, goal: complex, *, tol: float = 1e-9) -> None:
         super().__init__(domain, goal)
         self.tol = tol
         self.green = GreenFunction(domain, self.goal, tol=tol)

@@ -184,6 +184,29 @@ def _chord_check(
     return hit, low
 
 
+def _hermite(z0: CArray, z1: CArray, h: FArray, k0: CArray, k1: CArray, s: FArray) -> CArray:
+    s2, s3 = s * s, s * s * s
+    return (
+        (2 * s3 - 3 * s2 + 1) * z0
+        + (s3 - 2 * s2 + s) * h * k0
+        + (-2 * s3 + 3 * s2) * z1
+        + (s3 - s2) * h * k1
+    )
+
+
+def _goal_crossing(
+    z0: CArray, z1: CArray, h: FArray, k0: CArray, k1: CArray, goal: complex, tol: float
+) -> tuple[FArray, CArray]:
+    """Fraction s of the step where the cubic Hermite interpolant enters the goal disk."""
+    lo, hi = np.zeros(z0.size), np.ones(z0.size)
+    for _ in range(50):
+        mid = 0.5 * (lo + hi)
+        inside = np.abs(_hermite(z0, z1, h, k0, k1, mid) - goal) <= tol
+        hi = np.where(inside, mid, hi)
+        lo = np.where(inside, lo, mid)
+    return hi, _hermite(z0, z1, h, k0, k1, hi)
+
+
 def simulate(
     fld: VelocityField,
     starts: ArrayLike,
@@ -193,7 +216,7 @@ def simulate(
     atol: float = 1e-5,
     max_step: float = 0.05,
     max_steps: int = 20000,
-    stall_speed: float = 1e-7,
+    stall_distance: float | None = None,
     record_paths: bool = False,
 ) -> SimulationResult:
     """Integrate ``x' = u(x)`` from every start until goal, collision, ``t_max`` or
@@ -209,8 +232,9 @@ def simulate(
     atol : local error bound on the position per step.
     max_step : largest chord per step (workspace units).
     max_steps : step limit per robot.
-    stall_speed : at the time limit, a robot slower than this is reported ``stalled``
-        (converging to a saddle or a spurious minimum), otherwise ``timeout``.
+    stall_distance : a robot that moved less than this during the second half of ``t_max``
+        is reported ``stalled`` (at a saddle or a spurious minimum), otherwise ``timeout``;
+        default: the field's goal tolerance.
     record_paths : keep every accepted point of every robot.
 
     Raises
@@ -221,7 +245,8 @@ def simulate(
     import time as _time
 
     t0 = _time.perf_counter()
-    z = _as_points(starts)
+    z = _as_points(starts).copy()
+    z0 = z.copy()
     clr = clearance if clearance is not None else _clearance_of(fld)
     if clr is None:
         raise NavigationError("simulate needs a clearance function (no workspace on the field)")
@@ -233,6 +258,9 @@ def simulate(
     goal = complex(fld.goal)
     tol = float(fld.goal_tol)
     t = np.zeros(n)
+    z_half = np.full(n, np.nan + 0j)
+    if stall_distance is None:
+        stall_distance = tol
     length = np.zeros(n)
     minclr = c0.copy()
     vmax = np.zeros(n)
@@ -291,13 +319,19 @@ def simulate(
         # accepted steps
         ia = ai[ok]
         if ia.size:
-            zo, zn = za[ok], znew[ok]
+            zo, zn, hk, ck = za[ok], znew[ok], ha[ok], chord[ok]
+            arr = np.abs(zn - goal) <= tol
+            if arr.any():  # first crossing of the goal circle on the cubic Hermite interpolant
+                sa, za_ = _goal_crossing(
+                    zo[arr], zn[arr], hk[arr], ka[0][ok][arr], ka[6][ok][arr], goal, tol
+                )
+                zn[arr], hk[arr], ck[arr] = za_, hk[arr] * sa, np.abs(za_ - zo[arr])
             cn = np.asarray(clr(zn), dtype=np.float64)
             hit, low = _chord_check(zo, zn, cur_clr[ia], cn, clr)
             minclr[ia] = np.minimum(minclr[ia], low)
             z[ia] = zn
-            t[ia] = ta[ok] + ha[ok]
-            length[ia] += chord[ok]
+            t[ia] = ta[ok] + hk
+            length[ia] += ck
             cur_clr[ia] = cn
             nsteps[ia] += 1
             k1[ia] = ka[6][ok]
@@ -307,12 +341,15 @@ def simulate(
                 path_chunks.append((ia, zn.copy()))
             collided = hit | (cn <= 0)
             status[ia[collided]] = COLLIDED
-            arrived = ~collided & (np.abs(zn - goal) <= tol)
+            arrived = ~collided & arr
             status[ia[arrived]] = ARRIVED
             rest = ~collided & ~arrived
+            half = np.isnan(z_half[ia]) & (t[ia] >= 0.5 * t_max)
+            z_half[ia[half]] = zn[half]
             late = rest & (t[ia] >= t_max * (1 - 1e-12))
-            status[ia[late & (sp < stall_speed)]] = STALLED
-            status[ia[late & ~(sp < stall_speed)]] = TIMEOUT
+            parked = np.abs(zn - z_half[ia]) < stall_distance
+            status[ia[late & parked]] = STALLED
+            status[ia[late & ~parked]] = TIMEOUT
             status[ia[rest & ~late & (nsteps[ia] >= max_steps)]] = TIMEOUT
         h[ai] = np.minimum(hn, t_max - t[ai])
         h[ai] = np.where(h[ai] > 0, h[ai], 1e-300)
@@ -323,12 +360,12 @@ def simulate(
     path_tuple: tuple[CArray, ...] | None = None
     if record_paths:
         who = np.concatenate([np.arange(n)] + [c[0] for c in path_chunks])
-        pts = np.concatenate([_as_points(starts)] + [c[1] for c in path_chunks])
+        pts = np.concatenate([z0] + [c[1] for c in path_chunks])
         order = np.argsort(who, kind="stable")
         path_tuple = tuple(np.split(pts[order], np.cumsum(np.bincount(who, minlength=n))[:-1]))
     final_distance = np.abs(z - goal)
     return SimulationResult(
-        starts=_as_points(starts),
+        starts=z0,
         goal=goal,
         success=status == ARRIVED,
         collided=status == COLLIDED,

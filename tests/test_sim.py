@@ -1,0 +1,151 @@
+"""Batch simulator: exact trajectories, collision detection, stalls, the seed's four starts."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import pytest
+from numpy.testing import assert_allclose
+
+from confnav.control import Controller
+from confnav.errors import NavigationError
+from confnav.navfn import CircleDomain
+from confnav.sim import COLLIDED, STALLED, simulate
+
+DISK = CircleDomain(np.zeros(0, complex), np.zeros(0))
+CLUTTER = CircleDomain(
+    np.array([0.438 + 0.281j, 0.218 + 0.791j, -0.024 - 0.464j, 0.191 - 0.348j, 0.299 - 0.635j,
+              0.535 - 0.512j, -0.616 + 0.484j, -0.126 + 0.783j]),
+    np.array([0.093, 0.09, 0.098, 0.093, 0.074, 0.048, 0.078, 0.085]),
+)  # fmt: skip
+
+
+class IdentityMap:
+    def __init__(self, dom: CircleDomain) -> None:
+        self.centers, self.radii, self.workspace = dom.centers, dom.radii, dom
+
+    def T_and_dT(self, z: Any) -> tuple[np.ndarray, np.ndarray]:
+        z = np.asarray(z, dtype=complex)
+        out = ~(self.workspace.clearance(z) >= 0)
+        return np.where(out, np.nan, z), np.where(out, np.nan, 1.0 + 0j)
+
+
+class ConstantField:
+    def __init__(self, u: complex, dom: CircleDomain) -> None:
+        self.u, self.goal, self.goal_tol, self.workspace = u, 10.0 + 0j, 1e-3, dom
+
+    def velocity(self, z: Any) -> np.ndarray:
+        return np.full(np.shape(z), self.u, dtype=complex)
+
+
+def test_exact_exponential_approach() -> None:
+    # harmonic phi on the disk with goal 0 is |w|^2: u = -2K z, z(t) = z0 exp(-2Kt)
+    gain, tol = 0.7, 1e-3
+    ctl = Controller(IdentityMap(DISK), 0j, navfn="harmonic", gain=gain, goal_tol=tol)
+    z0 = np.array([0.9, -0.5 + 0.5j, 0.01j, 0.3 - 0.8j])
+    res = simulate(ctl, z0, atol=1e-8)
+    assert res.success.all()
+    # arrival time from the cubic Hermite interpolant of the last step: ~1e-5 relative
+    assert_allclose(res.time, np.log(np.abs(z0) / tol) / (2 * gain), rtol=1e-4)
+    assert_allclose(res.path_length, np.abs(z0) - tol, rtol=1e-9)
+    assert_allclose(res.final_distance, tol, rtol=1e-9)
+    assert_allclose(res.max_speed, 2 * gain * np.abs(z0), rtol=1e-12)
+    assert_allclose(res.min_clearance, 1 - np.abs(z0), rtol=1e-12)
+    assert (res.starts == z0).all()
+
+
+def test_kr_paths_are_radial_on_the_disk() -> None:
+    ctl = Controller(IdentityMap(DISK), 0j, navfn="kr", k=6)
+    z0 = np.array([0.95 + 0j, 0.6 - 0.7j])
+    res = simulate(ctl, z0, record_paths=True)
+    assert res.success.all()
+    assert_allclose(res.path_length, np.abs(z0) - 1e-3, rtol=1e-9)
+    for p, s in zip(res.paths or (), z0, strict=True):
+        assert_allclose(np.angle(p / s), 0, atol=1e-12)
+
+
+def test_collision_between_accepted_points_is_caught() -> None:
+    # a thin disk on a straight line crossed with steps of 0.5: only the chord check sees it
+    dom = CircleDomain(np.array([0.0j]), np.array([0.01]))
+    res = simulate(ConstantField(1.0 + 0j, dom), [-0.9 + 0.005j], max_step=0.5, record_paths=True)
+    assert res.collided[0] and not res.success[0]
+    assert res.status[0] == COLLIDED
+    assert res.min_clearance[0] <= 0
+    path = (res.paths or ())[0]
+    assert np.all(dom.clearance(path) > 0)  # no accepted point is inside: the chord check saw it
+    assert path[-2].real < 0 < path[-1].real  # stopped on the step that crossed the disk
+    # just missing it is not a collision
+    res = simulate(ConstantField(1.0 + 0j, dom), [-0.9 + 0.0101j], max_step=0.5, t_max=1.7)
+    assert not res.collided[0]
+    assert 1e-4 - 1e-12 <= res.min_clearance[0] <= 1.01e-4  # true minimum: 1e-4 at x = 0
+
+
+def test_k6_stalls_in_clutter_and_auto_k_does_not() -> None:
+    ident = IdentityMap(CLUTTER)
+    rng = np.random.default_rng(5)
+    z = rng.uniform(-1, 1, 3000) + 1j * rng.uniform(-1, 1, 3000)
+    z = z[CLUTTER.clearance(z) > 0.01][:300]
+    bad = simulate(Controller(ident, 0j, navfn="kr", k=6), z, t_max=1e3)
+    assert not bad.collided.any()
+    assert (~bad.success).sum() > 0
+    stuck = bad.final[~bad.success]
+    from confnav.critical import find_critical_points
+    from confnav.navfn import KoditschekRimon
+
+    spurious = find_critical_points(KoditschekRimon(CLUTTER, 0j, 6)).spurious_minima
+    assert spurious.size == 1
+    assert np.all(np.abs(stuck - spurious[0]) < 1e-3)  # they all sit in the spurious minimum
+    assert np.all(bad.status[~bad.success] == STALLED)
+    good = simulate(Controller(ident, 0j, navfn="kr", k="auto"), z, t_max=1e5)
+    assert good.success.all(), good.message
+    harm = simulate(Controller(ident, 0j, navfn="harmonic"), z, t_max=1e3)
+    assert harm.success.all(), harm.message
+
+
+def test_bad_starts() -> None:
+    ctl = Controller(IdentityMap(DISK), 0j, navfn="harmonic")
+    with pytest.raises(NavigationError, match="finite"):
+        simulate(ctl, [np.nan + 0j])
+    with pytest.raises(NavigationError, match="free space"):
+        simulate(ctl, [(0.2, 0.1), (1.5, 0.0)])
+    res = simulate(ctl, [(0.2, 0.1)])  # (N, 2) real input
+    assert res.starts[0] == 0.2 + 0.1j and res.success[0]
+
+
+def test_runs_are_typed_records() -> None:
+    ctl = Controller(IdentityMap(DISK), 0j, navfn="harmonic")
+    res = simulate(ctl, [0.5 + 0j, 0.0005 + 0j])
+    r0, r1 = res.runs()
+    assert r0.success and r0.status == "arrived" and r0.n_steps > 0
+    assert r1.success and r1.time == 0.0 and r1.n_steps == 0  # already there
+    d = r0.to_dict()
+    assert d["start"] == [0.5, 0.0] and set(d) >= {"success", "collided", "time", "path_length"}
+    assert "2 arrived" in res.message and res.success_rate == 1.0
+
+
+def _default_map() -> Any:
+    confnav = pytest.importorskip("confnav")
+    if not hasattr(confnav, "solve"):
+        pytest.skip("core solver not available yet")
+    from confnav.workspaces import default_workspace
+
+    return confnav.solve(default_workspace())
+
+
+@pytest.fixture(scope="module")
+def default_map() -> Any:
+    return _default_map()
+
+
+@pytest.mark.parametrize("navfn", ["kr", "harmonic"])
+def test_seed_four_starts_reach_the_goal(default_map: Any, navfn: str) -> None:
+    from confnav.workspaces import DEFAULT_GOAL, DEFAULT_STARTS
+
+    ctl = Controller(default_map, DEFAULT_GOAL, navfn=navfn, k=6, gain=1.0)
+    res = simulate(ctl, np.array(DEFAULT_STARTS), t_max=1e6)
+    assert res.success.all(), res.message
+    assert not res.collided.any()
+    assert np.all(res.min_clearance > 0)
+    # never faster than the straight line
+    assert np.all(res.path_length >= np.abs(np.array(DEFAULT_STARTS) - DEFAULT_GOAL) - 1e-3)
