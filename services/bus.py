@@ -27,6 +27,8 @@ Handler = Callable[[str, bytes], None]
 QueryHandler = Callable[[str, bytes | None], list[tuple[str, bytes]]]
 """Called with (queried key expression, query payload); returns the replies as (concrete key,
 payload) pairs, or raises :class:`QueryError` whose message goes back as ``reply_err``."""
+BatchHandler = Callable[[list[tuple[str, bytes]]], None]
+"""Called with every (key, payload) that is waiting, in arrival order (at least one)."""
 LivelinessHandler = Callable[[str, bool], None]
 """Called with (token key, alive)."""
 
@@ -62,6 +64,8 @@ class Bus(Protocol):
 
     def subscribe(self, keyexpr: str, handler: Handler) -> Closeable: ...
 
+    def subscribe_batch(self, keyexpr: str, handler: BatchHandler) -> Closeable: ...
+
     def query(
         self, selector: str, timeout: float = 2.0, payload: bytes | None = None
     ) -> list[Reply]: ...
@@ -86,9 +90,10 @@ _STOP = object()
 class _Dispatcher:
     """Unbounded FIFO + one daemon thread calling ``fn(item)`` for each item."""
 
-    def __init__(self, name: str, fn: Callable[[Any], None]) -> None:
+    def __init__(self, name: str, fn: Callable[[Any], None], batch: int = 0) -> None:
         self._q: queue.SimpleQueue[Any] = queue.SimpleQueue()
         self._fn = fn
+        self._batch = batch  # > 0: call fn with a list of up to this many waiting items
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
         self._thread.start()
 
@@ -100,10 +105,25 @@ class _Dispatcher:
             item = self._q.get()
             if item is _STOP:
                 return
+            stop = False
+            if self._batch:
+                items = [item]
+                while len(items) < self._batch:
+                    try:
+                        nxt = self._q.get_nowait()
+                    except queue.Empty:
+                        break
+                    if nxt is _STOP:
+                        stop = True
+                        break
+                    items.append(nxt)
+                item = items
             try:
                 self._fn(item)
             except Exception:
                 log.exception("handler failed in %s", self._thread.name)
+            if stop:
+                return
 
     def stop(self, timeout: float = 10.0) -> None:
         self._q.put(_STOP)
@@ -201,7 +221,15 @@ class ZenohBus:
         pub.put(payload)
 
     def subscribe(self, keyexpr: str, handler: Handler) -> Closeable:
-        disp = _Dispatcher(f"sub:{keyexpr}", lambda item: handler(item[0], item[1]))
+        return self._subscribe(keyexpr, lambda item: handler(item[0], item[1]), 0)
+
+    def subscribe_batch(
+        self, keyexpr: str, handler: BatchHandler, max_batch: int = 1024
+    ) -> Closeable:
+        return self._subscribe(keyexpr, handler, max_batch)
+
+    def _subscribe(self, keyexpr: str, fn: Callable[[Any], None], batch: int) -> Closeable:
+        disp = _Dispatcher(f"sub:{keyexpr}", fn, batch)
 
         def on_sample(sample: zenoh.Sample) -> None:  # Zenoh thread: enqueue only
             disp.put((str(sample.key_expr), sample.payload.to_bytes()))
@@ -365,7 +393,15 @@ class InMemoryBus:
             d.put((key, bytes(payload)))
 
     def subscribe(self, keyexpr: str, handler: Handler) -> Closeable:
-        disp = _Dispatcher(f"memsub:{keyexpr}", lambda item: handler(item[0], item[1]))
+        return self._subscribe(keyexpr, lambda item: handler(item[0], item[1]), 0)
+
+    def subscribe_batch(
+        self, keyexpr: str, handler: BatchHandler, max_batch: int = 1024
+    ) -> Closeable:
+        return self._subscribe(keyexpr, handler, max_batch)
+
+    def _subscribe(self, keyexpr: str, fn: Callable[[Any], None], batch: int) -> Closeable:
+        disp = _Dispatcher(f"memsub:{keyexpr}", fn, batch)
         entry = (keyexpr, disp)
         with self._net.lock:
             self._net.subs.append(entry)

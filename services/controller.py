@@ -21,6 +21,8 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
+import numpy as np
+
 from confnav.schemas import (
     DecodeError,
     Goal,
@@ -95,6 +97,10 @@ class ControllerService(Service):
         self._map_errors: dict[str, str] = {}
         self._transform_alive: set[str] = set()
         self._wake_fetch = threading.Event()
+        # (map revision, goal key) -> controller: robots with the same goal share one (the
+        # navigation function is built once, and their poses are evaluated in one call)
+        self._ctrl_cache: dict[tuple[object, ...], navigation.ControllerLike] = {}
+        self._build_lock = threading.Lock()
         self.swapped = threading.Event()  # set on each hot swap (tests)
 
     def _start(self) -> None:
@@ -102,9 +108,14 @@ class ControllerService(Service):
         self._handles.append(self.bus.subscribe_liveliness(k.alive_of("transform"), self._on_live))
         self._handles.append(self.bus.subscribe(k.any_ws("transform"), self._on_transform))
         self._handles.append(self.bus.subscribe(k.any_robot("goal"), self._on_goal))
-        self._handles.append(self.bus.subscribe(k.any_robot("pose"), self._on_pose))
+        self._handles.append(self.bus.subscribe_batch(k.any_robot("pose"), self._on_poses))
         self.spawn(self._fetch_loop, "fetch")
         self.spawn(self._watchdog_loop, "watchdog")
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._wake_fetch.set()
+        super().stop()
 
     def health_detail(self) -> tuple[str, str]:
         if self.require_transform and not self.transform_alive:
@@ -154,6 +165,9 @@ class ControllerService(Service):
         with self._lock:
             robots = [r for r in self._robots.values() if r.goal and r.goal.ws_id == ws_id]
         built = {r.robot_id: self._build(new, r.goal) for r in robots if r.goal}
+        with self._build_lock:
+            live = {m.revision for w, m in self._maps.items() if w != ws_id} | {new.revision}
+            self._ctrl_cache = {k: c for k, c in self._ctrl_cache.items() if k[0] in live}
         with self._lock:
             self._maps[ws_id] = new
             self._map_errors.pop(ws_id, None)
@@ -170,11 +184,19 @@ class ControllerService(Service):
         self.swapped.set()
 
     def _build(self, m: _Map, goal: Goal) -> tuple[navigation.ControllerLike | None, str]:
-        try:
-            return self._make_ctrl(m.cmap, goal), ""
-        except Exception as exc:
-            self.count("navigation_errors")
-            return None, f"{type(exc).__name__}: {exc}"
+        key = (m.revision, *navigation.goal_key(goal))
+        with self._build_lock:
+            ctrl = self._ctrl_cache.get(key)
+            if ctrl is not None:
+                return ctrl, ""
+            try:
+                ctrl = self._make_ctrl(m.cmap, goal)
+            except Exception as exc:
+                self.count("navigation_errors")
+                return None, f"{type(exc).__name__}: {exc}"
+            self.count("controllers_built")
+            self._ctrl_cache[key] = ctrl
+            return ctrl, ""
 
     def _fetch_loop(self) -> None:
         while not self._stop.is_set():
@@ -251,61 +273,72 @@ class ControllerService(Service):
         log.info("robot %r: goal %s on %r", rid, goal.goal, goal.ws_id)
 
     # poses (hot path) -------------------------------------------------------------------------
-    def _on_pose(self, key: str, payload: bytes) -> None:
-        self.count("poses")
-        try:
-            rid = self.keys.parse(key).ident
-        except KeyError_:
-            self.count("rejected")
-            return
-        with self._lock:
-            r = self._robots.get(rid)
-        if r is None or r.goal is None:
-            return
+    def _on_poses(self, items: list[tuple[str, bytes]]) -> None:
+        """Every waiting pose at once: decode, then one vectorized control-law call per shared
+        controller, then publish (in arrival order within each controller group)."""
+        self.count("poses", len(items))
         now = time.monotonic()
-        try:
-            pose = decode(Pose, payload)
-            if pose.robot_id != rid:
-                raise DecodeError("invalid_input", f"pose on {key} names robot {pose.robot_id!r}")
-        except DecodeError as exc:
-            self.count("rejected")
-            reason = "nan_input" if exc.reason == "nan_input" else "invalid_input"
-            with r.lock:
-                r.last_pose_t = now  # the robot is alive, but its input is unusable
-                self._stop_robot(r, reason, str(exc), now)
-            return
-        with r.lock:
-            r.last_pose_t = now
-            r.position = (pose.x, pose.y)
-            r.stale_reported = False
-            blocker = self._blocker(r)
-            if blocker is not None:
-                self._stop_robot(r, blocker[0], blocker[1], now, pose)
-                return
-            assert r.ctrl is not None and r.goal is not None
+        groups: dict[int, tuple[navigation.ControllerLike, list[tuple[_Robot, Pose]]]] = {}
+        for key, payload in items:
             try:
-                u, code = navigation.command(r.ctrl, pose.x, pose.y)
+                rid = self.keys.parse(key).ident
+            except KeyError_:
+                self.count("rejected")
+                continue
+            with self._lock:
+                r = self._robots.get(rid)
+            if r is None or r.goal is None:
+                continue
+            try:
+                pose = decode(Pose, payload)
+                if pose.robot_id != rid:
+                    raise DecodeError("invalid_input", f"pose on {key} names {pose.robot_id!r}")
+            except DecodeError as exc:
+                self.count("rejected")
+                reason = "nan_input" if exc.reason == "nan_input" else "invalid_input"
+                with r.lock:
+                    r.last_pose_t = now  # the robot is alive, but its input is unusable
+                    self._stop_robot(r, reason, str(exc), now)
+                continue
+            with r.lock:
+                r.last_pose_t = now
+                r.position = (pose.x, pose.y)
+                r.stale_reported = False
+                blocker = self._blocker(r)
+                if blocker is not None:
+                    self._stop_robot(r, blocker[0], blocker[1], now, pose)
+                    continue
+                ctrl = r.ctrl
+            assert ctrl is not None
+            groups.setdefault(id(ctrl), (ctrl, []))[1].append((r, pose))
+        for ctrl, members in groups.values():
+            z = np.array([complex(p.x, p.y) for _, p in members])
+            try:
+                u, codes = navigation.commands(ctrl, z)
             except Exception as exc:
                 self.count("navigation_errors")
-                self._stop_robot(r, "navigation_error", f"{type(exc).__name__}: {exc}", now, pose)
-                return
-            if code == navigation.ERROR or u != u:  # NaN guard
-                self._stop_robot(
-                    r, "outside_workspace", "pose outside the mapped free space", now, pose
-                )
-                return
-            if code == navigation.ARRIVED:
-                self._publish_cmd(r, 0j, pose)
-                self._status(r, "arrived", "arrived", "", now)
-                return
-            self._publish_cmd(r, u, pose)
-            self._status(
-                r,
-                "navigating",
-                "ok",
-                "stalled at a saddle" if code == navigation.STALLED else "",
-                now,
+                for r, pose in members:
+                    with r.lock:
+                        self._stop_robot(
+                            r, "navigation_error", f"{type(exc).__name__}: {exc}", now, pose
+                        )
+                continue
+            for (r, pose), ui, code in zip(members, u.tolist(), codes.tolist(), strict=True):
+                with r.lock:
+                    self._act(r, pose, complex(ui), int(code), now)
+
+    def _act(self, r: _Robot, pose: Pose, u: complex, code: int, now: float) -> None:
+        if code == navigation.ERROR or u != u:  # NaN guard
+            self._stop_robot(
+                r, "outside_workspace", "pose outside the mapped free space", now, pose
             )
+        elif code == navigation.ARRIVED:
+            self._publish_cmd(r, 0j, pose)
+            self._status(r, "arrived", "arrived", "", now)
+        else:
+            self._publish_cmd(r, u, pose)
+            msg = "stalled at a saddle" if code == navigation.STALLED else ""
+            self._status(r, "navigating", "ok", msg, now)
 
     def _blocker(self, r: _Robot) -> tuple[str, str] | None:
         """Why this robot must not move now, or None."""
@@ -381,8 +414,11 @@ class ControllerService(Service):
                             self._status(r, "stopped", "stale_pose", "", now)
                         continue
                     blocker = self._blocker(r)
-                    if blocker is not None:  # poses still come: the pose path reports it too
-                        self._status(r, "stopped", blocker[0], blocker[1], now)
+                    if blocker is not None:  # stop now; the pose path keeps it stopped
+                        if r.status_key[:2] != ("stopped", blocker[0]):
+                            self._stop_robot(r, blocker[0], blocker[1], now)
+                        else:
+                            self._status(r, "stopped", blocker[0], blocker[1], now)
 
     def robot_state(self, rid: str) -> tuple[str, str] | None:
         """(state, reason) last published for a robot (tests)."""

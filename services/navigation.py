@@ -50,6 +50,17 @@ def make_controller(cmap: Any, goal: Goal) -> ControllerLike:
     )
 
 
+def goal_key(goal: Goal) -> tuple[object, ...]:
+    """What determines the controller of a goal on a given map (robots sharing it share one)."""
+    return (goal.ws_id, goal.goal, goal.navfn, goal.k, goal.gain, goal.v_max, goal.tolerance)
+
+
+def commands(ctrl: ControllerLike, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(u, status) for a batch of positions ``z`` (complex array): one vectorized call."""
+    out = ctrl(np.asarray(z, dtype=complex))
+    return np.asarray(out.u, dtype=complex), np.asarray(out.status, dtype=int)
+
+
 def command(ctrl: ControllerLike, x: float, y: float) -> tuple[complex, int]:
     """(u, status) for one robot at (x, y)."""
     out = ctrl(np.asarray(complex(x, y)))

@@ -1,0 +1,314 @@
+"""Controller service: commands from the navigation library, hot swap, watchdog; in memory
+(exact identity map of a circle domain) and over real Zenoh."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+import pytest
+
+from confnav.control import Controller
+from confnav.schemas import (
+    Goal,
+    Pose,
+    RobotStatus,
+    SolveDiagnostics,
+    TransformSolution,
+    VelocityCommand,
+    decode,
+    encode,
+)
+from confnav.services.bus import InMemoryNetwork, QueryError
+from confnav.services.controller import ControllerService
+from confnav.services.keys import Keys
+from conftest import IdentityMap, identity_loader, wait_for
+
+K = Keys()
+CENTERS = [(0.4, 0.0)]
+RADII = [0.15]
+
+
+def solution(ws: str = "cd", centers: list[tuple[float, float]] = CENTERS, rev: str = "rev1") -> TransformSolution:
+    return TransformSolution(
+        ws_id=ws,
+        revision=rev,
+        definition_hash="h-" + rev,
+        stamp_ns=time.time_ns(),
+        anchor=(0.0, 0.0),
+        centers=centers,
+        radii=RADII,
+        diagnostics=SolveDiagnostics(sweeps=1, error_estimate=0, wall_time=0, tol=1e-10),
+        coefficients={"centers": [list(c) for c in centers], "radii": RADII},
+    )
+
+
+class FakeTransform:
+    """A transform service stand-in: liveliness token + queryable serving given solutions."""
+
+    def __init__(self, bus: Any) -> None:
+        self.bus = bus
+        self.solutions: dict[str, TransformSolution] = {}
+        self.q = bus.queryable("confnav/ws/*/transform", self._answer)
+        self.token = bus.declare_token(K.alive("transform", bus.zid))
+
+    def _answer(self, key: str, payload: bytes | None) -> list[tuple[str, bytes]]:
+        ws = K.parse(key).ident
+        if ws not in self.solutions:
+            raise QueryError(f"unknown workspace {ws!r}")
+        return [(key, encode(self.solutions[ws]))]
+
+
+class Client:
+    def __init__(self, bus: Any) -> None:
+        self.bus = bus
+        self.cmds: list[VelocityCommand] = []
+        self.status: list[RobotStatus] = []
+        bus.subscribe(K.any_robot("cmd_vel"), lambda k, p: self.cmds.append(decode(VelocityCommand, p)))
+        bus.subscribe(K.any_robot("status"), lambda k, p: self.status.append(decode(RobotStatus, p)))
+        self.seq = 0
+
+    def pose(self, rid: str, x: float, y: float) -> None:
+        self.seq += 1
+        p = Pose(robot_id=rid, stamp_ns=time.time_ns(), seq=self.seq, x=x, y=y)
+        self.bus.publish(K.robot(rid, "pose"), encode(p))
+
+    def goal(self, rid: str, ws: str = "cd", xy: tuple[float, float] = (-0.5, 0.0)) -> Goal:
+        g = Goal(robot_id=rid, ws_id=ws, goal=xy, v_max=0.5, tolerance=0.02)
+        self.bus.publish(K.robot(rid, "goal"), encode(g))
+        return g
+
+    def last_cmd(self, rid: str) -> VelocityCommand | None:
+        c = [m for m in self.cmds if m.robot_id == rid]
+        return c[-1] if c else None
+
+    def answer(self, rid: str) -> VelocityCommand | None:
+        """The command answering the last pose sent (watchdog stops have pose_seq -1)."""
+        c = [m for m in self.cmds if m.robot_id == rid and m.pose_seq == self.seq]
+        return c[-1] if c else None
+
+    def last_status(self, rid: str) -> RobotStatus | None:
+        s = [m for m in self.status if m.robot_id == rid]
+        return s[-1] if s else None
+
+
+def setup(net: Any, **kw: Any) -> tuple[ControllerService, FakeTransform, Client]:
+    tr = FakeTransform(net.bus("tr"))
+    tr.solutions["cd"] = solution()
+    ctl = ControllerService(net.bus("ctl"), K, map_loader=identity_loader, health_period=0.2, **kw)
+    ctl.start()
+    return ctl, tr, Client(net.bus("client"))
+
+
+def expected_u(goal: Goal, z: complex, centers: list[tuple[float, float]] = CENTERS) -> complex:
+    m = IdentityMap([complex(*c) for c in centers], RADII)
+    c = Controller(m, complex(*goal.goal), navfn=goal.navfn, gain=goal.gain, v_max=goal.v_max, goal_tol=goal.tolerance)
+    return complex(np.asarray(c(np.asarray(z)).u).item())
+
+
+def same(u: complex, v: complex) -> bool:
+    """Equal up to rounding: batched and single-point evaluation may differ in the last ulp."""
+    return abs(u - v) <= 1e-12 * max(abs(v), 1e-300)
+
+
+def test_command_is_the_libraries_control_law(mem_net: InMemoryNetwork) -> None:
+    ctl, tr, cl = setup(mem_net)
+    try:
+        g = cl.goal("r1")
+        wait_for(lambda: ctl.robot_state("r1") is not None and ctl.counters["maps_installed"])
+        cl.pose("r1", 0.2, 0.5)
+        cmd = wait_for(lambda: cl.answer("r1"))
+        assert cmd.map_revision == "rev1"
+        assert same(complex(*cmd.linear), expected_u(g, 0.2 + 0.5j))
+        assert abs(complex(*cmd.linear)) > 0
+        wait_for(lambda: cl.last_status("r1") and cl.last_status("r1").state == "navigating")
+        # at the goal: zero command, state arrived
+        cl.pose("r1", -0.5 + 0.01, 0.0)
+        wait_for(lambda: cl.last_status("r1").state == "arrived")
+        assert cl.last_cmd("r1").linear == (0.0, 0.0)
+    finally:
+        ctl.stop()
+
+
+def test_many_robots_in_one_process(mem_net: InMemoryNetwork) -> None:
+    ctl, tr, cl = setup(mem_net)
+    try:
+        rids = [f"r{i}" for i in range(30)]
+        goals = {r: cl.goal(r) for r in rids}
+        wait_for(lambda: ctl.counters["goals"] == 30 and ctl.counters["maps_installed"])
+        wait_for(lambda: all(ctl.robot_state(r) is not None for r in rids))
+        time.sleep(0.1)
+        for i, r in enumerate(rids):
+            cl.pose(r, 0.1 * np.cos(i), 0.6 * np.sin(i))
+        def answered(r: str) -> VelocityCommand | None:
+            c = [m for m in cl.cmds if m.robot_id == r and m.pose_seq > 0]
+            return c[-1] if c else None
+
+        wait_for(lambda: all(answered(r) for r in rids))
+        for i, r in enumerate(rids):
+            z = complex(0.1 * np.cos(i), 0.6 * np.sin(i))
+            assert same(complex(*answered(r).linear), expected_u(goals[r], z))
+    finally:
+        ctl.stop()
+
+
+def test_hot_swap_keeps_the_robot_moving(mem_net: InMemoryNetwork) -> None:
+    ctl, tr, cl = setup(mem_net)
+    try:
+        g = cl.goal("r1")
+        wait_for(lambda: ctl.counters["maps_installed"] == 1)
+        cl.pose("r1", 0.0, 0.5)
+        wait_for(lambda: cl.answer("r1"))
+        cl.cmds.clear()
+        cl.status.clear()
+        new_centers = [(0.3, -0.3)]
+        tr.bus.publish(K.ws("cd", "transform"), encode(solution(centers=new_centers, rev="rev2")))
+        for _ in range(20):  # poses keep coming through the swap
+            cl.pose("r1", 0.0, 0.5)
+            time.sleep(0.005)
+        wait_for(lambda: cl.last_cmd("r1").map_revision == "rev2")
+        revs = [c.map_revision for c in cl.cmds]
+        assert revs == sorted(revs) and revs[0] == "rev1"  # rev1 ... then rev2, never back
+        assert all(abs(complex(*c.linear)) > 0 for c in cl.cmds)  # never stopped
+        assert all(s.state == "navigating" for s in cl.status)
+        cl.pose("r1", 0.0, 0.5)
+        wait_for(lambda: cl.cmds[-1].pose_seq == cl.seq)
+        assert same(complex(*cl.cmds[-1].linear), expected_u(g, 0.5j, new_centers))
+    finally:
+        ctl.stop()
+
+
+@pytest.mark.parametrize(
+    ("payload", "reason"),
+    [
+        (b'{"robot_id":"r1","stamp_ns":1,"x":NaN,"y":0}', "nan_input"),
+        (b'{"robot_id":"r1","stamp_ns":1,"x":0.1,"y":Infinity}', "nan_input"),
+        (b"{garbage", "invalid_input"),
+        (b'{"schema_version":3,"robot_id":"r1","stamp_ns":1,"x":0.1,"y":0}', "invalid_input"),
+        (b'{"robot_id":"r2","stamp_ns":1,"x":0.1,"y":0}', "invalid_input"),  # wrong robot
+        (b"x" * 100_000, "invalid_input"),  # oversized
+    ],
+)
+def test_bad_pose_stops_the_robot_with_a_reason(mem_net: InMemoryNetwork, payload: bytes, reason: str) -> None:
+    ctl, tr, cl = setup(mem_net)
+    try:
+        cl.goal("r1")
+        wait_for(lambda: ctl.counters["maps_installed"])
+        cl.pose("r1", 0.0, 0.5)
+        wait_for(lambda: cl.answer("r1") and abs(complex(*cl.answer("r1").linear)) > 0)
+        cl.bus.publish(K.robot("r1", "pose"), payload)
+        wait_for(lambda: cl.last_status("r1").state == "stopped")
+        assert cl.last_status("r1").reason == reason
+        assert cl.last_cmd("r1").linear == (0.0, 0.0)
+        cl.pose("r1", 0.0, 0.5)  # a good pose again: moving again, service alive
+        wait_for(lambda: cl.last_status("r1").state == "navigating")
+    finally:
+        ctl.stop()
+
+
+def test_pose_outside_the_map_stops(mem_net: InMemoryNetwork) -> None:
+    ctl, tr, cl = setup(mem_net)
+    try:
+        cl.goal("r1")
+        wait_for(lambda: ctl.counters["maps_installed"])
+        cl.pose("r1", 0.4, 0.0)  # inside the obstacle disk
+        cmd = wait_for(lambda: cl.answer("r1"))
+        assert cmd.linear == (0.0, 0.0)
+        wait_for(lambda: cl.last_status("r1") and cl.last_status("r1").reason == "outside_workspace")
+    finally:
+        ctl.stop()
+
+
+def test_stale_pose_watchdog(mem_net: InMemoryNetwork) -> None:
+    ctl, tr, cl = setup(mem_net, stale_after=0.2)
+    try:
+        cl.goal("r1")
+        wait_for(lambda: ctl.counters["maps_installed"])
+        cl.pose("r1", 0.0, 0.5)
+        wait_for(lambda: cl.answer("r1") and abs(complex(*cl.answer("r1").linear)) > 0)
+        t0 = time.monotonic()
+        wait_for(lambda: cl.last_status("r1").reason == "stale_pose", timeout=2)
+        assert 0.15 < time.monotonic() - t0 < 0.6
+        assert cl.last_cmd("r1").linear == (0.0, 0.0) and cl.last_cmd("r1").pose_seq == -1
+    finally:
+        ctl.stop()
+
+
+def test_missing_map_reports_the_transform_error(mem_net: InMemoryNetwork) -> None:
+    ctl, tr, cl = setup(mem_net, fetch_period=0.05)
+    try:
+        cl.goal("r1", ws="nowhere")
+        cl.pose("r1", 0.0, 0.5)
+        wait_for(lambda: cl.last_status("r1") and cl.last_status("r1").reason == "missing_map")
+        assert cl.last_cmd("r1").linear == (0.0, 0.0)
+        wait_for(lambda: (cl.pose("r1", 0, 0.5), "unknown workspace" in cl.last_status("r1").message)[1])
+        # the map appears later: fetched by query, the robot moves
+        tr.solutions["nowhere"] = solution("nowhere")
+        for _ in range(100):
+            cl.pose("r1", 0.0, 0.5)
+            if cl.last_status("r1").state == "navigating":
+                break
+            time.sleep(0.02)
+        assert cl.last_status("r1").state == "navigating"
+    finally:
+        ctl.stop()
+
+
+def test_dead_transform_service_stops_robots_until_it_returns(mem_net: InMemoryNetwork) -> None:
+    ctl, tr, cl = setup(mem_net)
+    try:
+        cl.goal("r1")
+        wait_for(lambda: ctl.counters["maps_installed"])
+        cl.pose("r1", 0.0, 0.5)
+        wait_for(lambda: cl.last_status("r1") and cl.last_status("r1").state == "navigating")
+        tr.token.close()
+        wait_for(lambda: not ctl.transform_alive)
+        cl.pose("r1", 0.0, 0.5)
+        wait_for(lambda: cl.last_status("r1").reason == "transform_service_dead")
+        assert cl.last_cmd("r1").linear == (0.0, 0.0)
+        assert ctl.health().state == "degraded"
+        tr.bus.declare_token(K.alive("transform", "again"))
+        wait_for(lambda: ctl.transform_alive)
+        cl.pose("r1", 0.0, 0.5)
+        wait_for(lambda: cl.last_status("r1").state == "navigating")
+    finally:
+        ctl.stop()
+
+
+def test_bad_goal_is_rejected_and_bad_goal_point_reported(mem_net: InMemoryNetwork) -> None:
+    ctl, tr, cl = setup(mem_net)
+    try:
+        cl.bus.publish(K.robot("r1", "goal"), b'{"robot_id":"r1"}')
+        cl.bus.publish(K.robot("r1", "goal"), encode(Goal(robot_id="r9", ws_id="cd", goal=(0, 0))))
+        wait_for(lambda: ctl.counters["rejected"] == 2)
+        cl.goal("r1", xy=(0.4, 0.0))  # inside the obstacle: NavigationError from the library
+        wait_for(lambda: ctl.counters["navigation_errors"] >= 1)
+        cl.pose("r1", 0.0, 0.5)
+        wait_for(lambda: cl.last_status("r1") and cl.last_status("r1").reason == "navigation_error")
+        assert cl.last_cmd("r1").linear == (0.0, 0.0)
+    finally:
+        ctl.stop()
+
+
+@pytest.mark.timeout(60)
+def test_controller_over_real_zenoh(make_bus: Callable[[], Any]) -> None:
+    tr = FakeTransform(make_bus())
+    tr.solutions["cd"] = solution()
+    ctl = ControllerService(make_bus(), K, map_loader=identity_loader, health_period=0.2)
+    ctl.start()
+    try:
+        cl = Client(make_bus())
+        time.sleep(0.3)
+        g = cl.goal("r1")
+        wait_for(lambda: ctl.counters["maps_installed"], timeout=10)
+        cl.pose("r1", 0.2, 0.5)
+        cmd = wait_for(lambda: cl.answer("r1"), timeout=5)
+        assert same(complex(*cmd.linear), expected_u(g, 0.2 + 0.5j))
+        tr.token.close()
+        wait_for(lambda: not ctl.transform_alive, timeout=5)
+        cl.pose("r1", 0.2, 0.5)
+        wait_for(lambda: cl.last_status("r1").reason == "transform_service_dead", timeout=5)
+    finally:
+        ctl.stop()
