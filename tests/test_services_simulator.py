@@ -1,0 +1,141 @@
+"""Simulator service: integration with the last command, zero when commands stop, collisions,
+pause/reset/spawn, bad inputs; in memory and over real Zenoh."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from typing import Any
+
+import pytest
+
+from confnav.schemas import (
+    CollisionEvent,
+    Pose,
+    SimControl,
+    SpawnRequest,
+    VelocityCommand,
+    decode,
+    encode,
+)
+from confnav.services.bus import InMemoryNetwork
+from confnav.services.keys import Keys
+from confnav.services.simulator import SimulatorService
+from conftest import square_definition, wait_for
+
+K = Keys()
+
+
+def cmd(rid: str, vx: float, vy: float) -> bytes:
+    return encode(VelocityCommand(robot_id=rid, stamp_ns=time.time_ns(), linear=(vx, vy)))
+
+
+def make(net: Any, **kw: Any) -> SimulatorService:
+    """A simulator whose loop is not started (steps driven by the test) unless asked."""
+    sim = SimulatorService(net.bus("sim"), K, robots=[("r1", "sq", 0.0, 0.0)], **kw)
+    return sim
+
+
+def test_integrates_last_command_and_stops_without_commands(mem_net: InMemoryNetwork) -> None:
+    sim = make(mem_net, cmd_timeout=0.3)
+    client = mem_net.bus("client")
+    poses: list[Pose] = []
+    client.subscribe(K.robot("r1", "pose"), lambda k, p: poses.append(decode(Pose, p)))
+    sim._stop.set()  # no background loop: the test steps by hand
+    sim.start()
+    try:
+        client.publish(K.robot("r1", "cmd_vel"), cmd("r1", 0.5, -0.25))
+        wait_for(lambda: sim.counters["commands"] == 1)
+        for _ in range(10):
+            sim.step(0.02)
+        z = sim.positions()["r1"]
+        assert abs(z - (0.1 - 0.05j)) < 1e-12
+        time.sleep(0.35)  # commands stopped: the robot stops
+        sim.step(0.02)
+        assert sim.positions()["r1"] == z
+        wait_for(lambda: len(poses) == 11)
+        assert [p.seq for p in poses] == list(range(11))
+        assert all(p.stamp_ns > 0 for p in poses) and poses[-1].x == pytest.approx(0.1)
+    finally:
+        sim.stop()
+
+
+def test_collision_reported_once_and_robot_stays(mem_net: InMemoryNetwork) -> None:
+    sim = make(mem_net)
+    client = mem_net.bus("client")
+    hits: list[CollisionEvent] = []
+    client.subscribe(K.robot("r1", "collision"), lambda k, p: hits.append(decode(CollisionEvent, p)))
+    sim._stop.set()
+    sim.start()
+    try:
+        client.publish(K.ws("sq", "definition"), encode(square_definition("sq", [(0.2, -0.025)])))
+        wait_for(lambda: sim.health_detail()[0] == "ok")
+        client.publish(K.robot("r1", "cmd_vel"), cmd("r1", 1.0, 0.0))
+        wait_for(lambda: sim.counters["commands"] == 1)
+        for _ in range(30):  # x goes 0 -> 0.3, through the obstacle [0.2, 0.25]
+            sim.step(0.01)
+        wait_for(lambda: hits)
+        assert len(hits) == 1 and hits[0].robot_id == "r1" and hits[0].clearance <= 0
+        assert 0.2 <= sim.positions()["r1"].real <= 0.21
+    finally:
+        sim.stop()
+
+
+def test_pause_reset_spawn_remove(mem_net: InMemoryNetwork) -> None:
+    sim = make(mem_net, cmd_timeout=10.0)
+    client = mem_net.bus("client")
+    sim._stop.set()
+    sim.start()
+    try:
+        client.publish(K.robot("r1", "cmd_vel"), cmd("r1", 1.0, 0.0))
+        wait_for(lambda: sim.counters["commands"] == 1)
+        sim.step(0.1)
+        client.publish(K.sim("sim", "control"), encode(SimControl(action="pause")))
+        wait_for(lambda: sim.paused)
+        sim.step(0.1)
+        assert sim.positions()["r1"] == pytest.approx(0.1)
+        client.publish(K.sim("sim", "control"), encode(SimControl(action="resume")))
+        client.publish(K.sim("sim", "control"), encode(SimControl(action="reset", robot_id="r1")))
+        wait_for(lambda: not sim.paused and sim.positions()["r1"] == 0)
+        sim.step(0.1)  # reset also dropped the command
+        assert sim.positions()["r1"] == 0
+        client.publish(K.sim("sim", "spawn"), encode(SpawnRequest(robot_id="r2", ws_id="sq", position=(0.3, 0.4))))
+        wait_for(lambda: "r2" in sim.positions())
+        assert sim.positions()["r2"] == 0.3 + 0.4j
+        client.publish(K.sim("sim", "control"), encode(SimControl(action="remove", robot_id="r2")))
+        wait_for(lambda: "r2" not in sim.positions())
+        # bad inputs: rejected, counted, the simulator carries on
+        for key in (K.sim("sim", "spawn"), K.sim("sim", "control"), K.robot("r1", "cmd_vel")):
+            client.publish(key, b"{bad")
+            client.publish(key, b'{"schema_version":9}')
+        client.publish(K.robot("r1", "cmd_vel"), b'{"robot_id":"r1","stamp_ns":1,"linear":[NaN,0]}')
+        client.publish(K.robot("r1", "cmd_vel"), b"x" * 200_000)
+        wait_for(lambda: sim.counters["rejected"] == 8)
+        sim.step(0.1)
+        assert sim.positions()["r1"] == 0
+    finally:
+        sim.stop()
+
+
+@pytest.mark.timeout(60)
+def test_simulator_over_real_zenoh_faster_than_real_time(make_bus: Callable[[], Any]) -> None:
+    sim = SimulatorService(
+        make_bus(), K, robots=[("r1", "sq", 0.0, 0.0)], rate_hz=50, time_scale=4.0, cmd_timeout=5.0
+    )
+    client = make_bus()
+    poses: list[Pose] = []
+    client.subscribe(K.robot("r1", "pose"), lambda k, p: poses.append(decode(Pose, p)))
+    sim.start()
+    try:
+        time.sleep(0.3)
+        client.publish(K.robot("r1", "cmd_vel"), cmd("r1", 0.2, 0.0))
+        wait_for(lambda: sim.counters["commands"] == 1)
+        n0, t0 = len(poses), time.monotonic()
+        time.sleep(1.0)
+        rate = (len(poses) - n0) / (time.monotonic() - t0)
+        assert 120 < rate < 220  # 50 steps per sim second at 4x: ~200 poses per wall second
+        seqs = [p.seq for p in poses]
+        assert seqs == list(range(seqs[0], seqs[0] + len(seqs)))  # none lost
+        assert poses[-1].x > 0.5  # 0.2 m/s for ~4 sim seconds
+    finally:
+        sim.stop()
