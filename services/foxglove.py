@@ -9,6 +9,10 @@ Two scenes per workspace ``ws`` (topics under the recording's key prefix, defaul
   circles ``|w - c_j| = r_j`` of the solved map as line loops, and the images ``T(z)`` of the
   goals, robots and trails (needs the map's coefficients from the ``transform`` message).
 
+Robots and goals are updated every 0.1 s of log time, polygons, circles and trails every second
+(entities persist by id until replaced), trails are decimated to at most 256 points and mapped
+once each: the recorder hook stays cheap (well under a millisecond per recorded message).
+
 Messages are JSON (message encoding ``json``) conforming to the official Foxglove JSON Schema,
 vendored unchanged in ``schemas/foxglove/SceneUpdate.json`` and written as the channel schema
 (schema name ``foxglove.SceneUpdate``, schema encoding ``jsonschema``), so a recording opens in
@@ -29,8 +33,7 @@ import cmath
 import json
 import logging
 import math
-from collections import deque
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from functools import cache
 from importlib import resources
@@ -45,8 +48,11 @@ SCHEMA_ENCODING = "jsonschema"
 MESSAGE_ENCODING = "json"
 WORKSPACE_FRAME = "workspace"
 CIRCLE_DOMAIN_FRAME = "circle_domain"
-DEFAULT_PERIOD_NS = 100_000_000  # at most one scene per workspace every 0.1 s of log time
-DEFAULT_TRAIL_LENGTH = 2000  # poses kept per robot trail
+DEFAULT_PERIOD_NS = 100_000_000  # robots and goals: at most every 0.1 s of log time
+DEFAULT_FULL_PERIOD_NS = 1_000_000_000  # polygons, circles and trails: every 1 s
+DEFAULT_TRAIL_POINTS = 256  # maximum points per robot trail
+DEFAULT_TRAIL_RESOLUTION = 0.002  # minimum trail spacing / workspace diameter
+COORD_DECIMALS = 6  # coordinates in scene JSON are rounded to 1e-6 (workspace units)
 CIRCLE_SEGMENTS = 96  # line-loop vertices per circle
 
 Point = tuple[float, float]
@@ -116,13 +122,21 @@ def _color(c: Color) -> dict[str, float]:
 def _pose(x: float = 0.0, y: float = 0.0, theta: float = 0.0) -> dict[str, Any]:
     """Pose in the plane z = 0, turned by ``theta`` (rad) about +z."""
     return {
-        "position": {"x": float(x), "y": float(y), "z": 0.0},
+        "position": {
+            "x": round(float(x), COORD_DECIMALS),
+            "y": round(float(y), COORD_DECIMALS),
+            "z": 0.0,
+        },
         "orientation": {"x": 0.0, "y": 0.0, "z": math.sin(theta / 2), "w": math.cos(theta / 2)},
     }
 
 
 def _point(p: Point) -> dict[str, float]:
-    return {"x": float(p[0]), "y": float(p[1]), "z": 0.0}
+    return {
+        "x": round(float(p[0]), COORD_DECIMALS),
+        "y": round(float(p[1]), COORD_DECIMALS),
+        "z": 0.0,
+    }
 
 
 def line_primitive(
@@ -225,7 +239,7 @@ class RobotView:
     position: Point | None = None
     theta: float = 0.0
     goal: Point | None = None
-    trail: Sequence[Point] = ()
+    trail: Sequence[Point] | None = ()  # None: leave the trail entity as it is (not sent)
 
 
 def _robot_entities(
@@ -255,7 +269,7 @@ def _robot_entities(
                     texts=[text_primitive(view.position, rid, color)],
                 )
             )
-        if len(view.trail) >= 2:
+        if view.trail is not None and len(view.trail) >= 2:
             entities.append(
                 scene_entity(
                     f"trail/{rid}",
@@ -460,19 +474,29 @@ class _Robot:
     position: Point | None = None
     theta: float = 0.0
     goal: Point | None = None
-    trail: deque[Point] = field(default_factory=lambda: deque(maxlen=DEFAULT_TRAIL_LENGTH))
     ws: str | None = None
+    trail: list[Point] = field(default_factory=list)  # decimated poses
+    trail_step: float = 0.0  # current minimum distance between trail points
+    trail_w: list[Point] = field(default_factory=list)  # images of trail[: len(trail_w)]
+    trail_w_map: int = 0  # id() of the map trail_w was computed with
 
 
 @dataclass
 class _Ws:
     outer: list[Point]
     obstacles: list[list[Point]]
-    cmap: Any = None  # confnav.ConformalMap once a transform was seen
+    cmap: Any = None  # map with T (confnav.ConformalMap) once a transform was seen
     centers: list[complex] = field(default_factory=list)
     radii: list[float] = field(default_factory=list)
     last_emit_ns: int | None = None
+    last_full_ns: int | None = None
     dirty: bool = True
+
+    @property
+    def diameter(self) -> float:
+        xs = [p[0] for p in self.outer]
+        ys = [p[1] for p in self.outer]
+        return math.hypot(max(xs) - min(xs), max(ys) - min(ys))
 
 
 def _load_cmap(payload: Mapping[str, Any]) -> Any:
@@ -496,7 +520,10 @@ def _load_cmap(payload: Mapping[str, Any]) -> Any:
 
 def _circles(payload: Mapping[str, Any], cmap: Any) -> tuple[list[complex], list[float]]:
     if cmap is not None:
-        return [complex(c) for c in cmap.centers], [float(r) for r in cmap.radii]
+        try:
+            return [complex(c) for c in cmap.centers], [float(r) for r in cmap.radii]
+        except (AttributeError, TypeError):
+            pass
     for holder in (payload, *(v for v in payload.values() if isinstance(v, Mapping))):
         centers_raw = holder.get("centers")
         radii_raw = holder.get("radii")
@@ -509,21 +536,46 @@ def _circles(payload: Mapping[str, Any], cmap: Any) -> tuple[list[complex], list
     return [], []
 
 
+MAP_BATCH = 8
+"""Points per call of ``T`` when mapping into the circle domain: the core evaluates a few
+points by direct sums in ~0.1 ms, larger batches switch to an FMM costing ~10 ms a call."""
+
+
+def _image(cmap: Any, points: Sequence[Point]) -> list[Point | None]:
+    """``T`` of each point in small batches; None where the map gives NaN (outside)."""
+    import numpy as np
+
+    out: list[Point | None] = []
+    for i in range(0, len(points), MAP_BATCH):
+        z = np.array([complex(p[0], p[1]) for p in points[i : i + MAP_BATCH]], dtype=complex)
+        w = np.asarray(cmap.T(z), dtype=complex).reshape(-1)
+        out += [(float(v.real), float(v.imag)) if np.isfinite(v) else None for v in w]
+    return out
+
+
 class SceneBuilder:
     """Turns the stream of recorded confnav messages into Foxglove scene messages.
 
     Feed every recorded message in log-time order to :meth:`observe`; it returns the scene
-    messages to write now (at most one pair per workspace every ``period_ns`` of log time, and
-    immediately when a workspace definition or transform changes). :meth:`flush` returns the
-    final scenes (call it before closing the recording).
+    messages to write now. Each workspace gets a *light* update (robots and goals) at most every
+    ``period_ns`` of log time and a *full* one (also the polygons / circles and the trails)
+    every ``full_period_ns`` and as soon as a definition, transform or goal changes. Entities
+    keep their ``id`` (lifetime 0), so the trails and polygons drawn by a full update stay
+    until the next one. :meth:`flush` returns full scenes (call it before closing the file).
+
+    Cost is bounded for the recorder's hot path: trails keep at most ``trail_points`` points
+    (a new point only after moving ``trail_resolution`` times the workspace diameter; when
+    full, every other point is dropped and the spacing doubled), and each point is mapped into
+    the circle domain once, in batches of :data:`MAP_BATCH`.
 
     Parameters
     ----------
     prefix : key prefix of the recording (default ``confnav``).
-    period_ns : minimum log-time interval between two scenes of one workspace (ns).
-    trail_length : number of poses kept per robot trail.
-    map_loader : transform message (dict) -> map with ``T``, ``centers``, ``radii`` (default:
-        :class:`confnav.ConformalMap` from the ``coefficients``); None result: circles only.
+    period_ns, full_period_ns : minimum log-time intervals (ns) between light / full updates.
+    trail_points : maximum points per robot trail.
+    trail_resolution : minimum trail spacing as a fraction of the workspace diameter.
+    map_loader : transform message (dict) -> map with ``T`` (and ``centers``, ``radii``);
+        default :class:`confnav.ConformalMap` from ``coefficients``; None result: circles only.
     """
 
     def __init__(
@@ -531,21 +583,27 @@ class SceneBuilder:
         prefix: str = "confnav",
         *,
         period_ns: int = DEFAULT_PERIOD_NS,
-        trail_length: int = DEFAULT_TRAIL_LENGTH,
+        full_period_ns: int = DEFAULT_FULL_PERIOD_NS,
+        trail_points: int = DEFAULT_TRAIL_POINTS,
+        trail_resolution: float = DEFAULT_TRAIL_RESOLUTION,
         map_loader: Callable[[Mapping[str, Any]], Any] | None = None,
     ) -> None:
-        if period_ns < 0:
-            raise ValueError("period_ns must be >= 0")
+        if period_ns < 0 or full_period_ns < 0:
+            raise ValueError("periods must be >= 0")
+        if trail_points < 2:
+            raise ValueError("trail_points must be >= 2")
         self._load_map = map_loader or _load_cmap
         self.prefix = prefix
         self.period_ns = int(period_ns)
-        self.trail_length = int(trail_length)
+        self.full_period_ns = int(full_period_ns)
+        self.trail_points = int(trail_points)
+        self.trail_resolution = float(trail_resolution)
         self._ws: dict[str, _Ws] = {}
         self._robots: dict[str, _Robot] = {}
 
     def _robot(self, rid: str) -> _Robot:
         if rid not in self._robots:
-            self._robots[rid] = _Robot(trail=deque(maxlen=self.trail_length))
+            self._robots[rid] = _Robot()
         return self._robots[rid]
 
     def observe(
@@ -561,21 +619,23 @@ class SceneBuilder:
             if found is None:
                 logger.warning("%s: no polygons found in the definition message", topic)
                 return []
+            old = self._ws.get(ident)
             self._ws[ident] = _Ws(outer=found[0], obstacles=found[1])
+            if old is not None:  # same workspace id re-defined: keep the map until re-solved
+                self._ws[ident].cmap, self._ws[ident].centers = old.cmap, old.centers
+                self._ws[ident].radii = old.radii
         elif kind == "ws" and leaf == "transform":
             ws = self._ws.get(ident)
+            cmap = self._load_map(payload)
             if ws is None:
                 # a transform before (or without) its definition: take polygons from the map
-                cmap = self._load_map(payload)
-                if cmap is None:
+                if cmap is None or not hasattr(cmap, "workspace"):
                     return []
                 outer = [(z.real, z.imag) for z in cmap.workspace.outer]
                 obstacles = [[(z.real, z.imag) for z in ob] for ob in cmap.workspace.obstacles]
                 ws = self._ws[ident] = _Ws(outer=outer, obstacles=obstacles)
-                ws.cmap = cmap
-            else:
-                ws.cmap = self._load_map(payload)
-            ws.centers, ws.radii = _circles(payload, ws.cmap)
+            ws.cmap = cmap
+            ws.centers, ws.radii = _circles(payload, cmap)
             ws.dirty = True
         elif kind == "robot":
             robot = self._robot(ident)
@@ -587,7 +647,7 @@ class SceneBuilder:
                 if found_pose is None:
                     return []
                 robot.position, robot.theta = found_pose
-                robot.trail.append(robot.position)
+                self._extend_trail(robot)
             elif leaf == "goal":
                 robot.goal = extract_goal(payload)
                 for ws in self._ws.values():
@@ -598,24 +658,48 @@ class SceneBuilder:
             return []
         return self._due(log_time_ns, force=False)
 
+    def _extend_trail(self, robot: _Robot) -> None:
+        p = robot.position
+        assert p is not None
+        if robot.trail:
+            q = robot.trail[-1]
+            if math.hypot(p[0] - q[0], p[1] - q[1]) < robot.trail_step:
+                return
+        elif robot.trail_step == 0.0:
+            ws = self._ws.get(robot.ws) if robot.ws else None
+            if ws is None and len(self._ws) == 1:
+                ws = next(iter(self._ws.values()))
+            if ws is not None:
+                robot.trail_step = self.trail_resolution * ws.diameter
+        robot.trail.append(p)
+        if len(robot.trail) > self.trail_points:
+            keep = [*range(0, len(robot.trail) - 1, 2), len(robot.trail) - 1]
+            robot.trail = [robot.trail[i] for i in keep]
+            mapped = len(robot.trail_w)
+            robot.trail_w = [robot.trail_w[i] for i in keep if i < mapped]
+            robot.trail_step = max(2 * robot.trail_step, 1e-12)
+
     def flush(self, log_time_ns: int) -> list[SceneMessage]:
-        """The current scenes of every workspace, regardless of the period."""
+        """Full scenes of every workspace, regardless of the periods."""
         return self._due(log_time_ns, force=True)
 
     def _due(self, now_ns: int, force: bool) -> list[SceneMessage]:
         out: list[SceneMessage] = []
         for ws_id, ws in self._ws.items():
-            due = (
+            full = (
                 force
                 or ws.dirty
-                or ws.last_emit_ns is None
-                or now_ns - ws.last_emit_ns >= self.period_ns
+                or ws.last_full_ns is None
+                or now_ns - ws.last_full_ns >= self.full_period_ns
             )
-            if not due:
+            light = ws.last_emit_ns is None or now_ns - ws.last_emit_ns >= self.period_ns
+            if not (full or light):
                 continue
-            out.extend(self.scenes(ws_id, now_ns))
+            out.extend(self.scenes(ws_id, now_ns, full=full))
             ws.last_emit_ns = now_ns
-            ws.dirty = False
+            if full:
+                ws.last_full_ns = now_ns
+                ws.dirty = False
         return out
 
     def _robots_of(self, ws_id: str) -> dict[str, _Robot]:
@@ -624,53 +708,47 @@ class SceneBuilder:
             rid: r for rid, r in self._robots.items() if r.ws == ws_id or (r.ws is None and single)
         }
 
-    def scenes(self, ws_id: str, now_ns: int) -> list[SceneMessage]:
-        """The workspace scene and (once a transform is known) the circle-domain scene."""
+    def scenes(self, ws_id: str, now_ns: int, *, full: bool = True) -> list[SceneMessage]:
+        """The workspace scene and (once a transform is known) the circle-domain scene;
+        ``full=False``: robots and goals only."""
         ws = self._ws[ws_id]
         robots = self._robots_of(ws_id)
         views = {
-            rid: RobotView(position=r.position, theta=r.theta, goal=r.goal, trail=list(r.trail))
-            for rid, r in robots.items()
+            rid: RobotView(
+                position=r.position,
+                theta=r.theta,
+                goal=r.goal,
+                trail=list(r.trail) if full else None,
+            )
+            for rid, r in sorted(robots.items())
         }
-        out = [
-            SceneMessage(
-                scene_topic(ws_id, self.prefix),
-                workspace_scene(ws.outer, ws.obstacles, now_ns, views, ws=ws_id),
-                now_ns,
-            )
-        ]
+        ws_msg = workspace_scene(ws.outer, ws.obstacles, now_ns, views, ws=ws_id)
+        if not full:
+            ws_msg["entities"] = ws_msg["entities"][1:]
+        out = [SceneMessage(scene_topic(ws_id, self.prefix), ws_msg, now_ns)]
         if ws.radii:
-            w_views = {rid: _map_view(ws.cmap, r) for rid, r in robots.items()}
-            out.append(
-                SceneMessage(
-                    circle_domain_topic(ws_id, self.prefix),
-                    circle_domain_scene(ws.centers, ws.radii, now_ns, w_views, ws=ws_id),
-                    now_ns,
-                )
-            )
+            w_views = {rid: self._map_view(ws.cmap, r, full) for rid, r in sorted(robots.items())}
+            cd_msg = circle_domain_scene(ws.centers, ws.radii, now_ns, w_views, ws=ws_id)
+            if not full:
+                cd_msg["entities"] = cd_msg["entities"][1:]
+            out.append(SceneMessage(circle_domain_topic(ws_id, self.prefix), cd_msg, now_ns))
         return out
 
-
-def _map_view(cmap: Any, robot: _Robot) -> RobotView:
-    """The robot's view in the circle domain (images under T; nothing without a map)."""
-    if cmap is None:
-        return RobotView()
-    import numpy as np
-
-    def image(points: Iterable[Point]) -> list[Point]:
-        z = np.array([complex(p[0], p[1]) for p in points], dtype=complex)
-        if z.size == 0:
-            return []
-        w = np.asarray(cmap.T(z), dtype=complex).reshape(-1)
-        return [(float(v.real), float(v.imag)) for v in w if np.isfinite(v)]
-
-    pos = image([robot.position]) if robot.position is not None else []
-    goal = image([robot.goal]) if robot.goal is not None else []
-    return RobotView(
-        position=pos[0] if pos else None,
-        goal=goal[0] if goal else None,
-        trail=image(robot.trail),
-    )
+    def _map_view(self, cmap: Any, robot: _Robot, full: bool) -> RobotView:
+        """The robot in the circle domain (images under T; nothing without a map)."""
+        if cmap is None or not hasattr(cmap, "T"):
+            return RobotView(trail=() if full else None)
+        if robot.trail_w_map != id(cmap):
+            robot.trail_w, robot.trail_w_map = [], id(cmap)
+        extra = [p for p in (robot.position, robot.goal) if p is not None]
+        pending = robot.trail[len(robot.trail_w) :] if full else []
+        images = _image(cmap, [*extra, *pending])
+        pos = images.pop(0) if robot.position is not None else None
+        goal = images.pop(0) if robot.goal is not None else None
+        if full:
+            robot.trail_w += [w if w is not None else (math.nan, math.nan) for w in images]
+        trail = [w for w in robot.trail_w if math.isfinite(w[0])] if full else None
+        return RobotView(position=pos, goal=goal, trail=trail)
 
 
 # --------------------------------------------------------------------------------------------
@@ -730,9 +808,17 @@ class FoxgloveSceneWriter:
         prefix: str = "confnav",
         *,
         period_ns: int = DEFAULT_PERIOD_NS,
-        trail_length: int = DEFAULT_TRAIL_LENGTH,
+        full_period_ns: int = DEFAULT_FULL_PERIOD_NS,
+        trail_points: int = DEFAULT_TRAIL_POINTS,
+        map_loader: Callable[[Mapping[str, Any]], Any] | None = None,
     ) -> None:
-        self.builder = SceneBuilder(prefix, period_ns=period_ns, trail_length=trail_length)
+        self.builder = SceneBuilder(
+            prefix,
+            period_ns=period_ns,
+            full_period_ns=full_period_ns,
+            trail_points=trail_points,
+            map_loader=map_loader,
+        )
         self.channels = SceneChannels(writer)
         self._last_ns = 0
 

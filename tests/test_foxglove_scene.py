@@ -88,9 +88,12 @@ def test_circle_domain_scene_validates(validator: Any) -> None:
     circles = msg["entities"][0]["lines"]
     assert len(circles) == 3
     unit = circles[0]["points"]
-    assert all(math.isclose(math.hypot(p["x"], p["y"]), 1.0) for p in unit)
+    # coordinates are rounded to 1e-6 (fx.COORD_DECIMALS)
+    assert all(math.isclose(math.hypot(p["x"], p["y"]), 1.0, abs_tol=2e-6) for p in unit)
     c1 = circles[1]["points"]
-    assert all(math.isclose(abs(complex(p["x"], p["y"]) - (0.42 + 0.25j)), 0.14) for p in c1)
+    assert all(
+        math.isclose(abs(complex(p["x"], p["y"]) - (0.42 + 0.25j)), 0.14, abs_tol=2e-6) for p in c1
+    )
     with pytest.raises(ValueError):
         fx.circle_domain_scene([0j], [0.1, 0.2], 0)
 
@@ -231,3 +234,44 @@ def test_recorder_hook_and_viz_command_on_a_real_run(tmp_path: Path, validator: 
         else:
             copied.append((topic, data, t))
     assert copied == originals  # every recorded message kept, same order, times and bytes
+
+
+def test_builder_cost_is_bounded_on_long_runs(validator: Any) -> None:
+    """20 000 poses: trails stay <= trail_points, every pose is mapped into the circle domain
+    at most once (in small batches), light updates carry no trails or polygons."""
+    calls: list[int] = []
+
+    class Counting:
+        centers = (0.5 + 0.5j,)
+        radii = (0.1,)
+
+        def T(self, z: Any) -> Any:
+            calls.append(len(z))
+            return z / 2
+
+    builder = fx.SceneBuilder(map_loader=lambda payload: Counting(), trail_points=64)
+    stream = _stream()[:2]
+    transform = {"ws_id": "w1", "centers": [[0.5, 0.5]], "radii": [0.1]}
+    for topic, data, t in stream:
+        builder.observe(topic, json.loads(data), t)
+    builder.observe("confnav/ws/w1/transform", transform, 1_700_000_000_000_000_000)
+    n, light, full = 20_000, 0, 0
+    for i in range(n):  # a spiral, 5 ms apart: 100 s
+        t = 1_700_000_000_000_000_000 + 5_000_000 * (i + 1)
+        r = 0.9 * (1 - i / n)
+        x, y = r * math.cos(i / 300), r * math.sin(i / 300)
+        pose = Pose(robot_id="r1", stamp_ns=t, seq=i, x=x, y=y)
+        for m in builder.observe("confnav/robot/r1/pose", json.loads(encode(pose)), t):
+            ids = {e["id"] for e in m.message["entities"]}
+            if "trail/r1" in ids:
+                full += 1
+                trail = next(e for e in m.message["entities"] if e["id"] == "trail/r1")
+                assert 2 <= len(trail["lines"][0]["points"]) <= 64 + 1
+            else:
+                light += 1
+                assert not ids & {"workspace", "circle_domain"}
+    assert max(calls) <= fx.MAP_BATCH
+    assert sum(calls) <= n + 4 * (light + full)  # each pose at most once + robot/goal images
+    assert full == 2 * 100 and light == 2 * 900  # two scenes; full every 1 s, light every 0.1 s
+    for m in builder.flush(1_700_000_000_000_000_000 + 5_000_000 * (n + 1)):
+        validator.validate(m.message)
