@@ -217,6 +217,7 @@ def simulate(
     max_step: float = 0.05,
     max_steps: int = 20000,
     stall_distance: float | None = None,
+    stall_steps: int = 400,
     record_paths: bool = False,
 ) -> SimulationResult:
     """Integrate ``x' = u(x)`` from every start until goal, collision, ``t_max`` or
@@ -234,7 +235,9 @@ def simulate(
     max_steps : step limit per robot.
     stall_distance : a robot that moved less than this during the second half of ``t_max``
         is reported ``stalled`` (at a saddle or a spurious minimum), otherwise ``timeout``;
-        default: the field's goal tolerance.
+        default: 10 goal tolerances.  A robot is also ``stalled`` as soon as it
+        stays within ``stall_distance`` of one point for ``stall_steps`` accepted steps
+        (chattering at a spurious minimum of a non-smooth field).
     record_paths : keep every accepted point of every robot.
 
     Raises
@@ -259,8 +262,10 @@ def simulate(
     tol = float(fld.goal_tol)
     t = np.zeros(n)
     z_half = np.full(n, np.nan + 0j)
+    z_anchor = z.copy()
+    n_anchor = np.zeros(n, dtype=np.int64)
     if stall_distance is None:
-        stall_distance = tol
+        stall_distance = 10.0 * tol
     length = np.zeros(n)
     minclr = c0.copy()
     vmax = np.zeros(n)
@@ -344,6 +349,12 @@ def simulate(
             arrived = ~collided & arr
             status[ia[arrived]] = ARRIVED
             rest = ~collided & ~arrived
+            moved = np.abs(zn - z_anchor[ia]) > stall_distance
+            z_anchor[ia[moved]] = zn[moved]
+            n_anchor[ia[moved]] = nsteps[ia[moved]]
+            chatter = rest & (nsteps[ia] - n_anchor[ia] >= stall_steps)
+            status[ia[chatter]] = STALLED
+            rest &= ~chatter
             half = np.isnan(z_half[ia]) & (t[ia] >= 0.5 * t_max)
             z_half[ia[half]] = zn[half]
             late = rest & (t[ia] >= t_max * (1 - 1e-12))
