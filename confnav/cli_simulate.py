@@ -1,0 +1,219 @@
+"""``confnav simulate`` and ``confnav figures``: drive robots with the Theorem 2 law.
+
+``confnav simulate WS.json --goal=X,Y (--starts="X,Y;X,Y" | --random N --seed S)
+[--navfn harmonic|kr] [--k auto|6] [--gain 1] [--vmax V] [--json OUT.json] [--plot OUT.png]``
+
+``confnav figures [--out DIR]``: the seed's Fig. 2/3 (default workspace, four starts) for both
+navigation functions.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from confnav.errors import NavigationError
+
+log = logging.getLogger(__name__)
+
+
+def _point(text: str) -> complex:
+    try:
+        x, y = (float(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected X,Y, got {text!r}") from None
+    return complex(x, y)
+
+
+def _points(text: str) -> list[complex]:
+    parts = [p for p in text.replace(" ", "").split(";") if p]
+    if not parts:
+        raise argparse.ArgumentTypeError("expected X,Y;X,Y;...")
+    return [_point(p) for p in parts]
+
+
+def _k(text: str) -> float | str:
+    if text == "auto":
+        return "auto"
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--k must be a number or 'auto', got {text!r}") from None
+
+
+def register(subparsers: Any) -> None:
+    p = subparsers.add_parser(
+        "simulate",
+        help="simulate kinematic robots under the conformal navigation law",
+        description="Solve (or load) the map of a workspace and simulate x' = u(x) from "
+        "given or random starts; report success, collisions and path-length ratios.",
+    )
+    p.add_argument("workspace", type=Path, help="workspace JSON/GeoJSON")
+    p.add_argument("--goal", type=_point, required=True, help="goal X,Y (use --goal=X,Y)")
+    g = p.add_mutually_exclusive_group(required=True)
+    g.add_argument("--starts", type=_points, help='starts "X,Y;X,Y;..." (one argument)')
+    g.add_argument("--random", type=int, metavar="N", help="N random starts in free space")
+    p.add_argument("--seed", type=int, default=0, help="seed for --random")
+    p.add_argument("--map", type=Path, help="a solved map (JSON) instead of solving")
+    _law_options(p)
+    p.add_argument("--t-max", type=float, default=1e4, help="time limit per robot")
+    p.add_argument("--json", type=Path, help="write runs and summary here")
+    p.add_argument("--plot", type=Path, help="write a figure with the trajectories here")
+    p.set_defaults(func=run_simulate)
+
+    f = subparsers.add_parser(
+        "figures",
+        help="the seed's Fig. 2/3: level sets and trajectories, KR and harmonic",
+        description="Level sets of phi(T(x)) in the workspace and of phi in the circle "
+        "domain with the trajectories from the seed's four starts, for both navigation "
+        "functions, on the default workspace (or WS.json with --goal/--starts).",
+    )
+    f.add_argument("workspace", type=Path, nargs="?", help="workspace (default: the seed's)")
+    f.add_argument("--goal", type=_point, help="goal X,Y")
+    f.add_argument("--starts", type=_points, help='starts "X,Y;X,Y;..."')
+    f.add_argument("--k", type=_k, default=6.0, help="k for KR (default 6, the seed's)")
+    f.add_argument("--gain", type=float, default=1.0)
+    f.add_argument("--out", type=Path, default=Path("."), help="output directory")
+    f.set_defaults(func=run_figures)
+
+
+def _law_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--navfn",
+        choices=("harmonic", "kr"),
+        default="harmonic",
+        help="navigation function (default harmonic: tuning-free)",
+    )
+    p.add_argument(
+        "--k", type=_k, default="auto", help="k of KR: a number (seed: 6) or auto (default)"
+    )
+    p.add_argument("--gain", type=float, default=1.0, help="gain K")
+    p.add_argument("--vmax", type=float, default=float("inf"), help="speed limit")
+    p.add_argument("--tol", type=float, default=1e-3, help="goal tolerance")
+
+
+def _load_map(args: argparse.Namespace, ws: Any) -> Any:
+    import confnav
+
+    if getattr(args, "map", None):
+        cmap = confnav.ConformalMap.from_json(Path(args.map).read_text())
+        return cmap
+    t0 = time.perf_counter()
+    cmap = confnav.solve(ws)
+    log.info("solved map in %.2f s", time.perf_counter() - t0)
+    return cmap
+
+
+def run_simulate(args: argparse.Namespace) -> int:
+    from confnav.control import Controller
+    from confnav.geometry import Workspace
+    from confnav.scenarios import random_starts
+    from confnav.shortest_path import ShortestPaths
+    from confnav.sim import simulate
+
+    ws = Workspace.load(args.workspace)
+    cmap = _load_map(args, ws)
+    ctl = Controller(
+        cmap,
+        args.goal,
+        navfn=args.navfn,
+        k=args.k,
+        gain=args.gain,
+        v_max=args.vmax,
+        goal_tol=args.tol,
+    )
+    if args.random is not None:
+        if args.random < 1:
+            raise NavigationError("--random needs N >= 1")
+        starts = random_starts(ws, args.random, args.seed, margin=0.05)
+    else:
+        starts = np.array(args.starts, dtype=np.complex128)
+    res = simulate(ctl, starts, t_max=args.t_max, record_paths=args.plot is not None)
+    shortest = ShortestPaths(ws, ctl.goal).lengths(res.starts)
+    runs = [r.to_dict() for r in res.runs()]
+    for r, s in zip(runs, shortest, strict=True):
+        r["shortest_path"] = float(s)
+    ok = res.success & np.isfinite(shortest) & (shortest > 0)
+    ratio = res.path_length[ok] / shortest[ok]
+    summary = {
+        "n": int(res.starts.size),
+        "success_rate": res.success_rate,
+        "collisions": int(res.collided.sum()),
+        "stalled": int((res.status == 2).sum()),
+        "timeouts": int((res.status == 3).sum()),
+        "median_path_ratio": float(np.median(ratio)) if ratio.size else None,
+        "median_time": float(np.median(res.time[res.success])) if res.success.any() else None,
+        "min_clearance": float(np.min(res.min_clearance)),
+        "wall_time": res.wall_time,
+    }
+    params = {
+        "navfn": ctl.navfn.name,
+        "k": getattr(ctl.navfn, "k", None),
+        "gain": ctl.gain,
+        "v_max": None if not np.isfinite(ctl.v_max) else ctl.v_max,
+        "goal": [ctl.goal.real, ctl.goal.imag],
+        "goal_tol": ctl.goal_tol,
+    }
+    print(
+        f"{summary['n']} robots, {params['navfn']}"
+        + (f" k={params['k']:g}" if params["k"] is not None else "")
+        + f": success {100 * res.success_rate:.1f}%, collisions {summary['collisions']}, "
+        f"stalled {summary['stalled']}, timeouts {summary['timeouts']}, median path ratio "
+        + (f"{summary['median_path_ratio']:.3f}" if summary["median_path_ratio"] else "n/a")
+    )
+    if args.json:
+        doc: dict[str, Any] = {
+            "workspace": str(args.workspace),
+            "params": params,
+            "summary": summary,
+            "runs": runs,
+        }
+        Path(args.json).write_text(json.dumps(doc, indent=1, allow_nan=False, default=_jsonable))
+    if args.plot:
+        from confnav.plot_navigation import save_navigation_figure
+
+        save_navigation_figure(ctl, res.paths or (), args.plot, title=str(args.workspace))
+    return 0
+
+
+def _jsonable(x: Any) -> Any:
+    if isinstance(x, np.generic):
+        return x.item()
+    raise TypeError(type(x))
+
+
+def run_figures(args: argparse.Namespace) -> int:
+    from confnav.control import Controller
+    from confnav.geometry import Workspace
+    from confnav.plot_navigation import save_navigation_figure
+    from confnav.sim import simulate
+    from confnav.workspaces import DEFAULT_GOAL, DEFAULT_STARTS, default_workspace
+
+    ws = Workspace.load(args.workspace) if args.workspace else default_workspace()
+    goal = args.goal if args.goal is not None else DEFAULT_GOAL
+    starts = np.array(args.starts if args.starts else DEFAULT_STARTS, dtype=np.complex128)
+    cmap = _load_map(args, ws)
+    args.out.mkdir(parents=True, exist_ok=True)
+    for name in ("kr", "harmonic"):
+        ctl = Controller(cmap, goal, navfn=name, k=args.k, gain=args.gain)
+        res = simulate(ctl, starts, t_max=1e6, atol=1e-6, max_step=0.02, record_paths=True)
+        label = f"{name}" + (f" k={ctl.navfn.k:g}" if name == "kr" else "")  # type: ignore[attr-defined]
+        out = save_navigation_figure(
+            ctl, res.paths or (), args.out / f"navigation_{name}.png", title=label
+        )
+        print(f"{out}: {res.message}")
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    parser = argparse.ArgumentParser(prog="confnav")
+    register(parser.add_subparsers())
+    a = parser.parse_args()
+    sys.exit(a.func(a))
