@@ -223,7 +223,7 @@ def run_demo(
     timeout: float = 120.0,
     time_scale: float = 1.0,
     navfn: str = "harmonic",
-    gain: float = 1.0,
+    gain: float = 100.0,
     v_max: float = 0.5,
     tolerance: float = 0.02,
     cache_dir: str | None = None,
@@ -236,7 +236,9 @@ def run_demo(
     tracks = {rid: Track(rid, z, DEFAULT_GOAL) for rid, z in starts.items()}
     sockdir = tempfile.mkdtemp(prefix="confnav-demo-")
     sock = f"unixsock-stream/{sockdir}/router.sock"
-    launcher = Launcher(demo_config(sock, out, starts, time_scale, cache_dir), verbose=verbose)
+    launcher = Launcher(
+        demo_config(sock, out, starts, time_scale, cache_dir), verbose=max(verbose, 1)
+    )
     mon = DemoMonitor(tracks)
     t_start = time.monotonic()
     try:
@@ -310,7 +312,12 @@ def add_parser(sub: Any) -> None:
     p.add_argument("--timeout", type=float, default=120.0, help="seconds (default %(default)s)")
     p.add_argument("--time-scale", type=float, default=1.0, help=">1: faster than real time")
     p.add_argument("--navfn", default="harmonic", choices=("harmonic", "kr"))
-    p.add_argument("--gain", type=float, default=1.0)
+    p.add_argument(
+        "--gain",
+        type=float,
+        default=20.0,
+        help="K of the control law; with v_max it saturates far from the goal",
+    )
     p.add_argument("--v-max", type=float, default=0.5)
     p.add_argument("--tolerance", type=float, default=0.02)
     p.add_argument("--cache-dir", default=None, help="transform solution cache")
