@@ -1,0 +1,102 @@
+"""``confnav simulate`` / ``confnav figures`` end to end (real solver, small workspaces)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from confnav.cli import main
+from confnav.geometry import Workspace
+
+pytest.importorskip("confnav.solver")
+
+ROOM = {
+    "outer": [[-2, -2], [2, -2], [2, 2], [-2, 2]],
+    "obstacles": [[[-0.5, -0.5], [0.5, -0.5], [0.5, 0.5], [-0.5, 0.5]]],
+}
+
+
+@pytest.fixture
+def room(tmp_path: Path) -> Path:
+    p = tmp_path / "room.json"
+    p.write_text(json.dumps(ROOM))
+    return p
+
+
+def test_simulate_starts_with_negative_coordinates(room: Path, tmp_path: Path) -> None:
+    out = tmp_path / "o.json"
+    rc = main(
+        [
+            "simulate",
+            str(room),
+            "--goal=-1,0",
+            "--starts=1.2,0.1;-1.5,-1.5;0,-1.2",
+            "--navfn",
+            "kr",
+            "--k",
+            "6",
+            "--gain",
+            "2",
+            "--vmax",
+            "0.8",
+            f"--json={out}",
+        ]
+    )
+    assert rc == 0
+    doc = json.loads(out.read_text())
+    runs, summary = doc["runs"], doc["summary"]
+    assert [r["start"] for r in runs] == [[1.2, 0.1], [-1.5, -1.5], [0.0, -1.2]]
+    for r in runs:
+        assert {"start", "success", "collided", "time", "path_length", "min_clearance",
+                "final_distance"} <= set(r)  # fmt: skip
+        assert r["success"] and not r["collided"] and r["min_clearance"] > 0
+        assert r["final_distance"] <= 1e-3 + 1e-12
+        assert r["path_length"] >= r["shortest_path"] - 1e-9
+    assert summary["success_rate"] == 1.0 and summary["collisions"] == 0
+    assert summary["median_path_ratio"] >= 1.0
+    # from (1.2, 0.1) around the square to (-1, 0): via two corners, exact length
+    a, b = np.array([1.2, 0.1]), np.array([-1.0, 0.0])
+    c1, c2 = np.array([0.5, 0.5]), np.array([-0.5, 0.5])
+    exact = np.linalg.norm(a - c1) + 1.0 + np.linalg.norm(c2 - b)
+    assert runs[0]["shortest_path"] == pytest.approx(exact, rel=1e-12)
+    assert doc["params"]["k"] == 6.0 and doc["params"]["v_max"] == 0.8
+
+
+def test_simulate_random_starts_and_plot(room: Path, tmp_path: Path) -> None:
+    outs = []
+    for name in ("a", "b"):
+        out = tmp_path / f"{name}.json"
+        args = ["simulate", str(room), "--goal=1.5,-1.5", "--random", "25", "--seed", "7"]
+        rc = main([*args, f"--json={out}", f"--plot={tmp_path / 'p.png'}"])
+        assert rc == 0
+        outs.append(json.loads(out.read_text()))
+    starts = np.array([r["start"] for r in outs[0]["runs"]])
+    assert starts.shape == (25, 2)
+    assert starts.tolist() == [r["start"] for r in outs[1]["runs"]]  # seeded
+    ws = Workspace.from_dict(ROOM)
+    assert np.all(ws.clearance(starts[:, 0] + 1j * starts[:, 1]) >= 0.05)
+    assert outs[0]["summary"]["success_rate"] == 1.0
+    assert outs[0]["params"]["navfn"] == "harmonic"  # the safe default
+    assert (tmp_path / "p.png").stat().st_size > 10_000
+
+
+def test_bad_input_is_a_clean_error(room: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["simulate", str(room), "--goal=0,0", "--starts=1.5,1.5"]) == 1
+    assert "free space" in capsys.readouterr().err
+    assert main(["simulate", str(room), "--goal=1,1.5", "--starts=0.1,0.1"]) == 1
+    assert "start" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["simulate", str(room), "--goal=1,x", "--starts=1,1"])
+    with pytest.raises(SystemExit):
+        main(["simulate", str(room), "--goal=1,1"])  # no starts
+
+
+def test_figures(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["figures", "--out", str(tmp_path)]) == 0
+    text = capsys.readouterr().out
+    for name in ("kr", "harmonic"):
+        assert (tmp_path / f"navigation_{name}.png").stat().st_size > 50_000
+    assert text.count("4 arrived") == 2
