@@ -149,3 +149,47 @@ def test_seed_four_starts_reach_the_goal(default_map: Any, navfn: str) -> None:
     assert np.all(res.min_clearance > 0)
     # never faster than the straight line
     assert np.all(res.path_length >= np.abs(np.array(DEFAULT_STARTS) - DEFAULT_GOAL) - 1e-3)
+
+
+def test_shortest_path_around_a_square() -> None:
+    from confnav.geometry import Workspace
+    from confnav.shortest_path import ShortestPaths, bend_vertices
+
+    sq = [(-0.5, -0.5), (0.5, -0.5), (0.5, 0.5), (-0.5, 0.5)]
+    ws = Workspace([(-2, -2), (2, -2), (2, 2), (-2, 2)], [sq])
+    assert set(bend_vertices(ws)) == {complex(x, y) for x, y in sq}  # outer square: convex
+    sp = ShortestPaths(ws, -1.0 + 0j)
+    got = sp.lengths([1.0 + 0j, -1.5 + 1j, 0.0 + 0.6j, 1.0 + 0.5j])
+    exact = [
+        1 + np.sqrt(2),  # around two corners
+        np.sqrt(1.25),  # direct
+        np.sqrt(0.26) + np.sqrt(0.5),  # direct line cut by the square: via (-0.5, 0.5)
+        1.5 + np.sqrt(0.5),  # along the top edge
+    ]
+    assert_allclose(got, exact, rtol=1e-12)
+
+
+def test_potential_field_gets_trapped_in_the_cup() -> None:
+    from confnav.baseline import PotentialField
+    from confnav.scenarios import cup_trap
+
+    sc = cup_trap(1.2)
+    apf = PotentialField(sc.workspace, sc.goal)
+    # straight behind the cup's bottom, on the axis: the attractive pull is cancelled
+    res = simulate(apf, [-1.8 + 0.0j, 1.0 + 1.5j])
+    assert res.status[0] == STALLED and not res.collided[0]
+    assert res.final[0].real < 0.7  # stuck inside or at the mouth of the cup
+    assert res.success[1]
+
+
+def test_scenarios_are_valid_and_random_starts_keep_the_margin() -> None:
+    from confnav.scenarios import cup_trap, default_scenario, l_room, random_starts, spiral_corridor
+
+    for sc in (default_scenario(), cup_trap(0.4), l_room(), spiral_corridor(10)):
+        assert sc.workspace.contains(sc.goal)
+        z = random_starts(sc.workspace, 200, seed=3)
+        assert z.size == 200 and np.all(sc.workspace.clearance(z) >= 0.05)
+        assert_allclose(z, random_starts(sc.workspace, 200, seed=3))
+    # the corridor's centreline length over width
+    sc = spiral_corridor(10, width=0.4)
+    assert_allclose(sc.workspace.polygon.area, 10 * 0.4**2, rtol=0.05)
