@@ -170,15 +170,17 @@ class TransformService(Service):
             self.bus.subscribe(self.keys.any_ws("definition"), self._on_definition)
         )
         self._handles.append(self.bus.queryable(self.keys.any_ws("transform"), self._on_query))
+        defs: dict[str, WorkspaceDefinition] = {}
         for ws_id, source in self.sources.items():
             try:
-                defn = load_definition(ws_id, source)
+                defs[ws_id] = load_definition(ws_id, source)
             except Exception as exc:
                 log.error("cannot load workspace %r from %s: %s", ws_id, source, exc)
                 self.count("load_errors")
-                continue
+        defs.update(self._load_saved_definitions())  # later puts override the files
+        for defn in defs.values():
             self.submit(defn)
-            self.bus.publish(self.keys.ws(ws_id, "definition"), encode(defn))
+            self.bus.publish(self.keys.ws(defn.ws_id, "definition"), encode(defn))
 
     def stop(self) -> None:
         super().stop()
@@ -207,6 +209,7 @@ class TransformService(Service):
             log.warning("definition on %s names workspace %r: ignored", key, defn.ws_id)
             return
         self.submit(defn)
+        self._save_definition(defn)
 
     def submit(self, defn: WorkspaceDefinition) -> None:
         """Validate and (re)solve ``defn`` unless its solution is current or cached."""
@@ -357,6 +360,33 @@ class TransformService(Service):
             return st.state if st else None
 
     # disk cache ------------------------------------------------------------------------
+    def _save_definition(self, defn: WorkspaceDefinition) -> None:
+        """Remember definitions put on the bus, so that a restarted service serves them."""
+        if self._cache_dir is None:
+            return
+        d = self._cache_dir / "definitions"
+        try:
+            d.mkdir(parents=True, exist_ok=True)
+            tmp = d / f"{defn.ws_id}.tmp"
+            tmp.write_bytes(encode(defn))
+            tmp.replace(d / f"{defn.ws_id}.json")
+        except OSError:
+            log.warning("cannot save definition of %r", defn.ws_id, exc_info=True)
+
+    def _load_saved_definitions(self) -> dict[str, WorkspaceDefinition]:
+        out: dict[str, WorkspaceDefinition] = {}
+        if self._cache_dir is None or not (self._cache_dir / "definitions").is_dir():
+            return out
+        for path in sorted((self._cache_dir / "definitions").glob("*.json")):
+            try:
+                defn = decode(WorkspaceDefinition, path.read_bytes())
+            except (OSError, DecodeError) as exc:
+                log.warning("ignoring saved definition %s: %s", path, exc)
+                continue
+            out[defn.ws_id] = defn
+        return out
+
+
     def _cache_path(self, h: str) -> Path | None:
         return self._cache_dir / f"{h}.json" if self._cache_dir else None
 

@@ -199,13 +199,20 @@ def test_disk_cache_survives_restart(mem_net: InMemoryNetwork, tmp_path: Path) -
         finally:
             svc.stop()
     assert calls["n"] == 1
+    # a definition put on the bus is served again after a restart, without being re-sent
+    svc = start(mem_net, solve_fn=counting, cache_dir=tmp_path)
+    try:
+        wait_for(lambda: svc.state_of("sq") == "solved")
+        assert client.query(K.ws("sq", "transform"))[0].ok
+    finally:
+        svc.stop()
+    assert calls["n"] == 1
 
 
 @pytest.mark.timeout(120)
 def test_real_solver_in_process_pool_over_zenoh(make_bus: Callable[[], Any]) -> None:
     """The real solver in a spawned worker process; the solution comes back over Zenoh and
     loads into a map identical to an in-process solve."""
-    pytest.importorskip("confnav.solver")
     from confnav.services.navigation import load_map
 
     svc_bus, client = make_bus(), make_bus()
