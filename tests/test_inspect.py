@@ -14,6 +14,7 @@ from conftest import confnav_cmd, subprocess_env
 from mcap.writer import Writer
 
 from confnav.schemas import (
+    CollisionEvent,
     Goal,
     Message,
     Pose,
@@ -104,14 +105,18 @@ def recording(tmp_path: Path) -> Path:
         arrive + 1,
     )
     r.raw("confnav/robot/r2/goal", b'{"garbage": 1}', arrive + 2)
+    hit = CollisionEvent(
+        robot_id="r2", ws_id="w1", stamp_ns=arrive, position=(-0.6, 0.6), clearance=-0.01
+    )
+    r.put("confnav/robot/r2/collision", hit, arrive + 3)
     r.finish()
     return p
 
 
 def test_report_counts_robots_arrival_and_clearance(recording: Path) -> None:
     rep = inspect_recording(recording)
-    assert rep.message_count == 1 + 2 + 71 * 3 + 2 + 1
-    assert math.isclose(rep.duration_s, (10_000_000 * 71 + 7) / 1e9)
+    assert rep.message_count == 1 + 2 + 71 * 3 + 2 + 1 + 1
+    assert math.isclose(rep.duration_s, (10_000_000 * 71 + 8) / 1e9)
     counts = {c.topic: c.count for c in rep.channels if not c.invalid}
     assert counts["confnav/robot/r1/pose"] == 71 and counts["confnav/robot/r1/cmd_vel"] == 71
     assert rep.invalid_messages == 1 and rep.unknown_schemas == []
@@ -139,6 +144,8 @@ def test_report_counts_robots_arrival_and_clearance(recording: Path) -> None:
         and "did not arrive (last state stopped/missing_map)" in text
     )
     assert "minimum clearance 0.0500 m" in text
+    assert r1.collision_at is None and r2.collision_at == (-0.6, 0.6)
+    assert "COLLISION at t = 0.710 s at (-0.600, 0.600)" in text
 
 
 def test_arrival_from_poses_without_status(tmp_path: Path) -> None:

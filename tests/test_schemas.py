@@ -9,7 +9,7 @@ import jsonschema
 import pytest
 
 from confnav import schemas as S
-from confnav.services.keys import Keys, KeyError_, is_valid_id, validate_id
+from confnav.services.keys import KeyError_, Keys, is_valid_id, validate_id
 
 DIAG = S.SolveDiagnostics(sweeps=7, error_estimate=1e-13, wall_time=0.5, tol=1e-10, nodes=[64])
 
@@ -47,7 +47,7 @@ def test_every_model_has_a_sample_and_a_unique_type() -> None:
     assert {type(m) for m in SAMPLES} == set(S.MESSAGE_MODELS)
     assert len(S.MODELS_BY_TYPE) == len(S.MESSAGE_MODELS)
     for model in S.MESSAGE_MODELS:
-        assert model.TYPE == f"confnav.{model.__name__}"
+        assert f"confnav.{model.__name__}" == model.TYPE
         assert S.schema_name(model) == model.TYPE
 
 
@@ -104,7 +104,9 @@ def test_models_are_strict_and_frozen() -> None:
 
 def test_export_writes_every_schema(tmp_path: Path) -> None:
     paths = S.export_schemas(tmp_path)
-    assert sorted(p.name for p in paths) == sorted(f"{m.TYPE}.schema.json" for m in S.MESSAGE_MODELS)
+    assert sorted(p.name for p in paths) == sorted(
+        f"{m.TYPE}.schema.json" for m in S.MESSAGE_MODELS
+    )
     for model in S.MESSAGE_MODELS:
         data = (tmp_path / f"{model.TYPE}.schema.json").read_bytes()
         assert data == S.schema_bytes(model)
@@ -139,7 +141,12 @@ def test_keys_build_and_parse() -> None:
     assert (p.group, p.ident, p.kind) == ("robot", "r-1.x", "cmd_vel")
     assert k.parse(k.ws("w", "transform")).kind == "transform"
     assert k.parse(k.health("transform", "abc")).group == "health"
-    for bad in ["confnav/robot/r1/pose", "fleet/a/robot/r1/odom", "fleet/a/robot/r1", "fleet/a/x/r/y"]:
+    for bad in [
+        "confnav/robot/r1/pose",
+        "fleet/a/robot/r1/odom",
+        "fleet/a/robot/r1",
+        "fleet/a/x/r/y",
+    ]:
         with pytest.raises(KeyError_):
             k.parse(bad)
     assert S.model_for_key_parts("robot", "pose") is S.Pose

@@ -9,6 +9,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from conftest import IdentityMap, identity_loader, wait_for
 
 from confnav.control import Controller
 from confnav.schemas import (
@@ -24,14 +25,15 @@ from confnav.schemas import (
 from confnav.services.bus import InMemoryNetwork, QueryError
 from confnav.services.controller import ControllerService
 from confnav.services.keys import Keys
-from conftest import IdentityMap, identity_loader, wait_for
 
 K = Keys()
 CENTERS = [(0.4, 0.0)]
 RADII = [0.15]
 
 
-def solution(ws: str = "cd", centers: list[tuple[float, float]] = CENTERS, rev: str = "rev1") -> TransformSolution:
+def solution(
+    ws: str = "cd", centers: list[tuple[float, float]] = CENTERS, rev: str = "rev1"
+) -> TransformSolution:
     return TransformSolution(
         ws_id=ws,
         revision=rev,
@@ -66,8 +68,12 @@ class Client:
         self.bus = bus
         self.cmds: list[VelocityCommand] = []
         self.status: list[RobotStatus] = []
-        bus.subscribe(K.any_robot("cmd_vel"), lambda k, p: self.cmds.append(decode(VelocityCommand, p)))
-        bus.subscribe(K.any_robot("status"), lambda k, p: self.status.append(decode(RobotStatus, p)))
+        bus.subscribe(
+            K.any_robot("cmd_vel"), lambda k, p: self.cmds.append(decode(VelocityCommand, p))
+        )
+        bus.subscribe(
+            K.any_robot("status"), lambda k, p: self.status.append(decode(RobotStatus, p))
+        )
         self.seq = 0
 
     def pose(self, rid: str, x: float, y: float) -> None:
@@ -104,7 +110,14 @@ def setup(net: Any, **kw: Any) -> tuple[ControllerService, FakeTransform, Client
 
 def expected_u(goal: Goal, z: complex, centers: list[tuple[float, float]] = CENTERS) -> complex:
     m = IdentityMap([complex(*c) for c in centers], RADII)
-    c = Controller(m, complex(*goal.goal), navfn=goal.navfn, gain=goal.gain, v_max=goal.v_max, goal_tol=goal.tolerance)
+    c = Controller(
+        m,
+        complex(*goal.goal),
+        navfn=goal.navfn,
+        gain=goal.gain,
+        v_max=goal.v_max,
+        goal_tol=goal.tolerance,
+    )
     return complex(np.asarray(c(np.asarray(z)).u).item())
 
 
@@ -114,7 +127,7 @@ def same(u: complex, v: complex) -> bool:
 
 
 def test_command_is_the_libraries_control_law(mem_net: InMemoryNetwork) -> None:
-    ctl, tr, cl = setup(mem_net)
+    ctl, _tr, cl = setup(mem_net)
     try:
         g = cl.goal("r1")
         wait_for(lambda: ctl.robot_state("r1") is not None and ctl.counters["maps_installed"])
@@ -133,7 +146,7 @@ def test_command_is_the_libraries_control_law(mem_net: InMemoryNetwork) -> None:
 
 
 def test_many_robots_in_one_process(mem_net: InMemoryNetwork) -> None:
-    ctl, tr, cl = setup(mem_net)
+    ctl, _tr, cl = setup(mem_net)
     try:
         rids = [f"r{i}" for i in range(30)]
         goals = {r: cl.goal(r) for r in rids}
@@ -142,6 +155,7 @@ def test_many_robots_in_one_process(mem_net: InMemoryNetwork) -> None:
         time.sleep(0.1)
         for i, r in enumerate(rids):
             cl.pose(r, 0.1 * np.cos(i), 0.6 * np.sin(i))
+
         def answered(r: str) -> VelocityCommand | None:
             c = [m for m in cl.cmds if m.robot_id == r and m.pose_seq > 0]
             return c[-1] if c else None
@@ -191,8 +205,10 @@ def test_hot_swap_keeps_the_robot_moving(mem_net: InMemoryNetwork) -> None:
         (b"x" * 100_000, "invalid_input"),  # oversized
     ],
 )
-def test_bad_pose_stops_the_robot_with_a_reason(mem_net: InMemoryNetwork, payload: bytes, reason: str) -> None:
-    ctl, tr, cl = setup(mem_net)
+def test_bad_pose_stops_the_robot_with_a_reason(
+    mem_net: InMemoryNetwork, payload: bytes, reason: str
+) -> None:
+    ctl, _tr, cl = setup(mem_net)
     try:
         cl.goal("r1")
         wait_for(lambda: ctl.counters["maps_installed"])
@@ -209,20 +225,22 @@ def test_bad_pose_stops_the_robot_with_a_reason(mem_net: InMemoryNetwork, payloa
 
 
 def test_pose_outside_the_map_stops(mem_net: InMemoryNetwork) -> None:
-    ctl, tr, cl = setup(mem_net)
+    ctl, _tr, cl = setup(mem_net)
     try:
         cl.goal("r1")
         wait_for(lambda: ctl.counters["maps_installed"])
         cl.pose("r1", 0.4, 0.0)  # inside the obstacle disk
         cmd = wait_for(lambda: cl.answer("r1"))
         assert cmd.linear == (0.0, 0.0)
-        wait_for(lambda: cl.last_status("r1") and cl.last_status("r1").reason == "outside_workspace")
+        wait_for(
+            lambda: cl.last_status("r1") and cl.last_status("r1").reason == "outside_workspace"
+        )
     finally:
         ctl.stop()
 
 
 def test_stale_pose_watchdog(mem_net: InMemoryNetwork) -> None:
-    ctl, tr, cl = setup(mem_net, stale_after=0.2)
+    ctl, _tr, cl = setup(mem_net, stale_after=0.2)
     try:
         cl.goal("r1")
         wait_for(lambda: ctl.counters["maps_installed"])
@@ -243,7 +261,9 @@ def test_missing_map_reports_the_transform_error(mem_net: InMemoryNetwork) -> No
         cl.pose("r1", 0.0, 0.5)
         wait_for(lambda: cl.last_status("r1") and cl.last_status("r1").reason == "missing_map")
         assert cl.last_cmd("r1").linear == (0.0, 0.0)
-        wait_for(lambda: (cl.pose("r1", 0, 0.5), "unknown workspace" in cl.last_status("r1").message)[1])
+        wait_for(
+            lambda: (cl.pose("r1", 0, 0.5), "unknown workspace" in cl.last_status("r1").message)[1]
+        )
         # the map appears later: fetched by query, the robot moves
         tr.solutions["nowhere"] = solution("nowhere")
         for _ in range(100):
@@ -278,7 +298,7 @@ def test_dead_transform_service_stops_robots_until_it_returns(mem_net: InMemoryN
 
 
 def test_bad_goal_is_rejected_and_bad_goal_point_reported(mem_net: InMemoryNetwork) -> None:
-    ctl, tr, cl = setup(mem_net)
+    ctl, _tr, cl = setup(mem_net)
     try:
         cl.bus.publish(K.robot("r1", "goal"), b'{"robot_id":"r1"}')
         cl.bus.publish(K.robot("r1", "goal"), encode(Goal(robot_id="r9", ws_id="cd", goal=(0, 0))))

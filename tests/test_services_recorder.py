@@ -14,6 +14,7 @@ from typing import Any
 
 import jsonschema
 import pytest
+from conftest import confnav_cmd, square_definition, subprocess_env, wait_for
 from mcap.reader import make_reader
 from mcap.stream_reader import StreamReader
 
@@ -22,12 +23,13 @@ from confnav.services import mcap_layout as L
 from confnav.services.bus import InMemoryNetwork
 from confnav.services.keys import Keys
 from confnav.services.recorder import Recorder
-from conftest import confnav_cmd, square_definition, subprocess_env, wait_for
 
 K = Keys()
 
 
-def read_all(path: Path) -> tuple[Counter[str], list[tuple[Any, Any, Any]], dict[str, dict[str, str]]]:
+def read_all(
+    path: Path,
+) -> tuple[Counter[str], list[tuple[Any, Any, Any]], dict[str, dict[str, str]]]:
     """Counts per (topic) of valid messages, every (schema, channel, message), metadata."""
     with open(path, "rb") as f:
         reader = make_reader(f)
@@ -49,7 +51,9 @@ def test_exact_counts_schemas_and_metadata(mem_net: InMemoryNetwork, tmp_path: P
         for i in range(300):
             for rid in ("r1", "r2"):
                 key = K.robot(rid, "pose")
-                pub.publish(key, encode(Pose(robot_id=rid, stamp_ns=1000 + i, seq=i, x=0.1 * i, y=0)))
+                pub.publish(
+                    key, encode(Pose(robot_id=rid, stamp_ns=1000 + i, seq=i, x=0.1 * i, y=0))
+                )
                 sent[key] += 1
         pub.publish(K.robot("r1", "goal"), encode(Goal(robot_id="r1", ws_id="sq", goal=(0, 0))))
         sent[K.robot("r1", "goal")] += 1
@@ -69,7 +73,9 @@ def test_exact_counts_schemas_and_metadata(mem_net: InMemoryNetwork, tmp_path: P
 
     counts, msgs, meta = read_all(path)
     assert counts == sent
-    raw_got = [(ch.topic, m.data) for _, ch, m in msgs if ch.message_encoding == L.RAW_MESSAGE_ENCODING]
+    raw_got = [
+        (ch.topic, m.data) for _, ch, m in msgs if ch.message_encoding == L.RAW_MESSAGE_ENCODING
+    ]
     assert raw_got == raw
     for _, ch, _ in msgs:
         if ch.message_encoding == L.RAW_MESSAGE_ENCODING:
@@ -80,14 +86,18 @@ def test_exact_counts_schemas_and_metadata(mem_net: InMemoryNetwork, tmp_path: P
         if schema is None:
             continue
         assert schema.encoding == L.SCHEMA_ENCODING and schema.name.startswith("confnav.")
-        v = validators.setdefault(schema.id, jsonschema.Draft202012Validator(json.loads(schema.data)))
+        v = validators.setdefault(
+            schema.id, jsonschema.Draft202012Validator(json.loads(schema.data))
+        )
         payload = json.loads(m.data)
         v.validate(payload)
         assert payload["type"] == schema.name
         stamp = payload.get("stamp_ns", 0)
         assert m.publish_time == (stamp if stamp > 0 else m.log_time)
     # one channel per key, poses in order
-    seqs = [json.loads(m.data)["seq"] for _, ch, m in msgs if ch.topic == K.robot("r2", "pose") and _]
+    seqs = [
+        json.loads(m.data)["seq"] for _, ch, m in msgs if ch.topic == K.robot("r2", "pose") and _
+    ]
     assert seqs == list(range(300))
     md = meta[L.METADATA_NAME]
     assert md["prefix"] == "confnav" and json.loads(md["config"]) == {"run": "test"}
@@ -96,8 +106,16 @@ def test_exact_counts_schemas_and_metadata(mem_net: InMemoryNetwork, tmp_path: P
 
 def _start_recorder(endpoint: str, out: Path, flush: float = 0.5) -> subprocess.Popen[bytes]:
     return subprocess.Popen(
-        confnav_cmd("serve", "recorder", "--connect", endpoint, "--out", str(out),
-                    "--flush-interval", str(flush)),
+        confnav_cmd(
+            "serve",
+            "recorder",
+            "--connect",
+            endpoint,
+            "--out",
+            str(out),
+            "--flush-interval",
+            str(flush),
+        ),
         env=subprocess_env(),
         stdout=subprocess.DEVNULL,
         stderr=subprocess.PIPE,
@@ -110,7 +128,10 @@ def _publish_for(bus: Any, seconds: float, rate: float = 200.0) -> list[tuple[in
     t0 = time.monotonic()
     i = 0
     while time.monotonic() - t0 < seconds:
-        bus.publish(K.robot("r1", "pose"), encode(Pose(robot_id="r1", stamp_ns=time.time_ns(), seq=i, x=0, y=0)))
+        bus.publish(
+            K.robot("r1", "pose"),
+            encode(Pose(robot_id="r1", stamp_ns=time.time_ns(), seq=i, x=0, y=0)),
+        )
         sent.append((i, time.monotonic()))
         i += 1
         time.sleep(1.0 / rate)
@@ -123,7 +144,9 @@ def _wait_alive(bus: Any, service: str, timeout: float = 30) -> None:
 
 @pytest.mark.timeout(90)
 @pytest.mark.integration
-def test_sigterm_finishes_the_file(make_bus: Callable[[], Any], zenoh_router: str, tmp_path: Path) -> None:
+def test_sigterm_finishes_the_file(
+    make_bus: Callable[[], Any], zenoh_router: str, tmp_path: Path
+) -> None:
     out = tmp_path / "term.mcap"
     proc = _start_recorder(zenoh_router, out)
     try:
@@ -138,14 +161,16 @@ def test_sigterm_finishes_the_file(make_bus: Callable[[], Any], zenoh_router: st
         if proc.poll() is None:
             proc.kill()
             proc.wait()
-    counts, msgs, meta = read_all(out)  # the indexed reader accepts it: summary written
+    counts, _msgs, meta = read_all(out)  # the indexed reader accepts it: summary written
     assert counts[K.robot("r1", "pose")] == len(sent)
     assert L.METADATA_NAME in meta
 
 
 @pytest.mark.timeout(90)
 @pytest.mark.integration
-def test_sigkill_loses_at_most_about_a_second(make_bus: Callable[[], Any], zenoh_router: str, tmp_path: Path) -> None:
+def test_sigkill_loses_at_most_about_a_second(
+    make_bus: Callable[[], Any], zenoh_router: str, tmp_path: Path
+) -> None:
     out = tmp_path / "kill.mcap"
     proc = _start_recorder(zenoh_router, out, flush=0.5)
     try:
@@ -174,4 +199,6 @@ def test_sigkill_loses_at_most_about_a_second(make_bus: Callable[[], Any], zenoh
     assert seqs == list(range(len(seqs)))  # a prefix, in order
     lost = [t for s, t in sent if s >= len(seqs)]
     assert len(seqs) > 0
-    assert not lost or t_kill - min(lost) <= 1.0, f"lost {len(lost)} messages from the last {t_kill - min(lost):.2f} s"
+    assert not lost or t_kill - min(lost) <= 1.0, (
+        f"lost {len(lost)} messages from the last {t_kill - min(lost):.2f} s"
+    )

@@ -8,6 +8,7 @@ from collections.abc import Callable
 from typing import Any
 
 import pytest
+from conftest import square_definition, wait_for
 
 from confnav.schemas import (
     CollisionEvent,
@@ -21,7 +22,6 @@ from confnav.schemas import (
 from confnav.services.bus import InMemoryNetwork
 from confnav.services.keys import Keys
 from confnav.services.simulator import SimulatorService
-from conftest import square_definition, wait_for
 
 K = Keys()
 
@@ -64,7 +64,9 @@ def test_collision_reported_once_and_robot_stays(mem_net: InMemoryNetwork) -> No
     sim = make(mem_net)
     client = mem_net.bus("client")
     hits: list[CollisionEvent] = []
-    client.subscribe(K.robot("r1", "collision"), lambda k, p: hits.append(decode(CollisionEvent, p)))
+    client.subscribe(
+        K.robot("r1", "collision"), lambda k, p: hits.append(decode(CollisionEvent, p))
+    )
     sim._stop.set()
     sim.start()
     try:
@@ -99,7 +101,10 @@ def test_pause_reset_spawn_remove(mem_net: InMemoryNetwork) -> None:
         wait_for(lambda: not sim.paused and sim.positions()["r1"] == 0)
         sim.step(0.1)  # reset also dropped the command
         assert sim.positions()["r1"] == 0
-        client.publish(K.sim("sim", "spawn"), encode(SpawnRequest(robot_id="r2", ws_id="sq", position=(0.3, 0.4))))
+        client.publish(
+            K.sim("sim", "spawn"),
+            encode(SpawnRequest(robot_id="r2", ws_id="sq", position=(0.3, 0.4))),
+        )
         wait_for(lambda: "r2" in sim.positions())
         assert sim.positions()["r2"] == 0.3 + 0.4j
         client.publish(K.sim("sim", "control"), encode(SimControl(action="remove", robot_id="r2")))

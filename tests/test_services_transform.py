@@ -10,12 +10,12 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from conftest import fake_solve, square_definition, wait_for
 
 from confnav.schemas import TransformSolution, TransformStatus, WorkspaceDefinition, decode, encode
 from confnav.services.bus import InMemoryNetwork
 from confnav.services.keys import Keys
 from confnav.services.transform import TransformService, solve_definition
-from conftest import fake_solve, square_definition, wait_for
 
 K = Keys()
 
@@ -91,7 +91,8 @@ def test_reply_err_for_unknown_invalid_and_pending(mem_net: InMemoryNetwork) -> 
         assert not r.ok and "unknown workspace 'nope'" in (r.error or "")
 
         crossing = WorkspaceDefinition(
-            ws_id="bow", outer=[(0, 0), (1, 1), (1, 0), (0, 1)]  # self-intersecting
+            ws_id="bow",
+            outer=[(0, 0), (1, 1), (1, 0), (0, 1)],  # self-intersecting
         )
         client.publish(K.ws("bow", "definition"), encode(crossing))
         wait_for(lambda: svc.state_of("bow") == "failed")
@@ -154,7 +155,9 @@ def test_solves_workspaces_concurrently(mem_net: InMemoryNetwork) -> None:
     try:
         t0 = time.monotonic()
         for i in range(3):
-            client.publish(K.ws(f"w{i}", "definition"), encode(square_definition(f"w{i}", [(0.1 * i, 0)])))
+            client.publish(
+                K.ws(f"w{i}", "definition"), encode(square_definition(f"w{i}", [(0.1 * i, 0)]))
+            )
         wait_for(lambda: all(svc.state_of(f"w{i}") == "solved" for i in range(3)))
         assert running["max"] == 3
         assert time.monotonic() - t0 < 0.85  # not 3 x 0.3 s in a row
