@@ -141,6 +141,8 @@ def wait_for_map(launcher: Launcher, timeout: float, stop: threading.Event) -> s
 
                 return decode(TransformSolution, rep.payload).revision
             last = rep.error or ""
+            if " is invalid: " in last:  # solving failed: waiting will not help
+                raise RuntimeError(f"the transform service cannot solve {WS_ID!r}: {last}")
         stop.wait(0.5)
     raise RuntimeError(f"no map for {WS_ID!r} after {timeout:g} s: {last}")
 

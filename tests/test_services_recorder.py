@@ -82,7 +82,7 @@ def test_exact_counts_schemas_and_metadata(mem_net: InMemoryNetwork, tmp_path: P
             assert ch.schema_id == 0 and ch.metadata == L.INVALID_CHANNEL_METADATA
     # every valid payload validates against its channel's schema, which names its model
     validators: dict[int, Any] = {}
-    for schema, ch, m in msgs:
+    for schema, _ch, m in msgs:
         if schema is None:
             continue
         assert schema.encoding == L.SCHEMA_ENCODING and schema.name.startswith("confnav.")
