@@ -34,6 +34,7 @@ from mcap.writer import CompressionType, Writer
 from confnav.errors import ConfnavError
 from confnav.schemas import (
     MODELS_BY_TYPE,
+    CollisionEvent,
     DecodeError,
     Goal,
     Message,
@@ -240,6 +241,8 @@ class RobotSummary:
     final_reason: str | None = None
     min_clearance: float | None = None
     min_clearance_at: tuple[float, float] | None = None
+    collision_time_s: float | None = None
+    collision_at: tuple[float, float] | None = None
     trajectory: list[tuple[float, float]] = field(default_factory=list)
 
 
@@ -291,6 +294,7 @@ class InspectReport:
                     "final_state": r.final_state,
                     "path_length": r.path_length,
                     "min_clearance": r.min_clearance,
+                    "collision_time_s": r.collision_time_s,
                 }
                 for rid, r in sorted(self.robots.items())
             },
@@ -346,6 +350,10 @@ class InspectReport:
             else:
                 state = f" (last state {r.final_state}/{r.final_reason})" if r.final_state else ""
                 out.append(f"  did not arrive{state}")
+            if r.collision_at is not None and r.collision_time_s is not None:
+                out.append(
+                    f"  COLLISION at t = {r.collision_time_s:.3f} s at {_fmt_pt(r.collision_at)}"
+                )
             if r.min_clearance is not None and r.min_clearance_at is not None:
                 out.append(
                     f"  minimum clearance {r.min_clearance:.4f} m at {_fmt_pt(r.min_clearance_at)}"
@@ -415,6 +423,11 @@ def inspect_recording(path: str | os.PathLike[str]) -> InspectReport:
                 r.ws_id = model.ws_id
             elif isinstance(model, VelocityCommand):
                 robot(model.robot_id).commands += 1
+            elif isinstance(model, CollisionEvent):
+                r = robot(model.robot_id)
+                if r.collision_at is None:
+                    r.collision_at = (model.position[0], model.position[1])
+                    r.collision_time_s = (msg.log_time_ns - rec.start_ns) / NS_PER_S
             elif isinstance(model, RobotStatus):
                 r = robot(model.robot_id)
                 r.final_state, r.final_reason = model.state, model.reason
