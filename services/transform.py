@@ -386,7 +386,6 @@ class TransformService(Service):
             out[defn.ws_id] = defn
         return out
 
-
     def _cache_path(self, h: str) -> Path | None:
         return self._cache_dir / f"{h}.json" if self._cache_dir else None
 
