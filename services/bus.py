@@ -216,7 +216,7 @@ class ZenohBus:
                     )
                     if len(self._publishers) > 4096:  # bound the cache (many robots)
                         old = self._publishers.pop(next(iter(self._publishers)))
-                        old.undeclare()
+                        old.undeclare()  # type: ignore[no-untyped-call]
                     self._publishers[key] = pub
         pub.put(payload)
 
@@ -237,7 +237,7 @@ class ZenohBus:
         sub = self._session.declare_subscriber(keyexpr, on_sample)
 
         def close() -> None:
-            sub.undeclare()
+            sub.undeclare()  # type: ignore[no-untyped-call]
             disp.stop()
 
         return self._track(_Handle(close))
@@ -270,13 +270,13 @@ class ZenohBus:
                 for rkey, data in replies:  # always concrete keys
                     q.reply(rkey, data, encoding=zenoh.Encoding.APPLICATION_JSON)
             finally:
-                q.drop()
+                q.drop()  # type: ignore[no-untyped-call]
 
         disp = _Dispatcher(f"qbl:{keyexpr}", answer)
         qbl = self._session.declare_queryable(keyexpr, disp.put, complete=True)
 
         def close() -> None:
-            qbl.undeclare()
+            qbl.undeclare()  # type: ignore[no-untyped-call]
             disp.stop()
 
         return self._track(_Handle(close))
@@ -294,7 +294,7 @@ class ZenohBus:
         sub = self._session.liveliness().declare_subscriber(keyexpr, on_sample, history=True)
 
         def close() -> None:
-            sub.undeclare()
+            sub.undeclare()  # type: ignore[no-untyped-call]
             disp.stop()
 
         return self._track(_Handle(close))
@@ -321,10 +321,10 @@ class ZenohBus:
                 log.debug("close failed", exc_info=True)
         for p in pubs:
             try:
-                p.undeclare()
+                p.undeclare()  # type: ignore[no-untyped-call]
             except Exception:  # pragma: no cover
                 log.debug("undeclare failed", exc_info=True)
-        self._session.close()
+        self._session.close()  # type: ignore[no-untyped-call]
 
 
 # ------------------------------------------------------------------------------------------
@@ -420,7 +420,7 @@ class InMemoryBus:
     ) -> list[Reply]:
         with self._net.lock:
             targets = [(e, h) for e, h in self._net.queryables if key_matches(e, selector)]
-        out = []
+        out: list[Reply] = []
         for _e, h in targets:
             try:
                 out.extend(Reply(k, data) for k, data in h(selector, payload))

@@ -164,7 +164,7 @@ class Recorder(Service):
             if self._writer is not None and not self._finished:
                 if self._viz is not None:
                     self._viz.close()
-                self._writer.finish()
+                self._writer.finish()  # type: ignore[no-untyped-call]
                 self._finished = True
             if self._stream is not None:
                 self._stream.close()

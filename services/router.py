@@ -39,5 +39,5 @@ def main(args: argparse.Namespace) -> int:
         log.info("router %s listening on %s", zid, args.listen or "(config)")
         while not ev.wait(0.5):
             pass
-        token.undeclare()
+        token.undeclare()  # type: ignore[no-untyped-call]
     return 0
