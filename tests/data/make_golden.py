@@ -18,7 +18,9 @@ included, into an MCAP file:
 Golden files (keep them small, < 1 MB in total):
 
 - ``golden_square.mcap``: square room [-0.7, 0.7]^2 with one square hole, two robots, the
-  real solver and the default harmonic navigation function, gain 1, v_max 0.3 m/s.
+  real solver and the default harmonic navigation function, gain 1, v_max 0.3 m/s;
+- ``golden_square_kr.mcap``: the same with the Koditschek-Rimon function (automatic k),
+  gain 0.5.
 
 The recordings are time-dependent (wall-clock log times, thread scheduling), so a regenerated
 file differs byte-wise from the committed one; what the tests check (``replay --check`` passes,
@@ -51,6 +53,7 @@ def run_pipeline(
     holes: Sequence[tuple[float, float]] = ((0.3, 0.3),),
     gain: float = 1.0,
     v_max: float = 0.3,
+    navfn: str = "harmonic",
     time_scale: float = 4.0,
     rate_hz: float = 50.0,
     timeout: float = 60.0,
@@ -124,7 +127,7 @@ def run_pipeline(
                 raise TimeoutError("the controller did not install the map")
             time.sleep(0.01)
         for rid, _x, _y in robots:
-            g = Goal(robot_id=rid, ws_id="w1", goal=goal, gain=gain, v_max=v_max)
+            g = Goal(robot_id=rid, ws_id="w1", goal=goal, gain=gain, v_max=v_max, navfn=navfn)
             pub.publish(keys.robot(rid, "goal"), encode(g))
         sim.start()
         services.append(sim)
@@ -148,6 +151,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     out = Path(args.out_dir)
     result = run_pipeline(out / "golden_square.mcap", solver="real")
     print(f"golden_square.mcap: {result}")
+    result = run_pipeline(out / "golden_square_kr.mcap", solver="real", navfn="kr", gain=0.5)
+    print(f"golden_square_kr.mcap: {result}")
     return 0
 
 
