@@ -116,7 +116,13 @@ class CheckReport:
             lines.append(f"not comparable (skipped): {skipped}")
         lines.append(f"largest difference: {self.max_error:.3g} m/s")
         if self.checked == 0:
-            lines.append("FAIL: no command could be checked")
+            hint = ""
+            if self.skipped.get("map revision not recorded"):
+                hint = (
+                    " (the maps the commands name are not in the recording: start the recorder"
+                    " before the transform service publishes)"
+                )
+            lines.append(f"FAIL: no command could be checked{hint}")
         elif self.mismatch_count == 0:
             lines.append(f"OK: all {self.checked} recomputed commands match")
         else:
@@ -200,7 +206,7 @@ class _Controllers:
             return self._ctrls[key]
         try:
             ctrl: navigation.ControllerLike | None = self._make(self.maps[revision], goal)
-        except ConfnavError as exc:  # the live controller stops the robot (navigation_error)
+        except Exception as exc:  # like the live controller: the robot is stopped (zero)
             logger.info("controller for %s cannot be built: %s", goal.robot_id, exc)
             ctrl = None
         self._ctrls[key] = ctrl
