@@ -1,0 +1,127 @@
+"""deploy/: zenoh configs parse (zenoh rejects unknown keys), manifests load, and
+``confnav launch`` starts everything, restarts a crashed service and stops cleanly on Ctrl-C."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import time
+from pathlib import Path
+
+import pytest
+import zenoh
+from conftest import REPO, confnav_cmd, subprocess_env, wait_for
+from mcap.reader import make_reader
+
+from confnav.geometry import Workspace
+from confnav.services.bus import ZenohBus, zenoh_config
+from confnav.services.keys import Keys
+from confnav.services.launcher import LaunchConfig
+
+DEPLOY = REPO / "deploy"
+
+
+@pytest.mark.parametrize("path", sorted(DEPLOY.rglob("*.json5")), ids=lambda p: p.name)
+def test_zenoh_configs_are_valid(path: Path) -> None:
+    conf = zenoh.Config.from_file(str(path))
+    assert '"enabled":false' in conf.get_json("scouting/multicast").replace(" ", "")
+
+
+@pytest.mark.parametrize("path", sorted(DEPLOY.rglob("*.toml")), ids=lambda p: p.name)
+def test_manifests_load(path: Path) -> None:
+    cfg = LaunchConfig.load(path)
+    assert cfg.services and cfg.connect
+    if cfg.router_config:
+        assert Path(cfg.router_config).exists()
+
+
+def test_manifest_rejects_unknown_service() -> None:
+    with pytest.raises(ValueError, match="unknown service"):
+        LaunchConfig.from_dict({"service": [{"name": "teleporter"}]})
+
+
+@pytest.mark.integration
+@pytest.mark.timeout(120)
+def test_launch_restarts_a_crashed_service_and_stops_on_ctrl_c(
+    tmp_path: Path, sockdir: Path
+) -> None:
+    room = tmp_path / "room.json"
+    Workspace([(-1, -1), (1, -1), (1, 1), (-1, 1)], [[(0.2, -0.2), (0.5, -0.2), (0.5, 0.2)]]).save(
+        room
+    )
+    sock = f"unixsock-stream/{sockdir}/r.sock"
+    manifest = tmp_path / "m.toml"
+    manifest.write_text(
+        f"""
+log_dir = "{tmp_path / "logs"}"
+[router]
+listen = ["{sock}"]
+[[service]]
+name = "recorder"
+args = ["--out", "{tmp_path / "launch.mcap"}"]
+[[service]]
+name = "transform"
+args = ["--workspace", "room={room}"]
+[[service]]
+name = "controller"
+[[service]]
+name = "simulator"
+args = ["--workspace", "room={room}", "--robot", "r1=room:0.8,0.8"]
+"""
+    )
+    proc = subprocess.Popen(
+        confnav_cmd("-v", "launch", str(manifest)),
+        env=subprocess_env(),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        start_new_session=True,
+    )
+    keys = Keys()
+    try:
+        time.sleep(1.0)
+        bus = wait_for(lambda: _try_bus(sock), timeout=30, interval=0.3)
+        with bus:
+            for name in ("recorder", "transform", "controller", "simulator"):
+                wait_for(lambda name=name: bus.alive(keys.alive_of(name)), timeout=60, interval=0.2)
+            [old] = bus.alive(keys.alive_of("controller"))
+            pid = _pid_of(proc.pid, "controller")
+            os.kill(pid, signal.SIGKILL)
+            # restarted: a new controller session comes alive
+            wait_for(
+                lambda: bus.alive(keys.alive_of("controller")) not in ([], [old]),
+                timeout=60,
+                interval=0.2,
+            )
+        os.killpg(proc.pid, signal.SIGINT)  # Ctrl-C in the launcher's terminal
+        out, _ = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+    assert proc.returncode == 0, out.decode()[-3000:]
+    assert b"restarting" in out
+    with open(tmp_path / "launch.mcap", "rb") as f:
+        assert make_reader(f).get_summary() is not None  # recorder finished its file
+
+
+def _try_bus(sock: str) -> ZenohBus | None:
+    try:
+        return ZenohBus(zenoh_config("client", connect=[sock]))
+    except Exception:
+        return None
+
+
+def _pid_of(parent: int, label: str) -> int:
+    """The pid of the launcher's child running ``serve <label>`` (from /proc)."""
+    for d in Path("/proc").iterdir():
+        if not d.name.isdigit():
+            continue
+        try:
+            ppid = int((d / "stat").read_text().rsplit(")", 1)[1].split()[1])
+            cmd = (d / "cmdline").read_bytes().split(b"\0")
+        except (OSError, ValueError, IndexError):
+            continue
+        if ppid == parent and b"serve" in cmd and label.encode() in cmd:
+            return int(d.name)
+    raise AssertionError(f"no {label} child of {parent}")
