@@ -93,6 +93,10 @@ class Controller:
     goal_tol : distance to the goal (workspace units) counted as arrived.
     stall_tol : ``|grad phi|`` (circle domain) below which a robot away from the goal is
         reported STALLED.
+    v_min : optional speed floor (0 = off, the plain Theorem 2 law): ``u`` is scaled up,
+        keeping its direction, to at least ``v_min * min(1, |x - x_d| / floor_radius)``.
+        A positive scaling keeps the paths and dV/dt < 0; it removes the crawl where
+        ``|T'|`` is tiny (crowded corridors, deep pockets: ``|T'| ~ exp(-pi L/w)``).
     """
 
     def __init__(
@@ -106,6 +110,8 @@ class Controller:
         v_max: float = np.inf,
         goal_tol: float = 1e-3,
         stall_tol: float = 1e-9,
+        v_min: float = 0.0,
+        floor_radius: float = 0.1,
     ) -> None:
         self.cmap = cmap
         self.goal = _as_point(goal, "goal")
@@ -119,6 +125,10 @@ class Controller:
         self.v_max = float(v_max)
         self.goal_tol = float(goal_tol)
         self.stall_tol = float(stall_tol)
+        if not (0 <= float(v_min) <= float(v_max)) or not float(floor_radius) > 0:
+            raise NavigationError("need 0 <= v_min <= v_max and floor_radius > 0")
+        self.v_min = float(v_min)
+        self.floor_radius = float(floor_radius)
         if _workspace_contains(cmap, self.goal) is False:
             raise NavigationError(f"goal {self.goal:.6g} is not in the free space")
         wd = complex(np.asarray(cmap.T_and_dT(np.asarray(self.goal))[0]))
@@ -149,6 +159,8 @@ class Controller:
             v_max=self.v_max,
             goal_tol=self.goal_tol,
             stall_tol=self.stall_tol,
+            v_min=self.v_min,
+            floor_radius=self.floor_radius,
         )
 
     def velocity(self, z: ArrayLike) -> CArray:
@@ -156,10 +168,21 @@ class Controller:
         w, dw = self.cmap.T_and_dT(z)
         g = self.navfn.gradient(w)
         u = -self.gain * np.conj(dw) * g
-        if self.v_max < np.inf:
-            s = np.abs(u)
-            u = np.where(s > self.v_max, u * (self.v_max / np.maximum(s, 1e-300)), u)
+        if self.v_max < np.inf or self.v_min > 0:
+            u = self._scale(u, z)[0]
         return np.asarray(u, dtype=np.complex128)
+
+    def _scale(self, u: CArray, z: ArrayLike) -> tuple[CArray, NDArray[np.bool_]]:
+        """Saturate to v_max and lift to the floor, keeping the direction."""
+        s = np.abs(u)
+        target = np.minimum(s, self.v_max)
+        if self.v_min > 0:
+            dist = np.abs(np.asarray(z) - self.goal)
+            floor = self.v_min * np.minimum(1.0, dist / self.floor_radius)
+            target = np.maximum(target, floor)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            scaled = np.where((target != s) & (s > 0), u * (target / s), u)
+        return scaled, s > self.v_max
 
     def __call__(self, z: ArrayLike) -> ControlOutput:
         """Command and status for a batch of robot positions (complex array, any shape)."""
@@ -172,10 +195,7 @@ class Controller:
         w = np.where(bad, self.goal_w, w)
         phi, g = self.navfn.value_and_gradient(w)
         u = -self.gain * np.conj(dw) * g
-        s = np.abs(u)
-        sat = s > self.v_max
-        with np.errstate(invalid="ignore"):
-            u = np.where(sat, u * (self.v_max / np.maximum(s, 1e-300)), u)
+        u, sat = self._scale(u, z)
         arrived = ~bad & (np.abs(z - self.goal) <= self.goal_tol)
         stalled = ~bad & ~arrived & (np.abs(g) < self.stall_tol)
         status = np.full(z.shape, Status.MOVING, dtype=np.int8)

@@ -77,7 +77,7 @@ def l_room() -> Scenario:
     ell = [(-1.5, -1.4), (-0.7, -1.4), (-0.7, -1.2), (-1.3, -1.2), (-1.3, -0.5), (-1.5, -0.5)]
     st = star(-1.0 + 1.0j, 0.45, 0.2, 5, np.pi / 2)
     ws = Workspace(outer, [u, ell, st])
-    return Scenario("L-room", ws, -1.0 + 1.7j, "L-shaped room, non-convex obstacles")
+    return Scenario("L-room", ws, -1.0 + 0.0j, "L-shaped room, non-convex obstacles")
 
 
 def mixed(n: int, seed: int = 0) -> Scenario:

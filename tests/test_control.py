@@ -169,3 +169,26 @@ def test_bad_input() -> None:
         Controller(MOB, 0j, navfn="kr", k=0)
     with pytest.raises(NavigationError, match="free space"):
         Controller(MOB, 0j).with_goal(SEED.centers[0])
+
+
+def test_speed_floor_keeps_direction_and_lyapunov_decrease() -> None:
+    plain = Controller(MOB, 0.1j, navfn="harmonic", v_max=1.0)
+    lifted = Controller(MOB, 0.1j, navfn=plain.navfn, v_max=1.0, v_min=0.3, floor_radius=0.2)
+    z = interior_points(SEED, 300, 1e-3, seed=7)
+    u0, u1 = plain.velocity(z), lifted.velocity(z)
+    floor = 0.3 * np.minimum(1.0, np.abs(z - 0.1j) / 0.2)
+    assert np.all(np.abs(u1) >= floor * (1 - 1e-12))
+    assert np.all(np.abs(u1) <= 1.0 * (1 + 1e-12))
+    assert_allclose(np.angle(u1 / u0), 0, atol=1e-12)
+    lifted_some = np.abs(u0) < floor
+    assert lifted_some.any()
+    res0 = simulate(plain, z[:40], record_paths=True)
+    res1 = simulate(lifted, z[:40], record_paths=True)
+    assert res0.success.all() and res1.success.all()
+    assert np.all(res1.time <= res0.time * (1 + 1e-3))
+    # same paths (up to the integrator's tolerance): same lengths
+    assert_allclose(res1.path_length, res0.path_length, rtol=1e-3)
+    for p in res1.paths or ():
+        assert np.all(np.diff(lifted.lyapunov(p)) < 0)
+    with pytest.raises(NavigationError, match="v_min"):
+        Controller(MOB, 0j, v_max=1.0, v_min=2.0)
