@@ -1,28 +1,41 @@
 """Koebe-type iteration: a multiply connected domain onto a circle domain.
 
-State: the images ``W_j`` of the boundary nodes (j = 0 outer, 1..M holes), their
-t-derivatives ``dW_j``, points ``c_j`` inside each hole's image, the image ``a`` of the anchor
-and the derivative ``D`` of the composed map at the anchor. One sweep (Nasser, CMFT 2015, and
-the seed's "multiple single-connected problems"):
+One sweep (Nasser, CMFT 2015; the seed's "multiple single-connected problems"):
 
-1. for each hole k: the exterior map F_k of the current curve W_k (alpha = c_k) is applied to
-   W_k (which becomes the unit circle) and, by the exterior Cauchy formula, to every other W_j,
-   their derivatives (chain rule), the points c_j and the anchor image; c_k becomes 0;
-2. the interior map of the outer image with alpha = a is applied to everything (a -> 0).
+1. for each hole k: the exterior map F_k of the current image of hole k (alpha = c_k) is
+   applied to hole k (which becomes the unit circle) and, by the exterior Cauchy formula, to
+   every other boundary, the points c_j and the anchor image; c_k becomes 0;
+2. the interior map of the outer image with alpha = anchor image is applied to everything.
 
-At convergence every step is a similarity: ``c_j`` are the centres and ``r_j = mean|W_j - c_j|``
-the radii. Each sweep normalises only its last map, so the rotations of the earlier exterior
-maps stay in the composition; after convergence everything is rotated by ``e^{-i arg D}`` so
-that ``T'(anchor) > 0`` (DESIGN.md sec. 2, "Final rotation").
+At convergence every step is a similarity: ``c_j`` are the centres, ``r_j`` the radii. Each
+sweep normalises only its last map, so the rotations of the earlier exterior maps stay in the
+composition; at the end everything is rotated by ``e^{-i arg D}``, D = T'(anchor)
+(DESIGN.md sec. 2, "Final rotation").
 
-Convergence is measured on nodes away from the vertices only, and the loop also stops when the
-change stalls: rounding near re-entrant corners keeps the all-nodes change near 1e-9..1e-11.
+Two representations of each boundary (this module's design choice):
+
+* the *passive nodes*: the images of the graded polygon nodes, with their t-derivatives. They
+  are what the final map is made of (``W_k = T(eta_k)``).
+* after the boundary's own map in the first sweep, a *smooth grid*: ``m`` points uniform in the
+  angle of the circle it was just mapped to. Later maps are analytic near it, so it is an
+  analytic curve sampled uniformly, and its GNK solves converge exponentially. Only in the first
+  sweep is a GNK solved on a polygon (graded mesh, algebraic convergence ~ n^-p).
+
+A passive node keeps a parameter ``u`` along its boundary (position = smooth curve at ``u``).
+When a boundary's own map is applied again, ``u`` moves by the map's boundary correspondence,
+found by trigonometric interpolation on the smooth grid. Re-solving on the graded nodes instead
+would keep their corner-singular parametrisation in every sweep: slower convergence, and the
+images of the nodes next to sharp tips coalesce and destabilise the iteration.
+
+Convergence is measured as the change of the passive nodes away from the vertices and of the
+centres; the loop also stops when that change stalls at the rounding floor.
 
 References
 ----------
 .. [1] M. M. S. Nasser, "Fast computation of the circular map", Comput. Methods Funct. Theory
    15 (2015) 187-223, secs. 3-4 (the iteration, ~100x error reduction per sweep).
-.. [2] P. Koebe, "Abhandlungen zur Theorie der konformen Abbildung IV", Acta Math. 41 (1918).
+.. [2] P. Henrici, "Applied and Computational Complex Analysis", Vol. 3, Wiley 1986,
+   sec. 13.3 (trigonometric interpolation of boundary correspondence functions).
 .. [3] DESIGN.md sec. 2 (checked formulas, final rotation, convergence test).
 """
 
@@ -46,6 +59,10 @@ MAX_SWEEPS = 80
 #: A sweep that does not reduce the change below this fraction of the best of the two before
 #: counts as stalled (the change has reached the discretisation or rounding floor).
 STALL_RATIO = 0.7
+#: Smooth-grid sizes: start, cap, and the Fourier tail (relative) that triggers doubling.
+SMOOTH_START = 64
+SMOOTH_MAX = 16384
+SMOOTH_TAIL = 1e-15
 
 
 @dataclass
@@ -56,40 +73,116 @@ class CircleDomainResult:
     dW: list[ComplexArray]
     centers: ComplexArray
     radii: FloatArray
-    derivative_at_anchor: complex
+    derivative_at_anchor: float
     sweeps: int
     history: list[float] = field(default_factory=list)
-    circularity: float = 0.0  # max over holes of max_k | |W_jk - c_j| - r_j |, and outer
+    circularity: float = 0.0  # max deviation of the passive nodes from their circles
     gmres_iterations: int = 0
+    smooth_nodes: list[int] = field(default_factory=list)
     wall_time: float = 0.0
 
 
 def _winding(curve: ComplexArray, z: complex) -> float:
-    """Winding number of a closed polyline about z (for sanity checks of alpha)."""
+    """Winding number of a closed polyline about z (sanity check of alpha)."""
     d = np.angle(np.roll(curve, -1) - z) - np.angle(curve - z)
     d = (d + np.pi) % (2 * np.pi) - np.pi
     return float(d.sum() / (2 * np.pi))
 
 
-def _apply(
-    cm: CurveMap, W: list[ComplexArray], dW: list[ComplexArray], pts: ComplexArray,
-    skip: int,
-) -> tuple[ComplexArray, ComplexArray]:
-    """Apply a curve map to all W_j (j != skip), their derivatives, and extra points.
+def _trig_eval(samples: FloatArray, x: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Trigonometric interpolant of uniform periodic samples and its derivative at x."""
+    m = samples.size
+    c = np.fft.rfft(samples) / m
+    k = np.arange(c.size)
+    wts = np.full(c.size, 2.0)
+    wts[0] = 1.0
+    if m % 2 == 0:
+        wts[-1] = 1.0
+    E = np.empty((x.size, k.size), np.complex128)  # e^{ikx} by recurrence (cheaper than exp)
+    E[:, 0] = 1.0
+    if k.size > 1:
+        E[:, 1:] = np.exp(1j * x)[:, None]
+        np.cumprod(E, axis=1, out=E)
+    val = (E @ (wts * c)).real
+    der = (E @ (1j * k * wts * c)).real
+    return val, der
 
-    Returns the images and derivatives of ``pts`` (the anchor image and hole points).
-    """
-    idx = [j for j in range(len(W)) if j != skip]
-    sizes = [W[j].size for j in idx]
-    z = np.concatenate([*(W[j] for j in idx), pts])
+
+def _tail(samples: ComplexArray) -> float:
+    """Relative size of the top eighth of the Fourier modes of a periodic sample."""
+    c = np.abs(np.fft.fft(samples))
+    m = samples.size
+    q = max(1, m // 16)
+    return float(np.max(c[m // 2 - q : m // 2 + q + 1]) / max(np.max(c), 1e-300))
+
+
+@dataclass
+class _Boundary:
+    """One boundary during the iteration (j = 0 outer, ccw; j > 0 hole, cw)."""
+
+    P: ComplexArray  # passive node images
+    dP: ComplexArray  # their t-derivatives
+    mask: np.ndarray  # passive nodes away from vertices
+    hole: bool
+    S: ComplexArray | None = None  # smooth grid (uniform in u), None before the first own map
+    dS: ComplexArray | None = None  # dS/du
+    u: FloatArray | None = None  # parameter of each passive node along the smooth curve
+    du: FloatArray | None = None  # du/dt at each passive node
+    m: int = SMOOTH_START
+
+    def own_map(self, alpha: complex) -> CurveMap:
+        """Solve the disk map of this boundary's current image and move it onto |w| = 1."""
+        if self.S is None:  # first sweep: the polygon, on its graded mesh
+            cm = (exterior_map if self.hole else interior_map)(self.P, self.dP, alpha)
+            sgn = -1.0 if self.hole else 1.0
+            self.u = sgn * np.unwrap(np.angle(cm.f))
+            self.u = self.u - 2 * np.pi * np.floor(self.u[0] / (2 * np.pi))
+            self.du = sgn * (cm.df / cm.f).imag
+        else:
+            assert self.dS is not None and self.u is not None and self.du is not None
+            cm = (exterior_map if self.hole else interior_map)(self.S, self.dS, alpha)
+            sgn = -1.0 if self.hole else 1.0
+            grid = 2 * np.pi * np.arange(self.S.size) / self.S.size
+            new = sgn * np.unwrap(np.angle(cm.f))
+            new = new - 2 * np.pi * np.round((new[0] - grid[0]) / (2 * np.pi))
+            delta, ddelta = _trig_eval(new - grid, self.u)
+            self.du = self.du * (1.0 + ddelta)
+            self.u = self.u + delta
+            if _tail(self.S) > SMOOTH_TAIL and self.m < SMOOTH_MAX:
+                self.m *= 2  # the curve needs a finer grid: regrid on the new circle
+        sgn = -1.0 if self.hole else 1.0
+        self.P = np.exp(1j * sgn * self.u)
+        self.dP = 1j * sgn * self.P * self.du
+        grid = 2 * np.pi * np.arange(self.m) / self.m
+        self.S = np.exp(1j * sgn * grid)
+        self.dS = 1j * sgn * self.S
+        return cm
+
+
+def _apply(cm: CurveMap, bnds: list[_Boundary], skip: int, pts: ComplexArray) -> ComplexArray:
+    """Apply a curve map to every boundary but ``skip`` (passive and smooth) and to points."""
+    chunks: list[ComplexArray] = []
+    for j, b in enumerate(bnds):
+        if j != skip:
+            chunks.append(b.P)
+            if b.S is not None:
+                chunks.append(b.S)
+    z = np.concatenate([*chunks, pts])
     fz, dfz = cm.evaluate(z, derivative=True)
     assert dfz is not None
     off = 0
-    for j, s in zip(idx, sizes, strict=True):
-        W[j] = fz[off : off + s]
-        dW[j] = dW[j] * dfz[off : off + s]
+    for j, b in enumerate(bnds):
+        if j == skip:
+            continue
+        s = b.P.size
+        b.P, b.dP = fz[off : off + s], b.dP * dfz[off : off + s]
         off += s
-    return fz[off:], dfz[off:]
+        if b.S is not None:
+            assert b.dS is not None
+            s = b.S.size
+            b.S, b.dS = fz[off : off + s], b.dS * dfz[off : off + s]
+            off += s
+    return np.asarray(np.concatenate([fz[off:], dfz[off:]]))
 
 
 def koebe_iteration(
@@ -114,9 +207,10 @@ def koebe_iteration(
         Stop when the change of the boundary images (away from vertices) is below ``tol``.
     """
     t0 = time.perf_counter()
-    W = [m.eta.copy() for m in meshes]
-    dW = [m.deta.copy() for m in meshes]
-    masks = [m.interior_mask() for m in meshes]
+    bnds = [
+        _Boundary(P=m.eta.copy(), dP=m.deta.copy(), mask=m.interior_mask(), hole=j > 0)
+        for j, m in enumerate(meshes)
+    ]
     M = len(meshes) - 1
     c = np.array(hole_points, dtype=np.complex128)
     a = complex(anchor)
@@ -126,63 +220,72 @@ def koebe_iteration(
     sweeps = 0
     for sweep in range(1, max_sweeps + 1):
         sweeps = sweep
-        W_old = [w.copy() for w in W]
+        P_old = [b.P.copy() for b in bnds]
+        c_old = c.copy()
         for k in range(1, M + 1):
-            if abs(_winding(W[k], c[k - 1])) < 0.5:
+            b = bnds[k]
+            curve = b.P if b.S is None else b.S
+            if abs(_winding(curve, c[k - 1])) < 0.5:
                 raise ConvergenceError(
                     f"Koebe iteration lost track of obstacle {k - 1} in sweep {sweep} "
                     "(its tracked point left the boundary image)"
                 )
-            F = exterior_map(W[k], dW[k], c[k - 1])
+            F = b.own_map(c[k - 1])
             gm_its += F.gmres_iterations
             others = np.concatenate([[a], np.delete(c, k - 1)])
-            img, dimg = _apply(F, W, dW, others, skip=k)
-            W[k], dW[k] = F.f, F.df
+            out = _apply(F, bnds, k, others)
+            img, dimg = out[: others.size], out[others.size :]
             a, D = complex(img[0]), D * complex(dimg[0])
             c = np.insert(img[1:], k - 1, 0.0)
-        f0 = interior_map(W[0], dW[0], a)
+        f0 = bnds[0].own_map(a)
         gm_its += f0.gmres_iterations
-        img, _ = _apply(f0, W, dW, c, skip=0)
-        W[0], dW[0] = f0.f, f0.df
-        c, D, a = img, D * f0.scale, 0j
+        out = _apply(f0, bnds, 0, c)
+        c, D, a = out[: c.size], D * f0.scale, 0j
         change = max(
-            float(np.max(np.abs(W[j][masks[j]] - W_old[j][masks[j]]))) for j in range(M + 1)
+            float(np.max(np.abs(b.P[b.mask] - p[b.mask]))) for b, p in zip(bnds, P_old, strict=True)
         )
+        if M:
+            change = max(change, float(np.max(np.abs(c - c_old))))
         history.append(change)
         if progress is not None:
             progress(sweep, change)
-        radii = np.array([np.mean(np.abs(W[j][masks[j]] - c[j - 1])) for j in range(1, M + 1)])
+        if not np.isfinite(change):
+            raise ConvergenceError(f"Koebe iteration produced non-finite values in sweep {sweep}")
+        radii = np.array([_radius(bnds[j], c[j - 1]) for j in range(1, M + 1)])
         if M and radii.min() < CROWDING_RADIUS:
             j = int(np.argmin(radii))
             raise CrowdingError(
                 f"obstacle {j}'s circle has radius {radii[j]:.1e}: too small to resolve in double "
                 "precision (crowding: a long, narrow passage leads to it)"
             )
-        if not np.all(np.isfinite(change)):
-            raise ConvergenceError(f"Koebe iteration produced non-finite values in sweep {sweep}")
         if change < tol:
             break
         if sweep >= 4 and change > STALL_RATIO * min(history[-3:-1]):
-            break  # stalled at the discretisation/rounding level: the error estimate decides
+            break  # stalled at the discretisation/rounding floor: the error estimate decides
     else:
         raise ConvergenceError(
             f"Koebe iteration did not converge in {max_sweeps} sweeps (last change "
             f"{history[-1]:.2e} > tol {tol:.1e})"
         )
-    # Final rotation so that T'(anchor) > 0.
-    rot = np.exp(-1j * np.angle(D))
-    W = [w * rot for w in W]
-    dW = [d * rot for d in dW]
+    rot = complex(np.exp(-1j * np.angle(D)))
+    W = [b.P * rot for b in bnds]
+    dW = [b.dP * rot for b in bnds]
     c = c * rot
-    radii = np.array([np.mean(np.abs(W[j][masks[j]] - c[j - 1])) for j in range(1, M + 1)])
-    circ = float(np.max(np.abs(np.abs(W[0][masks[0]]) - 1.0)))
+    radii = np.array([_radius(bnds[j], c[j - 1] / rot) for j in range(1, M + 1)])
+    circ = float(np.max(np.abs(np.abs(W[0]) - 1.0)))
     for j in range(1, M + 1):
-        circ = max(circ, float(np.max(np.abs(np.abs(W[j][masks[j]] - c[j - 1]) - radii[j - 1]))))
+        circ = max(circ, float(np.max(np.abs(np.abs(W[j] - c[j - 1]) - radii[j - 1]))))
     return CircleDomainResult(
-        W=W, dW=dW, centers=c, radii=radii, derivative_at_anchor=abs(D), sweeps=sweeps,
+        W=W, dW=dW, centers=c, radii=radii, derivative_at_anchor=float(abs(D)), sweeps=sweeps,
         history=history, circularity=circ, gmres_iterations=gm_its,
-        wall_time=time.perf_counter() - t0,
+        smooth_nodes=[b.m for b in bnds], wall_time=time.perf_counter() - t0,
     )
+
+
+def _radius(b: _Boundary, center: complex) -> float:
+    """Mean distance of the smooth grid (uniform in angle) from the centre."""
+    pts = b.S if b.S is not None else b.P[b.mask]
+    return float(np.mean(np.abs(pts - center)))
 
 
 __all__ = ["CROWDING_RADIUS", "CircleDomainResult", "koebe_iteration"]

@@ -28,7 +28,7 @@ import numpy as np
 import shapely
 from numpy.typing import ArrayLike
 
-from confnav.cauchy import FMM_THRESHOLD, HAVE_FMM, cauchy_targets
+from confnav.cauchy import cauchy_sums
 from confnav.errors import SerializationError
 from confnav.geometry import ComplexArray, FloatArray, Workspace
 
@@ -119,13 +119,19 @@ class ConformalMap:
         self.diagnostics = diagnostics
         self._parts = (eta, deta, W, dW)
         wts = np.concatenate([np.full(e.size, 2 * np.pi / e.size) for e in eta])
-        self._eta = np.concatenate(eta)
-        self._W = np.concatenate(W)
+        self._eta, self._W = np.concatenate(eta), np.concatenate(W)
         # charges of the barycentric sums (weights folded in)
         self._q_deta = wts * np.concatenate(deta)
         self._q_W = self._q_deta * self._W
         self._q_dW = wts * np.concatenate(dW)
-        self._q_etadW = self._q_dW * self._eta
+        # The inverse sums run over the images W; nodes next to a corner that the map
+        # compresses coincide there in floating point and are merged into one source.
+        _, first = np.unique(self._W, return_index=True)
+        keep = np.zeros(self._W.size, bool)
+        keep[first] = True
+        self._inv_W, self._inv_eta = self._W[keep], self._eta[keep]
+        self._inv_q_dW = self._q_dW[keep]
+        self._inv_q_etadW = self._inv_q_dW * self._inv_eta
         self._revision: str | None = None
 
     # ------------------------------------------------------------------ evaluation
@@ -133,15 +139,12 @@ class ConformalMap:
     def n_obstacles(self) -> int:
         return int(self.centers.size)
 
+    @staticmethod
     def _bary(
-        self, nodes: ComplexArray, z: ComplexArray, charges: list[ComplexArray]
+        nodes: ComplexArray, z: ComplexArray, charges: list[ComplexArray]
     ) -> list[ComplexArray]:
         """sum_k q_k/(nodes_k - z) for each charge vector."""
-        if HAVE_FMM and z.size * nodes.size > FMM_THRESHOLD and z.size > 64:
-            return [-cauchy_targets(nodes, q, z) for q in charges]
-        R = 1.0 / (nodes[None, :] - z[:, None])
-        P = R @ np.column_stack(charges)
-        return [P[:, j] for j in range(len(charges))]
+        return [-c for c in cauchy_sums(nodes, charges, z)]
 
     def _forward(
         self, z: ArrayLike, derivative: bool, check: bool
@@ -217,11 +220,11 @@ class ConformalMap:
         if idx.size:
             pts = flat[idx]
             with np.errstate(divide="ignore", invalid="ignore"):
-                num, den = self._bary(self._W, pts, [self._q_etadW, self._q_dW])
+                num, den = self._bary(self._inv_W, pts, [self._inv_q_etadW, self._inv_q_dW])
                 out[idx] = num / den
             bad = ~np.isfinite(out[idx])
             for j in np.flatnonzero(bad):
-                out[idx[j]] = self._eta[int(np.argmin(np.abs(self._W - pts[j])))]
+                out[idx[j]] = self._inv_eta[int(np.argmin(np.abs(self._inv_W - pts[j])))]
         return out.reshape(shape)
 
     # ------------------------------------------------------------------ serialisation

@@ -38,7 +38,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from confnav.cauchy import FMM_THRESHOLD, HAVE_FMM, cauchy_targets
+from confnav.cauchy import cauchy_sums
 from confnav.geometry import ComplexArray
 from confnav.gnk import solve_gnk, spectral_derivative
 
@@ -82,18 +82,12 @@ class CurveMap:
         return self._evaluate_interior(z, derivative)
 
     def _sums(self, z: ComplexArray, charges: list[ComplexArray]) -> list[ComplexArray]:
-        """sum_k q_k/(eta_k - z) for each charge vector q (one kernel matrix, several q)."""
-        if HAVE_FMM and z.size * self.eta.size > FMM_THRESHOLD and z.size > 64:
-            return [-cauchy_targets(self.eta, q, z) for q in charges]
-        out: list[list[ComplexArray]] = [[] for _ in charges]
-        Q = np.column_stack(charges)
-        step = max(1, 2_000_000 // max(self.eta.size, 1))
-        for s in range(0, z.size, step):
-            R = 1.0 / (self.eta[None, :] - z[s : s + step, None])
-            P = R @ Q
-            for j in range(len(charges)):
-                out[j].append(P[:, j])
-        return [np.concatenate(o) if o else np.zeros(0, np.complex128) for o in out]
+        """sum_k q_k/(eta_k - z) for each charge vector q.
+
+        All nodes stay sources, vertex nodes included: their spectral derivatives are not 0 but
+        balance the derivative errors of their neighbours (a spectral derivative sums to 0).
+        """
+        return [-c for c in cauchy_sums(self.eta, charges, z)]
 
     def _evaluate_interior(
         self, z: ComplexArray, derivative: bool

@@ -37,7 +37,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.sparse.linalg import LinearOperator, gmres
 
-from confnav.cauchy import FMM_THRESHOLD, HAVE_FMM, cauchy_self, cauchy_targets
+from confnav.cauchy import HAVE_FMM, cauchy_self, cauchy_targets
 from confnav.errors import ConvergenceError
 from confnav.geometry import ComplexArray, FloatArray
 
@@ -67,10 +67,20 @@ class GNKSolution:
     iterations: int
 
 
+#: Up to this many nodes the GNK matrix is built densely (O(n^2) memory, fast BLAS matvecs);
+#: above it every matrix-vector product is an FMM Cauchy sum (O(n)).
+DENSE_MAX_NODES = 3200
+
 #: A node whose quadrature weight |eta'| 2pi/n is below this fraction of the curve's size lies
 #: within rounding of its neighbours (graded nodes next to a corner, and their images under maps
 #: that compress the corner); it carries no information as a source and is dropped as one.
 DEAD_NODE_RTOL = 1e-15
+
+
+def alive_nodes(eta: ComplexArray, deta: ComplexArray) -> np.ndarray:
+    """Nodes whose quadrature weight is above rounding (see :data:`DEAD_NODE_RTOL`)."""
+    size = float(np.max(np.abs(eta - eta.mean())))
+    return np.asarray(np.abs(deta) * (2 * np.pi / eta.size) > DEAD_NODE_RTOL * size)
 
 
 class _Operator:
@@ -79,10 +89,9 @@ class _Operator:
     def __init__(self, eta: ComplexArray, deta: ComplexArray, A: ComplexArray) -> None:
         self.n = n = eta.size
         self.eta, self.A = eta, A
-        size = float(np.max(np.abs(eta - eta.mean())))
-        self.alive = np.abs(deta) * (2 * np.pi / n) > DEAD_NODE_RTOL * size
+        self.alive = alive_nodes(eta, deta)
         self.q0 = np.where(self.alive, deta / A, 0.0)
-        self.dense = not (HAVE_FMM and n * n > FMM_THRESHOLD)
+        self.dense = not (HAVE_FMM and n > DENSE_MAX_NODES)
         if self.dense:
             d = eta[None, :] - eta[:, None]  # eta_k - eta_i
             np.fill_diagonal(d, np.inf)
@@ -154,4 +163,4 @@ def solve_gnk(
     )
 
 
-__all__ = ["GNKSolution", "solve_gnk", "spectral_derivative"]
+__all__ = ["GNKSolution", "alive_nodes", "solve_gnk", "spectral_derivative"]

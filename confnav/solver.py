@@ -20,8 +20,9 @@ import warnings
 from collections.abc import Callable
 
 import numpy as np
+import shapely
 
-from confnav.boundary import graded_polygon
+from confnav.boundary import GRADING_P, graded_polygon
 from confnav.circledomain import CircleDomainResult, koebe_iteration
 from confnav.cmap import ConformalMap, SolveDiagnostics
 from confnav.errors import ConvergenceError, SolverError
@@ -29,11 +30,63 @@ from confnav.geometry import Workspace, interior_point
 
 log = logging.getLogger(__name__)
 
-#: Nodes per polygon side, coarse to fine. Beyond ~96 the images of the nodes next to sharp
-#: obstacle tips (the default star) coalesce in double precision and the iteration degrades.
-LEVELS: tuple[int, ...] = (24, 32, 48, 64, 96)
+#: Mesh levels: nodes per side at the workspace's sharpest corner, coarse to fine (x1.5 steps,
+#: 256 is the finest at which the p = 7 graded mesh stays clear of rounding at the vertices).
+LEVELS: tuple[int, ...] = (24, 36, 54, 80, 120, 180, 256)
+#: Error decay assumed between two levels when no rate has been observed yet (p = 7 gives
+#: n^-5 .. n^-11 on the default workspace, measured); the estimate uses the slower of this and
+#: the observed rate, so it errs on the safe side.
+ASSUMED_ORDER = 5.0
 #: An estimated error above this makes the map useless for navigation: raise instead.
 UNUSABLE_ERROR = 1e-4
+#: Largest angle (in units of pi) seen from the free space at which the corner-singularity
+#: exponent p/a is taken as the reference; polygons with milder corners get fewer nodes.
+_REF_ANGLE = 1.75
+
+
+def corner_exponent(polygon: np.ndarray, hole: bool, p: int = GRADING_P) -> float:
+    """Convergence exponent p/a + 1 of the polygon's worst corner seen from the free space.
+
+    At a corner with free-space angle a*pi the map behaves like r^(1/a); on the graded mesh
+    that is tau^(p/a), and the trapezoidal rule converges like n^-(p/a + 1) (Kress 1990).
+    """
+    e_in = polygon - np.roll(polygon, 1)
+    e_out = np.roll(polygon, -1) - polygon
+    turn = np.angle(e_out / e_in)  # exterior turning angle, ccw polygon: > 0 at convex vertices
+    interior = np.pi - turn  # interior angle of the polygon
+    a = (2 * np.pi - interior) / np.pi if hole else interior / np.pi
+    return p / max(float(a.max()), 0.75) + 1.0
+
+
+def allocate_nodes(ws: Workspace, level: int, tol: float) -> list[np.ndarray]:
+    """Nodes per side for each boundary (outer first) at one refinement level.
+
+    Two requirements, the larger wins on each side:
+
+    * corners: the polygon's worst corner needs ``level^(e_ref/e)`` nodes per side for the same
+      error as the reference corner at ``level`` (e = :func:`corner_exponent`);
+    * proximity: a side at distance d from another boundary needs mesh spacing
+      ``h <= 2 pi d / ln(10/tol)`` for the Cauchy sums across the gap to reach ``tol`` (their
+      error decays like e^(-2 pi d/h)); mid-side spacing is ``2 len / n`` for Kress's sigma.
+    """
+    e_ref = GRADING_P / _REF_ANGLE + 1.0
+    polys = ws.boundaries
+    shp = [shapely.LinearRing(np.column_stack([z.real, z.imag])) for z in polys]
+    out = []
+    for j, z in enumerate(polys):
+        n_corner = max(12, int(np.ceil(level ** (e_ref / corner_exponent(z, j > 0)))))
+        others = shapely.union_all([g for i, g in enumerate(shp) if i != j]) if len(shp) > 1 else None
+        a, b = z, np.roll(z, -1)
+        segs = shapely.linestrings(np.stack([np.column_stack([a.real, a.imag]),
+                                             np.column_stack([b.real, b.imag])], axis=1))
+        length = np.abs(b - a)
+        if others is not None:
+            d = np.maximum(shapely.distance(segs, others), 1e-12)
+            n_prox = np.ceil(2 * length * np.log(10 / tol) / (2 * np.pi * d)).astype(int)
+        else:
+            n_prox = np.zeros(z.size, int)
+        out.append(np.maximum(n_corner, np.minimum(n_prox, 4 * level)).astype(np.intp))
+    return out
 
 
 class AccuracyWarning(UserWarning):
@@ -44,8 +97,9 @@ def _solve_level(
     ws: Workspace, nodes_per_side: int, tol: float,
     progress: Callable[[str], None] | None,
 ) -> tuple[CircleDomainResult, list, list]:
-    meshes = [graded_polygon(ws.outer, nodes_per_side)] + [
-        graded_polygon(o, nodes_per_side).reversed() for o in ws.obstacles
+    alloc = allocate_nodes(ws, nodes_per_side, tol)
+    meshes = [graded_polygon(ws.outer, alloc[0])] + [
+        graded_polygon(o, n).reversed() for o, n in zip(ws.obstacles, alloc[1:], strict=True)
     ]
     holes = [interior_point(o) for o in ws.obstacles]
 
@@ -94,29 +148,39 @@ def solve(
     if nodes_per_side is not None:
         if nodes_per_side < 8:
             raise SolverError("nodes_per_side must be at least 8")
-        levels = [max(8, int(round(nodes_per_side / 1.5))), nodes_per_side]
+        levels = [max(8, round(nodes_per_side / 1.5)), nodes_per_side]
     else:
-        start = 0 if tol >= 1e-6 else (1 if tol >= 1e-8 else 2)
+        start = 0 if tol >= 1e-6 else (2 if tol >= 1e-8 else 3)
         levels = list(LEVELS[start:])
     refinements: list[dict[str, float]] = []
     prev: CircleDomainResult | None = None
+    prev_diff: float | None = None
     best: tuple[CircleDomainResult, list, list, int, float] | None = None
-    for ns in levels:
+    for i, ns in enumerate(levels):
         if progress is not None:
-            progress(f"solving with {ns} nodes per side")
+            progress(f"solving with {ns} nodes per side at the sharpest corners")
         try:
             res, eta, deta = _solve_level(workspace, ns, tol, progress)
         except ConvergenceError as exc:
             if best is None:
                 raise
-            log.warning("refinement to %d nodes/side failed (%s); keeping %d", ns, exc, best[3])
+            log.warning("refinement to level %d failed (%s); keeping level %d", ns, exc, best[3])
             break
         if prev is not None:
-            est = _difference(res, prev)
-            refinements.append(
-                {"nodes_per_side": ns, "error_estimate": est, "wall_time": res.wall_time}
-            )
+            diff = _difference(res, prev)
+            # error of the finer solve ~ diff * rho/(1 - rho), rho = error ratio per level:
+            # the slower of the assumed order and the observed contraction (Aitken).
+            rho = (levels[i - 1] / ns) ** ASSUMED_ORDER
+            if prev_diff is not None and prev_diff > 0:
+                rho = max(rho, diff / prev_diff)
+            rho = min(rho, 0.9)
+            est = diff * rho / (1 - rho)
+            refinements.append({
+                "nodes_per_side": ns, "difference": diff, "error_estimate": est,
+                "wall_time": res.wall_time,
+            })
             best = (res, eta, deta, ns, est)
+            prev_diff = diff
             if est <= tol:
                 break
         prev = res
