@@ -26,6 +26,7 @@ from confnav.services.recorder import Recorder
 from confnav.services.replay import ReplayError, remap, replay, select_topics
 
 DATA = Path(__file__).resolve().parent / "data"
+GOLDEN = sorted(DATA.glob("golden_*.mcap"))
 T0 = 1_700_000_000_000_000_000
 
 
@@ -158,19 +159,16 @@ def test_prefix_and_include(tmp_path: Path, zenoh_router: str, make_bus: Any) ->
         replay(path, zenoh_config("client", connect=[zenoh_router]), speed=0.0)
 
 
-def test_replay_through_a_live_recorder_reproduces_every_channel(
-    run_file: Path, tmp_path: Path, zenoh_router: str, make_bus: Any
-) -> None:
-    """``confnav replay --max`` (a real process) into a recorder on Zenoh: the new recording
-    has the same channels, counts and byte-identical payloads in the same order."""
-    again = tmp_path / "again.mcap"
+def _round_trip(source: Path, again: Path, zenoh_router: str, make_bus: Any) -> None:
+    """``confnav replay --max`` (a real process) into a live recorder on Zenoh; the new
+    recording has the same channels, counts and byte-identical payloads in the same order."""
     rec = Recorder(make_bus(), Keys(), again, {}, foxglove=True, health_period=0)
     rec.start()
     try:
         res = subprocess.run(
             confnav_cmd(
                 "replay",
-                str(run_file),
+                str(source),
                 "--max",
                 "--mode",
                 "client",
@@ -185,7 +183,7 @@ def test_replay_through_a_live_recorder_reproduces_every_channel(
             env=subprocess_env(),
         )
         assert res.returncode == 0, res.stderr
-        original = _per_channel(run_file)
+        original = _per_channel(source)
         total = sum(len(v) for v in original.values())
         wait_for(lambda: rec.recorded >= total, timeout=20)
     finally:
@@ -196,6 +194,20 @@ def test_replay_through_a_live_recorder_reproduces_every_channel(
             "confnav/viz/w1/scene",
             "confnav/viz/w1/circle_domain",
         }
+
+
+def test_replay_through_a_live_recorder_reproduces_every_channel(
+    run_file: Path, tmp_path: Path, zenoh_router: str, make_bus: Any
+) -> None:
+    _round_trip(run_file, tmp_path / "again.mcap", zenoh_router, make_bus)
+
+
+@pytest.mark.skipif(not GOLDEN, reason="no golden recording in tests/data")
+@pytest.mark.parametrize("golden", GOLDEN, ids=lambda p: p.name)
+def test_golden_recording_round_trip(
+    golden: Path, tmp_path: Path, zenoh_router: str, make_bus: Any
+) -> None:
+    _round_trip(golden, tmp_path / "again.mcap", zenoh_router, make_bus)
 
 
 def test_replay_at_recorded_speed_keeps_relative_timing(

@@ -140,6 +140,7 @@ def test_missing_channels_are_reported(tmp_path: Path) -> None:
 def test_golden_recording_passes_and_fails_on_gain_change(golden: Path) -> None:
     """The committed golden recordings (real solver): the CLI passes, and fails (exit 1,
     mismatches listed) when a gain is changed."""
+    assert sum(p.stat().st_size for p in DATA.iterdir() if p.is_file()) < 1_000_000
     ok = subprocess.run(
         confnav_cmd("replay", "--check", str(golden)),
         capture_output=True,
