@@ -197,7 +197,13 @@ class _Controllers:
 
     def add_solution(self, sol: TransformSolution) -> None:
         if sol.revision not in self.maps:
-            self.maps[sol.revision] = self._load_map(sol)
+            try:
+                self.maps[sol.revision] = self._load_map(sol)
+            except Exception as exc:  # e.g. coefficients of an older serialisation format
+                raise RecordingError(
+                    f"the recorded map {sol.revision[:12]} of workspace {sol.ws_id!r} cannot be "
+                    f"loaded by this version: {type(exc).__name__}: {exc}"
+                ) from exc
 
     def get(self, goal: Goal, revision: str) -> navigation.ControllerLike | None:
         key = (goal.model_dump_json(), revision)

@@ -159,3 +159,11 @@ def test_golden_recording_passes_and_fails_on_gain_change(golden: Path) -> None:
     )
     assert bad.returncode == 1, bad.stdout + bad.stderr
     assert "FAIL" in bad.stdout and "recomputed" in bad.stdout
+
+
+def test_unloadable_map_is_a_clear_error(fake_run: Path) -> None:
+    def broken(sol: Any) -> Any:
+        raise ValueError("unknown coefficient format")
+
+    with pytest.raises(RecordingError, match="cannot be loaded by this version"):
+        check_recording(fake_run, load_map=broken)
