@@ -30,9 +30,18 @@ def add_zenoh_args(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--prefix", default=DEFAULT_PREFIX, help="key prefix (default %(default)s)")
 
 
-def bus_from_args(args: argparse.Namespace) -> ZenohBus:
-    conf = zenoh_config(args.mode, args.listen, args.connect, args.zenoh_config)
-    return ZenohBus(conf)
+def bus_from_args(args: argparse.Namespace, retry_for: float = 30.0) -> ZenohBus:
+    """Open the session; a client retries for ``retry_for`` s while the router comes up."""
+    deadline = time.monotonic() + retry_for
+    while True:
+        conf = zenoh_config(args.mode, args.listen, args.connect, args.zenoh_config)
+        try:
+            return ZenohBus(conf)
+        except Exception as exc:
+            if time.monotonic() > deadline:
+                raise
+            log.info("cannot open the Zenoh session yet (%s): retrying", exc)
+            time.sleep(0.3)
 
 
 class Service:

@@ -1,0 +1,365 @@
+"""Benchmark of the services over real Zenoh on loopback (separate processes).
+
+Measures, with a router, a transform service and a controller service each in their own
+process and this process playing the robots:
+
+- pose -> command latency (p50, p99; pose publish to cmd_vel receipt, same clock) and the
+  CPU of the controller and the router, for 1, 10, 100 and 200 robots at 50 Hz (all robots
+  share one goal, so the controller evaluates their poses in vectorized blocks);
+- messages lost (poses sent after the warm-up without a matching command);
+- coefficient query latency (``{prefix}/ws/default/transform``, the full solution);
+- solve-to-first-command time after a workspace update (re-solve + publish + hot swap).
+
+Target (issue 4): 100 robots at 50 Hz with p99 <= 5 ms on loopback, zero messages lost.
+Prints a table and writes bench/results/services.json.  ``--quick``: shorter runs, 1/10/100.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import socket
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from confnav.schemas import Goal, TransformSolution, WorkspaceDefinition, decode, encode
+from confnav.services.bus import ZenohBus, zenoh_config
+from confnav.services.keys import Keys
+
+HERE = Path(__file__).resolve().parent
+K = Keys()
+CLK = os.sysconf("SC_CLK_TCK")
+
+
+def cpu_seconds(pid: int) -> float:
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / CLK
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def spawn(*args: str, log: Path) -> subprocess.Popen[bytes]:
+    f = open(log, "wb")  # noqa: SIM115 - lives as long as the process
+    return subprocess.Popen(
+        [sys.executable, "-m", "confnav.cli", *args], stdout=f, stderr=subprocess.STDOUT
+    )
+
+
+def wait(pred: Any, timeout: float, what: str) -> Any:
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < timeout:
+        v = pred()
+        if v:
+            return v
+        time.sleep(0.05)
+    raise RuntimeError(f"timed out waiting for {what}")
+
+
+def connect(ep: str) -> ZenohBus:
+    deadline = time.monotonic() + 30
+    while True:
+        try:
+            return ZenohBus(zenoh_config("client", connect=[ep]))
+        except Exception:
+            if time.monotonic() > deadline:
+                raise
+            time.sleep(0.3)
+
+
+def free_points(n: int, seed: int = 1) -> list[complex]:
+    from confnav.workspaces import default_workspace
+
+    ws = default_workspace()
+    rng = np.random.default_rng(seed)
+    pts: list[complex] = []
+    while len(pts) < n:
+        z = complex(*rng.uniform(-1.9, 1.9, 2))
+        if float(ws.clearance(np.asarray(z))) > 0.1 and abs(z) > 0.3:
+            pts.append(z)
+    return pts
+
+
+class Robots:
+    """This process plays N robots: poses at ``rate`` Hz, commands matched by (robot, seq)."""
+
+    def __init__(self, bus: ZenohBus, n: int, rate: float) -> None:
+        self.bus, self.n, self.rate = bus, n, rate
+        self.ids = [f"b{i:03d}" for i in range(n)]
+        self.pts = free_points(n)
+        self.lock = threading.Lock()
+        self.sent: dict[tuple[str, int], int] = {}
+        self.lat_ns: list[int] = []
+        self.answered = 0
+        self.recording = False
+        self.sub = bus.subscribe_batch(K.any_robot("cmd_vel"), self._on_cmds)
+
+    def _on_cmds(self, items: list[tuple[str, bytes]]) -> None:
+        now = time.time_ns()
+        with self.lock:
+            for _key, payload in items:
+                c = json.loads(payload)
+                if c["pose_seq"] < 0:
+                    continue
+                t = self.sent.pop((c["robot_id"], c["pose_seq"]), None)
+                if t is not None:
+                    self.lat_ns.append(now - t)
+                    self.answered += 1
+
+    def goals(self) -> None:
+        for rid in self.ids:
+            g = Goal(robot_id=rid, ws_id="default", goal=(0.0, 0.0), gain=100.0, v_max=0.5)
+            self.bus.publish(K.robot(rid, "goal"), encode(g))
+
+    def run(self, seconds: float, warmup: float) -> dict[str, Any]:
+        keys = [K.robot(r, "pose") for r in self.ids]
+        period = 1.0 / self.rate
+        t_start = time.monotonic()
+        next_t = t_start
+        seq = 0
+        n_sent = 0
+        late = 0
+        while time.monotonic() - t_start < warmup + seconds:
+            measuring = time.monotonic() - t_start >= warmup
+            if measuring and not self.recording:
+                with self.lock:
+                    self.sent.clear()
+                    self.lat_ns.clear()
+                    self.answered = 0
+                self.recording = True
+            for rid, key, z in zip(self.ids, keys, self.pts, strict=True):
+                stamp = time.time_ns()
+                payload = (
+                    f'{{"type":"confnav.Pose","schema_version":1,"robot_id":"{rid}",'
+                    f'"stamp_ns":{stamp},"seq":{seq},"x":{z.real!r},"y":{z.imag!r},"theta":0.0}}'
+                ).encode()
+                if measuring:
+                    with self.lock:
+                        self.sent[(rid, seq)] = stamp
+                    n_sent += 1
+                self.bus.publish(key, payload)
+            seq += 1
+            next_t += period
+            delay = next_t - time.monotonic()
+            if delay > 0:
+                time.sleep(delay)
+            else:
+                late += 1
+        time.sleep(0.5)  # let the last answers arrive
+        with self.lock:
+            lat = np.array(self.lat_ns, dtype=float) / 1e6
+            lost = len(self.sent)
+            answered = self.answered
+        return {
+            "sent": n_sent,
+            "answered": answered,
+            "lost": lost,
+            "late_ticks": late,
+            "p50_ms": float(np.percentile(lat, 50)) if lat.size else float("nan"),
+            "p99_ms": float(np.percentile(lat, 99)) if lat.size else float("nan"),
+            "max_ms": float(lat.max()) if lat.size else float("nan"),
+        }
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    ap.add_argument("--quick", action="store_true", help="1/10/100 robots, 3 s each")
+    ap.add_argument("--robots", type=int, nargs="*", default=None)
+    ap.add_argument("--seconds", type=float, default=None)
+    ap.add_argument("--rate", type=float, default=50.0)
+    ap.add_argument("--out", default=str(HERE / "results" / "services.json"))
+    args = ap.parse_args()
+    counts = args.robots or ([1, 10, 100] if args.quick else [1, 10, 100, 200])
+    seconds = args.seconds or (3.0 if args.quick else 10.0)
+
+    tmp = Path(tempfile.mkdtemp(prefix="confnav-bench-"))
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    common = ["--mode", "client", "--connect", ep]
+    procs: dict[str, subprocess.Popen[bytes]] = {}
+    results: dict[str, Any] = {
+        "machine": {"cpus": os.cpu_count(), "python": platform.python_version()},
+        "endpoint": "tcp loopback",
+        "rate_hz": args.rate,
+        "seconds": seconds,
+        "runs": [],
+    }
+    try:
+        procs["router"] = spawn("serve", "router", "--listen", ep, log=tmp / "router.log")
+        time.sleep(1.0)
+        cache = HERE / "results" / "cache"
+        procs["transform"] = spawn(
+            "serve",
+            "transform",
+            *common,
+            "--workspace",
+            "default=builtin:default",
+            "--cache-dir",
+            str(cache),
+            log=tmp / "transform.log",
+        )
+        procs["controller"] = spawn(
+            "serve", "controller", *common, "--stale-after", "2.0", log=tmp / "controller.log"
+        )
+        with connect(ep) as bus:
+            wait(
+                lambda: bus.alive(K.alive_of("controller")) and bus.alive(K.alive_of("transform")),
+                60,
+                "services",
+            )
+            print("waiting for the default workspace's map...", flush=True)
+            wait(
+                lambda: any(r.ok for r in bus.query(K.ws("default", "transform"), timeout=5)),
+                180,
+                "map",
+            )
+
+            # coefficient query latency
+            q = []
+            size = 0
+            for _ in range(30):
+                t0 = time.perf_counter()
+                [r] = bus.query(K.ws("default", "transform"), timeout=5)
+                q.append((time.perf_counter() - t0) * 1e3)
+                size = len(r.payload or b"")
+            results["query"] = {
+                "p50_ms": float(np.percentile(q, 50)),
+                "p99_ms": float(np.percentile(q, 99)),
+                "bytes": size,
+            }
+
+            for n in counts:
+                robots = Robots(bus, n, args.rate)
+                robots.goals()
+                time.sleep(2.5 if n > 10 else 1.0)  # controllers built (shared goal: once)
+                cpu0 = {k: cpu_seconds(p.pid) for k, p in procs.items()}
+                t0 = time.monotonic()
+                r = robots.run(seconds, warmup=1.0)
+                wall = time.monotonic() - t0
+                cpu = {k: 100 * (cpu_seconds(p.pid) - cpu0[k]) / wall for k, p in procs.items()}
+                robots.sub.close()
+                r.update(
+                    robots=n, cpu_controller_pct=cpu["controller"], cpu_router_pct=cpu["router"]
+                )
+                results["runs"].append(r)
+                print(
+                    f"{n:4d} robots: p50 {r['p50_ms']:.2f} ms  p99 {r['p99_ms']:.2f} ms  "
+                    f"lost {r['lost']}/{r['sent']}  controller CPU {cpu['controller']:.0f}%",
+                    flush=True,
+                )
+                time.sleep(1.0)
+
+            # solve-to-first-command after a workspace update (small room, one robot)
+            room = WorkspaceDefinition(
+                ws_id="benchroom",
+                outer=[(-1, -1), (1, -1), (1, 1), (-1, 1)],
+                obstacles=[[(0.2, -0.2), (0.5, -0.2), (0.5, 0.2), (0.2, 0.2)]],
+                anchor=(0, 0),
+            )
+            got: list[tuple[int, str]] = []
+            bus.subscribe(
+                K.robot("u1", "cmd_vel"),
+                lambda k, p: got.append((time.time_ns(), json.loads(p).get("map_revision") or "")),
+            )
+            sols: list[TransformSolution] = []
+            bus.subscribe(
+                K.ws("benchroom", "transform"),
+                lambda k, p: sols.append(decode(TransformSolution, p)),
+            )
+            bus.publish(K.ws("benchroom", "definition"), encode(room))
+            wait(lambda: sols, 120, "room map")
+            bus.publish(
+                K.robot("u1", "goal"),
+                encode(Goal(robot_id="u1", ws_id="benchroom", goal=(-0.6, 0.0), gain=100.0)),
+            )
+            stop = threading.Event()
+
+            def poses() -> None:
+                s = 0
+                while not stop.is_set():
+                    bus.publish(
+                        K.robot("u1", "pose"),
+                        (
+                            f'{{"robot_id":"u1","stamp_ns":{time.time_ns()},"seq":{s},"x":0.8,'
+                            f'"y":0.8}}'
+                        ).encode(),
+                    )
+                    s += 1
+                    time.sleep(0.02)
+
+            th = threading.Thread(target=poses, daemon=True)
+            th.start()
+            wait(lambda: got and got[-1][1] == sols[0].revision, 30, "first command")
+            moved = room.model_copy(update={"obstacles": [[(0.2, -0.5), (0.5, -0.5), (0.5, -0.1)]]})
+            t_put = time.time_ns()
+            bus.publish(K.ws("benchroom", "definition"), encode(moved))
+            wait(lambda: len(sols) >= 2, 120, "re-solve")
+            t_first = wait(
+                lambda: next((t for t, rev in got if rev == sols[-1].revision), None), 60, "swap"
+            )
+            stop.set()
+            th.join()
+            results["update"] = {
+                "solve_to_first_command_s": (t_first - t_put) / 1e9,
+                "solver_wall_time_s": sols[-1].diagnostics.wall_time,
+                "publish_to_command_s": (t_first - sols[-1].stamp_ns) / 1e9,
+            }
+    finally:
+        for name in ("controller", "transform", "router"):
+            p = procs.get(name)
+            if p is not None and p.poll() is None:
+                p.terminate()
+                try:
+                    p.wait(10)
+                except subprocess.TimeoutExpired:
+                    p.kill()
+                    p.wait()
+
+    print()
+    print(f"pose -> command over Zenoh (tcp loopback), {args.rate:g} Hz per robot, {seconds:g} s")
+    hdr = (
+        f"{'robots':>6} {'msgs/s':>7} {'p50 ms':>7} {'p99 ms':>7} {'max ms':>7} {'lost':>9} "
+        f"{'ctl CPU':>8} {'rtr CPU':>8} {'target':>8}"
+    )
+    print(hdr)
+    print("-" * len(hdr))
+    for r in results["runs"]:
+        ok = r["p99_ms"] <= 5.0 and r["lost"] == 0
+        target = ("met" if ok else "MISSED") if r["robots"] == 100 else ""
+        print(
+            f"{r['robots']:>6} {r['robots'] * args.rate:>7.0f} {r['p50_ms']:>7.2f} "
+            f"{r['p99_ms']:>7.2f} {r['max_ms']:>7.1f} {r['lost']:>4}/{r['sent']:<5}"
+            f"{r['cpu_controller_pct']:>7.0f}% {r['cpu_router_pct']:>7.0f}% {target:>8}"
+        )
+    qr = results["query"]
+    print(
+        f"\ncoefficient query ({qr['bytes'] / 1024:.0f} KiB): p50 {qr['p50_ms']:.2f} ms, "
+        f"p99 {qr['p99_ms']:.2f} ms"
+    )
+    up = results["update"]
+    print(
+        f"workspace update -> first command on the new map: {up['solve_to_first_command_s']:.2f} s"
+        f" (solver {up['solver_wall_time_s']:.2f} s, publish -> command "
+        f"{up['publish_to_command_s'] * 1e3:.0f} ms)"
+    )
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.out).write_text(json.dumps(results, indent=1))
+    print(f"\nwrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
