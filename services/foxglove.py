@@ -9,7 +9,7 @@ Two scenes per workspace ``ws`` (topics under the recording's key prefix, defaul
   circles ``|w - c_j| = r_j`` of the solved map as line loops, and the images ``T(z)`` of the
   goals, robots and trails (needs the map's coefficients from the ``transform`` message).
 
-Robots and goals are updated every 0.1 s of log time, polygons, circles and trails every second
+Robots are updated every 0.1 s of log time; goals, polygons, circles and trails every second
 (entities persist by id until replaced), trails are decimated to at most 256 points and mapped
 once each: the recorder hook stays cheap (well under a millisecond per recorded message).
 
@@ -557,8 +557,8 @@ class SceneBuilder:
     """Turns the stream of recorded confnav messages into Foxglove scene messages.
 
     Feed every recorded message in log-time order to :meth:`observe`; it returns the scene
-    messages to write now. Each workspace gets a *light* update (robots and goals) at most every
-    ``period_ns`` of log time and a *full* one (also the polygons / circles and the trails)
+    messages to write now. Each workspace gets a *light* update (the robots) at most every
+    ``period_ns`` of log time and a *full* one (also goals, polygons / circles and trails)
     every ``full_period_ns`` and as soon as a definition, transform or goal changes. Entities
     keep their ``id`` (lifetime 0), so the trails and polygons drawn by a full update stay
     until the next one. :meth:`flush` returns full scenes (call it before closing the file).
@@ -710,14 +710,14 @@ class SceneBuilder:
 
     def scenes(self, ws_id: str, now_ns: int, *, full: bool = True) -> list[SceneMessage]:
         """The workspace scene and (once a transform is known) the circle-domain scene;
-        ``full=False``: robots and goals only."""
+        ``full=False``: the robots only (goals, trails and polygons stay as last sent)."""
         ws = self._ws[ws_id]
         robots = self._robots_of(ws_id)
         views = {
             rid: RobotView(
                 position=r.position,
                 theta=r.theta,
-                goal=r.goal,
+                goal=r.goal if full else None,
                 trail=list(r.trail) if full else None,
             )
             for rid, r in sorted(robots.items())
@@ -740,11 +740,12 @@ class SceneBuilder:
             return RobotView(trail=() if full else None)
         if robot.trail_w_map != id(cmap):
             robot.trail_w, robot.trail_w_map = [], id(cmap)
-        extra = [p for p in (robot.position, robot.goal) if p is not None]
+        goal_z = robot.goal if full else None
+        extra = [p for p in (robot.position, goal_z) if p is not None]
         pending = robot.trail[len(robot.trail_w) :] if full else []
         images = _image(cmap, [*extra, *pending])
         pos = images.pop(0) if robot.position is not None else None
-        goal = images.pop(0) if robot.goal is not None else None
+        goal = images.pop(0) if goal_z is not None else None
         if full:
             robot.trail_w += [w if w is not None else (math.nan, math.nan) for w in images]
         trail = [w for w in robot.trail_w if math.isfinite(w[0])] if full else None

@@ -269,7 +269,7 @@ def test_builder_cost_is_bounded_on_long_runs(validator: Any) -> None:
                 assert 2 <= len(trail["lines"][0]["points"]) <= 64 + 1
             else:
                 light += 1
-                assert not ids & {"workspace", "circle_domain"}
+                assert ids == {"robot/r1"}  # light: robots only
     assert max(calls) <= fx.MAP_BATCH
     assert sum(calls) <= n + 4 * (light + full)  # each pose at most once + robot/goal images
     assert full == 2 * 100 and light == 2 * 900  # two scenes; full every 1 s, light every 0.1 s
