@@ -59,7 +59,7 @@ class _Robot:
     ctrl_error: str = ""
     last_pose_t: float | None = None  # monotonic receive time
     position: tuple[float, float] | None = None
-    status_key: tuple[str, str, str | None] = ("", "", None)
+    status_key: tuple[str, str, str | None, str] = ("", "", None, "")
     status_t: float = 0.0
     stale_reported: bool = False
     lock: threading.Lock = field(default_factory=threading.Lock)
@@ -267,7 +267,7 @@ class ControllerService(Service):
             r.goal, r.ctrl, r.ctrl_error = goal, ctrl, err
             r.ctrl_revision = m.revision if m is not None else None
             r.stale_reported = False
-            r.status_key = ("", "", None)
+            r.status_key = ("", "", None, "")
         if m is None:
             self._wake_fetch.set()
         log.info("robot %r: goal %s on %r", rid, goal.goal, goal.ws_id)
@@ -372,7 +372,7 @@ class ControllerService(Service):
         self.count("commands")
 
     def _status(self, r: _Robot, state: str, reason: str, message: str, now: float) -> None:
-        skey = (state, reason, r.ctrl_revision)
+        skey = (state, reason, r.ctrl_revision, message)
         if skey == r.status_key and now - r.status_t < self.status_period:
             return
         r.status_key, r.status_t = skey, now

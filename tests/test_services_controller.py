@@ -266,11 +266,12 @@ def test_missing_map_reports_the_transform_error(mem_net: InMemoryNetwork) -> No
         )
         # the map appears later: fetched by query, the robot moves
         tr.solutions["nowhere"] = solution("nowhere")
-        for _ in range(100):
+
+        def moving() -> bool:
             cl.pose("r1", 0.0, 0.5)
-            if cl.last_status("r1").state == "navigating":
-                break
-            time.sleep(0.02)
+            return cl.last_status("r1").state == "navigating"
+
+        wait_for(moving, timeout=10, interval=0.05)
         assert cl.last_status("r1").state == "navigating"
     finally:
         ctl.stop()
