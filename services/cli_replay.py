@@ -47,6 +47,11 @@ def register(subparsers: Any) -> None:
         "--exclude", action="append", default=[], metavar="KEYEXPR", help="skip matching keys"
     )
     p.add_argument(
+        "--inputs-only",
+        action="store_true",
+        help="replay only definitions, transforms, goals and poses (drive a live controller)",
+    )
+    p.add_argument(
         "--wait-subscribers",
         type=float,
         default=1.0,
@@ -148,6 +153,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
                 prefix=args.prefix,
                 wait_subscribers=args.wait_subscribers,
                 stop=stop,
+                inputs_only=args.inputs_only,
             )
     except zenoh.ZError as exc:
         print(f"confnav replay: zenoh error: {exc}", file=sys.stderr)

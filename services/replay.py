@@ -72,13 +72,30 @@ class ReplayReport:
         return "\n".join(lines)
 
 
+INPUT_KINDS = ("ws/*/definition", "ws/*/transform", "robot/*/goal", "robot/*/pose")
+"""What drives a controller: with ``inputs_only`` a live controller recomputes the rest."""
+
+
+def input_keyexprs(prefix: str) -> list[str]:
+    """Key expressions of the controller's inputs under ``prefix`` (see :data:`INPUT_KINDS`)."""
+    return [f"{prefix}/{kind}" for kind in INPUT_KINDS]
+
+
 def select_topics(
     topics: Sequence[str],
     prefix: str,
     include: Sequence[str] = (),
     exclude: Sequence[str] = (),
+    inputs_only: bool = False,
 ) -> list[str]:
-    """Recorded topics to replay: ``include`` (default: all but alive/viz) minus ``exclude``."""
+    """Recorded topics to replay: ``include`` (default: all but alive/viz) minus ``exclude``;
+    with ``inputs_only`` only the controller's inputs among them."""
+    if inputs_only:
+        inputs = input_keyexprs(prefix)
+        chosen_inputs = select_topics(topics, prefix, inputs, exclude)
+        if include:
+            chosen_inputs = [t for t in chosen_inputs if any(key_matches(e, t) for e in include)]
+        return chosen_inputs
     chosen = []
     for topic in topics:
         if include:
@@ -132,6 +149,7 @@ def replay(
     wait_subscribers: float = 1.0,
     stop: threading.Event | None = None,
     on_message: Callable[[str, int], None] | None = None,
+    inputs_only: bool = False,
 ) -> ReplayReport:
     """Republish the recording ``path`` on a Zenoh session opened from ``conf``.
 
@@ -143,6 +161,8 @@ def replay(
     wait_subscribers : seconds to wait for subscribers on the replayed keys before sending.
     stop : set it to end the replay early (the report says ``interrupted``).
     on_message : called with (key, log_time_ns) after each put (progress, tests).
+    inputs_only : replay only the controller's inputs (definitions, transforms, goals, poses),
+        to drive a live controller with recorded data; combined with ``include``.
     """
     if speed is not None and not (speed > 0 and speed < float("inf")):
         raise ReplayError(f"speed must be a positive finite number, got {speed}")
@@ -156,7 +176,7 @@ def replay(
     stop = stop or threading.Event()
     report = ReplayReport()
     with Recording(path) as rec:
-        topics = select_topics(rec.topics(), rec.prefix, include, exclude)
+        topics = select_topics(rec.topics(), rec.prefix, include, exclude, inputs_only)
         if not topics:
             raise ReplayError(
                 f"{rec.path}: no recorded topic selected (recorded: {', '.join(rec.topics())})"
@@ -211,4 +231,12 @@ def replay(
     return report
 
 
-__all__ = ["ReplayError", "ReplayReport", "remap", "replay", "select_topics"]
+__all__ = [
+    "INPUT_KINDS",
+    "ReplayError",
+    "ReplayReport",
+    "input_keyexprs",
+    "remap",
+    "replay",
+    "select_topics",
+]

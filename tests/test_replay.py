@@ -98,6 +98,14 @@ def test_select_and_remap() -> None:
         "confnav/robot/r2/pose",
     ]
     assert select_topics(topics, "confnav", include=["confnav/viz/**"]) == ["confnav/viz/w1/scene"]
+    assert select_topics(topics, "confnav", inputs_only=True) == [
+        "confnav/robot/r1/pose",
+        "confnav/robot/r2/pose",
+        "confnav/ws/w1/transform",
+    ]
+    assert select_topics(topics, "confnav", include=["confnav/robot/r2/**"], inputs_only=True) == [
+        "confnav/robot/r2/pose"
+    ]
     assert remap("confnav/robot/r1/pose", "confnav", "lab/a") == "lab/a/robot/r1/pose"
     assert remap("confnav/robot/r1/pose", "confnav", None) == "confnav/robot/r1/pose"
 
@@ -235,3 +243,57 @@ def test_replay_at_recorded_speed_keeps_relative_timing(
     rel_b = [t - b[0] for t in b]
     worst = max(abs(x - y) for x, y in zip(rel_a, rel_b, strict=True))
     assert worst < 100_000_000, worst  # 0.1 s on a loaded 2-core machine
+
+
+def test_recorded_inputs_drive_a_live_controller_to_the_recorded_commands(
+    run_file: Path, zenoh_router: str, make_bus: Any
+) -> None:
+    """``inputs_only``: definitions, transforms, goals and poses replayed at recorded speed
+    into a live controller service; it answers each pose with the recorded command."""
+    from conftest import identity_loader
+
+    from confnav.schemas import VelocityCommand, decode
+    from confnav.services.controller import ControllerService
+
+    recorded: dict[tuple[str, int], complex] = {}
+    with Recording(run_file) as rec:
+        for m in rec.iter_messages():
+            if m.topic.endswith("/cmd_vel"):
+                c = decode(VelocityCommand, m.data)
+                if c.pose_seq >= 0 and c.map_revision is not None:
+                    recorded[(c.robot_id, c.pose_seq)] = complex(*c.linear)
+    live: dict[tuple[str, int], VelocityCommand] = {}
+    lock = threading.Lock()
+
+    def on_cmd(key: str, payload: bytes) -> None:
+        c = decode(VelocityCommand, payload)
+        with lock:
+            live[(c.robot_id, c.pose_seq)] = c
+
+    listener = make_bus()
+    listener.subscribe("confnav/robot/*/cmd_vel", on_cmd)
+    listener.subscribe("confnav/ws/*/definition", lambda k, p: None)  # nobody else listens
+    ctl = ControllerService(
+        make_bus(), Keys(), map_loader=identity_loader, require_transform=False, health_period=0
+    )
+    ctl.start()
+    try:
+        report = replay(
+            run_file,
+            zenoh_config("client", connect=[zenoh_router]),
+            inputs_only=True,
+            wait_subscribers=5.0,
+        )
+        assert report.unmatched_keys == []
+        kinds = {k.rsplit("/", 1)[-1] for k in report.published}
+        assert kinds == {"definition", "transform", "goal", "pose"}
+        poses = sum(n for k, n in report.published.items() if k.endswith("/pose"))
+        wait_for(lambda: len(live) >= poses, timeout=20)
+    finally:
+        ctl.stop()
+    with lock:
+        answered = {k: c for k, c in live.items() if c.map_revision is not None and k[1] >= 0}
+    common = set(answered) & set(recorded)
+    assert len(common) >= 0.9 * len(recorded)  # all but the first poses before the map
+    for key in common:
+        assert abs(complex(*answered[key].linear) - recorded[key]) <= 1e-9, key
