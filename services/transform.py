@@ -20,6 +20,7 @@ import hashlib
 import json
 import logging
 import multiprocessing
+import os
 import threading
 import time
 from collections.abc import Callable
@@ -118,6 +119,26 @@ def solve_definition(defn_json: str) -> dict[str, Any]:
     }
 
 
+def _worker_init(parent: int) -> None:
+    """In each solver process: exit when the service process dies (even by SIGKILL)."""
+    try:  # Linux: the kernel sends SIGTERM when the parent exits
+        import ctypes
+        import signal
+
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, int(signal.SIGTERM))  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass
+
+    def watch() -> None:  # portable fallback
+        while os.getppid() == parent:
+            time.sleep(1.0)
+        os._exit(0)
+
+    threading.Thread(target=watch, daemon=True).start()
+    if os.getppid() != parent:  # the parent died before prctl took effect
+        os._exit(0)
+
+
 @dataclass
 class _WsState:
     definition: WorkspaceDefinition
@@ -161,7 +182,9 @@ class TransformService(Service):
     def _start(self) -> None:
         if self._executor_kind == "process":
             ctx = multiprocessing.get_context("spawn")  # never fork a process holding Zenoh
-            self._pool = cf.ProcessPoolExecutor(self._workers, mp_context=ctx)
+            self._pool = cf.ProcessPoolExecutor(
+                self._workers, mp_context=ctx, initializer=_worker_init, initargs=(os.getpid(),)
+            )
         else:
             self._pool = cf.ThreadPoolExecutor(self._workers, thread_name_prefix="solve")
         if self._cache_dir:
