@@ -64,7 +64,9 @@ class Bus(Protocol):
 
     def subscribe(self, keyexpr: str, handler: Handler) -> Closeable: ...
 
-    def subscribe_batch(self, keyexpr: str, handler: BatchHandler) -> Closeable: ...
+    def subscribe_batch(
+        self, keyexpr: str, handler: BatchHandler, max_batch: int = 1024
+    ) -> Closeable: ...
 
     def query(
         self, selector: str, timeout: float = 2.0, payload: bytes | None = None

@@ -40,6 +40,10 @@ from confnav.services.runtime import Service, add_zenoh_args, run_until_signal
 
 log = logging.getLogger(__name__)
 
+POSE_BATCH = 32
+"""Most poses handled per step: commands for the first robots go out while later poses are
+still arriving (bounded batch = pipelining), and each step is one vectorized block."""
+
 MapLoader = Callable[[TransformSolution], Any]
 ControllerFactory = Callable[[Any, Goal], navigation.ControllerLike]
 
@@ -108,7 +112,9 @@ class ControllerService(Service):
         self._handles.append(self.bus.subscribe_liveliness(k.alive_of("transform"), self._on_live))
         self._handles.append(self.bus.subscribe(k.any_ws("transform"), self._on_transform))
         self._handles.append(self.bus.subscribe(k.any_robot("goal"), self._on_goal))
-        self._handles.append(self.bus.subscribe_batch(k.any_robot("pose"), self._on_poses))
+        self._handles.append(
+            self.bus.subscribe_batch(k.any_robot("pose"), self._on_poses, max_batch=POSE_BATCH)
+        )
         self.spawn(self._fetch_loop, "fetch")
         self.spawn(self._watchdog_loop, "watchdog")
 
