@@ -224,3 +224,26 @@ def test_bad_files(tmp_path: Path, recording: Path) -> None:
     )
     assert res.returncode == 1
     assert "confnav recover" in res.stderr and "Traceback" not in res.stderr
+
+
+def _png_size(path: Path) -> tuple[int, int]:
+    head = path.read_bytes()[:24]
+    assert head[:8] == b"\x89PNG\r\n\x1a\n"
+    return int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
+
+
+GOLDEN = sorted((Path(__file__).resolve().parent / "data").glob("golden_*.mcap"))
+
+
+@pytest.mark.skipif(not GOLDEN, reason="no golden recording in tests/data")
+def test_plot_adds_the_circle_domain_when_the_map_is_recorded(
+    recording: Path, tmp_path: Path
+) -> None:
+    from confnav.services.inspection import plot_recording
+
+    rep = inspect_recording(GOLDEN[0])
+    assert all(r.arrived for r in rep.robots.values()) and len(rep.robots) == 2
+    assert all(r.min_clearance is not None and r.min_clearance > 0 for r in rep.robots.values())
+    w2, h2 = _png_size(plot_recording(rep, tmp_path / "golden.png"))
+    w1, h1 = _png_size(plot_recording(inspect_recording(recording), tmp_path / "plain.png"))
+    assert h1 == h2 and w2 == 2 * w1  # workspace and circle-domain panels
