@@ -60,6 +60,9 @@ def register(subparsers: Any) -> None:
     )
     add_zenoh_args(p)
     p.set_defaults(prefix=None)  # replay: default is the recorded keys, --prefix remaps
+    for action in p._actions:
+        if action.dest == "prefix":
+            action.help = "replay under this key prefix instead of the recorded one"
     chk = p.add_argument_group("check")
     chk.add_argument(
         "--check", action="store_true", help="recompute and compare the commands (no Zenoh)"
