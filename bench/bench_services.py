@@ -34,6 +34,7 @@ import numpy as np
 from confnav.schemas import Goal, TransformSolution, WorkspaceDefinition, decode, encode
 from confnav.services.bus import ZenohBus, zenoh_config
 from confnav.services.keys import Keys
+from confnav.services.launcher import SINGLE_THREAD_BLAS
 
 HERE = Path(__file__).resolve().parent
 K = Keys()
@@ -53,8 +54,10 @@ def free_port() -> int:
 
 def spawn(*args: str, log: Path) -> subprocess.Popen[bytes]:
     f = open(log, "wb")  # noqa: SIM115 - lives as long as the process
+    env = dict(os.environ)
+    env.update({k: v for k, v in SINGLE_THREAD_BLAS.items() if k not in os.environ})
     return subprocess.Popen(
-        [sys.executable, "-m", "confnav.cli", *args], stdout=f, stderr=subprocess.STDOUT
+        [sys.executable, "-m", "confnav.cli", *args], stdout=f, stderr=subprocess.STDOUT, env=env
     )
 
 
@@ -92,18 +95,42 @@ def free_points(n: int, seed: int = 1) -> list[complex]:
     return pts
 
 
-class Robots:
-    """This process plays N robots: poses at ``rate`` Hz, commands matched by (robot, seq)."""
+def publish_poses(ep: str, n: int, rate: float, ticks: int, out: Any) -> None:
+    """Child process: N robots publish poses at ``rate`` Hz for ``ticks`` ticks, each robot
+    at its own phase (robot i at i/N of the period: independent robots, not one burst)."""
+    ids = [f"b{i:03d}" for i in range(n)]
+    pts = free_points(n)
+    keys = [K.robot(r, "pose") for r in ids]
+    period = 1.0 / rate
+    late = 0
+    with connect(ep) as bus:
+        time.sleep(0.5)
+        t0 = time.monotonic() + 0.1
+        for seq in range(ticks):
+            for i, (rid, key, z) in enumerate(zip(ids, keys, pts, strict=True)):
+                due = t0 + (seq + i / n) * period
+                delay = due - time.monotonic()
+                if delay > 0:
+                    time.sleep(delay)
+                elif delay < -period:
+                    late += 1
+                payload = (
+                    f'{{"type":"confnav.Pose","schema_version":1,"robot_id":"{rid}",'
+                    f'"stamp_ns":{time.time_ns()},"seq":{seq},"x":{z.real!r},"y":{z.imag!r},'
+                    f'"theta":0.0}}'
+                ).encode()
+                bus.publish(key, payload)
+        out.put({"late": late})
 
-    def __init__(self, bus: ZenohBus, n: int, rate: float) -> None:
-        self.bus, self.n, self.rate = bus, n, rate
-        self.ids = [f"b{i:03d}" for i in range(n)]
-        self.pts = free_points(n)
+
+class Commands:
+    """Receives the commands: latency = receipt - the answered pose's own stamp (one clock)."""
+
+    def __init__(self, bus: ZenohBus, first_seq: int) -> None:
+        self.first_seq = first_seq
         self.lock = threading.Lock()
-        self.sent: dict[tuple[str, int], int] = {}
         self.lat_ns: list[int] = []
-        self.answered = 0
-        self.recording = False
+        self.seen: set[tuple[str, int]] = set()
         self.sub = bus.subscribe_batch(K.any_robot("cmd_vel"), self._on_cmds)
 
     def _on_cmds(self, items: list[tuple[str, bytes]]) -> None:
@@ -111,66 +138,62 @@ class Robots:
         with self.lock:
             for _key, payload in items:
                 c = json.loads(payload)
-                if c["pose_seq"] < 0:
-                    continue
-                t = self.sent.pop((c["robot_id"], c["pose_seq"]), None)
-                if t is not None:
-                    self.lat_ns.append(now - t)
-                    self.answered += 1
+                if c["pose_seq"] >= self.first_seq and c["robot_id"].startswith("b"):
+                    self.lat_ns.append(now - c["pose_stamp_ns"])
+                    self.seen.add((c["robot_id"], c["pose_seq"]))
 
-    def goals(self) -> None:
-        for rid in self.ids:
-            g = Goal(robot_id=rid, ws_id="default", goal=(0.0, 0.0), gain=100.0, v_max=0.5)
-            self.bus.publish(K.robot(rid, "goal"), encode(g))
 
-    def run(self, seconds: float, warmup: float) -> dict[str, Any]:
-        keys = [K.robot(r, "pose") for r in self.ids]
-        period = 1.0 / self.rate
-        t_start = time.monotonic()
-        next_t = t_start
-        seq = 0
-        n_sent = 0
-        late = 0
-        while time.monotonic() - t_start < warmup + seconds:
-            measuring = time.monotonic() - t_start >= warmup
-            if measuring and not self.recording:
-                with self.lock:
-                    self.sent.clear()
-                    self.lat_ns.clear()
-                    self.answered = 0
-                self.recording = True
-            for rid, key, z in zip(self.ids, keys, self.pts, strict=True):
-                stamp = time.time_ns()
-                payload = (
-                    f'{{"type":"confnav.Pose","schema_version":1,"robot_id":"{rid}",'
-                    f'"stamp_ns":{stamp},"seq":{seq},"x":{z.real!r},"y":{z.imag!r},"theta":0.0}}'
-                ).encode()
-                if measuring:
-                    with self.lock:
-                        self.sent[(rid, seq)] = stamp
-                    n_sent += 1
-                self.bus.publish(key, payload)
-            seq += 1
-            next_t += period
-            delay = next_t - time.monotonic()
-            if delay > 0:
-                time.sleep(delay)
-            else:
-                late += 1
-        time.sleep(0.5)  # let the last answers arrive
-        with self.lock:
-            lat = np.array(self.lat_ns, dtype=float) / 1e6
-            lost = len(self.sent)
-            answered = self.answered
-        return {
-            "sent": n_sent,
-            "answered": answered,
-            "lost": lost,
-            "late_ticks": late,
-            "p50_ms": float(np.percentile(lat, 50)) if lat.size else float("nan"),
-            "p99_ms": float(np.percentile(lat, 99)) if lat.size else float("nan"),
-            "max_ms": float(lat.max()) if lat.size else float("nan"),
-        }
+def run_load(bus: ZenohBus, ep: str, n: int, rate: float, seconds: float) -> dict[str, Any]:
+    import multiprocessing as mp
+
+    for i in range(n):
+        g = Goal(robot_id=f"b{i:03d}", ws_id="default", goal=(0.0, 0.0), gain=100.0, v_max=0.5)
+        bus.publish(K.robot(f"b{i:03d}", "goal"), encode(g))
+    time.sleep(2.5 if n > 10 else 1.0)  # controllers built (shared goal: once)
+    warm = int(rate)  # first second: warm-up
+    ticks = warm + int(seconds * rate)
+    cmds = Commands(bus, warm)
+    ctx = mp.get_context("spawn")
+    q = ctx.Queue()
+    child = ctx.Process(target=publish_poses, args=(ep, n, rate, ticks, q))
+    child.start()
+    time.sleep(0.6 + warm / rate)
+    pid_cpu = {}
+    return_cpu = _cpu_probe(pid_cpu)
+    t0 = time.monotonic()
+    child.join(seconds + 60)
+    wall = time.monotonic() - t0
+    time.sleep(0.5)
+    cpu = return_cpu(wall)
+    late = q.get(timeout=5)["late"] if child.exitcode == 0 else -1
+    cmds.sub.close()
+    with cmds.lock:
+        lat = np.array(cmds.lat_ns, dtype=float) / 1e6
+        answered = len(cmds.seen)
+    sent = n * (ticks - warm)
+    return {
+        "robots": n,
+        "sent": sent,
+        "answered": answered,
+        "lost": sent - answered,
+        "late_publishes": late,
+        "p50_ms": float(np.percentile(lat, 50)) if lat.size else float("nan"),
+        "p99_ms": float(np.percentile(lat, 99)) if lat.size else float("nan"),
+        "max_ms": float(lat.max()) if lat.size else float("nan"),
+        **cpu,
+    }
+
+
+PROCS: dict[str, subprocess.Popen[bytes]] = {}
+
+
+def _cpu_probe(store: dict[str, float]) -> Any:
+    c0 = {k: cpu_seconds(p.pid) for k, p in PROCS.items()}
+
+    def done(wall: float) -> dict[str, float]:
+        return {f"cpu_{k}_pct": 100 * (cpu_seconds(p.pid) - c0[k]) / wall for k, p in PROCS.items()}
+
+    return done
 
 
 def main() -> int:
@@ -181,6 +204,7 @@ def main() -> int:
     ap.add_argument("--robots", type=int, nargs="*", default=None)
     ap.add_argument("--seconds", type=float, default=None)
     ap.add_argument("--rate", type=float, default=50.0)
+    ap.add_argument("--linger-ms", type=float, default=0.0, help="controller --linger-ms")
     ap.add_argument("--out", default=str(HERE / "results" / "services.json"))
     args = ap.parse_args()
     counts = args.robots or ([1, 10, 100] if args.quick else [1, 10, 100, 200])
@@ -189,7 +213,7 @@ def main() -> int:
     tmp = Path(tempfile.mkdtemp(prefix="confnav-bench-"))
     ep = f"tcp/127.0.0.1:{free_port()}"
     common = ["--mode", "client", "--connect", ep]
-    procs: dict[str, subprocess.Popen[bytes]] = {}
+    procs = PROCS
     results: dict[str, Any] = {
         "machine": {"cpus": os.cpu_count(), "python": platform.python_version()},
         "endpoint": "tcp loopback",
@@ -212,7 +236,14 @@ def main() -> int:
             log=tmp / "transform.log",
         )
         procs["controller"] = spawn(
-            "serve", "controller", *common, "--stale-after", "2.0", log=tmp / "controller.log"
+            "serve",
+            "controller",
+            *common,
+            "--stale-after",
+            "2.0",
+            "--linger-ms",
+            str(args.linger_ms),
+            log=tmp / "controller.log",
         )
         with connect(ep) as bus:
             wait(
@@ -242,22 +273,12 @@ def main() -> int:
             }
 
             for n in counts:
-                robots = Robots(bus, n, args.rate)
-                robots.goals()
-                time.sleep(2.5 if n > 10 else 1.0)  # controllers built (shared goal: once)
-                cpu0 = {k: cpu_seconds(p.pid) for k, p in procs.items()}
-                t0 = time.monotonic()
-                r = robots.run(seconds, warmup=1.0)
-                wall = time.monotonic() - t0
-                cpu = {k: 100 * (cpu_seconds(p.pid) - cpu0[k]) / wall for k, p in procs.items()}
-                robots.sub.close()
-                r.update(
-                    robots=n, cpu_controller_pct=cpu["controller"], cpu_router_pct=cpu["router"]
-                )
+                r = run_load(bus, ep, n, args.rate, seconds)
                 results["runs"].append(r)
                 print(
                     f"{n:4d} robots: p50 {r['p50_ms']:.2f} ms  p99 {r['p99_ms']:.2f} ms  "
-                    f"lost {r['lost']}/{r['sent']}  controller CPU {cpu['controller']:.0f}%",
+                    f"lost {r['lost']}/{r['sent']}  controller CPU "
+                    f"{r['cpu_controller_pct']:.0f}%",
                     flush=True,
                 )
                 time.sleep(1.0)
@@ -303,7 +324,10 @@ def main() -> int:
             th = threading.Thread(target=poses, daemon=True)
             th.start()
             wait(lambda: got and got[-1][1] == sols[0].revision, 30, "first command")
-            moved = room.model_copy(update={"obstacles": [[(0.2, -0.5), (0.5, -0.5), (0.5, -0.1)]]})
+            dy = float(np.random.default_rng().uniform(0, 0.1))  # a new geometry: no cache hit
+            moved = room.model_copy(
+                update={"obstacles": [[(0.2, -0.5 - dy), (0.5, -0.5 - dy), (0.5, -0.1 - dy)]]}
+            )
             t_put = time.time_ns()
             bus.publish(K.ws("benchroom", "definition"), encode(moved))
             wait(lambda: len(sols) >= 2, 120, "re-solve")

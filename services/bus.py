@@ -14,6 +14,7 @@ import json
 import logging
 import queue
 import threading
+import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Protocol
@@ -65,7 +66,7 @@ class Bus(Protocol):
     def subscribe(self, keyexpr: str, handler: Handler) -> Closeable: ...
 
     def subscribe_batch(
-        self, keyexpr: str, handler: BatchHandler, max_batch: int = 1024
+        self, keyexpr: str, handler: BatchHandler, max_batch: int = 1024, linger: float = 0.0
     ) -> Closeable: ...
 
     def query(
@@ -92,10 +93,13 @@ _STOP = object()
 class _Dispatcher:
     """Unbounded FIFO + one daemon thread calling ``fn(item)`` for each item."""
 
-    def __init__(self, name: str, fn: Callable[[Any], None], batch: int = 0) -> None:
+    def __init__(
+        self, name: str, fn: Callable[[Any], None], batch: int = 0, linger: float = 0.0
+    ) -> None:
         self._q: queue.SimpleQueue[Any] = queue.SimpleQueue()
         self._fn = fn
         self._batch = batch  # > 0: call fn with a list of up to this many waiting items
+        self._linger = linger  # s to wait for more items after the first of a batch
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
         self._thread.start()
 
@@ -110,9 +114,11 @@ class _Dispatcher:
             stop = False
             if self._batch:
                 items = [item]
+                until = time.monotonic() + self._linger
                 while len(items) < self._batch:
                     try:
-                        nxt = self._q.get_nowait()
+                        left = until - time.monotonic()
+                        nxt = self._q.get(timeout=left) if left > 0 else self._q.get_nowait()
                     except queue.Empty:
                         break
                     if nxt is _STOP:
@@ -226,12 +232,16 @@ class ZenohBus:
         return self._subscribe(keyexpr, lambda item: handler(item[0], item[1]), 0)
 
     def subscribe_batch(
-        self, keyexpr: str, handler: BatchHandler, max_batch: int = 1024
+        self, keyexpr: str, handler: BatchHandler, max_batch: int = 1024, linger: float = 0.0
     ) -> Closeable:
-        return self._subscribe(keyexpr, handler, max_batch)
+        """Like :meth:`subscribe`, but the handler gets every waiting sample at once (at most
+        ``max_batch``), waiting up to ``linger`` s after the first one for more."""
+        return self._subscribe(keyexpr, handler, max_batch, linger)
 
-    def _subscribe(self, keyexpr: str, fn: Callable[[Any], None], batch: int) -> Closeable:
-        disp = _Dispatcher(f"sub:{keyexpr}", fn, batch)
+    def _subscribe(
+        self, keyexpr: str, fn: Callable[[Any], None], batch: int, linger: float = 0.0
+    ) -> Closeable:
+        disp = _Dispatcher(f"sub:{keyexpr}", fn, batch, linger)
 
         def on_sample(sample: zenoh.Sample) -> None:  # Zenoh thread: enqueue only
             disp.put((str(sample.key_expr), sample.payload.to_bytes()))
@@ -398,12 +408,16 @@ class InMemoryBus:
         return self._subscribe(keyexpr, lambda item: handler(item[0], item[1]), 0)
 
     def subscribe_batch(
-        self, keyexpr: str, handler: BatchHandler, max_batch: int = 1024
+        self, keyexpr: str, handler: BatchHandler, max_batch: int = 1024, linger: float = 0.0
     ) -> Closeable:
-        return self._subscribe(keyexpr, handler, max_batch)
+        """Like :meth:`subscribe`, but the handler gets every waiting sample at once (at most
+        ``max_batch``), waiting up to ``linger`` s after the first one for more."""
+        return self._subscribe(keyexpr, handler, max_batch, linger)
 
-    def _subscribe(self, keyexpr: str, fn: Callable[[Any], None], batch: int) -> Closeable:
-        disp = _Dispatcher(f"memsub:{keyexpr}", fn, batch)
+    def _subscribe(
+        self, keyexpr: str, fn: Callable[[Any], None], batch: int, linger: float = 0.0
+    ) -> Closeable:
+        disp = _Dispatcher(f"memsub:{keyexpr}", fn, batch, linger)
         entry = (keyexpr, disp)
         with self._net.lock:
             self._net.subs.append(entry)

@@ -86,6 +86,7 @@ class ControllerService(Service):
         map_loader: MapLoader = navigation.load_map,
         controller_factory: ControllerFactory = navigation.make_controller,
         health_period: float = 1.0,
+        linger: float = 0.0,
     ) -> None:
         super().__init__(bus, keys, health_period)
         self.only = robots
@@ -93,6 +94,7 @@ class ControllerService(Service):
         self.status_period = status_period
         self.fetch_period = fetch_period
         self.require_transform = require_transform
+        self.linger = linger  # s to wait for more poses before a control step (throughput)
         self._load_map = map_loader
         self._make_ctrl = controller_factory
         self._lock = threading.Lock()
@@ -113,7 +115,9 @@ class ControllerService(Service):
         self._handles.append(self.bus.subscribe(k.any_ws("transform"), self._on_transform))
         self._handles.append(self.bus.subscribe(k.any_robot("goal"), self._on_goal))
         self._handles.append(
-            self.bus.subscribe_batch(k.any_robot("pose"), self._on_poses, max_batch=POSE_BATCH)
+            self.bus.subscribe_batch(
+                k.any_robot("pose"), self._on_poses, max_batch=POSE_BATCH, linger=self.linger
+            )
         )
         self.spawn(self._fetch_loop, "fetch")
         self.spawn(self._watchdog_loop, "watchdog")
@@ -438,11 +442,20 @@ def add_parser(sub: Any) -> None:
     add_zenoh_args(p)
     p.add_argument("--robots", default=None, help="comma-separated robot ids (default: all)")
     p.add_argument("--stale-after", type=float, default=0.5, help="pose timeout, s")
+    p.add_argument(
+        "--linger-ms",
+        type=float,
+        default=0.0,
+        help="wait this long for more poses before a control step (larger batches, less CPU)",
+    )
     p.set_defaults(func=main)
 
 
 def main(args: argparse.Namespace) -> int:
     robots = set(args.robots.split(",")) if args.robots else None
     return run_until_signal(
-        lambda bus, keys: ControllerService(bus, keys, robots, stale_after=args.stale_after), args
+        lambda bus, keys: ControllerService(
+            bus, keys, robots, stale_after=args.stale_after, linger=args.linger_ms / 1e3
+        ),
+        args,
     )
