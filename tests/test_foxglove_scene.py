@@ -275,3 +275,39 @@ def test_builder_cost_is_bounded_on_long_runs(validator: Any) -> None:
     assert full == 2 * 100 and light == 2 * 900  # two scenes; full every 1 s, light every 0.1 s
     for m in builder.flush(1_700_000_000_000_000_000 + 5_000_000 * (n + 1)):
         validator.validate(m.message)
+
+
+GOLDEN = sorted(DATA.glob("golden_*.mcap"))
+
+
+@pytest.mark.skipif(not GOLDEN, reason="no golden recording in tests/data")
+def test_viz_cli_on_a_golden_recording(tmp_path: Path, validator: Any) -> None:
+    """``confnav viz`` (a real process): circle-domain scenes with the robots mapped by the
+    recorded (real) map, every message valid; refuses to overwrite without --force."""
+    import subprocess
+
+    from conftest import confnav_cmd, subprocess_env
+
+    out = tmp_path / "viz.mcap"
+    argv = confnav_cmd("viz", str(GOLDEN[0]), "-o", str(out), "--period", "0.2")
+    res = subprocess.run(argv, capture_output=True, text=True, timeout=60, env=subprocess_env())
+    assert res.returncode == 0, res.stderr
+    _summary, msgs = _read_all(out)
+    scenes = [
+        (topic, json.loads(data)) for name, topic, data, _t in msgs if name == fx.SCENE_SCHEMA_NAME
+    ]
+    for _topic, msg in scenes:
+        validator.validate(msg)
+    last_cd = [m for t, m in scenes if t == "confnav/viz/w1/circle_domain"][-1]
+    ids = {e["id"] for e in last_cd["entities"]}
+    assert {"circle_domain", "robot/r1", "robot/r2", "trail/r1", "goal/r1"} <= ids
+    goal = next(e for e in last_cd["entities"] if e["id"] == "goal/r1")["spheres"][0]
+    g = goal["pose"]["position"]
+    from confnav.schemas import TransformSolution, decode
+    from confnav.services.navigation import load_map
+
+    (sol,) = [decode(TransformSolution, d) for n, t, d, _t in msgs if t.endswith("/transform")]
+    w = complex(load_map(sol).T(0j))  # the goal (0, 0) mapped by the recorded map
+    assert abs(complex(g["x"], g["y"]) - w) < 2e-6 and abs(w) > 0.01
+    again = subprocess.run(argv, capture_output=True, text=True, timeout=60, env=subprocess_env())
+    assert again.returncode == 1 and "exists" in again.stderr
