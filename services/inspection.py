@@ -21,7 +21,7 @@ import math
 import os
 from collections import Counter, defaultdict
 from collections.abc import Iterable, Iterator, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from types import TracebackType
 from typing import IO, Any
@@ -387,7 +387,6 @@ def inspect_recording(path: str | os.PathLike[str]) -> InspectReport:
                 and c.schema_name != foxglove.SCENE_SCHEMA_NAME
             }
         )
-        invalid = sum(c.count for c in channels if c.invalid)
         workspaces: dict[str, WorkspaceDefinition] = {}
         transforms: dict[str, TransformSolution] = {}
         robots: dict[str, RobotSummary] = {}
@@ -399,7 +398,13 @@ def inspect_recording(path: str | os.PathLike[str]) -> InspectReport:
                 robots[rid] = RobotSummary(robot_id=rid)
             return robots[rid]
 
+        counts: Counter[int] = Counter()  # counted here: the statistics record is optional
+        first_ns: int | None = None
+        last_ns = 0
         for msg in rec.iter_messages():
+            counts[msg.channel_id] += 1
+            first_ns = msg.log_time_ns if first_ns is None else first_ns
+            last_ns = max(last_ns, msg.log_time_ns)
             model = decode_message(msg)
             if model is None:
                 continue
@@ -427,7 +432,7 @@ def inspect_recording(path: str | os.PathLike[str]) -> InspectReport:
                 r = robot(model.robot_id)
                 if r.collision_at is None:
                     r.collision_at = (model.position[0], model.position[1])
-                    r.collision_time_s = (msg.log_time_ns - rec.start_ns) / NS_PER_S
+                    r.collision_time_s = (msg.log_time_ns - (first_ns or 0)) / NS_PER_S
             elif isinstance(model, RobotStatus):
                 r = robot(model.robot_id)
                 r.final_state, r.final_reason = model.state, model.reason
@@ -435,7 +440,9 @@ def inspect_recording(path: str | os.PathLike[str]) -> InspectReport:
                     r.ws_id = model.ws_id
                 if model.state == "arrived" and model.robot_id not in status_arrival:
                     status_arrival[model.robot_id] = msg.log_time_ns
-        start = rec.start_ns
+        start = first_ns if first_ns is not None else 0
+        channels = [replace(c, count=counts[c.id]) for c in channels]
+        invalid = sum(c.count for c in channels if c.invalid)
         for rid, r in robots.items():
             if r.trajectory:
                 r.start, r.end = r.trajectory[0], r.trajectory[-1]
@@ -458,9 +465,9 @@ def inspect_recording(path: str | os.PathLike[str]) -> InspectReport:
         return InspectReport(
             path=rec.path,
             prefix=rec.prefix,
-            message_count=rec.message_count,
-            start_ns=rec.start_ns,
-            end_ns=rec.end_ns,
+            message_count=sum(counts.values()),
+            start_ns=start,
+            end_ns=last_ns,
             channels=channels,
             metadata=rec.metadata,
             workspaces=workspaces,

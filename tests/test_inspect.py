@@ -247,3 +247,19 @@ def test_plot_adds_the_circle_domain_when_the_map_is_recorded(
     w2, h2 = _png_size(plot_recording(rep, tmp_path / "golden.png"))
     w1, h1 = _png_size(plot_recording(inspect_recording(recording), tmp_path / "plain.png"))
     assert h1 == h2 and w2 == 2 * w1  # workspace and circle-domain panels
+
+
+def test_counts_without_a_statistics_record(tmp_path: Path) -> None:
+    p = tmp_path / "nostats.mcap"
+    with open(p, "wb") as f:
+        w = Writer(f, use_statistics=False)
+        w.start()
+        sid = w.register_schema(L.schema_name(Pose), L.SCHEMA_ENCODING, L.schema_data(Pose))
+        cid = w.register_channel("confnav/robot/r1/pose", L.MESSAGE_ENCODING, sid)
+        for k in range(7):
+            t = T0 + 1_000_000 * k
+            w.add_message(cid, t, encode(Pose(robot_id="r1", stamp_ns=t, seq=k, x=0.0, y=0.0)), t)
+        w.finish()
+    rep = inspect_recording(p)
+    assert rep.message_count == 7 and [c.count for c in rep.channels] == [7]
+    assert math.isclose(rep.duration_s, 0.006) and rep.robots["r1"].poses == 7
