@@ -258,6 +258,7 @@ def test_missing_map_reports_the_transform_error(mem_net: InMemoryNetwork) -> No
     ctl, tr, cl = setup(mem_net, fetch_period=0.05)
     try:
         cl.goal("r1", ws="nowhere")
+        wait_for(lambda: ctl.counters["goals"] == 1)  # goal and pose travel separately
         cl.pose("r1", 0.0, 0.5)
         wait_for(lambda: cl.last_status("r1") and cl.last_status("r1").reason == "missing_map")
         assert cl.last_cmd("r1").linear == (0.0, 0.0)
