@@ -129,6 +129,14 @@ def run_simulate(args: argparse.Namespace) -> int:
         v_max=args.vmax,
         goal_tol=args.tol,
     )
+    if args.navfn == "kr" and args.k != "auto":
+        cp = ctl.check()
+        if not cp.ok:
+            print(
+                f"warning: k={args.k:g} is too small for this geometry ({cp.message}); "
+                "use --k auto or --navfn harmonic",
+                file=sys.stderr,
+            )
     if args.random is not None:
         if args.random < 1:
             raise NavigationError("--random needs N >= 1")

@@ -16,13 +16,16 @@ from __future__ import annotations
 
 import enum
 from dataclasses import dataclass
-from typing import Any, Literal, Protocol
+from typing import TYPE_CHECKING, Any, Literal, Protocol
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from confnav.errors import NavigationError
 from confnav.navfn import CircleDomain, NavigationFunction, make_navfn
+
+if TYPE_CHECKING:
+    from confnav.critical import CriticalPoints
 
 __all__ = ["ConformalLike", "ControlOutput", "Controller", "Status"]
 
@@ -210,6 +213,13 @@ class Controller:
             w=np.where(bad, np.nan + 0j, w),
             saturated=sat & ~arrived & ~bad,
         )
+
+    def check(self) -> CriticalPoints:
+        """Critical points of the navigation function in the circle domain (one minimum and
+        M saddles expected; ``.ok`` False means e.g. k too small for this geometry)."""
+        from confnav.critical import find_critical_points
+
+        return find_critical_points(self.navfn)
 
     def lyapunov(self, z: ArrayLike) -> FArray:
         """``V(x) = phi(T(x))`` (NaN outside the free space)."""

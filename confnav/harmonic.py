@@ -79,7 +79,7 @@ class GreenFunction:
     """
 
     def __init__(
-        self, domain: CircleDomain, pole: complex, *, tol: float = 1e-9, max_terms: int = 256
+        self, domain: CircleDomain, pole: complex, *, tol: float = 1e-7, max_terms: int = 256
     ) -> None:
         self.domain = domain
         self.pole = complex(pole)
@@ -236,7 +236,7 @@ class HarmonicNavigation(NavigationFunction):
 
     name = "harmonic"
 
-    def __init__(self, domain: CircleDomain, goal: complex, *, tol: float = 1e-9) -> None:
+    def __init__(self, domain: CircleDomain, goal: complex, *, tol: float = 1e-7) -> None:
         super().__init__(domain, goal)
         self.tol = tol
         self.green = GreenFunction(domain, self.goal, tol=tol)
