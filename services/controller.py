@@ -40,9 +40,13 @@ from confnav.services.runtime import Service, add_zenoh_args, run_until_signal
 
 log = logging.getLogger(__name__)
 
-POSE_BATCH = 32
-"""Most poses handled per step: commands for the first robots go out while later poses are
-still arriving (bounded batch = pipelining), and each step is one vectorized block."""
+POSE_BLOCK = 32
+"""Most poses per control step: one vectorized block, whose commands go out before the next
+block is computed (pipelining)."""
+MAX_BACKLOG = 4096
+"""Most queued poses taken at once. Of several waiting poses of one robot only the newest is
+answered (the older ones are superseded: counted, never commanded), so an overloaded
+controller falls back to answering every robot's latest pose instead of a growing queue."""
 
 MapLoader = Callable[[TransformSolution], Any]
 ControllerFactory = Callable[[Any, Goal], navigation.ControllerLike]
@@ -116,7 +120,7 @@ class ControllerService(Service):
         self._handles.append(self.bus.subscribe(k.any_robot("goal"), self._on_goal))
         self._handles.append(
             self.bus.subscribe_batch(
-                k.any_robot("pose"), self._on_poses, max_batch=POSE_BATCH, linger=self.linger
+                k.any_robot("pose"), self._on_poses, max_batch=MAX_BACKLOG, linger=self.linger
             )
         )
         self.spawn(self._fetch_loop, "fetch")
@@ -284,9 +288,18 @@ class ControllerService(Service):
 
     # poses (hot path) -------------------------------------------------------------------------
     def _on_poses(self, items: list[tuple[str, bytes]]) -> None:
-        """Every waiting pose at once: decode, then one vectorized control-law call per shared
-        controller, then publish (in arrival order within each controller group)."""
+        """Every waiting pose: the newest per robot, in blocks of :data:`POSE_BLOCK`."""
         self.count("poses", len(items))
+        if len(items) > 1:
+            newest = {key: i for i, (key, _) in enumerate(items)}
+            if len(newest) < len(items):
+                self.count("poses_superseded", len(items) - len(newest))
+                items = [items[i] for i in sorted(newest.values())]
+        for s in range(0, len(items), POSE_BLOCK):
+            self._pose_block(items[s : s + POSE_BLOCK])
+
+    def _pose_block(self, items: list[tuple[str, bytes]]) -> None:
+        """Decode, one vectorized control-law call per shared controller, publish."""
         now = time.monotonic()
         groups: dict[int, tuple[navigation.ControllerLike, list[tuple[_Robot, Pose]]]] = {}
         for key, payload in items:

@@ -334,3 +334,25 @@ def test_controller_over_real_zenoh(make_bus: Callable[[], Any]) -> None:
         wait_for(lambda: cl.last_status("r1").reason == "transform_service_dead", timeout=5)
     finally:
         ctl.stop()
+
+
+def test_only_the_newest_waiting_pose_of_a_robot_is_answered(mem_net: InMemoryNetwork) -> None:
+    ctl, _tr, cl = setup(mem_net)
+    try:
+        cl.goal("r1")
+        cl.goal("r2")
+        wait_for(lambda: ctl.counters["goals"] == 2 and ctl.counters["maps_installed"])
+        wait_for(lambda: ctl._robots["r2"].ctrl is not None)
+
+        def pose(rid: str, seq: int) -> tuple[str, bytes]:
+            p = Pose(robot_id=rid, stamp_ns=time.time_ns(), seq=seq, x=0.0, y=0.5)
+            return (K.robot(rid, "pose"), encode(p))
+
+        # a backlog as an overloaded controller would find it
+        ctl._on_poses([pose("r1", 1), pose("r2", 1), pose("r1", 2), pose("r1", 3), pose("r2", 2)])
+        wait_for(lambda: {(c.robot_id, c.pose_seq) for c in cl.cmds} >= {("r1", 3), ("r2", 2)})
+        answered = [(c.robot_id, c.pose_seq) for c in cl.cmds if c.pose_seq > 0]
+        assert sorted(answered) == [("r1", 3), ("r2", 2)]
+        assert ctl.counters["poses_superseded"] == 3
+    finally:
+        ctl.stop()
