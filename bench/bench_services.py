@@ -201,7 +201,9 @@ def run_load(bus: ZenohBus, ep: str, n: int, rate: float, seconds: float) -> dic
         "answered": answered,
         "unanswered": sent - answered,
         "superseded": superseded,  # by a newer pose of the same robot (overload)
-        "lost": sent - answered - superseded,  # neither answered nor superseded
+        # neither answered nor superseded (the superseded count covers the whole run,
+        # warm-up included, so this is a lower bound; clamped at 0)
+        "lost": max(0, sent - answered - superseded),
         "late_publishes": late,
         "p50_ms": float(np.percentile(lat, 50)) if lat.size else float("nan"),
         "p99_ms": float(np.percentile(lat, 99)) if lat.size else float("nan"),
@@ -283,7 +285,10 @@ def main() -> int:
             global HEALTH
             HEALTH = Health(bus)
             wait(
-                lambda: bus.alive(K.alive_of("controller")) and bus.alive(K.alive_of("transform")),
+                lambda: (
+                    len(bus.alive(K.alive_of("controller"))) == args.controllers
+                    and bus.alive(K.alive_of("transform"))
+                ),
                 60,
                 "services",
             )
