@@ -111,6 +111,8 @@ class ControllerService(Service):
         # navigation function is built once, and their poses are evaluated in one call)
         self._ctrl_cache: dict[tuple[object, ...], navigation.ControllerLike] = {}
         self._build_lock = threading.Lock()
+        self._rids: dict[str, str] = {}  # pose key -> robot id
+        self._cmd_keys: dict[str, str] = {}  # robot id -> cmd_vel key
         self.swapped = threading.Event()  # set on each hot swap (tests)
 
     def _start(self) -> None:
@@ -298,14 +300,25 @@ class ControllerService(Service):
         for s in range(0, len(items), POSE_BLOCK):
             self._pose_block(items[s : s + POSE_BLOCK])
 
+    def _rid_of(self, key: str) -> str | None:
+        """Robot id of a pose key (cached: the hot path parses each key once)."""
+        rid = self._rids.get(key)
+        if rid is None:
+            try:
+                rid = self.keys.parse(key).ident
+            except KeyError_:
+                return None
+            if len(self._rids) < 100_000:
+                self._rids[key] = rid
+        return rid
+
     def _pose_block(self, items: list[tuple[str, bytes]]) -> None:
         """Decode, one vectorized control-law call per shared controller, publish."""
         now = time.monotonic()
         groups: dict[int, tuple[navigation.ControllerLike, list[tuple[_Robot, Pose]]]] = {}
         for key, payload in items:
-            try:
-                rid = self.keys.parse(key).ident
-            except KeyError_:
+            rid = self._rid_of(key)
+            if rid is None:
                 self.count("rejected")
                 continue
             with self._lock:
@@ -383,7 +396,9 @@ class ControllerService(Service):
         self._status(r, "stopped", reason, message, now)
 
     def _publish_cmd(self, r: _Robot, u: complex, pose: Pose | None) -> None:
-        cmd = VelocityCommand(
+        # model_construct: our own finite values, no re-validation on the hot path (the
+        # payloads are checked against the schema in the tests and by every reader)
+        cmd = VelocityCommand.model_construct(
             robot_id=r.robot_id,
             stamp_ns=time.time_ns(),
             linear=(u.real, u.imag),
@@ -391,7 +406,10 @@ class ControllerService(Service):
             pose_stamp_ns=pose.stamp_ns if pose is not None else 0,
             map_revision=r.ctrl_revision,
         )
-        self.bus.publish(self.keys.robot(r.robot_id, "cmd_vel"), encode(cmd))
+        key = self._cmd_keys.get(r.robot_id)
+        if key is None:
+            key = self._cmd_keys[r.robot_id] = self.keys.robot(r.robot_id, "cmd_vel")
+        self.bus.publish(key, encode(cmd))
         self.count("commands")
 
     def _status(self, r: _Robot, state: str, reason: str, message: str, now: float) -> None:
