@@ -71,6 +71,12 @@ class Recorder(Service):
         )
         w.add_metadata(L.METADATA_NAME, L.metadata_record(self.keys.prefix, self.config))
         self._writer = w
+        if not hasattr(w, "_Writer__finalize_chunk"):  # mcap internals changed
+            log.warning(
+                "this mcap version cannot close chunks early: a SIGKILL may lose up "
+                "to %d bytes of messages",
+                self.chunk_size,
+            )
         if self._foxglove:
             from confnav.services.foxglove import FoxgloveSceneWriter
 

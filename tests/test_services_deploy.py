@@ -125,3 +125,21 @@ def _pid_of(parent: int, label: str) -> int:
         if ppid == parent and b"serve" in cmd and label.encode() in cmd:
             return int(d.name)
     raise AssertionError(f"no {label} child of {parent}")
+
+
+def test_cli_registers_the_service_commands() -> None:
+    from confnav.cli import build_parser
+
+    parser = build_parser()
+    for argv in (
+        ["launch", "deploy/local.toml"],
+        ["demo", "--out", "x", "--time-scale", "2"],
+        ["schemas", "export", "d"],
+        ["serve", "transform", "--workspace", "a=builtin:default", "--cache-dir", "c"],
+        ["serve", "controller", "--robots", "r1,r2", "--linger-ms", "1"],
+        ["serve", "simulator", "--robot", "r1=w:0,0", "--time-scale", "4"],
+        ["serve", "recorder", "--out", "f.mcap", "--foxglove"],
+        ["serve", "router", "--listen", "tcp/127.0.0.1:7447"],
+    ):
+        args = parser.parse_args(argv)
+        assert callable(args.func), argv
