@@ -281,9 +281,15 @@ def test_bad_inputs_never_crash_a_service(system: System) -> None:
         ),
         timeout=10,
     )
-    # NaN pose for a robot with a goal: zero velocity and the reason
-    bus.publish(k.robot("r1", "pose"), nan_pose)
-    wait_for(lambda: any(s.reason == "nan_input" for s in obs.status["r1"]), timeout=10)
+    # NaN pose for a robot with a goal: zero velocity and the reason (a robot the simulator
+    # does not drive, so that no newer good pose supersedes the NaN one)
+    g = Goal(robot_id="r9", ws_id="room", goal=(0.0, 0.5))
+    bus.publish(k.robot("r9", "goal"), encode(g))
+    wait_for(lambda: obs.last("r9") is not None, timeout=10)  # stale_pose: the goal is in
+    bus.publish(k.robot("r9", "pose"), nan_pose.replace(b'"r1"', b'"r9"'))
+    wait_for(lambda: any(s.reason == "nan_input" for s in obs.status["r9"]), timeout=10)
+    with obs.lock:
+        assert obs.cmds["r9"][-1].linear == (0.0, 0.0)
     # every service process is still the same process and still healthy afterwards
     t = time.monotonic()
     wait_for(
