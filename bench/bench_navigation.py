@@ -43,7 +43,7 @@ from confnav.shortest_path import ShortestPaths  # noqa: E402
 from confnav.sim import STALLED, TIMEOUT, simulate  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results" / "navigation.json"
-METHODS = ("KR k=6", "KR auto", "harmonic", "harmonic+floor", "APF")
+METHODS = ("KR k=6", "KR auto", "KR auto+floor", "harmonic", "harmonic+floor", "APF")
 V_MIN = 0.25  # speed floor of "harmonic+floor" (direction kept; 0 for the plain law)
 V_MAX = 1.0
 T_MAX = 1e5
@@ -73,8 +73,9 @@ def make_field(method: str, cmap: Any, sc: Scenario) -> tuple[Any, dict[str, Any
         cp = find_critical_points(ctl.navfn)
         info["critical_points"] = cp.message
         info["k_ok"] = cp.ok
-    elif method == "KR auto":
-        ctl = Controller(cmap, sc.goal, navfn="kr", k="auto", v_max=V_MAX)
+    elif method.startswith("KR auto"):
+        v_min = V_MIN if method.endswith("+floor") else 0.0
+        ctl = Controller(cmap, sc.goal, navfn="kr", k="auto", v_max=V_MAX, v_min=v_min)
     else:
         v_min = V_MIN if method == "harmonic+floor" else 0.0
         ctl = Controller(cmap, sc.goal, navfn="harmonic", v_max=V_MAX, v_min=v_min)
@@ -84,7 +85,23 @@ def make_field(method: str, cmap: Any, sc: Scenario) -> tuple[Any, dict[str, Any
     return ctl, info
 
 
-def run_case(sc: Scenario, n: int, seed: int) -> tuple[dict[str, Any], Any]:
+def solve_cached(ws: Any, cache: Path | None) -> Any:
+    """``confnav.solve`` with an optional on-disk cache keyed by the workspace hash."""
+    path = cache / f"{ws.content_hash()[:16]}.json" if cache else None
+    if path is not None and path.exists():
+        cmap = confnav.ConformalMap.from_json(path.read_text())
+        cmap.from_cache = True  # type: ignore[attr-defined]
+        return cmap
+    cmap = confnav.solve(ws)
+    if path is not None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(cmap.to_json())
+    return cmap
+
+
+def run_case(
+    sc: Scenario, n: int, seed: int, cache: Path | None = None
+) -> tuple[dict[str, Any], Any]:
     ws = sc.workspace
     row: dict[str, Any] = {"scenario": sc.name, "n_obstacles": ws.n_obstacles, "methods": {}}
     starts = random_starts(ws, n, seed, margin=0.05)
@@ -96,9 +113,11 @@ def run_case(sc: Scenario, n: int, seed: int) -> tuple[dict[str, Any], Any]:
     try:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
-            cmap = confnav.solve(ws)
+            cmap = solve_cached(ws, cache)
         row["map"] = {
             "solve_time": time.perf_counter() - t0,
+            "from_cache": bool(getattr(cmap, "from_cache", False)),
+            "solve_wall_time_recorded": float(cmap.diagnostics.wall_time),
             "error_estimate": float(cmap.diagnostics.error_estimate),
             "min_radius": float(cmap.radii.min()) if cmap.radii.size else None,
             "goal_image_abs": float(abs(complex(cmap.T(sc.goal)))),
@@ -118,6 +137,20 @@ def run_case(sc: Scenario, n: int, seed: int) -> tuple[dict[str, Any], Any]:
         except ConfnavError as exc:
             row["methods"][method] = {"error": f"{type(exc).__name__}: {exc}"}
             continue
+        if method != "APF" and not res.success.all():
+            # why: parked at a critical point (saddle / spurious minimum) or crawling where
+            # phi is flat or |T'| tiny
+            cp = fld.check()
+            crit = np.concatenate([cp.saddles, cp.spurious_minima, cp.maxima])
+            wf = np.asarray(cmap.T(res.final[~res.success]))
+            near = (
+                np.min(np.abs(wf[:, None] - crit[None, :]), axis=1) < 1e-2
+                if crit.size
+                else np.zeros(wf.size, dtype=bool)
+            )
+            info["failed_at_critical_point"] = int(near.sum())
+            info["failed_crawling"] = int((~near).sum())
+            info["critical_points"] = cp.message
         ok = res.success & np.isfinite(shortest) & (shortest > 0)
         ratio = res.path_length[ok] / shortest[ok]
         row["methods"][method] = {
@@ -203,11 +236,16 @@ def table(rows: list[dict[str, Any]]) -> str:
                     f"| - | - | - | - | - | - | - | {note} |"
                 )
                 continue
-            note = ""
-            if "k" in r and method == "KR auto":
-                note = f"k={r['k']:g}"
+            notes = []
+            if "k" in r and method.startswith("KR auto"):
+                notes.append(f"k={r['k']:g}")
             if "k_ok" in r and not r["k_ok"]:
-                note = "k=6 check fails: " + r["critical_points"]
+                notes.append("k=6 fails check: " + r["critical_points"])
+            if r.get("failed_crawling"):
+                notes.append(f"{r['failed_crawling']} crawling")
+            if r.get("failed_at_critical_point"):
+                notes.append(f"{r['failed_at_critical_point']} at a critical point")
+            note = "; ".join(notes)
             lines.append(
                 f"| {row['scenario']} | {row['n_obstacles']} | {mtxt} | {method} "
                 f"| {100 * r['success_rate']:.1f} | {r['collisions']} | {r['stalled']} "
@@ -223,6 +261,7 @@ def main() -> None:
     ap.add_argument("--n", type=int, default=None, help="starts per scenario (default 1000)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", type=Path, default=RESULTS)
+    ap.add_argument("--map-cache", type=Path, default=None, help="reuse solved maps here")
     args = ap.parse_args()
     n = args.n or (100 if args.quick else 1000)
     t_start = time.perf_counter()
@@ -230,7 +269,7 @@ def main() -> None:
     default_map = None
     for sc in scenarios():
         t0 = time.perf_counter()
-        row, cmap = run_case(sc, n, args.seed)
+        row, cmap = run_case(sc, n, args.seed, args.map_cache)
         rows.append(row)
         if sc.name == "default":
             default_map = cmap

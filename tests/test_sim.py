@@ -193,3 +193,43 @@ def test_scenarios_are_valid_and_random_starts_keep_the_margin() -> None:
     # the corridor's centreline length over width
     sc = spiral_corridor(10, width=0.4)
     assert_allclose(sc.workspace.polygon.area, 10 * 0.4**2, rtol=0.05)
+
+
+def test_harmonic_on_the_default_map(default_map: Any) -> None:
+    from confnav.critical import find_critical_points
+    from confnav.workspaces import DEFAULT_GOAL
+
+    ctl = Controller(default_map, DEFAULT_GOAL, navfn="harmonic")
+    cp = find_critical_points(ctl.navfn)
+    assert cp.ok and cp.index_consistent, cp.message
+    assert cp.saddles.size == default_map.radii.size == 4
+    # phi o T -> 1 at the polygons: at 1e-3 from every edge midpoint, 1 - V <= |grad V| 1e-3
+    # (|grad V| < 20 at these points); the map is not used closer (its T' loses accuracy within ~1e-4)
+    ws = default_map.workspace
+    for j, p in enumerate(ws.boundaries):
+        mid = 0.5 * (p + np.roll(p, -1))
+        normal = 1j * (np.roll(p, -1) - p) / np.abs(np.roll(p, -1) - p)  # left of a ccw edge
+        pts = mid + (1e-3 if j == 0 else -1e-3) * normal  # into the free space
+        assert_allclose(ws.clearance(pts), 1e-3, rtol=1e-6)
+        v = ctl.lyapunov(pts)
+        assert np.all((v < 1) & (v > 1 - 2e-2))
+
+
+def test_goal_change_needs_no_solve(default_map: Any, monkeypatch: pytest.MonkeyPatch) -> None:
+    import confnav
+    import confnav.solver
+    from confnav.workspaces import DEFAULT_STARTS
+
+    def no_solve(*a: Any, **k: Any) -> Any:
+        raise AssertionError("a goal change must not solve")
+
+    monkeypatch.setattr(confnav, "solve", no_solve)
+    monkeypatch.setattr(confnav.solver, "solve", no_solve)
+    ctl = Controller(default_map, 0j, navfn="kr", k=6)
+    for goal in (1.5 - 1.5j, -1.5 + 1.5j):
+        new = ctl.with_goal(goal)
+        assert new.cmap is default_map and new.goal == goal
+        res = simulate(new, np.array(DEFAULT_STARTS), t_max=1e6)
+        assert res.success.all() and not res.collided.any(), res.message
+    with pytest.raises(NavigationError):
+        ctl.with_goal(0.9 + 0.6j)  # inside the triangle
