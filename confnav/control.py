@@ -181,10 +181,9 @@ class Controller:
         target = np.minimum(s, self.v_max)
         if self.v_min > 0:
             dist = np.abs(np.asarray(z) - self.goal)
-            floor = self.v_min * np.minimum(1.0, dist / self.floor_radius)
-            target = np.maximum(target, floor)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            scaled = np.where((target != s) & (s > 0), u * (target / s), u)
+            target = np.maximum(target, self.v_min * np.minimum(1.0, dist / self.floor_radius))
+        # no division by zero (u = 0 stays 0); NaN propagates silently
+        scaled = u * (target / np.maximum(s, 1e-300))
         return scaled, s > self.v_max
 
     def __call__(self, z: ArrayLike) -> ControlOutput:

@@ -184,22 +184,24 @@ class GreenFunction:
         """``h(w)`` and its complex gradient ``dh/dw1 + i dh/dw2`` (same shape as w)."""
         w = np.asarray(w, dtype=np.complex128)
         flat = w.ravel()
+        if not np.isfinite(flat).all():  # NaN poses: silence the complex-division warnings
+            with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+                return self._h_and_gradient(flat, w.shape)
+        return self._h_and_gradient(flat, w.shape)
+
+    def _h_and_gradient(self, flat: CArray, shape: tuple[int, ...]) -> tuple[FArray, CArray]:
         if flat.size <= _CHUNK:
             h, gh = self._eval(flat)
         else:
             parts = [self._eval(flat[i : i + _CHUNK]) for i in range(0, flat.size, _CHUNK)]
             h = np.concatenate([q[0] for q in parts])
             gh = np.concatenate([q[1] for q in parts])
-        return h.reshape(w.shape), gh.reshape(w.shape)
+        return h.reshape(shape), gh.reshape(shape)
 
     def h(self, w: ArrayLike) -> FArray:
         return self.h_and_gradient(w)[0]
 
     def _eval(self, z: CArray) -> tuple[FArray, CArray]:
-        with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
-            return self._eval_unchecked(z)
-
-    def _eval_unchecked(self, z: CArray) -> tuple[FArray, CArray]:
         # Variables u_0 = w (outer circle), u_j = r_j / (w - c_j); F = sum_j sum_n B_jn u_j^n,
         # F' = sum_j u_j'(w) sum_n n B_jn u_j^(n-1) with u_0' = 1, u_j' = -u_j^2 / r_j.
         # For h = Re F with F analytic, grad h = conj(F'); for log|w - q|, grad = 1/conj(w - q).

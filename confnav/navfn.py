@@ -213,12 +213,11 @@ class KoditschekRimon(NavigationFunction):
         e = w - self.goal
         g = (e * e.conjugate()).real
         beta, dbeta = obstacle_function(self.domain, w)
-        with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
-            big_d = g**self.k + beta
-            root = big_d ** (-1.0 / self.k)
-            phi = g * root
-            grad = (root / big_d) * (beta * 2.0 * e - (g / self.k) * dbeta)
-        outside = ~(beta >= 0) | (big_d <= 0)
+        big_d = g**self.k + beta
+        root = np.abs(big_d) ** (-1.0 / self.k)  # abs: no warning outside (NaN'd below)
+        phi = g * root
+        grad = (root / big_d) * (beta * 2.0 * e - (g / self.k) * dbeta)
+        outside = ~(beta >= 0)
         if np.any(outside):
             phi = np.where(outside, np.nan, phi)
             grad = np.where(outside, np.nan + 0j, grad)
