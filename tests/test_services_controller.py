@@ -174,7 +174,7 @@ def test_hot_swap_keeps_the_robot_moving(mem_net: InMemoryNetwork) -> None:
         g = cl.goal("r1")
         wait_for(lambda: ctl.counters["maps_installed"] == 1)
         cl.pose("r1", 0.0, 0.5)
-        wait_for(lambda: cl.answer("r1"))
+        assert wait_for(lambda: cl.answer("r1")).map_revision == "rev1"
         cl.cmds.clear()
         cl.status.clear()
         new_centers = [(0.3, -0.3)]
