@@ -20,6 +20,7 @@ import json  # noqa: E402
 import platform  # noqa: E402
 import time  # noqa: E402
 import warnings  # noqa: E402
+from concurrent.futures import ProcessPoolExecutor, as_completed  # noqa: E402
 from pathlib import Path  # noqa: E402
 from typing import Any  # noqa: E402
 
@@ -43,7 +44,8 @@ from confnav.shortest_path import ShortestPaths  # noqa: E402
 from confnav.sim import STALLED, TIMEOUT, simulate  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results" / "navigation.json"
-METHODS = ("KR k=6", "KR auto", "KR auto+floor", "harmonic", "harmonic+floor", "APF")
+METHODS = ("KR k=6", "KR auto", "harmonic", "APF")  # the four
+FLOOR_METHODS = ("KR auto+floor", "harmonic+floor")  # with --floor
 V_MIN = 0.25  # speed floor of "harmonic+floor" (direction kept; 0 for the plain law)
 V_MAX = 1.0
 T_MAX = 1e5
@@ -100,7 +102,7 @@ def solve_cached(ws: Any, cache: Path | None) -> Any:
 
 
 def run_case(
-    sc: Scenario, n: int, seed: int, cache: Path | None = None
+    sc: Scenario, n: int, seed: int, cache: Path | None = None, methods: tuple[str, ...] = METHODS
 ) -> tuple[dict[str, Any], Any]:
     ws = sc.workspace
     row: dict[str, Any] = {"scenario": sc.name, "n_obstacles": ws.n_obstacles, "methods": {}}
@@ -125,7 +127,7 @@ def run_case(
         }
     except ConfnavError as exc:
         row["map"] = {"error": f"{type(exc).__name__}: {exc}"}
-    for method in METHODS:
+    for method in methods:
         if cmap is None and method != "APF":
             row["methods"][method] = {"error": "no map"}
             continue
@@ -172,6 +174,16 @@ def run_case(
             "nfev": res.nfev,
         }
     return row, cmap
+
+
+def _case_worker(
+    sc: Scenario, n: int, seed: int, cache: Path | None, methods: tuple[str, ...]
+) -> tuple[dict[str, Any], float]:
+    t0 = time.perf_counter()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        row, _ = run_case(sc, n, seed, cache, methods)
+    return row, time.perf_counter() - t0
 
 
 def _timeit(fn: Any, reps: int) -> float:
@@ -262,23 +274,28 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", type=Path, default=RESULTS)
     ap.add_argument("--map-cache", type=Path, default=None, help="reuse solved maps here")
+    ap.add_argument("--jobs", type=int, default=2, help="scenarios in parallel (processes)")
+    ap.add_argument("--floor", action="store_true", help="also run the speed-floor variants")
     args = ap.parse_args()
     n = args.n or (100 if args.quick else 1000)
     t_start = time.perf_counter()
-    rows = []
-    default_map = None
-    for sc in scenarios():
-        t0 = time.perf_counter()
-        row, cmap = run_case(sc, n, args.seed, args.map_cache)
-        rows.append(row)
-        if sc.name == "default":
-            default_map = cmap
-        print(f"# {sc.name}: {time.perf_counter() - t0:.1f} s", flush=True)
-    cost: dict[str, Any] = (
-        control_step_cost(default_map, args.quick)
-        if default_map is not None
-        else {"error": {"default workspace map": float("nan")}}
-    )
+    methods = METHODS + (FLOOR_METHODS if args.floor else ())
+    cases = scenarios()
+    order = sorted(range(len(cases)), key=lambda i: -cases[i].workspace.n_obstacles)
+    rows: list[dict[str, Any]] = [{} for _ in cases]
+    with ProcessPoolExecutor(max_workers=args.jobs) as pool:
+        futures = {
+            pool.submit(_case_worker, cases[i], n, args.seed, args.map_cache, methods): i
+            for i in order
+        }
+        for fut in as_completed(futures):
+            i = futures[fut]
+            rows[i], dt = fut.result()
+            print(f"# {cases[i].name}: {dt:.1f} s", flush=True)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        default_map = solve_cached(default_scenario().workspace, args.map_cache)
+    cost = control_step_cost(default_map, args.quick)
     text = table(rows)
     print()
     print(text)
@@ -290,7 +307,9 @@ def main() -> None:
         "n_starts": n,
         "seed": args.seed,
         "v_max": V_MAX,
-        "v_min_floor": V_MIN,
+        "v_min_floor": V_MIN if args.floor else None,
+        "methods": list(methods),
+        "jobs": args.jobs,
         "t_max": T_MAX,
         "python": platform.python_version(),
         "machine": platform.machine(),
