@@ -234,7 +234,9 @@ def simulate(
     max_step : largest chord per step (workspace units).
     max_steps : step limit per robot.
     stall_distance : a robot that moved less than this during the second half of ``t_max``
-        is reported ``stalled`` (at a saddle or a spurious minimum), otherwise ``timeout``;
+        is reported ``stalled`` (no progress: at a saddle or a spurious minimum, or crawling
+        where the field is nearly zero, e.g. a flat phi_k or a tiny ``|T'|``), otherwise
+        ``timeout``;
         default: 10 goal tolerances.  A robot is also ``stalled`` as soon as it
         stays within ``stall_distance`` of one point for ``stall_steps`` accepted steps
         (chattering at a spurious minimum of a non-smooth field).
