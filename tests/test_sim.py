@@ -204,7 +204,7 @@ def test_harmonic_on_the_default_map(default_map: Any) -> None:
     assert cp.ok and cp.index_consistent, cp.message
     assert cp.saddles.size == default_map.radii.size == 4
     # phi o T -> 1 at the polygons: at 1e-3 from every edge midpoint, 1 - V <= |grad V| 1e-3
-    # (|grad V| < 20 at these points); the map is not used closer (its T' loses accuracy within ~1e-4)
+    # (|grad V| < 20 at these points); not closer: the map's T' loses accuracy within ~1e-4
     ws = default_map.workspace
     for j, p in enumerate(ws.boundaries):
         mid = 0.5 * (p + np.roll(p, -1))
