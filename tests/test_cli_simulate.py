@@ -100,3 +100,27 @@ def test_figures(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     for name in ("kr", "harmonic"):
         assert (tmp_path / f"navigation_{name}.png").stat().st_size > 50_000
     assert text.count("4 arrived") == 2
+
+
+def test_explicit_k_that_fails_the_check_is_reported(
+    room: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from confnav.control import Controller
+    from confnav.critical import CriticalPoints
+
+    spurious = CriticalPoints(
+        minima=np.array([0j, 0.5 + 0.5j]),
+        saddles=np.array([0.1j, 0.2j]),
+        maxima=np.zeros(0, complex),
+        degenerate=np.zeros(0, complex),
+        n_obstacles=1,
+        goal=0j,
+        n_candidates=10,
+    )
+    monkeypatch.setattr(Controller, "check", lambda self: spurious)
+    args = ["simulate", str(room), "--goal=-1,0", "--starts=1.5,0", "--navfn", "kr"]
+    assert main([*args, "--k", "3"]) == 0
+    err = capsys.readouterr().err
+    assert "k=3 is too small" in err and "1 spurious" in err
+    assert main([*args, "--k", "auto"]) == 0  # auto k is checked already: no extra check
+    assert "too small" not in capsys.readouterr().err
