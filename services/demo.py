@@ -317,8 +317,8 @@ def add_parser(sub: Any) -> None:
     p.add_argument(
         "--gain",
         type=float,
-        default=20.0,
-        help="K of the control law; with v_max it saturates far from the goal",
+        default=100.0,
+        help="K of the control law (default %(default)s; the command saturates at v_max)",
     )
     p.add_argument("--v-max", type=float, default=0.5)
     p.add_argument("--tolerance", type=float, default=0.02)
