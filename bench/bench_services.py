@@ -255,7 +255,7 @@ def main() -> int:
     try:
         procs["router"] = spawn("serve", "router", "--listen", ep, log=tmp / "router.log")
         time.sleep(1.0)
-        cache = HERE / "results" / "cache"
+        cache = Path(tempfile.gettempdir()) / "confnav-bench-cache"  # outside the repo
         procs["transform"] = spawn(
             "serve",
             "transform",
