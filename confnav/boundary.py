@@ -139,7 +139,9 @@ def graded_polygon(
 
 
 def param_points(
-    vertices: ComplexArray, nodes_per_side: NDArray[np.intp] | int, t: FloatArray,
+    vertices: ComplexArray,
+    nodes_per_side: NDArray[np.intp] | int,
+    t: FloatArray,
     p: int = GRADING_P,
 ) -> tuple[ComplexArray, ComplexArray]:
     """eta(t), eta'(t) at arbitrary parameters t (for off-node checks and plots)."""

@@ -108,6 +108,19 @@ def _trig_eval(samples: FloatArray, x: FloatArray) -> tuple[FloatArray, FloatArr
     return val, der
 
 
+def _trig_eval_complex(samples: ComplexArray, x: FloatArray) -> ComplexArray:
+    """Trigonometric interpolant of uniform periodic complex samples at x."""
+    m = samples.size
+    c = np.fft.fft(samples) / m
+    k = np.fft.fftfreq(m, 1.0 / m)
+    if m % 2 == 0:  # split the Nyquist mode symmetrically
+        c = np.r_[c, 0.5 * c[m // 2]]
+        c[m // 2] *= 0.5
+        k = np.r_[k, m // 2]
+    E = np.exp(1j * np.outer(x, k))
+    return np.asarray(E @ c)
+
+
 def _tail(samples: ComplexArray) -> float:
     """Relative size of the top eighth of the Fourier modes of a periodic sample."""
     c = np.abs(np.fft.fft(samples))
@@ -130,8 +143,18 @@ class _Boundary:
     du: FloatArray | None = None  # du/dt at each passive node
     m: int = SMOOTH_START
 
-    def own_map(self, alpha: complex) -> CurveMap:
-        """Solve the disk map of this boundary's current image and move it onto |w| = 1."""
+    def own_map(self, alpha: complex, others: ComplexArray) -> CurveMap:
+        """Solve the disk map of this boundary's current image and move it onto |w| = 1.
+
+        ``others`` are points of the other boundaries: if they have come closer to this curve
+        than its smooth grid resolves, the grid is refined first (exact FFT upsampling of an
+        analytic curve), so that the GNK solve and the Cauchy sums across the gap are accurate.
+        """
+        if self.S is not None:
+            assert self.dS is not None
+            m = _grid_size(_gap(self.S, others))
+            if m > self.S.size:
+                self.S, self.dS = _upsample(self.S, m), _upsample(self.dS, m)
         if self.S is None:  # first sweep: the polygon, on its graded mesh
             cm = (exterior_map if self.hole else interior_map)(self.P, self.dP, alpha)
             sgn = -1.0 if self.hole else 1.0
@@ -148,40 +171,95 @@ class _Boundary:
             delta, ddelta = _trig_eval(new - grid, self.u)
             self.du = self.du * (1.0 + ddelta)
             self.u = self.u + delta
-            if _tail(self.S) > SMOOTH_TAIL and self.m < SMOOTH_MAX:
-                self.m *= 2  # the curve needs a finer grid: regrid on the new circle
+            if _tail(self.S) > SMOOTH_TAIL:
+                self.m = min(2 * self.S.size, SMOOTH_MAX)  # under-resolved: at least double
         sgn = -1.0 if self.hole else 1.0
         self.P = np.exp(1j * sgn * self.u)
         self.dP = 1j * sgn * self.P * self.du
+        self.S = self.dS = None  # the grid is laid by regrid() once the others are mapped
+        return cm
+
+    def passive(self) -> tuple[ComplexArray, ComplexArray]:
+        """Passive nodes and their t-derivatives: the smooth curve at the parameters u."""
+        if self.S is None:
+            return self.P, self.dP
+        assert self.dS is not None and self.u is not None and self.du is not None
+        return _trig_eval_complex(self.S, self.u), _trig_eval_complex(self.dS, self.u) * self.du
+
+    def regrid(self, others: ComplexArray) -> None:
+        """Lay the smooth grid on the unit circle this boundary was just mapped to.
+
+        The later maps are analytic outside (hole) / inside (outer) the other boundaries, which
+        lie at relative distance delta from the circle; the Fourier coefficients of the curve
+        then decay like (1 + delta)^-j, so m = 2 ln(1/eps) / ln(1 + delta) points resolve it.
+        """
+        gap = float(np.min(np.abs(np.abs(others) - 1.0))) if others.size else 1.0
+        self.m = max(self.m, _grid_size(gap))
+        sgn = -1.0 if self.hole else 1.0
         grid = 2 * np.pi * np.arange(self.m) / self.m
         self.S = np.exp(1j * sgn * grid)
         self.dS = 1j * sgn * self.S
-        return cm
+
+
+def _grid_size(gap: float) -> int:
+    """Uniform grid size resolving an analytic curve whose nearest singularity is at relative
+    distance ``gap``: Fourier modes decay like (1 + gap)^-j (power of 2, capped)."""
+    need = 2 * np.log(1 / SMOOTH_TAIL) / np.log1p(max(gap, 1e-6))
+    return min(int(2 ** np.ceil(np.log2(max(need, SMOOTH_START)))), SMOOTH_MAX)
+
+
+def _gap(curve: ComplexArray, others: ComplexArray) -> float:
+    """Distance of ``others`` from a near-circular curve, relative to its radius."""
+    if others.size == 0:
+        return 1.0
+    c = curve.mean()
+    r = float(np.mean(np.abs(curve - c)))
+    return float(np.min(np.abs(np.abs(others - c) - r)) / r)
+
+
+def _upsample(samples: ComplexArray, m: int) -> ComplexArray:
+    """Values of the trigonometric interpolant of uniform periodic samples on m points."""
+    n = samples.size
+    c = np.fft.fft(samples)
+    pad = np.zeros(m, np.complex128)
+    h = n // 2
+    pad[:h] = c[:h]
+    pad[m - (n - h) :] = c[h:]
+    if n % 2 == 0:  # split the Nyquist mode symmetrically
+        pad[h] = 0.5 * c[h]
+        pad[m - h] = 0.5 * c[h]
+    return np.asarray(np.fft.ifft(pad) * (m / n))
+
+
+def _curves(bnds: list[_Boundary], skip: int) -> ComplexArray:
+    """One set of points per boundary but ``skip`` (smooth grid if any, else passive nodes)."""
+    pts = _others(bnds, skip)
+    return np.concatenate(pts) if pts else np.zeros(0, np.complex128)
+
+
+def _others(bnds: list[_Boundary], skip: int) -> list[ComplexArray]:
+    """What the maps move: the smooth grid of a boundary, or its passive nodes before it has
+    one (first sweep). Passive nodes on a smooth curve follow from their parameter ``u``."""
+    return [b.S if b.S is not None else b.P for j, b in enumerate(bnds) if j != skip]
 
 
 def _apply(cm: CurveMap, bnds: list[_Boundary], skip: int, pts: ComplexArray) -> ComplexArray:
     """Apply a curve map to every boundary but ``skip`` (passive and smooth) and to points."""
-    chunks: list[ComplexArray] = []
-    for j, b in enumerate(bnds):
-        if j != skip:
-            chunks.append(b.P)
-            if b.S is not None:
-                chunks.append(b.S)
-    z = np.concatenate([*chunks, pts])
+    z = np.concatenate([*_others(bnds, skip), pts])
     fz, dfz = cm.evaluate(z, derivative=True)
     assert dfz is not None
     off = 0
     for j, b in enumerate(bnds):
         if j == skip:
             continue
-        s = b.P.size
-        b.P, b.dP = fz[off : off + s], b.dP * dfz[off : off + s]
-        off += s
         if b.S is not None:
             assert b.dS is not None
             s = b.S.size
             b.S, b.dS = fz[off : off + s], b.dS * dfz[off : off + s]
-            off += s
+        else:
+            s = b.P.size
+            b.P, b.dP = fz[off : off + s], b.dP * dfz[off : off + s]
+        off += s
     return np.asarray(np.concatenate([fz[off:], dfz[off:]]))
 
 
@@ -220,7 +298,7 @@ def koebe_iteration(
     sweeps = 0
     for sweep in range(1, max_sweeps + 1):
         sweeps = sweep
-        P_old = [b.P.copy() for b in bnds]
+        u_old = [None if b.u is None else b.u.copy() for b in bnds]
         c_old = c.copy()
         for k in range(1, M + 1):
             b = bnds[k]
@@ -230,19 +308,26 @@ def koebe_iteration(
                     f"Koebe iteration lost track of obstacle {k - 1} in sweep {sweep} "
                     "(its tracked point left the boundary image)"
                 )
-            F = b.own_map(c[k - 1])
+            F = _own_map(b, c[k - 1], f"obstacle {k - 1}", meshes[k], _curves(bnds, k))
             gm_its += F.gmres_iterations
             others = np.concatenate([[a], np.delete(c, k - 1)])
             out = _apply(F, bnds, k, others)
+            b.regrid(_curves(bnds, k))
             img, dimg = out[: others.size], out[others.size :]
             a, D = complex(img[0]), D * complex(dimg[0])
             c = np.insert(img[1:], k - 1, 0.0)
-        f0 = bnds[0].own_map(a)
+        f0 = _own_map(bnds[0], a, "the outer boundary", meshes[0], _curves(bnds, 0))
         gm_its += f0.gmres_iterations
         out = _apply(f0, bnds, 0, c)
+        bnds[0].regrid(_curves(bnds, 0))
         c, D, a = out[: c.size], D * f0.scale, 0j
+        # change of the boundary correspondence (arc length moved on each circle, away from the
+        # vertices) and of the centres
+        radii = np.array([1.0] + [_radius(bnds[j], c[j - 1]) for j in range(1, M + 1)])
         change = max(
-            float(np.max(np.abs(b.P[b.mask] - p[b.mask]))) for b, p in zip(bnds, P_old, strict=True)
+            (float(np.max(np.abs(b.u[b.mask] - uo[b.mask]))) * r if uo is not None else 1.0)
+            for b, uo, r in zip(bnds, u_old, radii, strict=True)
+            if b.u is not None
         )
         if M:
             change = max(change, float(np.max(np.abs(c - c_old))))
@@ -251,7 +336,7 @@ def koebe_iteration(
             progress(sweep, change)
         if not np.isfinite(change):
             raise ConvergenceError(f"Koebe iteration produced non-finite values in sweep {sweep}")
-        radii = np.array([_radius(bnds[j], c[j - 1]) for j in range(1, M + 1)])
+        radii = radii[1:]
         if M and radii.min() < CROWDING_RADIUS:
             j = int(np.argmin(radii))
             raise CrowdingError(
@@ -268,23 +353,49 @@ def koebe_iteration(
             f"{history[-1]:.2e} > tol {tol:.1e})"
         )
     rot = complex(np.exp(-1j * np.angle(D)))
-    W = [b.P * rot for b in bnds]
-    dW = [b.dP * rot for b in bnds]
+    passive = [b.passive() for b in bnds]
+    W = [p[0] * rot for p in passive]
+    dW = [p[1] * rot for p in passive]
     c = c * rot
     radii = np.array([_radius(bnds[j], c[j - 1] / rot) for j in range(1, M + 1)])
     circ = float(np.max(np.abs(np.abs(W[0]) - 1.0)))
     for j in range(1, M + 1):
         circ = max(circ, float(np.max(np.abs(np.abs(W[j] - c[j - 1]) - radii[j - 1]))))
     return CircleDomainResult(
-        W=W, dW=dW, centers=c, radii=radii, derivative_at_anchor=float(abs(D)), sweeps=sweeps,
-        history=history, circularity=circ, gmres_iterations=gm_its,
-        smooth_nodes=[b.m for b in bnds], wall_time=time.perf_counter() - t0,
+        W=W,
+        dW=dW,
+        centers=c,
+        radii=radii,
+        derivative_at_anchor=float(abs(D)),
+        sweeps=sweeps,
+        history=history,
+        circularity=circ,
+        gmres_iterations=gm_its,
+        smooth_nodes=[b.m for b in bnds],
+        wall_time=time.perf_counter() - t0,
     )
+
+
+def _own_map(
+    b: _Boundary, alpha: complex, name: str, mesh: BoundaryMesh, others: ComplexArray
+) -> CurveMap:
+    """``b.own_map`` with failures reported against the boundary and its sharpest corner."""
+    try:
+        return b.own_map(alpha, others)
+    except ConvergenceError as exc:
+        v = mesh.eta[mesh.tau == 0]
+        turn = np.angle((np.roll(v, -1) - v) / (v - np.roll(v, 1)))
+        sharpest = float(np.degrees(np.min(np.pi - np.abs(turn))))
+        raise ConvergenceError(
+            f"{name}: the boundary integral equation did not converge ({exc}); its sharpest "
+            f"corner is {sharpest:.1f} degrees -- needle-like corners make the equation "
+            "nearly singular: blunt them or use more nodes"
+        ) from exc
 
 
 def _radius(b: _Boundary, center: complex) -> float:
     """Mean distance of the smooth grid (uniform in angle) from the centre."""
-    pts = b.S if b.S is not None else b.P[b.mask]
+    pts = b.S if b.S is not None else b.P
     return float(np.mean(np.abs(pts - center)))
 
 

@@ -40,7 +40,7 @@ import numpy as np
 
 from confnav.cauchy import cauchy_sums
 from confnav.geometry import ComplexArray
-from confnav.gnk import solve_gnk, spectral_derivative
+from confnav.gnk import solve_gnk, spectral_derivative, spectral_derivative_complex
 
 
 @dataclass(frozen=True)
@@ -82,11 +82,7 @@ class CurveMap:
         return self._evaluate_interior(z, derivative)
 
     def _sums(self, z: ComplexArray, charges: list[ComplexArray]) -> list[ComplexArray]:
-        """sum_k q_k/(eta_k - z) for each charge vector q.
-
-        All nodes stay sources, vertex nodes included: their spectral derivatives are not 0 but
-        balance the derivative errors of their neighbours (a spectral derivative sums to 0).
-        """
+        """sum_k q_k/(eta_k - z) for each charge vector q."""
         return [-c for c in cauchy_sums(self.eta, charges, z)]
 
     def _evaluate_interior(
@@ -103,7 +99,11 @@ class CurveMap:
     ) -> tuple[ComplexArray, ComplexArray | None]:
         a = self.alpha
         g = self.f / (self.eta - a)
-        dg = self.df / (self.eta - a) - self.f * self.deta / (self.eta - a) ** 2
+        # dg/dt as the spectral derivative of the samples of g: its weighted sum is exactly 0,
+        # as it must be for g'(z) = O(1/z^2) at infinity. (A dg assembled from the boundary
+        # formula is inexact at the corners, and F' = g + (z - a) g' then carries that error
+        # undiminished to every distance.)
+        dg = spectral_derivative_complex(g)
         w2pi = 2 * np.pi / self.eta.size / (2j * np.pi)
         charges = [g * self.deta, self.deta] + ([dg] if derivative else [])
         sums = self._sums(z, charges)
@@ -124,8 +124,14 @@ def interior_map(eta: ComplexArray, deta: ComplexArray, alpha: complex) -> Curve
     theta_dot = (deta / A).imag + spectral_derivative(sol.mu)
     f = A / np.abs(A) * np.exp(1j * sol.mu)
     return CurveMap(
-        eta=eta, deta=deta, f=f, df=1j * theta_dot * f, alpha=complex(alpha), exterior=False,
-        scale=float(np.exp(-sol.h)), gmres_iterations=sol.iterations,
+        eta=eta,
+        deta=deta,
+        f=f,
+        df=1j * theta_dot * f,
+        alpha=complex(alpha),
+        exterior=False,
+        scale=float(np.exp(-sol.h)),
+        gmres_iterations=sol.iterations,
     )
 
 
@@ -140,8 +146,14 @@ def exterior_map(eta: ComplexArray, deta: ComplexArray, alpha: complex) -> Curve
     theta_dot = (deta / (eta - alpha)).imag - spectral_derivative(sol.mu)
     f = (eta - alpha) / np.abs(eta - alpha) * np.exp(-1j * sol.mu + 1j * phi_inf.imag)
     return CurveMap(
-        eta=eta, deta=deta, f=f, df=1j * theta_dot * f, alpha=complex(alpha), exterior=True,
-        scale=float(np.exp(sol.h - phi_inf.real)), gmres_iterations=sol.iterations,
+        eta=eta,
+        deta=deta,
+        f=f,
+        df=1j * theta_dot * f,
+        alpha=complex(alpha),
+        exterior=True,
+        scale=float(np.exp(sol.h - phi_inf.real)),
+        gmres_iterations=sol.iterations,
     )
 
 

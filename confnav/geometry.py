@@ -152,15 +152,17 @@ class Workspace:
             pairs = tree.query(obs_polys, predicate="intersects")
             for a, b in zip(*pairs, strict=True):
                 if a < b:
-                    kind = "overlap" if obs_polys[a].overlaps(obs_polys[b]) or obs_polys[
-                        a
-                    ].contains(obs_polys[b]) or obs_polys[b].contains(obs_polys[a]) else "touch"
+                    kind = (
+                        "overlap"
+                        if obs_polys[a].overlaps(obs_polys[b])
+                        or obs_polys[a].contains(obs_polys[b])
+                        or obs_polys[b].contains(obs_polys[a])
+                        else "touch"
+                    )
                     raise WorkspaceError(
                         f"obstacles {a} and {b} {kind}: obstacles must be pairwise disjoint"
                     )
-        free = Polygon(
-            outer_poly.exterior.coords, [p.exterior.coords for p in obs_polys]
-        )
+        free = Polygon(outer_poly.exterior.coords, [p.exterior.coords for p in obs_polys])
         object.__setattr__(self, "outer", out)
         object.__setattr__(self, "obstacles", obs)
         object.__setattr__(self, "_free", free)
@@ -285,6 +287,7 @@ class Workspace:
 
     def to_geojson(self) -> dict[str, Any]:
         """A GeoJSON Feature: Polygon with holes (RFC 7946 ring orientation), anchor property."""
+
         def ring(z: ComplexArray, ccw: bool) -> list[list[float]]:
             zz = z if ccw else z[::-1]
             pts = _xy_list(zz)

@@ -57,6 +57,11 @@ def spectral_derivative(x: FloatArray) -> FloatArray:
     return np.fft.irfft(xh, n)
 
 
+def spectral_derivative_complex(x: ComplexArray) -> ComplexArray:
+    """d x / d t for complex samples of a smooth 2pi-periodic function (FFT)."""
+    return spectral_derivative(x.real) + 1j * spectral_derivative(x.imag)
+
+
 @dataclass(frozen=True)
 class GNKSolution:
     """Solution of one GNK equation: ``mu`` at the nodes, ``h``, and diagnostics."""
@@ -147,8 +152,14 @@ def solve_gnk(
         count[0] += 1
 
     mu, info = gmres(
-        lin, rhs, rtol=GMRES_RTOL, atol=0.0, restart=GMRES_RESTART, maxiter=GMRES_MAXITER,
-        callback=_cb, callback_type="pr_norm",
+        lin,
+        rhs,
+        rtol=GMRES_RTOL,
+        atol=0.0,
+        restart=GMRES_RESTART,
+        maxiter=GMRES_MAXITER,
+        callback=_cb,
+        callback_type="pr_norm",
     )
     if info > 0:
         res = np.linalg.norm(op.I_minus_N(mu) - rhs) / max(np.linalg.norm(rhs), 1e-300)
@@ -158,9 +169,17 @@ def solve_gnk(
             )
     hpt = 0.5 * (op.M(mu) - op.I_minus_N(gamma))
     return GNKSolution(
-        mu=np.asarray(mu), h=float(np.mean(hpt)), h_spread=float(np.ptp(hpt)),
+        mu=np.asarray(mu),
+        h=float(np.mean(hpt)),
+        h_spread=float(np.ptp(hpt)),
         iterations=count[0],
     )
 
 
-__all__ = ["GNKSolution", "alive_nodes", "solve_gnk", "spectral_derivative"]
+__all__ = [
+    "GNKSolution",
+    "alive_nodes",
+    "solve_gnk",
+    "spectral_derivative",
+    "spectral_derivative_complex",
+]

@@ -20,13 +20,13 @@ import warnings
 from collections.abc import Callable
 
 import numpy as np
-import shapely
 
-from confnav.boundary import GRADING_P, graded_polygon
+from confnav.boundary import graded_polygon
 from confnav.circledomain import CircleDomainResult, koebe_iteration
 from confnav.cmap import ConformalMap, SolveDiagnostics
 from confnav.errors import ConvergenceError, SolverError
 from confnav.geometry import Workspace, interior_point
+from confnav.meshing import plan_boundaries
 
 log = logging.getLogger(__name__)
 
@@ -39,54 +39,6 @@ LEVELS: tuple[int, ...] = (24, 36, 54, 80, 120, 180, 256)
 ASSUMED_ORDER = 5.0
 #: An estimated error above this makes the map useless for navigation: raise instead.
 UNUSABLE_ERROR = 1e-4
-#: Largest angle (in units of pi) seen from the free space at which the corner-singularity
-#: exponent p/a is taken as the reference; polygons with milder corners get fewer nodes.
-_REF_ANGLE = 1.75
-
-
-def corner_exponent(polygon: np.ndarray, hole: bool, p: int = GRADING_P) -> float:
-    """Convergence exponent p/a + 1 of the polygon's worst corner seen from the free space.
-
-    At a corner with free-space angle a*pi the map behaves like r^(1/a); on the graded mesh
-    that is tau^(p/a), and the trapezoidal rule converges like n^-(p/a + 1) (Kress 1990).
-    """
-    e_in = polygon - np.roll(polygon, 1)
-    e_out = np.roll(polygon, -1) - polygon
-    turn = np.angle(e_out / e_in)  # exterior turning angle, ccw polygon: > 0 at convex vertices
-    interior = np.pi - turn  # interior angle of the polygon
-    a = (2 * np.pi - interior) / np.pi if hole else interior / np.pi
-    return p / max(float(a.max()), 0.75) + 1.0
-
-
-def allocate_nodes(ws: Workspace, level: int, tol: float) -> list[np.ndarray]:
-    """Nodes per side for each boundary (outer first) at one refinement level.
-
-    Two requirements, the larger wins on each side:
-
-    * corners: the polygon's worst corner needs ``level^(e_ref/e)`` nodes per side for the same
-      error as the reference corner at ``level`` (e = :func:`corner_exponent`);
-    * proximity: a side at distance d from another boundary needs mesh spacing
-      ``h <= 2 pi d / ln(10/tol)`` for the Cauchy sums across the gap to reach ``tol`` (their
-      error decays like e^(-2 pi d/h)); mid-side spacing is ``2 len / n`` for Kress's sigma.
-    """
-    e_ref = GRADING_P / _REF_ANGLE + 1.0
-    polys = ws.boundaries
-    shp = [shapely.LinearRing(np.column_stack([z.real, z.imag])) for z in polys]
-    out = []
-    for j, z in enumerate(polys):
-        n_corner = max(12, int(np.ceil(level ** (e_ref / corner_exponent(z, j > 0)))))
-        others = shapely.union_all([g for i, g in enumerate(shp) if i != j]) if len(shp) > 1 else None
-        a, b = z, np.roll(z, -1)
-        segs = shapely.linestrings(np.stack([np.column_stack([a.real, a.imag]),
-                                             np.column_stack([b.real, b.imag])], axis=1))
-        length = np.abs(b - a)
-        if others is not None:
-            d = np.maximum(shapely.distance(segs, others), 1e-12)
-            n_prox = np.ceil(2 * length * np.log(10 / tol) / (2 * np.pi * d)).astype(int)
-        else:
-            n_prox = np.zeros(z.size, int)
-        out.append(np.maximum(n_corner, np.minimum(n_prox, 4 * level)).astype(np.intp))
-    return out
 
 
 class AccuracyWarning(UserWarning):
@@ -94,12 +46,14 @@ class AccuracyWarning(UserWarning):
 
 
 def _solve_level(
-    ws: Workspace, nodes_per_side: int, tol: float,
+    ws: Workspace,
+    nodes_per_side: int,
+    tol: float,
     progress: Callable[[str], None] | None,
 ) -> tuple[CircleDomainResult, list, list]:
-    alloc = allocate_nodes(ws, nodes_per_side, tol)
-    meshes = [graded_polygon(ws.outer, alloc[0])] + [
-        graded_polygon(o, n).reversed() for o, n in zip(ws.obstacles, alloc[1:], strict=True)
+    plans = plan_boundaries(ws, nodes_per_side, tol)
+    meshes = [graded_polygon(plans[0].vertices, plans[0].nodes)] + [
+        graded_polygon(p.vertices, p.nodes).reversed() for p in plans[1:]
     ]
     holes = [interior_point(o) for o in ws.obstacles]
 
@@ -175,10 +129,14 @@ def solve(
                 rho = max(rho, diff / prev_diff)
             rho = min(rho, 0.9)
             est = diff * rho / (1 - rho)
-            refinements.append({
-                "nodes_per_side": ns, "difference": diff, "error_estimate": est,
-                "wall_time": res.wall_time,
-            })
+            refinements.append(
+                {
+                    "nodes_per_side": ns,
+                    "difference": diff,
+                    "error_estimate": est,
+                    "wall_time": res.wall_time,
+                }
+            )
             best = (res, eta, deta, ns, est)
             prev_diff = diff
             if est <= tol:
@@ -193,15 +151,24 @@ def solve(
             f"(even at {ns} nodes per side)"
         )
     diag = SolveDiagnostics(
-        tol=tol, error_estimate=est, tol_met=est <= tol, sweeps=res.sweeps,
-        history=res.history, nodes=[e.size for e in eta], nodes_per_side=ns,
-        circularity=res.circularity, gmres_iterations=res.gmres_iterations,
-        wall_time=time.perf_counter() - t0, refinements=refinements,
+        tol=tol,
+        error_estimate=est,
+        tol_met=est <= tol,
+        sweeps=res.sweeps,
+        history=res.history,
+        nodes=[e.size for e in eta],
+        nodes_per_side=ns,
+        circularity=res.circularity,
+        gmres_iterations=res.gmres_iterations,
+        wall_time=time.perf_counter() - t0,
+        refinements=refinements,
     )
     if not diag.tol_met:
         warnings.warn(
             f"conformal map: estimated error {est:.1e} is above tol {tol:.1e} "
-            f"(finest mesh {ns} nodes per side)", AccuracyWarning, stacklevel=2,
+            f"(finest mesh {ns} nodes per side)",
+            AccuracyWarning,
+            stacklevel=2,
         )
     return ConformalMap(workspace, eta, deta, res.W, res.dW, res.centers, res.radii, diag)
 

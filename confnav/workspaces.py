@@ -30,26 +30,37 @@ def default_workspace() -> Workspace:
     rectangle = [[-1.1, 0.3], [-0.6, 0.3], [-0.6, 1.0], [-1.1, 1.0]]
     star6 = star(-1.05 - 0.8j, 0.4, 0.2, 6, np.pi / 2)
     u_shape = [
-        [-0.35, -1.2], [-0.15, -1.2], [-0.15, -0.6], [0.25, -0.6],
-        [0.25, -1.2], [0.45, -1.2], [0.45, -0.4], [-0.35, -0.4],
+        [-0.35, -1.2],
+        [-0.15, -1.2],
+        [-0.15, -0.6],
+        [0.25, -0.6],
+        [0.25, -1.2],
+        [0.45, -1.2],
+        [0.45, -0.4],
+        [-0.35, -0.4],
     ]
     return Workspace(outer, [triangle, rectangle, star6, u_shape], anchor=DEFAULT_GOAL)
 
 
 def _shape(kind: int, rng: np.random.Generator) -> ComplexArray:
     """A polygon of unit size around 0: triangle, rectangle, star or U (kind mod 4)."""
-    if kind == 0:
-        ang = np.sort(rng.uniform(0, 2 * np.pi, 3))
-        while np.max(np.diff(np.r_[ang, ang[0] + 2 * np.pi])) > 0.8 * 2 * np.pi / 1.5:
+    if kind == 0:  # a triangle with every angle >= 30 degrees (no needles)
+        while True:
             ang = np.sort(rng.uniform(0, 2 * np.pi, 3))
-        return np.asarray(np.exp(1j * ang), dtype=np.complex128)
+            arcs = np.diff(np.r_[ang, ang[0] + 2 * np.pi])  # inscribed angle = arc / 2
+            if arcs.min() >= np.radians(60):
+                return np.asarray(np.exp(1j * ang), dtype=np.complex128)
     if kind == 1:
         a, b = rng.uniform(0.35, 0.7, 2)
         return np.array([-a - 1j * b, a - 1j * b, a + 1j * b, -a + 1j * b])
     if kind == 2:
         return star(0j, 1.0, 0.5, int(rng.integers(4, 7)), rng.uniform(0, np.pi))
-    u = np.array([-1 - 1j, -0.5 - 1j, -0.5 + 0.3j, 0.5 + 0.3j, 0.5 - 1j, 1 - 1j, 1 + 0.8j,
-                  -1 + 0.8j]) * 0.8
+    u = (
+        np.array(
+            [-1 - 1j, -0.5 - 1j, -0.5 + 0.3j, 0.5 + 0.3j, 0.5 - 1j, 1 - 1j, 1 + 0.8j, -1 + 0.8j]
+        )
+        * 0.8
+    )
     return np.asarray(u, dtype=np.complex128)
 
 
