@@ -18,7 +18,7 @@ from conftest import confnav_cmd, square_definition, subprocess_env, wait_for
 from mcap.reader import make_reader
 from mcap.stream_reader import StreamReader
 
-from confnav.schemas import Goal, Pose, RobotStatus, encode
+from confnav.schemas import MODELS_BY_TYPE, Goal, Pose, RobotStatus, encode, schema_bytes
 from confnav.services import mcap_layout as L
 from confnav.services.bus import InMemoryNetwork
 from confnav.services.keys import Keys
@@ -86,6 +86,8 @@ def test_exact_counts_schemas_and_metadata(mem_net: InMemoryNetwork, tmp_path: P
         if schema is None:
             continue
         assert schema.encoding == L.SCHEMA_ENCODING and schema.name.startswith("confnav.")
+        # the channel schema is exactly what `confnav schemas export` writes
+        assert schema.data == schema_bytes(MODELS_BY_TYPE[schema.name])
         v = validators.setdefault(
             schema.id, jsonschema.Draft202012Validator(json.loads(schema.data))
         )
