@@ -30,9 +30,11 @@ from numpy.typing import ArrayLike
 
 from confnav.cauchy import cauchy_sums
 from confnav.errors import SerializationError
-from confnav.geometry import ComplexArray, FloatArray, Workspace
+from confnav.geometry import ComplexArray, FloatArray, Workspace, distance_to_boundary
 
 FORMAT = "confnav.map"
+#: Points this close to the boundary (relative to the workspace size) count as on it.
+BOUNDARY_RTOL = 1e-12
 FORMAT_VERSION = 1
 
 
@@ -156,9 +158,14 @@ class ConformalMap:
         dw = np.full(flat.size, np.nan + 0j) if derivative else None
         ok = np.isfinite(flat)
         if check:
-            ok &= np.asarray(
+            inside = np.asarray(
                 shapely.intersects_xy(self.workspace.polygon, flat.real, flat.imag), dtype=bool
             )
+            near = ok & ~inside  # boundary points rounded to just outside still count
+            if near.any():
+                d = distance_to_boundary(self.workspace, flat[near])
+                inside[near] = d <= BOUNDARY_RTOL * self.workspace.diameter
+            ok &= inside
         idx = np.flatnonzero(ok)
         if idx.size:
             pts = flat[idx]

@@ -86,13 +86,13 @@ def _check_simple(z: ComplexArray, name: str, scale: float) -> ComplexArray:
             f"{name}: vertex {int(spikes[0])} is collinear-degenerate "
             "(the boundary doubles back on itself)"
         )
-    area = signed_area(z)
-    if abs(area) <= tiny * scale:
-        raise WorkspaceError(f"{name}: polygon has zero area (all vertices collinear)")
     ring = LinearRing(np.column_stack([z.real, z.imag]))
     if not ring.is_simple:
         why = explain_validity(Polygon(ring))
         raise WorkspaceError(f"{name}: polygon is self-intersecting ({why})")
+    area = signed_area(z)
+    if abs(area) <= tiny * scale:
+        raise WorkspaceError(f"{name}: polygon has zero area (all vertices collinear)")
     return z if area > 0 else z[::-1].copy()
 
 

@@ -1,0 +1,173 @@
+"""The conformal map against exact answers (DESIGN.md sec. 4) and conformal invariants.
+
+Tolerances are the accuracy the solver is asked for (or the stated exact-answer target), not
+loosened to pass: each one would fail if the map were wrong in the 10th digit.
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+
+import confnav
+from confnav import ConformalMap, SerializationError, SolverError, Workspace
+from confnav.boundary import graded_polygon
+from confnav.diskmap import exterior_map, interior_map
+from confnav.workspaces import default_workspace
+
+SQUARE = [[-1, -1], [1, -1], [1, 1], [-1, 1]]
+
+
+def _solve(ws: Workspace, tol: float) -> ConformalMap:
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", confnav.AccuracyWarning)  # tol must be met
+        return confnav.solve(ws, tol=tol)
+
+
+@pytest.fixture(scope="module")
+def default_map() -> ConformalMap:
+    return _solve(default_workspace(), 1e-10)
+
+
+# ---------------------------------------------------------------- exact answers
+def test_square_onto_disk() -> None:
+    m = _solve(Workspace(SQUARE, anchor=[0, 0]), 1e-12)
+    # f'(0) = Gamma(1/4)^2 / (8 sqrt(pi)); the vertex 1+i goes to e^{i pi/4}
+    assert abs(m.dT(0) - 0.9270373386506859) < 1e-11
+    assert abs(m.T(1 + 1j) - np.exp(1j * np.pi / 4)) < 1e-12
+    assert abs(m.T(0)) < 1e-12
+
+
+def test_rectangle_onto_disk() -> None:
+    m = _solve(Workspace([[-2, -1], [2, -1], [2, 1], [-2, 1]], anchor=[0, 0]), 1e-12)
+    # f'(0) = (1 + k) K / (2a) with k = 1/sqrt(2) for the 4x2 rectangle
+    assert abs(m.dT(0) - 0.7912758636118579) < 1e-11
+
+
+def test_exterior_of_square_capacity() -> None:
+    mesh = graded_polygon(np.array([-1 - 1j, 1 - 1j, 1 + 1j, -1 + 1j]), 160).reversed()
+    F = exterior_map(mesh.eta, mesh.deta, 0j)
+    # capacity Gamma(1/4)^2 / (2 pi^(3/2)); F'(inf) = 1/capacity
+    assert abs(1 / F.scale - 1.1803405990160960) < 1e-10
+
+
+def test_interior_map_boundary_values_lie_on_the_circle() -> None:
+    mesh = graded_polygon(np.array([0, 2, 2 + 1j, 1j]) + 0j, 48)
+    f = interior_map(mesh.eta, mesh.deta, 1 + 0.5j)
+    np.testing.assert_allclose(np.abs(f.f), 1.0, atol=1e-15)
+    assert f.scale > 0
+
+
+@pytest.mark.parametrize(("a", "capacity"), [(0.25, 4.844419548422175), (0.5, 10.234092569368050)])
+def test_square_frame_onto_annulus(a: float, capacity: float) -> None:
+    ws = Workspace(SQUARE, [[[-a, -a], [a, -a], [a, a], [-a, a]]], anchor=[(1 + a) / 2, 0])
+    m = _solve(ws, 1e-11)
+    c, r = complex(m.centers[0]), float(m.radii[0])
+    rhs = (1 + r * r - abs(c) ** 2) / (2 * r)  # (1 + q^2)/(2q) for the equivalent annulus
+    q = rhs - np.sqrt(rhs * rhs - 1)
+    assert abs(2 * np.pi / np.log(1 / q) - capacity) < 1e-10
+
+
+def test_default_workspace_matches_design_reference(default_map: ConformalMap) -> None:
+    m = default_map
+    # DESIGN.md sec. 5 (two independent solves, 7 digits)
+    np.testing.assert_allclose(m.radii, [0.1420658, 0.1593344, 0.1413721, 0.2170942], atol=6e-8)
+    np.testing.assert_allclose(
+        m.centers,
+        [
+            0.4227371 + 0.2466153j,
+            -0.4018952 + 0.2782662j,
+            -0.4826272 - 0.3720324j,
+            0.0160941 - 0.3776479j,
+        ],
+        atol=6e-8,
+    )
+    assert abs(m.dT(0) - 0.4445664) < 6e-8
+    assert abs(m.dT(0).imag) < 1e-10  # T'(anchor) > 0: the final rotation was applied
+    assert m.diagnostics.tol_met and m.diagnostics.error_estimate <= 1e-10
+
+
+# ---------------------------------------------------------------- invariants of the map
+def test_boundary_points_off_the_nodes_land_on_their_circles(default_map: ConformalMap) -> None:
+    m = default_map
+    ws = m.workspace
+    for j, poly in enumerate(ws.boundaries):
+        v = poly
+        # points at 1/3 and 0.61 of every side: never nodes of the graded mesh
+        pts = np.concatenate([v + s * (np.roll(v, -1) - v) for s in (1 / 3, 0.61)])
+        w = m.T(pts)
+        if j == 0:
+            np.testing.assert_allclose(np.abs(w), 1.0, atol=1e-9)
+        else:
+            np.testing.assert_allclose(np.abs(w - m.centers[j - 1]), m.radii[j - 1], atol=1e-9)
+
+
+def test_inverse_undoes_T(default_map: ConformalMap) -> None:
+    ws = default_map.workspace
+    rng = np.random.default_rng(1)
+    z = rng.uniform(-2, 2, 400) + 1j * rng.uniform(-2, 2, 400)
+    z = z[ws.clearance(z) > 0.02]
+    w = default_map.T(z)
+    assert np.all(default_map.in_circle_domain(w))
+    np.testing.assert_allclose(default_map.inverse(w), z, atol=1e-9)
+
+
+def test_derivative_is_the_complex_derivative(default_map: ConformalMap) -> None:
+    z = np.array([0.3 + 0.2j, -1.5 + 1.2j, 1.2 - 1.3j, 0.05 - 0.5j])
+    h = 1e-5
+    for step in (h, 1j * h):  # Cauchy-Riemann: the same derivative in both directions
+        fd = (default_map.T(z + step) - default_map.T(z - step)) / (2 * step)
+        np.testing.assert_allclose(default_map.dT(z), fd, rtol=1e-8)
+
+
+def test_points_outside_the_free_space_give_nan(default_map: ConformalMap) -> None:
+    w = default_map.T(np.array([3 + 0j, 0.85 + 0.6j, np.nan]))  # outside, in the triangle, NaN
+    assert np.all(np.isnan(w))
+    assert np.isnan(default_map.inverse(np.array([2 + 0j, default_map.centers[0]]))).all()
+
+
+def test_anchor_change_is_a_mobius_self_map_of_the_disk() -> None:
+    # Moving the anchor composes T with the disk automorphism that sends T(b) to 0:
+    # T_b = e^{i t} (T_a - beta)/(1 - conj(beta) T_a), beta = T_a(b). Circles stay circles.
+    obstacles = [
+        [[0.2, 0.1], [0.6, 0.1], [0.6, 0.5], [0.2, 0.5]],
+        [[-0.7, -0.6], [-0.2, -0.5], [-0.5, -0.1]],
+    ]
+    ma = _solve(Workspace(SQUARE, obstacles, anchor=[0, 0]), 1e-9)
+    mb = _solve(Workspace(SQUARE, obstacles, anchor=[-0.5, 0.6]), 1e-9)
+    beta = complex(ma.T(-0.5 + 0.6j))
+    z = np.array([0.7 - 0.7j, -0.1 + 0.8j, 0.9 + 0.9j, -0.9 - 0.2j])
+    mob = (ma.T(z) - beta) / (1 - np.conj(beta) * ma.T(z))
+    rot = mb.T(z) / mob
+    np.testing.assert_allclose(np.abs(rot), 1.0, atol=1e-8)
+    np.testing.assert_allclose(rot, rot[0], atol=1e-8)  # one rotation for every point
+
+
+def test_serialisation_is_lossless(default_map: ConformalMap) -> None:
+    again = ConformalMap.from_json(default_map.to_json())
+    z = np.array([0.3 + 0.2j, -1.5 + 1.2j, 1.2 - 1.3j])
+    assert np.array_equal(again.T(z), default_map.T(z))
+    assert np.array_equal(again.dT(z), default_map.dT(z))
+    assert np.array_equal(again.inverse(default_map.T(z)), default_map.inverse(default_map.T(z)))
+    assert again.revision == default_map.revision
+    assert np.array_equal(again.centers, default_map.centers)
+
+
+def test_serialisation_rejects_bad_input(default_map: ConformalMap) -> None:
+    d = default_map.to_dict()
+    with pytest.raises(SerializationError, match="not a confnav map"):
+        ConformalMap.from_dict({"format": "x"})
+    with pytest.raises(SerializationError, match="version"):
+        ConformalMap.from_dict({**d, "version": 99})
+    bad = {**d, "radii": {"dtype": "<f8", "data": "!!!"}}
+    with pytest.raises(SerializationError, match="radii"):
+        ConformalMap.from_dict(bad)
+    with pytest.raises(SerializationError, match="not valid JSON"):
+        ConformalMap.from_json("{")
+
+
+def test_bad_tolerance_is_rejected() -> None:
+    with pytest.raises(SolverError, match="tol"):
+        confnav.solve(Workspace(SQUARE, anchor=[0, 0]), tol=0)
