@@ -1,0 +1,586 @@
+"""Core benchmark: accuracy and cost of ``confnav.solve`` (the conformal map onto a circle domain).
+
+    python bench/bench_core.py [--quick] [--runs 3] [--out bench/results/core.json]
+
+1. reference: a much finer solve of the default workspace (``_solve_level(ws, 256, 1e-12)``),
+   checked against the 7-digit values of DESIGN.md sec. 5;
+2. accuracy table for tol = 1e-6 .. 1e-12: wall time (median over fresh solves), true error of
+   centres and radii against the reference, the solver's own error estimate and whether it bounds
+   the true error, tol_met, level reached, nodes, sweeps;
+3. node-count scaling over ``confnav.solver.LEVELS`` (error and time exponents, least squares);
+4. obstacle-count scaling on ``mixed_obstacles(n, seed=0)`` at tol 1e-8 (time exponent in n);
+5. targets (issue): default workspace to 1e-10 in <= 1 s; 50 mixed obstacles to 1e-8 in <= 10 s.
+
+Wall times are real (perf_counter) times on a shared machine: the load average is recorded at the
+start and for every row, because other processes may use the same cores.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import hashlib
+import json
+import os
+import platform
+import statistics
+import subprocess
+import sys
+import time
+import warnings
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import scipy
+
+import confnav
+from confnav.errors import ConfnavError
+from confnav.solver import LEVELS, AccuracyWarning, _solve_level
+from confnav.workspaces import default_workspace, mixed_obstacles
+
+RESULTS = Path(__file__).resolve().parent / "results" / "core.json"
+REF_LEVEL = 256
+REF_TOL = 1e-12
+TOLS_FULL = (1e-6, 1e-7, 1e-8, 1e-9, 1e-10, 1e-11, 1e-12)
+TOLS_QUICK = (1e-6, 1e-8, 1e-10)
+OBSTACLES_FULL = (1, 2, 5, 10, 20, 50)
+OBSTACLES_QUICK = (1, 5, 10)
+OBSTACLE_TOL = 1e-8
+TARGET_DEFAULT = (1e-10, 1.0)  # (tol, seconds)
+TARGET_OBSTACLES = (50, 1e-8, 10.0)  # (n, tol, seconds)
+
+# DESIGN.md sec. 5: two independent careful solves (triangle, rectangle, star, U).
+DESIGN_RADII = np.array([0.1420658, 0.1593344, 0.1413721, 0.2170942])
+DESIGN_CENTERS = np.array(
+    [
+        0.4227371 + 0.2466153j,
+        -0.4018952 + 0.2782662j,
+        -0.4826272 - 0.3720324j,
+        0.0160941 - 0.3776479j,
+    ]
+)
+DESIGN_DERIVATIVE = 0.4445664
+
+
+def load1() -> float:
+    return float(os.getloadavg()[0])
+
+
+def code_info() -> dict[str, Any]:
+    """Which solver code was measured: commit, uncommitted core files, hash of confnav/*.py."""
+    pkg = Path(confnav.__file__).resolve().parent
+    h = hashlib.sha256()
+    for f in sorted(pkg.glob("*.py")):
+        h.update(f.name.encode() + b"\0" + f.read_bytes())
+
+    def git(*cmd: str) -> str:
+        try:
+            return subprocess.run(
+                ["git", *cmd], cwd=pkg, capture_output=True, text=True, timeout=10
+            ).stdout
+        except (OSError, subprocess.SubprocessError):
+            return ""
+
+    dirty = [ln[3:] for ln in git("status", "--porcelain", "--", ".").splitlines()]
+    return {
+        "commit": git("rev-parse", "HEAD").strip(),
+        "dirty_files": dirty,
+        "source_sha256": h.hexdigest(),
+    }
+
+
+def machine_info() -> dict[str, Any]:
+    return {
+        "cpu_count": os.cpu_count(),
+        "platform": platform.platform(),
+        "python": sys.version.split()[0],
+        "numpy": np.__version__,
+        "scipy": scipy.__version__,
+        "date": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
+        "loadavg_start": list(os.getloadavg()),
+        "threads_env": {
+            v: os.environ.get(v)
+            for v in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
+        },
+    }
+
+
+def fit_exponent(x: list[float], y: list[float]) -> float | None:
+    """Least-squares slope of log y against log x (None with fewer than two usable points)."""
+    pts = [(a, b) for a, b in zip(x, y, strict=True) if a > 0 and b > 0]
+    if len(pts) < 2:
+        return None
+    lx = np.log([p[0] for p in pts])
+    ly = np.log([p[1] for p in pts])
+    return float(np.polyfit(lx, ly, 1)[0])
+
+
+def errors_vs(centers: np.ndarray, radii: np.ndarray, ref: dict[str, Any]) -> dict[str, float]:
+    ec = float(np.max(np.abs(centers - ref["centers_c"])))
+    er = float(np.max(np.abs(radii - ref["radii_a"])))
+    return {"error_centers": ec, "error_radii": er, "error": max(ec, er)}
+
+
+def fmt(x: float | None, spec: str = ".1e") -> str:
+    if x is None:
+        return "-"
+    return format(x, spec)
+
+
+def table(headers: list[str], rows: list[list[str]]) -> str:
+    widths = [
+        max(len(h), *(len(r[i]) for r in rows)) if rows else len(h) for i, h in enumerate(headers)
+    ]
+    line = "  ".join(h.rjust(w) for h, w in zip(headers, widths, strict=True))
+    out = [line, "-" * len(line)]
+    out += ["  ".join(c.rjust(w) for c, w in zip(r, widths, strict=True)) for r in rows]
+    return "\n".join(out)
+
+
+# --------------------------------------------------------------------------------------------
+# 1. reference
+# --------------------------------------------------------------------------------------------
+
+
+def reference() -> dict[str, Any]:
+    ws = default_workspace()
+    la = load1()
+    t0 = time.perf_counter()
+    res, eta, _ = _solve_level(ws, REF_LEVEL, REF_TOL, None)
+    wall = time.perf_counter() - t0
+    centers = np.asarray(res.centers)
+    radii = np.asarray(res.radii)
+    deriv = float(abs(res.derivative_at_anchor))
+    dev_r = float(np.max(np.abs(radii - DESIGN_RADII)))
+    dev_c = float(np.max(np.abs(centers - DESIGN_CENTERS)))
+    dev_d = abs(deriv - DESIGN_DERIVATIVE)
+    agree = bool(
+        np.all(np.round(radii, 7) == DESIGN_RADII)
+        and np.all(np.round(centers.real, 7) == DESIGN_CENTERS.real)
+        and np.all(np.round(centers.imag, 7) == DESIGN_CENTERS.imag)
+        and round(deriv, 7) == DESIGN_DERIVATIVE
+    )
+    return {
+        "level": REF_LEVEL,
+        "tol": REF_TOL,
+        "nodes": [int(e.size) for e in eta],
+        "total_nodes": int(sum(e.size for e in eta)),
+        "sweeps": int(res.sweeps),
+        "wall_time": wall,
+        "loadavg1": la,
+        "centers": [[float(c.real), float(c.imag)] for c in centers],
+        "radii": [float(r) for r in radii],
+        "abs_derivative_at_anchor": deriv,
+        "design_max_deviation": {"radii": dev_r, "centers": dev_c, "derivative": dev_d},
+        "design_agrees_7_digits": agree,
+        "centers_c": centers,
+        "radii_a": radii,
+    }
+
+
+def print_reference(ref: dict[str, Any]) -> None:
+    names = ("triangle", "rectangle", "star", "U")
+    print(
+        f"Reference: _solve_level(default, {ref['level']}, {ref['tol']:.0e}): "
+        f"{ref['total_nodes']} nodes, {ref['sweeps']} sweeps, {ref['wall_time']:.2f} s"
+    )
+    rows = []
+    for k, name in enumerate(names):
+        c = ref["centers_c"][k]
+        rows.append(
+            [
+                name,
+                f"{ref['radii_a'][k]:.12f}",
+                f"{DESIGN_RADII[k]:.7f}",
+                f"{c.real:+.12f}{c.imag:+.12f}i",
+                f"{DESIGN_CENTERS[k].real:+.7f}{DESIGN_CENTERS[k].imag:+.7f}i",
+            ]
+        )
+    print(table(["obstacle", "radius", "DESIGN", "centre", "DESIGN"], rows))
+    dev = ref["design_max_deviation"]
+    print(
+        f"|T'(anchor)| = {ref['abs_derivative_at_anchor']:.12f} (DESIGN {DESIGN_DERIVATIVE})\n"
+        f"max deviation from DESIGN.md sec. 5: radii {dev['radii']:.1e}, centres "
+        f"{dev['centers']:.1e}, |T'| {dev['derivative']:.1e}; agree to all 7 digits: "
+        f"{'yes' if ref['design_agrees_7_digits'] else 'NO'}\n"
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# 2. accuracy table
+# --------------------------------------------------------------------------------------------
+
+
+def accuracy(ref: dict[str, Any], tols: tuple[float, ...], runs: int) -> list[dict[str, Any]]:
+    ws = default_workspace()
+    rows = []
+    for tol in tols:
+        times: list[float] = []
+        loads: list[float] = []
+        cmap = None
+        warned: list[str] = []
+        for _ in range(runs):
+            loads.append(load1())
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always", AccuracyWarning)
+                t0 = time.perf_counter()
+                cmap = confnav.solve(ws, tol)  # fresh solve every run (no cache in solve)
+                times.append(time.perf_counter() - t0)
+            warned = [str(w.message) for w in caught if issubclass(w.category, AccuracyWarning)]
+        assert cmap is not None
+        d = cmap.diagnostics
+        err = errors_vs(np.asarray(cmap.centers), np.asarray(cmap.radii), ref)
+        row = {
+            "tol": tol,
+            "wall_time_median": statistics.median(times),
+            "wall_times": times,
+            "loadavg1": loads,
+            **err,
+            "error_estimate": float(d.error_estimate),
+            "estimate_bounds_error": bool(d.error_estimate >= err["error"]),
+            "tol_met": bool(d.tol_met),
+            "true_error_below_tol": bool(err["error"] <= tol),
+            "nodes_per_side": int(d.nodes_per_side),
+            "nodes": [int(n) for n in d.nodes],
+            "total_nodes": int(sum(d.nodes)),
+            "sweeps": int(d.sweeps),
+            "gmres_iterations": int(getattr(d, "gmres_iterations", 0)),
+            "refinements": [dict(r) for r in d.refinements],
+            "warning": warned[0] if warned else None,
+        }
+        rows.append(row)
+        print(
+            f"  tol {tol:.0e}: {row['wall_time_median']:.2f} s, error {err['error']:.1e}, "
+            f"estimate {row['error_estimate']:.1e}, tol_met {row['tol_met']}",
+            flush=True,
+        )
+    return rows
+
+
+def print_accuracy(rows: list[dict[str, Any]], runs: int) -> None:
+    print(f"\nAccuracy, default workspace (wall time = median of {runs} fresh solve(s))")
+    body = []
+    for r in rows:
+        body.append(
+            [
+                f"{r['tol']:.0e}",
+                f"{r['wall_time_median']:.2f}",
+                fmt(r["error_centers"]),
+                fmt(r["error_radii"]),
+                fmt(r["error_estimate"]),
+                "yes" if r["estimate_bounds_error"] else "NO",
+                "yes" if r["tol_met"] else "NO",
+                "yes" if r["true_error_below_tol"] else "NO",
+                str(r["nodes_per_side"]),
+                str(r["total_nodes"]),
+                str(r["sweeps"]),
+                f"{max(r['loadavg1']):.1f}",
+            ]
+        )
+    print(
+        table(
+            [
+                "tol",
+                "time s",
+                "err c",
+                "err r",
+                "estimate",
+                "est>=err",
+                "tol_met",
+                "err<=tol",
+                "level",
+                "nodes",
+                "sweeps",
+                "load1",
+            ],
+            body,
+        )
+    )
+    for r in rows:
+        if r["warning"]:
+            print(f"  tol {r['tol']:.0e}: AccuracyWarning: {r['warning']}")
+
+
+# --------------------------------------------------------------------------------------------
+# 3. node-count scaling
+# --------------------------------------------------------------------------------------------
+
+
+def node_scaling(ref: dict[str, Any], levels: tuple[int, ...]) -> dict[str, Any]:
+    ws = default_workspace()
+    rows = []
+    for level in levels:
+        la = load1()
+        if level == REF_LEVEL:  # the reference itself: reuse its solve, error 0 by definition
+            rows.append(
+                {
+                    "level": level,
+                    "total_nodes": ref["total_nodes"],
+                    "error": None,
+                    "error_centers": None,
+                    "error_radii": None,
+                    "wall_time": ref["wall_time"],
+                    "sweeps": ref["sweeps"],
+                    "loadavg1": ref["loadavg1"],
+                    "note": "reference",
+                }
+            )
+            continue
+        t0 = time.perf_counter()
+        res, eta, _ = _solve_level(ws, level, REF_TOL, None)
+        wall = time.perf_counter() - t0
+        err = errors_vs(np.asarray(res.centers), np.asarray(res.radii), ref)
+        rows.append(
+            {
+                "level": level,
+                "total_nodes": int(sum(e.size for e in eta)),
+                **err,
+                "wall_time": wall,
+                "sweeps": int(res.sweeps),
+                "loadavg1": la,
+                "note": "",
+            }
+        )
+        print(
+            f"  level {level}: {rows[-1]['total_nodes']} nodes, error {err['error']:.1e}, "
+            f"{wall:.2f} s",
+            flush=True,
+        )
+    fit_rows = [r for r in rows if r["error"] is not None]
+    # Points closer to the reference than its own accuracy (~1e-11) only measure the reference.
+    fit_err = [r for r in fit_rows if r["error"] > 1e-10]
+    return {
+        "rows": rows,
+        "error_exponent": fit_exponent(
+            [r["total_nodes"] for r in fit_err], [r["error"] for r in fit_err]
+        ),
+        "error_exponent_points": [r["level"] for r in fit_err],
+        "time_exponent": fit_exponent(
+            [r["total_nodes"] for r in rows], [r["wall_time"] for r in rows]
+        ),
+    }
+
+
+def print_nodes(sc: dict[str, Any]) -> None:
+    print("\nNode-count scaling, default workspace, _solve_level(ws, level, 1e-12)")
+    body = [
+        [
+            str(r["level"]),
+            str(r["total_nodes"]),
+            fmt(r["error_centers"]) if r["error"] is not None else "ref",
+            fmt(r["error_radii"]) if r["error"] is not None else "ref",
+            f"{r['wall_time']:.2f}",
+            str(r["sweeps"]),
+            f"{r['loadavg1']:.1f}",
+        ]
+        for r in sc["rows"]
+    ]
+    print(table(["level", "nodes", "err c", "err r", "time s", "sweeps", "load1"], body))
+    print(
+        f"fit: error ~ nodes^{fmt(sc['error_exponent'], '.2f')} "
+        f"(levels {sc['error_exponent_points']}), "
+        f"time ~ nodes^{fmt(sc['time_exponent'], '.2f')} (all levels)"
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# 4. obstacle-count scaling
+# --------------------------------------------------------------------------------------------
+
+
+def obstacle_scaling(counts: tuple[int, ...], tol: float) -> dict[str, Any]:
+    rows = []
+    for n in counts:
+        ws = mixed_obstacles(n, seed=0)
+        la = load1()
+        row: dict[str, Any] = {"n": n, "tol": tol, "loadavg1": la}
+        t0 = time.perf_counter()
+        try:
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always", AccuracyWarning)
+                cmap = confnav.solve(ws, tol)
+        except ConfnavError as exc:
+            row.update(status=f"{type(exc).__name__}: {exc}", wall_time=time.perf_counter() - t0)
+        else:
+            wall = time.perf_counter() - t0
+            d = cmap.diagnostics
+            warned = [str(w.message) for w in caught if issubclass(w.category, AccuracyWarning)]
+            row.update(
+                status="ok" if d.tol_met else "tol not met",
+                wall_time=wall,
+                error_estimate=float(d.error_estimate),
+                tol_met=bool(d.tol_met),
+                nodes_per_side=int(d.nodes_per_side),
+                total_nodes=int(sum(d.nodes)),
+                sweeps=int(d.sweeps),
+                min_radius=float(np.min(cmap.radii)),
+                refinements=[dict(r) for r in d.refinements],
+                warning=warned[0] if warned else None,
+            )
+        rows.append(row)
+        print(f"  n={n}: {row['status']}, {row['wall_time']:.2f} s", flush=True)
+    ok = [r for r in rows if "total_nodes" in r]
+    return {
+        "rows": rows,
+        "time_exponent": fit_exponent([r["n"] for r in ok], [r["wall_time"] for r in ok]),
+    }
+
+
+def print_obstacles(sc: dict[str, Any]) -> None:
+    print(f"\nObstacle-count scaling, mixed_obstacles(n, seed=0), tol {OBSTACLE_TOL:.0e}")
+    body = []
+    for r in sc["rows"]:
+        solved = "total_nodes" in r
+        body.append(
+            [
+                str(r["n"]),
+                f"{r['wall_time']:.2f}",
+                fmt(r.get("error_estimate")),
+                ("yes" if r["tol_met"] else "NO") if solved else "-",
+                str(r["nodes_per_side"]) if solved else "-",
+                str(r["total_nodes"]) if solved else "-",
+                str(r["sweeps"]) if solved else "-",
+                fmt(r.get("min_radius"), ".3e"),
+                f"{r['loadavg1']:.1f}",
+                r["status"] if len(r["status"]) < 60 else r["status"][:57] + "...",
+            ]
+        )
+    print(
+        table(
+            [
+                "n",
+                "time s",
+                "estimate",
+                "tol_met",
+                "level",
+                "nodes",
+                "sweeps",
+                "min r",
+                "load1",
+                "status",
+            ],
+            body,
+        )
+    )
+    print(f"fit: time ~ n^{fmt(sc['time_exponent'], '.2f')}")
+
+
+# --------------------------------------------------------------------------------------------
+# 5. targets
+# --------------------------------------------------------------------------------------------
+
+
+def targets(acc: list[dict[str, Any]], obs: dict[str, Any]) -> list[dict[str, Any]]:
+    out = []
+    tol, limit = TARGET_DEFAULT
+    hit = [r for r in acc if r["tol"] == tol]
+    entry: dict[str, Any] = {"name": f"default workspace to {tol:.0e}", "limit_s": limit}
+    if hit:
+        t = hit[0]["wall_time_median"]
+        entry.update(
+            measured_s=t,
+            ratio=t / limit,
+            tol_met=hit[0]["tol_met"],
+            status="PASS" if t <= limit and hit[0]["tol_met"] else "MISS",
+        )
+    else:
+        entry.update(measured_s=None, ratio=None, status="NOT MEASURED")
+    out.append(entry)
+    n, tol, limit = TARGET_OBSTACLES
+    hit = [r for r in obs["rows"] if r["n"] == n]
+    entry = {"name": f"{n} mixed obstacles to {tol:.0e}", "limit_s": limit}
+    if hit:
+        r = hit[0]
+        t = r["wall_time"]
+        ok = r.get("tol_met", False)
+        entry.update(
+            measured_s=t,
+            ratio=t / limit,
+            tol_met=ok,
+            solve_status=r["status"],
+            status="PASS" if t <= limit and ok else "MISS",
+        )
+    else:
+        entry.update(measured_s=None, ratio=None, status="NOT MEASURED (--quick)")
+    out.append(entry)
+    return out
+
+
+def print_targets(tg: list[dict[str, Any]]) -> None:
+    print("\nTargets")
+    for e in tg:
+        if e["measured_s"] is None:
+            print(f"  {e['name']}: limit {e['limit_s']:.0f} s: {e['status']}")
+        else:
+            print(
+                f"  {e['name']}: {e['measured_s']:.2f} s vs limit {e['limit_s']:.0f} s -> "
+                f"{e['status']} (x{e['ratio']:.1f} of the limit, tol_met {e['tol_met']})"
+            )
+
+
+# --------------------------------------------------------------------------------------------
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--quick", action="store_true", help="fewer tolerances/obstacles, 1 run")
+    ap.add_argument("--runs", type=int, default=None, help="runs per tol (default 3, quick 1)")
+    ap.add_argument("--out", type=Path, default=RESULTS)
+    args = ap.parse_args(argv)
+    runs = args.runs or (1 if args.quick else 3)
+    tols = TOLS_QUICK if args.quick else TOLS_FULL
+    counts = OBSTACLES_QUICK if args.quick else OBSTACLES_FULL
+    t_start = time.perf_counter()
+    info = machine_info()
+    code = code_info()
+    print(
+        f"confnav core benchmark ({'quick' if args.quick else 'full'}), {info['date']}, "
+        f"{info['cpu_count']} CPUs, numpy {info['numpy']}, scipy {info['scipy']}\n"
+        f"load average at start: {' '.join(f'{x:.2f}' for x in info['loadavg_start'])} "
+        f"(other processes may share the cores; wall times are affected)\n",
+        flush=True,
+    )
+    print(
+        f"code: commit {code['commit'][:12]}, confnav/*.py sha256 {code['source_sha256'][:12]}, "
+        f"uncommitted: {', '.join(code['dirty_files']) or 'none'}\n",
+        flush=True,
+    )
+    ref = reference()
+    print_reference(ref)
+    print("Accuracy runs ...", flush=True)
+    acc = accuracy(ref, tols, runs)
+    print_accuracy(acc, runs)
+    print("\nNode-count runs ...", flush=True)
+    nodes = node_scaling(ref, LEVELS)
+    print_nodes(nodes)
+    print("\nObstacle runs ...", flush=True)
+    obs = obstacle_scaling(counts, OBSTACLE_TOL)
+    print_obstacles(obs)
+    tg = targets(acc, obs)
+    print_targets(tg)
+    info["loadavg_end"] = list(os.getloadavg())
+    info["total_wall_time"] = time.perf_counter() - t_start
+    print(
+        f"\nload average at start {info['loadavg_start'][0]:.2f}, at end "
+        f"{info['loadavg_end'][0]:.2f} (1 min); total {info['total_wall_time']:.0f} s"
+    )
+    result = {
+        "mode": "quick" if args.quick else "full",
+        "runs_per_tol": runs,
+        "machine": info,
+        "code": code,
+        "reference": {k: v for k, v in ref.items() if not k.endswith(("_c", "_a"))},
+        "accuracy": acc,
+        "node_scaling": nodes,
+        "obstacle_scaling": obs,
+        "targets": tg,
+    }
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(result, indent=1) + "\n")
+    print(f"wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
