@@ -288,7 +288,10 @@ def test_recorded_inputs_drive_a_live_controller_to_the_recorded_commands(
         kinds = {k.rsplit("/", 1)[-1] for k in report.published}
         assert kinds == {"definition", "transform", "goal", "pose"}
         poses = sum(n for k, n in report.published.items() if k.endswith("/pose"))
-        wait_for(lambda: len(live) >= poses, timeout=20)
+        # Under CPU load the controller answers only each robot's newest waiting pose
+        # (superseded ones get no command, by design), so wait for the share checked below.
+        wait_for(lambda: len(live) >= 0.95 * poses, timeout=30)
+        time.sleep(0.5)
     finally:
         ctl.stop()
     with lock:
