@@ -337,7 +337,10 @@ def test_controller_over_real_zenoh(make_bus: Callable[[], Any]) -> None:
         tr.token.close()
         wait_for(lambda: not ctl.transform_alive, timeout=5)
         cl.pose("r1", 0.2, 0.5)
-        wait_for(lambda: getattr(cl.last_status("r1"), "reason", None) == "transform_service_dead", timeout=5)
+        wait_for(
+            lambda: getattr(cl.last_status("r1"), "reason", None) == "transform_service_dead",
+            timeout=5,
+        )
     finally:
         ctl.stop()
 
