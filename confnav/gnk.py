@@ -121,9 +121,9 @@ class _Operator:
     def S(self, x: FloatArray) -> ComplexArray:
         """sum_{k != i} K_ik (x_k - x_i), complex (Re -> M part, Im -> N part)."""
         if self.dense:
-            return (self.Kr @ x - self.rowr * x) + 1j * (self.Ki @ x - self.rowi * x)
-        cx = self._cauchy(self.q0 * x)
-        return -(2.0 / self.n) * self.A * (cx - x * self.c0)
+            return np.asarray((self.Kr @ x - self.rowr * x) + 1j * (self.Ki @ x - self.rowi * x))
+        cx = self._cauchy(self.q0 * x.astype(np.complex128))
+        return np.asarray(-(2.0 / self.n) * self.A * (cx - x * self.c0))
 
     def I_minus_N(self, x: FloatArray) -> FloatArray:
         if self.dense:
@@ -131,10 +131,7 @@ class _Operator:
         return np.asarray(2 * x - self.S(x).imag)
 
     def M(self, x: FloatArray) -> FloatArray:
-        if self.dense:
-            mx = self.Kr @ x - self.rowr * x
-        else:
-            mx = self.S(x).real
+        mx = self.Kr @ x - self.rowr * x if self.dense else self.S(x).real
         return np.asarray(mx + (2.0 / self.n) * spectral_derivative(x))
 
 
@@ -162,7 +159,9 @@ def solve_gnk(
         callback_type="pr_norm",
     )
     if info > 0:
-        res = np.linalg.norm(op.I_minus_N(mu) - rhs) / max(np.linalg.norm(rhs), 1e-300)
+        res = float(np.linalg.norm(op.I_minus_N(mu) - rhs)) / max(
+            float(np.linalg.norm(rhs)), 1e-300
+        )
         if res > 1e-10:
             raise ConvergenceError(
                 f"GMRES did not converge for the GNK equation (n={n}, residual {res:.2e})"

@@ -77,7 +77,7 @@ def _lines(a: ComplexArray, b: ComplexArray) -> np.ndarray:
 def _proximity_nodes(length: np.ndarray, d: np.ndarray, tol: float) -> np.ndarray:
     """Nodes for mesh spacing 2 len/n <= 2 pi d / (GRADING_STRIP ln(10/tol))."""
     n = np.ceil(GRADING_STRIP * 2 * length * np.log(10 / tol) / (2 * np.pi * np.maximum(d, 1e-12)))
-    return np.minimum(n, MAX_NODES_PER_PANEL)
+    return np.asarray(np.minimum(n, MAX_NODES_PER_PANEL))
 
 
 def _feature_distance(z: ComplexArray, features: shapely.Geometry) -> np.ndarray:

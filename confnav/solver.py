@@ -25,7 +25,7 @@ from confnav.boundary import graded_polygon
 from confnav.circledomain import CircleDomainResult, koebe_iteration
 from confnav.cmap import ConformalMap, SolveDiagnostics
 from confnav.errors import ConvergenceError, SolverError
-from confnav.geometry import Workspace, interior_point
+from confnav.geometry import ComplexArray, Workspace, interior_point
 from confnav.meshing import plan_boundaries
 
 log = logging.getLogger(__name__)
@@ -54,7 +54,7 @@ def _solve_level(
     nodes_per_side: int,
     tol: float,
     progress: Callable[[str], None] | None,
-) -> tuple[CircleDomainResult, list, list]:
+) -> tuple[CircleDomainResult, list[ComplexArray], list[ComplexArray]]:
     plans = plan_boundaries(ws, nodes_per_side, tol)
     meshes = [graded_polygon(plans[0].vertices, plans[0].nodes)] + [
         graded_polygon(p.vertices, p.nodes).reversed() for p in plans[1:]
@@ -113,7 +113,8 @@ def solve(
     refinements: list[dict[str, float]] = []
     prev: CircleDomainResult | None = None
     prev_diff: float | None = None
-    best: tuple[CircleDomainResult, list, list, int, float] | None = None
+    best: tuple[CircleDomainResult, list[ComplexArray], list[ComplexArray], int, float] | None
+    best = None
     for i, ns in enumerate(levels):
         if progress is not None:
             progress(f"solving with {ns} nodes per side at the sharpest corners")
