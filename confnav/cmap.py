@@ -28,7 +28,7 @@ import numpy as np
 import shapely
 from numpy.typing import ArrayLike
 
-from confnav.cauchy import cauchy_sums
+from confnav.cauchy import FMM_THRESHOLD, cauchy_sums
 from confnav.errors import SerializationError
 from confnav.geometry import ComplexArray, FloatArray, Workspace, distance_to_boundary
 
@@ -126,6 +126,7 @@ class ConformalMap:
         self._q_deta = wts * np.concatenate(deta)
         self._q_W = self._q_deta * self._W
         self._q_dW = wts * np.concatenate(dW)
+        self._Q_fwd = np.column_stack([self._q_W, self._q_deta, self._q_dW])
         # The inverse sums run over the images W; nodes next to a corner that the map
         # compresses coincide there in floating point and are merged into one source.
         _, first = np.unique(self._W, return_index=True)
@@ -169,9 +170,18 @@ class ConformalMap:
         idx = np.flatnonzero(ok)
         if idx.size:
             pts = flat[idx]
-            charges = [self._q_W, self._q_deta] + ([self._q_dW] if derivative else [])
             with np.errstate(divide="ignore", invalid="ignore"):
-                sums = self._bary(self._eta, pts, charges)
+                if pts.size * self._eta.size <= FMM_THRESHOLD:
+                    # direct: one kernel row block against the precomputed charge matrix
+                    R = np.subtract.outer(self._eta, pts)
+                    np.reciprocal(R, out=R)
+                    Q = self._Q_fwd if derivative else self._Q_fwd[:, :2]
+                    # einsum's own loop for a few points: a threaded BLAS gemv can stall for
+                    # milliseconds on a busy machine (measured), a single robot's step cannot
+                    sums = np.einsum("nk,np->kp", Q, R) if pts.size <= 4 else Q.T @ R
+                else:
+                    charges = [self._q_W, self._q_deta] + ([self._q_dW] if derivative else [])
+                    sums = np.array(self._bary(self._eta, pts, charges))
                 w[idx] = sums[0] / sums[1]
                 if dw is not None:
                     dw[idx] = sums[2] / sums[1]
