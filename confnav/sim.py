@@ -217,7 +217,7 @@ def simulate(
     max_step: float = 0.05,
     max_steps: int = 20000,
     stall_distance: float | None = None,
-    stall_steps: int = 400,
+    stall_steps: int = 100,
     record_paths: bool = False,
 ) -> SimulationResult:
     """Integrate ``x' = u(x)`` from every start until goal, collision, ``t_max`` or
