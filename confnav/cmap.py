@@ -5,8 +5,8 @@ counter-clockwise, holes clockwise, on the graded mesh) its image ``W_k = T(eta_
 t-derivatives ``eta'_k`` and ``W'_k = T'(eta_k) eta'_k``. Evaluation is the barycentric Cauchy
 formula over all boundary components (weights ``2pi/n_j``), accurate up to the boundary:
 
-    T(z)   = sum w W eta'/(eta - z) / sum w eta'/(eta - z),
-    T'(z)  = sum w W'    /(eta - z) / sum w eta'/(eta - z),
+    T(z)   = N/D,  N = sum w W eta'/(eta - z),  D = sum w eta'/(eta - z),
+    T'(z)  = (N'D - N D')/D^2  (the derivative of the barycentric formula),
     T^-1(w) = sum w eta W'/(W - w)  / sum w W'/(W - w)        (roles of eta and W swapped).
 
 References
@@ -28,7 +28,7 @@ import numpy as np
 import shapely
 from numpy.typing import ArrayLike
 
-from confnav.cauchy import FMM_THRESHOLD, cauchy_sums
+from confnav.cauchy import FMM_THRESHOLD, cauchy_sums, cauchy_sums2
 from confnav.errors import SerializationError
 from confnav.geometry import ComplexArray, FloatArray, Workspace, distance_to_boundary
 
@@ -126,7 +126,7 @@ class ConformalMap:
         self._q_deta = wts * np.concatenate(deta)
         self._q_W = self._q_deta * self._W
         self._q_dW = wts * np.concatenate(dW)
-        self._Q_fwd = np.column_stack([self._q_W, self._q_deta, self._q_dW])
+        self._Q_fwd = np.column_stack([self._q_W, self._q_deta])
         # The inverse sums run over the images W; nodes next to a corner that the map
         # compresses coincide there in floating point and are merged into one source.
         _, first = np.unique(self._W, return_index=True)
@@ -171,20 +171,33 @@ class ConformalMap:
         if idx.size:
             pts = flat[idx]
             with np.errstate(divide="ignore", invalid="ignore"):
+                # N = sum q_W/(eta - z), D = sum q_eta/(eta - z), T = N/D and
+                # T' = (N'D - N D')/D^2 with N' = sum q_W/(eta - z)^2 (likewise D'): the exact
+                # derivative of the barycentric formula. It needs no W' and beats the Cauchy
+                # integral of W' near the boundary (measured against finite differences: 8e-9
+                # vs 1.2e-7 relative at clearance 0.002), where W' is least accurate.
                 if pts.size * self._eta.size <= FMM_THRESHOLD:
-                    # direct: one kernel row block against the precomputed charge matrix
                     R = np.subtract.outer(self._eta, pts)
                     np.reciprocal(R, out=R)
-                    Q = self._Q_fwd if derivative else self._Q_fwd[:, :2]
                     # einsum's own loop for a few points: a threaded BLAS gemv can stall for
                     # milliseconds on a busy machine (measured), a single robot's step cannot
-                    sums = np.einsum("nk,np->kp", Q, R) if pts.size <= 4 else Q.T @ R
+                    few = pts.size <= 4
+                    N, D = np.einsum("nk,np->kp", self._Q_fwd, R) if few else self._Q_fwd.T @ R
+                    if derivative:
+                        np.multiply(R, R, out=R)
+                        dN, dD = (
+                            np.einsum("nk,np->kp", self._Q_fwd, R) if few else self._Q_fwd.T @ R
+                        )
                 else:
-                    charges = [self._q_W, self._q_deta] + ([self._q_dW] if derivative else [])
-                    sums = np.array(self._bary(self._eta, pts, charges))
-                w[idx] = sums[0] / sums[1]
+                    first, second = cauchy_sums2(
+                        self._eta, [self._q_W, self._q_deta], pts, derivative
+                    )
+                    N, D = -first[0], -first[1]
+                    if derivative:
+                        dN, dD = second
+                w[idx] = N / D
                 if dw is not None:
-                    dw[idx] = sums[2] / sums[1]
+                    dw[idx] = (dN * D - N * dD) / D**2
             self._fix_nodes(pts, idx, w, dw)
         return w.reshape(shape), (dw.reshape(shape) if dw is not None else None)
 
@@ -243,6 +256,54 @@ class ConformalMap:
             for j in np.flatnonzero(bad):
                 out[idx[j]] = self._inv_eta[int(np.argmin(np.abs(self._inv_W - pts[j])))]
         return out.reshape(shape)
+
+    # ------------------------------------------------------------------ fast evaluation
+    def coarsened(self, stride: int) -> ConformalMap:
+        """The same map evaluated from every ``stride``-th boundary node.
+
+        The nodes are equispaced in the mesh parameter t, so every stride-th node is again a
+        trapezoidal rule on the same parametrisation (boundaries whose node count ``stride``
+        does not divide keep all their nodes). The solve needs its node density at the
+        corners; evaluation away from them needs far fewer, and its cost is linear in the nodes.
+        """
+        eta, deta, W, dW = self._parts
+        pick = [slice(None, None, stride if e.size % stride == 0 else 1) for e in eta]
+        return ConformalMap(
+            self.workspace,
+            [e[s] for e, s in zip(eta, pick, strict=True)],
+            [d[s] for d, s in zip(deta, pick, strict=True)],
+            [w[s] for w, s in zip(W, pick, strict=True)],
+            [d[s] for d, s in zip(dW, pick, strict=True)],
+            self.centers,
+            self.radii,
+            self.diagnostics,
+        )
+
+    def for_navigation(
+        self, accuracy: float = 1e-7, strides: tuple[int, ...] = (8, 4, 2), seed: int = 0
+    ) -> ConformalMap:
+        """The cheapest coarsened map whose T and T' stay within ``accuracy`` of this one.
+
+        Checked at 400 random free-space points at least 1% of the workspace size from the
+        boundary (T absolute, T' relative); returns ``self`` if no coarsening qualifies.
+        """
+        ws = self.workspace
+        x0, y0, x1, y1 = ws.bounds
+        rng = np.random.default_rng(seed)
+        z = rng.uniform(x0, x1, 4000) + 1j * rng.uniform(y0, y1, 4000)
+        z = z[ws.clearance(z) > 0.01 * ws.diameter][:400]
+        w, dw = self.T_and_dT(z, check=False)
+        for s in strides:
+            c = self.coarsened(s)
+            wc, dwc = c.T_and_dT(z, check=False)
+            if max(np.max(np.abs(wc - w)), np.max(np.abs(dwc - dw) / np.abs(dw))) <= accuracy:
+                return c
+        return self
+
+    @property
+    def n_nodes(self) -> int:
+        """Boundary nodes the map is evaluated from (its cost per point is linear in this)."""
+        return int(self._eta.size)
 
     # ------------------------------------------------------------------ serialisation
     def to_dict(self) -> dict[str, Any]:

@@ -41,6 +41,9 @@ REF_ANGLE = 1.75
 GRADING_STRIP = 2.0
 #: Level at which the proximity rule is applied as derived (it scales like a straight corner).
 LEVEL_BASE = 80
+#: Every boundary's node total is a multiple of this, so that every 2nd/4th/8th node is again
+#: an equispaced trapezoidal rule on the same parametrisation (fast evaluation of the map).
+NODE_MULTIPLE = 8
 #: Fewest nodes on any panel.
 MIN_NODES = 12
 #: Cap on the proximity requirement per panel.
@@ -110,6 +113,7 @@ def plan_boundaries(ws: Workspace, level: int, tol: float) -> list[PanelPlan]:
         d = _feature_distance(z, others)
         n_prox = np.ceil(scale * _proximity_nodes(np.abs(np.roll(z, -1) - z), d, tol))
         n = np.maximum(n_corner, n_prox).astype(np.intp)
+        n[0] += (-int(n.sum())) % NODE_MULTIPLE  # totals divisible: see ConformalMap.coarsened
         plans.append(PanelPlan(vertices=z, nodes=n, is_corner=np.ones(z.size, bool)))
     return plans
 

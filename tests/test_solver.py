@@ -36,7 +36,8 @@ def test_square_onto_disk() -> None:
     m = _solve(Workspace(SQUARE, anchor=[0, 0]), 1e-12)
     # f'(0) = Gamma(1/4)^2 / (8 sqrt(pi)); the vertex 1+i goes to e^{i pi/4}
     assert abs(m.dT(0) - 0.9270373386506859) < 1e-11
-    assert abs(m.T(1 + 1j) - np.exp(1j * np.pi / 4)) < 1e-12
+    # the issue asks 1e-10 for exact answers; tol bounds the circle domain, not the vertex image
+    assert abs(m.T(1 + 1j) - np.exp(1j * np.pi / 4)) < 1e-10
     assert abs(m.T(0)) < 1e-12
 
 
@@ -60,10 +61,15 @@ def test_interior_map_boundary_values_lie_on_the_circle() -> None:
     assert f.scale > 0
 
 
-@pytest.mark.parametrize(("a", "capacity"), [(0.25, 4.844419548422175), (0.5, 10.234092569368050)])
-def test_square_frame_onto_annulus(a: float, capacity: float) -> None:
+@pytest.mark.parametrize(
+    ("a", "capacity", "tol"),
+    # The capacity amplifies errors of the circle domain: d cap / d q = 2 pi/(q log^2(1/q)),
+    # ~30 for a = 0.5, so 1e-10 in the capacity needs ~3e-12 in the centre and radius.
+    [(0.25, 4.844419548422175, 1e-11), (0.5, 10.234092569368050, 3e-12)],
+)
+def test_square_frame_onto_annulus(a: float, capacity: float, tol: float) -> None:
     ws = Workspace(SQUARE, [[[-a, -a], [a, -a], [a, a], [-a, a]]], anchor=[(1 + a) / 2, 0])
-    m = _solve(ws, 1e-11)
+    m = _solve(ws, tol)
     c, r = complex(m.centers[0]), float(m.radii[0])
     rhs = (1 + r * r - abs(c) ** 2) / (2 * r)  # (1 + q^2)/(2q) for the equivalent annulus
     q = rhs - np.sqrt(rhs * rhs - 1)
@@ -171,3 +177,17 @@ def test_serialisation_rejects_bad_input(default_map: ConformalMap) -> None:
 def test_bad_tolerance_is_rejected() -> None:
     with pytest.raises(SolverError, match="tol"):
         confnav.solve(Workspace(SQUARE, anchor=[0, 0]), tol=0)
+
+
+def test_navigation_map_is_cheaper_and_as_accurate(default_map: ConformalMap) -> None:
+    fast = default_map.for_navigation(accuracy=1e-7)
+    assert fast.n_nodes <= default_map.n_nodes // 2  # the 1e-10 map has nodes to spare
+    # checked at other points than the ones for_navigation looked at
+    ws = default_map.workspace
+    rng = np.random.default_rng(123)
+    z = rng.uniform(-2, 2, 3000) + 1j * rng.uniform(-2, 2, 3000)
+    z = z[ws.clearance(z) > 0.05][:300]
+    w, dw = default_map.T_and_dT(z)
+    wf, dwf = fast.T_and_dT(z)
+    assert np.max(np.abs(wf - w)) <= 1e-7
+    assert np.max(np.abs(dwf - dw) / np.abs(dw)) <= 1e-7
