@@ -28,11 +28,22 @@ class ControllerLike(Protocol):
     def __call__(self, z: Any) -> ControlOutputLike: ...
 
 
+#: Accuracy of T and T' the controller needs from the map (relative for T'); a command's
+#: direction error is of this order.
+NAV_ACCURACY = 1e-7
+
+
 def load_map(solution: TransformSolution) -> Any:
-    """The :class:`confnav.ConformalMap` of a solution message (bit-identical to the solver's)."""
+    """The :class:`confnav.ConformalMap` of a solution message, prepared for control.
+
+    The coefficients are bit-identical to the solver's; the controller evaluates them through
+    ``for_navigation()`` (fewer boundary nodes, T and T' within 1e-7 of the full map, checked),
+    which is deterministic, so ``replay --check`` recomputes exactly what the live controller
+    commanded.
+    """
     from confnav.cmap import ConformalMap
 
-    return ConformalMap.from_dict(solution.coefficients)
+    return ConformalMap.from_dict(solution.coefficients).for_navigation(accuracy=NAV_ACCURACY)
 
 
 def make_controller(cmap: Any, goal: Goal) -> ControllerLike:
