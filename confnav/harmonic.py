@@ -79,7 +79,7 @@ class GreenFunction:
     """
 
     def __init__(
-        self, domain: CircleDomain, pole: complex, *, tol: float = 1e-7, max_terms: int = 256
+        self, domain: CircleDomain, pole: complex, *, tol: float = 1e-10, max_terms: int = 256
     ) -> None:
         self.domain = domain
         self.pole = complex(pole)
@@ -233,12 +233,16 @@ class GreenFunction:
 class HarmonicNavigation(NavigationFunction):
     """Harmonic navigation function ``phi_H = |w - w_d|^2 exp(-2 h)`` (DESIGN.md section 3).
 
-    ``diagnostics`` holds the :class:`GreenDiagnostics` of the series for ``h``.
+    ``diagnostics`` holds the :class:`GreenDiagnostics` of the series for ``h``.  ``tol``
+    bounds the boundary error of ``h``; it must stay far below ``1 - phi_H`` where robots
+    drive: far from the goal (corners of the outer polygon) ``1 - phi_H`` is ~1e-7 a few
+    centimetres from a wall, and with ``tol = 1e-7`` a robot there was seen to follow the
+    error into the wall.  Hence the default 1e-10.
     """
 
     name = "harmonic"
 
-    def __init__(self, domain: CircleDomain, goal: complex, *, tol: float = 1e-7) -> None:
+    def __init__(self, domain: CircleDomain, goal: complex, *, tol: float = 1e-10) -> None:
         super().__init__(domain, goal)
         self.tol = tol
         self.green = GreenFunction(domain, self.goal, tol=tol)
