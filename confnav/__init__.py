@@ -6,6 +6,8 @@ pulled back through ``T`` to drive robots.
 """
 
 from confnav.cmap import ConformalMap, SolveDiagnostics
+from confnav.control import Controller
+from confnav.critical import choose_k, find_critical_points
 from confnav.errors import (
     ConfnavError,
     ConvergenceError,
@@ -16,6 +18,8 @@ from confnav.errors import (
     WorkspaceError,
 )
 from confnav.geometry import Workspace
+from confnav.navfn import make_navfn
+from confnav.sim import simulate
 from confnav.solver import AccuracyWarning, solve
 from confnav.workspaces import default_workspace
 
@@ -25,6 +29,7 @@ __all__ = [
     "AccuracyWarning",
     "ConfnavError",
     "ConformalMap",
+    "Controller",
     "ConvergenceError",
     "CrowdingError",
     "NavigationError",
@@ -34,6 +39,10 @@ __all__ = [
     "Workspace",
     "WorkspaceError",
     "__version__",
+    "choose_k",
     "default_workspace",
+    "find_critical_points",
+    "make_navfn",
+    "simulate",
     "solve",
 ]

@@ -106,7 +106,7 @@ def _load_map(args: argparse.Namespace, ws: Any) -> Any:
         cmap = confnav.ConformalMap.from_json(Path(args.map).read_text())
         return cmap
     t0 = time.perf_counter()
-    cmap = confnav.solve(ws)
+    cmap = confnav.solve(ws).for_navigation()
     log.info("solved map in %.2f s", time.perf_counter() - t0)
     return cmap
 

@@ -5,6 +5,13 @@ itself by the identity), and polling helpers."""
 from __future__ import annotations
 
 import os
+
+# One BLAS thread: the suite's processes share 2 cores, and a threaded BLAS stalls small
+# products for milliseconds under oversubscription (measured 20x slower tests). Set before
+# numpy is imported.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
 import shutil
 import sys
 import tempfile
