@@ -204,6 +204,8 @@ class _Boundary:
 def _grid_size(gap: float) -> int:
     """Uniform grid size resolving an analytic curve whose nearest singularity is at relative
     distance ``gap``: Fourier modes decay like (1 + gap)^-j (power of 2, capped)."""
+    if not np.isfinite(gap):
+        raise ConvergenceError("a boundary image became non-finite (NaN or inf)")
     need = 2 * np.log(1 / SMOOTH_TAIL) / np.log1p(max(gap, 1e-6))
     return min(int(2 ** np.ceil(np.log2(max(need, SMOOTH_START)))), SMOOTH_MAX)
 
@@ -312,14 +314,14 @@ def koebe_iteration(
             gm_its += F.gmres_iterations
             others = np.concatenate([[a], np.delete(c, k - 1)])
             out = _apply(F, bnds, k, others)
-            b.regrid(_curves(bnds, k))
+            _regrid(b, _curves(bnds, k), f"obstacle {k - 1}", sweep)
             img, dimg = out[: others.size], out[others.size :]
             a, D = complex(img[0]), D * complex(dimg[0])
             c = np.insert(img[1:], k - 1, 0.0)
         f0 = _own_map(bnds[0], a, "the outer boundary", meshes[0], _curves(bnds, 0))
         gm_its += f0.gmres_iterations
         out = _apply(f0, bnds, 0, c)
-        bnds[0].regrid(_curves(bnds, 0))
+        _regrid(bnds[0], _curves(bnds, 0), "the outer boundary", sweep)
         c, D, a = out[: c.size], D * f0.scale, 0j
         # change of the boundary correspondence (arc length moved on each circle, away from the
         # vertices) and of the centres
@@ -391,6 +393,15 @@ def _own_map(
             f"corner is {sharpest:.1f} degrees -- needle-like corners make the equation "
             "nearly singular: blunt them or use more nodes"
         ) from exc
+
+
+def _regrid(b: _Boundary, others: ComplexArray, name: str, sweep: int) -> None:
+    """``b.regrid`` after its map, with non-finite results reported against the boundary."""
+    if not (np.all(np.isfinite(others)) and np.all(np.isfinite(b.P))):
+        raise ConvergenceError(
+            f"the map of {name} in sweep {sweep} produced non-finite boundary images"
+        )
+    b.regrid(others)
 
 
 def _radius(b: _Boundary, center: complex) -> float:
