@@ -268,7 +268,7 @@ class ConformalMap:
         """
         eta, deta, W, dW = self._parts
         pick = [slice(None, None, stride if e.size % stride == 0 else 1) for e in eta]
-        return ConformalMap(
+        coarse = ConformalMap(
             self.workspace,
             [e[s] for e, s in zip(eta, pick, strict=True)],
             [d[s] for d, s in zip(deta, pick, strict=True)],
@@ -278,6 +278,8 @@ class ConformalMap:
             self.radii,
             self.diagnostics,
         )
+        coarse._revision = self.revision  # the same solution, evaluated from fewer nodes
+        return coarse
 
     def for_navigation(
         self, accuracy: float = 1e-7, strides: tuple[int, ...] = (8, 4, 2), seed: int = 0
