@@ -176,7 +176,13 @@ class ConformalMap:
                 # derivative of the barycentric formula. It needs no W' and beats the Cauchy
                 # integral of W' near the boundary (measured against finite differences: 8e-9
                 # vs 1.2e-7 relative at clearance 0.002), where W' is least accurate.
-                if pts.size * self._eta.size <= FMM_THRESHOLD:
+                if pts.size == 1:  # one robot: 1-D dots, no kernel matrix (4x faster)
+                    r = 1.0 / (self._eta - pts[0])
+                    N, D = np.dot(self._q_W, r), np.dot(self._q_deta, r)
+                    if derivative:
+                        r *= r
+                        dN, dD = np.dot(self._q_W, r), np.dot(self._q_deta, r)
+                elif pts.size * self._eta.size <= FMM_THRESHOLD:
                     R = np.subtract.outer(self._eta, pts)
                     np.reciprocal(R, out=R)
                     # einsum's own loop for a few points: a threaded BLAS gemv can stall for
