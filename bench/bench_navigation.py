@@ -91,14 +91,15 @@ def solve_cached(ws: Any, cache: Path | None) -> Any:
     """``confnav.solve`` with an optional on-disk cache keyed by the workspace hash."""
     path = cache / f"{ws.content_hash()[:16]}.json" if cache else None
     if path is not None and path.exists():
-        cmap = confnav.ConformalMap.from_json(path.read_text())
-        cmap.from_cache = True  # type: ignore[attr-defined]
-        return cmap
+        nav = confnav.ConformalMap.from_json(path.read_text()).for_navigation()
+        nav.from_cache = True  # type: ignore[attr-defined]
+        return nav
     cmap = confnav.solve(ws)
     if path is not None:
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_text(cmap.to_json())
-    return cmap
+    # robots are driven through the map the controller service uses (checked within 1e-7)
+    return cmap.for_navigation()
 
 
 def run_case(
