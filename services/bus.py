@@ -174,7 +174,26 @@ def zenoh_config(
     return conf
 
 
-class ZenohBus:
+class _Subscriptions:
+    """``subscribe``/``subscribe_batch`` for both buses, on top of their ``_subscribe``."""
+
+    def _subscribe(
+        self, keyexpr: str, fn: Callable[[Any], None], batch: int, linger: float = 0.0
+    ) -> Closeable:
+        raise NotImplementedError
+
+    def subscribe(self, keyexpr: str, handler: Handler) -> Closeable:
+        return self._subscribe(keyexpr, lambda item: handler(item[0], item[1]), 0)
+
+    def subscribe_batch(
+        self, keyexpr: str, handler: BatchHandler, max_batch: int = 1024, linger: float = 0.0
+    ) -> Closeable:
+        """Like :meth:`subscribe`, but the handler gets every waiting sample at once (at most
+        ``max_batch``), waiting up to ``linger`` s after the first one for more."""
+        return self._subscribe(keyexpr, handler, max_batch, linger)
+
+
+class ZenohBus(_Subscriptions):
     """:class:`Bus` over a Zenoh session that this object opens and closes.
 
     Use as a context manager (``with ZenohBus(conf) as bus``) so the session is always closed.
@@ -227,16 +246,6 @@ class ZenohBus:
                         old.undeclare()  # type: ignore[no-untyped-call]
                     self._publishers[key] = pub
         pub.put(payload)
-
-    def subscribe(self, keyexpr: str, handler: Handler) -> Closeable:
-        return self._subscribe(keyexpr, lambda item: handler(item[0], item[1]), 0)
-
-    def subscribe_batch(
-        self, keyexpr: str, handler: BatchHandler, max_batch: int = 1024, linger: float = 0.0
-    ) -> Closeable:
-        """Like :meth:`subscribe`, but the handler gets every waiting sample at once (at most
-        ``max_batch``), waiting up to ``linger`` s after the first one for more."""
-        return self._subscribe(keyexpr, handler, max_batch, linger)
 
     def _subscribe(
         self, keyexpr: str, fn: Callable[[Any], None], batch: int, linger: float = 0.0
@@ -376,7 +385,7 @@ class InMemoryNetwork:
         return InMemoryBus(self, name)
 
 
-class InMemoryBus:
+class InMemoryBus(_Subscriptions):
     """:class:`Bus` on an :class:`InMemoryNetwork`: same threading contract, no sockets."""
 
     _count = 0
@@ -403,16 +412,6 @@ class InMemoryBus:
             targets = [d for e, d in self._net.subs if key_matches(e, key)]
         for d in targets:
             d.put((key, bytes(payload)))
-
-    def subscribe(self, keyexpr: str, handler: Handler) -> Closeable:
-        return self._subscribe(keyexpr, lambda item: handler(item[0], item[1]), 0)
-
-    def subscribe_batch(
-        self, keyexpr: str, handler: BatchHandler, max_batch: int = 1024, linger: float = 0.0
-    ) -> Closeable:
-        """Like :meth:`subscribe`, but the handler gets every waiting sample at once (at most
-        ``max_batch``), waiting up to ``linger`` s after the first one for more."""
-        return self._subscribe(keyexpr, handler, max_batch, linger)
 
     def _subscribe(
         self, keyexpr: str, fn: Callable[[Any], None], batch: int, linger: float = 0.0
