@@ -108,7 +108,7 @@ def solve(
             raise SolverError("nodes_per_side must be at least 8")
         levels = [max(8, round(nodes_per_side / 1.5)), nodes_per_side]
     else:
-        start = 0 if tol >= 1e-7 else (1 if tol >= 1e-9 else 2)
+        start = 0 if tol >= 1e-7 else (1 if tol >= 1e-9 else 3)
         levels = list(LEVELS[start:])
     refinements: list[dict[str, float]] = []
     prev: CircleDomainResult | None = None
