@@ -103,8 +103,7 @@ def _load_map(args: argparse.Namespace, ws: Any) -> Any:
     import confnav
 
     if getattr(args, "map", None):
-        cmap = confnav.ConformalMap.from_json(Path(args.map).read_text())
-        return cmap
+        return confnav.ConformalMap.from_json(Path(args.map).read_text()).for_navigation()
     t0 = time.perf_counter()
     cmap = confnav.solve(ws).for_navigation()
     log.info("solved map in %.2f s", time.perf_counter() - t0)
