@@ -138,26 +138,4 @@ def graded_polygon(
     return BoundaryMesh(eta, deta, side, tau)
 
 
-def param_points(
-    vertices: ComplexArray,
-    nodes_per_side: NDArray[np.intp] | int,
-    t: FloatArray,
-    p: int = GRADING_P,
-) -> tuple[ComplexArray, ComplexArray]:
-    """eta(t), eta'(t) at arbitrary parameters t (for off-node checks and plots)."""
-    v = np.asarray(vertices, dtype=np.complex128)
-    L = v.size
-    nk = np.broadcast_to(np.asarray(nodes_per_side, dtype=np.intp), (L,)).astype(float)
-    n = nk.sum()
-    bounds = 2 * np.pi * np.concatenate([[0], np.cumsum(nk)]) / n
-    tt = np.mod(np.asarray(t, dtype=float), 2 * np.pi)
-    side = np.clip(np.searchsorted(bounds, tt, side="right") - 1, 0, L - 1)
-    tau = 2 * np.pi * (tt - bounds[side]) / (bounds[side + 1] - bounds[side])
-    sig, dsig = kress_sigma(tau, p)
-    edge = np.roll(v, -1) - v
-    eta = v[side] + edge[side] * sig / (2 * np.pi)
-    deta = edge[side] * dsig / (2 * np.pi) * (n / nk[side])
-    return eta, deta
-
-
-__all__ = ["GRADING_P", "BoundaryMesh", "graded_polygon", "kress_sigma", "param_points"]
+__all__ = ["GRADING_P", "BoundaryMesh", "graded_polygon", "kress_sigma"]

@@ -131,9 +131,4 @@ def cauchy_sums2(
     return firsts, seconds
 
 
-def cauchy_targets(sources: ComplexArray, q: ComplexArray, targets: ComplexArray) -> ComplexArray:
-    """``c_j = sum_k q_k / (x_j - z_k)`` at targets distinct from every source."""
-    return cauchy_sums(sources, [q], targets)[0]
-
-
-__all__ = ["HAVE_FMM", "cauchy_self", "cauchy_sums", "cauchy_sums2", "cauchy_targets"]
+__all__ = ["HAVE_FMM", "cauchy_self", "cauchy_sums", "cauchy_sums2"]

@@ -214,7 +214,7 @@ class Workspace:
     def clearance(self, z: ArrayLike) -> FloatArray:
         """Signed distance to the nearest boundary: > 0 in free space, < 0 outside it."""
         zz = np.asarray(z, dtype=np.complex128)
-        d = _distance_to_segments(zz.ravel(), *self._segments).reshape(zz.shape)  # type: ignore[attr-defined]
+        d = distance_to_boundary(self, zz)
         inside = self.contains(zz)
         return np.where(inside, d, -d)
 

@@ -56,7 +56,6 @@ class PanelPlan:
 
     vertices: ComplexArray
     nodes: np.ndarray
-    is_corner: np.ndarray  # True at the polygon's own vertices
 
     @property
     def total(self) -> int:
@@ -114,7 +113,7 @@ def plan_boundaries(ws: Workspace, level: int, tol: float) -> list[PanelPlan]:
         n_prox = np.ceil(scale * _proximity_nodes(np.abs(np.roll(z, -1) - z), d, tol))
         n = np.maximum(n_corner, n_prox).astype(np.intp)
         n[0] += (-int(n.sum())) % NODE_MULTIPLE  # totals divisible: see ConformalMap.coarsened
-        plans.append(PanelPlan(vertices=z, nodes=n, is_corner=np.ones(z.size, bool)))
+        plans.append(PanelPlan(vertices=z, nodes=n))
     return plans
 
 
