@@ -234,6 +234,7 @@ def run_demo(
     from confnav.workspaces import DEFAULT_GOAL, DEFAULT_STARTS
 
     out.mkdir(parents=True, exist_ok=True)
+    old_recordings = set(out.glob("demo*.mcap"))  # never overwritten: demo.1.mcap... follow
     starts = {f"r{i + 1}": z for i, z in enumerate(DEFAULT_STARTS)}
     tracks = {rid: Track(rid, z, DEFAULT_GOAL) for rid, z in starts.items()}
     sockdir = tempfile.mkdtemp(prefix="confnav-demo-")
@@ -301,7 +302,10 @@ def run_demo(
     print()
     print(table)
     print()
-    print(f"recording: {out / 'demo.mcap'}   plot: {out / 'demo.png'}")
+    recordings = sorted(
+        set(out.glob("demo*.mcap")) - old_recordings, key=lambda p: p.stat().st_mtime
+    )
+    print(f"recording: {', '.join(map(str, recordings)) or '-'}   plot: {out / 'demo.png'}")
     print("result:", "all robots arrived without collision" if ok else "FAILED")
     return 0 if ok else 1
 
