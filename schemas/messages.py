@@ -144,6 +144,17 @@ class Goal(Message):
     stamp_ns: TimeNs = 0
 
 
+class GoalCancel(Message):
+    """Cancel the goal of one robot, on ``{prefix}/robot/{r}/cancel``: the controller sends a
+    zero command, reports ``idle`` and forgets the robot."""
+
+    TYPE: ClassVar[str] = "confnav.GoalCancel"
+    type: Literal["confnav.GoalCancel"] = "confnav.GoalCancel"
+    schema_version: Literal[1] = 1
+    robot_id: Id
+    stamp_ns: TimeNs = 0
+
+
 class Pose(Message):
     """Timestamped robot pose, on ``{prefix}/robot/{r}/pose``; ``seq`` counts poses."""
 
@@ -190,6 +201,7 @@ StatusReason = Literal[
     "outside_workspace",
     "solve_failed",
     "navigation_error",
+    "map_outdated",
 ]
 
 

@@ -11,6 +11,7 @@ from pydantic import ValidationError
 from confnav.schemas.messages import (
     CollisionEvent,
     Goal,
+    GoalCancel,
     Message,
     Pose,
     RobotStatus,
@@ -30,6 +31,7 @@ MESSAGE_MODELS: tuple[type[Message], ...] = (
     TransformSolution,
     TransformStatus,
     Goal,
+    GoalCancel,
     Pose,
     VelocityCommand,
     RobotStatus,
@@ -46,6 +48,7 @@ MODEL_BY_KEY_KIND: dict[tuple[str, str], type[Message]] = {
     ("ws", "transform"): TransformSolution,
     ("ws", "status"): TransformStatus,
     ("robot", "goal"): Goal,
+    ("robot", "cancel"): GoalCancel,
     ("robot", "pose"): Pose,
     ("robot", "cmd_vel"): VelocityCommand,
     ("robot", "status"): RobotStatus,

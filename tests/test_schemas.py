@@ -33,6 +33,7 @@ SAMPLES: list[S.Message] = [
     ),
     S.TransformStatus(ws_id="w1", stamp_ns=2, state="failed", definition_hash="h", message="x"),
     S.Goal(robot_id="r1", ws_id="w1", goal=(0.0, 0.0), navfn="kr", k=8.0),
+    S.GoalCancel(robot_id="r1", stamp_ns=2),
     S.Pose(robot_id="r1", stamp_ns=3, seq=4, x=0.5, y=-0.5, theta=1.0),
     S.VelocityCommand(robot_id="r1", stamp_ns=5, linear=(0.1, 0.2), pose_seq=4, pose_stamp_ns=3),
     S.RobotStatus(robot_id="r1", stamp_ns=6, state="stopped", reason="stale_pose"),
