@@ -16,6 +16,7 @@ from confnav.schemas.messages import (
     TransformStatus,
     VelocityCommand,
     WorkspaceDefinition,
+    WorkspaceDelete,
 )
 from confnav.schemas.registry import (
     MESSAGE_MODELS,
@@ -50,6 +51,7 @@ __all__ = [
     "TransformStatus",
     "VelocityCommand",
     "WorkspaceDefinition",
+    "WorkspaceDelete",
     "decode",
     "encode",
     "export_schemas",

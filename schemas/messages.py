@@ -69,6 +69,17 @@ class WorkspaceDefinition(Message):
     stamp_ns: TimeNs = 0
 
 
+class WorkspaceDelete(Message):
+    """Remove a workspace from the transform service (and its saved definition), on
+    ``{prefix}/ws/{ws}/delete``; controllers drop its map and stop its robots."""
+
+    TYPE: ClassVar[str] = "confnav.WorkspaceDelete"
+    type: Literal["confnav.WorkspaceDelete"] = "confnav.WorkspaceDelete"
+    schema_version: Literal[1] = 1
+    ws_id: Id
+    stamp_ns: TimeNs = 0
+
+
 class SolveDiagnostics(Message):
     """Solver diagnostics copied from :class:`confnav.ConformalMap.diagnostics`."""
 
@@ -112,7 +123,7 @@ class TransformStatus(Message):
     schema_version: Literal[1] = 1
     ws_id: Id
     stamp_ns: TimeNs
-    state: Literal["solving", "solved", "failed"]
+    state: Literal["solving", "solved", "failed", "deleted"]
     definition_hash: str
     revision: str | None = None
     message: Annotated[str, Field(max_length=4096)] = ""

@@ -22,12 +22,14 @@ from confnav.schemas.messages import (
     TransformStatus,
     VelocityCommand,
     WorkspaceDefinition,
+    WorkspaceDelete,
 )
 
 M = TypeVar("M", bound=Message)
 
 MESSAGE_MODELS: tuple[type[Message], ...] = (
     WorkspaceDefinition,
+    WorkspaceDelete,
     TransformSolution,
     TransformStatus,
     Goal,
@@ -45,6 +47,7 @@ MODELS_BY_TYPE: dict[str, type[Message]] = {m.TYPE: m for m in MESSAGE_MODELS}
 #: (key group, key kind) -> model; groups and kinds as in :mod:`confnav.services.keys`.
 MODEL_BY_KEY_KIND: dict[tuple[str, str], type[Message]] = {
     ("ws", "definition"): WorkspaceDefinition,
+    ("ws", "delete"): WorkspaceDelete,
     ("ws", "transform"): TransformSolution,
     ("ws", "status"): TransformStatus,
     ("robot", "goal"): Goal,

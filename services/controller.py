@@ -46,6 +46,7 @@ from confnav.schemas import (
     TransformSolution,
     VelocityCommand,
     WorkspaceDefinition,
+    WorkspaceDelete,
     decode,
     encode,
 )
@@ -162,6 +163,7 @@ class ControllerService(Service):
         self.spawn(self._publish_loop, "publish")
         self._handles.append(self.bus.subscribe(k.any_ws("transform"), self._on_transform))
         self._handles.append(self.bus.subscribe(k.any_ws("definition"), self._on_definition))
+        self._handles.append(self.bus.subscribe(k.any_ws("delete"), self._on_ws_delete))
         self._handles.append(
             self.bus.subscribe_latest(k.any_robot("goal"), self._on_goals, self._goals_dropped)
         )
@@ -315,6 +317,31 @@ class ControllerService(Service):
                 if blocker is not None:
                     self._stop_robot(r, "map_outdated", blocker, now)
         self._wake_fetch.set()
+
+    def _on_ws_delete(self, key: str, payload: bytes) -> None:
+        """A deleted workspace: its map is dropped, its robots stop (missing_map)."""
+        try:
+            ws_id = self.keys.parse(key).ident
+            msg = decode(WorkspaceDelete, payload)
+            if msg.ws_id != ws_id:
+                raise DecodeError("invalid_input", f"delete on {key} names {msg.ws_id!r}")
+        except (KeyError_, DecodeError) as exc:
+            self.count("rejected")
+            log.warning("rejected delete on %s: %s", key, exc)
+            return
+        now = time.monotonic()
+        with self._lock:
+            self._maps.pop(ws_id, None)
+            self._pending.pop(ws_id, None)
+            self._map_errors[ws_id] = f"workspace {ws_id!r} was deleted"
+            robots = [r for r in self._robots.values() if r.goal and r.goal.ws_id == ws_id]
+        self.count("workspaces_deleted")
+        for r in robots:
+            with r.lock:
+                if r.goal is None or r.goal.ws_id != ws_id:
+                    continue
+                r.ctrl, r.ctrl_revision, r.ctrl_error = None, None, ""
+                self._stop_robot(r, "missing_map", self._map_errors[ws_id], now)
 
     def _outdated(self, r: _Robot) -> str | None:
         """Why the robot's map contradicts the current geometry near it, or None."""

@@ -31,6 +31,7 @@ SAMPLES: list[S.Message] = [
         diagnostics=DIAG,
         coefficients={"nodes": [[0.1, 0.2]], "meta": {"n": 3}},
     ),
+    S.WorkspaceDelete(ws_id="w1", stamp_ns=1),
     S.TransformStatus(ws_id="w1", stamp_ns=2, state="failed", definition_hash="h", message="x"),
     S.Goal(robot_id="r1", ws_id="w1", goal=(0.0, 0.0), navfn="kr", k=8.0),
     S.GoalCancel(robot_id="r1", stamp_ns=2),

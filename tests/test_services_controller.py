@@ -21,6 +21,7 @@ from confnav.schemas import (
     TransformSolution,
     VelocityCommand,
     WorkspaceDefinition,
+    WorkspaceDelete,
     decode,
     encode,
 )
@@ -516,5 +517,23 @@ def test_definition_change_stops_robots_near_the_new_geometry(mem_net: InMemoryN
             return _state(cl, "A") == "navigating"
 
         wait_for(moving, timeout=5, interval=0.05)
+    finally:
+        ctl.stop()
+
+
+def test_deleted_workspace_stops_its_robots(mem_net: InMemoryNetwork) -> None:
+    ctl, tr, cl = setup(mem_net)
+    try:
+        cl.goal("r1")
+        wait_for(lambda: ctl.counters["maps_installed"])
+        cl.pose("r1", 0.0, 0.5)
+        wait_for(lambda: _state(cl, "r1") == "navigating")
+        del tr.solutions["cd"]
+        tr.bus.publish(K.ws("cd", "delete"), encode(WorkspaceDelete(ws_id="cd")))
+        wait_for(lambda: getattr(cl.last_status("r1"), "reason", "") == "missing_map")
+        assert cl.last_cmd("r1").linear == (0.0, 0.0)
+        cl.pose("r1", 0.0, 0.5)
+        wait_for(lambda: cl.answer("r1") is not None)
+        assert cl.answer("r1").linear == (0.0, 0.0)
     finally:
         ctl.stop()
