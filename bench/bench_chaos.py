@@ -27,6 +27,8 @@ machine is loaded: timings are not idle figures.
 from __future__ import annotations
 
 import argparse
+import contextlib
+import itertools
 import json
 import os
 import random
@@ -74,7 +76,6 @@ SIM_ID = "sim"
 # malformed messages
 # ------------------------------------------------------------------------------------------
 _SQUARE = [(-1.0, -1.0), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0)]
-_DIAG = {"sweeps": 1, "error_estimate": 0.0, "wall_time": 0.0, "tol": 1e-10}
 
 
 def _samples() -> dict[tuple[str, str], bytes]:
@@ -91,7 +92,7 @@ def _samples() -> dict[tuple[str, str], bytes]:
             anchor=(0.0, 0.0),
             centers=[(0.1, 0.2)],
             radii=[0.1],
-            diagnostics=SolveDiagnostics(**_DIAG),
+            diagnostics=SolveDiagnostics(sweeps=1, error_estimate=0.0, wall_time=0.0, tol=1e-10),
             coefficients={"x": [1, 2]},
         )
         .model_dump_json()
@@ -205,7 +206,7 @@ RECEIVED_COUNTERS: dict[tuple[str, str], list[tuple[str, str, str]]] = {
 }
 
 
-def delivered(key: str, sub: str = K.prefix + "/**") -> bool:
+def delivered_zenoh(key: str, sub: str) -> bool:
     """Whether a put on ``key`` reaches a subscriber of ``sub`` (``*`` chunks on either side
     match one chunk, ``**`` any; a verbatim ``@`` chunk only matches itself, as in Zenoh)."""
     k, e = key.split("/"), sub.split("/")
@@ -229,17 +230,21 @@ def delivered(key: str, sub: str = K.prefix + "/**") -> bool:
 
 
 def fuzz_traffic(
-    n: int, seed: int = 0, verbatim: bool = True
+    n: int,
+    seed: int = 0,
+    verbatim: bool = True,
+    delivered: Callable[[str, str], bool] = delivered_zenoh,
 ) -> tuple[list[tuple[str, bytes]], dict[tuple[str, str], int], Counter[str]]:
     """Every malformed message of every kind; the number delivered per (service, counter)
-    and per topic (what the recorder must hold)."""
+    and per topic (what the recorder must hold); ``delivered(key, subscription)`` says
+    whether a put reaches a subscriber (Zenoh's rules by default)."""
     msgs: list[tuple[str, bytes]] = []
     expect: dict[tuple[str, str], int] = Counter()
     topics: Counter[str] = Counter()
     for group, kind in FUZZ_KINDS:
         for key, payload, _what in malformed(group, kind, n, seed, verbatim):
             msgs.append((key, payload))
-            if delivered(key):
+            if delivered(key, K.prefix + "/**"):
                 topics[key] += 1
             for service, counter, sub in RECEIVED_COUNTERS[(group, kind)]:
                 if delivered(key, sub):
@@ -343,7 +348,7 @@ def check_recordings(out: Path) -> list[dict[str, Any]]:
     """Every recording file: complete (footer) or restored by recover (messages)."""
     from confnav.services.recover import has_footer, recover
 
-    rows = []
+    rows: list[dict[str, Any]] = []
     for path in sorted(out.glob("chaos*.mcap")):
         if ".recovered" in path.name:
             continue
@@ -365,9 +370,9 @@ def run_fuzz(n: int, queries: int, work: Path) -> dict[str, Any]:
     sockdir = Path(tempfile.mkdtemp(prefix="cnf", dir="/tmp"))
     out = work / "fuzz"
     out.mkdir(parents=True, exist_ok=True)
-    launcher = Launcher(
-        system_config(f"unixsock-stream/{sockdir}/r.sock", out, work / "cache", {}, 1.0, 50.0)
-    )
+    config = system_config(f"unixsock-stream/{sockdir}/r.sock", out, work / "cache", {}, 1.0, 50.0)
+    config.stop_timeout = 120.0  # the recorder finishes a large file
+    launcher = Launcher(config)
     result: dict[str, Any] = {"n_per_kind": n}
     try:
         launcher.start()
@@ -407,9 +412,16 @@ def run_fuzz(n: int, queries: int, work: Path) -> dict[str, Any]:
             return now if done else None
 
         try:
-            after = wait(settled, 300, "counters account for the messages", 1.0)
+            wait(settled, 300, "counters account for the messages", 1.0)
+            n_rec = before.get("recorder", {}).get("recorded", 0) + sum(topics.values())
+            wait(
+                lambda: health.counters().get("recorder", {}).get("recorded", 0) >= n_rec,
+                300,
+                "the recorder has every message",
+                1.0,
+            )
         except TimeoutError:
-            after = health.counters()
+            pass
         time.sleep(2.0)
         after = health.counters()
         rows = []
@@ -436,9 +448,11 @@ def run_fuzz(n: int, queries: int, work: Path) -> dict[str, Any]:
     from confnav.services.inspection import Recording
 
     got_topics: Counter[str] = Counter()
-    files = sorted(out.glob("chaos*.mcap"))
+    files = sorted(p for p in out.glob("chaos*.mcap") if ".recovered" not in p.name)
+    result["recordings"] = check_recordings(out)
     for path in files:
-        with Recording(path) as rec:
+        fixed = path.with_name(path.stem + ".recovered.mcap")
+        with Recording(fixed if fixed.exists() else path) as rec:
             for m in rec.iter_messages():
                 if m.topic in topics:
                     got_topics[m.topic] += 1
@@ -493,22 +507,136 @@ class Robots:
         with self.lock:
             return self.poses[rid][-1][1] if self.poses[rid] else None
 
+    def started_over(self, rid: str, t_reset: float, start: complex) -> bool:
+        """Whether, after ``t_reset``, the robot was back at ``start`` and then moved away."""
+        with self.lock:
+            seq = [z for t, z in self.poses[rid] if t >= t_reset]
+        back = next((i for i, z in enumerate(seq) if abs(z - start) < 0.05), None)
+        return back is not None and any(abs(z - start) > 0.15 for z in seq[back:])
+
     def stop_time(self, rid: str, t_from: float, t_to: float) -> float | None:
         """Receive time of the last pose in [t_from, t_to] that differs from the one before
         (None: it never moved there); the robot stands still after it."""
         with self.lock:
             seq = [(t, z) for t, z in self.poses[rid] if t_from - 0.5 <= t <= t_to]
         last = None
-        for (_t0, z0), (t1, z1) in zip(seq, seq[1:], strict=False):
+        for (_t0, z0), (t1, z1) in itertools.pairwise(seq):
             if abs(z1 - z0) > 1e-12 and t1 >= t_from:
                 last = t1
         return last
 
 
+def _kill_victim(
+    victim: str,
+    repeats: int,
+    work: Path,
+    starts: dict[str, complex],
+    time_scale: float,
+    rate: float,
+    cmd_timeout: float,
+    runs: list[dict[str, Any]],
+    stops: list[float],
+) -> list[dict[str, Any]]:
+    """One system; ``repeats`` kills of ``victim``; rows appended to ``runs`` and stop
+    latencies to ``stops``; returns the state of its recording files."""
+    from confnav.workspaces import DEFAULT_GOAL
+
+    out = work / f"kill-{victim}"
+    out.mkdir(parents=True, exist_ok=True)
+    sockdir = Path(tempfile.mkdtemp(prefix="cnk", dir="/tmp"))
+    launcher = Launcher(
+        system_config(
+            f"unixsock-stream/{sockdir}/r.sock", out, work / "cache", starts, time_scale, rate
+        )
+    )
+    stop_goals = threading.Event()
+    try:
+        launcher.start()
+        assert launcher.bus is not None
+        bus = launcher.bus
+        robots = Robots(bus, list(starts))
+        goals = [
+            encode(
+                Goal(
+                    robot_id=r,
+                    ws_id="default",
+                    goal=(DEFAULT_GOAL.real, DEFAULT_GOAL.imag),
+                    gain=100.0,
+                )
+            )
+            for r in starts
+        ]
+
+        def send_goals() -> None:  # goals are state: republished at 1 Hz (idempotent)
+            while not stop_goals.is_set():
+                for rid, g in zip(starts, goals, strict=True):
+                    with contextlib.suppress(Exception):  # the router may be down
+                        bus.publish(K.robot(rid, "goal"), g)
+                stop_goals.wait(1.0)
+
+        threading.Thread(target=send_goals, daemon=True).start()
+        monitor = threading.Thread(target=launcher.monitor, args=(stop_goals, 0.1), daemon=True)
+        monitor.start()
+        for rep in range(repeats):
+            t_reset = time.monotonic()
+            bus.publish(K.sim(SIM_ID, "control"), encode(SimControl(action="reset")))
+            with robots.lock:
+                robots.arrived_at.clear()
+                n_coll = len(robots.collisions)
+
+            # wait until every robot moves away from its start
+            def started_over(t: float = t_reset) -> bool:
+                return all(robots.started_over(r, t, z) for r, z in starts.items())
+
+            wait(started_over, 120, "robots back at their starts and moving")
+            proc = launcher.router if victim == "router" else launcher.procs[victim]
+            assert proc is not None
+            t_kill = time.monotonic()
+            os.kill(proc.popen.pid, signal.SIGKILL)
+            row: dict[str, Any] = {"victim": victim, "repeat": rep}
+            if victim == "controller":
+                time.sleep(max(1.0, 3 * cmd_timeout))
+                lat = []
+                for r in starts:
+                    t_stop = robots.stop_time(r, t_kill, time.monotonic())
+                    lat.append(0.0 if t_stop is None else t_stop - t_kill)
+                row["stop_latency_s"] = max(lat)
+                stops.extend(lat)
+            with robots.lock:
+                robots.arrived_at.clear()
+            try:
+                wait(
+                    lambda: (
+                        all(r in robots.arrived_at for r in starts)
+                        and all(
+                            abs((robots.position(r) or 9) - DEFAULT_GOAL) < 0.05 for r in starts
+                        )
+                    ),
+                    180,
+                    "every robot arrives",
+                    0.2,
+                )
+                row["all_arrived"] = True
+            except TimeoutError:
+                row["all_arrived"] = False
+            with robots.lock:
+                row["collisions"] = len(robots.collisions) - n_coll
+            row["arrival_s_after_kill"] = time.monotonic() - t_kill
+            row["cycle_s"] = time.monotonic() - t_reset
+            row["restarts"] = launcher.restarts
+            print(f"  kill {victim} #{rep + 1}: {row}", flush=True)
+            runs.append(row)
+    finally:
+        stop_goals.set()
+        launcher.shutdown()
+        shutil.rmtree(sockdir, ignore_errors=True)
+    return check_recordings(out)
+
+
 def run_kill(
     victims: list[str], repeats: int, work: Path, time_scale: float, cmd_timeout: float
 ) -> dict[str, Any]:
-    from confnav.workspaces import DEFAULT_GOAL, DEFAULT_STARTS
+    from confnav.workspaces import DEFAULT_STARTS
 
     starts = {f"r{i + 1}": z for i, z in enumerate(DEFAULT_STARTS)}
     rate = 50.0
@@ -516,101 +644,9 @@ def run_kill(
     stops: list[float] = []
     recordings: dict[str, Any] = {}
     for victim in victims:
-        out = work / f"kill-{victim}"
-        out.mkdir(parents=True, exist_ok=True)
-        sockdir = Path(tempfile.mkdtemp(prefix="cnk", dir="/tmp"))
-        launcher = Launcher(
-            system_config(
-                f"unixsock-stream/{sockdir}/r.sock", out, work / "cache", starts, time_scale, rate
-            )
+        recordings[victim] = _kill_victim(
+            victim, repeats, work, starts, time_scale, rate, cmd_timeout, runs, stops
         )
-        stop_goals = threading.Event()
-        try:
-            launcher.start()
-            assert launcher.bus is not None
-            bus = launcher.bus
-            robots = Robots(bus, list(starts))
-            goals = [
-                encode(
-                    Goal(
-                        robot_id=r,
-                        ws_id="default",
-                        goal=(DEFAULT_GOAL.real, DEFAULT_GOAL.imag),
-                        gain=100.0,
-                    )
-                )
-                for r in starts
-            ]
-
-            def send_goals() -> None:  # goals are state: republished at 1 Hz (idempotent)
-                while not stop_goals.is_set():
-                    for rid, g in zip(starts, goals, strict=True):
-                        try:
-                            bus.publish(K.robot(rid, "goal"), g)
-                        except Exception:
-                            pass
-                    stop_goals.wait(1.0)
-
-            threading.Thread(target=send_goals, daemon=True).start()
-            monitor = threading.Thread(target=launcher.monitor, args=(stop_goals, 0.1), daemon=True)
-            monitor.start()
-            for rep in range(repeats):
-                bus.publish(K.sim(SIM_ID, "control"), encode(SimControl(action="reset")))
-                t_reset = time.monotonic()
-                with robots.lock:
-                    robots.arrived_at.clear()
-                    n_coll = len(robots.collisions)
-                # wait until every robot moves away from its start
-                wait(
-                    lambda: all(
-                        (p := robots.position(r)) is not None and abs(p - z) > 0.15
-                        for r, z in starts.items()
-                    ),
-                    120,
-                    "robots moving",
-                )
-                proc = launcher.router if victim == "router" else launcher.procs[victim]
-                assert proc is not None
-                t_kill = time.monotonic()
-                os.kill(proc.popen.pid, signal.SIGKILL)
-                row: dict[str, Any] = {"victim": victim, "repeat": rep}
-                if victim == "controller":
-                    time.sleep(max(1.0, 3 * cmd_timeout))
-                    lat = []
-                    for r in starts:
-                        t_stop = robots.stop_time(r, t_kill, time.monotonic())
-                        lat.append(0.0 if t_stop is None else t_stop - t_kill)
-                    row["stop_latency_s"] = max(lat)
-                    stops.extend(lat)
-                with robots.lock:
-                    robots.arrived_at.clear()
-                try:
-                    wait(
-                        lambda: (
-                            all(r in robots.arrived_at for r in starts)
-                            and all(
-                                abs((robots.position(r) or 9) - DEFAULT_GOAL) < 0.05 for r in starts
-                            )
-                        ),
-                        180,
-                        "every robot arrives",
-                        0.2,
-                    )
-                    row["all_arrived"] = True
-                except TimeoutError:
-                    row["all_arrived"] = False
-                with robots.lock:
-                    row["collisions"] = len(robots.collisions) - n_coll
-                row["arrival_s_after_kill"] = time.monotonic() - t_kill
-                row["cycle_s"] = time.monotonic() - t_reset
-                row["restarts"] = launcher.restarts
-                print(f"  kill {victim} #{rep + 1}: {row}", flush=True)
-                runs.append(row)
-        finally:
-            stop_goals.set()
-            launcher.shutdown()
-            shutil.rmtree(sockdir, ignore_errors=True)
-        recordings[victim] = check_recordings(out)
     return {
         "time_scale": time_scale,
         "cmd_timeout_s": cmd_timeout,
@@ -777,13 +813,16 @@ def main() -> int:
         print(f"\nfuzz ({fz['messages']} messages, published in {fz['publish_s']:.1f} s):")
         for r in fz["counters"]:
             print(
-                f"  {r['service']:<11} {r['counter']:<22} sent {r['sent']:>6}  counted {r['counted']:>6}"
+                f"  {r['service']:<11} {r['counter']:<22} sent {r['sent']:>6}  "
+                f"counted {r['counted']:>6}"
             )
         print(
-            f"  recorder: every delivered message in the file: {fz['recorder_topics_exact']} (missing {fz['recorder_missing']})"
+            f"  recorder: every delivered message in the file: {fz['recorder_topics_exact']} "
+            f"(missing {fz['recorder_missing']})"
         )
         print(
-            f"  bad queries answered with reply_err: {fz['queries_answered_with_error']}/{fz['queries']}"
+            f"  bad queries answered with reply_err: {fz['queries_answered_with_error']}"
+            f"/{fz['queries']}"
         )
         targets += [
             (
@@ -825,7 +864,8 @@ def main() -> int:
             by[r["victim"]].append(r)
         for v, rs in by.items():
             print(
-                f"  {v:<11} kills {len(rs)}  all arrived {sum(r['all_arrived'] for r in rs)}/{len(rs)}  "
+                f"  {v:<11} kills {len(rs)}  all arrived "
+                f"{sum(r['all_arrived'] for r in rs)}/{len(rs)}  "
                 f"collisions {sum(r['collisions'] for r in rs)}  arrival after kill "
                 f"{max(r['arrival_s_after_kill'] for r in rs):.1f} s max"
             )
@@ -842,7 +882,8 @@ def main() -> int:
         if sl["max"] is not None:
             targets.append(
                 (
-                    f"kill: robots stop <= cmd_timeout + 1 step ({limit * 1e3:.0f} ms) after losing the controller",
+                    f"kill: robots stop <= cmd_timeout + 1 step ({limit * 1e3:.0f} ms) "
+                    "after losing the controller",
                     f"max {sl['max'] * 1e3:.0f} ms, p50 {sl['p50'] * 1e3:.0f} ms (n={sl['n']})",
                     sl["max"] <= limit,
                 )
