@@ -260,7 +260,7 @@ def run_table(runs: list[dict[str, Any]], max_rows: int = TABLE_ROWS) -> str:
     """Per-robot table (start, outcome, reason, time, path ratio, min clearance) for the first
     ``max_rows`` robots, then one line per failure beyond them."""
     head = ("#", "start [m]", "outcome", "time [s]", "path ratio", "min clear [m]", "reason")
-    rows = [head]
+    rows: list[tuple[str, ...]] = [head]
     for i, r in enumerate(runs[:max_rows]):
         rows.append(_row(i, r))
     widths = [max(len(row[c]) for row in rows) for c in range(len(head) - 1)]

@@ -139,7 +139,7 @@ def speed_law(
         v = v * slow
     # unit direction; |f| = 0 (direction undefined) gives u = 0, never NaN
     with np.errstate(invalid="ignore", divide="ignore"):
-        unit = np.where(size > 0, f / np.where(size > 0, size, 1.0), 0j)
+        unit = np.where(size > 0, f / np.where(size > 0, size, 1.0), np.where(size == 0, 0j, f))
     return np.asarray(unit * v, dtype=np.complex128), np.asarray(sat & (size > 0))
 
 
@@ -345,7 +345,7 @@ class Controller:
         z = np.asarray(z, dtype=np.complex128)
         w, dw = self.cmap.T_and_dT(z)
         w, dw = np.asarray(w, dtype=np.complex128), np.asarray(dw, dtype=np.complex128)
-        return self._near_critical(w, dw) & np.isfinite(w)
+        return np.asarray(self._near_critical(w, dw) & np.isfinite(w), dtype=bool)
 
     def circle_domain_position(self, z: ArrayLike) -> tuple[CArray, FArray]:
         """``(T(z), scale)``: the image in the circle domain and its local length scale
