@@ -16,6 +16,8 @@ from typing import Annotated, ClassVar, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, JsonValue, StringConstraints
 
+from confnav import defaults
+
 SCHEMA_VERSION: int = 1
 """Version of every model below; bump (and keep a reader for the old one) on breaking change."""
 
@@ -130,6 +132,7 @@ class TransformStatus(Message):
 
 
 NavFnName = Literal["harmonic", "kr"]
+SpeedLawName = Literal["normalized", "theorem2"]
 
 
 class Goal(Message):
@@ -137,8 +140,10 @@ class Goal(Message):
 
     ``navfn`` names the navigation function (``harmonic``: tuning free; ``kr``:
     Koditschek-Rimon with exponent ``k``, None for the library's certified default);
-    ``gain`` is K of the control law, ``v_max`` the speed limit (m/s), ``tolerance`` the arrival
-    radius (m).
+    ``speed_law`` ``normalized`` commands the unit direction of the Theorem 2 field times
+    ``min(v_max, gain * distance to goal)``, ``theorem2`` the plain law (``gain`` = K)
+    saturated at ``v_max``; ``v_max`` is the speed limit (m/s), ``tolerance`` the arrival
+    radius (m).  Every default is the library's (``confnav.defaults``).
     """
 
     TYPE: ClassVar[str] = "confnav.Goal"
@@ -147,11 +152,12 @@ class Goal(Message):
     robot_id: Id
     ws_id: Id
     goal: Point
-    navfn: NavFnName = "harmonic"
+    navfn: NavFnName = defaults.NAVFN
     k: Annotated[float, Field(ge=1.0, le=1000.0)] | None = None
-    gain: Positive = 1.0
-    v_max: Positive = 0.5
-    tolerance: Positive = 0.02
+    speed_law: SpeedLawName = defaults.SPEED_LAW
+    gain: Positive = defaults.GAIN
+    v_max: Positive = defaults.V_MAX
+    tolerance: Positive = defaults.GOAL_TOL
     stamp_ns: TimeNs = 0
 
 
