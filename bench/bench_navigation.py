@@ -89,7 +89,7 @@ def make_field(method: str, cmap: Any, sc: Scenario) -> tuple[Any, dict[str, Any
 
 def solve_cached(ws: Any, cache: Path | None) -> Any:
     """``confnav.solve`` with an optional on-disk cache keyed by the workspace hash."""
-    path = cache / f"{ws.content_hash()[:16]}.json" if cache else None
+    path = cache / f"{ws.content_hash[:16]}.json" if cache else None
     if path is not None and path.exists():
         nav = confnav.ConformalMap.from_json(path.read_text()).for_navigation()
         nav.from_cache = True  # type: ignore[attr-defined]

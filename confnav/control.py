@@ -21,11 +21,12 @@ from typing import TYPE_CHECKING, Any, Literal, Protocol
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from confnav.errors import NavigationError
+from confnav.errors import MapMismatchError, NavigationError
 from confnav.navfn import CircleDomain, NavigationFunction, make_navfn
 
 if TYPE_CHECKING:
     from confnav.critical import CriticalPoints
+    from confnav.geometry import Workspace
 
 __all__ = ["ConformalLike", "ControlOutput", "Controller", "Status"]
 
@@ -100,6 +101,8 @@ class Controller:
         keeping its direction, to at least ``v_min * min(1, |x - x_d| / floor_radius)``.
         A positive scaling keeps the paths and dV/dt < 0; it removes the crawl where
         ``|T'|`` is tiny (crowded corridors, deep pockets: ``|T'| ~ exp(-pi L/w)``).
+    workspace : the workspace in use; if given, a map whose ``workspace_hash`` differs from
+        its ``content_hash`` is refused with :class:`~confnav.errors.MapMismatchError`.
     """
 
     def __init__(
@@ -115,7 +118,15 @@ class Controller:
         stall_tol: float = 1e-9,
         v_min: float = 0.0,
         floor_radius: float = 0.1,
+        workspace: Workspace | None = None,
     ) -> None:
+        if workspace is not None:  # refuse a map solved for another workspace (issue 8)
+            if getattr(cmap, "workspace_hash", None) != workspace.content_hash:
+                raise MapMismatchError(
+                    f"the map was solved for workspace "
+                    f"{str(getattr(cmap, 'workspace_hash', None))[:12]}, not for the one in "
+                    f"use {workspace.content_hash[:12]}"
+                )
         self.cmap = cmap
         self.goal = _as_point(goal, "goal")
         if not float(gain) > 0 or not np.isfinite(gain):
