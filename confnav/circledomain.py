@@ -69,10 +69,13 @@ MAX_SWEEPS = 200
 STALL_SWEEPS = 3
 #: Largest contraction factor used to extrapolate: a slower run is treated as stalled.
 RHO_MAX = 0.99
-#: Smooth-grid sizes: start, cap, and the Fourier tail (relative) that triggers doubling.
+#: Smooth-grid sizes: start, cap, and the smallest Fourier tail (relative) resolved: the grid
+#: resolves its curve to ``SMOOTH_PER_TOL * tol`` (the tail then adds nothing measurable to the
+#: map's error), but never below rounding, SMOOTH_TAIL.
 SMOOTH_START = 64
 SMOOTH_MAX = 16384
 SMOOTH_TAIL = 1e-15
+SMOOTH_PER_TOL = 1e-3
 
 
 @dataclass
@@ -158,6 +161,7 @@ class _Boundary:
     u: FloatArray | None = None  # parameter of each passive node along the smooth curve
     du: FloatArray | None = None  # du/dt at each passive node
     m: int = SMOOTH_START
+    tail: float = SMOOTH_TAIL  # Fourier tail (relative) the smooth grid must reach
     capped_tail: float = 0.0  # Fourier tail of the grid while it is at SMOOTH_MAX (0: not)
 
     def own_map(self, alpha: complex, others: ComplexArray, rtol: float) -> CurveMap:
@@ -169,7 +173,7 @@ class _Boundary:
         """
         if self.S is not None:
             assert self.dS is not None
-            m, capped = _grid_size(_gap(self.S, others))
+            m, capped = _grid_size(_gap(self.S, others), self.tail)
             self.capped_tail = _tail(self.S) if capped or self.S.size >= SMOOTH_MAX else 0.0
             if m > self.S.size:
                 self.S, self.dS = _upsample(self.S, m), _upsample(self.dS, m)
@@ -189,7 +193,7 @@ class _Boundary:
             delta, ddelta = _trig_eval(new - grid, self.u)
             self.du = self.du * (1.0 + ddelta)
             self.u = self.u + delta
-            if _tail(self.S) > SMOOTH_TAIL:
+            if _tail(self.S) > self.tail:
                 self.m = min(2 * self.S.size, SMOOTH_MAX)  # under-resolved: at least double
         sgn = -1.0 if self.hole else 1.0
         self.P = np.exp(1j * sgn * self.u)
@@ -212,21 +216,22 @@ class _Boundary:
         then decay like (1 + delta)^-j, so m = 2 ln(1/eps) / ln(1 + delta) points resolve it.
         """
         gap = float(np.min(np.abs(np.abs(others) - 1.0))) if others.size else 1.0
-        self.m = max(self.m, _grid_size(gap)[0])
+        self.m = max(self.m, _grid_size(gap, self.tail)[0])
         sgn = -1.0 if self.hole else 1.0
         grid = 2 * np.pi * np.arange(self.m) / self.m
         self.S = np.exp(1j * sgn * grid)
         self.dS = 1j * sgn * self.S
 
 
-def _grid_size(gap: float) -> tuple[int, bool]:
+def _grid_size(gap: float, tail: float) -> tuple[int, bool]:
     """Uniform grid size resolving an analytic curve whose nearest singularity is at relative
-    distance ``gap``: Fourier modes decay like (1 + gap)^-j (power of 2, capped at
+    distance ``gap`` to a relative Fourier ``tail``: modes decay like (1 + gap)^-j, so
+    m = 2 ln(1/tail) / ln(1 + gap) (power of 2, capped at
     :data:`SMOOTH_MAX`); the flag says the cap was hit (the grid is then under-resolved and
     its Fourier tail is reported as ``resolution_error``)."""
     if not np.isfinite(gap):
         raise ConvergenceError("a boundary image became non-finite (NaN or inf)")
-    need = 2 * np.log(1 / SMOOTH_TAIL) / np.log1p(max(gap, 1e-6))
+    need = 2 * np.log(1 / tail) / np.log1p(max(gap, 1e-6))
     m = int(2 ** np.ceil(np.log2(max(need, SMOOTH_START))))
     return min(m, SMOOTH_MAX), m > SMOOTH_MAX
 
@@ -313,7 +318,13 @@ def koebe_iteration(
     """
     t0 = time.perf_counter()
     bnds = [
-        _Boundary(P=m.eta.copy(), dP=m.deta.copy(), mask=m.interior_mask(), hole=j > 0)
+        _Boundary(
+            P=m.eta.copy(),
+            dP=m.deta.copy(),
+            mask=m.interior_mask(),
+            hole=j > 0,
+            tail=max(SMOOTH_TAIL, SMOOTH_PER_TOL * tol),
+        )
         for j, m in enumerate(meshes)
     ]
     M = len(meshes) - 1
@@ -335,9 +346,7 @@ def koebe_iteration(
                     f"Koebe iteration lost track of obstacle {k - 1} in sweep {sweep} "
                     "(its tracked point left the boundary image)"
                 )
-            F = _own_map(
-                b, c[k - 1], f"obstacle {k - 1}", meshes[k], _curves(bnds, k), gmres_tol
-            )
+            F = _own_map(b, c[k - 1], f"obstacle {k - 1}", meshes[k], _curves(bnds, k), gmres_tol)
             gm_its += F.gmres_iterations
             others = np.concatenate([[a], np.delete(c, k - 1)])
             out = _apply(F, bnds, k, others)
@@ -345,9 +354,7 @@ def koebe_iteration(
             img, dimg = out[: others.size], out[others.size :]
             a, D = complex(img[0]), D * complex(dimg[0])
             c = np.insert(img[1:], k - 1, 0.0)
-        f0 = _own_map(
-            bnds[0], a, "the outer boundary", meshes[0], _curves(bnds, 0), gmres_tol
-        )
+        f0 = _own_map(bnds[0], a, "the outer boundary", meshes[0], _curves(bnds, 0), gmres_tol)
         gm_its += f0.gmres_iterations
         out = _apply(f0, bnds, 0, c)
         _regrid(bnds[0], _curves(bnds, 0), "the outer boundary", sweep)
@@ -405,7 +412,7 @@ def koebe_iteration(
         smooth_nodes=[b.m for b in bnds],
         wall_time=time.perf_counter() - t0,
         iteration_error=iteration_error,
-        converged=converged and iteration_error <= tol,
+        converged=bool(converged and iteration_error <= tol),
         resolution_error=max(b.capped_tail for b in bnds),
     )
 

@@ -120,13 +120,12 @@ class Controller:
         floor_radius: float = 0.1,
         workspace: Workspace | None = None,
     ) -> None:
-        if workspace is not None:  # refuse a map solved for another workspace (issue 8)
-            if getattr(cmap, "workspace_hash", None) != workspace.content_hash:
-                raise MapMismatchError(
-                    f"the map was solved for workspace "
-                    f"{str(getattr(cmap, 'workspace_hash', None))[:12]}, not for the one in "
-                    f"use {workspace.content_hash[:12]}"
-                )
+        bound = getattr(cmap, "workspace_hash", None)
+        if workspace is not None and bound != workspace.content_hash:  # issue 8
+            raise MapMismatchError(
+                f"the map was solved for workspace {str(bound)[:12]}, not for the one in use "
+                f"{workspace.content_hash[:12]}"
+            )
         self.cmap = cmap
         self.goal = _as_point(goal, "goal")
         if not float(gain) > 0 or not np.isfinite(gain):
