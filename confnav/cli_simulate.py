@@ -136,7 +136,9 @@ def _load_map(args: argparse.Namespace, ws: Any) -> Any:
     import confnav
 
     if getattr(args, "map", None):
-        return confnav.ConformalMap.from_json(Path(args.map).read_text()).for_navigation()
+        cmap = confnav.ConformalMap.from_json(Path(args.map).read_text())
+        cmap.check_workspace(ws)  # a map of another workspace: MapMismatchError, exit != 0
+        return cmap.for_navigation()
     t0 = time.perf_counter()
     print(f"solving the conformal map of {ws.n_obstacles} obstacles...", file=sys.stderr)
 

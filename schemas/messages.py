@@ -93,13 +93,17 @@ class SolveDiagnostics(Message):
     wall_time: Annotated[float, Field(ge=0.0)]
     tol: Annotated[float, Field(ge=0.0)]
     nodes: list[Annotated[int, Field(ge=0)]] = []
+    #: Largest distance of T from its circle at boundary points between the nodes (issue 8).
+    boundary_residual: Annotated[float, Field(ge=0.0)]
+    tol_met: bool
 
 
 class TransformSolution(Message):
     """A solved map, put on ``{prefix}/ws/{ws}/transform`` and served by its queryable.
 
     ``revision`` is the content hash of the coefficients (:attr:`ConformalMap.revision`),
-    ``definition_hash`` that of the workspace definition it was solved from. ``coefficients``
+    ``definition_hash`` that of the workspace definition it was solved from, ``workspace_hash``
+    the :attr:`Workspace.content_hash` the map is bound to. ``coefficients``
     is :meth:`ConformalMap.to_dict` (lossless); ``centers``/``radii`` the circle domain.
     """
 
@@ -109,6 +113,8 @@ class TransformSolution(Message):
     ws_id: Id
     revision: Annotated[str, Field(min_length=1, max_length=128)]
     definition_hash: Annotated[str, Field(min_length=1, max_length=128)]
+    #: ``Workspace.content_hash`` of the workspace the map was solved for (issue 8).
+    workspace_hash: Annotated[str, Field(min_length=1, max_length=128)]
     stamp_ns: TimeNs
     anchor: Point
     centers: list[Point]

@@ -65,7 +65,7 @@ def definition_hash(defn: WorkspaceDefinition) -> str:
     """Content hash of what determines the solution: the workspace geometry and ``tol``
     (not the ws id, not the time stamp). Validates the workspace with the core."""
     ws = workspace_of(defn)
-    return hashlib.sha256(f"{ws.content_hash()}|tol={defn.tol!r}".encode()).hexdigest()
+    return hashlib.sha256(f"{ws.content_hash}|tol={defn.tol!r}".encode()).hexdigest()
 
 
 def workspace_of(defn: WorkspaceDefinition) -> Any:
@@ -126,7 +126,10 @@ def solve_definition(defn_json: str) -> dict[str, Any]:
             "wall_time": float(getattr(diag, "wall_time", 0.0)),
             "tol": float(getattr(diag, "tol", defn.tol)),
             "nodes": [int(n) for n in nodes],
+            "boundary_residual": float(diag.boundary_residual),
+            "tol_met": bool(diag.tol_met),
         },
+        "workspace_hash": str(cmap.workspace_hash),
         # through JSON so that the result is plain JSON values (lists, not tuples/arrays)
         "coefficients": json.loads(cmap.to_json()),
     }
@@ -424,6 +427,7 @@ class TransformService(Service):
                     ws_id=ws_id,
                     revision=result["revision"],
                     definition_hash=h,
+                    workspace_hash=result["workspace_hash"],
                     stamp_ns=time.time_ns(),
                     anchor=tuple(result["anchor"]),
                     centers=[tuple(c) for c in result["centers"]],
