@@ -36,6 +36,10 @@ def register(sub: Any) -> None:
         "--min-obstacle-cells", type=int, default=0, metavar="N",
         help="drop obstacles of at most N cells (non-conservative; default 0: keep all)",
     )
+    p.add_argument(
+        "--merge-cells", type=int, default=0, metavar="N",
+        help="merge obstacles closer than 2N cells (closing; default: the robot radius in cells)",
+    )
     p.add_argument("--plot", type=Path, help="write a picture of the map and workspace (PNG)")
     p.set_defaults(func=run)
 
@@ -48,6 +52,7 @@ def run(args: argparse.Namespace) -> int:
         robot_radius=args.robot_radius,
         keep=args.keep,
         min_obstacle_cells=args.min_obstacle_cells,
+        merge_cells=args.merge_cells,
     )
     args.output.write_text(res.workspace.to_json(indent=1) + "\n")
     for line in res.report.lines():

@@ -6,13 +6,16 @@ Pipeline (every step conservative: the free space never grows, an obstacle never
    ``negate: 1``; ``v / 100`` in ``raw`` mode); occupied if ``p > occupied_thresh``, free if
    ``p < free_thresh``, otherwise unknown. Unknown cells count as occupied, and so does
    everything outside the image.
-2. **Merge** (the speck rule): the occupied set is closed morphologically with a disk of
-   ``rho`` cells, ``rho = max(1, floor(robot_radius / resolution))``. Closing only adds
-   occupied cells, and it merges obstacles (and walls) less than ``2 rho`` cells apart into one.
-   With a robot radius the cells it fills are (up to the raster) exactly those the robot's body
-   can never cover: the opening of the free space by the body's disk is the set the body sweeps.
-   Obstacles of at most ``min_obstacle_cells`` cells are then **dropped** only on request
-   (default 0: none): the one non-conservative step, counted in the report.
+2. **Merge** (the speck rule): occupied cells that touch, also diagonally, are one obstacle
+   (8-connectivity), so a speck touching a wall is part of the wall. Then the occupied set is
+   closed morphologically with a disk of ``rho`` cells,
+   ``rho = max(merge_cells, floor(robot_radius / resolution))`` (default 0 for a point robot:
+   no closing). Closing only adds occupied cells, and it merges obstacles (and walls) less than
+   ``2 rho`` cells apart into one; with a robot radius the cells it fills are (up to the raster)
+   those the robot's body can never cover (the opening of the free space by the body's disk is
+   the set the body sweeps). Obstacles of at most ``min_obstacle_cells`` cells are then
+   **dropped** only on request (default 0: none): the one non-conservative step, counted in
+   the report. Free-standing specks are otherwise kept: an obstacle never shrinks.
 3. **Keep** the 4-connected free component holding ``keep`` (default: the largest). A kept
    component touching the image border is an error: the map is open there.
 4. **Trace** its boundary with marching squares (scikit-image ``find_contours``, level 0.5: free
@@ -234,6 +237,7 @@ def workspace_from_grid(
     robot_radius: float = 0.0,
     keep: complex | None = None,
     min_obstacle_cells: int = 0,
+    merge_cells: int = 0,
     simplify: float = 0.3,
 ) -> ImportResult:
     """Steps 2-6 of the module docstring on a free-cell mask (row 0 = top)."""
@@ -249,10 +253,13 @@ def workspace_from_grid(
     if n_free == 0:
         raise MapError("the map has no free cell (check negate and the thresholds)")
     # 2. merge: closing of the occupied set (outside the image is occupied)
-    rho = max(1, math.floor(robot_radius / resolution + 1e-9))
-    occ = np.pad(~free, rho + 1, constant_values=True)
-    occ = ndimage.binary_closing(occ, morphology.disk(rho))[rho + 1 : -rho - 1, rho + 1 : -rho - 1]
-    closed_free = ~occ
+    rho = max(merge_cells, math.floor(robot_radius / resolution + 1e-9))
+    if rho > 0:
+        occ = np.pad(~free, rho + 1, constant_values=True)
+        occ = ndimage.binary_closing(occ, morphology.disk(rho))
+        closed_free = ~occ[rho + 1 : -rho - 1, rho + 1 : -rho - 1]
+    else:
+        closed_free = free
     merged = int(n_free - closed_free.sum())
     # 3. keep one 4-connected component
     labels, n_comp = ndimage.label(closed_free)  # default structure: 4-connectivity
@@ -276,10 +283,10 @@ def workspace_from_grid(
     border = np.concatenate([kept[0], kept[-1], kept[:, 0], kept[:, -1]])
     if border.any():
         rows, cols = np.nonzero(kept)
-        on = np.flatnonzero(
-            (rows == 0) | (rows == h - 1) | (cols == 0) | (cols == w - 1)
-        )[0]
-        zc = _cells_to_world(np.array(cols[on] + 0.5), np.array(h - rows[on] - 0.5), resolution, origin)[0]
+        on = int(np.flatnonzero((rows == 0) | (rows == h - 1) | (cols == 0) | (cols == w - 1))[0])
+        zc = complex(
+            _cells_to_world(cols[on : on + 1] + 0.5, h - rows[on : on + 1] - 0.5, resolution, origin)[0]
+        )
         raise MapError(
             f"the free space touches the image border at row {rows[on]}, col {cols[on]} "
             f"(x={zc.real:.4g}, y={zc.imag:.4g}): the map is not closed there; add a wall or "
@@ -388,6 +395,7 @@ def import_map(
     robot_radius: float = 0.0,
     keep: complex | None = None,
     min_obstacle_cells: int = 0,
+    merge_cells: int = 0,
 ) -> ImportResult:
     """Read a map_server YAML map and return the validated workspace with a report."""
     if not (math.isfinite(robot_radius) and robot_radius >= 0):
@@ -401,6 +409,7 @@ def import_map(
         robot_radius=robot_radius,
         keep=keep,
         min_obstacle_cells=min_obstacle_cells,
+        merge_cells=merge_cells,
     )
 
 
