@@ -5,6 +5,7 @@ merging of obstacles and walls, and the typed error for a goal cut off by a narr
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 import pytest
@@ -138,3 +139,43 @@ def test_derived_ids() -> None:
     assert parse_derived_ws_id("office~r0.25") == ("office", 0.25)
     assert parse_derived_ws_id("office") is None
     assert parse_derived_ws_id("office~rx") is None
+
+
+def test_transform_service_solves_footprint_workspaces(mem_net: Any) -> None:
+    """A query for {ws}~r{R} makes the transform service solve ws shrunk by R (own cache key);
+    an impossible radius gets a reply_err saying why."""
+    from conftest import fake_solve, square_definition, wait_for
+
+    from confnav.schemas import TransformSolution, WorkspaceDefinition, decode, encode
+    from confnav.services.keys import Keys
+    from confnav.services.transform import TransformService
+
+    K = Keys()
+    solved: list[WorkspaceDefinition] = []
+
+    def solve_fn(defn_json: str) -> dict[str, Any]:
+        solved.append(WorkspaceDefinition.model_validate_json(defn_json))
+        return fake_solve(defn_json)
+
+    svc = TransformService(mem_net.bus("tr"), K, executor="thread", solve_fn=solve_fn)
+    svc.start()
+    client = mem_net.bus("client")
+    try:
+        client.publish(K.ws("sq", "definition"), encode(square_definition("sq", [(0.2, 0.0)])))
+        wait_for(lambda: svc.state_of("sq") == "solved")
+        first = client.query(K.ws("sq~r0.05", "transform"))  # not solved yet: retry later
+        assert len(first) == 1 and not first[0].ok
+        wait_for(lambda: svc.state_of("sq~r0.05") == "solved")
+        rep = client.query(K.ws("sq~r0.05", "transform"))
+        assert rep[0].ok and decode(TransformSolution, rep[0].payload or b"").ws_id == "sq~r0.05"
+        d = solved[-1]
+        assert d.ws_id == "sq~r0.05"
+        ws = Workspace(d.outer, d.obstacles)
+        # the room [-0.7, 0.7]^2 shrinks to [-0.65, 0.65]^2; the 0.05 square grows to 0.15
+        assert np.allclose(ws.bounds, (-0.65, -0.65, 0.65, 0.65), atol=1e-12)
+        assert shapely.Polygon(d.obstacles[0]).area == pytest.approx(0.15**2, rel=1e-12)
+        bad = client.query(K.ws("sq~r0.8", "transform"))
+        assert not bad[0].ok and "no free space" in (bad[0].error or "")
+        assert svc.state_of("nope~r0.1") is None
+    finally:
+        svc.stop()
