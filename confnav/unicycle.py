@@ -37,13 +37,14 @@ from numpy.typing import ArrayLike, NDArray
 
 from confnav.control import Controller, Status
 from confnav.errors import NavigationError
-from confnav.sim import STATUS_NAMES, _chord_check
+from confnav.sim import STATUS_NAMES, RunResult, SimulationResult, _chord_check, simulate
 
 __all__ = [
     "UnicycleController",
     "UnicycleOutput",
     "UnicycleResult",
     "look_ahead_point",
+    "simulate_robots",
     "simulate_unicycle",
     "step_exact",
     "twist_from_velocity",
@@ -152,12 +153,34 @@ class UnicycleResult:
     final_theta: FArray
     final_distance: FArray
     n_steps: NDArray[np.int64]
+    max_speed: FArray
     wall_time: float
     paths: tuple[CArray, ...] | None = field(default=None, repr=False)
 
     @property
     def success(self) -> NDArray[np.bool_]:
         return self.status == ARRIVED
+
+    @property
+    def success_rate(self) -> float:
+        return float(np.mean(self.success)) if self.success.size else float("nan")
+
+    def runs(self) -> list[RunResult]:
+        return [
+            RunResult(
+                start=complex(self.starts[i]),
+                success=bool(self.success[i]),
+                collided=bool(self.collided[i]),
+                status=STATUS_NAMES[int(self.status[i])],
+                time=float(self.time[i]),
+                path_length=float(self.path_length[i]),
+                min_clearance=float(self.min_clearance[i]),
+                final_distance=float(self.final_distance[i]),
+                max_speed=float(self.max_speed[i]),
+                n_steps=int(self.n_steps[i]),
+            )
+            for i in range(self.starts.size)
+        ]
 
     @property
     def collided(self) -> NDArray[np.bool_]:
@@ -185,7 +208,8 @@ def simulate_unicycle(
 
     ``clearance(z)`` is the signed distance of the axle to the *original* obstacles; the body
     of ``radius`` collides when it drops to ``radius``. Each step is shortened to at most half
-    the body's clearance; the arc between steps is certified by bisection of its chord with
+    the body's clearance, a turn of 0.2 rad and a quarter of the look-ahead point's distance to
+    the goal (so that the held command cannot overshoot it: the continuous law is simulated); the arc between steps is certified by bisection of its chord with
     the clearance lowered by the arc's sagitta bound ``L |omega| dt / 8``.
     """
     t0 = time.perf_counter()
@@ -206,6 +230,7 @@ def simulate_unicycle(
     length = np.zeros(n)
     minclr = c.copy()
     nsteps = np.zeros(n, dtype=np.int64)
+    vmax = np.zeros(n)
     chunks: list[tuple[NDArray[np.intp], CArray]] = []
     max_steps = int(20 * t_max / dt) + 1
     while True:
@@ -223,12 +248,17 @@ def simulate_unicycle(
             continue
         h = np.minimum(dt, t_max - t[a])
         h = np.minimum(h, 0.5 * c[a] / np.maximum(np.abs(v), 1e-300))
+        h = np.minimum(h, 0.2 / np.maximum(np.abs(om), 1e-300))  # at most 0.2 rad per step
+        # no overshoot of the goal by the held command: p moves at most a quarter of its distance
+        gap = np.abs(out.point[go] - uc.goal)
+        h = np.minimum(h, 0.25 * gap / np.maximum(np.abs(v + 1j * uc.d * om), 1e-300))
         zn, thn = step_exact(z[a], th[a], v, om, h)
         sag = np.abs(v) * h * np.abs(om) * h / 8.0
         cn = body(zn)
         hit, low = _chord_check(z[a], zn, c[a] - sag, cn - sag, lambda q: body(q) - sag.max())
         minclr[a] = np.minimum(minclr[a], low)
         length[a] += np.abs(v) * h
+        vmax[a] = np.maximum(vmax[a], np.abs(v))
         z[a], th[a], c[a], t[a] = zn, thn, cn, t[a] + h
         nsteps[a] += 1
         if record_paths:
@@ -253,6 +283,39 @@ def simulate_unicycle(
         final_theta=th,
         final_distance=np.abs(look_ahead_point(z, th, uc.d) - uc.goal),
         n_steps=nsteps,
+        max_speed=vmax,
         wall_time=time.perf_counter() - t0,
         paths=paths,
+    )
+
+
+def simulate_robots(
+    ctl: Controller,
+    starts: ArrayLike,
+    *,
+    workspace: Any,
+    radius: float = 0.0,
+    lookahead: float | None = None,
+    omega_max: float = np.inf,
+    seed: int = 0,
+    t_max: float = 1e4,
+    record_paths: bool = False,
+) -> SimulationResult | UnicycleResult:
+    """Drive disk robots of ``radius`` (points if 0) or, with ``lookahead`` d, unicycles
+    (random headings from ``seed``) with ``ctl``, whose map must be that of ``workspace``
+    shrunk by ``radius`` (+ d). Collisions and clearances are the body's in ``workspace``."""
+    if lookahead is None:
+        return simulate(
+            ctl,
+            starts,
+            clearance=lambda z: workspace.clearance(z) - radius,
+            t_max=t_max,
+            record_paths=record_paths,
+        )
+    z = np.atleast_1d(np.asarray(starts, dtype=np.complex128))
+    heads = np.random.default_rng(seed).uniform(-np.pi, np.pi, z.size)
+    uc = UnicycleController(ctl, lookahead, v_max=ctl.v_max, omega_max=omega_max)
+    return simulate_unicycle(
+        uc, z, heads, clearance=workspace.clearance, radius=radius,
+        dt=0.02, t_max=min(t_max, 1e3), record_paths=record_paths,
     )
