@@ -25,19 +25,30 @@ def register(sub: Any) -> None:
     p.add_argument("map", type=Path, help="map_server YAML file")
     p.add_argument("-o", "--output", type=Path, required=True, help="workspace JSON to write")
     p.add_argument(
-        "--robot-radius", type=float, default=0.0, metavar="R",
+        "--robot-radius",
+        type=float,
+        default=0.0,
+        metavar="R",
         help="shrink the free space by this radius (m); default 0: a point robot",
     )
     p.add_argument(
-        "--keep", type=_point, metavar="X,Y",
+        "--keep",
+        type=_point,
+        metavar="X,Y",
         help="keep the free component holding this point (default: the largest)",
     )
     p.add_argument(
-        "--min-obstacle-cells", type=int, default=0, metavar="N",
+        "--min-obstacle-cells",
+        type=int,
+        default=0,
+        metavar="N",
         help="drop obstacles of at most N cells (non-conservative; default 0: keep all)",
     )
     p.add_argument(
-        "--merge-cells", type=int, default=0, metavar="N",
+        "--merge-cells",
+        type=int,
+        default=0,
+        metavar="N",
         help="merge obstacles closer than 2N cells (closing; default: the robot radius in cells)",
     )
     p.add_argument("--plot", type=Path, help="write a picture of the map and workspace (PNG)")
@@ -79,7 +90,11 @@ def _plot(map_path: Path, res: Any, out: Path) -> None:
     x0, y0 = meta.origin[0], meta.origin[1]
     fig, ax = plt.subplots(figsize=(8, 8 * h / max(w, 1)))
     ax.imshow(
-        np.where(free, 1.0, 0.35), cmap="gray", vmin=0, vmax=1, origin="upper",
+        np.where(free, 1.0, 0.35),
+        cmap="gray",
+        vmin=0,
+        vmax=1,
+        origin="upper",
         extent=(x0, x0 + w * meta.resolution, y0, y0 + h * meta.resolution),
     )
     ws = res.workspace
@@ -88,7 +103,9 @@ def _plot(map_path: Path, res: Any, out: Path) -> None:
         ax.plot(z.real, z.imag, "r-" if k == 0 else "b-", lw=1.0)
     ax.plot([ws.anchor.real], [ws.anchor.imag], "g+", ms=10)
     ax.set_aspect("equal")
-    ax.set_title(f"{map_path.name}: {ws.n_obstacles} obstacles, "
-                 f"Hausdorff {res.report.hausdorff_cells:.2f} cell")
+    ax.set_title(
+        f"{map_path.name}: {ws.n_obstacles} obstacles, "
+        f"Hausdorff {res.report.hausdorff_cells:.2f} cell"
+    )
     fig.savefig(out, dpi=120, bbox_inches="tight")
     plt.close(fig)

@@ -115,10 +115,10 @@ def _load_map(args: argparse.Namespace, ws: Any) -> Any:
 
 def run_simulate(args: argparse.Namespace) -> int:
     from confnav.control import Controller
+    from confnav.footprint import inflate
     from confnav.geometry import Workspace
     from confnav.scenarios import random_starts
     from confnav.shortest_path import ShortestPaths
-    from confnav.footprint import inflate
     from confnav.unicycle import simulate_robots
 
     ws = Workspace.load(args.workspace)

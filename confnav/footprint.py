@@ -21,8 +21,9 @@ too; the excess ``r' - r`` is the polygonisation bound (``r * 0.0027`` at ``quad
 at ``mitre_limit * r`` from the vertex, which still contains the disk) and no excess is needed.
 Bevel joins cut inside the sum and are refused. The default is mitre: it adds no vertices
 (the solver's graded mesh pays for every vertex: round joins with 8 segments per quadrant made
-the default workspace fail to converge), at the price of a wider margin at sharp corners. Each result is checked exactly: the distance
-from the shrunk boundary to the original boundary (segment-to-segment, shapely) must be >= r.
+the default workspace fail to converge), at the price of a wider margin at sharp corners.
+Each result is checked exactly: the distance from the shrunk boundary to the original boundary
+(segment-to-segment, shapely) must be >= r.
 
 Topology: inflated obstacles that meet merge into one obstacle; an obstacle whose inflation
 reaches a wall becomes part of the outer boundary (shapely's polygon buffer does both); a
@@ -143,7 +144,10 @@ class Inflation:
     def describe(self, j: int) -> str:
         c = self.components[j]
         rp = c.representative_point()
-        return f"component {j} of {len(self.components)} (area {c.area:.4g}, around ({rp.x:.4g}, {rp.y:.4g}))"
+        return (
+            f"component {j} of {len(self.components)} "
+            f"(area {c.area:.4g}, around ({rp.x:.4g}, {rp.y:.4g}))"
+        )
 
     def check_reachable(self, keep: int, points: dict[str, complex]) -> None:
         """Raise :class:`UnreachableGoalError` for the first named point not in ``keep``."""
@@ -169,7 +173,11 @@ class Inflation:
 
 
 def shrink_free_space(
-    ws: Workspace, radius: float, *, join: JoinStyle = "mitre", quad_segs: int = 8,
+    ws: Workspace,
+    radius: float,
+    *,
+    join: JoinStyle = "mitre",
+    quad_segs: int = 8,
     mitre_limit: float = 5.0,
 ) -> Inflation:
     """The components of the free space of ``ws`` shrunk by a disk of ``radius``.
@@ -243,14 +251,17 @@ def inflate(
             )
         j = found
     inf.check_reachable(j, dict(require or {}))
-    anchor = ws.anchor if ws.anchor_given and inf.components[j].contains(
-        Point(ws.anchor.real, ws.anchor.imag)
-    ) else None
+    anchor = (
+        ws.anchor
+        if ws.anchor_given and inf.components[j].contains(Point(ws.anchor.real, ws.anchor.imag))
+        else None
+    )
     return inf.workspace_of(j, anchor)
 
 
 def _to_workspace(poly: Polygon, anchor: complex | None) -> Workspace:
     """A validated Workspace from a shapely polygon (exterior = outer, holes = obstacles)."""
+
     def ring(coords: object) -> np.ndarray:
         xy = np.asarray(coords, dtype=np.float64)[:-1]
         return xy[:, 0] + 1j * xy[:, 1]

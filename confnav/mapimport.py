@@ -142,15 +142,15 @@ def load_occupancy(meta: MapMeta) -> BoolGrid:
 
     try:
         with Image.open(meta.image) as im:
-            im.load()
-            img = im
+            v = np.asarray(im.convert("L") if im.mode in ("P", "1") else im, dtype=np.float64)
     except FileNotFoundError as exc:
         raise MapError(f"map image {meta.image} does not exist") from exc
     except (OSError, UnidentifiedImageError) as exc:
         raise MapError(f"cannot read map image {meta.image}: {exc}") from exc
-    if img.mode not in ("L", "P", "1", "I", "I;16"):
-        img = img.convert("L")  # colour: map_server averages the channels
-    v = np.asarray(img.convert("L") if img.mode in ("P", "1") else img, dtype=np.float64)
+    if v.ndim == 3:  # colour: map_server averages the colour channels (alpha ignored)
+        v = v[..., :3].mean(axis=2)
+    if v.size and v.max() > 255:
+        raise MapError(f"map image {meta.image}: only 8-bit images are supported")
     if v.ndim != 2 or v.size == 0:
         raise MapError(f"map image {meta.image} is empty")
     if meta.mode == "raw":
@@ -209,10 +209,13 @@ class ImportResult:
 def _cells_to_world(
     u: NDArray[np.float64], v: NDArray[np.float64], res: float, origin: tuple[float, float, float]
 ) -> NDArray[np.complex128]:
-    return complex(origin[0], origin[1]) + np.exp(1j * origin[2]) * res * (u + 1j * v)
+    z = complex(origin[0], origin[1]) + np.exp(1j * origin[2]) * res * (u + 1j * v)
+    return np.asarray(z, dtype=np.complex128)
 
 
-def _world_to_cell(z: complex, h: int, res: float, origin: tuple[float, float, float]) -> tuple[int, int]:
+def _world_to_cell(
+    z: complex, h: int, res: float, origin: tuple[float, float, float]
+) -> tuple[int, int]:
     q = (z - complex(origin[0], origin[1])) * np.exp(-1j * origin[2]) / res
     return h - 1 - math.floor(q.imag), math.floor(q.real)
 
@@ -256,7 +259,7 @@ def workspace_from_grid(
     rho = max(merge_cells, math.floor(robot_radius / resolution + 1e-9))
     if rho > 0:
         occ = np.pad(~free, rho + 1, constant_values=True)
-        occ = ndimage.binary_closing(occ, morphology.disk(rho))
+        occ = ndimage.binary_closing(occ, morphology.disk(rho))  # type: ignore[no-untyped-call]
         closed_free = ~occ[rho + 1 : -rho - 1, rho + 1 : -rho - 1]
     else:
         closed_free = free
@@ -285,7 +288,12 @@ def workspace_from_grid(
         rows, cols = np.nonzero(kept)
         on = int(np.flatnonzero((rows == 0) | (rows == h - 1) | (cols == 0) | (cols == w - 1))[0])
         zc = complex(
-            _cells_to_world(cols[on : on + 1] + 0.5, h - rows[on : on + 1] - 0.5, resolution, origin)[0]
+            _cells_to_world(
+                np.asarray(cols[on : on + 1] + 0.5, dtype=np.float64),
+                np.asarray(h - rows[on : on + 1] - 0.5, dtype=np.float64),
+                resolution,
+                origin,
+            )[0]
         )
         raise MapError(
             f"the free space touches the image border at row {rows[on]}, col {cols[on]} "
@@ -352,14 +360,13 @@ def workspace_from_grid(
     return ImportResult(ws, report, kept)
 
 
-def _trace(
-    kept: BoolGrid, exact: Any, tol: float, keep_cell: Any
-) -> tuple[Polygon, float]:
+def _trace(kept: BoolGrid, exact: Any, tol: float, keep_cell: Any) -> tuple[Polygon, float]:
     """Steps 4-5: marching squares, Douglas-Peucker, least shrink inside the exact cells."""
     from skimage import measure
 
     h = kept.shape[0]
-    contours = measure.find_contours(np.pad(kept, 1).astype(np.float64), 0.5, fully_connected="low")
+    padded = np.pad(kept, 1).astype(np.float64)
+    contours = measure.find_contours(padded, 0.5, fully_connected="low")  # type: ignore[no-untyped-call]
     rings = [np.column_stack([c[:, 1] - 0.5, h + 0.5 - c[:, 0]]) for c in contours if len(c) >= 4]
     polys = sorted((Polygon(r) for r in rings), key=lambda p: -abs(p.area))
     shell = polys[0]

@@ -114,7 +114,11 @@ class UnicycleController:
     frame = "body"
 
     def __init__(
-        self, controller: Controller, d: float, *, v_max: float = np.inf,
+        self,
+        controller: Controller,
+        d: float,
+        *,
+        v_max: float = np.inf,
         omega_max: float = np.inf,
     ) -> None:
         if not (np.isfinite(d) and d > 0):
@@ -128,8 +132,10 @@ class UnicycleController:
         self.goal = controller.goal
         self.goal_tol = controller.goal_tol
 
-    def __call__(self, z: ArrayLike, theta: ArrayLike) -> UnicycleOutput:
+    def __call__(self, z: ArrayLike, theta: ArrayLike | None = None) -> UnicycleOutput:
         """Body twists and statuses for axle positions ``z`` and headings ``theta``."""
+        if theta is None:
+            raise NavigationError("a unicycle controller needs the headings of the robots")
         th = np.asarray(theta, dtype=float)
         p = look_ahead_point(z, th, self.d)
         out = self.controller(p)
@@ -159,7 +165,7 @@ class UnicycleResult:
 
     @property
     def success(self) -> NDArray[np.bool_]:
-        return self.status == ARRIVED
+        return np.asarray(self.status == ARRIVED, dtype=bool)
 
     @property
     def success_rate(self) -> float:
@@ -184,12 +190,21 @@ class UnicycleResult:
 
     @property
     def collided(self) -> NDArray[np.bool_]:
-        return self.status == COLLIDED
+        return np.asarray(self.status == COLLIDED, dtype=bool)
 
     @property
     def message(self) -> str:
         counts = np.bincount(self.status, minlength=len(STATUS_NAMES))
         return ", ".join(f"{n} {s}" for s, n in zip(STATUS_NAMES, counts, strict=False) if n)
+
+
+def _lowered(clearance: Any, margin: float) -> Any:
+    """``clearance`` minus a constant margin."""
+
+    def f(z: CArray) -> FArray:
+        return np.asarray(clearance(z), dtype=float) - margin
+
+    return f
 
 
 def simulate_unicycle(
@@ -209,8 +224,9 @@ def simulate_unicycle(
     ``clearance(z)`` is the signed distance of the axle to the *original* obstacles; the body
     of ``radius`` collides when it drops to ``radius``. Each step is shortened to at most half
     the body's clearance, a turn of 0.2 rad and a quarter of the look-ahead point's distance to
-    the goal (so that the held command cannot overshoot it: the continuous law is simulated); the arc between steps is certified by bisection of its chord with
-    the clearance lowered by the arc's sagitta bound ``L |omega| dt / 8``.
+    the goal (so that the held command cannot overshoot it: the continuous law is simulated).
+    The arc between steps is certified by bisection of its chord with the clearance lowered by
+    the arc's sagitta bound ``L |omega| dt / 8`` (the largest of the batch inside the bisection).
     """
     t0 = time.perf_counter()
     z = np.atleast_1d(np.asarray(starts, dtype=np.complex128)).copy()
@@ -255,7 +271,7 @@ def simulate_unicycle(
         zn, thn = step_exact(z[a], th[a], v, om, h)
         sag = np.abs(v) * h * np.abs(om) * h / 8.0
         cn = body(zn)
-        hit, low = _chord_check(z[a], zn, c[a] - sag, cn - sag, lambda q: body(q) - sag.max())
+        hit, low = _chord_check(z[a], zn, c[a] - sag, cn - sag, _lowered(body, float(sag.max())))
         minclr[a] = np.minimum(minclr[a], low)
         length[a] += np.abs(v) * h
         vmax[a] = np.maximum(vmax[a], np.abs(v))
@@ -316,6 +332,12 @@ def simulate_robots(
     heads = np.random.default_rng(seed).uniform(-np.pi, np.pi, z.size)
     uc = UnicycleController(ctl, lookahead, v_max=ctl.v_max, omega_max=omega_max)
     return simulate_unicycle(
-        uc, z, heads, clearance=workspace.clearance, radius=radius,
-        dt=0.02, t_max=min(t_max, 1e3), record_paths=record_paths,
+        uc,
+        z,
+        heads,
+        clearance=workspace.clearance,
+        radius=radius,
+        dt=0.02,
+        t_max=min(t_max, 1e3),
+        record_paths=record_paths,
     )

@@ -20,7 +20,10 @@ RES = 0.05
 # axis-aligned, vertices on cell edges: the raster is exact, so the import must be within a cell
 ROOM = Workspace(
     [(0, 0), (4, 0), (4, 3), (2.5, 3), (2.5, 2.2), (1.5, 2.2), (1.5, 3), (0, 3)],
-    [[(0.5, 0.5), (1.5, 0.5), (1.5, 1.2), (0.5, 1.2)], [(2.8, 0.8), (3.3, 0.8), (3.3, 1.8), (2.8, 1.8)]],
+    [
+        [(0.5, 0.5), (1.5, 0.5), (1.5, 1.2), (0.5, 1.2)],
+        [(2.8, 0.8), (3.3, 0.8), (3.3, 1.8), (2.8, 1.8)],
+    ],
 )
 # slanted edges and a sharp tip
 SLANT = Workspace(
@@ -29,12 +32,24 @@ SLANT = Workspace(
 )
 
 
-def write_map(tmp: Path, free: np.ndarray, origin: tuple[float, float, float] = (-0.2, -0.2, 0.0),
-              name: str = "m", **keys: object) -> Path:
+def write_map(
+    tmp: Path,
+    free: np.ndarray,
+    origin: tuple[float, float, float] = (-0.2, -0.2, 0.0),
+    name: str = "m",
+    **keys: object,
+) -> Path:
     img = np.where(free, 254, 0).astype(np.uint8)
     Image.fromarray(img, mode="L").save(tmp / f"{name}.pgm")
-    doc = {"image": f"{name}.pgm", "resolution": RES, "origin": list(origin), "negate": 0,
-           "occupied_thresh": 0.65, "free_thresh": 0.196, **keys}
+    doc = {
+        "image": f"{name}.pgm",
+        "resolution": RES,
+        "origin": list(origin),
+        "negate": 0,
+        "occupied_thresh": 0.65,
+        "free_thresh": 0.196,
+        **keys,
+    }
     text = "".join(f"{k}: {v}\n" for k, v in doc.items())
     (tmp / f"{name}.yaml").write_text(text)
     return tmp / f"{name}.yaml"
@@ -86,13 +101,16 @@ def test_origin_and_yaw(tmp_path: Path) -> None:
     a = workspace_from_grid(free, RES, (-0.2, -0.2, 0.0)).workspace
     b = workspace_from_grid(free, RES, (1.0, 2.0, math.pi / 2)).workspace
     # b is a turned by 90 degrees about its origin (-0.2, -0.2) -> moved to (1, 2)
-    moved = Workspace(1 + 2j + 1j * (a.outer + 0.2 + 0.2j), [1 + 2j + 1j * (o + 0.2 + 0.2j) for o in a.obstacles])
+    moved = Workspace(
+        1 + 2j + 1j * (a.outer + 0.2 + 0.2j), [1 + 2j + 1j * (o + 0.2 + 0.2j) for o in a.obstacles]
+    )
     assert hausdorff(b, moved) < 1e-9
 
 
 def test_speck_rule(tmp_path: Path) -> None:
     free = raster(ROOM)
     h = free.shape[0]
+
     # a speck touching the left wall (merged into it) and a free-standing one (kept)
     def cell(x: float, y: float) -> tuple[int, int]:  # origin (-0.2, -0.2)
         return h - 1 - int((y + 0.2) / RES), int((x + 0.2) / RES)

@@ -8,6 +8,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from conftest import IdentityMap, identity_loader, square_definition, wait_for
 
 from confnav.control import Controller
 from confnav.errors import NavigationError
@@ -18,7 +19,6 @@ from confnav.unicycle import (
     step_exact,
     twist_from_velocity,
 )
-from conftest import IdentityMap, identity_loader, square_definition, wait_for
 
 CENTERS = [0.45 + 0.1j, -0.4 + 0.35j, -0.2 - 0.45j]
 RADII = [0.15, 0.12, 0.14]
@@ -117,8 +117,15 @@ def test_bad_parameters() -> None:
 def test_controller_service_sends_body_twists(mem_net: Any) -> None:
     import time
 
-    from confnav.schemas import Goal, Pose, SolveDiagnostics, TransformSolution, VelocityCommand
-    from confnav.schemas import decode, encode
+    from confnav.schemas import (
+        Goal,
+        Pose,
+        SolveDiagnostics,
+        TransformSolution,
+        VelocityCommand,
+        decode,
+        encode,
+    )
     from confnav.services.bus import QueryError
     from confnav.services.controller import ControllerService
     from confnav.services.keys import Keys
@@ -126,8 +133,13 @@ def test_controller_service_sends_body_twists(mem_net: Any) -> None:
     K = Keys()
     served: list[str] = []
     sol = TransformSolution(
-        ws_id="cd~r0.1", revision="rev1", definition_hash="h", stamp_ns=1, anchor=(0.0, 0.0),
-        centers=[(0.4, 0.0)], radii=[0.15],
+        ws_id="cd~r0.1",
+        revision="rev1",
+        definition_hash="h",
+        stamp_ns=1,
+        anchor=(0.0, 0.0),
+        centers=[(0.4, 0.0)],
+        radii=[0.15],
         diagnostics=SolveDiagnostics(sweeps=1, error_estimate=0, wall_time=0, tol=1e-10),
         coefficients={"centers": [[0.4, 0.0]], "radii": [0.15]},
     )
@@ -148,19 +160,33 @@ def test_controller_service_sends_body_twists(mem_net: Any) -> None:
     cmds: list[VelocityCommand] = []
     client.subscribe(K.any_robot("cmd_vel"), lambda k, p: cmds.append(decode(VelocityCommand, p)))
     try:
-        goal = Goal(robot_id="u1", ws_id="cd", goal=(-0.5, 0.0), v_max=0.5, robot_radius=0.05,
-                    drive="unicycle", lookahead=0.05, omega_max=1.5)
+        goal = Goal(
+            robot_id="u1",
+            ws_id="cd",
+            goal=(-0.5, 0.0),
+            v_max=0.5,
+            robot_radius=0.05,
+            drive="unicycle",
+            lookahead=0.05,
+            omega_max=1.5,
+        )
         client.publish(K.robot("u1", "goal"), encode(goal))
         wait_for(lambda: ctl.counters["maps_installed"])
         assert served[0] == "cd~r0.1"  # radius 0.05 + look-ahead 0.05
         z, th = 0.2 + 0.5j, 2.0
-        client.publish(K.robot("u1", "pose"), encode(
-            Pose(robot_id="u1", stamp_ns=time.time_ns(), seq=1, x=z.real, y=z.imag, theta=th)))
+        client.publish(
+            K.robot("u1", "pose"),
+            encode(
+                Pose(robot_id="u1", stamp_ns=time.time_ns(), seq=1, x=z.real, y=z.imag, theta=th)
+            ),
+        )
         cmd = wait_for(lambda: [c for c in cmds if c.pose_seq == 1])[-1]
         assert cmd.frame == "body" and cmd.linear[1] == 0.0
         ref = UnicycleController(
             Controller(IdentityMap([0.4 + 0j], [0.15]), -0.5 + 0j, v_max=0.5, goal_tol=0.02),
-            0.05, v_max=0.5, omega_max=1.5,
+            0.05,
+            v_max=0.5,
+            omega_max=1.5,
         )(np.array([z]), np.array([th])).u[0]
         assert abs(complex(cmd.linear[0], cmd.angular) - ref) <= 1e-12 * abs(ref)
         assert abs(cmd.angular) <= 1.5 + 1e-12 and abs(cmd.linear[0]) <= 0.5 + 1e-12
@@ -185,14 +211,30 @@ def test_simulator_unicycle_arcs_and_disk_collisions(mem_net: Any) -> None:
     try:
         client.publish(K.ws("sq", "definition"), encode(square_definition("sq")))  # [-0.7, 0.7]^2
         for rid, x, r in (("u1", 0.0, 0.05), ("u2", 0.5, 0.15)):
-            client.publish(K.sim("sim", "spawn"), encode(SpawnRequest(
-                robot_id=rid, ws_id="sq", position=(x, 0.0), theta=0.0, robot_radius=r,
-                drive="unicycle")))
+            client.publish(
+                K.sim("sim", "spawn"),
+                encode(
+                    SpawnRequest(
+                        robot_id=rid,
+                        ws_id="sq",
+                        position=(x, 0.0),
+                        theta=0.0,
+                        robot_radius=r,
+                        drive="unicycle",
+                    )
+                ),
+            )
         wait_for(lambda: len(sim.positions()) == 2 and sim.health_detail()[0] == "ok")
 
         def send(rid: str, frame: str, lin: tuple[float, float], ang: float) -> None:
-            client.publish(K.robot(rid, "cmd_vel"), encode(VelocityCommand(
-                robot_id=rid, stamp_ns=time.time_ns(), linear=lin, angular=ang, frame=frame)))
+            client.publish(
+                K.robot(rid, "cmd_vel"),
+                encode(
+                    VelocityCommand(
+                        robot_id=rid, stamp_ns=time.time_ns(), linear=lin, angular=ang, frame=frame
+                    )
+                ),
+            )
 
         send("u1", "world", (0.3, 0.3), 0.0)  # sideways motion: refused for a unicycle
         wait_for(lambda: sim.counters["rejected"] == 1)
