@@ -139,6 +139,7 @@ class TransformStatus(Message):
 
 NavFnName = Literal["harmonic", "kr"]
 SpeedLawName = Literal["normalized", "theorem2"]
+DriveName = Literal["holonomic", "unicycle"]
 
 
 class Goal(Message):
@@ -150,6 +151,10 @@ class Goal(Message):
     ``min(v_max, gain * distance to goal)``, ``theorem2`` the plain law (``gain`` = K)
     saturated at ``v_max``; ``v_max`` is the speed limit (m/s), ``tolerance`` the arrival
     radius (m).  Every default is the library's (``confnav.defaults``).
+    ``robot_radius`` (m, 0: a point) navigates the robot's centre in the free space shrunk by
+    it (the map of the derived workspace ``{ws_id}~r{radius}``); ``drive`` ``unicycle`` steers
+    the point ``lookahead`` (m) ahead of the axle with ``v`` and ``omega`` limited by ``v_max``
+    and ``omega_max`` (rad/s), and the free space is shrunk by ``robot_radius + lookahead``.
     """
 
     TYPE: ClassVar[str] = "confnav.Goal"
@@ -165,6 +170,10 @@ class Goal(Message):
     v_max: Positive = defaults.V_MAX
     tolerance: Positive = defaults.GOAL_TOL
     stamp_ns: TimeNs = 0
+    robot_radius: Annotated[float, Field(ge=0.0, le=1000.0, allow_inf_nan=False)] = 0.0
+    drive: DriveName = "holonomic"
+    lookahead: Positive = 0.1
+    omega_max: Positive = 2.0
 
 
 class GoalCancel(Message):
@@ -195,8 +204,11 @@ class Pose(Message):
 class VelocityCommand(Message):
     """Twist-like command, on ``{prefix}/robot/{r}/cmd_vel``.
 
-    ``linear`` is ``[vx, vy]`` in the workspace frame (m/s), ``angular`` the yaw rate (rad/s);
-    ``pose_seq``/``pose_stamp_ns`` identify the pose it answers (-1/0: none, e.g. watchdog stop).
+    ``frame`` ``world`` (default): ``linear`` is ``[vx, vy]`` in the workspace frame (m/s),
+    ``angular`` the yaw rate (rad/s). ``frame`` ``body`` (unicycles): a twist in the robot's
+    body frame, ``linear = [v, 0]`` (linear.x, forward speed, m/s) and ``angular`` = angular.z
+    (rad/s). ``pose_seq``/``pose_stamp_ns`` identify the pose it answers (-1/0: none, e.g.
+    watchdog stop).
     """
 
     TYPE: ClassVar[str] = "confnav.VelocityCommand"
@@ -209,6 +221,7 @@ class VelocityCommand(Message):
     pose_seq: Annotated[int, Field(ge=-1)] = -1
     pose_stamp_ns: TimeNs = 0
     map_revision: str | None = None
+    frame: Literal["world", "body"] = "world"
 
 
 RobotState = Literal["idle", "navigating", "arrived", "stopped"]
@@ -262,7 +275,12 @@ class CollisionEvent(Message):
 
 
 class SpawnRequest(Message):
-    """Ask the simulator ``{prefix}/sim/{sim}/spawn`` to add (or move) a robot."""
+    """Ask the simulator ``{prefix}/sim/{sim}/spawn`` to add (or move) a robot.
+
+    ``robot_radius`` (m): the simulator checks collisions of the disk of this radius;
+    ``drive`` ``unicycle``: the robot moves only by body-frame twists (``VelocityCommand``
+    with ``frame="body"``).
+    """
 
     TYPE: ClassVar[str] = "confnav.SpawnRequest"
     type: Literal["confnav.SpawnRequest"] = "confnav.SpawnRequest"
@@ -272,6 +290,8 @@ class SpawnRequest(Message):
     position: Point
     theta: Finite = 0.0
     stamp_ns: TimeNs = 0
+    robot_radius: Annotated[float, Field(ge=0.0, le=1000.0, allow_inf_nan=False)] = 0.0
+    drive: DriveName = "holonomic"
 
 
 class SimControl(Message):

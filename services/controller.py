@@ -450,6 +450,8 @@ class ControllerService(Service):
             log.warning("rejected goal on %s: %s", key, exc)
             self._reject_goal(rid, str(exc))
             return
+        # a robot with a footprint drives on the map of the shrunk workspace ({ws}~r{radius})
+        goal = goal.model_copy(update={"ws_id": navigation.map_ws_id(goal)})
         r = self._robot(rid)
         if r is None:
             return
@@ -581,8 +583,9 @@ class ControllerService(Service):
             groups.setdefault(id(ctrl), (ctrl, []))[1].append((r, pose))
         for ctrl, members in groups.values():
             z = np.array([complex(p.x, p.y) for _, p in members])
+            th = np.array([p.theta for _, p in members])
             try:
-                u, codes = navigation.commands(ctrl, z)
+                u, codes = navigation.commands(ctrl, z, th)
             except Exception as exc:
                 self.count("navigation_errors")
                 for r, pose in members:
@@ -639,10 +642,13 @@ class ControllerService(Service):
     def _publish_cmd(self, r: _Robot, u: complex, pose: Pose | None) -> None:
         # model_construct: our own finite values, no re-validation on the hot path (the
         # payloads are checked against the schema in the tests and by every reader)
+        body = getattr(r.ctrl, "frame", "world") == "body"  # unicycle: u = v + i omega
         cmd = VelocityCommand.model_construct(
             robot_id=r.robot_id,
             stamp_ns=time.time_ns(),
-            linear=(u.real, u.imag),
+            linear=(u.real, 0.0) if body else (u.real, u.imag),
+            angular=u.imag if body else 0.0,
+            frame="body" if body else "world",
             pose_seq=pose.seq if pose is not None else -1,
             pose_stamp_ns=pose.stamp_ns if pose is not None else 0,
             map_revision=r.ctrl_revision,

@@ -25,6 +25,7 @@ from confnav.schemas import (
     Goal,
     Pose,
     RobotStatus,
+    SpawnRequest,
     decode,
     encode,
 )
@@ -34,6 +35,9 @@ from confnav.services.runtime import stop_on_signals
 log = logging.getLogger(__name__)
 
 WS_ID = "default"
+#: A differential-drive robot (id, start, heading, body radius, look-ahead) driven by body
+#: twists on the map of the default workspace shrunk by radius + look-ahead.
+UNICYCLE = ("u1", complex(1.6, -1.6), 3.0, 0.03, 0.05)
 
 
 @dataclass
@@ -237,6 +241,7 @@ def run_demo(
     old_recordings = set(out.glob("demo*.mcap"))  # never overwritten: demo.1.mcap... follow
     starts = {f"r{i + 1}": z for i, z in enumerate(DEFAULT_STARTS)}
     tracks = {rid: Track(rid, z, DEFAULT_GOAL) for rid, z in starts.items()}
+    tracks[UNICYCLE[0]] = Track(UNICYCLE[0], UNICYCLE[1], DEFAULT_GOAL)
     sockdir = tempfile.mkdtemp(prefix="confnav-demo-")
     sock = f"unixsock-stream/{sockdir}/router.sock"
     launcher = Launcher(
@@ -255,6 +260,10 @@ def run_demo(
             bus.subscribe(keys.any_robot("pose"), mon.on_pose)
             bus.subscribe(keys.any_robot("status"), mon.on_status)
             bus.subscribe(keys.any_robot("collision"), mon.on_collision)
+            uid, uz, uth, urad, ud = UNICYCLE
+            spawn = SpawnRequest(robot_id=uid, ws_id=WS_ID, position=(uz.real, uz.imag),
+                                 theta=uth, robot_radius=urad, drive="unicycle")
+            bus.publish(keys.sim("sim", "spawn"), encode(spawn))
             print(
                 "confnav demo: waiting for the conformal map of the default workspace...",
                 flush=True,
@@ -278,6 +287,10 @@ def run_demo(
                     stamp_ns=time.time_ns(),
                 )
                 bus.publish(keys.robot(rid, "goal"), encode(goal))
+            ugoal = goal.model_copy(
+                update={"robot_id": uid, "robot_radius": urad, "drive": "unicycle", "lookahead": ud}
+            )
+            bus.publish(keys.robot(uid, "goal"), encode(ugoal))
             deadline = mon.t0 + timeout
             next_print = 0.0
             while not stop.is_set() and time.monotonic() < deadline and not mon.done():
