@@ -30,11 +30,14 @@ from numpy.typing import ArrayLike
 
 from confnav.cauchy import FMM_THRESHOLD, cauchy_sums, cauchy_sums2
 from confnav.errors import SerializationError
+from confnav.expansion import LocalExpansions
 from confnav.geometry import ComplexArray, FloatArray, Workspace, distance_to_boundary
 
 FORMAT = "confnav.map"
 #: Points this close to the boundary (relative to the workspace size) count as on it.
 BOUNDARY_RTOL = 1e-12
+#: Batches at least this large build the local expansions (confnav/expansion.py) of any map.
+EXPANSION_MIN_POINTS = 20_000
 FORMAT_VERSION = 1
 
 
@@ -136,6 +139,8 @@ class ConformalMap:
         self._inv_q_dW = self._q_dW[keep]
         self._inv_q_etadW = self._inv_q_dW * self._inv_eta
         self._revision: str | None = None
+        self._expansion: LocalExpansions | None = None
+        self._fast = False  # build the expansions on first use (set by for_navigation)
 
     # ------------------------------------------------------------------ evaluation
     @property
@@ -170,6 +175,16 @@ class ConformalMap:
         idx = np.flatnonzero(ok)
         if idx.size:
             pts = flat[idx]
+            ex = self._expansions(pts.size)
+            if ex is not None:  # O(1) per point away from the walls (confnav/expansion.py)
+                far, S, dS = ex.sums(pts)
+                (Nf, Df), (dNf, dDf) = S[far].T, dS[far].T
+                w[idx[far]] = Nf / Df
+                if dw is not None:
+                    dw[idx[far]] = (dNf * Df - Nf * dDf) / Df**2
+                idx, pts = idx[~far], pts[~far]  # near a wall: the direct formula below
+                if not idx.size:
+                    return w.reshape(shape), (dw.reshape(shape) if dw is not None else None)
             with np.errstate(divide="ignore", invalid="ignore"):
                 # N = sum q_W/(eta - z), D = sum q_eta/(eta - z), T = N/D and
                 # T' = (N'D - N D')/D^2 with N' = sum q_W/(eta - z)^2 (likewise D'): the exact
@@ -206,6 +221,22 @@ class ConformalMap:
                     dw[idx] = (dN * D - N * dD) / D**2
             self._fix_nodes(pts, idx, w, dw)
         return w.reshape(shape), (dw.reshape(shape) if dw is not None else None)
+
+    def _expansions(self, n_points: int) -> LocalExpansions | None:
+        """The local-expansion evaluator if built, or worth building for ``n_points``.
+
+        Built on first use by maps from :meth:`for_navigation` (evaluated again and again), or
+        for a batch of at least :data:`EXPANSION_MIN_POINTS` (whose direct cost already
+        exceeds the build's); once built it serves every evaluation of two or more points (T and
+        T' within 1e-12 of the exact sums, see tests/test_expansion.py).
+        """
+        if n_points == 1:  # one point: the direct 1-D dots cost less than numpy's overhead
+            return None
+        if self._expansion is None and (self._fast or n_points >= EXPANSION_MIN_POINTS):
+            self._expansion = LocalExpansions(
+                self._eta, self._Q_fwd, region=self.workspace.polygon
+            )
+        return self._expansion
 
     def _fix_nodes(
         self, pts: ComplexArray, idx: np.ndarray, w: ComplexArray, dw: ComplexArray | None
@@ -294,6 +325,7 @@ class ConformalMap:
 
         Checked at 400 random free-space points at least 1% of the workspace size from the
         boundary (T absolute, T' relative); returns ``self`` if no coarsening qualifies.
+        The result evaluates through local expansions (built on first use, ~0.5 s).
         """
         ws = self.workspace
         x0, y0, x1, y1 = ws.bounds
@@ -305,7 +337,9 @@ class ConformalMap:
             c = self.coarsened(s)
             wc, dwc = c.T_and_dT(z, check=False)
             if max(np.max(np.abs(wc - w)), np.max(np.abs(dwc - dw) / np.abs(dw))) <= accuracy:
+                c._fast = True
                 return c
+        self._fast = True
         return self
 
     @property
