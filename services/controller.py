@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import sys
 import threading
 import time
 from collections.abc import Callable
@@ -37,6 +38,7 @@ from confnav.services import navigation
 from confnav.services.bus import Bus
 from confnav.services.keys import KeyError_, Keys
 from confnav.services.runtime import Service, add_zenoh_args, run_until_signal
+from confnav.services.shard import RobotSelector, robot_key_exprs, serialized
 
 log = logging.getLogger(__name__)
 
@@ -82,7 +84,7 @@ class ControllerService(Service):
         self,
         bus: Bus,
         keys: Keys | None = None,
-        robots: set[str] | None = None,
+        robots: set[str] | RobotSelector | None = None,
         stale_after: float = 0.5,
         status_period: float = 0.25,
         fetch_period: float = 0.5,
@@ -119,12 +121,15 @@ class ControllerService(Service):
         k = self.keys
         self._handles.append(self.bus.subscribe_liveliness(k.alive_of("transform"), self._on_live))
         self._handles.append(self.bus.subscribe(k.any_ws("transform"), self._on_transform))
-        self._handles.append(self.bus.subscribe(k.any_robot("goal"), self._on_goal))
-        self._handles.append(
-            self.bus.subscribe_batch(
-                k.any_robot("pose"), self._on_poses, max_batch=MAX_BACKLOG, linger=self.linger
+        # this process's robots only (scale-out: services/shard.py, docs/SERVICES.md)
+        for expr in robot_key_exprs(k, "goal", self.only):
+            self._handles.append(self.bus.subscribe(expr, self._on_goal))
+        exprs = robot_key_exprs(k, "pose", self.only)
+        on_poses = serialized(self._on_poses) if len(exprs) > 1 else self._on_poses
+        for expr in exprs:
+            self._handles.append(
+                self.bus.subscribe_batch(expr, on_poses, max_batch=MAX_BACKLOG, linger=self.linger)
             )
-        )
         self.spawn(self._fetch_loop, "fetch")
         self.spawn(self._watchdog_loop, "watchdog")
 
@@ -471,7 +476,13 @@ class ControllerService(Service):
 def add_parser(sub: Any) -> None:
     p: argparse.ArgumentParser = sub.add_parser("controller", help="run the controller service")
     add_zenoh_args(p)
-    p.add_argument("--robots", default=None, help="comma-separated robot ids (default: all)")
+    p.add_argument(
+        "--robots",
+        default=None,
+        help="robots this process drives: comma-separated ids and Zenoh chunk patterns such "
+        "as 'a$*' (ids starting with a) or '$*7'; others' poses are not even delivered "
+        "(default: all; see docs/SERVICES.md, scale-out)",
+    )
     p.add_argument("--stale-after", type=float, default=0.5, help="pose timeout, s")
     p.add_argument(
         "--linger-ms",
@@ -483,7 +494,11 @@ def add_parser(sub: Any) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    robots = set(args.robots.split(",")) if args.robots else None
+    try:
+        robots = RobotSelector.parse(args.robots) if args.robots else None
+    except KeyError_ as exc:
+        print(f"confnav serve controller: --robots: {exc}", file=sys.stderr)
+        return 2
     return run_until_signal(
         lambda bus, keys: ControllerService(
             bus, keys, robots, stale_after=args.stale_after, linger=args.linger_ms / 1e3
