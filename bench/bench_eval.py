@@ -31,6 +31,7 @@ import json  # noqa: E402
 import subprocess  # noqa: E402
 import time  # noqa: E402
 from collections.abc import Callable  # noqa: E402
+from functools import partial  # noqa: E402
 from pathlib import Path  # noqa: E402
 from typing import Any  # noqa: E402
 
@@ -164,20 +165,18 @@ def control_rows(
     for navfn in ("kr", "harmonic"):
         for label, cm in (("direct", direct), ("expansion", fast)):
             ctl = Controller(cm, goal, navfn=navfn, k=6, v_max=V_MAX)
+            step_b = partial(ctl, zb)
+            step_1 = partial(ctl, z1)
+            eval_b = partial(cm.T_and_dT, zb)
+            nav_b = partial(ctl.navfn.value_and_gradient, wb)
             rows.append(
                 {
                     "navfn": navfn,
                     "evaluation": label,
-                    "batch1000_per_robot_us": 1e6
-                    * best_time(lambda c=ctl: c(zb), reps_b)
-                    / zb.size,
-                    "single_us": 1e6 * best_time(lambda c=ctl: c(z1), reps_1),
-                    "T_and_dT_batch_per_robot_us": 1e6
-                    * best_time(lambda c=cm: c.T_and_dT(zb), reps_b)
-                    / zb.size,
-                    "navfn_batch_per_robot_us": 1e6
-                    * best_time(lambda c=ctl, w=wb: c.navfn.value_and_gradient(w), reps_b)
-                    / zb.size,
+                    "batch1000_per_robot_us": 1e6 * best_time(step_b, reps_b) / zb.size,
+                    "single_us": 1e6 * best_time(step_1, reps_1),
+                    "T_and_dT_batch_per_robot_us": 1e6 * best_time(eval_b, reps_b) / zb.size,
+                    "navfn_batch_per_robot_us": 1e6 * best_time(nav_b, reps_b) / zb.size,
                 }
             )
     return rows
