@@ -70,16 +70,24 @@ def commit() -> str:
         return "unknown"
 
 
-def best_time(fn: Callable[[], Any], reps: int, rounds: int = 5) -> float:
-    """Best mean seconds per call over ``rounds`` rounds of ``reps`` calls (after a warm-up)."""
+def timed(fn: Callable[[], Any], reps: int, rounds: int = 5) -> tuple[float, float]:
+    """Best mean seconds per call over ``rounds`` rounds of ``reps`` calls (after a warm-up):
+    (wall clock, CPU time of this process). On a loaded machine the CPU time, which leaves out
+    the time spent waiting for a core, is the closer estimate of the idle figure."""
     fn()
-    best = np.inf
+    wall = cpu = np.inf
     for _ in range(rounds):
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         for _ in range(reps):
             fn()
-        best = min(best, (time.perf_counter() - t0) / reps)
-    return float(best)
+        wall = min(wall, (time.perf_counter() - t0) / reps)
+        cpu = min(cpu, (time.process_time() - c0) / reps)
+    return float(wall), float(cpu)
+
+
+def best_time(fn: Callable[[], Any], reps: int, rounds: int = 5) -> float:
+    """Wall-clock part of :func:`timed`."""
+    return timed(fn, reps, rounds)[0]
 
 
 def longdouble_T(m: ConformalMap, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -169,12 +177,15 @@ def control_rows(
             step_1 = partial(ctl, z1)
             eval_b = partial(cm.T_and_dT, zb)
             nav_b = partial(ctl.navfn.value_and_gradient, wb)
+            tb, t1 = timed(step_b, reps_b), timed(step_1, reps_1)
             rows.append(
                 {
                     "navfn": navfn,
                     "evaluation": label,
-                    "batch1000_per_robot_us": 1e6 * best_time(step_b, reps_b) / zb.size,
-                    "single_us": 1e6 * best_time(step_1, reps_1),
+                    "batch1000_per_robot_us": 1e6 * tb[0] / zb.size,
+                    "batch1000_per_robot_cpu_us": 1e6 * tb[1] / zb.size,
+                    "single_us": 1e6 * t1[0],
+                    "single_cpu_us": 1e6 * t1[1],
                     "T_and_dT_batch_per_robot_us": 1e6 * best_time(eval_b, reps_b) / zb.size,
                     "navfn_batch_per_robot_us": 1e6 * best_time(nav_b, reps_b) / zb.size,
                 }
@@ -250,13 +261,24 @@ def main(argv: list[str] | None = None) -> int:
     print("\ncontrol step through confnav.Controller (navigation map, v_max = 1):")
     print(
         fmt_table(
-            ["navfn", "T,T' by", "batch us/robot", "single us", "T,T' us/robot", "navfn us/robot"],
+            [
+                "navfn",
+                "T,T' by",
+                "batch us/robot",
+                "(cpu)",
+                "single us",
+                "(cpu)",
+                "T,T' us/robot",
+                "navfn us/robot",
+            ],
             [
                 [
                     r["navfn"],
                     r["evaluation"],
                     f"{r['batch1000_per_robot_us']:.2f}",
+                    f"{r['batch1000_per_robot_cpu_us']:.2f}",
                     f"{r['single_us']:.1f}",
+                    f"{r['single_cpu_us']:.1f}",
                     f"{r['T_and_dT_batch_per_robot_us']:.2f}",
                     f"{r['navfn_batch_per_robot_us']:.2f}",
                 ]
@@ -268,12 +290,23 @@ def main(argv: list[str] | None = None) -> int:
     for r in ctl:
         if r["evaluation"] != "expansion":
             continue
-        for what, val, lim in (
-            ("batch of 1000, us/robot", r["batch1000_per_robot_us"], BATCH_TARGET_US),
-            ("single robot, us", r["single_us"], SINGLE_TARGET_US),
+        for what, val, cpu, lim in (
+            (
+                "batch of 1000, us/robot",
+                r["batch1000_per_robot_us"],
+                r["batch1000_per_robot_cpu_us"],
+                BATCH_TARGET_US,
+            ),
+            ("single robot, us", r["single_us"], r["single_cpu_us"], SINGLE_TARGET_US),
         ):
             targets.append(
-                {"target": f"{r['navfn']}: {what} <= {lim:g}", "measured": val, "met": val <= lim}
+                {
+                    "target": f"{r['navfn']}: {what} <= {lim:g} (wall clock)",
+                    "measured": val,
+                    "cpu_time": cpu,
+                    "met": val <= lim,
+                    "met_in_cpu_time": cpu <= lim,
+                }
             )
     acc = max(ev[0]["expansion_err_T"], ev[0]["expansion_err_dT_rel"])
     targets.append(
@@ -286,8 +319,10 @@ def main(argv: list[str] | None = None) -> int:
     load_end = list(os.getloadavg())
     print("\ntargets:")
     for t in targets:
+        cpu = f" (CPU time {t['cpu_time']:.3g})" if "cpu_time" in t else ""
         print(
-            f"  {'met   ' if t['met'] else 'MISSED'}  {t['target']}: measured {t['measured']:.3g}"
+            f"  {'met   ' if t['met'] else 'MISSED'}  {t['target']}: "
+            f"measured {t['measured']:.3g}{cpu}"
         )
     print(f"load average at end: {load_end}")
     out = {

@@ -230,13 +230,13 @@ class ConformalMap:
         exceeds the build's); once built it serves every evaluation of two or more points (T and
         T' within 1e-12 of the exact sums, see tests/test_expansion.py).
         """
-        if n_points == 1:  # one point: the direct 1-D dots cost less than numpy's overhead
-            return None
         if self._expansion is None and (self._fast or n_points >= EXPANSION_MIN_POINTS):
             self._expansion = LocalExpansions(
                 self._eta, self._Q_fwd, region=self.workspace.polygon
             )
-        return self._expansion
+        # one point: the direct 1-D dots cost less than numpy's overhead (the build happens
+        # anyway, e.g. in a Controller's constructor, not in the first control step)
+        return None if n_points == 1 else self._expansion
 
     def _fix_nodes(
         self, pts: ComplexArray, idx: np.ndarray, w: ComplexArray, dw: ComplexArray | None
