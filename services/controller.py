@@ -29,6 +29,7 @@ from __future__ import annotations
 import argparse
 import logging
 import queue
+import sys
 import threading
 import time
 from collections.abc import Callable
@@ -54,6 +55,7 @@ from confnav.services import navigation
 from confnav.services.bus import Bus
 from confnav.services.keys import KeyError_, Keys
 from confnav.services.runtime import Service, add_zenoh_args, run_until_signal
+from confnav.services.shard import RobotSelector, robot_key_exprs, serialized
 from confnav.services.transform import definition_hash, workspace_of
 
 log = logging.getLogger(__name__)
@@ -112,7 +114,7 @@ class ControllerService(Service):
         self,
         bus: Bus,
         keys: Keys | None = None,
-        robots: set[str] | None = None,
+        robots: set[str] | RobotSelector | None = None,
         stale_after: float = 0.5,
         status_period: float = 0.25,
         fetch_period: float = 0.5,
@@ -164,19 +166,25 @@ class ControllerService(Service):
         self._handles.append(self.bus.subscribe(k.any_ws("transform"), self._on_transform))
         self._handles.append(self.bus.subscribe(k.any_ws("definition"), self._on_definition))
         self._handles.append(self.bus.subscribe(k.any_ws("delete"), self._on_ws_delete))
-        self._handles.append(
-            self.bus.subscribe_latest(k.any_robot("goal"), self._on_goals, self._goals_dropped)
-        )
-        self._handles.append(self.bus.subscribe(k.any_robot("cancel"), self._on_cancel))
-        self._handles.append(  # bounded: the newest waiting pose of each robot wins
-            self.bus.subscribe_latest(
-                k.any_robot("pose"),
-                self._on_poses,
-                self._poses_dropped,
-                max_keys=MAX_BACKLOG,
-                linger=self.linger,
+        # this process's robots only (scale-out: services/shard.py, docs/SERVICES.md)
+        exprs = robot_key_exprs(k, "goal", self.only)
+        on_goals = serialized(self._on_goals) if len(exprs) > 1 else self._on_goals
+        for expr in exprs:
+            self._handles.append(self.bus.subscribe_latest(expr, on_goals, self._goals_dropped))
+        for expr in robot_key_exprs(k, "cancel", self.only):
+            self._handles.append(self.bus.subscribe(expr, self._on_cancel))
+        exprs = robot_key_exprs(k, "pose", self.only)
+        on_poses = serialized(self._on_poses) if len(exprs) > 1 else self._on_poses
+        for expr in exprs:
+            self._handles.append(  # bounded: the newest waiting pose of each robot wins
+                self.bus.subscribe_latest(
+                    expr,
+                    on_poses,
+                    self._poses_dropped,
+                    max_keys=MAX_BACKLOG,
+                    linger=self.linger,
+                )
             )
-        )
         self.spawn(self._fetch_loop, "fetch")
         self.spawn(self._watchdog_loop, "watchdog")
 
@@ -725,7 +733,13 @@ class ControllerService(Service):
 def add_parser(sub: Any) -> None:
     p: argparse.ArgumentParser = sub.add_parser("controller", help="run the controller service")
     add_zenoh_args(p)
-    p.add_argument("--robots", default=None, help="comma-separated robot ids (default: all)")
+    p.add_argument(
+        "--robots",
+        default=None,
+        help="robots this process drives: comma-separated ids and Zenoh chunk patterns such "
+        "as 'a$*' (ids starting with a) or '$*7'; others' poses are not even delivered "
+        "(default: all; see docs/SERVICES.md, scale-out)",
+    )
     p.add_argument("--stale-after", type=float, default=0.5, help="pose timeout, s")
     p.add_argument(
         "--linger-ms",
@@ -749,7 +763,11 @@ def add_parser(sub: Any) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    robots = set(args.robots.split(",")) if args.robots else None
+    try:
+        robots = RobotSelector.parse(args.robots) if args.robots else None
+    except KeyError_ as exc:
+        print(f"confnav serve controller: --robots: {exc}", file=sys.stderr)
+        return 2
     return run_until_signal(
         lambda bus, keys: ControllerService(
             bus,
