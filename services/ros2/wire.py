@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import re
 from dataclasses import dataclass
-from enum import Enum
+from enum import StrEnum
 from typing import Final
 
 import xxhash
@@ -47,7 +47,7 @@ class Ros2Error(ValueError):
     """A name, key, token or attachment that does not fit rmw_zenoh's format."""
 
 
-class EntityKind(str, Enum):
+class EntityKind(StrEnum):
     """The ``<entity>`` chunk of a liveliness token (``liveliness_utils.cpp``: NODE_STR...)."""
 
     NODE = "NN"
@@ -122,7 +122,8 @@ def resolve(namespace: str, name: str) -> str:
 
 def dds_type_name(ros_type: str) -> str:
     """``geometry_msgs/msg/Twist`` -> ``geometry_msgs::msg::dds_::Twist_``
-    (``type_support_common.cpp`` ``_create_type_name``: namespace ``::``, ``dds_::``, name ``_``)."""
+    (``type_support_common.cpp`` ``_create_type_name``: namespace ``::``, ``dds_::``,
+    name ``_``)."""
     parts = ros_type.split("/")
     if len(parts) != 3 or not all(parts):
         raise Ros2Error(f"ROS type {ros_type!r} is not of the form pkg/msg/Name")
