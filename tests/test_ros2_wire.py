@@ -69,8 +69,10 @@ def test_qos_keyexpr() -> None:
     assert wire.qos_keyexpr(wire.QoS()) == "::,:,:,:,,"
     assert wire.qos_keyexpr(wire.DEFAULT_QOS) == ":2:,10:,:,:,,"
     assert wire.qos_keyexpr(wire.SENSOR_QOS) == "2:2:,5:,:,:,,"
+    assert wire.qos_keyexpr(wire.MAP_QOS) == "::,1:,:,:,,"  # transient local is the default
     full = wire.QoS(2, 2, 2, 3, (1, 2), (3, 4), 3, (5, 6))
     assert wire.qos_keyexpr(full) == "2:2:2,3:1,2:3,4:3,5,6"
+    assert wire.qos_keyexpr(wire.QoS(deadline=(0, 0))) == "::,:0,0:,:,,"
 
 
 def test_liveliness_tokens() -> None:

@@ -57,20 +57,23 @@ class EntityKind(StrEnum):
     CLIENT = "SC"
 
 
+INFINITE: Final = (9_223_372_036, 854_775_807)  # RMW_DURATION_INFINITE (sec, nsec)
+
+
 @dataclass(frozen=True)
 class QoS:
-    """The QoS policies in a token; ``None`` is rmw_zenoh's default (``qos.cpp``: reliable,
-    transient local, keep last 42, infinite deadline / lifespan / lease, automatic liveliness),
-    written as an empty field. Durations are (sec, nsec)."""
+    """The QoS policies in a token; the defaults are rmw_zenoh's (``qos.cpp``: reliable,
+    transient local, keep last 42, infinite deadline / lifespan / lease, automatic liveliness).
+    Durations are (sec, nsec)."""
 
-    reliability: int | None = None
-    durability: int | None = None
-    history: int | None = None
-    depth: int | None = None
-    deadline: tuple[int, int] | None = None
-    lifespan: tuple[int, int] | None = None
-    liveliness: int | None = None
-    lease: tuple[int, int] | None = None
+    reliability: int = RELIABLE
+    durability: int = TRANSIENT_LOCAL
+    history: int = KEEP_LAST
+    depth: int = 42
+    deadline: tuple[int, int] = INFINITE
+    lifespan: tuple[int, int] = INFINITE
+    liveliness: int = AUTOMATIC
+    lease: tuple[int, int] = INFINITE
 
 
 SENSOR_QOS: Final = QoS(reliability=BEST_EFFORT, durability=VOLATILE, depth=5)
@@ -81,20 +84,21 @@ MAP_QOS: Final = QoS(durability=TRANSIENT_LOCAL, depth=1)
 """nav2's map server: reliable, transient local, keep last 1."""
 
 
-def _opt(value: object) -> str:
-    return "" if value is None else str(value)
-
-
 def qos_keyexpr(qos: QoS) -> str:
     """``liveliness_utils.cpp`` ``qos_to_keyexpr``: ``R:D:H,depth:dl_s,dl_ns:ls_s,ls_ns:L,lease_s,
-    lease_ns`` with a field left empty when it equals rmw_zenoh's default."""
-    dl = qos.deadline or (None, None)
-    ls = qos.lifespan or (None, None)
-    le = qos.lease or (None, None)
+    lease_ns``, each field left empty when it equals rmw_zenoh's default."""
+    d = QoS()
+
+    def f(value: int, default: int) -> str:
+        return "" if value == default else str(value)
+
     return (
-        f"{_opt(qos.reliability)}:{_opt(qos.durability)}:{_opt(qos.history)},{_opt(qos.depth)}:"
-        f"{_opt(dl[0])},{_opt(dl[1])}:{_opt(ls[0])},{_opt(ls[1])}:"
-        f"{_opt(qos.liveliness)},{_opt(le[0])},{_opt(le[1])}"
+        f"{f(qos.reliability, d.reliability)}:{f(qos.durability, d.durability)}:"
+        f"{f(qos.history, d.history)},{f(qos.depth, d.depth)}:"
+        f"{f(qos.deadline[0], d.deadline[0])},{f(qos.deadline[1], d.deadline[1])}:"
+        f"{f(qos.lifespan[0], d.lifespan[0])},{f(qos.lifespan[1], d.lifespan[1])}:"
+        f"{f(qos.liveliness, d.liveliness)},{f(qos.lease[0], d.lease[0])},"
+        f"{f(qos.lease[1], d.lease[1])}"
     )
 
 
