@@ -89,7 +89,7 @@ def bridge(make_bus: Any) -> Iterator[tuple[Ros2Bridge, Any, zenoh.Session]]:
 
 def test_liveliness_tokens_of_node_publishers_subscriptions(bridge: Any) -> None:
     _svc, bus, ros = bridge
-    zid = str(bus.session.info.zid())
+    zid = wire.zid_chunk(str(bus.session.info.zid()))
     got = wait_for(
         lambda: (
             t

@@ -94,6 +94,16 @@ def test_liveliness_tokens() -> None:
         wire.liveliness_token(0, "z", 0, 0, wire.EntityKind.NODE, "/", "n", info)
 
 
+def test_zid_chunk() -> None:
+    # liveliness_utils.cpp zid_to_str: bytes id[15] .. id[0] of the little-endian u128, each
+    # `ss << std::hex << int(byte)` (no padding); zenoh prints the u128 in hex, no leading 0s
+    assert wire.zid_chunk("a0b0c") == "0" * 13 + "abc"
+    assert wire.zid_chunk("f446b0e7bcea4bbcc4bc5f1f757e6683") == "f446b0e7bcea4bbcc4bc5f1f757e6683"
+    assert wire.zid_chunk("100f0e0d0c0b0a090807060504030201") == "10fedcba987654321"
+    with pytest.raises(wire.Ros2Error):
+        wire.zid_chunk("xyz")
+
+
 def test_gid_is_xxh3_128_of_the_token_low_then_high() -> None:
     # Entity::Entity: memcpy(gid, &hash.low64, 8); memcpy(gid + 8, &hash.high64, 8) (x86: LE)
     token = "@ros2_lv/0/aabb/0/0/NN/%/%/confnav_bridge"

@@ -145,7 +145,7 @@ class Ros2Bridge(Service):
             raise ValueError("the ROS 2 bridge needs at least one robot")
         self.session = session
         self.config = config
-        self._zid = str(session.info.zid())
+        self._zid = wire.zid_chunk(str(session.info.zid()))
         self._next_id = 1  # entity ids; 0 is the node (rmw_node_data.cpp: nid = id)
         self._robots: dict[str, _RobotState] = {}
         self._ros: list[Any] = []  # zenoh publishers, subscribers, tokens

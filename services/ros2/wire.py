@@ -4,11 +4,11 @@ Pure functions (no session). Every format is taken from the rmw_zenoh source, ci
 
 - snapshot ``ros2/rmw_zenoh`` commit ``bfc065f8c80cc3bc4d1963dc44ac5a472460903a`` (the one
   fetched to ``/work/.mirror/ros2+rmw_zenoh``), file ``rmw_zenoh_cpp/src/detail/
-  liveliness_utils.cpp``: data key (``TopicInfo::TopicInfo``), token layout (``Entity::Entity``,
-  ``KeyexprIndex``), name mangling (``mangle_name``), QoS string (``qos_to_keyexpr``) and the
-  entity GID (XXH3-128 of the token, ``low64`` then ``high64``); ``qos.cpp`` for the defaults
-  an omitted QoS field stands for; ``type_support_common.cpp`` (``_create_type_name``) for the
-  DDS type name.
+  liveliness_utils.cpp``: data key (``TopicInfo::TopicInfo``), token layout
+  (``Entity::Entity``, ``KeyexprIndex``), the session id chunk (``zid_to_str``), name
+  mangling (``mangle_name``), QoS string (``qos_to_keyexpr``) and the entity GID (XXH3-128
+  of the token, ``low64`` then ``high64``); ``qos.cpp`` for the defaults an omitted QoS field
+  stands for; ``type_support_common.cpp`` (``_create_type_name``) for the DDS type name.
 - The attachment: that snapshot still builds on zenoh-c 0.11 (``z_bytes_map`` attachments),
   whose protocol a zenoh 1.x session (eclipse-zenoh-python here, and rmw_zenoh in ROS 2 Jazzy
   and later) cannot talk to. The zenoh 1.x layout is ``ros2/rmw_zenoh`` commit
@@ -100,6 +100,18 @@ def qos_keyexpr(qos: QoS) -> str:
         f"{f(qos.liveliness, d.liveliness)},{f(qos.lease[0], d.lease[0])},"
         f"{f(qos.lease[1], d.lease[1])}"
     )
+
+
+def zid_chunk(zid: str) -> str:
+    """The ``<zid>`` chunk of a token from zenoh's string form of a session id (hex of the
+    little-endian u128, no leading zeros): ``liveliness_utils.cpp`` ``zid_to_str`` prints the 16
+    bytes from the most significant one, each in hex without zero padding."""
+    try:
+        value = int(zid, 16)
+        raw = value.to_bytes(16, "big")
+    except (ValueError, OverflowError) as exc:
+        raise Ros2Error(f"not a zenoh id: {zid!r}") from exc
+    return "".join(f"{b:x}" for b in raw)
 
 
 def mangle(name: str) -> str:
