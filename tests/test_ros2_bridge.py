@@ -212,14 +212,16 @@ def test_ros2dds_key_style(make_bus: Any) -> None:
         cmd = VelocityCommand(robot_id="r1", stamp_ns=time.time_ns(), linear=(0.5, -0.25))
         bus.publish(K.robot("r1", "cmd_vel"), encode(cmd))
         (key, data, att), *_ = wait_for(twists.get)
-        assert ros.liveliness().get("@ros2_lv/**").recv is not None
         tokens = list(ros.liveliness().get("@ros2_lv/**"))
+        svc.stop()
+        stop = wait_for(lambda: t[-1] if len(t := twists.get()) >= 2 else None)
     finally:
         sub.undeclare()
         svc.stop()
     assert key == "r1/cmd_vel" and att is None
     assert codec.decode_twist(data) == (0.5, -0.25, 0.0)  # world frame: not rotated
     assert tokens == []
+    assert codec.decode_twist(stop[1]) == (0.0, 0.0, 0.0)  # stopping the bridge stops the robot
 
 
 def test_robot_spec_parsing() -> None:

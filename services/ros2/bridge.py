@@ -229,11 +229,18 @@ class Ros2Bridge(Service):
             )
         if c.map_topic:
             self._subscription(wire.resolve("/", c.map_topic), codec.OCCUPANCY_GRID, self._on_map)
+        self._handles.append(_Closer(self._close_ros))  # closed after the cmd_vel subscription
         self._handles.append(self.bus.subscribe(self.keys.any_robot("cmd_vel"), self._on_cmd))
-        self._handles.append(_Closer(self._close_ros))
         self.spawn(self._work, "ros")
 
     def _close_ros(self) -> None:
+        """Stop every robot (a base without a cmd_vel timeout keeps its last command), then
+        undeclare the ROS entities (their tokens vanish from the ROS graph)."""
+        for robot in self._robots.values():
+            try:
+                self._put(robot.cmd, codec.encode_twist(0.0, 0.0, 0.0, self.config.cmd_stamped))
+            except Exception:
+                log.warning("%s: final zero command failed", robot.spec.robot_id, exc_info=True)
         for h in reversed(self._ros):
             try:
                 h.undeclare()
