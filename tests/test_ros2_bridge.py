@@ -28,7 +28,15 @@ import zenoh
 from conftest import REPO, confnav_cmd, subprocess_env, wait_for
 
 from confnav.geometry import Workspace
-from confnav.schemas import Goal, Pose, RobotStatus, VelocityCommand, decode, encode
+from confnav.schemas import (
+    Goal,
+    Pose,
+    RobotStatus,
+    VelocityCommand,
+    WorkspaceDefinition,
+    decode,
+    encode,
+)
 from confnav.services.keys import Keys
 from confnav.services.ros2 import codec, wire
 from confnav.services.ros2.bridge import BridgeConfig, RobotSpec, Ros2Bridge
@@ -353,3 +361,46 @@ def _client_conf(endpoint: str) -> zenoh.Config:
     from confnav.services.bus import zenoh_config
 
     return zenoh_config("client", connect=[endpoint])
+
+
+def test_map_through_the_occupancy_grid_import(make_bus: Any) -> None:
+    """With ``confnav.mapimport`` present, an OccupancyGrid becomes a WorkspaceDefinition in
+    the grid's frame: a walled 2.0 m x 1.5 m room (0.05 m cells) with a 0.3 m x 0.2 m block."""
+    pytest.importorskip("confnav.mapimport")
+    bus, ros_bus = make_bus(), make_bus()
+    res, (w, h) = 0.05, (40, 30)
+    cells = np.full((h, w), 0, dtype=np.int8)
+    cells[0, :] = cells[-1, :] = cells[:, 0] = cells[:, -1] = 100  # walls (row 0 = bottom)
+    cells[0, :5] = -1  # unknown counts as occupied
+    cells[10:14, 20:26] = 100  # block: x in [1.0, 1.3) + ox, y in [0.5, 0.7) + oy
+    ox, oy = -1.0, -0.75
+    grid = codec.Grid(cells, res, codec.PlanarPose(ox, oy, 0.0, 0, "map"))
+    cfg = BridgeConfig(robots=(RobotSpec("r1", "room"),), map_topic="/map")
+    svc = Ros2Bridge(bus, bus.session, cfg, health_period=0)
+    defs = Collect()
+    bus.subscribe(K.ws("room", "definition"), defs.bus)
+    svc.start()
+    try:
+        time.sleep(0.3)
+        key = "0/map/nav_msgs::msg::dds_::OccupancyGrid_/" + codec.type_hash(codec.OCCUPANCY_GRID)
+        ros_bus.session.put(key, codec.encode_grid(grid))
+        d = decode(WorkspaceDefinition, wait_for(defs.get, timeout=20)[0][1])
+    finally:
+        svc.stop()
+    assert svc.health_detail() == ("ok", "")
+
+    def bbox(poly: list[tuple[float, float]]) -> np.ndarray:
+        a = np.asarray(poly)
+        return np.array([a[:, 0].min(), a[:, 1].min(), a[:, 0].max(), a[:, 1].max()])
+
+    # free cells: columns 1..38, rows 1..28 -> [ox + 0.05, ox + 1.95] x [oy + 0.05, oy + 1.45];
+    # the import is conservative (free space never grows) and within one cell of the cells
+    want_outer = np.array([ox + res, oy + res, ox + 39 * res, oy + 29 * res])
+    got = bbox(d.outer)
+    assert np.all(np.abs(got - want_outer) <= res + 1e-9)
+    assert got[0] >= want_outer[0] - 1e-9 and got[2] <= want_outer[2] + 1e-9
+    assert len(d.obstacles) == 1
+    want_block = np.array([ox + 20 * res, oy + 10 * res, ox + 26 * res, oy + 14 * res])
+    blk = bbox(d.obstacles[0])
+    assert np.all(np.abs(blk - want_block) <= res + 1e-9)
+    assert blk[0] <= want_block[0] + 1e-9 and blk[2] >= want_block[2] - 1e-9

@@ -14,10 +14,10 @@ Per robot (id ``r``, ROS namespace ``/ns``, workspace ``ws``):
 The workspace frame is the frame of the poses (``map`` for AMCL, ``odom`` for odometry);
 there is no TF lookup, so a goal in another frame is rejected (counted, logged).
 
-A map topic (``nav_msgs/msg/OccupancyGrid``) is subscribed when configured; turning it into a
-``WorkspaceDefinition`` needs the occupancy-grid import (``confnav.mapimport``). Without it the
-bridge says so in its health (state ``degraded``, detail "map import not available") and a log
-line, and publishes nothing for the map.
+A map topic (``nav_msgs/msg/OccupancyGrid``) is subscribed when configured and published as a
+``WorkspaceDefinition`` through the occupancy-grid import (``confnav.mapimport``). Without that
+module the bridge says so in its health (state ``degraded``, detail "map import not
+available") and a log line, and publishes nothing for the map.
 
 Key styles: ``rmw_zenoh`` (default): data keys ``<domain>/<topic>/<dds type>/<RIHS01 hash>``,
 rmw_zenoh's attachment on every sample, and liveliness tokens for the node, its publishers and
@@ -40,18 +40,30 @@ from dataclasses import dataclass, field
 from functools import partial
 from typing import Any, Literal
 
+import numpy as np
 import zenoh
 
-from confnav.schemas import DecodeError, Goal, Pose, VelocityCommand, decode, encode
+from confnav.schemas import (
+    DecodeError,
+    Goal,
+    Pose,
+    VelocityCommand,
+    WorkspaceDefinition,
+    decode,
+    encode,
+)
 from confnav.services.bus import Bus
 from confnav.services.keys import KeyError_, Keys, validate_id
 from confnav.services.ros2 import codec, wire
 from confnav.services.ros2.codec import PoseKind
 from confnav.services.runtime import Service, add_zenoh_args, run_until_signal
+from confnav.services.transform import definition_of
 
 log = logging.getLogger(__name__)
 
 KeyStyle = Literal["rmw_zenoh", "ros2dds"]
+MapImport = Callable[[codec.Grid, str], WorkspaceDefinition]
+"""(grid, workspace id) -> definition; ``"auto"``: the occupancy-grid import if present."""
 QUEUE_SIZE = 1024  # ROS samples waiting for the worker; beyond this the oldest are dropped
 
 
@@ -127,7 +139,9 @@ class _RobotState:
 
 class Ros2Bridge(Service):
     """See the module docstring. ``session`` is the Zenoh session for the ROS side (it needs
-    attachments and tokens on keys outside the confnav prefix); ``bus`` the confnav side."""
+    attachments and tokens on keys outside the confnav prefix); ``bus`` the confnav side;
+    ``map_import`` turns a received OccupancyGrid into a definition (None: maps are not
+    converted)."""
 
     name = "ros2"
 
@@ -138,7 +152,7 @@ class Ros2Bridge(Service):
         config: BridgeConfig,
         keys: Keys | None = None,
         health_period: float = 1.0,
-        map_import: Callable[[codec.Grid, str], Any] | None = None,
+        map_import: MapImport | Literal["auto"] | None = "auto",
     ) -> None:
         super().__init__(bus, keys, health_period)
         if not config.robots:
@@ -150,7 +164,7 @@ class Ros2Bridge(Service):
         self._robots: dict[str, _RobotState] = {}
         self._ros: list[Any] = []  # zenoh publishers, subscribers, tokens
         self._queue: queue.Queue[tuple[Callable[[bytes], None], bytes]] = queue.Queue(QUEUE_SIZE)
-        self._map_import = map_import if map_import is not None else _find_map_import()
+        self._map_import = _find_map_import() if map_import == "auto" else map_import
         self._map_problem = ""
 
     # ROS side -----------------------------------------------------------------------------
@@ -377,14 +391,34 @@ class _Closer:
         self.close = fn
 
 
-def _find_map_import() -> Callable[[codec.Grid, str], Any] | None:
-    """The occupancy-grid import, if this confnav has one (``confnav.mapimport``)."""
+FREE_THRESH = 0.196
+"""map_server's default ``free_thresh``: a cell is free when its occupancy ``v / 100 < 0.196``
+(ROS ``map_server`` documentation, "Map format"); unknown (-1) and every other cell count as
+occupied, as in the occupancy-grid import."""
+
+
+def _find_map_import() -> MapImport | None:
+    """The OccupancyGrid -> WorkspaceDefinition conversion through the occupancy-grid import
+    (``confnav.mapimport.workspace_from_grid``), or None if this confnav has no import."""
     try:
         mod = importlib.import_module("confnav.mapimport")
-    except ModuleNotFoundError:
+    except ModuleNotFoundError as exc:
+        if exc.name != "confnav.mapimport":
+            raise
         return None
-    fn = getattr(mod, "definition_from_grid", None)
-    return fn if callable(fn) else None
+    return partial(_grid_definition, mod.workspace_from_grid)
+
+
+def _grid_definition(
+    workspace_from_grid: Callable[..., Any], grid: codec.Grid, ws_id: str
+) -> WorkspaceDefinition:
+    """An OccupancyGrid (row 0 at the origin, the bottom) as a workspace definition in the
+    grid's frame; the import takes image rows (row 0 at the top), hence the flip."""
+    cells = grid.cells.astype(np.float64)
+    free = (cells >= 0) & (cells / 100.0 < FREE_THRESH)
+    origin = (grid.origin.x, grid.origin.y, grid.origin.yaw)
+    result = workspace_from_grid(free[::-1], grid.resolution, origin)
+    return definition_of(ws_id, result.workspace)
 
 
 def add_parser(sub: Any) -> None:
