@@ -168,15 +168,13 @@ class Ros2Bridge(Service):
         self._map_problem = ""
 
     # ROS side -----------------------------------------------------------------------------
-    def _endpoint(self, kind: wire.EntityKind, topic: str, ros_type: str) -> _Endpoint:
+    def _endpoint(
+        self, kind: wire.EntityKind, topic: str, ros_type: str, qos: wire.QoS
+    ) -> _Endpoint:
         c = self.config
         type_hash = codec.type_hash(ros_type)
         if c.key_style == "ros2dds":
             return _Endpoint(topic, ros_type, wire.ros2dds_key(topic), None, bytes(wire.GID_SIZE))
-        qos = {
-            codec.OCCUPANCY_GRID: wire.MAP_QOS,
-            codec.POSE_TYPES[c.pose_kind]: wire.SENSOR_QOS,
-        }.get(ros_type, wire.DEFAULT_QOS)
         info = wire.TopicInfo(topic, ros_type, type_hash, qos)
         token = wire.liveliness_token(
             c.domain_id, self._zid, 0, self._next_id, kind, "/", c.node_name, info
@@ -190,14 +188,16 @@ class Ros2Bridge(Service):
             self._ros.append(self.session.liveliness().declare_token(token))
 
     def _publisher(self, topic: str, ros_type: str) -> _Endpoint:
-        ep = self._endpoint(wire.EntityKind.PUBLISHER, topic, ros_type)
+        ep = self._endpoint(wire.EntityKind.PUBLISHER, topic, ros_type, wire.DEFAULT_QOS)
         ep.publisher = self.session.declare_publisher(ep.key)
         self._ros.append(ep.publisher)
         self._declare_token(ep.token)
         return ep
 
-    def _subscription(self, topic: str, ros_type: str, handler: Callable[[bytes], None]) -> None:
-        ep = self._endpoint(wire.EntityKind.SUBSCRIPTION, topic, ros_type)
+    def _subscription(
+        self, topic: str, ros_type: str, qos: wire.QoS, handler: Callable[[bytes], None]
+    ) -> None:
+        ep = self._endpoint(wire.EntityKind.SUBSCRIPTION, topic, ros_type, qos)
         # any type hash: a sender with another (or no) hash of the same type still arrives
         keyexpr = ep.key.rsplit("/", 1)[0] + "/*" if ep.token is not None else ep.key
 
@@ -234,15 +234,19 @@ class Ros2Bridge(Service):
             self._subscription(
                 wire.resolve(spec.ns, c.pose_topic),
                 codec.POSE_TYPES[c.pose_kind],
+                wire.SENSOR_QOS,
                 partial(self._on_ros_pose, state),
             )
             self._subscription(
                 wire.resolve(spec.ns, c.goal_topic),
                 codec.POSE_STAMPED,
+                wire.DEFAULT_QOS,
                 partial(self._on_ros_goal, state),
             )
         if c.map_topic:
-            self._subscription(wire.resolve("/", c.map_topic), codec.OCCUPANCY_GRID, self._on_map)
+            self._subscription(
+                wire.resolve("/", c.map_topic), codec.OCCUPANCY_GRID, wire.MAP_QOS, self._on_map
+            )
         self._handles.append(_Closer(self._close_ros))  # closed after the cmd_vel subscription
         self._handles.append(self.bus.subscribe(self.keys.any_robot("cmd_vel"), self._on_cmd))
         self.spawn(self._work, "ros")
