@@ -143,16 +143,22 @@ class SimulatorService(Service):
             self._workspaces[ws_id] = ws
 
     def _on_cmd(self, key: str, payload: bytes) -> None:
+        """A command counts only on a robot's exact key and naming that robot: a put on
+        ``{prefix}/robot/*/cmd_vel`` (which reaches this subscriber too) or with another
+        robot's id is rejected."""
         try:
-            rid = self.keys.parse(key).ident
+            rid = self.keys.parse(key).ident  # a wildcard chunk is not an id: rejected
             cmd = decode(VelocityCommand, payload)
+            if cmd.robot_id != rid:
+                raise DecodeError("invalid_input", f"command on {key} names {cmd.robot_id!r}")
         except (KeyError_, DecodeError) as exc:
             self.count("rejected")
             log.debug("rejected command on %s: %s", key, exc)
             return
         with self._lock:
             r = self._robots.get(rid)
-            if r is None or cmd.robot_id != rid:
+            if r is None:
+                self.count("commands_unknown_robot")
                 return
             u = complex(cmd.linear[0], cmd.linear[1])
             if cmd.frame == "world" and r.drive == "unicycle" and u != 0j:
