@@ -447,9 +447,7 @@ class HarmonicNavigation(NavigationFunction):
         super().__init__(domain, goal)
         self.tol = tol
         self.samples = None if samples is None else np.asarray(samples, dtype=np.complex128)
-        self.green = GreenFunction(
-            domain, self.goal, tol=tol, basis=basis, samples=self.samples
-        )
+        self.green = GreenFunction(domain, self.goal, tol=tol, basis=basis, samples=self.samples)
         self.diagnostics = self.green.diagnostics
 
     def value_and_gradient(self, w: ArrayLike) -> tuple[FArray, CArray]:
