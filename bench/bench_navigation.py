@@ -90,7 +90,7 @@ def scenarios() -> list[Scenario]:
 
 def solve_cached(ws: Workspace, cache: Path | None) -> Any:
     """The controller service's map of ``ws`` (cached on disk by the workspace hash)."""
-    path = cache / f"{ws.content_hash()[:16]}.json" if cache else None
+    path = cache / f"{ws.content_hash[:16]}.json" if cache else None
     if path is not None and path.exists():
         cmap = confnav.ConformalMap.from_json(path.read_text())
     else:

@@ -68,6 +68,9 @@ def register(subparsers: Any) -> None:
     g.add_argument("--random", type=int, metavar="N", help="N random starts in free space")
     p.add_argument("--seed", type=int, default=0, help="seed for --random")
     p.add_argument("--map", type=Path, help="a solved map (JSON) instead of solving")
+    p.add_argument("--robot-radius", type=float, default=0.0, help="disk robot radius (m)")
+    p.add_argument("--unicycle", type=float, metavar="D", help="differential drive, look-ahead D")
+    p.add_argument("--omega-max", type=float, default=2.0, help="unicycle yaw-rate limit")
     _law_options(p)
     p.add_argument("--t-max", type=float, default=1e4, help="time limit per robot (s)")
     p.add_argument(
@@ -136,7 +139,9 @@ def _load_map(args: argparse.Namespace, ws: Any) -> Any:
     import confnav
 
     if getattr(args, "map", None):
-        return confnav.ConformalMap.from_json(Path(args.map).read_text()).for_navigation()
+        cmap = confnav.ConformalMap.from_json(Path(args.map).read_text())
+        cmap.check_workspace(ws)  # a map of another workspace: MapMismatchError, exit != 0
+        return cmap.for_navigation()
     t0 = time.perf_counter()
     print(f"solving the conformal map of {ws.n_obstacles} obstacles...", file=sys.stderr)
 
@@ -150,15 +155,19 @@ def _load_map(args: argparse.Namespace, ws: Any) -> Any:
 
 def run_simulate(args: argparse.Namespace) -> int:
     from confnav.control import Controller
+    from confnav.footprint import inflate
     from confnav.geometry import Workspace
     from confnav.scenarios import random_starts
     from confnav.shortest_path import ShortestPaths
-    from confnav.sim import simulate
+    from confnav.unicycle import simulate_robots
 
     ws = Workspace.load(args.workspace)
     if args.require is not None and not 0 <= args.require <= 1:
         raise NavigationError("--require needs a rate in [0, 1]")
-    cmap = _load_map(args, ws)
+    body = args.robot_radius + (args.unicycle or 0.0)  # the footprint shrinks the free space
+    named = {f"start {k}": z for k, z in enumerate(args.starts or [])}
+    nav_ws = inflate(ws, body, keep=args.goal, require=named) if body else ws
+    cmap = _load_map(args, nav_ws)
     ctl = Controller(
         cmap,
         args.goal,
@@ -182,11 +191,21 @@ def run_simulate(args: argparse.Namespace) -> int:
     if args.random is not None:
         if args.random < 1:
             raise NavigationError("--random needs N >= 1")
-        starts = random_starts(ws, args.random, args.seed, margin=0.05)
+        starts = random_starts(nav_ws, args.random, args.seed, margin=0.05 + (args.unicycle or 0))
     else:
         starts = np.array(args.starts, dtype=np.complex128)
-    res = simulate(ctl, starts, t_max=args.t_max, record_paths=args.plot is not None)
-    shortest = ShortestPaths(ws, ctl.goal).lengths(res.starts)
+    res = simulate_robots(
+        ctl,
+        starts,
+        workspace=ws,
+        radius=args.robot_radius,
+        lookahead=args.unicycle,
+        omega_max=args.omega_max,
+        seed=args.seed,
+        t_max=args.t_max,
+        record_paths=args.plot is not None,
+    )
+    shortest = ShortestPaths(nav_ws, ctl.goal).lengths(res.starts)
     runs = [r.to_dict() for r in res.runs()]
     for r, s in zip(runs, shortest, strict=True):
         r["shortest_path"] = float(s)

@@ -53,11 +53,12 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from confnav import defaults
-from confnav.errors import NavigationError
+from confnav.errors import MapMismatchError, NavigationError
 from confnav.navfn import CircleDomain, NavigationFunction, make_navfn
 
 if TYPE_CHECKING:
     from confnav.critical import CriticalPoints
+    from confnav.geometry import Workspace
 
 __all__ = ["ConformalLike", "ControlOutput", "Controller", "Status", "speed_law"]
 
@@ -173,6 +174,8 @@ class Controller:
 
     All defaults come from :mod:`confnav.defaults` (equal to the ``Goal`` message's).  ``x``
     may be any point the robot steers, e.g. a point ahead of a unicycle's axle.
+    workspace : the workspace in use; if given, a map whose ``workspace_hash`` differs from
+        its ``content_hash`` is refused with :class:`~confnav.errors.MapMismatchError`.
     """
 
     def __init__(
@@ -188,7 +191,14 @@ class Controller:
         goal_tol: float = defaults.GOAL_TOL,
         slow_distance: float = defaults.SLOW_DISTANCE,
         stall_radius: float | None = None,
+        workspace: Workspace | None = None,
     ) -> None:
+        bound = getattr(cmap, "workspace_hash", None)
+        if workspace is not None and bound != workspace.content_hash:  # issue 8
+            raise MapMismatchError(
+                f"the map was solved for workspace {str(bound)[:12]}, not for the one in use "
+                f"{workspace.content_hash[:12]}"
+            )
         self.cmap = cmap
         self.goal = _as_point(goal, "goal")
         if speed_law not in defaults.SPEED_LAWS:

@@ -291,6 +291,9 @@ def _check_one(
     if cmd.pose_seq < 0:
         report.skipped["watchdog stop (no pose)"] += 1
         return
+    if cmd.frame == "body":
+        report.skipped["body-frame twist (unicycle)"] += 1
+        return
     pose = poses.get(rid, OrderedDict()).get((cmd.pose_seq, cmd.pose_stamp_ns))
     if pose is None:
         report.skipped["pose not recorded"] += 1
