@@ -195,8 +195,14 @@ def run_simulate(args: argparse.Namespace) -> int:
     else:
         starts = np.array(args.starts, dtype=np.complex128)
     res = simulate_robots(
-        ctl, starts, workspace=ws, radius=args.robot_radius, lookahead=args.unicycle,
-        omega_max=args.omega_max, seed=args.seed, t_max=args.t_max,
+        ctl,
+        starts,
+        workspace=ws,
+        radius=args.robot_radius,
+        lookahead=args.unicycle,
+        omega_max=args.omega_max,
+        seed=args.seed,
+        t_max=args.t_max,
         record_paths=args.plot is not None,
     )
     shortest = ShortestPaths(nav_ws, ctl.goal).lengths(res.starts)

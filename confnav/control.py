@@ -239,7 +239,7 @@ class Controller:
         else:
             self.domain = CircleDomain.of(cmap)
             try:
-                self.navfn = make_navfn(navfn, self.domain, wd, k=k)
+                self.navfn = make_navfn(navfn, self.domain, wd, k=k, samples=_samples(cmap))
             except NavigationError as exc:
                 if navfn != "harmonic" or "did not converge" not in str(exc):
                     raise
@@ -375,6 +375,27 @@ class Controller:
             f"speed_law={self.speed_law}, gain={self.gain:g}, v_max={self.v_max:g}, "
             f"goal_tol={self.goal_tol:g})"
         )
+
+
+#: Free-space points (per map) where the harmonic fit must be accurate relative to |G|.
+N_SAMPLES = 256
+SAMPLE_MARGIN = 0.05  # m from the walls, like the benchmark's random starts
+
+
+def _samples(cmap: ConformalLike) -> CArray | None:
+    """Images ``T(x)`` of free-space points at ``SAMPLE_MARGIN`` from the walls (None without
+    a workspace); fixed seed, so every controller of a map asks the same accuracy."""
+    ws = getattr(cmap, "workspace", None)
+    if ws is None or not hasattr(ws, "bounds"):
+        return None
+    from confnav.scenarios import random_starts
+
+    try:
+        z = random_starts(ws, N_SAMPLES, seed=0, margin=SAMPLE_MARGIN)
+    except NavigationError:
+        return None
+    w = np.asarray(cmap.T_and_dT(z)[0], dtype=np.complex128)
+    return w[np.isfinite(w)]
 
 
 def _as_point(p: complex | tuple[float, float] | ArrayLike, what: str) -> complex:

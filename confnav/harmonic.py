@@ -68,11 +68,16 @@ TERM_LADDER: tuple[int, ...] = (12, 24, 36, 48, 64, 96, 128, 160, 192, 256)
 #: Default cap of the terms per circle: bounds the per-map cost (normal equations of size
 #: ~2 n (M + 1)); a goal that needs more gets the Koditschek-Rimon fallback of the controller.
 DEFAULT_MAX_TERMS = 128
+#: Memory one factorization may take (design, check and Cholesky matrices); caps the terms
+#: per circle for many obstacles (issue 9: <= 1 GB with 20 obstacles).
+MEMORY_BUDGET = 768 << 20
 #: The pole gets an image charge in circle j when ``|w_d - c_j| < NEAR * r_j``.
 NEAR = 3.0
-#: Data below this size counts as this size in the relative residual criterion (rounding of
-#: the data itself is ~1e-16 absolute).
-DATA_FLOOR = 1e-5
+#: Accuracy of G needed where robots drive, relative to the smallest |G| at the sample points
+#: (the fit's error in G is at most its boundary residual: maximum principle).
+REL_TOL = 1e-3
+#: Below this boundary error the fit is rounding (data of size 1, double precision).
+FLOOR = 1e-15
 #: Bases kept per process (LRU over circle domains), so new goals on a map reuse its factors.
 CACHE_SIZE = 4
 
@@ -83,7 +88,7 @@ class GreenDiagnostics:
 
     n_terms: Laurent terms per circle; n_collocation: collocation points per circle;
     residual: max boundary error of ``S`` on check points between the collocation points;
-    threshold: what it had to reach (``tol * max(|data|, DATA_FLOOR)``); history:
+    threshold: what it had to reach (``min(tol, REL_TOL min |G(samples)|)``); history:
     (n_terms, residual) per attempt; converged: residual <= threshold; images: circles whose
     image charge was used; basis_seconds: time spent factoring for this fit (0: reused).
     """
@@ -141,7 +146,8 @@ class GreenBasis:
     ) -> None:
         self.domain = domain
         self.tol = float(tol)
-        self.max_terms = int(max_terms)
+        fits = [n for n in TERM_LADDER if _level_bytes(domain.n_obstacles, n) <= MEMORY_BUDGET]
+        self.max_terms = min(int(max_terms), max(fits or [TERM_LADDER[0]]))
         self._levels: dict[int, _Level] = {}
         self._start = 0  # index in TERM_LADDER of the smallest level worth trying
         self._lock = threading.Lock()
@@ -187,15 +193,23 @@ class GreenBasis:
         lv = self._levels.get(n)
         if lv is not None:
             return lv, 0.0
+        self._levels = {}  # only one factorization in memory at a time
         t0 = time.perf_counter()
         lv = _Level(self.domain, n)
-        # keep only the newest level: memory stays that of one factorization
         self._levels = {n: lv}
         return lv, time.perf_counter() - t0
 
-    def fit(self, pole: complex) -> tuple[FArray, CArray, GreenDiagnostics]:
+    def fit(
+        self, pole: complex, samples: CArray | None = None
+    ) -> tuple[FArray, CArray, GreenDiagnostics]:
         """(series coefficients, image points, diagnostics) for a pole; raises
-        :class:`NavigationError` if ``max_terms`` terms do not reach the tolerance."""
+        :class:`NavigationError` if ``max_terms`` terms do not reach the tolerance.
+
+        The boundary residual must be below ``tol`` and below ``REL_TOL * min |G|`` over
+        ``samples`` (circle-domain points where robots drive): by the maximum principle the
+        error of ``G`` anywhere is at most the boundary residual, so where the goal sits in a
+        pocket and ``G`` is 1e-11 over the room the fit must be that much finer (or fail).
+        """
         c, r = self.domain.centers, self.domain.radii
         near = np.flatnonzero(np.abs(pole - c) < NEAR * r)
         images = c[near] + r[near] ** 2 / np.conj(pole - c[near])
@@ -210,14 +224,17 @@ class GreenBasis:
                 coef = lv.solve(_data(lv.zeta, pole, images))
                 data_c = _data(lv.zeta_check, pole, images)
                 res = float(np.max(np.abs(lv.check @ coef - data_c), initial=0.0))
-                size = float(np.max(np.abs(data_c), initial=0.0))
-                thr = self.tol * max(size, DATA_FLOOR)
+                thr = self.tol
+                if samples is not None and samples.size:
+                    g = _data(samples, pole, images) - _design(self.domain, samples, lv.n) @ coef
+                    gmin = float(np.min(np.abs(g[np.isfinite(g)]), initial=np.inf))
+                    thr = max(min(thr, REL_TOL * gmin), FLOOR)
                 history.append((lv.n, res))
                 ok = res <= thr
                 if ok or i + 1 >= len(ladder):
                     break
                 need = _extrapolate(history, thr)
-                if need > 1.5 * ladder[-1]:
+                if need > 3.0 * ladder[-1]:
                     break  # the geometric rate says max_terms will not do: give up now
                 i = max(i + 1, int(np.searchsorted(ladder, need)))
                 i = min(i, len(ladder) - 1)
@@ -233,6 +250,13 @@ class GreenBasis:
                 "each other or to the goal?)"
             )
         return coef, images, diag
+
+
+def _level_bytes(m: int, n: int) -> int:
+    """Bytes of a :class:`_Level` with ``n`` terms per circle and ``m`` holes."""
+    cols = 1 + 2 * n * (m + 1) + m
+    rows = (m + 1) * (3 * n + 16)
+    return 8 * (2 * rows * cols + cols * cols)
 
 
 def _extrapolate(history: list[tuple[int, float]], thr: float) -> float:
@@ -304,6 +328,8 @@ class GreenFunction:
     tol : target boundary error of the fitted series, relative to the size of its data.
     max_terms : upper bound of the number of Laurent terms per circle.
     basis : the map's :class:`GreenBasis` (default: the shared one of ``domain``).
+    samples : circle-domain points where ``G`` must be accurate relative to its size
+        (:meth:`GreenBasis.fit`), e.g. the images of free-space points.
 
     Raises
     ------
@@ -319,13 +345,14 @@ class GreenFunction:
         tol: float = 1e-10,
         max_terms: int = DEFAULT_MAX_TERMS,
         basis: GreenBasis | None = None,
+        samples: CArray | None = None,
     ) -> None:
         self.domain = domain
         self.pole = complex(pole)
         if basis is None:
             basis = GreenBasis.for_domain(domain, tol=tol, max_terms=max_terms)
         self.basis = basis
-        coef, self._images, self.diagnostics = basis.fit(self.pole)
+        coef, self._images, self.diagnostics = basis.fit(self.pole, samples)
         self._n = self.diagnostics.n_terms
         self._unpack(coef, self._n)
 
@@ -401,8 +428,9 @@ class HarmonicNavigation(NavigationFunction):
     """Harmonic navigation function ``phi_H = exp(2 G)`` (DESIGN.md section 3).
 
     ``diagnostics`` holds the :class:`GreenDiagnostics` of the series.  ``tol`` bounds the
-    boundary error of the series relative to the size of its data (module docstring); the
-    map's factorization is shared through :meth:`GreenBasis.for_domain` (or pass ``basis``).
+    boundary error of the series, and so the error of ``G`` everywhere; with ``samples``
+    (points where robots drive) also relative to ``min |G|`` there (:meth:`GreenBasis.fit`).
+    The map's factorization is shared through :meth:`GreenBasis.for_domain` (or ``basis``).
     """
 
     name = "harmonic"
@@ -414,10 +442,12 @@ class HarmonicNavigation(NavigationFunction):
         *,
         tol: float = 1e-10,
         basis: GreenBasis | None = None,
+        samples: ArrayLike | None = None,
     ) -> None:
         super().__init__(domain, goal)
         self.tol = tol
-        self.green = GreenFunction(domain, self.goal, tol=tol, basis=basis)
+        self.samples = None if samples is None else np.asarray(samples, dtype=np.complex128)
+        self.green = GreenFunction(domain, self.goal, tol=tol, basis=basis, samples=self.samples)
         self.diagnostics = self.green.diagnostics
 
     def value_and_gradient(self, w: ArrayLike) -> tuple[FArray, CArray]:
@@ -438,4 +468,6 @@ class HarmonicNavigation(NavigationFunction):
         return phi, grad
 
     def with_goal(self, goal: complex) -> HarmonicNavigation:
-        return HarmonicNavigation(self.domain, goal, tol=self.tol, basis=self.green.basis)
+        return HarmonicNavigation(
+            self.domain, goal, tol=self.tol, basis=self.green.basis, samples=self.samples
+        )

@@ -604,25 +604,20 @@ class ControllerService(Service):
                 continue
             for (r, pose), ui, code in zip(members, u.tolist(), codes.tolist(), strict=True):
                 with r.lock:
-                    self._act(r, pose, complex(ui), int(code), now)
+                    self._act(r, pose, navigation.decide(ctrl, complex(ui), int(code)), now)
 
-    def _act(self, r: _Robot, pose: Pose, u: complex, code: int, now: float) -> None:
+    def _act(self, r: _Robot, pose: Pose, d: navigation.Decision, now: float) -> None:
+        """Publish what :func:`navigation.decide` made of the control law's output."""
         if r.goal is None or r.last_stamp != (pose.stamp_ns, pose.seq):
             return  # cancelled, or a newer pose came meanwhile: it gets the answer
         blocker = self._blocker(r)  # again: the geometry may have changed meanwhile
         if blocker is not None:
             self._stop_robot(r, blocker[0], blocker[1], now, pose)
-        elif code == navigation.ERROR or u != u:  # NaN guard
-            self._stop_robot(
-                r, "outside_workspace", "pose outside the mapped free space", now, pose
-            )
-        elif code == navigation.ARRIVED:
-            self._publish_cmd(r, 0j, pose)
-            self._status(r, "arrived", "arrived", "", now)
+        elif d.state == "stopped":
+            self._stop_robot(r, d.reason, d.message, now, pose)
         else:
-            self._publish_cmd(r, u, pose)
-            msg = "stalled at a saddle" if code == navigation.STALLED else ""
-            self._status(r, "navigating", "ok", msg, now)
+            self._publish_cmd(r, d.u, pose)
+            self._status(r, d.state, d.reason, d.message, now)
 
     def _blocker(self, r: _Robot) -> tuple[str, str] | None:
         """Why this robot must not move now, or None."""

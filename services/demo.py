@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from confnav import defaults
 from confnav.schemas import (
     CollisionEvent,
     DecodeError,
@@ -235,10 +236,11 @@ def run_demo(
     out: Path,
     timeout: float = 120.0,
     time_scale: float = 1.0,
-    navfn: str = "harmonic",
-    gain: float = 100.0,
-    v_max: float = 0.5,
-    tolerance: float = 0.02,
+    navfn: str = defaults.NAVFN,
+    gain: float = defaults.GAIN,
+    v_max: float = defaults.V_MAX,
+    tolerance: float = defaults.GOAL_TOL,
+    speed_law: str = defaults.SPEED_LAW,
     cache_dir: str | None = None,
     verbose: int = 0,
     live_port: int | None = None,
@@ -291,6 +293,7 @@ def run_demo(
                     ws_id=WS_ID,
                     goal=(DEFAULT_GOAL.real, DEFAULT_GOAL.imag),
                     navfn=navfn,  # type: ignore[arg-type]
+                    speed_law=speed_law,  # type: ignore[arg-type]
                     gain=gain,
                     v_max=v_max,
                     tolerance=tolerance,
@@ -340,15 +343,16 @@ def add_parser(sub: Any) -> None:
     p.add_argument("--out", default="out", help="output folder (default %(default)s)")
     p.add_argument("--timeout", type=float, default=120.0, help="seconds (default %(default)s)")
     p.add_argument("--time-scale", type=float, default=1.0, help=">1: faster than real time")
-    p.add_argument("--navfn", default="harmonic", choices=("harmonic", "kr"))
+    p.add_argument("--navfn", default=defaults.NAVFN, choices=("harmonic", "kr"))
+    p.add_argument("--speed-law", default=defaults.SPEED_LAW, choices=defaults.SPEED_LAWS)
     p.add_argument(
         "--gain",
         type=float,
-        default=100.0,
-        help="K of the control law (default %(default)s; the command saturates at v_max)",
+        default=defaults.GAIN,
+        help="1/s of the normalized law, K of theorem2 (default %(default)s)",
     )
-    p.add_argument("--v-max", type=float, default=0.5)
-    p.add_argument("--tolerance", type=float, default=0.02)
+    p.add_argument("--v-max", type=float, default=defaults.V_MAX, help="m/s")
+    p.add_argument("--tolerance", type=float, default=defaults.GOAL_TOL, help="m")
     p.add_argument("--cache-dir", default=None, help="transform solution cache")
     p.add_argument(
         "--live",
@@ -368,6 +372,7 @@ def main(args: argparse.Namespace) -> int:
         timeout=args.timeout,
         time_scale=args.time_scale,
         navfn=args.navfn,
+        speed_law=args.speed_law,
         gain=args.gain,
         v_max=args.v_max,
         tolerance=args.tolerance,

@@ -1,13 +1,20 @@
 """The one place services touch the navigation library: load a map from a
-``TransformSolution`` and build the Theorem 2 controller for a ``Goal``. No math here."""
+``TransformSolution`` (with the per-map precompute of the harmonic function), build the
+controller for a ``Goal`` and turn its output into what is published (:func:`decide`).
+The controller service, ``replay --check`` and ``confnav demo`` all go through here. No math.
+"""
 
 from __future__ import annotations
 
+import logging
+from dataclasses import dataclass
 from typing import Any, Protocol
 
 import numpy as np
 
 from confnav.schemas import Goal, TransformSolution
+
+log = logging.getLogger(__name__)
 
 # Status codes of confnav.control.Status (kept as ints so tests can fake the controller).
 MOVING, ARRIVED, STALLED, ERROR = 0, 1, 2, 3
@@ -40,6 +47,9 @@ def load_map(solution: TransformSolution) -> Any:
     ``for_navigation()`` (fewer boundary nodes, T and T' within 1e-7 of the full map, checked),
     which is deterministic, so ``replay --check`` recomputes exactly what the live controller
     commanded.
+
+    Also factors the map's harmonic least-squares system once (:func:`precompute`): call this
+    outside any lock; new goals on the map then cost one solve.
     """
     from confnav.cmap import ConformalMap
     from confnav.errors import MapMismatchError
@@ -51,7 +61,20 @@ def load_map(solution: TransformSolution) -> Any:
             f"{solution.workspace_hash[:12]} but its map was solved for "
             f"{cmap.workspace_hash[:12]}"
         )
-    return cmap.for_navigation(accuracy=NAV_ACCURACY)
+    nav = cmap.for_navigation(accuracy=NAV_ACCURACY)
+    precompute(nav)
+    return nav
+
+
+def precompute(cmap: Any) -> None:
+    """Per-map work of the harmonic navigation function (shared by every later goal)."""
+    from confnav.harmonic import GreenBasis
+    from confnav.navfn import CircleDomain
+
+    try:
+        GreenBasis.for_domain(CircleDomain.of(cmap)).precompute()
+    except Exception as exc:  # a goal needing more terms reports it when it is built
+        log.info("harmonic precompute: %s", exc)
 
 
 def make_controller(cmap: Any, goal: Goal) -> ControllerLike:
@@ -71,6 +94,7 @@ def make_controller(cmap: Any, goal: Goal) -> ControllerLike:
             complex(goal.goal[0], goal.goal[1]),
             navfn=goal.navfn,
             k="auto" if goal.k is None else goal.k,
+            speed_law=goal.speed_law,
             gain=goal.gain,
             v_max=goal.v_max,
             goal_tol=goal.tolerance,
@@ -108,9 +132,35 @@ def map_ws_id(goal: Goal) -> str:
 def goal_key(goal: Goal) -> tuple[object, ...]:
     """What determines the controller of a goal on a given map (robots sharing it share one)."""
     return (
-        goal.ws_id, goal.goal, goal.navfn, goal.k, goal.gain, goal.v_max, goal.tolerance,
-        goal.robot_radius, goal.drive, goal.lookahead, goal.omega_max,
-    )
+        goal.ws_id, goal.goal, goal.navfn, goal.k, goal.speed_law, goal.gain, goal.v_max,
+        goal.tolerance, goal.robot_radius, goal.drive, goal.lookahead, goal.omega_max,
+    )  # fmt: skip
+
+
+@dataclass(frozen=True)
+class Decision:
+    """What the controller publishes for one pose: the command and the status fields."""
+
+    u: complex
+    state: str  # RobotStatus.state: "navigating", "arrived" or "stopped"
+    reason: str  # RobotStatus.reason
+    message: str
+
+
+def decide(ctrl: ControllerLike, u: complex, code: int) -> Decision:
+    """The published command and status for the control law's ``(u, code)`` of one pose.
+
+    The live controller service and ``replay --check`` both call this (never a copy): zero
+    and ``stopped`` outside the free space (ERROR or NaN), zero at the goal, else ``u``; a
+    navigation-function fallback (``Controller.fallback``) is said in the message.
+    """
+    if code == ERROR or u != u:  # NaN guard
+        return Decision(0j, "stopped", "outside_workspace", "pose outside the mapped free space")
+    if code == ARRIVED:
+        return Decision(0j, "arrived", "arrived", "")
+    note = getattr(ctrl, "fallback", "")
+    msg = "stalled at a critical point of phi (saddle)" if code == STALLED else ""
+    return Decision(u, "navigating", "ok", "; ".join(m for m in (msg, note) if m))
 
 
 #: Largest batch per control-law call. The core evaluates T by dense Cauchy sums for few
