@@ -385,9 +385,16 @@ def test_map_through_the_occupancy_grid_import(make_bus: Any) -> None:
         key = "0/map/nav_msgs::msg::dds_::OccupancyGrid_/" + codec.type_hash(codec.OCCUPANCY_GRID)
         ros_bus.session.put(key, codec.encode_grid(grid))
         d = decode(WorkspaceDefinition, wait_for(defs.get, timeout=20)[0][1])
+        assert svc.health_detail() == ("ok", "")
+        # a grid the import rejects (free space open to the border): a status, nothing sent
+        open_grid = codec.Grid(np.zeros((h, w), dtype=np.int8), res, grid.origin)
+        ros_bus.session.put(key, codec.encode_grid(open_grid))
+        wait_for(lambda: svc.health_detail()[0] == "degraded", timeout=20)
+        assert "map import failed" in svc.health_detail()[1]
+        assert "border" in svc.health_detail()[1]
+        assert len(defs.get()) == 1
     finally:
         svc.stop()
-    assert svc.health_detail() == ("ok", "")
 
     def bbox(poly: list[tuple[float, float]]) -> np.ndarray:
         a = np.asarray(poly)
