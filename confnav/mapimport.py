@@ -18,14 +18,19 @@ Pipeline (every step conservative: the free space never grows, an obstacle never
    the report. Free-standing specks are otherwise kept: an obstacle never shrinks.
 3. **Keep** the 4-connected free component holding ``keep`` (default: the largest). A kept
    component touching the image border is an error: the map is open there.
-4. **Trace** its boundary with marching squares (scikit-image ``find_contours``, level 0.5: free
-   cells face-connected, occupied cells fully connected), in cell units.
-5. **Simplify** with Douglas-Peucker (tolerance ``simplify`` cells, topology preserved), then
-   **shrink** the free polygon (mitre joins) by the least ``delta`` on a 0.05-cell grid for
-   which it lies inside the exact union of the free cells (checked with shapely). The
-   Hausdorff distance between the result and the exact cell boundary is measured and reported
-   in cells; if it exceeds one cell the simplification tolerance is halved and the import
-   repeated.
+4. **Trace** its boundary with marching squares [2]_ (scikit-image ``find_contours``, level 0.5:
+   free cells face-connected, occupied cells fully connected) and put back the cell corners the
+   marching squares cut, so the traced rings are the exact cell-edge staircase (a free cell
+   touching the rest only diagonally is occupied first, so the boundary is simple).
+5. **Simplify one-sidedly** (:func:`_simplify_ring`, tolerance ``max_error`` = 1 cell), a
+   cone-intersection scheme [3]_ made one-sided: every chord cuts off free space only and passes
+   within the tolerance of the corners it skips, so no obstacle shrinks. The result is checked
+   to lie inside the exact union of the free cells (shapely) and its Hausdorff distance to their
+   boundary is measured (densified) and reported in cells; above the tolerance it is halved and
+   the step repeated (at worst down to the unsimplified staircase, error 0). A conservative
+   straight edge along a slanted digital line is up to the staircase's band width (1 to 1.41
+   cells) from some corners, so at one cell slanted edges keep more vertices; a larger
+   ``max_error`` trades accuracy for fewer vertices (and a faster solve).
 6. **Write** metres in the map frame: cell ``(row i, col j)`` of an image of height ``H``
    covers ``[j, j+1] x [H-1-i, H-i]`` cells from the map origin (lower-left corner of the
    lower-left pixel), rotated by the origin's yaw. With ``robot_radius`` the result is the free
@@ -37,8 +42,8 @@ References
    negate, occupied_thresh, free_thresh, mode), http://wiki.ros.org/map_server.
 .. [2] W. E. Lorensen, H. E. Cline, "Marching cubes", SIGGRAPH 1987 (marching squares in 2-D,
    as in ``skimage.measure.find_contours``).
-.. [3] D. H. Douglas, T. K. Peucker, "Algorithms for the reduction of the number of points
-   required to represent a digitized line", Cartographica 10(2) (1973) 112-122.
+.. [3] J. Sklansky, V. Gonzalez, "Fast polygonal approximation of digitized curves", Pattern
+   Recognition 12 (1980) 327-331 (cone intersection).
 """
 
 from __future__ import annotations
@@ -240,7 +245,7 @@ def workspace_from_grid(
     keep: complex | None = None,
     min_obstacle_cells: int = 0,
     merge_cells: int = 0,
-    simplify: float = 1.0,
+    max_error: float = 1.0,
 ) -> ImportResult:
     """Steps 2-6 of the module docstring on a free-cell mask (row 0 = top)."""
     from scipy import ndimage
@@ -318,10 +323,9 @@ def workspace_from_grid(
                 "(non-conservative: they are gone from the workspace)"
             )
     exact = _exact_union(kept)
-    poly = _trace(kept, exact, simplify)
-    hd = float(shapely.hausdorff_distance(poly.boundary, exact.boundary, densify=0.25))
-    if hd > 1.0 + 1e-9:
-        warnings.append(f"Hausdorff error {hd:.3f} cell exceeds one cell")
+    poly, hd = _trace(kept, exact, max_error)
+    if hd > max_error + 1e-9:
+        warnings.append(f"Hausdorff error {hd:.3f} cell exceeds {max_error:g} cell")
     outer = poly.exterior.coords
     obst = [hole.coords for hole in poly.interiors]
 
@@ -341,7 +345,7 @@ def workspace_from_grid(
         obstacles=ws.n_obstacles,
         merged_cells=merged,
         dropped_specks=dropped,
-        simplify_cells=simplify,
+        simplify_cells=max_error,
         hausdorff_cells=hd,
         vertices=int(sum(len(b) for b in ws.boundaries)),
         robot_radius=robot_radius,
@@ -422,8 +426,8 @@ def _simplify_ring(z: NDArray[np.complex128], tol: float) -> NDArray[np.complex1
     From each kept vertex ``a`` the chord goes to the farthest vertex such that every skipped
     vertex lies on the right of the chord (the obstacle side: the chord only cuts off free
     space, so no obstacle shrinks) within ``tol`` of it. The feasible chord directions form a
-    cone narrowed by each skipped vertex (a sleeve/cone test as in [3]_'s tolerance band, made
-    one-sided), so the whole pass is linear in the vertices.
+    cone narrowed by each skipped vertex (the cone intersection of [3]_, made one-sided), so the
+    whole pass is linear in the vertices.
     """
     n = z.size
     if tol <= 0 or n <= 4:
@@ -453,9 +457,10 @@ def _simplify_ring(z: NDArray[np.complex128], tol: float) -> NDArray[np.complex1
     return np.asarray(zc[keep[:-1]], dtype=np.complex128)
 
 
-def _trace(kept: BoolGrid, exact: Any, tol: float) -> Polygon:
-    """Steps 4-5: the exact staircase, simplified one-sidedly; checked inside the free cells
-    (falls back to smaller tolerances, finally to the unsimplified staircase)."""
+def _trace(kept: BoolGrid, exact: Any, tol: float) -> tuple[Polygon, float]:
+    """Steps 4-5: the exact staircase, simplified one-sidedly; checked valid, inside the free
+    cells and within ``tol`` (Hausdorff) of them, else retried with half the tolerance and
+    finally left unsimplified. Returns the polygon and its Hausdorff error in cells."""
     rings = _staircase_rings(kept)
     guard = exact.buffer(1e-9)
     t = tol
@@ -464,7 +469,9 @@ def _trace(kept: BoolGrid, exact: Any, tol: float) -> Polygon:
         xy = [np.column_stack([z.real, z.imag]) for z in simple]
         poly = Polygon(xy[0], xy[1:])
         if poly.is_valid and guard.contains(poly):
-            return poly
+            hd = float(shapely.hausdorff_distance(poly.boundary, exact.boundary, densify=0.25))
+            if hd <= tol + 1e-9 or t == 0:
+                return poly, hd
         if t == 0:
             raise MapError("could not fit a valid polygon inside the free cells")
         t = t / 2 if t > 0.125 else 0.0
@@ -477,6 +484,7 @@ def import_map(
     keep: complex | None = None,
     min_obstacle_cells: int = 0,
     merge_cells: int = 0,
+    max_error: float = 1.0,
 ) -> ImportResult:
     """Read a map_server YAML map and return the validated workspace with a report."""
     if not (math.isfinite(robot_radius) and robot_radius >= 0):
@@ -491,6 +499,7 @@ def import_map(
         keep=keep,
         min_obstacle_cells=min_obstacle_cells,
         merge_cells=merge_cells,
+        max_error=max_error,
     )
 
 
