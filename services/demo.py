@@ -111,7 +111,12 @@ class DemoMonitor:
 
 
 def demo_config(
-    sock: str, out: Path, starts: dict[str, complex], time_scale: float, cache_dir: str | None
+    sock: str,
+    out: Path,
+    starts: dict[str, complex],
+    time_scale: float,
+    cache_dir: str | None,
+    live_port: int | None = None,
 ) -> LaunchConfig:
     sim_args = ["--workspace", f"{WS_ID}=builtin:default", "--time-scale", str(time_scale)]
     for rid, z in starts.items():
@@ -119,9 +124,11 @@ def demo_config(
     tr_args = ["--workspace", f"{WS_ID}=builtin:default"]
     if cache_dir:
         tr_args += ["--cache-dir", cache_dir]
+    live = [] if live_port is None else [ServiceSpec("foxglove", ["--port", str(live_port)])]
     return LaunchConfig(
         listen=[sock],
         services=[
+            *live,  # first: it sees every message, like the recorder
             ServiceSpec("recorder", ["--out", str(out / "demo.mcap"), "--foxglove"]),
             ServiceSpec("transform", tr_args),
             ServiceSpec("controller", []),
@@ -234,17 +241,19 @@ def run_demo(
     tolerance: float = 0.02,
     cache_dir: str | None = None,
     verbose: int = 0,
+    live_port: int | None = None,
 ) -> int:
     from confnav.workspaces import DEFAULT_GOAL, DEFAULT_STARTS
 
     out.mkdir(parents=True, exist_ok=True)
+    old_recordings = set(out.glob("demo*.mcap"))  # never overwritten: demo.1.mcap... follow
     starts = {f"r{i + 1}": z for i, z in enumerate(DEFAULT_STARTS)}
     tracks = {rid: Track(rid, z, DEFAULT_GOAL) for rid, z in starts.items()}
     tracks[UNICYCLE[0]] = Track(UNICYCLE[0], UNICYCLE[1], DEFAULT_GOAL)
     sockdir = tempfile.mkdtemp(prefix="confnav-demo-")
     sock = f"unixsock-stream/{sockdir}/router.sock"
     launcher = Launcher(
-        demo_config(sock, out, starts, time_scale, cache_dir), verbose=max(verbose, 1)
+        demo_config(sock, out, starts, time_scale, cache_dir, live_port), verbose=max(verbose, 1)
     )
     mon = DemoMonitor(tracks)
     t_start = time.monotonic()
@@ -254,6 +263,8 @@ def run_demo(
                 f"confnav demo: starting router and 4 services (logs in {out / 'logs'})", flush=True
             )
             launcher.start()
+            if live_port is not None:
+                print(f"confnav demo: live view in Foxglove at ws://127.0.0.1:{live_port}")
             assert launcher.bus is not None
             bus, keys = launcher.bus, launcher.keys
             bus.subscribe(keys.any_robot("pose"), mon.on_pose)
@@ -314,7 +325,10 @@ def run_demo(
     print()
     print(table)
     print()
-    print(f"recording: {out / 'demo.mcap'}   plot: {out / 'demo.png'}")
+    recordings = sorted(
+        set(out.glob("demo*.mcap")) - old_recordings, key=lambda p: p.stat().st_mtime
+    )
+    print(f"recording: {', '.join(map(str, recordings)) or '-'}   plot: {out / 'demo.png'}")
     print("result:", "all robots arrived without collision" if ok else "FAILED")
     return 0 if ok else 1
 
@@ -336,6 +350,15 @@ def add_parser(sub: Any) -> None:
     p.add_argument("--v-max", type=float, default=0.5)
     p.add_argument("--tolerance", type=float, default=0.02)
     p.add_argument("--cache-dir", default=None, help="transform solution cache")
+    p.add_argument(
+        "--live",
+        nargs="?",
+        type=int,
+        const=8765,
+        default=None,
+        metavar="PORT",
+        help="serve the live scene to Foxglove on ws://127.0.0.1:PORT (default 8765)",
+    )
     p.set_defaults(func=main)
 
 
@@ -350,4 +373,5 @@ def main(args: argparse.Namespace) -> int:
         tolerance=args.tolerance,
         cache_dir=args.cache_dir,
         verbose=getattr(args, "verbose", 0),
+        live_port=args.live,
     )

@@ -42,8 +42,16 @@ def load_map(solution: TransformSolution) -> Any:
     commanded.
     """
     from confnav.cmap import ConformalMap
+    from confnav.errors import MapMismatchError
 
-    return ConformalMap.from_dict(solution.coefficients).for_navigation(accuracy=NAV_ACCURACY)
+    cmap = ConformalMap.from_dict(solution.coefficients)
+    if cmap.workspace_hash != solution.workspace_hash:  # refuse a map of another workspace
+        raise MapMismatchError(
+            f"solution {solution.revision[:12]} declares workspace "
+            f"{solution.workspace_hash[:12]} but its map was solved for "
+            f"{cmap.workspace_hash[:12]}"
+        )
+    return cmap.for_navigation(accuracy=NAV_ACCURACY)
 
 
 def make_controller(cmap: Any, goal: Goal) -> ControllerLike:

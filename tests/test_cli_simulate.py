@@ -11,8 +11,6 @@ import pytest
 from confnav.cli import main
 from confnav.geometry import Workspace
 
-pytest.importorskip("confnav.solver")
-
 ROOM = {
     "outer": [[-2, -2], [2, -2], [2, 2], [-2, 2]],
     "obstacles": [[[-0.5, -0.5], [0.5, -0.5], [0.5, 0.5], [-0.5, 0.5]]],
