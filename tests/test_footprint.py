@@ -170,8 +170,12 @@ def test_transform_service_solves_footprint_workspaces(mem_net: Any) -> None:
     solved: list[WorkspaceDefinition] = []
 
     def solve_fn(defn_json: str) -> dict[str, Any]:
-        solved.append(WorkspaceDefinition.model_validate_json(defn_json))
-        return fake_solve(defn_json)
+        d = WorkspaceDefinition.model_validate_json(defn_json)
+        solved.append(d)
+        ws = Workspace(d.outer, d.obstacles)
+        res = fake_solve(defn_json)
+        res["diagnostics"] = {**res["diagnostics"], "boundary_residual": 0.0, "tol_met": True}
+        return {**res, "workspace_hash": ws.content_hash}
 
     svc = TransformService(mem_net.bus("tr"), K, executor="thread", solve_fn=solve_fn)
     svc.start()
