@@ -199,3 +199,22 @@ def test_transform_service_solves_footprint_workspaces(mem_net: Any) -> None:
         assert svc.state_of("nope~r0.1") is None
     finally:
         svc.stop()
+
+
+def test_controller_names_an_unreachable_goal() -> None:
+    """The controller service's adapter turns 'goal not in the map' on a footprint map into an
+    UnreachableGoalError naming the robot, the goal and the shrunk workspace."""
+    from conftest import IdentityMap
+
+    from confnav.schemas import Goal
+    from confnav.services import navigation
+
+    cmap = IdentityMap([0.4 + 0j], [0.25])  # the map of "room~r0.1": the obstacle grown by 0.1
+    ok = Goal(robot_id="r1", ws_id="room", goal=(-0.5, 0.0), robot_radius=0.1)
+    assert navigation.map_ws_id(ok) == "room~r0.1"
+    navigation.make_controller(cmap, ok)
+    bad = ok.model_copy(update={"goal": (0.2, 0.0)})  # free for a point, not for the body
+    with pytest.raises(UnreachableGoalError, match=r"robot 'r1'.*'room~r0\.1'"):
+        navigation.make_controller(cmap, bad)
+    uni = ok.model_copy(update={"drive": "unicycle", "lookahead": 0.05})
+    assert navigation.map_ws_id(uni) == "room~r0.15"
