@@ -51,6 +51,13 @@ def register(sub: Any) -> None:
         metavar="N",
         help="merge obstacles closer than 2N cells (closing; default: the robot radius in cells)",
     )
+    p.add_argument(
+        "--max-error",
+        type=float,
+        default=1.0,
+        metavar="CELLS",
+        help="Hausdorff bound of the simplification in cells (default 1; larger: fewer vertices)",
+    )
     p.add_argument("--plot", type=Path, help="write a picture of the map and workspace (PNG)")
     p.set_defaults(func=run)
 
@@ -64,6 +71,7 @@ def run(args: argparse.Namespace) -> int:
         keep=args.keep,
         min_obstacle_cells=args.min_obstacle_cells,
         merge_cells=args.merge_cells,
+        max_error=args.max_error,
     )
     args.output.write_text(res.workspace.to_json(indent=1) + "\n")
     for line in res.report.lines():

@@ -18,14 +18,19 @@ Pipeline (every step conservative: the free space never grows, an obstacle never
    the report. Free-standing specks are otherwise kept: an obstacle never shrinks.
 3. **Keep** the 4-connected free component holding ``keep`` (default: the largest). A kept
    component touching the image border is an error: the map is open there.
-4. **Trace** its boundary with marching squares (scikit-image ``find_contours``, level 0.5: free
-   cells face-connected, occupied cells fully connected), in cell units.
-5. **Simplify** with Douglas-Peucker (tolerance ``simplify`` cells, topology preserved), then
-   **shrink** the free polygon (mitre joins) by the least ``delta`` on a 0.05-cell grid for
-   which it lies inside the exact union of the free cells (checked with shapely). The
-   Hausdorff distance between the result and the exact cell boundary is measured and reported
-   in cells; if it exceeds one cell the simplification tolerance is halved and the import
-   repeated.
+4. **Trace** its boundary with marching squares [2]_ (scikit-image ``find_contours``, level 0.5:
+   free cells face-connected, occupied cells fully connected) and put back the cell corners the
+   marching squares cut, so the traced rings are the exact cell-edge staircase (a free cell
+   touching the rest only diagonally is occupied first, so the boundary is simple).
+5. **Simplify one-sidedly** (:func:`_simplify_ring`, tolerance ``max_error`` = 1 cell), a
+   cone-intersection scheme [3]_ made one-sided: every chord cuts off free space only and passes
+   within the tolerance of the corners it skips, so no obstacle shrinks. The result is checked
+   to lie inside the exact union of the free cells (shapely) and its Hausdorff distance to their
+   boundary is measured (densified) and reported in cells; above the tolerance it is halved and
+   the step repeated (at worst down to the unsimplified staircase, error 0). A conservative
+   straight edge along a slanted digital line is up to the staircase's band width (1 to 1.41
+   cells) from some corners, so at one cell slanted edges keep more vertices; a larger
+   ``max_error`` trades accuracy for fewer vertices (and a faster solve).
 6. **Write** metres in the map frame: cell ``(row i, col j)`` of an image of height ``H``
    covers ``[j, j+1] x [H-1-i, H-i]`` cells from the map origin (lower-left corner of the
    lower-left pixel), rotated by the origin's yaw. With ``robot_radius`` the result is the free
@@ -37,8 +42,8 @@ References
    negate, occupied_thresh, free_thresh, mode), http://wiki.ros.org/map_server.
 .. [2] W. E. Lorensen, H. E. Cline, "Marching cubes", SIGGRAPH 1987 (marching squares in 2-D,
    as in ``skimage.measure.find_contours``).
-.. [3] D. H. Douglas, T. K. Peucker, "Algorithms for the reduction of the number of points
-   required to represent a digitized line", Cartographica 10(2) (1973) 112-122.
+.. [3] J. Sklansky, V. Gonzalez, "Fast polygonal approximation of digitized curves", Pattern
+   Recognition 12 (1980) 327-331 (cone intersection).
 """
 
 from __future__ import annotations
@@ -56,7 +61,7 @@ from shapely.geometry import Polygon
 
 from confnav.errors import ConfnavError
 from confnav.footprint import inflate
-from confnav.geometry import Workspace
+from confnav.geometry import Workspace, signed_area
 
 __all__ = [
     "ImportReport",
@@ -176,7 +181,6 @@ class ImportReport:
     merged_cells: int
     dropped_specks: int
     simplify_cells: float
-    shrink_cells: float
     hausdorff_cells: float
     vertices: int
     robot_radius: float
@@ -189,8 +193,8 @@ class ImportReport:
             f"grid {w}x{h} at {self.resolution:g} m: {self.free_cells} free cells in "
             f"{self.components} component(s), kept {self.kept_cells}",
             f"closing filled {self.merged_cells} cells; dropped {self.dropped_specks} speck(s)",
-            f"{self.obstacles} obstacle(s), {self.vertices} vertices; simplified at "
-            f"{self.simplify_cells:g} cell, shrunk by {self.shrink_cells:g} cell",
+            f"{self.obstacles} obstacle(s), {self.vertices} vertices (one-sided simplification "
+            f"at {self.simplify_cells:g} cell)",
             f"Hausdorff error {self.hausdorff_cells:.3f} cell "
             f"({self.hausdorff_cells * self.resolution:.4g} m)"
             + (f"; robot radius {self.robot_radius:g} m" if self.robot_radius else ""),
@@ -241,7 +245,7 @@ def workspace_from_grid(
     keep: complex | None = None,
     min_obstacle_cells: int = 0,
     merge_cells: int = 0,
-    simplify: float = 0.3,
+    max_error: float = 1.0,
 ) -> ImportResult:
     """Steps 2-6 of the module docstring on a free-cell mask (row 0 = top)."""
     from scipy import ndimage
@@ -283,6 +287,8 @@ def workspace_from_grid(
         sizes[0] = 0
         k = int(np.argmax(sizes))
     kept = labels == k
+    kept, pinched = _unpinch(kept, (i, j) if keep is not None else None)
+    merged += pinched
     border = np.concatenate([kept[0], kept[-1], kept[:, 0], kept[:, -1]])
     if border.any():
         rows, cols = np.nonzero(kept)
@@ -317,19 +323,9 @@ def workspace_from_grid(
                 "(non-conservative: they are gone from the workspace)"
             )
     exact = _exact_union(kept)
-    keep_cell = None
-    if keep is not None:
-        i, j = _world_to_cell(complex(keep), h, resolution, origin)
-        keep_cell = shapely.Point(j + 0.5, h - i - 0.5)
-    tol = simplify
-    for _ in range(4):
-        poly, delta = _trace(kept, exact, tol, keep_cell)
-        hd = float(shapely.hausdorff_distance(poly.boundary, exact.boundary, densify=0.05))
-        if hd <= 1.0 or tol < 0.05:
-            break
-        tol /= 2
-    if hd > 1.0:
-        warnings.append(f"Hausdorff error {hd:.3f} cell exceeds one cell")
+    poly, hd = _trace(kept, exact, max_error)
+    if hd > max_error + 1e-9:
+        warnings.append(f"Hausdorff error {hd:.3f} cell exceeds {max_error:g} cell")
     outer = poly.exterior.coords
     obst = [hole.coords for hole in poly.interiors]
 
@@ -349,8 +345,7 @@ def workspace_from_grid(
         obstacles=ws.n_obstacles,
         merged_cells=merged,
         dropped_specks=dropped,
-        simplify_cells=tol,
-        shrink_cells=delta,
+        simplify_cells=max_error,
         hausdorff_cells=hd,
         vertices=int(sum(len(b) for b in ws.boundaries)),
         robot_radius=robot_radius,
@@ -360,40 +355,126 @@ def workspace_from_grid(
     return ImportResult(ws, report, kept)
 
 
-def _trace(kept: BoolGrid, exact: Any, tol: float, keep_cell: Any) -> tuple[Polygon, float]:
-    """Steps 4-5: marching squares, Douglas-Peucker, least shrink inside the exact cells."""
+def _unpinch(kept: BoolGrid, cell: tuple[int, int] | None) -> tuple[BoolGrid, int]:
+    """Occupy one free cell of every diagonal-only contact (a 2x2 checkerboard), so that the
+    boundary is a simple polygon, and keep the component of ``cell`` (default: largest).
+    Only removes free cells (conservative); returns the mask and the number removed."""
+    from scipy import ndimage
+
+    kept = kept.copy()
+    n0 = int(kept.sum())
+    while True:
+        a, b, c, d = kept[:-1, :-1], kept[:-1, 1:], kept[1:, :-1], kept[1:, 1:]
+        main = a & d & ~b & ~c
+        anti = b & c & ~a & ~d
+        if not (main.any() or anti.any()):
+            break
+        kept[:-1, :-1] &= ~main
+        kept[:-1, 1:] &= ~anti
+    labels, n = ndimage.label(kept)
+    if n > 1:
+        if cell is not None and labels[cell]:
+            k = int(labels[cell])
+        else:
+            sizes = np.bincount(labels.ravel())
+            sizes[0] = 0
+            k = int(np.argmax(sizes))
+        kept = labels == k
+    return kept, n0 - int(kept.sum())
+
+
+def _staircase_rings(kept: BoolGrid) -> list[NDArray[np.complex128]]:
+    """Exact cell-edge boundary of ``kept`` (cell units, free on the left: outer ring
+    counter-clockwise first, holes clockwise), traced by marching squares.
+
+    ``find_contours`` at level 0.5 puts vertices at the midpoints of the edges between free and
+    occupied cells and cuts each cell corner by a diagonal step; the corner (the endpoint pair's
+    mixed point whose both coordinates are half-integers) is put back and the collinear
+    midpoints are dropped, so every vertex is a cell corner.
+    """
     from skimage import measure
 
     h = kept.shape[0]
     padded = np.pad(kept, 1).astype(np.float64)
     contours = measure.find_contours(padded, 0.5, fully_connected="low")  # type: ignore[no-untyped-call]
-    rings = [np.column_stack([c[:, 1] - 0.5, h + 0.5 - c[:, 0]]) for c in contours if len(c) >= 4]
-    polys = sorted((Polygon(r) for r in rings), key=lambda p: -abs(p.area))
-    shell = polys[0]
-    free = Polygon(shell.exterior.coords, [p.exterior.coords for p in polys[1:]])
-    free = shapely.make_valid(free) if not free.is_valid else free
-    simple = shapely.simplify(free, tol, preserve_topology=True)
+    rings: list[NDArray[np.complex128]] = []
+    for c in contours:
+        r, q = c[:, 0], c[:, 1]
+        r0, q0, r1, q1 = r[:-1], q[:-1], r[1:], q[1:]
+        diag = (r0 != r1) & (q0 != q1)
+        half = np.isclose(np.mod(r0, 1.0), 0.5)
+        corner = np.where(half, r0 + 1j * q1, r1 + 1j * q0)
+        seq = np.column_stack([r0 + 1j * q0, corner]).ravel()
+        seq = seq[np.column_stack([np.ones_like(diag), diag]).ravel()]
+        z = (seq.imag - 0.5) + 1j * (h + 0.5 - seq.real)  # cell units, y up
+        z = np.round(z * 2) / 2
+        d_in, d_out = z - np.roll(z, 1), np.roll(z, -1) - z
+        z = z[(np.conj(d_in) * d_out).imag != 0]  # keep the corners only
+        if z.size >= 4:
+            rings.append(z)
+    rings.sort(key=lambda z: -abs(signed_area(z)))
+    out = []
+    for k, z in enumerate(rings):
+        ccw = signed_area(z) > 0
+        out.append(z if ccw == (k == 0) else z[::-1])
+    return out
+
+
+def _simplify_ring(z: NDArray[np.complex128], tol: float) -> NDArray[np.complex128]:
+    """One-sided simplification of a closed ring with the free space on its left.
+
+    From each kept vertex ``a`` the chord goes to the farthest vertex such that every skipped
+    vertex lies on the right of the chord (the obstacle side: the chord only cuts off free
+    space, so no obstacle shrinks) within ``tol`` of it. The feasible chord directions form a
+    cone narrowed by each skipped vertex (the cone intersection of [3]_, made one-sided), so the
+    whole pass is linear in the vertices.
+    """
+    n = z.size
+    if tol <= 0 or n <= 4:
+        return z
+    s = int(np.lexsort((z.imag, z.real))[0])  # an extreme vertex: a corner every result keeps
+    zc = np.append(np.roll(z, -s), z[s])
+    keep = [0]
+    i = 0
+    while i < n:
+        a = zc[i]
+        ref = (zc[i + 1] - a) / abs(zc[i + 1] - a)
+        lo, hi, far = -math.inf, math.inf, 0.0
+        best = i + 1
+        for j in range(i + 1, n + 1):
+            p = (zc[j] - a) / ref
+            ang, dist = math.atan2(p.imag, p.real), abs(p)
+            if lo <= ang <= hi and dist >= far:
+                best = j
+            # v_j on the right of the chord (direction >= ang) and within tol of it
+            lo = max(lo, ang)
+            hi = min(hi, ang + (math.asin(tol / dist) if dist > tol else 0.5 * math.pi))
+            far = max(far, dist)
+            if lo > hi:
+                break
+        keep.append(best)
+        i = best
+    return np.asarray(zc[keep[:-1]], dtype=np.complex128)
+
+
+def _trace(kept: BoolGrid, exact: Any, tol: float) -> tuple[Polygon, float]:
+    """Steps 4-5: the exact staircase, simplified one-sidedly; checked valid, inside the free
+    cells and within ``tol`` (Hausdorff) of them, else retried with half the tolerance and
+    finally left unsimplified. Returns the polygon and its Hausdorff error in cells."""
+    rings = _staircase_rings(kept)
     guard = exact.buffer(1e-9)
-    for step in range(41):
-        delta = 0.05 * step
-        cand = simple.buffer(-delta, join_style="mitre", mitre_limit=5.0) if delta else simple
-        part = _pick(cand, keep_cell)
-        if part is not None and guard.contains(part):
-            return shapely.simplify(part, 1e-9, preserve_topology=True), delta
-    raise MapError("could not fit a conservative polygon inside the free cells")
-
-
-def _pick(geom: Any, keep_cell: Any) -> Polygon | None:
-    parts = [geom] if isinstance(geom, Polygon) else list(getattr(geom, "geoms", []))
-    parts = [p for p in parts if isinstance(p, Polygon) and p.area > 0]
-    if not parts:
-        return None
-    if keep_cell is not None:
-        for p in parts:
-            if p.contains(keep_cell):
-                return p
-        return None
-    return max(parts, key=lambda p: p.area)
+    t = tol
+    while True:
+        simple = [_simplify_ring(z, t) for z in rings]
+        xy = [np.column_stack([z.real, z.imag]) for z in simple]
+        poly = Polygon(xy[0], xy[1:])
+        if poly.is_valid and guard.contains(poly):
+            hd = float(shapely.hausdorff_distance(poly.boundary, exact.boundary, densify=0.25))
+            if hd <= tol + 1e-9 or t == 0:
+                return poly, hd
+        if t == 0:
+            raise MapError("could not fit a valid polygon inside the free cells")
+        t = t / 2 if t > 0.125 else 0.0
 
 
 def import_map(
@@ -403,6 +484,7 @@ def import_map(
     keep: complex | None = None,
     min_obstacle_cells: int = 0,
     merge_cells: int = 0,
+    max_error: float = 1.0,
 ) -> ImportResult:
     """Read a map_server YAML map and return the validated workspace with a report."""
     if not (math.isfinite(robot_radius) and robot_radius >= 0):
@@ -417,6 +499,7 @@ def import_map(
         keep=keep,
         min_obstacle_cells=min_obstacle_cells,
         merge_cells=merge_cells,
+        max_error=max_error,
     )
 
 

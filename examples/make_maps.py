@@ -68,7 +68,7 @@ def office(out: Path) -> None:
     c.rect(10.3, 0.8, 11.2, 3.8, OCC)  # cabinets along the right wall, 0.8 m off it
     c.disk(3.0, 6.8, 0.5, OCC)  # meeting table in office 1
     c.rect(9.8, 7.2, 11.6, 7.7, OCC)  # desk in office 2, 0.3 m from the wall
-    for x, y in ((0.05, 1.0), (6.0, 0.08), (11.95, 6.0)):  # sensor specks touching walls
+    for x, y in ((0.0, 1.0), (6.0, 0.0), (11.95, 6.0)):  # sensor specks touching walls
         c.rect(x, y, x + 0.05, y + 0.05, OCC)
     c.rect(6.5, 4.0, 6.55, 4.05, OCC)  # a free-standing speck (kept: never dropped by default)
     c.save(out, "office")

@@ -170,8 +170,12 @@ def test_transform_service_solves_footprint_workspaces(mem_net: Any) -> None:
     solved: list[WorkspaceDefinition] = []
 
     def solve_fn(defn_json: str) -> dict[str, Any]:
-        solved.append(WorkspaceDefinition.model_validate_json(defn_json))
-        return fake_solve(defn_json)
+        d = WorkspaceDefinition.model_validate_json(defn_json)
+        solved.append(d)
+        ws = Workspace(d.outer, d.obstacles)
+        res = fake_solve(defn_json)
+        res["diagnostics"] = {**res["diagnostics"], "boundary_residual": 0.0, "tol_met": True}
+        return {**res, "workspace_hash": ws.content_hash}
 
     svc = TransformService(mem_net.bus("tr"), K, executor="thread", solve_fn=solve_fn)
     svc.start()
@@ -195,3 +199,22 @@ def test_transform_service_solves_footprint_workspaces(mem_net: Any) -> None:
         assert svc.state_of("nope~r0.1") is None
     finally:
         svc.stop()
+
+
+def test_controller_names_an_unreachable_goal() -> None:
+    """The controller service's adapter turns 'goal not in the map' on a footprint map into an
+    UnreachableGoalError naming the robot, the goal and the shrunk workspace."""
+    from conftest import IdentityMap
+
+    from confnav.schemas import Goal
+    from confnav.services import navigation
+
+    cmap = IdentityMap([0.4 + 0j], [0.25])  # the map of "room~r0.1": the obstacle grown by 0.1
+    ok = Goal(robot_id="r1", ws_id="room", goal=(-0.5, 0.0), robot_radius=0.1)
+    assert navigation.map_ws_id(ok) == "room~r0.1"
+    navigation.make_controller(cmap, ok)
+    bad = ok.model_copy(update={"goal": (0.2, 0.0)})  # free for a point, not for the body
+    with pytest.raises(UnreachableGoalError, match=r"robot 'r1'.*'room~r0\.1'"):
+        navigation.make_controller(cmap, bad)
+    uni = ok.model_copy(update={"drive": "unicycle", "lookahead": 0.05})
+    assert navigation.map_ws_id(uni) == "room~r0.15"

@@ -402,6 +402,7 @@ def test_map_through_the_occupancy_grid_import(make_bus: Any) -> None:
 
     # free cells: columns 1..38, rows 1..28 -> [ox + 0.05, ox + 1.95] x [oy + 0.05, oy + 1.45];
     # the import is conservative (free space never grows) and within one cell of the cells
+    res = float(np.float32(res))  # OccupancyGrid.info.resolution is a float32 on the wire
     want_outer = np.array([ox + res, oy + res, ox + 39 * res, oy + 29 * res])
     got = bbox(d.outer)
     assert np.all(np.abs(got - want_outer) <= res + 1e-9)

@@ -85,7 +85,7 @@ def test_random_starts_converge_without_collision() -> None:
             return w, dw * scale
 
     goal = 0.05 + 0.55j
-    ctl = Controller(Scaled(), goal, v_max=0.5, goal_tol=0.01, v_min=0.2)
+    ctl = Controller(Scaled(), goal, v_max=0.5, goal_tol=0.01)
     uc = UnicycleController(ctl, d, v_max=0.5, omega_max=2.0)
     rng = np.random.default_rng(7)
     z = rng.uniform(-1, 1, 400) + 1j * rng.uniform(-1, 1, 400)
@@ -136,11 +136,14 @@ def test_controller_service_sends_body_twists(mem_net: Any) -> None:
         ws_id="cd~r0.1",
         revision="rev1",
         definition_hash="h",
+        workspace_hash="ws-cd~r0.1",
         stamp_ns=1,
         anchor=(0.0, 0.0),
         centers=[(0.4, 0.0)],
         radii=[0.15],
-        diagnostics=SolveDiagnostics(sweeps=1, error_estimate=0, wall_time=0, tol=1e-10),
+        diagnostics=SolveDiagnostics(
+            sweeps=1, error_estimate=0, wall_time=0, tol=1e-10, boundary_residual=0, tol_met=True
+        ),
         coefficients={"centers": [[0.4, 0.0]], "radii": [0.15]},
     )
 
