@@ -257,7 +257,7 @@ class AtlasNavigator:
         """Simulate robots from ``starts`` (complex array) to the goal.
 
         Each active cell's robots are integrated by :func:`confnav.sim.simulate` for
-        ``window`` time units (default: the time to cross ``hysteresis``), collisions checked
+        ``window`` time units (default: the time to cross 4 ``hysteresis``), collisions checked
         against the *whole* workspace; between windows the switching rule is applied (a
         supervisor at a fixed rate).  A robot that reaches a local goal switches to the next
         cell (it lies ``margin`` deep there).
@@ -270,9 +270,9 @@ class AtlasNavigator:
         n = z.size
         if np.any(~(ws.clearance(z) > 0)):
             raise NavigationError("a start is not in the free space")
-        window = float(window) if window is not None else self.hysteresis / self.speed
+        window = float(window) if window is not None else 4 * self.hysteresis / self.speed
         t_max = float(t_max) if t_max is not None else 20 * ws.diameter / self.speed
-        max_step = float(max_step) if max_step is not None else self.hysteresis / 2
+        max_step = float(max_step) if max_step is not None else 2 * self.hysteresis
         active = self.initial_cells(z)
         status = np.full(n, -1, dtype=np.int8)
         status[active < 0] = ERROR

@@ -114,6 +114,7 @@ class Decomposition:
     overlap: float
     margin: float
     max_ratio: float
+    max_ratio_holes: float
     max_obstacles: int
     split: frozenset[Tile] = field(default_factory=frozenset)
 
@@ -174,6 +175,7 @@ def decompose(
     overlap: float = 0.25,
     margin: float | None = None,
     max_ratio: float = 6.0,
+    max_ratio_holes: float = 2.5,
     max_obstacles: int = 12,
     min_tile: float | None = None,
     split: Iterable[Tile] = (),
@@ -188,7 +190,11 @@ def decompose(
         ``2 margin``); two neighbouring cells overlap in a band at least ``4 margin`` wide.
     margin : the depth a local goal needs inside an overlap (robot radius plus goal
         neighbourhood; default ``r / 10``).  ``overlap`` must exceed it.
-    max_ratio, max_obstacles : a tile whose pieces exceed either is split into four.
+    max_ratio, max_ratio_holes, max_obstacles : a tile whose pieces exceed either is split
+        into four.  Cells with obstacles get the tighter elongation bound: an obstacle at the
+        far end of a cell of elongation q, seen from the anchor in the middle, maps to a
+        circle within ~exp(-pi q / 2) of the unit circle (q = 3.75: 3e-3, too close for the
+        harmonic navigation function's series; measured in tests/test_atlas.py's corridor).
     min_tile : smallest tile side (default ``tile / 16``).
     split : core tiles to split regardless (used when a cell's solve failed).
     """
@@ -224,7 +230,8 @@ def decompose(
         pieces = _pieces(free, walls, core, max(overlap * side, 2 * margin), min_area)
         ratios = [elongation(p) for p in pieces]
         bad = any(
-            q > max_ratio or len(p.interiors) > max_obstacles
+            q > (max_ratio if not p.interiors else max_ratio_holes)
+            or len(p.interiors) > max_obstacles
             for p, q in zip(pieces, ratios, strict=True)
         )
         if (bad or core in forced) and side / 2 >= min_tile - 1e-12:
@@ -242,5 +249,5 @@ def decompose(
         cut = poly.boundary.difference(walls)
         cells.append(Cell(len(cells), poly, _cell_workspace(poly, scale), cut, core, q))
     return Decomposition(
-        ws, tuple(cells), tile, overlap, margin, max_ratio, max_obstacles, forced
+        ws, tuple(cells), tile, overlap, margin, max_ratio, max_ratio_holes, max_obstacles, forced
     )
