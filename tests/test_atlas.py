@@ -4,6 +4,8 @@ without chattering, and a corridor a single map cannot do, navigated end to end.
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import pytest
 import shapely
@@ -89,7 +91,7 @@ def test_local_goals_lie_deep_in_the_next_cell_and_the_order_is_acyclic(atlas: A
             assert i in pl.goal_cells and pl.local_goal[i] == GOAL
             continue
         assert pl.rank[j] < pl.rank[i]  # strictly closer: no cycle
-        g = pl.local_goal[i:i + 1]
+        g = pl.local_goal[i : i + 1]
         # deep inside the overlap: beyond the hysteresis in the next cell, a margin from walls
         assert cells[j].depth(g)[0] >= margin > nav.hysteresis
         assert cells[i].workspace.clearance(g)[0] >= margin * (1 - 1e-9)
@@ -179,7 +181,7 @@ def test_switching_has_hysteresis_and_never_goes_back(atlas: Atlas) -> None:
         z = xs[k - 3 : k + 4][step % 7 : step % 7 + 1]
         cur = nav.switch(z, cur)
         seq.append(int(cur[0]))
-    changes = sum(a != b for a, b in zip(seq, seq[1:], strict=False))
+    changes = sum(a != b for a, b in itertools.pairwise(seq))
     assert changes == 1
     assert np.all(np.diff(pl.rank[seq]) <= 0)
 

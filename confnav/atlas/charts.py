@@ -83,8 +83,10 @@ def _solve_one(ws_json: str, tol: float) -> tuple[str, float, str]:
             warnings.simplefilter("ignore")
             m = solve(Workspace.from_json(ws_json), tol)
         if not m.diagnostics.tol_met:
-            return "", time.perf_counter() - t0, (
-                f"tolerance not met (estimate {m.diagnostics.error_estimate:.1e})"
+            return (
+                "",
+                time.perf_counter() - t0,
+                (f"tolerance not met (estimate {m.diagnostics.error_estimate:.1e})"),
             )
         return m.to_json(), time.perf_counter() - t0, ""
     except ConfnavError as exc:
@@ -158,9 +160,7 @@ def solve_atlas(
                 )
             if not failed:
                 charts = tuple(done[k] for k in keys)
-                return Atlas(
-                    dec, charts, tol, tuple(records), time.perf_counter() - t0, workers
-                )
+                return Atlas(dec, charts, tol, tuple(records), time.perf_counter() - t0, workers)
             split |= set(failed)
         bad = [r for r in records if r.error][-1]
         raise SolverError(

@@ -91,9 +91,8 @@ def plan(atlas: Atlas, goal: complex, links: list[Overlap] | None = None) -> Cel
     links = overlaps(atlas) if links is None else links
     goal = complex(goal)
     centre = np.array([inscribed(c.polygon)[0] for c in cells])
-    inside = [
-        i for i, c in enumerate(cells) if bool(c.polygon.contains(shapely.Point(goal.real, goal.imag)))
-    ]  # fmt: skip
+    at = shapely.Point(goal.real, goal.imag)
+    inside = [i for i, c in enumerate(cells) if bool(c.polygon.contains(at))]
     if not inside:
         raise NavigationError(f"goal {goal:.6g} lies in no cell of the atlas")
     # node n is the goal; edges cell <-> cell through the overlap point

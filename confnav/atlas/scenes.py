@@ -18,7 +18,9 @@ __all__ = ["corridor", "office", "spiral", "warehouse"]
 
 def _workspace(poly: Polygon, obstacles: list[Polygon] | None = None) -> Workspace:
     ring = [(float(x), float(y)) for x, y in list(poly.exterior.coords)[:-1]]
-    holes = [[(float(x), float(y)) for x, y in list(o.exterior.coords)[:-1]] for o in obstacles or []]
+    holes = [
+        [(float(x), float(y)) for x, y in list(o.exterior.coords)[:-1]] for o in obstacles or []
+    ]
     return Workspace(ring, holes)
 
 
