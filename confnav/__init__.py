@@ -5,6 +5,7 @@ a circle domain (unit disk minus disjoint disks); navigation functions on the ci
 pulled back through ``T`` to drive robots.
 """
 
+from confnav.atlas import Atlas, AtlasNavigator, solve_atlas, solve_auto
 from confnav.cmap import ConformalMap, SolveDiagnostics
 from confnav.control import Controller
 from confnav.critical import choose_k, find_critical_points
@@ -32,6 +33,8 @@ __version__ = "0.1.0"
 
 __all__ = [
     "AccuracyWarning",
+    "Atlas",
+    "AtlasNavigator",
     "ConfnavError",
     "ConformalMap",
     "Controller",
@@ -58,4 +61,6 @@ __all__ = [
     "simulate",
     "simulate_unicycle",
     "solve",
+    "solve_atlas",
+    "solve_auto",
 ]

@@ -19,6 +19,7 @@ SUBCOMMAND_MODULES: tuple[str, ...] = (
     "confnav.cli_solve",
     "confnav.cli_simulate",
     "confnav.cli_import_map",
+    "confnav.cli_atlas",
     "confnav.services.cli",
     "confnav.services.cli_replay",
 )
