@@ -23,6 +23,8 @@ from typing import Any, Protocol
 
 import zenoh
 
+from confnav.services.shard import chunk_matches
+
 log = logging.getLogger(__name__)
 
 Handler = Callable[[str, bytes], None]
@@ -432,7 +434,8 @@ class ZenohBus(_Subscriptions):
 # in memory
 # ------------------------------------------------------------------------------------------
 def key_matches(expr: str, key: str) -> bool:
-    """Whether concrete ``key`` matches ``expr`` (``*`` one chunk, ``**`` any number)."""
+    """Whether concrete ``key`` matches ``expr`` (``*`` one chunk, ``**`` any number, ``$*``
+    any run of characters within a chunk)."""
     e = expr.split("/")
     k = key.split("/")
 
@@ -443,7 +446,7 @@ def key_matches(expr: str, key: str) -> bool:
             return any(rec(i + 1, jj) for jj in range(j, len(k) + 1))
         if j == len(k):
             return False
-        if e[i] == "*" or e[i] == k[j]:
+        if e[i] == "*" or e[i] == k[j] or ("$*" in e[i] and chunk_matches(e[i], k[j])):
             return rec(i + 1, j + 1)
         return False
 

@@ -29,6 +29,7 @@ from __future__ import annotations
 import argparse
 import logging
 import queue
+import sys
 import threading
 import time
 from collections.abc import Callable
@@ -54,6 +55,7 @@ from confnav.services import navigation
 from confnav.services.bus import Bus
 from confnav.services.keys import KeyError_, Keys
 from confnav.services.runtime import Service, add_zenoh_args, run_until_signal
+from confnav.services.shard import RobotSelector, robot_key_exprs, serialized
 from confnav.services.transform import definition_hash, workspace_of
 
 log = logging.getLogger(__name__)
@@ -112,7 +114,7 @@ class ControllerService(Service):
         self,
         bus: Bus,
         keys: Keys | None = None,
-        robots: set[str] | None = None,
+        robots: set[str] | RobotSelector | None = None,
         stale_after: float = 0.5,
         status_period: float = 0.25,
         fetch_period: float = 0.5,
@@ -164,19 +166,25 @@ class ControllerService(Service):
         self._handles.append(self.bus.subscribe(k.any_ws("transform"), self._on_transform))
         self._handles.append(self.bus.subscribe(k.any_ws("definition"), self._on_definition))
         self._handles.append(self.bus.subscribe(k.any_ws("delete"), self._on_ws_delete))
-        self._handles.append(
-            self.bus.subscribe_latest(k.any_robot("goal"), self._on_goals, self._goals_dropped)
-        )
-        self._handles.append(self.bus.subscribe(k.any_robot("cancel"), self._on_cancel))
-        self._handles.append(  # bounded: the newest waiting pose of each robot wins
-            self.bus.subscribe_latest(
-                k.any_robot("pose"),
-                self._on_poses,
-                self._poses_dropped,
-                max_keys=MAX_BACKLOG,
-                linger=self.linger,
+        # this process's robots only (scale-out: services/shard.py, docs/SERVICES.md)
+        exprs = robot_key_exprs(k, "goal", self.only)
+        on_goals = serialized(self._on_goals) if len(exprs) > 1 else self._on_goals
+        for expr in exprs:
+            self._handles.append(self.bus.subscribe_latest(expr, on_goals, self._goals_dropped))
+        for expr in robot_key_exprs(k, "cancel", self.only):
+            self._handles.append(self.bus.subscribe(expr, self._on_cancel))
+        exprs = robot_key_exprs(k, "pose", self.only)
+        on_poses = serialized(self._on_poses) if len(exprs) > 1 else self._on_poses
+        for expr in exprs:
+            self._handles.append(  # bounded: the newest waiting pose of each robot wins
+                self.bus.subscribe_latest(
+                    expr,
+                    on_poses,
+                    self._poses_dropped,
+                    max_keys=MAX_BACKLOG,
+                    linger=self.linger,
+                )
             )
-        )
         self.spawn(self._fetch_loop, "fetch")
         self.spawn(self._watchdog_loop, "watchdog")
 
@@ -453,6 +461,8 @@ class ControllerService(Service):
             log.warning("rejected goal on %s: %s", key, exc)
             self._reject_goal(rid, str(exc))
             return
+        # a robot with a footprint drives on the map of the shrunk workspace ({ws}~r{radius})
+        goal = goal.model_copy(update={"ws_id": navigation.map_ws_id(goal)})
         r = self._robot(rid)
         if r is None:
             return
@@ -591,8 +601,9 @@ class ControllerService(Service):
             groups.setdefault(id(ctrl), (ctrl, []))[1].append((r, pose))
         for ctrl, members in groups.values():
             z = np.array([complex(p.x, p.y) for _, p in members])
+            th = np.array([p.theta for _, p in members])
             try:
-                u, codes = navigation.commands(ctrl, z)
+                u, codes = navigation.commands(ctrl, z, th)
             except Exception as exc:
                 self.count("navigation_errors")
                 for r, pose in members:
@@ -603,25 +614,20 @@ class ControllerService(Service):
                 continue
             for (r, pose), ui, code in zip(members, u.tolist(), codes.tolist(), strict=True):
                 with r.lock:
-                    self._act(r, pose, complex(ui), int(code), now)
+                    self._act(r, pose, navigation.decide(ctrl, complex(ui), int(code)), now)
 
-    def _act(self, r: _Robot, pose: Pose, u: complex, code: int, now: float) -> None:
+    def _act(self, r: _Robot, pose: Pose, d: navigation.Decision, now: float) -> None:
+        """Publish what :func:`navigation.decide` made of the control law's output."""
         if r.goal is None or r.last_stamp != (pose.stamp_ns, pose.seq):
             return  # cancelled, or a newer pose came meanwhile: it gets the answer
         blocker = self._blocker(r)  # again: the geometry may have changed meanwhile
         if blocker is not None:
             self._stop_robot(r, blocker[0], blocker[1], now, pose)
-        elif code == navigation.ERROR or u != u:  # NaN guard
-            self._stop_robot(
-                r, "outside_workspace", "pose outside the mapped free space", now, pose
-            )
-        elif code == navigation.ARRIVED:
-            self._publish_cmd(r, 0j, pose)
-            self._status(r, "arrived", "arrived", "", now)
+        elif d.state == "stopped":
+            self._stop_robot(r, d.reason, d.message, now, pose)
         else:
-            self._publish_cmd(r, u, pose)
-            msg = "stalled at a saddle" if code == navigation.STALLED else ""
-            self._status(r, "navigating", "ok", msg, now)
+            self._publish_cmd(r, d.u, pose)
+            self._status(r, d.state, d.reason, d.message, now)
 
     def _blocker(self, r: _Robot) -> tuple[str, str] | None:
         """Why this robot must not move now, or None."""
@@ -649,10 +655,13 @@ class ControllerService(Service):
     def _publish_cmd(self, r: _Robot, u: complex, pose: Pose | None) -> None:
         # model_construct: our own finite values, no re-validation on the hot path (the
         # payloads are checked against the schema in the tests and by every reader)
+        body = getattr(r.ctrl, "frame", "world") == "body"  # unicycle: u = v + i omega
         cmd = VelocityCommand.model_construct(
             robot_id=r.robot_id,
             stamp_ns=time.time_ns(),
-            linear=(u.real, u.imag),
+            linear=(u.real, 0.0) if body else (u.real, u.imag),
+            angular=u.imag if body else 0.0,
+            frame="body" if body else "world",
             pose_seq=pose.seq if pose is not None else -1,
             pose_stamp_ns=pose.stamp_ns if pose is not None else 0,
             map_revision=r.ctrl_revision,
@@ -729,7 +738,13 @@ class ControllerService(Service):
 def add_parser(sub: Any) -> None:
     p: argparse.ArgumentParser = sub.add_parser("controller", help="run the controller service")
     add_zenoh_args(p)
-    p.add_argument("--robots", default=None, help="comma-separated robot ids (default: all)")
+    p.add_argument(
+        "--robots",
+        default=None,
+        help="robots this process drives: comma-separated ids and Zenoh chunk patterns such "
+        "as 'a$*' (ids starting with a) or '$*7'; others' poses are not even delivered "
+        "(default: all; see docs/SERVICES.md, scale-out)",
+    )
     p.add_argument("--stale-after", type=float, default=0.5, help="pose timeout, s")
     p.add_argument(
         "--linger-ms",
@@ -753,7 +768,11 @@ def add_parser(sub: Any) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    robots = set(args.robots.split(",")) if args.robots else None
+    try:
+        robots = RobotSelector.parse(args.robots) if args.robots else None
+    except KeyError_ as exc:
+        print(f"confnav serve controller: --robots: {exc}", file=sys.stderr)
+        return 2
     return run_until_signal(
         lambda bus, keys: ControllerService(
             bus,

@@ -40,7 +40,7 @@ from confnav.services.runtime import stop_on_signals
 
 log = logging.getLogger(__name__)
 
-SERVICES = ("transform", "controller", "simulator", "recorder")
+SERVICES = ("transform", "controller", "simulator", "recorder", "ros2", "foxglove")
 
 #: Environment of the service processes unless set already: one BLAS thread each. The
 #: services get their parallelism from processes; a multi-threaded OpenBLAS waking its
@@ -132,6 +132,8 @@ class LaunchConfig:
         for s in data.get("service", []):
             if s.get("name") not in SERVICES:
                 raise ValueError(f"unknown service {s.get('name')!r}; choose from {SERVICES}")
+            if not s.get("enabled", True):  # kept in the manifest, not started
+                continue
             services.append(
                 ServiceSpec(
                     name=s["name"],

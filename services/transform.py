@@ -65,7 +65,7 @@ def definition_hash(defn: WorkspaceDefinition) -> str:
     """Content hash of what determines the solution: the workspace geometry and ``tol``
     (not the ws id, not the time stamp). Validates the workspace with the core."""
     ws = workspace_of(defn)
-    return hashlib.sha256(f"{ws.content_hash()}|tol={defn.tol!r}".encode()).hexdigest()
+    return hashlib.sha256(f"{ws.content_hash}|tol={defn.tol!r}".encode()).hexdigest()
 
 
 def workspace_of(defn: WorkspaceDefinition) -> Any:
@@ -90,6 +90,16 @@ def definition_of(ws_id: str, workspace: Any, tol: float = 1e-10) -> WorkspaceDe
         tol=tol,
         stamp_ns=time.time_ns(),
     )
+
+
+def derived_definition(ws_id: str, base: WorkspaceDefinition) -> WorkspaceDefinition:
+    """The definition of ``{base}~r{R}``: ``base`` shrunk by a robot footprint of radius R
+    (:func:`confnav.footprint.inflate`, largest component; raises WorkspaceError)."""
+    from confnav.footprint import inflate, parse_derived_ws_id
+
+    parsed = parse_derived_ws_id(ws_id)
+    assert parsed is not None and parsed[0] == base.ws_id
+    return definition_of(ws_id, inflate(workspace_of(base), parsed[1]), tol=base.tol)
 
 
 def load_definition(ws_id: str, source: str) -> WorkspaceDefinition:
@@ -126,7 +136,10 @@ def solve_definition(defn_json: str) -> dict[str, Any]:
             "wall_time": float(getattr(diag, "wall_time", 0.0)),
             "tol": float(getattr(diag, "tol", defn.tol)),
             "nodes": [int(n) for n in nodes],
+            "boundary_residual": float(diag.boundary_residual),
+            "tol_met": bool(diag.tol_met),
         },
+        "workspace_hash": str(cmap.workspace_hash),
         # through JSON so that the result is plain JSON values (lists, not tuples/arrays)
         "coefficients": json.loads(cmap.to_json()),
     }
@@ -258,8 +271,32 @@ class TransformService(Service):
             self.count("rejected")
             log.warning("definition on %s names workspace %r: ignored", key, defn.ws_id)
             return
-        if self.submit(defn):
-            self._save_definition(defn)
+        if not self.submit(defn):
+            return
+        self._save_definition(defn)
+        with self._lock:  # re-derive the footprint workspaces of this one ({ws}~r{R})
+            derived = [w for w in self._ws if w.startswith(ws_id + "~r")]
+        for w in derived:
+            err = self._derive(w)
+            if err:
+                log.warning("%s", err)
+
+    def _derive(self, ws_id: str) -> str:
+        """Solve ``{base}~r{R}`` (a footprint workspace) from the known base definition;
+        returns why it cannot be derived ("" if it was submitted or is not a derived id)."""
+        from confnav.footprint import parse_derived_ws_id
+
+        parsed = parse_derived_ws_id(ws_id)
+        with self._lock:
+            base = self._ws.get(parsed[0]) if parsed else None
+        if base is None:
+            return ""
+        try:
+            defn = derived_definition(ws_id, base.definition)
+        except Exception as exc:
+            return f"workspace {ws_id!r}: {exc}"
+        self.submit(defn)
+        return ""
 
     def _on_delete(self, key: str, payload: bytes) -> None:
         """Forget a workspace: state, saved definition; status ``deleted``."""
@@ -425,6 +462,7 @@ class TransformService(Service):
                     ws_id=ws_id,
                     revision=result["revision"],
                     definition_hash=h,
+                    workspace_hash=result["workspace_hash"],
                     stamp_ns=time.time_ns(),
                     anchor=tuple(result["anchor"]),
                     centers=[tuple(c) for c in result["centers"]],
@@ -496,6 +534,10 @@ class TransformService(Service):
                 self.count("bad_queries")
                 raise QueryError(f"bad key {keyexpr[:80]!r}: {exc}") from None
             parsed = None
+        if parsed is not None and parsed.ident not in self._ws:
+            err = self._derive(parsed.ident)  # a footprint workspace {ws}~r{R} of a known one
+            if err:
+                raise QueryError(err)
         with self._lock:
             if parsed is None:  # a wildcard query: every solved workspace that matches
                 from confnav.services.bus import key_matches

@@ -11,7 +11,15 @@ import pytest
 from confnav import schemas as S
 from confnav.services.keys import KeyError_, Keys, is_valid_id, validate_id
 
-DIAG = S.SolveDiagnostics(sweeps=7, error_estimate=1e-13, wall_time=0.5, tol=1e-10, nodes=[64])
+DIAG = S.SolveDiagnostics(
+    sweeps=7,
+    error_estimate=1e-13,
+    wall_time=0.5,
+    tol=1e-10,
+    nodes=[64],
+    boundary_residual=1e-13,
+    tol_met=True,
+)
 
 SAMPLES: list[S.Message] = [
     S.WorkspaceDefinition(
@@ -24,6 +32,7 @@ SAMPLES: list[S.Message] = [
         ws_id="w1",
         revision="abc",
         definition_hash="def",
+        workspace_hash="ws",
         stamp_ns=1,
         anchor=(0.0, 0.0),
         centers=[(0.1, 0.2)],

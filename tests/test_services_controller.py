@@ -48,11 +48,14 @@ def solution(
         ws_id=ws,
         revision=rev,
         definition_hash="h-" + rev,
+        workspace_hash="ws-" + ws,
         stamp_ns=time.time_ns(),
         anchor=(0.0, 0.0),
         centers=centers,
         radii=RADII,
-        diagnostics=SolveDiagnostics(sweeps=1, error_estimate=0, wall_time=0, tol=1e-10),
+        diagnostics=SolveDiagnostics(
+            sweeps=1, error_estimate=0, wall_time=0, tol=1e-10, boundary_residual=0, tol_met=True
+        ),
         coefficients={"centers": [list(c) for c in centers], "radii": RADII},
     )
 
