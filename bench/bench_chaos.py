@@ -55,7 +55,6 @@ from confnav.schemas import (
     RobotStatus,
     ServiceHealth,
     SimControl,
-    SolveDiagnostics,
     SpawnRequest,
     TransformSolution,
     VelocityCommand,
@@ -84,19 +83,21 @@ def _samples() -> dict[tuple[str, str], bytes]:
     return {
         ("ws", "definition"): encode(WorkspaceDefinition(ws_id="fz", outer=_SQUARE)),
         ("ws", "delete"): encode(WorkspaceDelete(ws_id="fz")),
-        ("ws", "transform"): TransformSolution.model_construct(
-            ws_id="fz",
-            revision="r",
-            definition_hash="h",
-            stamp_ns=t,
-            anchor=(0.0, 0.0),
-            centers=[(0.1, 0.2)],
-            radii=[0.1],
-            diagnostics=SolveDiagnostics(sweeps=1, error_estimate=0.0, wall_time=0.0, tol=1e-10),
-            coefficients={"x": [1, 2]},
-        )
-        .model_dump_json()
-        .encode(),
+        ("ws", "transform"): json.dumps(  # only the base of the mutations: never valid
+            {
+                "type": TransformSolution.TYPE,
+                "schema_version": 1,
+                "ws_id": "fz",
+                "revision": "r",
+                "definition_hash": "h",
+                "stamp_ns": t,
+                "anchor": [0.0, 0.0],
+                "centers": [[0.1, 0.2]],
+                "radii": [0.1],
+                "diagnostics": {"sweeps": 1, "error_estimate": 0.0, "wall_time": 0.0},
+                "coefficients": {"x": [1, 2]},
+            }
+        ).encode(),
         ("robot", "goal"): encode(Goal(robot_id="fz", ws_id="fz", goal=(0.0, 0.0))),
         ("robot", "cancel"): encode(GoalCancel(robot_id="fz")),
         ("robot", "pose"): encode(Pose(robot_id="fz", stamp_ns=t, seq=1, x=0.1, y=0.2)),
