@@ -30,6 +30,7 @@ from numpy.typing import ArrayLike
 
 from confnav.cauchy import FMM_THRESHOLD, cauchy_sums, cauchy_sums2
 from confnav.errors import MapMismatchError, SerializationError
+from confnav.expansion import LocalExpansions
 from confnav.geometry import ComplexArray, FloatArray, Workspace, distance_to_boundary
 
 FORMAT = "confnav.map"
@@ -48,6 +49,8 @@ CORNER_FRACTIONS = (0.5, 0.1, 1e-2, 1e-3, 1e-4)
 #: measured 2e-9 (at 1e-6) to 1e-6 (at 1e-11) off its circle on the seed's workspace -- far
 #: inside any robot's clearance, but not within a tight tol, so it is not claimed.
 CORNER_ZONE = 1e-4
+#: Batches at least this large build the local expansions (confnav/expansion.py) of any map.
+EXPANSION_MIN_POINTS = 20_000
 
 
 @dataclass
@@ -198,6 +201,8 @@ class ConformalMap:
         self._inv_q_dW = self._q_dW[keep]
         self._inv_q_etadW = self._inv_q_dW * self._inv_eta
         self._revision: str | None = None
+        self._expansion: LocalExpansions | None = None
+        self._fast = False  # build the expansions on first use (set by for_navigation)
 
     # ------------------------------------------------------------------ evaluation
     @property
@@ -232,6 +237,16 @@ class ConformalMap:
         idx = np.flatnonzero(ok)
         if idx.size:
             pts = flat[idx]
+            ex = self._expansions(pts.size)
+            if ex is not None:  # O(1) per point away from the walls (confnav/expansion.py)
+                far, S, dS = ex.sums(pts)
+                (Nf, Df), (dNf, dDf) = S[far].T, dS[far].T
+                w[idx[far]] = Nf / Df
+                if dw is not None:
+                    dw[idx[far]] = (dNf * Df - Nf * dDf) / Df**2
+                idx, pts = idx[~far], pts[~far]  # near a wall: the direct formula below
+                if not idx.size:
+                    return w.reshape(shape), (dw.reshape(shape) if dw is not None else None)
             with np.errstate(divide="ignore", invalid="ignore"):
                 # N = sum q_W/(eta - z), D = sum q_eta/(eta - z), T = N/D and
                 # T' = (N'D - N D')/D^2 with N' = sum q_W/(eta - z)^2 (likewise D'): the exact
@@ -268,6 +283,22 @@ class ConformalMap:
                     dw[idx] = (dN * D - N * dD) / D**2
             self._fix_nodes(pts, idx, w, dw)
         return w.reshape(shape), (dw.reshape(shape) if dw is not None else None)
+
+    def _expansions(self, n_points: int) -> LocalExpansions | None:
+        """The local-expansion evaluator if built, or worth building for ``n_points``.
+
+        Built on first use by maps from :meth:`for_navigation` (evaluated again and again), or
+        for a batch of at least :data:`EXPANSION_MIN_POINTS` (whose direct cost already
+        exceeds the build's); once built it serves every evaluation of two or more points (T and
+        T' within 1e-12 of the exact sums, see tests/test_expansion.py).
+        """
+        if self._expansion is None and (self._fast or n_points >= EXPANSION_MIN_POINTS):
+            self._expansion = LocalExpansions(
+                self._eta, self._Q_fwd, region=self.workspace.polygon
+            )
+        # one point: the direct 1-D dots cost less than numpy's overhead (the build happens
+        # anyway, e.g. in a Controller's constructor, not in the first control step)
+        return None if n_points == 1 else self._expansion
 
     def _fix_nodes(
         self, pts: ComplexArray, idx: np.ndarray, w: ComplexArray, dw: ComplexArray | None
@@ -363,6 +394,7 @@ class ConformalMap:
         ``accuracy`` too). The result carries its own diagnostics (its residual, and the
         deviation measured here folded into its error estimate); returns ``self`` if no
         coarsening qualifies.
+        The result evaluates through local expansions (built on first use, ~0.5 s).
         """
         z = self._check_points(seed)
         w, dw = self.T_and_dT(z, check=False)
@@ -376,7 +408,9 @@ class ConformalMap:
             )
             if dev <= accuracy and c.diagnostics.boundary_residual <= accuracy:
                 c.diagnostics = c.diagnostics.with_deviation(dev)
+                c._fast = True
                 return c
+        self._fast = True
         return self
 
     def _check_points(self, seed: int, count: int = 400) -> ComplexArray:
