@@ -28,7 +28,14 @@ would keep their corner-singular parametrisation in every sweep: slower converge
 images of the nodes next to sharp tips coalesce and destabilise the iteration.
 
 Convergence is measured as the change of the passive nodes away from the vertices and of the
-centres; the loop also stops when that change stalls at the rounding floor.
+centres. The iteration converges linearly, its contraction factor rho depending on the geometry
+(~0.01 per sweep on the seed's workspace, but approaching 1 as two circles approach each other:
+the reflections that make up the Koebe/Schottky group move a circle by ~ (r/d)^2 of its
+neighbour's correction, and for nearly touching circles that ratio is close to 1). The loop
+stops only when the remaining error, extrapolated from the observed contraction as
+``change * rho / (1 - rho)`` (geometric tail), is below ``tol``; a run that stops making
+progress (rounding floor or a true stall) or reaches ``max_sweeps`` is returned with
+``converged = False`` and its extrapolated ``iteration_error``, never as converged.
 
 References
 ----------
@@ -51,18 +58,24 @@ from confnav.boundary import BoundaryMesh
 from confnav.diskmap import CurveMap, exterior_map, interior_map
 from confnav.errors import ConvergenceError, CrowdingError
 from confnav.geometry import ComplexArray, FloatArray
+from confnav.gnk import GMRES_RTOL
 
 #: Circles smaller than this (relative to the unit disk) cannot be resolved in double precision:
 #: the image nodes of such a boundary crowd together below rounding (DESIGN.md sec. 6).
 CROWDING_RADIUS = 1e-11
-MAX_SWEEPS = 80
-#: A sweep that does not reduce the change below this fraction of the best of the two before
-#: counts as stalled (the change has reached the discretisation or rounding floor).
-STALL_RATIO = 0.7
-#: Smooth-grid sizes: start, cap, and the Fourier tail (relative) that triggers doubling.
+MAX_SWEEPS = 200
+#: Sweeps without any decrease of the change (below the best of the three before) after which
+#: the iteration counts as stalled: at the rounding floor, or not converging at all.
+STALL_SWEEPS = 3
+#: Largest contraction factor used to extrapolate: a slower run is treated as stalled.
+RHO_MAX = 0.99
+#: Smooth-grid sizes: start, cap, and the smallest Fourier tail (relative) resolved: the grid
+#: resolves its curve to ``SMOOTH_PER_TOL * tol`` (the tail then adds nothing measurable to the
+#: map's error), but never below rounding, SMOOTH_TAIL.
 SMOOTH_START = 64
 SMOOTH_MAX = 16384
 SMOOTH_TAIL = 1e-15
+SMOOTH_PER_TOL = 1e-3
 
 
 @dataclass
@@ -80,6 +93,12 @@ class CircleDomainResult:
     gmres_iterations: int = 0
     smooth_nodes: list[int] = field(default_factory=list)
     wall_time: float = 0.0
+    #: Remaining error of the iteration, extrapolated from the observed contraction.
+    iteration_error: float = 0.0
+    #: False if the iteration stopped without meeting its tolerance (stall or sweep limit).
+    converged: bool = True
+    #: Relative Fourier tail of smooth grids that needed more than SMOOTH_MAX points (0: none).
+    resolution_error: float = 0.0
 
 
 def _winding(curve: ComplexArray, z: complex) -> float:
@@ -142,8 +161,10 @@ class _Boundary:
     u: FloatArray | None = None  # parameter of each passive node along the smooth curve
     du: FloatArray | None = None  # du/dt at each passive node
     m: int = SMOOTH_START
+    tail: float = SMOOTH_TAIL  # Fourier tail (relative) the smooth grid must reach
+    capped_tail: float = 0.0  # Fourier tail of the grid while it is at SMOOTH_MAX (0: not)
 
-    def own_map(self, alpha: complex, others: ComplexArray) -> CurveMap:
+    def own_map(self, alpha: complex, others: ComplexArray, rtol: float) -> CurveMap:
         """Solve the disk map of this boundary's current image and move it onto |w| = 1.
 
         ``others`` are points of the other boundaries: if they have come closer to this curve
@@ -152,18 +173,19 @@ class _Boundary:
         """
         if self.S is not None:
             assert self.dS is not None
-            m = _grid_size(_gap(self.S, others))
+            m, capped = _grid_size(_gap(self.S, others), self.tail)
+            self.capped_tail = _tail(self.S) if capped or self.S.size >= SMOOTH_MAX else 0.0
             if m > self.S.size:
                 self.S, self.dS = _upsample(self.S, m), _upsample(self.dS, m)
         if self.S is None:  # first sweep: the polygon, on its graded mesh
-            cm = (exterior_map if self.hole else interior_map)(self.P, self.dP, alpha)
+            cm = (exterior_map if self.hole else interior_map)(self.P, self.dP, alpha, rtol)
             sgn = -1.0 if self.hole else 1.0
             self.u = sgn * np.unwrap(np.angle(cm.f))
             self.u = self.u - 2 * np.pi * np.floor(self.u[0] / (2 * np.pi))
             self.du = sgn * (cm.df / cm.f).imag
         else:
             assert self.dS is not None and self.u is not None and self.du is not None
-            cm = (exterior_map if self.hole else interior_map)(self.S, self.dS, alpha)
+            cm = (exterior_map if self.hole else interior_map)(self.S, self.dS, alpha, rtol)
             sgn = -1.0 if self.hole else 1.0
             grid = 2 * np.pi * np.arange(self.S.size) / self.S.size
             new = sgn * np.unwrap(np.angle(cm.f))
@@ -171,7 +193,7 @@ class _Boundary:
             delta, ddelta = _trig_eval(new - grid, self.u)
             self.du = self.du * (1.0 + ddelta)
             self.u = self.u + delta
-            if _tail(self.S) > SMOOTH_TAIL:
+            if _tail(self.S) > self.tail:
                 self.m = min(2 * self.S.size, SMOOTH_MAX)  # under-resolved: at least double
         sgn = -1.0 if self.hole else 1.0
         self.P = np.exp(1j * sgn * self.u)
@@ -194,20 +216,24 @@ class _Boundary:
         then decay like (1 + delta)^-j, so m = 2 ln(1/eps) / ln(1 + delta) points resolve it.
         """
         gap = float(np.min(np.abs(np.abs(others) - 1.0))) if others.size else 1.0
-        self.m = max(self.m, _grid_size(gap))
+        self.m = max(self.m, _grid_size(gap, self.tail)[0])
         sgn = -1.0 if self.hole else 1.0
         grid = 2 * np.pi * np.arange(self.m) / self.m
         self.S = np.exp(1j * sgn * grid)
         self.dS = 1j * sgn * self.S
 
 
-def _grid_size(gap: float) -> int:
+def _grid_size(gap: float, tail: float) -> tuple[int, bool]:
     """Uniform grid size resolving an analytic curve whose nearest singularity is at relative
-    distance ``gap``: Fourier modes decay like (1 + gap)^-j (power of 2, capped)."""
+    distance ``gap`` to a relative Fourier ``tail``: modes decay like (1 + gap)^-j, so
+    m = 2 ln(1/tail) / ln(1 + gap) (power of 2, capped at
+    :data:`SMOOTH_MAX`); the flag says the cap was hit (the grid is then under-resolved and
+    its Fourier tail is reported as ``resolution_error``)."""
     if not np.isfinite(gap):
         raise ConvergenceError("a boundary image became non-finite (NaN or inf)")
-    need = 2 * np.log(1 / SMOOTH_TAIL) / np.log1p(max(gap, 1e-6))
-    return min(int(2 ** np.ceil(np.log2(max(need, SMOOTH_START)))), SMOOTH_MAX)
+    need = 2 * np.log(1 / tail) / np.log1p(max(gap, 1e-6))
+    m = int(2 ** np.ceil(np.log2(max(need, SMOOTH_START))))
+    return min(m, SMOOTH_MAX), m > SMOOTH_MAX
 
 
 def _gap(curve: ComplexArray, others: ComplexArray) -> float:
@@ -272,6 +298,7 @@ def koebe_iteration(
     tol: float,
     max_sweeps: int = MAX_SWEEPS,
     progress: Callable[[int, float], None] | None = None,
+    gmres_tol: float = GMRES_RTOL,
 ) -> CircleDomainResult:
     """Run the iteration on graded meshes (outer counter-clockwise, holes clockwise).
 
@@ -284,11 +311,20 @@ def koebe_iteration(
     anchor
         The point sent to 0.
     tol
-        Stop when the change of the boundary images (away from vertices) is below ``tol``.
+        Stop when the remaining error, extrapolated from the change of the boundary images
+        (away from vertices) and its observed contraction, is below ``tol``.
+    gmres_tol
+        Relative residual of every GNK solve (:func:`confnav.gnk.gmres_rtol`).
     """
     t0 = time.perf_counter()
     bnds = [
-        _Boundary(P=m.eta.copy(), dP=m.deta.copy(), mask=m.interior_mask(), hole=j > 0)
+        _Boundary(
+            P=m.eta.copy(),
+            dP=m.deta.copy(),
+            mask=m.interior_mask(),
+            hole=j > 0,
+            tail=max(SMOOTH_TAIL, SMOOTH_PER_TOL * tol),
+        )
         for j, m in enumerate(meshes)
     ]
     M = len(meshes) - 1
@@ -310,7 +346,7 @@ def koebe_iteration(
                     f"Koebe iteration lost track of obstacle {k - 1} in sweep {sweep} "
                     "(its tracked point left the boundary image)"
                 )
-            F = _own_map(b, c[k - 1], f"obstacle {k - 1}", meshes[k], _curves(bnds, k))
+            F = _own_map(b, c[k - 1], f"obstacle {k - 1}", meshes[k], _curves(bnds, k), gmres_tol)
             gm_its += F.gmres_iterations
             others = np.concatenate([[a], np.delete(c, k - 1)])
             out = _apply(F, bnds, k, others)
@@ -318,7 +354,7 @@ def koebe_iteration(
             img, dimg = out[: others.size], out[others.size :]
             a, D = complex(img[0]), D * complex(dimg[0])
             c = np.insert(img[1:], k - 1, 0.0)
-        f0 = _own_map(bnds[0], a, "the outer boundary", meshes[0], _curves(bnds, 0))
+        f0 = _own_map(bnds[0], a, "the outer boundary", meshes[0], _curves(bnds, 0), gmres_tol)
         gm_its += f0.gmres_iterations
         out = _apply(f0, bnds, 0, c)
         _regrid(bnds[0], _curves(bnds, 0), "the outer boundary", sweep)
@@ -345,15 +381,15 @@ def koebe_iteration(
                 f"obstacle {j}'s circle has radius {radii[j]:.1e}: too small to resolve in double "
                 "precision (crowding: a long, narrow passage leads to it)"
             )
-        if change < tol:
+        remaining, converged = _remaining_error(history)
+        if converged and remaining <= tol:
             break
-        if sweep >= 4 and change > STALL_RATIO * min(history[-3:-1]):
-            break  # stalled at the discretisation/rounding floor: the error estimate decides
+        if len(history) > STALL_SWEEPS and change >= min(history[-STALL_SWEEPS - 1 : -1]):
+            converged = False  # no progress: rounding floor or a true stall -- reported
+            break
     else:
-        raise ConvergenceError(
-            f"Koebe iteration did not converge in {max_sweeps} sweeps (last change "
-            f"{history[-1]:.2e} > tol {tol:.1e})"
-        )
+        converged = False  # sweep limit: the extrapolated remaining error is reported
+    iteration_error = remaining if converged and remaining <= tol else _stalled_error(history)
     rot = complex(np.exp(-1j * np.angle(D)))
     passive = [b.passive() for b in bnds]
     W = [p[0] * rot for p in passive]
@@ -375,15 +411,52 @@ def koebe_iteration(
         gmres_iterations=gm_its,
         smooth_nodes=[b.m for b in bnds],
         wall_time=time.perf_counter() - t0,
+        iteration_error=iteration_error,
+        converged=bool(converged and iteration_error <= tol),
+        resolution_error=max(b.capped_tail for b in bnds),
     )
 
 
+def _remaining_error(history: list[float]) -> tuple[float, bool]:
+    """Error left after the last sweep, from the observed linear contraction.
+
+    With changes h_n shrinking by rho per sweep the iterate is h_n rho / (1 - rho) from the
+    limit (geometric tail; Aitken's delta^2 estimate). rho is the larger of the last two
+    observed ratios (the safe side; one after two sweeps); a single sweep gives no estimate.
+    """
+    if len(history) < 2:
+        return float("inf"), False
+    h = history
+    rho = max(h[i] / max(h[i - 1], 1e-300) for i in range(max(1, len(h) - 2), len(h)))
+    if rho >= RHO_MAX:
+        return float("inf"), False
+    return h[-1] * rho / (1 - rho), True
+
+
+def _stalled_error(history: list[float]) -> float:
+    """Error bound of an iteration stopped before its tolerance was met.
+
+    While the change still contracts (sweep limit reached) the geometric tail applies; once it
+    stalls, the iterates wander within the last changes and the limit is known no better than
+    the largest of them, extrapolated with the slowest contraction accepted (RHO_MAX is not:
+    a stall at the rounding floor is taken at face value, ``max(last changes)``)."""
+    remaining, ok = _remaining_error(history)
+    if ok:
+        return max(remaining, history[-1])
+    return max(history[-STALL_SWEEPS - 1 :])
+
+
 def _own_map(
-    b: _Boundary, alpha: complex, name: str, mesh: BoundaryMesh, others: ComplexArray
+    b: _Boundary,
+    alpha: complex,
+    name: str,
+    mesh: BoundaryMesh,
+    others: ComplexArray,
+    rtol: float,
 ) -> CurveMap:
     """``b.own_map`` with failures reported against the boundary and its sharpest corner."""
     try:
-        return b.own_map(alpha, others)
+        return b.own_map(alpha, others, rtol)
     except ConvergenceError as exc:
         v = mesh.eta[mesh.tau == 0]
         turn = np.angle((np.roll(v, -1) - v) / (v - np.roll(v, 1)))

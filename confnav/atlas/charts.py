@@ -1,0 +1,188 @@
+"""Charts of an atlas: one conformal map per cell, solved in parallel; single map or atlas.
+
+A cell whose solve fails (``CrowdingError``, ``ConvergenceError``, an invalid cell polygon)
+is data, not an accident: its tile is split into four and the decomposition is redone; the
+maps of cells that did not change are reused (keyed by the cell workspace's content hash).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+import warnings
+from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from confnav.atlas.decompose import Decomposition, Tile, decompose, elongation
+from confnav.cmap import ConformalMap
+from confnav.errors import ConfnavError, CrowdingError, SolverError
+from confnav.geometry import Workspace
+from confnav.solver import solve
+
+__all__ = ["Atlas", "ChartRecord", "needs_atlas", "solve_atlas", "solve_auto"]
+
+log = logging.getLogger(__name__)
+
+#: elongation (``area / (2 r)^2``) above which one map is not attempted (crowding of a
+#: channel ~ exp(-pi L/w): at L/w = 10 about 2e-14, the end of double precision)
+SINGLE_MAP_MAX_RATIO = 8.0
+
+
+@dataclass(frozen=True)
+class ChartRecord:
+    """How one cell's chart was obtained: solve wall time (in the worker), nodes, error
+    estimate, smallest radius; ``error`` is the failure message of a failed attempt."""
+
+    cell: int
+    wall_time: float
+    n_nodes: int
+    error_estimate: float
+    min_radius: float
+    tile: Tile
+    error: str = ""
+
+
+@dataclass(frozen=True)
+class Atlas:
+    """A decomposition with one conformal map (chart) per cell.
+
+    ``charts[i]`` belongs to ``decomposition.cells[i]`` (solved to ``tol``); ``records`` lists
+    every solve including failed attempts; ``wall_time`` is the elapsed time of the whole
+    solve, ``cpu_time`` the sum of the per-chart solve times (their ratio is the speed-up).
+    """
+
+    decomposition: Decomposition
+    charts: tuple[ConformalMap, ...]
+    tol: float
+    records: tuple[ChartRecord, ...] = field(repr=False)
+    wall_time: float = 0.0
+    workers: int = 1
+
+    @property
+    def workspace(self) -> Workspace:
+        return self.decomposition.workspace
+
+    @property
+    def cpu_time(self) -> float:
+        return float(sum(r.wall_time for r in self.records))
+
+    @property
+    def speedup(self) -> float:
+        return self.cpu_time / self.wall_time if self.wall_time > 0 else float("nan")
+
+
+def _solve_one(ws_json: str, tol: float) -> tuple[str, float, str]:
+    """Worker: (map JSON or "", wall time, error message).  Runs in a child process."""
+    t0 = time.perf_counter()
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            m = solve(Workspace.from_json(ws_json), tol)
+        if not m.diagnostics.tol_met:
+            return (
+                "",
+                time.perf_counter() - t0,
+                (f"tolerance not met (estimate {m.diagnostics.error_estimate:.1e})"),
+            )
+        return m.to_json(), time.perf_counter() - t0, ""
+    except ConfnavError as exc:
+        return "", time.perf_counter() - t0, f"{type(exc).__name__}: {exc}"
+
+
+def needs_atlas(ws: Workspace) -> bool:
+    """A-priori test: is the free space too elongated (or too cluttered) for one map?"""
+    return elongation(ws.polygon) > SINGLE_MAP_MAX_RATIO
+
+
+def solve_atlas(
+    ws: Workspace,
+    tol: float = 1e-8,
+    *,
+    workers: int = 2,
+    max_rounds: int = 4,
+    progress: Callable[[str], None] | None = None,
+    **decompose_kw: Any,
+) -> Atlas:
+    """Decompose ``ws`` (:func:`confnav.atlas.decompose`) and solve every cell's map.
+
+    Cells are solved by a process pool of ``workers`` (1: in this process).  A failed cell's
+    tile is split and the decomposition redone (at most ``max_rounds`` times); unchanged
+    cells keep their maps.
+
+    Raises
+    ------
+    SolverError
+        if some cell still fails after ``max_rounds`` rounds (the message names it).
+    """
+    t0 = time.perf_counter()
+    split: set[Tile] = set(decompose_kw.pop("split", ()))
+    done: dict[str, ConformalMap] = {}
+    records: list[ChartRecord] = []
+    pool = ProcessPoolExecutor(max_workers=workers) if workers > 1 else None
+    try:
+        for _round in range(max_rounds + 1):
+            dec = decompose(ws, split=split, **decompose_kw)
+            keys = [c.workspace.content_hash() for c in dec.cells]
+            todo = [i for i, k in enumerate(keys) if k not in done]
+            # largest first: the pool's tail is then short
+            todo.sort(key=lambda i: -dec.cells[i].polygon.length)
+            if progress is not None:
+                progress(f"atlas: {len(dec.cells)} cells, solving {len(todo)}")
+            jobs = [dec.cells[i].workspace.to_json() for i in todo]
+            if pool is not None:
+                results = list(pool.map(_solve_one, jobs, [tol] * len(jobs)))
+            else:
+                results = [_solve_one(j, tol) for j in jobs]
+            failed: list[Tile] = []
+            for i, (text, wall, err) in zip(todo, results, strict=True):
+                cell = dec.cells[i]
+                if err:
+                    records.append(ChartRecord(i, wall, 0, np.nan, np.nan, cell.tile, err))
+                    log.info("cell %d (tile %s) failed: %s", i, cell.tile, err)
+                    failed.append(cell.tile)
+                    continue
+                m = ConformalMap.from_json(text)
+                done[keys[i]] = m
+                radii = np.asarray(m.radii)
+                records.append(
+                    ChartRecord(
+                        i,
+                        wall,
+                        m.n_nodes,
+                        float(m.diagnostics.error_estimate),
+                        float(radii.min()) if radii.size else 1.0,
+                        cell.tile,
+                    )
+                )
+            if not failed:
+                charts = tuple(done[k] for k in keys)
+                return Atlas(dec, charts, tol, tuple(records), time.perf_counter() - t0, workers)
+            split |= set(failed)
+        bad = [r for r in records if r.error][-1]
+        raise SolverError(
+            f"atlas: cell of tile {bad.tile} still fails after {max_rounds} splits: {bad.error}"
+        )
+    finally:
+        if pool is not None:
+            pool.shutdown()
+
+
+def solve_auto(
+    ws: Workspace, tol: float = 1e-8, *, workers: int = 2, **decompose_kw: Any
+) -> ConformalMap | Atlas:
+    """One map where one map is well conditioned, an atlas otherwise.
+
+    Tries a single :func:`confnav.solve` unless :func:`needs_atlas` says the free space is too
+    elongated; a ``CrowdingError`` (or an unusable accuracy) of that solve falls back to
+    :func:`solve_atlas`.
+    """
+    if not needs_atlas(ws):
+        try:
+            return solve(ws, tol)
+        except (CrowdingError, SolverError) as exc:
+            log.info("single map failed (%s); solving an atlas", exc)
+    return solve_atlas(ws, tol, workers=workers, **decompose_kw)

@@ -1,0 +1,338 @@
+"""Sequential composition of navigation functions over an atlas (Burridge, Rizzi, Koditschek).
+
+For a goal, every cell gets a rank (its cost to the goal over the cell graph) and a local
+goal: the goal itself in the goal cell, otherwise a point deep inside the overlap with the
+next cell on its shortest cell path.  A robot runs the Theorem 2 law of its active cell's
+chart (:class:`confnav.Controller`) and switches to a cell of strictly lower rank as soon as
+it lies inside that cell deeper than ``hysteresis`` (distance to its cut edges).  Why this
+keeps collision avoidance and almost-global convergence: docs/ATLAS.md.
+
+References
+----------
+.. [1] R. R. Burridge, A. A. Rizzi, D. E. Koditschek, "Sequential composition of dynamically
+   dexterous robot behaviors", Int. J. Robotics Research 18(6) (1999) 534-555.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import shapely
+from numpy.typing import ArrayLike, NDArray
+from scipy.sparse import csr_matrix
+from scipy.sparse.csgraph import dijkstra
+
+from confnav.atlas.charts import Atlas
+from confnav.atlas.decompose import _polygons, inscribed
+from confnav.control import Controller
+from confnav.errors import NavigationError
+from confnav.sim import ARRIVED, COLLIDED, ERROR, STALLED, STATUS_NAMES, TIMEOUT, simulate
+
+__all__ = ["AtlasNavigator", "AtlasRun", "CellPlan", "Overlap", "overlaps", "plan"]
+
+CArray = NDArray[np.complex128]
+
+
+@dataclass(frozen=True)
+class Overlap:
+    """Two cells' common region: its deepest point ``point`` (pole of inaccessibility of the
+    intersection, walls included) and that depth."""
+
+    a: int
+    b: int
+    point: complex
+    depth: float
+
+
+def overlaps(atlas: Atlas) -> list[Overlap]:
+    """Every pair of cells whose intersection holds a disk of radius ``margin``.
+
+    Thinner overlaps are no edges of the cell graph (a local goal needs that depth).
+    """
+    cells = atlas.decomposition.cells
+    margin = atlas.decomposition.margin
+    tree = shapely.STRtree([c.polygon for c in cells])
+    a, b = tree.query([c.polygon for c in cells], predicate="intersects")
+    out: list[Overlap] = []
+    for i, j in zip(a.tolist(), b.tolist(), strict=True):
+        if i >= j:
+            continue
+        parts = _polygons(cells[i].polygon.intersection(cells[j].polygon))
+        best = max((inscribed(p) for p in parts), key=lambda t: t[1], default=None)
+        if best is not None and best[1] >= margin:
+            out.append(Overlap(i, j, best[0], best[1]))
+    return out
+
+
+@dataclass(frozen=True)
+class CellPlan:
+    """The composition for one goal: per cell its rank (cost to the goal; ``inf`` if the goal
+    cannot be reached from it), next cell (-1 in a goal cell) and local goal."""
+
+    goal: complex
+    rank: NDArray[np.float64]
+    next: NDArray[np.int64]
+    local_goal: CArray
+    goal_cells: tuple[int, ...]
+
+
+def plan(atlas: Atlas, goal: complex, links: list[Overlap] | None = None) -> CellPlan:
+    """Shortest cell paths to ``goal`` (Dijkstra on the cell graph).
+
+    Edge weight between cells i and j: ``|c_i - p_ij| + |p_ij - c_j|`` with ``c`` the cells'
+    deepest points and ``p_ij`` their overlap point (a path length through the overlap).
+    A goal cell (one containing the goal) has rank ``|c - goal|``; every other cell's next
+    cell has a strictly lower rank (weights > 0), so the order is acyclic by construction.
+    """
+    cells = atlas.decomposition.cells
+    n = len(cells)
+    links = overlaps(atlas) if links is None else links
+    goal = complex(goal)
+    centre = np.array([inscribed(c.polygon)[0] for c in cells])
+    at = shapely.Point(goal.real, goal.imag)
+    inside = [i for i, c in enumerate(cells) if bool(c.polygon.contains(at))]
+    if not inside:
+        raise NavigationError(f"goal {goal:.6g} lies in no cell of the atlas")
+    # node n is the goal; edges cell <-> cell through the overlap point
+    rows, cols, w = [], [], []
+    via: dict[tuple[int, int], complex] = {}
+    for o in links:
+        cost = abs(centre[o.a] - o.point) + abs(o.point - centre[o.b])
+        rows += [o.a, o.b]
+        cols += [o.b, o.a]
+        w += [max(cost, 1e-12)] * 2
+        via[(o.a, o.b)] = via[(o.b, o.a)] = o.point
+    for i in inside:
+        rows += [i, n]
+        cols += [n, i]
+        w += [max(abs(centre[i] - goal), 1e-12)] * 2
+    graph = csr_matrix((w, (rows, cols)), shape=(n + 1, n + 1))
+    dist, pred = dijkstra(graph, directed=False, indices=n, return_predecessors=True)
+    rank = np.asarray(dist[:n], dtype=np.float64)
+    nxt = np.asarray(pred[:n], dtype=np.int64)  # predecessor on the path from the goal
+    nxt[nxt == n] = -1
+    nxt[~np.isfinite(rank)] = -1
+    local = np.array(
+        [goal if nxt[i] < 0 else via[(i, int(nxt[i]))] for i in range(n)], dtype=np.complex128
+    )
+    goal_cells = tuple(i for i in inside if nxt[i] < 0)
+    return CellPlan(goal, rank, nxt, local, goal_cells)
+
+
+@dataclass(frozen=True)
+class AtlasRun:
+    """Result of :meth:`AtlasNavigator.run` (per start arrays; status names as in
+    :data:`confnav.sim.STATUS_NAMES`).  ``switches`` counts chart switches per robot and
+    ``cells`` lists each robot's sequence of active cells."""
+
+    starts: CArray
+    success: NDArray[np.bool_]
+    collided: NDArray[np.bool_]
+    status: NDArray[np.int8]
+    path_length: NDArray[np.float64]
+    time: NDArray[np.float64]
+    min_clearance: NDArray[np.float64]
+    final: CArray
+    switches: NDArray[np.int64]
+    cells: tuple[tuple[int, ...], ...]
+    wall_time: float
+
+    @property
+    def success_rate(self) -> float:
+        return float(np.mean(self.success)) if self.success.size else float("nan")
+
+    @property
+    def message(self) -> str:
+        counts = np.bincount(self.status, minlength=len(STATUS_NAMES))
+        return ", ".join(f"{n} {s}" for s, n in zip(STATUS_NAMES, counts, strict=False) if n)
+
+
+class AtlasNavigator:
+    """Hybrid feedback: the Theorem 2 law of the active chart, switched down the cell order.
+
+    Parameters
+    ----------
+    atlas : a solved :class:`Atlas`.
+    goal : the goal (in the free space).
+    hysteresis : depth inside a lower-ranked cell (distance to its cut edges) at which a
+        robot switches to it; default ``margin / 2``.  Must be below ``margin`` (local goals
+        lie at least ``margin`` deep).
+    speed : commanded speed (workspace units per time unit): the unit direction of the
+        Theorem 2 field times ``speed``, slowing linearly within ``floor_radius`` of a goal
+        (``Controller(v_min=v_max=speed)``; a positive rescaling keeps the integral curves).
+    controller_kw : further :class:`confnav.Controller` keywords (``navfn``, ``goal_tol``).
+    """
+
+    def __init__(
+        self,
+        atlas: Atlas,
+        goal: complex,
+        *,
+        hysteresis: float | None = None,
+        speed: float = 1.0,
+        floor_radius: float | None = None,
+        **controller_kw: Any,
+    ) -> None:
+        self.atlas = atlas
+        self.cells = atlas.decomposition.cells
+        margin = atlas.decomposition.margin
+        self.hysteresis = float(hysteresis) if hysteresis is not None else margin / 2
+        if not 0 < self.hysteresis < margin:
+            raise NavigationError(f"hysteresis must be in (0, margin={margin:g})")
+        self.plan = plan(atlas, goal)
+        self.goal = self.plan.goal
+        self.speed = float(speed)
+        self.floor_radius = float(floor_radius) if floor_radius is not None else margin
+        self.controller_kw = controller_kw
+        self._controllers: dict[int, Controller] = {}
+        self._nav_maps = [m.for_navigation() for m in atlas.charts]
+        tree = shapely.STRtree([c.polygon for c in self.cells])
+        a, b = tree.query([c.polygon for c in self.cells], predicate="intersects")
+        rank = self.plan.rank
+        # the cells a robot in cell i may switch to: strictly lower rank, intersecting i
+        self.lower: list[list[int]] = [[] for _ in self.cells]
+        for i, j in zip(a.tolist(), b.tolist(), strict=True):
+            if rank[j] < rank[i]:
+                self.lower[i].append(j)
+        for lst in self.lower:
+            lst.sort(key=lambda j: rank[j])
+
+    def controller(self, i: int) -> Controller:
+        """The Theorem 2 law of cell ``i``'s chart towards its local goal (built on demand)."""
+        if i not in self._controllers:
+            self._controllers[i] = Controller(
+                self._nav_maps[i],
+                complex(self.plan.local_goal[i]),
+                v_max=self.speed,
+                v_min=self.speed,
+                floor_radius=self.floor_radius,
+                **self.controller_kw,
+            )
+        return self._controllers[i]
+
+    def initial_cells(self, z: ArrayLike) -> NDArray[np.int64]:
+        """For each point, the lowest-ranked reachable cell containing it (-1: none)."""
+        z = np.atleast_1d(np.asarray(z, dtype=np.complex128))
+        best = np.full(z.shape, -1, dtype=np.int64)
+        best_rank = np.full(z.shape, np.inf)
+        for i, c in enumerate(self.cells):
+            r = self.plan.rank[i]
+            if not np.isfinite(r):
+                continue
+            inside = c.depth(z) > 0
+            take = inside & (r < best_rank)
+            best[take], best_rank[take] = i, r
+        return best
+
+    def switch(self, z: ArrayLike, active: NDArray[np.int64]) -> NDArray[np.int64]:
+        """The active cells after the switching rule: the lowest-ranked cell of strictly lower
+        rank than the active one in which the point lies deeper than ``hysteresis``."""
+        z = np.atleast_1d(np.asarray(z, dtype=np.complex128))
+        out = active.copy()
+        for i in np.unique(active):
+            if i < 0:
+                continue
+            idx = np.flatnonzero(active == i)
+            pending = np.ones(idx.size, dtype=bool)
+            for j in self.lower[int(i)]:  # ascending rank: the first hit is the lowest
+                deep = pending & (self.cells[j].depth(z[idx]) > self.hysteresis)
+                out[idx[deep]] = j
+                pending &= ~deep
+                if not pending.any():
+                    break
+        return out
+
+    def run(
+        self,
+        starts: ArrayLike,
+        *,
+        window: float | None = None,
+        t_max: float | None = None,
+        max_step: float | None = None,
+        atol: float = 1e-6,
+    ) -> AtlasRun:
+        """Simulate robots from ``starts`` (complex array) to the goal.
+
+        Each active cell's robots are integrated by :func:`confnav.sim.simulate` for
+        ``window`` time units (default: the time to cross 4 ``hysteresis``), collisions checked
+        against the *whole* workspace; between windows the switching rule is applied (a
+        supervisor at a fixed rate).  A robot that reaches a local goal switches to the next
+        cell (it lies ``margin`` deep there).
+        """
+        import time as _time
+
+        t0 = _time.perf_counter()
+        ws = self.atlas.workspace
+        z = np.atleast_1d(np.asarray(starts, dtype=np.complex128)).copy()
+        n = z.size
+        if np.any(~(ws.clearance(z) > 0)):
+            raise NavigationError("a start is not in the free space")
+        window = float(window) if window is not None else 4 * self.hysteresis / self.speed
+        t_max = float(t_max) if t_max is not None else 20 * ws.diameter / self.speed
+        max_step = float(max_step) if max_step is not None else 2 * self.hysteresis
+        active = self.initial_cells(z)
+        status = np.full(n, -1, dtype=np.int8)
+        status[active < 0] = ERROR
+        length = np.zeros(n)
+        t = np.zeros(n)
+        minclr = np.asarray(ws.clearance(z), dtype=np.float64)
+        switches = np.zeros(n, dtype=np.int64)
+        history: list[list[int]] = [[int(a)] for a in active]
+        still = np.zeros(n, dtype=np.int64)
+        while True:
+            run = np.flatnonzero(status < 0)
+            if run.size == 0:
+                break
+            for i in np.unique(active[run]):
+                idx = run[active[run] == i]
+                ctrl = self.controller(int(i))
+                res = simulate(
+                    ctrl, z[idx], clearance=ws.clearance, t_max=window, max_step=max_step,
+                    atol=atol, stall_distance=1e-12, stall_steps=10**9,
+                )  # fmt: skip
+                moved = np.abs(res.final - z[idx])
+                z[idx] = res.final
+                length[idx] += res.path_length
+                t[idx] += res.time
+                minclr[idx] = np.minimum(minclr[idx], res.min_clearance)
+                st = res.status
+                status[idx[st == COLLIDED]] = COLLIDED
+                status[idx[st == ERROR]] = ERROR
+                arrived = idx[st == ARRIVED]
+                if self.plan.next[i] < 0:
+                    status[arrived] = ARRIVED
+                else:  # at the local goal: margin deep in the next cell
+                    active[arrived] = self.plan.next[i]
+                    switches[arrived] += 1
+                    for k in arrived:
+                        history[k].append(int(self.plan.next[i]))
+                going = (st == TIMEOUT) | (st == STALLED)
+                # a robot that does not move for 20 windows is stalled (a saddle)
+                still[idx] = np.where(going & (moved < 1e-9), still[idx] + 1, 0)
+                status[idx[going & (still[idx] >= 20)]] = STALLED
+            run = np.flatnonzero(status < 0)
+            over = run[t[run] >= t_max]
+            status[over] = TIMEOUT
+            run = np.flatnonzero(status < 0)
+            if run.size:
+                new = self.switch(z[run], active[run])
+                changed = run[new != active[run]]
+                for k, a in zip(changed.tolist(), new[new != active[run]].tolist(), strict=True):
+                    history[k].append(int(a))
+                switches[changed] += 1
+                active[run] = new
+        return AtlasRun(
+            starts=np.atleast_1d(np.asarray(starts, dtype=np.complex128)),
+            success=status == ARRIVED,
+            collided=status == COLLIDED,
+            status=status,
+            path_length=length,
+            time=t,
+            min_clearance=minclr,
+            final=z,
+            switches=switches,
+            cells=tuple(tuple(h) for h in history),
+            wall_time=_time.perf_counter() - t0,
+        )

@@ -1,0 +1,217 @@
+"""Atlas of conformal charts: decomposition invariants, the composition's assumptions
+(local goals deep in overlaps, acyclic order), chart accuracy against a closed form, switching
+without chattering, and a corridor a single map cannot do, navigated end to end."""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+import shapely
+from scipy.optimize import brentq
+from scipy.special import ellipk
+
+import confnav
+from confnav.atlas import (
+    Atlas,
+    AtlasNavigator,
+    decompose,
+    needs_atlas,
+    overlaps,
+    plan,
+    solve_atlas,
+    solve_auto,
+)
+from confnav.atlas.scenes import corridor, office, spiral, warehouse
+from confnav.errors import SolverError, WorkspaceError
+from confnav.geometry import Workspace
+from confnav.scenarios import random_starts
+from confnav.shortest_path import ShortestPaths
+
+TOL = 1e-6  # navigation needs T to ~1e-6 of the unit disk; the test scenes are small
+
+
+def pillar_corridor(length: float = 12.0, anchor: tuple[float, float] | None = None) -> Workspace:
+    """A 1 m wide corridor with a 0.4 m pillar 1 m from its far end."""
+    x = length - 1.2
+    pillar = [(x, 0.3), (x + 0.4, 0.3), (x + 0.4, 0.7), (x, 0.7)]
+    return Workspace([(0, 0), (length, 0), (length, 1), (0, 1)], [pillar], anchor=anchor)
+
+
+@pytest.fixture(scope="module")
+def atlas() -> Atlas:
+    return solve_atlas(pillar_corridor(), TOL, workers=2)
+
+
+GOAL = 11.6 + 0.5j  # behind the pillar, at the far end
+
+
+# ---------------------------------------------------------------- decomposition invariants
+@pytest.mark.parametrize(
+    "ws",
+    [pillar_corridor(), spiral(30).workspace, office().workspace, warehouse(4, 3).workspace],
+    ids=["pillar corridor", "spiral 30", "office", "warehouse 12"],
+)
+def test_cells_cover_the_free_space_and_respect_their_bounds(ws: Workspace) -> None:
+    dec = decompose(ws)
+    free = ws.polygon
+    assert dec.uncovered_area() <= 1e-9 * free.area
+    for c in dec.cells:
+        assert c.ratio <= (dec.max_ratio_holes if c.workspace.n_obstacles else dec.max_ratio)
+        assert c.workspace.n_obstacles <= dec.max_obstacles
+        # a cell is a piece of the free space, and its workspace is that piece
+        assert c.polygon.difference(free).area <= 1e-9 * c.polygon.area
+        assert abs(c.workspace.polygon.area - c.polygon.area) <= 1e-9 * c.polygon.area
+
+
+def test_overlaps_hold_a_margin_disk_and_connect_the_cells(atlas: Atlas) -> None:
+    dec = atlas.decomposition
+    links = overlaps(atlas)
+    assert links
+    for o in links:
+        common = dec.cells[o.a].polygon.intersection(dec.cells[o.b].polygon)
+        p = shapely.Point(o.point.real, o.point.imag)
+        assert common.contains(p)
+        assert common.boundary.distance(p) >= dec.margin * (1 - 1e-9)
+    # the free space is connected, so every cell must reach the goal
+    pl = plan(atlas, GOAL, links)
+    assert np.all(np.isfinite(pl.rank))
+
+
+def test_local_goals_lie_deep_in_the_next_cell_and_the_order_is_acyclic(atlas: Atlas) -> None:
+    nav = AtlasNavigator(atlas, GOAL)
+    pl = nav.plan
+    cells = atlas.decomposition.cells
+    margin = atlas.decomposition.margin
+    assert pl.goal_cells
+    for i in range(len(cells)):
+        j = int(pl.next[i])
+        if j < 0:
+            assert i in pl.goal_cells and pl.local_goal[i] == GOAL
+            continue
+        assert pl.rank[j] < pl.rank[i]  # strictly closer: no cycle
+        g = pl.local_goal[i : i + 1]
+        # deep inside the overlap: beyond the hysteresis in the next cell, a margin from walls
+        assert cells[j].depth(g)[0] >= margin > nav.hysteresis
+        assert cells[i].workspace.clearance(g)[0] >= margin * (1 - 1e-9)
+        assert cells[j].workspace.clearance(g)[0] >= margin * (1 - 1e-9)
+    # following next from any cell ends in a goal cell within len(cells) steps
+    for i in range(len(cells)):
+        seen = [i]
+        while pl.next[seen[-1]] >= 0:
+            seen.append(int(pl.next[seen[-1]]))
+            assert len(seen) <= len(cells)
+        assert seen[-1] in pl.goal_cells
+
+
+# ---------------------------------------------------------------- charts
+def _rectangle_derivative(a: float, b: float) -> float:
+    """f'(0) of the map of [-a, a] x [-b, b] onto the disk, f(0) = 0 (DESIGN.md section 4):
+    (1 + k) K / (2 a) with K'/K = 2 b / a."""
+    m = brentq(lambda m: ellipk(1 - m) / ellipk(m) - 2 * b / a, 1e-12, 1 - 1e-12)
+    return float((1 + np.sqrt(m)) * ellipk(m) / (2 * a))
+
+
+def test_every_chart_is_accurate(atlas: Atlas) -> None:
+    checked = 0
+    for cell, m in zip(atlas.decomposition.cells, atlas.charts, strict=True):
+        assert m.diagnostics.error_estimate <= TOL
+        assert np.all(m.radii > 1e-3)  # no crowding inside a cell
+        # rectangular cells against the closed form: the conformal radius at the centre,
+        # |f'(c)| / (1 - |f(c)|^2), does not depend on the anchor
+        if cell.workspace.n_obstacles == 0 and cell.workspace.outer.size == 4:
+            x0, y0, x1, y1 = cell.polygon.bounds
+            c = complex((x0 + x1) / 2, (y0 + y1) / 2)
+            w, dw = m.T_and_dT(np.array([c]))
+            radius = abs(dw[0]) / (1 - abs(w[0]) ** 2)
+            exact = _rectangle_derivative((x1 - x0) / 2, (y1 - y0) / 2)
+            assert radius == pytest.approx(exact, rel=1e-5)
+            checked += 1
+    assert checked >= 2
+    assert atlas.cpu_time > 0 and atlas.wall_time > 0
+
+
+def test_solve_atlas_splits_a_tile_whose_cell_fails() -> None:
+    ws = pillar_corridor()
+    base = decompose(ws)
+    tile = base.cells[0].tile
+    dec = decompose(ws, split=[tile])
+    assert len(dec.cells) > len(base.cells)
+    assert all(c.tile != tile for c in dec.cells)
+    assert dec.uncovered_area() <= 1e-9 * ws.polygon.area
+
+
+def test_bad_parameters_are_clear_errors() -> None:
+    with pytest.raises(WorkspaceError, match="overlap"):
+        decompose(pillar_corridor(), overlap=1.5)
+    with pytest.raises(confnav.NavigationError, match="no cell"):
+        plan_goal_outside()
+
+
+def plan_goal_outside() -> None:
+    ws = corridor(3).workspace
+    a = solve_atlas(ws, TOL, workers=1)
+    plan(a, 10 + 10j)
+
+
+# ---------------------------------------------------------------- switching
+def test_switching_has_hysteresis_and_never_goes_back(atlas: Atlas) -> None:
+    nav = AtlasNavigator(atlas, GOAL)
+    cells = atlas.decomposition.cells
+    pl = nav.plan
+    i = int(np.argmax(pl.rank))
+    j = int(pl.next[i])
+    # walk along the corridor's centre line from cell i into cell j and back and forth
+    xs = np.linspace(0.0, 12.0, 2401) + 0.5j
+    xs = xs[cells[i].depth(xs) > 0]
+    d_j = cells[j].depth(xs)
+    active = np.full(xs.size, i, dtype=np.int64)
+    out = nav.switch(xs, active)
+    # a point of cell j closer to its cut than the hysteresis does not switch; deeper does
+    shallow = (d_j > 0) & (d_j <= nav.hysteresis)
+    assert shallow.any() and np.all(out[shallow] == i)
+    assert np.any(out[d_j > nav.hysteresis] != i)
+    assert np.all(pl.rank[out] <= pl.rank[i])
+    # a robot that jitters across the switching line switches once and never back
+    k = int(np.flatnonzero(d_j > nav.hysteresis)[0])
+    cur = np.array([i])
+    seq = [i]
+    for step in range(40):
+        z = xs[k - 3 : k + 4][step % 7 : step % 7 + 1]
+        cur = nav.switch(z, cur)
+        seq.append(int(cur[0]))
+    changes = sum(a != b for a, b in itertools.pairwise(seq))
+    assert changes == 1
+    assert np.all(np.diff(pl.rank[seq]) <= 0)
+
+
+# ---------------------------------------------------------------- end to end
+@pytest.mark.slow
+def test_corridor_a_single_map_cannot_do_is_navigated_by_the_atlas(atlas: Atlas) -> None:
+    # anchored at the near end, the single map of this corridor (L/w = 12) fails: the
+    # pillar's circle crowds below what the integral equation resolves
+    with pytest.raises(SolverError):
+        confnav.solve(pillar_corridor(anchor=(0.5, 0.5)), TOL)
+    assert needs_atlas(pillar_corridor())
+    ws = atlas.workspace
+    nav = AtlasNavigator(atlas, GOAL)
+    starts = random_starts(ws, 24, seed=3)
+    run = nav.run(starts)
+    assert run.success.all(), run.message
+    assert not run.collided.any()
+    assert np.all(run.min_clearance > 0)
+    # each robot's cells go strictly down the order: at most one visit per cell
+    for seq in run.cells:
+        ranks = nav.plan.rank[list(seq)]
+        assert np.all(np.diff(ranks) < 0)
+    short = ShortestPaths(ws, GOAL).lengths(starts)
+    assert np.median(run.path_length / short) <= 1.3
+
+
+def test_solve_auto_picks_one_map_for_a_room_and_an_atlas_for_a_corridor() -> None:
+    room = Workspace([(0, 0), (2, 0), (2, 2), (0, 2)])
+    assert not needs_atlas(room)
+    assert isinstance(solve_auto(room, TOL), confnav.ConformalMap)
+    res = solve_auto(corridor(12).workspace, TOL, workers=1)
+    assert isinstance(res, Atlas) and len(res.charts) >= 3
