@@ -518,7 +518,8 @@ def main() -> int:
     try:
         PROCS["router"] = spawn("serve", "router", "--listen", ep, log=tmp / "router.log")
         time.sleep(1.0)
-        cache = Path(tempfile.gettempdir()) / "confnav-bench-cache"  # outside the repo
+        # outside the repo, one per commit (an older code's cached solutions may not load)
+        cache = Path(tempfile.gettempdir()) / f"confnav-bench-cache-{results['commit'][:12]}"
         PROCS["transform"] = spawn(
             "serve",
             "transform",
@@ -620,7 +621,8 @@ def report(results: dict[str, Any], rate: float, seconds: float) -> None:
         "(goals: own = every robot its own goal, changing = a new own goal every "
         f"{results['change_period_s']:g} s per robot, shared = one goal for all; navfn "
         f"{results['navfn']}; {results['publishers']} processes play the robots (poses at "
-        "independent phases, commands received per zone); latency = cmd_vel receipt - the pose's own stamp; "
+        "independent phases, commands received per zone); latency = cmd_vel receipt - the "
+        "pose's own stamp; "
         "superseded = poses replaced by a newer one of the same robot while the controller was "
         "busy; load = 1-min load average of the 2-core machine, shared with other work)"
     )
