@@ -574,6 +574,9 @@ def main() -> int:
                         )  # fmt: skip
                         row["controllers"] = n_ctl
                         results["runs"].append(row)
+                        # partial results survive an interrupted run
+                        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+                        Path(args.out).write_text(json.dumps(results, indent=1))
                         print(
                             f"{n_ctl} ctl {mode:>8} {n:4d} robots: p50 {row['p50_ms']:.2f} ms  "
                             f"p99 {row['p99_ms']:.2f} ms  lost {row['lost']}/{row['sent']}  "
