@@ -238,8 +238,8 @@ class GreenBasis:
                     break  # the geometric rate says max_terms will not do: give up now
                 i = max(i + 1, int(np.searchsorted(ladder, need)))
                 i = min(i, len(ladder) - 1)
-            if ok:
-                self._start = max(self._start, i)
+            # later goals start at the level this one reached (smaller ones did not do here)
+            self._start = max(self._start, i)
         diag = GreenDiagnostics(
             lv.n, lv.p, res, self.tol, ok, tuple(history), thr, tuple(int(j) for j in near), spent
         )
