@@ -5,27 +5,26 @@ beyond ``L/w ~ 11`` its far end is below double precision.  An atlas covers the 
 with small cells, each mapped on its own.  The cells come from overlapping tiles:
 
 1. a square grid of tiles of side ``tile`` covers the bounding box;
-2. each tile is enlarged by ``overlap`` on every side and intersected with the free space
-   (shapely); obstacles cut by the enlarged edge become notches of the cell's outer boundary;
-3. each piece is *opened* by ``rho`` (erosion then dilation with mitre joins, which restores
-   right-angle and other convex corners exactly): slivers thinner than ``2 rho`` between the
-   tile edge and an obstacle, and hairline gaps that would make a hole almost touch the outer
-   boundary (both crowd the map), are dropped; what remains of the piece, split into connected
-   components, gives the cells (components below ``min_area`` are dropped);
+2. each tile is enlarged by ``overlap * side`` (at least ``2 margin``) on every side, each
+   enlarged edge snapped inwards onto a boundary vertex just inside it, and intersected with
+   the free space (shapely); obstacles cut by the edge become notches of the outer boundary;
+3. each piece is cleaned (:func:`_pieces`): channels and slivers along the cut, thinner than
+   3/4 of the overlap, are removed, and so is a piece that does not reach into its tile's
+   core; the connected components left are the cells;
 4. a tile whose pieces are too crowded a priori -- the elongation ``area / (2 r)^2``, with
-   ``r`` the largest inscribed radius, above ``max_ratio`` (it is ``L/w`` for an L x w
-   rectangle), or more than ``max_obstacles`` holes -- is split into four, down to
-   ``min_tile``.
+   ``r`` the largest inscribed radius, above ``max_ratio`` (``max_ratio_holes`` for a piece
+   with obstacles; it is ``L/w`` for an L x w rectangle), or more than ``max_obstacles``
+   holes -- is split into four, down to ``min_tile``.
 
-Why it covers: a free point lies in the core (un-enlarged) square of some tile, at distance at
-least ``overlap`` from that tile's cut edges; the opening only removes material within ``2 rho``
-of a cut edge or inside a passage narrower than ``2 rho``, so with ``2 rho < overlap`` the core
-point stays in a cell unless the free space itself is thinner than ``2 rho`` there
-(:func:`Decomposition.uncovered_area` measures it; the tests require 0).
+Why it covers: a free point lies in the core (un-enlarged) square of some tile, at least 3/4 of
+that tile's overlap from its cut edges; cleaning removes nothing of the core except where the
+free space itself is thinner than the opening (:func:`Decomposition.uncovered_area` measures
+it; the tests require 0).
 
 Why tiles rather than medial-axis cuts: tiles need no skeleton (fragile on polygons with
 hundreds of vertices), bound every cell's size, hence its elongation and obstacle count, by
-construction, and give overlaps of a known width (``2 overlap`` across every tile edge).
+construction, and give overlaps of a known width (at least ``3 margin`` across a tile edge).
+See docs/ATLAS.md.
 """
 
 from __future__ import annotations
