@@ -10,6 +10,13 @@
 3. node-count scaling over ``confnav.solver.LEVELS`` (error and time exponents, least squares);
 4. obstacle-count scaling on ``mixed_obstacles(n, seed=0)`` at tol 1e-8 (time exponent in n);
 5. targets (issue): default workspace to 1e-10 in <= 1 s; 50 mixed obstacles to 1e-8 in <= 10 s.
+6. ``--certificate`` (issue 8, runs alone): near-touching mirror-symmetric square pairs (gaps
+   0.1, 0.01, 0.001 at tol 1e-8) and mirror-symmetric triangles: time, error estimate and its
+   parts, tol_met, and the true asymmetry (an exact lower bound of the error: the circle domain
+   of a mirror-symmetric workspace with the anchor on the axis is symmetric under
+   w -> -conj(w)); plus the default workspace against DESIGN.md sec. 5. Each case runs in a
+   child process with a time limit. Targets: gap 0.01 to 1e-8 in <= 10 s; no case claims an
+   accuracy it lacks (asymmetry <= error estimate).
 
 Wall times are real (perf_counter) times on a shared machine: the load average is recorded at the
 start and for every row, because other processes may use the same cores. The process CPU time
@@ -585,12 +592,209 @@ def print_targets(tg: list[dict[str, Any]]) -> None:
 # --------------------------------------------------------------------------------------------
 
 
+# 6. accuracy certificate (issue 8)
+# --------------------------------------------------------------------------------------------
+
+CERT_RESULTS = Path(__file__).resolve().parent / "results" / "core_certificate.json"
+CERT_TOL = 1e-8
+CERT_GAPS = (0.1, 0.01, 0.001)
+TARGET_GAP = (0.01, 1e-8, 10.0)  # (gap, tol, seconds)
+ROOM = [[-2, -2], [2, -2], [2, 2], [-2, 2]]
+
+
+def _case(name: str) -> confnav.Workspace:
+    if name.startswith("gap "):
+        g = float(name.split()[1]) / 2
+        left = [[-1 - g, -0.5], [-g, -0.5], [-g, 0.5], [-1 - g, 0.5]]
+        right = [[g, -0.5], [1 + g, -0.5], [1 + g, 0.5], [g, 0.5]]
+        return confnav.Workspace(ROOM, [left, right], anchor=[0, 1.5])
+    if name == "ring":  # 10x10 room, 0.2-wide ring corridor (issue 8, item 3)
+        room = [[0, 0], [10, 0], [10, 10], [0, 10]]
+        inner = [[0.2, 0.2], [9.8, 0.2], [9.8, 9.8], [0.2, 9.8]]
+        return confnav.Workspace(room, [inner], anchor=[0.1, 5])
+    if name == "triangles":
+        tri = np.array([0.3 + 0.2j, 1.1 + 0.4j, 0.7 + 1.0j])
+        return confnav.Workspace(ROOM, [-np.conj(tri)[::-1], tri], anchor=[0, -1])
+    return default_workspace()
+
+
+def _run_case(name: str, tol: float, out: Any) -> None:
+    """Child process: solve one case and send its row."""
+    ws = _case(name)
+    row: dict[str, Any] = {"case": name, "tol": tol}
+    t0 = time.perf_counter()
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", AccuracyWarning)
+            m = confnav.solve(ws, tol=tol)
+    except ConfnavError as exc:
+        row.update(wall_time=time.perf_counter() - t0, status=f"{type(exc).__name__}: {exc}")
+        out.send(row)
+        return
+    d = m.diagnostics
+    row.update(
+        wall_time=time.perf_counter() - t0,
+        status="map",
+        error_estimate=d.error_estimate,
+        discretisation_error=d.discretisation_error,
+        iteration_error=d.iteration_error,
+        iteration_converged=d.iteration_converged,
+        boundary_residual=d.boundary_residual,
+        tol_met=d.tol_met,
+        sweeps=d.sweeps,
+        nodes=sum(d.nodes),
+        radii=[float(r) for r in m.radii],
+    )
+    if name == "ring":
+        t1 = time.perf_counter()
+        nav = m.for_navigation()
+        row.update(
+            navigation_s=time.perf_counter() - t1,
+            navigation_nodes=nav.n_nodes,
+            full_nodes=m.n_nodes,
+            navigation_residual=nav.diagnostics.boundary_residual,
+        )
+    elif name == "default":
+        row["design_radii_error"] = float(np.max(np.abs(m.radii - DESIGN_RADII)))
+        row["design_centers_error"] = float(np.max(np.abs(m.centers - DESIGN_CENTERS)))
+        row["design_derivative_error"] = float(abs(abs(complex(m.dT(0))) - DESIGN_DERIVATIVE))
+    else:
+        row["asymmetry"] = float(
+            max(abs(m.radii[0] - m.radii[1]), abs(m.centers[0] + np.conj(m.centers[1])))
+        )
+        row["honest"] = bool(row["asymmetry"] <= max(d.error_estimate, 1e-15))
+    out.send(row)
+
+
+def certificate(limit_s: float) -> list[dict[str, Any]]:
+    import multiprocessing as mp
+
+    cases = [(f"gap {g:g}", CERT_TOL) for g in CERT_GAPS]
+    cases += [("triangles", 1e-9), ("default", 1e-10), ("ring", 1e-6)]
+    rows = []
+    ctx = mp.get_context("fork")
+    for name, tol in cases:
+        recv, send = ctx.Pipe(duplex=False)
+        load = load1()
+        t0 = time.perf_counter()
+        proc = ctx.Process(target=_run_case, args=(name, tol, send))
+        proc.start()
+        if recv.poll(limit_s):
+            row = recv.recv()
+        else:
+            row = {
+                "case": name,
+                "tol": tol,
+                "wall_time": time.perf_counter() - t0,
+                "status": f"no result within the {limit_s:.0f} s limit (stopped)",
+            }
+        proc.kill()
+        proc.join()
+        row["load1"] = load
+        rows.append(row)
+        print(_cert_line(row), flush=True)
+    return rows
+
+
+def _cert_line(r: dict[str, Any]) -> str:
+    head = f"  {r['case']:<10} tol {r['tol']:.0e}  {r['wall_time']:7.1f} s  load {r['load1']:.2f}"
+    if r["status"] != "map":
+        return f"{head}  {r['status'][:150]}"
+    if "asymmetry" in r:
+        extra = f"asymmetry {r['asymmetry']:.1e} " + (
+            "(honest)" if r["honest"] else "(CLAIMS TOO MUCH)"
+        )
+    elif "navigation_nodes" in r:
+        extra = (
+            f"for_navigation {r['navigation_s']:.1f} s: {r['navigation_nodes']} of "
+            f"{r['full_nodes']} nodes, residual {r['navigation_residual']:.1e}"
+        )
+    else:
+        extra = (
+            f"vs DESIGN radii {r['design_radii_error']:.1e}, centres "
+            f"{r['design_centers_error']:.1e}, |T'(0)| {r['design_derivative_error']:.1e}"
+        )
+    return (
+        f"{head}  est {r['error_estimate']:.1e} (disc {r['discretisation_error']:.1e}, it "
+        f"{r['iteration_error']:.1e}{'' if r['iteration_converged'] else ' NOT CONVERGED'}, "
+        f"residual {r['boundary_residual']:.1e})  tol_met {r['tol_met']}  {extra}"
+    )
+
+
+def certificate_targets(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    gap, tol, limit = TARGET_GAP
+    r = next(x for x in rows if x["case"] == f"gap {gap:g}")
+    ok = r["status"] == "map" and r["tol_met"] and r["wall_time"] <= limit
+    out = [
+        {
+            "name": f"two squares {gap:g} apart to {tol:.0e} in <= {limit:.0f} s",
+            "measured_s": r["wall_time"],
+            "status": "met" if ok else "missed",
+        }
+    ]
+    claims = [x for x in rows if "honest" in x]
+    out.append(
+        {
+            "name": "no symmetric case claims an accuracy it lacks (asymmetry <= estimate)",
+            "cases": [x["case"] for x in claims],
+            "status": "met" if all(x["honest"] for x in claims) else "missed",
+        }
+    )
+    d = next(x for x in rows if x["case"] == "default")
+    design_ok = (
+        d["status"] == "map"
+        and max(d["design_radii_error"], d["design_centers_error"], d["design_derivative_error"])
+        <= 6e-8
+    )
+    out.append(
+        {
+            "name": "default workspace matches DESIGN.md sec. 5 (7 digits)",
+            "status": "met" if design_ok else "missed",
+        }
+    )
+    return out
+
+
+def run_certificate(out_path: Path, limit_s: float) -> int:
+    info = machine_info()
+    code = code_info()
+    print(
+        f"confnav accuracy-certificate benchmark, {info['date']}, commit {code['commit'][:12]} "
+        f"(uncommitted: {', '.join(code['dirty_files']) or 'none'}), load average at start "
+        f"{' '.join(f'{x:.2f}' for x in info['loadavg_start'])}; each case in a child "
+        f"process, limit {limit_s:.0f} s\n",
+        flush=True,
+    )
+    rows = certificate(limit_s)
+    tg = certificate_targets(rows)
+    print("\nTargets")
+    for t in tg:
+        print(
+            f"  {t['name']}: {t['status']}"
+            + (f" ({t['measured_s']:.1f} s)" if "measured_s" in t else "")
+        )
+    info["loadavg_end"] = list(os.getloadavg())
+    result = {"machine": info, "code": code, "rows": rows, "targets": tg}
+    out_path.parent.mkdir(parents=True, exist_ok=True)
+    out_path.write_text(json.dumps(result, indent=1) + "\n")
+    print(f"load average at end {info['loadavg_end'][0]:.2f}; wrote {out_path}")
+    return 0
+
+
+# --------------------------------------------------------------------------------------------
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true", help="fewer tolerances/obstacles, 1 run")
     ap.add_argument("--runs", type=int, default=None, help="runs per tol (default 3, quick 1)")
-    ap.add_argument("--out", type=Path, default=RESULTS)
+    ap.add_argument("--out", type=Path, default=None)
+    ap.add_argument("--certificate", action="store_true", help="only the issue-8 rows (section 6)")
+    ap.add_argument("--limit", type=float, default=300.0, help="--certificate: s per case")
     args = ap.parse_args(argv)
+    if args.certificate:
+        return run_certificate(args.out or CERT_RESULTS, args.limit)
+    args.out = args.out or RESULTS
     runs = args.runs or (1 if args.quick else 3)
     tols = TOLS_QUICK if args.quick else TOLS_FULL
     counts = OBSTACLES_QUICK if args.quick else OBSTACLES_FULL

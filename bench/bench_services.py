@@ -1,22 +1,28 @@
 """Benchmark of the services over real Zenoh on loopback (separate processes).
 
-Measures, with a router, a transform service and a controller service each in their own
-process and this process playing the robots:
+Measures, with a router, a transform service and C controller processes each in their own
+process (the fleet sharded by robot key ranges: controller c subscribes only to its zones,
+``--robots z00r$*,z04r$*,...``, docs/SERVICES.md "Scale-out") and P processes playing the
+robots at 50 Hz each, at independent phases:
 
-- pose -> command latency (p50, p99; pose publish to cmd_vel receipt, same clock) and the
-  CPU of the controller and the router, for 1, 10, 100 and 200 robots at 50 Hz (all robots
-  share one goal, so the controller evaluates their poses in vectorized blocks);
-- messages lost (poses sent after the warm-up without a matching command);
-- coefficient query latency (``{prefix}/ws/default/transform``, the full solution);
-- solve-to-first-command time after a workspace update (re-solve + publish + hot swap).
+- pose -> command latency (p50, p99, max; pose stamp to cmd_vel receipt, same clock) and the
+  CPU of the controllers (summed) and the router, for each robot count and controller count
+  (the scaling curve), in three goal modes: ``own`` (every robot its own goal, all
+  different), ``changing`` (every robot gets a new goal of its own every few seconds,
+  staggered) and ``shared`` (all robots one goal: one vectorized call per pose block);
+- messages lost (poses sent after the warm-up neither answered nor superseded);
+- coefficient query latency and solve-to-first-command after a workspace update.
 
-Target (issue 4): 100 robots at 50 Hz with p99 <= 5 ms on loopback, zero messages lost.
-Prints a table and writes bench/results/services.json.  ``--quick``: shorter runs, 1/10/100.
+Targets: issue 4: 100 robots at 50 Hz, p99 <= 5 ms, none lost; issue 12 item 3: 500 robots at
+50 Hz across controller processes, p99 <= 5 ms, none lost (on 2 shared cores: "as far as they
+allow"; the load average is recorded with every row). Prints tables and writes
+bench/results/services.json with the commit. ``--quick``: 3 s rows, fewer cases.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import platform
@@ -27,11 +33,12 @@ import tempfile
 import threading
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
 from confnav.schemas import Goal, TransformSolution, WorkspaceDefinition, decode, encode
+from confnav.schemas.messages import NavFnName
 from confnav.services.bus import ZenohBus, zenoh_config
 from confnav.services.keys import Keys
 from confnav.services.launcher import SINGLE_THREAD_BLAS
@@ -82,6 +89,18 @@ def connect(ep: str) -> ZenohBus:
             time.sleep(0.3)
 
 
+ZONES = 12  # robots are named z{zone}r{index}; controllers take whole zones (12 = 1, 2, 3, 4, 6)
+
+
+def robot_id(i: int) -> str:
+    return f"z{i % ZONES:02d}r{i:03d}"
+
+
+def zone_selector(c: int, n_ctl: int) -> str:
+    """The ``--robots`` key range of controller c of n_ctl: every n_ctl-th zone."""
+    return ",".join(f"z{z:02d}r$*" for z in range(ZONES) if z % n_ctl == c)
+
+
 def free_points(n: int, seed: int = 1) -> list[complex]:
     from confnav.workspaces import default_workspace
 
@@ -95,11 +114,17 @@ def free_points(n: int, seed: int = 1) -> list[complex]:
     return pts
 
 
-def publish_poses(ep: str, n: int, rate: float, ticks: int, out: Any) -> None:
-    """Child process: N robots publish poses at ``rate`` Hz for ``ticks`` ticks, each robot
-    at its own phase (robot i at i/N of the period: independent robots, not one burst)."""
-    ids = [f"b{i:03d}" for i in range(n)]
-    pts = free_points(n)
+def publish_poses(
+    ep: str, n: int, rate: float, ticks: int, out: Any, part: int = 0, parts: int = 1
+) -> None:
+    """Child process: robots ``part::parts`` of N publish poses at ``rate`` Hz for ``ticks``
+    ticks, each robot at its own phase (robot i at i/N of the period: independent robots,
+    not one burst)."""
+    mine = list(range(part, n, parts))
+    ids = [robot_id(i) for i in mine]
+    allpts = free_points(n)
+    pts = [allpts[i] for i in mine]
+    phase = [i / n for i in mine]
     keys = [K.robot(r, "pose") for r in ids]
     period = 1.0 / rate
     late = 0
@@ -107,8 +132,8 @@ def publish_poses(ep: str, n: int, rate: float, ticks: int, out: Any) -> None:
         time.sleep(0.5)
         t0 = time.monotonic() + 0.1
         for seq in range(ticks):
-            for i, (rid, key, z) in enumerate(zip(ids, keys, pts, strict=True)):
-                due = t0 + (seq + i / n) * period
+            for ph, rid, key, z in zip(phase, ids, keys, pts, strict=True):
+                due = t0 + (seq + ph) * period
                 delay = due - time.monotonic()
                 if delay > 0:
                     time.sleep(delay)
@@ -138,7 +163,7 @@ class Commands:
         with self.lock:
             for _key, payload in items:
                 c = json.loads(payload)
-                if c["pose_seq"] >= self.first_seq and c["robot_id"].startswith("b"):
+                if c["pose_seq"] >= self.first_seq and c["robot_id"].startswith("z"):
                     self.lat_ns.append(now - c["pose_stamp_ns"])
                     self.seen.add((c["robot_id"], c["pose_seq"]))
 
@@ -164,39 +189,138 @@ class Health:
 HEALTH: Health | None = None
 
 
-def run_load(bus: ZenohBus, ep: str, n: int, rate: float, seconds: float) -> dict[str, Any]:
+GOAL_MODES = ("own", "changing", "shared")
+
+
+def make_goal(i: int, xy: tuple[float, float], navfn: str) -> Goal:
+    """Robot i's goal; KR with the seed's k = 6 (no per-goal k search), harmonic tuning-free."""
+    k = 6.0 if navfn == "kr" else None
+    return Goal(robot_id=robot_id(i), ws_id="default", goal=xy, gain=100.0, v_max=0.5,
+                navfn=cast(NavFnName, navfn), k=k)  # fmt: skip
+
+
+class GoalChanger:
+    """Gives every robot a new goal of its own every ``period`` s, staggered (one robot at a
+    time), from fresh random free points: every change is a new navigation function."""
+
+    def __init__(self, bus: ZenohBus, n: int, period: float, navfn: str) -> None:
+        self.bus, self.n, self.period, self.navfn = bus, n, period, navfn
+        self.pool = free_points(4000, seed=11)
+        self.changes = 0
+        self.stop = threading.Event()
+        self.th = threading.Thread(target=self._run, daemon=True)
+        self.th.start()
+
+    def _run(self) -> None:
+        step = self.period / self.n
+        t0 = time.monotonic()
+        k = 0
+        while not self.stop.is_set():
+            delay = t0 + k * step - time.monotonic()
+            if delay > 0:
+                time.sleep(delay)
+            z = self.pool[(k + 1000) % len(self.pool)]
+            i = k % self.n
+            self.bus.publish(
+                K.robot(robot_id(i), "goal"), encode(make_goal(i, (z.real, z.imag), self.navfn))
+            )
+            self.changes += 1
+            k += 1
+
+    def close(self) -> None:
+        self.stop.set()
+        self.th.join()
+
+
+def run_load(
+    bus: ZenohBus,
+    ep: str,
+    n: int,
+    rate: float,
+    seconds: float,
+    mode: str = "own",
+    navfn: str = "harmonic",
+    publishers: int = 1,
+    change_period: float = 5.0,
+    n_ctl: int = 1,
+    built_before: set[tuple[int, tuple[float, float]]] | None = None,
+) -> dict[str, Any]:
+    """One row: n robots at ``rate`` Hz for ``seconds`` s; ``built_before`` holds the
+    (controller, goal) pairs the running controllers have built already (cache hits)."""
+    if built_before is None:
+        built_before = set()
     import multiprocessing as mp
 
+    assert HEALTH is not None
+    built0 = HEALTH.total("controllers_built")
+    goals = free_points(n, seed=7)
+    need = 0  # controllers to build: new (controller process, goal) pairs
     for i in range(n):
-        g = Goal(robot_id=f"b{i:03d}", ws_id="default", goal=(0.0, 0.0), gain=100.0, v_max=0.5)
-        bus.publish(K.robot(f"b{i:03d}", "goal"), encode(g))
-    time.sleep(2.5 if n > 10 else 1.0)  # controllers built (shared goal: once)
+        xy = (0.0, 0.0) if mode == "shared" else (goals[i].real, goals[i].imag)
+        pair = ((i % ZONES) % n_ctl, xy)
+        need += pair not in built_before
+        built_before.add(pair)
+        bus.publish(K.robot(robot_id(i), "goal"), encode(make_goal(i, xy, navfn)))
+    t_goals = time.monotonic()
+    with contextlib.suppress(RuntimeError):  # reported below as built < need
+        wait(lambda: HEALTH.total("controllers_built") - built0 >= need, 300, "controllers")
+    build_s = time.monotonic() - t_goals
+    built = HEALTH.total("controllers_built") - built0
+    time.sleep(1.0)
     warm = int(rate)  # first second: warm-up
     ticks = warm + int(seconds * rate)
     cmds = Commands(bus, warm)
-    assert HEALTH is not None
     sup0 = HEALTH.total("poses_superseded")
+    poses0 = HEALTH.total("poses")
     ctx = mp.get_context("spawn")
     q = ctx.Queue()
-    child = ctx.Process(target=publish_poses, args=(ep, n, rate, ticks, q))
-    child.start()
+    children = [
+        ctx.Process(target=publish_poses, args=(ep, n, rate, ticks, q, p, publishers))
+        for p in range(publishers)
+    ]
+    for ch in children:
+        ch.start()
+    changer = GoalChanger(bus, n, change_period, navfn) if mode == "changing" else None
     time.sleep(0.6 + warm / rate)
-    pid_cpu = {}
-    return_cpu = _cpu_probe(pid_cpu)
+    load0 = os.getloadavg()
+    return_cpu = _cpu_probe({})
     t0 = time.monotonic()
-    child.join(seconds + 60)
+    for ch in children:
+        ch.join(seconds + 60)
     wall = time.monotonic() - t0
+    changes = 0
+    if changer is not None:
+        changer.close()
+        changes = changer.changes
+    # drain: every pose taken by a controller (an overloaded row must not spill into the
+    # next one); answers that come late count as answered, with their latency
+    t_drain = time.monotonic()
+    with contextlib.suppress(RuntimeError):
+        wait(lambda: HEALTH.total("poses") - poses0 >= n * ticks, 120, "drain")
+    drain_s = time.monotonic() - t_drain
     time.sleep(1.5)  # answers and one health period
-    cpu = return_cpu(wall)
+    cpu = return_cpu(time.monotonic() - t0)
+    load1 = os.getloadavg()
     superseded = HEALTH.total("poses_superseded") - sup0
-    late = q.get(timeout=5)["late"] if child.exitcode == 0 else -1
+    late = 0
+    for ch in children:
+        late += q.get(timeout=5)["late"] if ch.exitcode == 0 else 0
     cmds.sub.close()
     with cmds.lock:
         lat = np.array(cmds.lat_ns, dtype=float) / 1e6
         answered = len(cmds.seen)
     sent = n * (ticks - warm)
+    ctl_cpu = sum(v for k, v in cpu.items() if k.startswith("cpu_controller"))
     return {
         "robots": n,
+        "mode": mode,
+        "navfn": navfn,
+        "publishers": publishers,
+        "controllers_built": built,
+        "build_s": build_s,
+        "goal_changes": changes,
+        "publish_s": wall,
+        "drain_s": drain_s,  # CPU percentages are over publish + drain
         "sent": sent,
         "answered": answered,
         "unanswered": sent - answered,
@@ -208,6 +332,9 @@ def run_load(bus: ZenohBus, ep: str, n: int, rate: float, seconds: float) -> dic
         "p50_ms": float(np.percentile(lat, 50)) if lat.size else float("nan"),
         "p99_ms": float(np.percentile(lat, 99)) if lat.size else float("nan"),
         "max_ms": float(lat.max()) if lat.size else float("nan"),
+        "cpu_controllers_pct": ctl_cpu,
+        "loadavg_start": list(load0),
+        "loadavg_end": list(load1),
         **cpu,
     }
 
@@ -224,39 +351,158 @@ def _cpu_probe(store: dict[str, float]) -> Any:
     return done
 
 
+def measure_update(bus: ZenohBus) -> dict[str, float]:
+    """Solve-to-first-command after a workspace update (small room, one robot ``u1``)."""
+    room = WorkspaceDefinition(
+        ws_id="benchroom",
+        outer=[(-1, -1), (1, -1), (1, 1), (-1, 1)],
+        obstacles=[[(0.2, -0.2), (0.5, -0.2), (0.5, 0.2), (0.2, 0.2)]],
+        anchor=(0, 0),
+    )
+    got: list[tuple[int, str]] = []
+    bus.subscribe(
+        K.robot("u1", "cmd_vel"),
+        lambda k, p: got.append((time.time_ns(), json.loads(p).get("map_revision") or "")),
+    )
+    sols: list[TransformSolution] = []
+    bus.subscribe(
+        K.ws("benchroom", "transform"),
+        lambda k, p: sols.append(decode(TransformSolution, p)),
+    )
+    bus.publish(K.ws("benchroom", "definition"), encode(room))
+    wait(lambda: sols, 120, "room map")
+    bus.publish(
+        K.robot("u1", "goal"),
+        encode(Goal(robot_id="u1", ws_id="benchroom", goal=(-0.6, 0.0), gain=100.0)),
+    )
+    stop = threading.Event()
+
+    def poses() -> None:
+        s = 0
+        while not stop.is_set():
+            bus.publish(
+                K.robot("u1", "pose"),
+                (
+                    f'{{"robot_id":"u1","stamp_ns":{time.time_ns()},"seq":{s},"x":0.8,"y":0.8}}'
+                ).encode(),
+            )
+            s += 1
+            time.sleep(0.02)
+
+    th = threading.Thread(target=poses, daemon=True)
+    th.start()
+    wait(lambda: got and got[-1][1] == sols[0].revision, 30, "first command")
+    dy = float(np.random.default_rng().uniform(0, 0.1))  # a new geometry: no cache hit
+    moved = room.model_copy(
+        update={"obstacles": [[(0.2, -0.5 - dy), (0.5, -0.5 - dy), (0.5, -0.1 - dy)]]}
+    )
+    t_put = time.time_ns()
+    bus.publish(K.ws("benchroom", "definition"), encode(moved))
+    wait(lambda: len(sols) >= 2, 120, "re-solve")
+    t_first = wait(
+        lambda: next((t for t, rev in got if rev == sols[-1].revision), None), 60, "swap"
+    )
+    stop.set()
+    th.join()
+    return {
+        "solve_to_first_command_s": (t_first - t_put) / 1e9,
+        "solver_wall_time_s": sols[-1].diagnostics.wall_time,
+        "publish_to_command_s": (t_first - sols[-1].stamp_ns) / 1e9,
+    }
+
+
+def start_controllers(n_ctl: int, common: list[str], linger_ms: float, tmp: Path) -> None:
+    """n_ctl controller processes; with several, controller c takes zones c, c + n_ctl, ...
+    (and the update probe's robot ``u1`` goes to controller 0)."""
+    for c in range(n_ctl):
+        sel = ["--robots", zone_selector(c, n_ctl) + (",u1" if c == 0 else "")] if n_ctl > 1 else []
+        PROCS[f"controller{c}"] = spawn(
+            "serve",
+            "controller",
+            *common,
+            "--stale-after",
+            "2.0",
+            "--linger-ms",
+            str(linger_ms),
+            *sel,
+            log=tmp / f"controller{n_ctl}-{c}.log",
+        )
+
+
+def stop_procs(names: list[str]) -> None:
+    for name in names:
+        p = PROCS.pop(name, None)
+        if p is not None and p.poll() is None:
+            p.terminate()
+            try:
+                p.wait(10)
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait()
+
+
+def row_target(r: dict[str, Any]) -> str:
+    """Issue 4 (100 robots) and issue 12 (500 robots): p99 <= 5 ms and none lost."""
+    if r["robots"] not in (100, 500):
+        return ""
+    ok = r["p99_ms"] <= 5.0 and r["lost"] == 0 and r["superseded"] == 0
+    return "met" if ok else "MISSED"
+
+
+def commit() -> str:
+    try:
+        return subprocess.run(
+            ["git", "rev-parse", "HEAD"], cwd=HERE, capture_output=True, text=True, timeout=10
+        ).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    ap.add_argument("--quick", action="store_true", help="1/10/100 robots, 3 s each")
-    ap.add_argument("--robots", type=int, nargs="*", default=None)
+    ap.add_argument("--quick", action="store_true", help="3 s rows, 1-2 controllers, 100 robots")
+    ap.add_argument("--robots", type=int, nargs="*", default=None, help="robot counts (own goals)")
     ap.add_argument("--seconds", type=float, default=None)
     ap.add_argument("--rate", type=float, default=50.0)
     ap.add_argument("--linger-ms", type=float, default=0.0, help="controller --linger-ms")
-    ap.add_argument("--controllers", type=int, default=1, help="controller processes (shards)")
+    ap.add_argument(
+        "--controllers", type=int, nargs="*", default=None, help="controller counts (curve)"
+    )
+    ap.add_argument("--modes", nargs="*", default=list(GOAL_MODES), choices=GOAL_MODES)
+    ap.add_argument("--navfn", default="harmonic", choices=("harmonic", "kr"))
+    ap.add_argument("--publishers", type=int, default=2, help="robot-playing processes")
+    ap.add_argument("--change-period", type=float, default=5.0, help="s between goal changes")
+    ap.add_argument("--no-update", action="store_true", help="skip the workspace-update probe")
     ap.add_argument("--out", default=str(HERE / "results" / "services.json"))
     args = ap.parse_args()
-    counts = args.robots or ([1, 10, 100] if args.quick else [1, 10, 100, 200])
+    counts = args.robots or ([100] if args.quick else [100, 250, 500])
+    n_ctls = args.controllers or ([1, 2] if args.quick else [1, 2, 4])
     seconds = args.seconds or (3.0 if args.quick else 10.0)
 
     tmp = Path(tempfile.mkdtemp(prefix="confnav-bench-"))
     ep = f"tcp/127.0.0.1:{free_port()}"
     common = ["--mode", "client", "--connect", ep]
-    procs = PROCS
     results: dict[str, Any] = {
+        "commit": commit(),
+        "date": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         "machine": {"cpus": os.cpu_count(), "python": platform.python_version()},
+        "loadavg_start": list(os.getloadavg()),
         "endpoint": "tcp loopback",
         "rate_hz": args.rate,
-        "controllers": args.controllers,
+        "navfn": args.navfn,
+        "publishers": args.publishers,
+        "change_period_s": args.change_period,
         "linger_ms": args.linger_ms,
         "seconds": seconds,
         "runs": [],
     }
     try:
-        procs["router"] = spawn("serve", "router", "--listen", ep, log=tmp / "router.log")
+        PROCS["router"] = spawn("serve", "router", "--listen", ep, log=tmp / "router.log")
         time.sleep(1.0)
         cache = Path(tempfile.gettempdir()) / "confnav-bench-cache"  # outside the repo
-        procs["transform"] = spawn(
+        PROCS["transform"] = spawn(
             "serve",
             "transform",
             *common,
@@ -266,170 +512,154 @@ def main() -> int:
             str(cache),
             log=tmp / "transform.log",
         )
-        n_max = max(counts)
-        for c in range(args.controllers):
-            shard = [f"b{i:03d}" for i in range(n_max) if i % args.controllers == c]
-            robots_arg = ["--robots", ",".join([*shard, "u1"])] if args.controllers > 1 else []
-            procs["controller" if c == 0 else f"controller{c}"] = spawn(
-                "serve",
-                "controller",
-                *common,
-                "--stale-after",
-                "2.0",
-                "--linger-ms",
-                str(args.linger_ms),
-                *robots_arg,
-                log=tmp / f"controller{c}.log",
-            )
         with connect(ep) as bus:
             global HEALTH
             HEALTH = Health(bus)
-            wait(
-                lambda: (
-                    len(bus.alive(K.alive_of("controller"))) == args.controllers
-                    and bus.alive(K.alive_of("transform"))
-                ),
-                60,
-                "services",
-            )
-            print("waiting for the default workspace's map...", flush=True)
-            wait(
-                lambda: any(r.ok for r in bus.query(K.ws("default", "transform"), timeout=5)),
-                180,
-                "map",
-            )
-
-            # coefficient query latency
-            q = []
-            size = 0
-            for _ in range(30):
-                t0 = time.perf_counter()
-                [r] = bus.query(K.ws("default", "transform"), timeout=5)
-                q.append((time.perf_counter() - t0) * 1e3)
-                size = len(r.payload or b"")
-            results["query"] = {
-                "p50_ms": float(np.percentile(q, 50)),
-                "p99_ms": float(np.percentile(q, 99)),
-                "bytes": size,
-            }
-
-            for n in counts:
-                r = run_load(bus, ep, n, args.rate, seconds)
-                results["runs"].append(r)
-                print(
-                    f"{n:4d} robots: p50 {r['p50_ms']:.2f} ms  p99 {r['p99_ms']:.2f} ms  "
-                    f"lost {r['lost']}/{r['sent']}  controller CPU "
-                    f"{r['cpu_controller_pct']:.0f}%",
-                    flush=True,
+            for n_ctl in n_ctls:
+                start_controllers(n_ctl, common, args.linger_ms, tmp)
+                wait(
+                    lambda n_ctl=n_ctl: (
+                        len(bus.alive(K.alive_of("controller"))) == n_ctl
+                        and bus.alive(K.alive_of("transform"))
+                    ),
+                    60,
+                    "services",
                 )
-                time.sleep(1.0)
-
-            # solve-to-first-command after a workspace update (small room, one robot)
-            room = WorkspaceDefinition(
-                ws_id="benchroom",
-                outer=[(-1, -1), (1, -1), (1, 1), (-1, 1)],
-                obstacles=[[(0.2, -0.2), (0.5, -0.2), (0.5, 0.2), (0.2, 0.2)]],
-                anchor=(0, 0),
-            )
-            got: list[tuple[int, str]] = []
-            bus.subscribe(
-                K.robot("u1", "cmd_vel"),
-                lambda k, p: got.append((time.time_ns(), json.loads(p).get("map_revision") or "")),
-            )
-            sols: list[TransformSolution] = []
-            bus.subscribe(
-                K.ws("benchroom", "transform"),
-                lambda k, p: sols.append(decode(TransformSolution, p)),
-            )
-            bus.publish(K.ws("benchroom", "definition"), encode(room))
-            wait(lambda: sols, 120, "room map")
-            bus.publish(
-                K.robot("u1", "goal"),
-                encode(Goal(robot_id="u1", ws_id="benchroom", goal=(-0.6, 0.0), gain=100.0)),
-            )
-            stop = threading.Event()
-
-            def poses() -> None:
-                s = 0
-                while not stop.is_set():
-                    bus.publish(
-                        K.robot("u1", "pose"),
-                        (
-                            f'{{"robot_id":"u1","stamp_ns":{time.time_ns()},"seq":{s},"x":0.8,'
-                            f'"y":0.8}}'
-                        ).encode(),
+                if "query" not in results:
+                    print("waiting for the default workspace's map...", flush=True)
+                    wait(
+                        lambda: any(
+                            r.ok for r in bus.query(K.ws("default", "transform"), timeout=5)
+                        ),
+                        180,
+                        "map",
                     )
-                    s += 1
-                    time.sleep(0.02)
-
-            th = threading.Thread(target=poses, daemon=True)
-            th.start()
-            wait(lambda: got and got[-1][1] == sols[0].revision, 30, "first command")
-            dy = float(np.random.default_rng().uniform(0, 0.1))  # a new geometry: no cache hit
-            moved = room.model_copy(
-                update={"obstacles": [[(0.2, -0.5 - dy), (0.5, -0.5 - dy), (0.5, -0.1 - dy)]]}
-            )
-            t_put = time.time_ns()
-            bus.publish(K.ws("benchroom", "definition"), encode(moved))
-            wait(lambda: len(sols) >= 2, 120, "re-solve")
-            t_first = wait(
-                lambda: next((t for t, rev in got if rev == sols[-1].revision), None), 60, "swap"
-            )
-            stop.set()
-            th.join()
-            results["update"] = {
-                "solve_to_first_command_s": (t_first - t_put) / 1e9,
-                "solver_wall_time_s": sols[-1].diagnostics.wall_time,
-                "publish_to_command_s": (t_first - sols[-1].stamp_ns) / 1e9,
-            }
+                    q = []
+                    size = 0
+                    for _ in range(30):
+                        t0 = time.perf_counter()
+                        [r] = bus.query(K.ws("default", "transform"), timeout=5)
+                        q.append((time.perf_counter() - t0) * 1e3)
+                        size = len(r.payload or b"")
+                    results["query"] = {
+                        "p50_ms": float(np.percentile(q, 50)),
+                        "p99_ms": float(np.percentile(q, 99)),
+                        "bytes": size,
+                    }
+                built: set[tuple[int, tuple[float, float]]] = set()
+                for mode in args.modes:
+                    for n in counts if mode == "own" else [max(counts)]:
+                        row = run_load(
+                            bus, ep, n, args.rate, seconds, mode=mode, navfn=args.navfn,
+                            publishers=args.publishers, change_period=args.change_period,
+                            n_ctl=n_ctl, built_before=built,
+                        )  # fmt: skip
+                        row["controllers"] = n_ctl
+                        results["runs"].append(row)
+                        print(
+                            f"{n_ctl} ctl {mode:>8} {n:4d} robots: p50 {row['p50_ms']:.2f} ms  "
+                            f"p99 {row['p99_ms']:.2f} ms  lost {row['lost']}/{row['sent']}  "
+                            f"superseded {row['superseded']}  controllers CPU "
+                            f"{row['cpu_controllers_pct']:.0f}%  load {row['loadavg_end'][0]:.1f}",
+                            flush=True,
+                        )
+                        time.sleep(1.0)
+                if n_ctl == n_ctls[0] and not args.no_update:
+                    try:
+                        results["update"] = measure_update(bus)
+                    except RuntimeError as exc:
+                        results["update"] = {"error": str(exc)}
+                stop_procs([k for k in PROCS if k.startswith("controller")])
     finally:
-        for name in [n for n in procs if n.startswith("controller")] + ["transform", "router"]:
-            p = procs.get(name)
-            if p is not None and p.poll() is None:
-                p.terminate()
-                try:
-                    p.wait(10)
-                except subprocess.TimeoutExpired:
-                    p.kill()
-                    p.wait()
-
-    print()
-    print(f"pose -> command over Zenoh (tcp loopback), {args.rate:g} Hz per robot, {seconds:g} s")
-    hdr = (
-        f"{'robots':>6} {'msgs/s':>7} {'p50 ms':>7} {'p99 ms':>7} {'max ms':>7} {'lost':>5} "
-        f"{'superseded':>13} {'ctl CPU':>8} {'rtr CPU':>8} {'target':>7}"
-    )
-    print(hdr)
-    print("-" * len(hdr))
-    for r in results["runs"]:
-        ok = r["p99_ms"] <= 5.0 and r["lost"] == 0 and r["superseded"] == 0
-        target = ("met" if ok else "MISSED") if r["robots"] == 100 else ""
-        sup = f"{r['superseded']}/{r['sent']}"
-        print(
-            f"{r['robots']:>6} {r['robots'] * args.rate:>7.0f} {r['p50_ms']:>7.2f} "
-            f"{r['p99_ms']:>7.2f} {r['max_ms']:>7.1f} {r['lost']:>5} {sup:>13}"
-            f"{r['cpu_controller_pct']:>8.0f}% {r['cpu_router_pct']:>7.0f}% {target:>7}"
-        )
-    print(
-        f"(controllers: {args.controllers}; the robots publish at independent phases from a "
-        "separate process; latency = cmd_vel receipt - the pose's own stamp; superseded = "
-        "poses replaced by a newer one of the same robot while the controller was busy)"
-    )
-    qr = results["query"]
-    print(
-        f"\ncoefficient query ({qr['bytes'] / 1024:.0f} KiB): p50 {qr['p50_ms']:.2f} ms, "
-        f"p99 {qr['p99_ms']:.2f} ms"
-    )
-    up = results["update"]
-    print(
-        f"workspace update -> first command on the new map: {up['solve_to_first_command_s']:.2f} s"
-        f" (solver {up['solver_wall_time_s']:.2f} s, publish -> command "
-        f"{up['publish_to_command_s'] * 1e3:.0f} ms)"
-    )
+        stop_procs([k for k in PROCS if k.startswith("controller")] + ["transform", "router"])
+    results["loadavg_end"] = list(os.getloadavg())
+    report(results, args.rate, seconds)
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text(json.dumps(results, indent=1))
     print(f"\nwrote {args.out}")
     return 0
+
+
+def report(results: dict[str, Any], rate: float, seconds: float) -> None:
+    """The tables: every row, the scaling curve, the targets."""
+    print()
+    print(f"pose -> command over Zenoh (tcp loopback), {rate:g} Hz per robot, {seconds:g} s rows")
+    hdr = (
+        f"{'ctl':>3} {'goals':>8} {'robots':>6} {'msgs/s':>7} {'p50 ms':>7} {'p99 ms':>7} "
+        f"{'max ms':>7} {'lost':>5} {'superseded':>13} {'ctl CPU':>8} {'rtr CPU':>8} "
+        f"{'load':>5} {'target':>7}"
+    )
+    print(hdr)
+    print("-" * len(hdr))
+    for r in results["runs"]:
+        sup = f"{r['superseded']}/{r['sent']}"
+        print(
+            f"{r['controllers']:>3} {r['mode']:>8} {r['robots']:>6} {r['robots'] * rate:>7.0f} "
+            f"{r['p50_ms']:>7.2f} {r['p99_ms']:>7.2f} {r['max_ms']:>7.1f} {r['lost']:>5} "
+            f"{sup:>13}{r['cpu_controllers_pct']:>8.0f}% {r['cpu_router_pct']:>7.0f}% "
+            f"{r['loadavg_end'][0]:>5.1f} {row_target(r):>7}"
+        )
+    print(
+        "(goals: own = every robot its own goal, changing = a new own goal every "
+        f"{results['change_period_s']:g} s per robot, shared = one goal for all; navfn "
+        f"{results['navfn']}; robots publish at independent phases from "
+        f"{results['publishers']} processes; latency = cmd_vel receipt - the pose's own stamp; "
+        "superseded = poses replaced by a newer one of the same robot while the controller was "
+        "busy; load = 1-min load average of the 2-core machine, shared with other work)"
+    )
+    print("\nscaling curve (own goals): p99 ms by controller processes")
+    ctls = sorted({r["controllers"] for r in results["runs"]})
+    ns = sorted({r["robots"] for r in results["runs"] if r["mode"] == "own"})
+    print("robots " + " ".join(f"{c:>9} ctl" for c in ctls))
+    for n in ns:
+        cells = []
+        for c in ctls:
+            rr = [r for r in results["runs"] if r["mode"] == "own" and r["robots"] == n
+                  and r["controllers"] == c]  # fmt: skip
+            cells.append(
+                f"{rr[0]['p99_ms']:>9.2f}{'*' if rr[0]['lost'] or rr[0]['superseded'] else ' '}   "
+                if rr
+                else f"{'-':>13}"
+            )
+        print(f"{n:>6} " + " ".join(cells))
+    print("(* = poses lost or superseded)")
+    qr = results.get("query")
+    if qr:
+        print(
+            f"\ncoefficient query ({qr['bytes'] / 1024:.0f} KiB): p50 {qr['p50_ms']:.2f} ms, "
+            f"p99 {qr['p99_ms']:.2f} ms"
+        )
+    up = results.get("update")
+    if up and "error" in up:
+        print(f"workspace update -> first command: not measured ({up['error']})")
+    elif up:
+        print(
+            "workspace update -> first command on the new map: "
+            f"{up['solve_to_first_command_s']:.2f} s (solver {up['solver_wall_time_s']:.2f} s, "
+            f"publish -> command {up['publish_to_command_s'] * 1e3:.0f} ms)"
+        )
+    targets = []
+    for n, issue in ((100, "issue 4"), (500, "issue 12")):
+        rows = [r for r in results["runs"] if r["robots"] == n]
+        for r in rows:
+            targets.append(
+                {
+                    "target": f"{issue}: {n} robots at {rate:g} Hz, p99 <= 5 ms, 0 lost "
+                    f"({r['controllers']} controllers, {r['mode']} goals)",
+                    "p99_ms": r["p99_ms"],
+                    "lost": r["lost"],
+                    "superseded": r["superseded"],
+                    "met": row_target(r) == "met",
+                }
+            )
+    results["targets"] = targets
+    print("\ntargets:")
+    for t in targets:
+        print(
+            f"  {'met   ' if t['met'] else 'MISSED'}  {t['target']}: p99 {t['p99_ms']:.2f} ms, "
+            f"lost {t['lost']}, superseded {t['superseded']}"
+        )
+    print(f"load average: start {results['loadavg_start']}, end {results['loadavg_end']}")
 
 
 if __name__ == "__main__":

@@ -13,15 +13,20 @@ from confnav.errors import (
     ConfnavError,
     ConvergenceError,
     CrowdingError,
+    GapError,
+    MapMismatchError,
     NavigationError,
     SerializationError,
     SolverError,
     WorkspaceError,
 )
+from confnav.footprint import UnreachableGoalError, inflate
 from confnav.geometry import Workspace
+from confnav.mapimport import MapError, import_map
 from confnav.navfn import make_navfn
 from confnav.sim import simulate
 from confnav.solver import AccuracyWarning, solve
+from confnav.unicycle import UnicycleController, simulate_unicycle
 from confnav.workspaces import default_workspace
 
 __version__ = "0.1.0"
@@ -35,18 +40,26 @@ __all__ = [
     "Controller",
     "ConvergenceError",
     "CrowdingError",
+    "GapError",
+    "MapError",
+    "MapMismatchError",
     "NavigationError",
     "SerializationError",
     "SolveDiagnostics",
     "SolverError",
+    "UnicycleController",
+    "UnreachableGoalError",
     "Workspace",
     "WorkspaceError",
     "__version__",
     "choose_k",
     "default_workspace",
     "find_critical_points",
+    "import_map",
+    "inflate",
     "make_navfn",
     "simulate",
+    "simulate_unicycle",
     "solve",
     "solve_atlas",
     "solve_auto",

@@ -28,7 +28,14 @@ would keep their corner-singular parametrisation in every sweep: slower converge
 images of the nodes next to sharp tips coalesce and destabilise the iteration.
 
 Convergence is measured as the change of the passive nodes away from the vertices and of the
-centres; the loop also stops when that change stalls at the rounding floor.
+centres. The iteration converges linearly, its contraction factor rho depending on the geometry
+(~0.01 per sweep on the seed's workspace, but approaching 1 as two circles approach each other:
+the reflections that make up the Koebe/Schottky group move a circle by ~ (r/d)^2 of its
+neighbour's correction, and for nearly touching circles that ratio is close to 1). The loop
+stops only when the remaining error, extrapolated from the observed contraction as
+``change * rho / (1 - rho)`` (geometric tail), is below ``tol``; a run that stops making
+progress (rounding floor or a true stall) or reaches ``max_sweeps`` is returned with
+``converged = False`` and its extrapolated ``iteration_error``, never as converged.
 
 References
 ----------
@@ -46,23 +53,30 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from confnav.boundary import BoundaryMesh
 from confnav.diskmap import CurveMap, exterior_map, interior_map
 from confnav.errors import ConvergenceError, CrowdingError
 from confnav.geometry import ComplexArray, FloatArray
+from confnav.gnk import GMRES_RTOL
 
 #: Circles smaller than this (relative to the unit disk) cannot be resolved in double precision:
 #: the image nodes of such a boundary crowd together below rounding (DESIGN.md sec. 6).
 CROWDING_RADIUS = 1e-11
-MAX_SWEEPS = 80
-#: A sweep that does not reduce the change below this fraction of the best of the two before
-#: counts as stalled (the change has reached the discretisation or rounding floor).
-STALL_RATIO = 0.7
-#: Smooth-grid sizes: start, cap, and the Fourier tail (relative) that triggers doubling.
+MAX_SWEEPS = 200
+#: Sweeps without any decrease of the change (below the best of the three before) after which
+#: the iteration counts as stalled: at the rounding floor, or not converging at all.
+STALL_SWEEPS = 3
+#: Largest contraction factor used to extrapolate: a slower run is treated as stalled.
+RHO_MAX = 0.99
+#: Smooth-grid sizes: start, cap, and the smallest Fourier tail (relative) resolved: the grid
+#: resolves its curve to ``SMOOTH_PER_TOL * tol`` (the tail then adds nothing measurable to the
+#: map's error), but never below rounding, SMOOTH_TAIL.
 SMOOTH_START = 64
 SMOOTH_MAX = 16384
 SMOOTH_TAIL = 1e-15
+SMOOTH_PER_TOL = 1e-3
 
 
 @dataclass
@@ -80,6 +94,12 @@ class CircleDomainResult:
     gmres_iterations: int = 0
     smooth_nodes: list[int] = field(default_factory=list)
     wall_time: float = 0.0
+    #: Remaining error of the iteration, extrapolated from the observed contraction.
+    iteration_error: float = 0.0
+    #: False if the iteration stopped without meeting its tolerance (stall or sweep limit).
+    converged: bool = True
+    #: Relative Fourier tail of smooth grids that needed more than SMOOTH_MAX points (0: none).
+    resolution_error: float = 0.0
 
 
 def _winding(curve: ComplexArray, z: complex) -> float:
@@ -137,13 +157,16 @@ class _Boundary:
     dP: ComplexArray  # their t-derivatives
     mask: np.ndarray  # passive nodes away from vertices
     hole: bool
-    S: ComplexArray | None = None  # smooth grid (uniform in u), None before the first own map
-    dS: ComplexArray | None = None  # dS/du
+    S: ComplexArray | None = None  # smooth grid (uniform in s), None before the first own map
+    dS: ComplexArray | None = None  # dS/ds
     u: FloatArray | None = None  # parameter of each passive node along the smooth curve
     du: FloatArray | None = None  # du/dt at each passive node
     m: int = SMOOTH_START
+    c: complex = 0j  # Moebius grading of the smooth grid (0: uniform in angle)
+    tail: float = SMOOTH_TAIL  # Fourier tail (relative) the smooth grid must reach
+    capped_tail: float = 0.0  # Fourier tail of the grid while it is at SMOOTH_MAX (0: not)
 
-    def own_map(self, alpha: complex, others: ComplexArray) -> CurveMap:
+    def own_map(self, alpha: complex, others: ComplexArray, rtol: float) -> CurveMap:
         """Solve the disk map of this boundary's current image and move it onto |w| = 1.
 
         ``others`` are points of the other boundaries: if they have come closer to this curve
@@ -152,26 +175,29 @@ class _Boundary:
         """
         if self.S is not None:
             assert self.dS is not None
-            m = _grid_size(_gap(self.S, others))
+            m, capped = _local_grid_size(self.S, self.dS, others, self.tail)
+            self.capped_tail = _tail(self.S) if capped or self.S.size >= SMOOTH_MAX else 0.0
             if m > self.S.size:
                 self.S, self.dS = _upsample(self.S, m), _upsample(self.dS, m)
         if self.S is None:  # first sweep: the polygon, on its graded mesh
-            cm = (exterior_map if self.hole else interior_map)(self.P, self.dP, alpha)
+            cm = (exterior_map if self.hole else interior_map)(self.P, self.dP, alpha, rtol)
             sgn = -1.0 if self.hole else 1.0
             self.u = sgn * np.unwrap(np.angle(cm.f))
             self.u = self.u - 2 * np.pi * np.floor(self.u[0] / (2 * np.pi))
             self.du = sgn * (cm.df / cm.f).imag
         else:
             assert self.dS is not None and self.u is not None and self.du is not None
-            cm = (exterior_map if self.hole else interior_map)(self.S, self.dS, alpha)
+            cm = (exterior_map if self.hole else interior_map)(self.S, self.dS, alpha, rtol)
             sgn = -1.0 if self.hole else 1.0
-            grid = 2 * np.pi * np.arange(self.S.size) / self.S.size
+            s_grid = 2 * np.pi * np.arange(self.S.size) / self.S.size
+            grid = _mobius_grid(self.c, sgn, s_grid)[2]  # angle of each grid point when laid
             new = sgn * np.unwrap(np.angle(cm.f))
             new = new - 2 * np.pi * np.round((new[0] - grid[0]) / (2 * np.pi))
-            delta, ddelta = _trig_eval(new - grid, self.u)
-            self.du = self.du * (1.0 + ddelta)
+            s_u, ds_du = _mobius_param(self.c, sgn, self.u)
+            delta, ddelta = _trig_eval(new - grid, s_u)
+            self.du = self.du * (1.0 + ddelta * ds_du)
             self.u = self.u + delta
-            if _tail(self.S) > SMOOTH_TAIL:
+            if _tail(self.S) > self.tail:
                 self.m = min(2 * self.S.size, SMOOTH_MAX)  # under-resolved: at least double
         sgn = -1.0 if self.hole else 1.0
         self.P = np.exp(1j * sgn * self.u)
@@ -184,7 +210,11 @@ class _Boundary:
         if self.S is None:
             return self.P, self.dP
         assert self.dS is not None and self.u is not None and self.du is not None
-        return _trig_eval_complex(self.S, self.u), _trig_eval_complex(self.dS, self.u) * self.du
+        s_u, ds_du = _mobius_param(self.c, -1.0 if self.hole else 1.0, self.u)
+        return (
+            _trig_eval_complex(self.S, s_u),
+            _trig_eval_complex(self.dS, s_u) * ds_du * self.du,
+        )
 
     def regrid(self, others: ComplexArray) -> None:
         """Lay the smooth grid on the unit circle this boundary was just mapped to.
@@ -192,31 +222,116 @@ class _Boundary:
         The later maps are analytic outside (hole) / inside (outer) the other boundaries, which
         lie at relative distance delta from the circle; the Fourier coefficients of the curve
         then decay like (1 + delta)^-j, so m = 2 ln(1/eps) / ln(1 + delta) points resolve it.
+        Where another boundary comes close (delta small) on one side only, the grid is graded
+        towards it by a disk automorphism (:func:`_grading`): in the uniform parameter s the
+        close approach is magnified, and m follows from the gap seen in s.
         """
-        gap = float(np.min(np.abs(np.abs(others) - 1.0))) if others.size else 1.0
-        self.m = max(self.m, _grid_size(gap))
+        self.c, gap = _grading(others)
+        self.m = max(self.m, _grid_size(gap, self.tail)[0])
         sgn = -1.0 if self.hole else 1.0
-        grid = 2 * np.pi * np.arange(self.m) / self.m
-        self.S = np.exp(1j * sgn * grid)
-        self.dS = 1j * sgn * self.S
+        s_grid = 2 * np.pi * np.arange(self.m) / self.m
+        self.S, self.dS = _mobius_grid(self.c, sgn, s_grid)[:2]
 
 
-def _grid_size(gap: float) -> int:
+#: Grading strengths tried (|c| of the Moebius map); 0 = uniform. Above 0.999 the angle of
+#: the grid would come within ~0.1 rad of wrapping (see :func:`_mobius_grid`).
+GRADING_RHO = (0.0, 0.5, 0.8, 0.9, 0.95, 0.98, 0.99, 0.995, 0.998, 0.999)
+
+
+def _wrap(x: FloatArray) -> FloatArray:
+    return np.asarray((x + np.pi) % (2 * np.pi) - np.pi)
+
+
+def _mobius_grid(
+    c: complex, sgn: float, s: FloatArray
+) -> tuple[ComplexArray, ComplexArray, FloatArray, FloatArray]:
+    """Grid graded by the disk automorphism phi(z) = (z + c)/(1 + conj(c) z).
+
+    Returns z(s) = phi(e^{i sgn s}), dz/ds, the angle theta(s) = sgn arg z(s) (continuous,
+    theta(s) - s periodic) and theta'(s) = |phi'(e^{i sgn s})| = (1 - |c|^2)/|1 + conj(c) e|^2:
+    points are denser by (1 + |c|)/(1 - |c|) towards c/|c| (Henrici, Vol. 1, sec. 5.3: the
+    automorphisms of the disk map the circle onto itself).
+    """
+    e = np.exp(1j * sgn * s)
+    den = 1.0 + np.conj(c) * e
+    z = (e + c) / den
+    dphi = (1.0 - abs(c) ** 2) / den**2
+    theta = s + _wrap(sgn * np.angle(z) - s)
+    return np.asarray(z), np.asarray(dphi * 1j * sgn * e), theta, np.asarray(np.abs(dphi))
+
+
+def _mobius_param(c: complex, sgn: float, u: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """The grid parameter s of the circle point at angle u (inverse of :func:`_mobius_grid`)
+    and ds/du = |phi^-1'(e^{i sgn u})|."""
+    if c == 0:
+        return u, np.ones_like(u)
+    e = np.exp(1j * sgn * u)
+    den = 1.0 - np.conj(c) * e
+    zeta = (e - c) / den
+    s = u + _wrap(sgn * np.angle(zeta) - u)
+    return s, np.asarray((1.0 - abs(c) ** 2) / np.abs(den) ** 2)
+
+
+def _grading(others: ComplexArray) -> tuple[complex, float]:
+    """Moebius grading of a grid on the unit circle and the gap it leaves to ``others``.
+
+    The other boundaries at relative distance delta limit the Fourier decay of the curve; in
+    the graded parameter s they are seen through phi^-1, which preserves the circle. Of the
+    strengths :data:`GRADING_RHO` towards the nearest other point, the one whose smallest gap
+    in s is largest wins (0 when nothing is close: the uniform grid).
+    """
+    if others.size == 0:
+        return 0j, 1.0
+    dist = np.abs(np.abs(others) - 1.0)
+    k = int(np.argmin(dist))
+    if dist[k] > 0.05:  # nothing close: uniform (the grid is small anyway)
+        return 0j, float(dist[k])
+    direction = others[k] / abs(others[k])
+    best = (0j, float(dist[k]))
+    for rho in GRADING_RHO[1:]:
+        c = rho * direction
+        zeta = (others - c) / (1.0 - np.conj(c) * others)
+        gap = float(np.min(np.abs(np.abs(zeta) - 1.0)))
+        if gap > best[1]:
+            best = (complex(c), gap)
+    return best
+
+
+def _local_grid_size(
+    S: ComplexArray, dS: ComplexArray, others: ComplexArray, tail: float
+) -> tuple[int, bool]:
+    """Grid size for which every other point keeps the distance the tail needs from the curve.
+
+    A uniform grid with spacing h resolves an analytic curve to the Fourier ``tail`` while the
+    nearest singularity keeps d/h >= ln(1/tail)/pi away (that is m = 2 ln(1/tail)/delta on a
+    circle, delta = d/r); checked point by point with the local spacing |dS| 2pi/m of the
+    nearest grid point, so it holds for graded grids too.
+    """
+    m = S.size
+    if others.size == 0:
+        return m, False
+    tree = cKDTree(np.column_stack([S.real, S.imag]))
+    d, i = tree.query(np.column_stack([others.real, others.imag]))
+    h = np.abs(dS[i]) * 2 * np.pi / m
+    ratio = float(np.min(d / np.maximum(h, 1e-300)))
+    need_ratio = np.log(1 / tail) / np.pi
+    if ratio >= need_ratio:
+        return m, False
+    want = int(2 ** np.ceil(np.log2(m * need_ratio / max(ratio, 1e-12))))
+    return min(want, SMOOTH_MAX), want > SMOOTH_MAX
+
+
+def _grid_size(gap: float, tail: float) -> tuple[int, bool]:
     """Uniform grid size resolving an analytic curve whose nearest singularity is at relative
-    distance ``gap``: Fourier modes decay like (1 + gap)^-j (power of 2, capped)."""
+    distance ``gap`` to a relative Fourier ``tail``: modes decay like (1 + gap)^-j, so
+    m = 2 ln(1/tail) / ln(1 + gap) (power of 2, capped at
+    :data:`SMOOTH_MAX`); the flag says the cap was hit (the grid is then under-resolved and
+    its Fourier tail is reported as ``resolution_error``)."""
     if not np.isfinite(gap):
         raise ConvergenceError("a boundary image became non-finite (NaN or inf)")
-    need = 2 * np.log(1 / SMOOTH_TAIL) / np.log1p(max(gap, 1e-6))
-    return min(int(2 ** np.ceil(np.log2(max(need, SMOOTH_START)))), SMOOTH_MAX)
-
-
-def _gap(curve: ComplexArray, others: ComplexArray) -> float:
-    """Distance of ``others`` from a near-circular curve, relative to its radius."""
-    if others.size == 0:
-        return 1.0
-    c = curve.mean()
-    r = float(np.mean(np.abs(curve - c)))
-    return float(np.min(np.abs(np.abs(others - c) - r)) / r)
+    need = 2 * np.log(1 / tail) / np.log1p(max(gap, 1e-6))
+    m = int(2 ** np.ceil(np.log2(max(need, SMOOTH_START))))
+    return min(m, SMOOTH_MAX), m > SMOOTH_MAX
 
 
 def _upsample(samples: ComplexArray, m: int) -> ComplexArray:
@@ -272,6 +387,7 @@ def koebe_iteration(
     tol: float,
     max_sweeps: int = MAX_SWEEPS,
     progress: Callable[[int, float], None] | None = None,
+    gmres_tol: float = GMRES_RTOL,
 ) -> CircleDomainResult:
     """Run the iteration on graded meshes (outer counter-clockwise, holes clockwise).
 
@@ -284,11 +400,20 @@ def koebe_iteration(
     anchor
         The point sent to 0.
     tol
-        Stop when the change of the boundary images (away from vertices) is below ``tol``.
+        Stop when the remaining error, extrapolated from the change of the boundary images
+        (away from vertices) and its observed contraction, is below ``tol``.
+    gmres_tol
+        Relative residual of every GNK solve (:func:`confnav.gnk.gmres_rtol`).
     """
     t0 = time.perf_counter()
     bnds = [
-        _Boundary(P=m.eta.copy(), dP=m.deta.copy(), mask=m.interior_mask(), hole=j > 0)
+        _Boundary(
+            P=m.eta.copy(),
+            dP=m.deta.copy(),
+            mask=m.interior_mask(),
+            hole=j > 0,
+            tail=max(SMOOTH_TAIL, SMOOTH_PER_TOL * tol),
+        )
         for j, m in enumerate(meshes)
     ]
     M = len(meshes) - 1
@@ -310,7 +435,7 @@ def koebe_iteration(
                     f"Koebe iteration lost track of obstacle {k - 1} in sweep {sweep} "
                     "(its tracked point left the boundary image)"
                 )
-            F = _own_map(b, c[k - 1], f"obstacle {k - 1}", meshes[k], _curves(bnds, k))
+            F = _own_map(b, c[k - 1], f"obstacle {k - 1}", meshes[k], _curves(bnds, k), gmres_tol)
             gm_its += F.gmres_iterations
             others = np.concatenate([[a], np.delete(c, k - 1)])
             out = _apply(F, bnds, k, others)
@@ -318,7 +443,7 @@ def koebe_iteration(
             img, dimg = out[: others.size], out[others.size :]
             a, D = complex(img[0]), D * complex(dimg[0])
             c = np.insert(img[1:], k - 1, 0.0)
-        f0 = _own_map(bnds[0], a, "the outer boundary", meshes[0], _curves(bnds, 0))
+        f0 = _own_map(bnds[0], a, "the outer boundary", meshes[0], _curves(bnds, 0), gmres_tol)
         gm_its += f0.gmres_iterations
         out = _apply(f0, bnds, 0, c)
         _regrid(bnds[0], _curves(bnds, 0), "the outer boundary", sweep)
@@ -345,15 +470,15 @@ def koebe_iteration(
                 f"obstacle {j}'s circle has radius {radii[j]:.1e}: too small to resolve in double "
                 "precision (crowding: a long, narrow passage leads to it)"
             )
-        if change < tol:
+        remaining, converged = _remaining_error(history)
+        if converged and remaining <= tol:
             break
-        if sweep >= 4 and change > STALL_RATIO * min(history[-3:-1]):
-            break  # stalled at the discretisation/rounding floor: the error estimate decides
+        if len(history) > STALL_SWEEPS and change >= min(history[-STALL_SWEEPS - 1 : -1]):
+            converged = False  # no progress: rounding floor or a true stall -- reported
+            break
     else:
-        raise ConvergenceError(
-            f"Koebe iteration did not converge in {max_sweeps} sweeps (last change "
-            f"{history[-1]:.2e} > tol {tol:.1e})"
-        )
+        converged = False  # sweep limit: the extrapolated remaining error is reported
+    iteration_error = remaining if converged and remaining <= tol else _stalled_error(history)
     rot = complex(np.exp(-1j * np.angle(D)))
     passive = [b.passive() for b in bnds]
     W = [p[0] * rot for p in passive]
@@ -375,15 +500,52 @@ def koebe_iteration(
         gmres_iterations=gm_its,
         smooth_nodes=[b.m for b in bnds],
         wall_time=time.perf_counter() - t0,
+        iteration_error=iteration_error,
+        converged=bool(converged and iteration_error <= tol),
+        resolution_error=max(b.capped_tail for b in bnds),
     )
 
 
+def _remaining_error(history: list[float]) -> tuple[float, bool]:
+    """Error left after the last sweep, from the observed linear contraction.
+
+    With changes h_n shrinking by rho per sweep the iterate is h_n rho / (1 - rho) from the
+    limit (geometric tail; Aitken's delta^2 estimate). rho is the larger of the last two
+    observed ratios (the safe side; one after two sweeps); a single sweep gives no estimate.
+    """
+    if len(history) < 2:
+        return float("inf"), False
+    h = history
+    rho = max(h[i] / max(h[i - 1], 1e-300) for i in range(max(1, len(h) - 2), len(h)))
+    if rho >= RHO_MAX:
+        return float("inf"), False
+    return h[-1] * rho / (1 - rho), True
+
+
+def _stalled_error(history: list[float]) -> float:
+    """Error bound of an iteration stopped before its tolerance was met.
+
+    While the change still contracts (sweep limit reached) the geometric tail applies; once it
+    stalls, the iterates wander within the last changes and the limit is known no better than
+    the largest of them, extrapolated with the slowest contraction accepted (RHO_MAX is not:
+    a stall at the rounding floor is taken at face value, ``max(last changes)``)."""
+    remaining, ok = _remaining_error(history)
+    if ok:
+        return max(remaining, history[-1])
+    return max(history[-STALL_SWEEPS - 1 :])
+
+
 def _own_map(
-    b: _Boundary, alpha: complex, name: str, mesh: BoundaryMesh, others: ComplexArray
+    b: _Boundary,
+    alpha: complex,
+    name: str,
+    mesh: BoundaryMesh,
+    others: ComplexArray,
+    rtol: float,
 ) -> CurveMap:
     """``b.own_map`` with failures reported against the boundary and its sharpest corner."""
     try:
-        return b.own_map(alpha, others)
+        return b.own_map(alpha, others, rtol)
     except ConvergenceError as exc:
         v = mesh.eta[mesh.tau == 0]
         turn = np.angle((np.roll(v, -1) - v) / (v - np.roll(v, 1)))
@@ -405,9 +567,12 @@ def _regrid(b: _Boundary, others: ComplexArray, name: str, sweep: int) -> None:
 
 
 def _radius(b: _Boundary, center: complex) -> float:
-    """Mean distance of the smooth grid (uniform in angle) from the centre."""
-    pts = b.S if b.S is not None else b.P
-    return float(np.mean(np.abs(pts - center)))
+    """Mean distance of the smooth grid from the centre (weighted uniform in angle)."""
+    if b.S is None:
+        return float(np.mean(np.abs(b.P - center)))
+    s = 2 * np.pi * np.arange(b.S.size) / b.S.size
+    w = _mobius_grid(b.c, -1.0 if b.hole else 1.0, s)[3]
+    return float(np.sum(np.abs(b.S - center) * w) / np.sum(w))
 
 
 __all__ = ["CROWDING_RADIUS", "CircleDomainResult", "koebe_iteration"]

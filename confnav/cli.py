@@ -18,6 +18,7 @@ from confnav.errors import ConfnavError
 SUBCOMMAND_MODULES: tuple[str, ...] = (
     "confnav.cli_solve",
     "confnav.cli_simulate",
+    "confnav.cli_import_map",
     "confnav.cli_atlas",
     "confnav.services.cli",
     "confnav.services.cli_replay",

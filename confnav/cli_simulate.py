@@ -1,7 +1,13 @@
 """``confnav simulate`` and ``confnav figures``: drive robots with the Theorem 2 law.
 
 ``confnav simulate WS.json --goal=X,Y (--starts="X,Y;X,Y" | --random N --seed S)
-[--navfn harmonic|kr] [--k auto|6] [--gain 1] [--vmax V] [--json OUT.json] [--plot OUT.png]``
+[--navfn harmonic|kr] [--k auto|6] [--speed-law normalized|theorem2] [--gain G] [--vmax V]
+[--json OUT.json] [--plot OUT.png] [--require RATE]``
+
+Defaults are the library's (:mod:`confnav.defaults`): navigation succeeds without tuning
+flags.  Prints a per-robot table (start, outcome, reason, time, path ratio, min clearance)
+for up to 20 robots and the failures beyond; ``--require RATE`` exits 1 when the success rate
+is below RATE.
 
 ``confnav figures [--out DIR]``: the seed's Fig. 2/3 (default workspace, four starts) for both
 navigation functions.
@@ -62,8 +68,17 @@ def register(subparsers: Any) -> None:
     g.add_argument("--random", type=int, metavar="N", help="N random starts in free space")
     p.add_argument("--seed", type=int, default=0, help="seed for --random")
     p.add_argument("--map", type=Path, help="a solved map (JSON) instead of solving")
+    p.add_argument("--robot-radius", type=float, default=0.0, help="disk robot radius (m)")
+    p.add_argument("--unicycle", type=float, metavar="D", help="differential drive, look-ahead D")
+    p.add_argument("--omega-max", type=float, default=2.0, help="unicycle yaw-rate limit")
     _law_options(p)
-    p.add_argument("--t-max", type=float, default=1e4, help="time limit per robot")
+    p.add_argument("--t-max", type=float, default=1e4, help="time limit per robot (s)")
+    p.add_argument(
+        "--require",
+        type=float,
+        metavar="RATE",
+        help="exit 1 if the success rate (0..1) is below RATE",
+    )
     p.add_argument("--json", type=Path, help="write runs and summary here")
     p.add_argument("--plot", type=Path, help="write a figure with the trajectories here")
     p.set_defaults(func=run_simulate)
@@ -85,49 +100,86 @@ def register(subparsers: Any) -> None:
 
 
 def _law_options(p: argparse.ArgumentParser) -> None:
+    from confnav import defaults
+
     p.add_argument(
         "--navfn",
         choices=("harmonic", "kr"),
-        default="harmonic",
-        help="navigation function (default harmonic: tuning-free)",
+        default=defaults.NAVFN,
+        help="navigation function (default %(default)s: tuning-free)",
     )
     p.add_argument(
         "--k", type=_k, default="auto", help="k of KR: a number (seed: 6) or auto (default)"
     )
-    p.add_argument("--gain", type=float, default=1.0, help="gain K")
-    p.add_argument("--vmax", type=float, default=float("inf"), help="speed limit")
-    p.add_argument("--tol", type=float, default=1e-3, help="goal tolerance")
+    p.add_argument(
+        "--speed-law",
+        choices=defaults.SPEED_LAWS,
+        default=defaults.SPEED_LAW,
+        help="normalized: unit direction times min(v_max, gain*distance) (default); "
+        "theorem2: the plain law -gain conj(T') grad phi saturated at v_max",
+    )
+    p.add_argument(
+        "--gain",
+        type=float,
+        default=defaults.GAIN,
+        help="1/s for normalized, K for theorem2 (default %(default)s)",
+    )
+    p.add_argument(
+        "--vmax", type=float, default=defaults.V_MAX, help="speed limit, m/s (default %(default)s)"
+    )
+    p.add_argument(
+        "--tol",
+        type=float,
+        default=defaults.GOAL_TOL,
+        help="goal tolerance, m (default %(default)s)",
+    )
 
 
 def _load_map(args: argparse.Namespace, ws: Any) -> Any:
     import confnav
 
     if getattr(args, "map", None):
-        return confnav.ConformalMap.from_json(Path(args.map).read_text()).for_navigation()
+        cmap = confnav.ConformalMap.from_json(Path(args.map).read_text())
+        cmap.check_workspace(ws)  # a map of another workspace: MapMismatchError, exit != 0
+        return cmap.for_navigation()
     t0 = time.perf_counter()
-    cmap = confnav.solve(ws).for_navigation()
-    log.info("solved map in %.2f s", time.perf_counter() - t0)
+    print(f"solving the conformal map of {ws.n_obstacles} obstacles...", file=sys.stderr)
+
+    def progress(msg: str) -> None:
+        print(f"  [{time.perf_counter() - t0:6.1f} s] {msg}", file=sys.stderr, flush=True)
+
+    cmap = confnav.solve(ws, progress=progress).for_navigation()
+    print(f"map solved in {time.perf_counter() - t0:.1f} s", file=sys.stderr)
     return cmap
 
 
 def run_simulate(args: argparse.Namespace) -> int:
     from confnav.control import Controller
+    from confnav.footprint import inflate
     from confnav.geometry import Workspace
     from confnav.scenarios import random_starts
     from confnav.shortest_path import ShortestPaths
-    from confnav.sim import simulate
+    from confnav.unicycle import simulate_robots
 
     ws = Workspace.load(args.workspace)
-    cmap = _load_map(args, ws)
+    if args.require is not None and not 0 <= args.require <= 1:
+        raise NavigationError("--require needs a rate in [0, 1]")
+    body = args.robot_radius + (args.unicycle or 0.0)  # the footprint shrinks the free space
+    named = {f"start {k}": z for k, z in enumerate(args.starts or [])}
+    nav_ws = inflate(ws, body, keep=args.goal, require=named) if body else ws
+    cmap = _load_map(args, nav_ws)
     ctl = Controller(
         cmap,
         args.goal,
         navfn=args.navfn,
         k=args.k,
+        speed_law=args.speed_law,
         gain=args.gain,
         v_max=args.vmax,
         goal_tol=args.tol,
     )
+    if ctl.fallback:
+        print(f"note: {ctl.fallback}", file=sys.stderr)
     if args.navfn == "kr" and args.k != "auto":
         cp = ctl.check()
         if not cp.ok:
@@ -139,14 +191,27 @@ def run_simulate(args: argparse.Namespace) -> int:
     if args.random is not None:
         if args.random < 1:
             raise NavigationError("--random needs N >= 1")
-        starts = random_starts(ws, args.random, args.seed, margin=0.05)
+        starts = random_starts(nav_ws, args.random, args.seed, margin=0.05 + (args.unicycle or 0))
     else:
         starts = np.array(args.starts, dtype=np.complex128)
-    res = simulate(ctl, starts, t_max=args.t_max, record_paths=args.plot is not None)
-    shortest = ShortestPaths(ws, ctl.goal).lengths(res.starts)
+    res = simulate_robots(
+        ctl,
+        starts,
+        workspace=ws,
+        radius=args.robot_radius,
+        lookahead=args.unicycle,
+        omega_max=args.omega_max,
+        seed=args.seed,
+        t_max=args.t_max,
+        record_paths=args.plot is not None,
+    )
+    shortest = ShortestPaths(nav_ws, ctl.goal).lengths(res.starts)
     runs = [r.to_dict() for r in res.runs()]
     for r, s in zip(runs, shortest, strict=True):
         r["shortest_path"] = float(s)
+        r["path_ratio"] = (
+            r["path_length"] / float(s) if r["success"] and np.isfinite(s) and s > 0 else None
+        )
     ok = res.success & np.isfinite(shortest) & (shortest > 0)
     ratio = res.path_length[ok] / shortest[ok]
     summary = {
@@ -155,6 +220,7 @@ def run_simulate(args: argparse.Namespace) -> int:
         "collisions": int(res.collided.sum()),
         "stalled": int((res.status == 2).sum()),
         "timeouts": int((res.status == 3).sum()),
+        "errors": int((res.status == 4).sum()),
         "median_path_ratio": float(np.median(ratio)) if ratio.size else None,
         "median_time": float(np.median(res.time[res.success])) if res.success.any() else None,
         "min_clearance": float(np.min(res.min_clearance)),
@@ -163,16 +229,20 @@ def run_simulate(args: argparse.Namespace) -> int:
     params = {
         "navfn": ctl.navfn.name,
         "k": getattr(ctl.navfn, "k", None),
+        "fallback": ctl.fallback or None,
+        "speed_law": ctl.speed_law,
         "gain": ctl.gain,
         "v_max": None if not np.isfinite(ctl.v_max) else ctl.v_max,
         "goal": [ctl.goal.real, ctl.goal.imag],
         "goal_tol": ctl.goal_tol,
     }
+    print(run_table(runs))
     print(
         f"{summary['n']} robots, {params['navfn']}"
         + (f" k={params['k']:g}" if params["k"] is not None else "")
-        + f": success {100 * res.success_rate:.1f}%, collisions {summary['collisions']}, "
-        f"stalled {summary['stalled']}, timeouts {summary['timeouts']}, median path ratio "
+        + f", {ctl.speed_law} law: success {100 * res.success_rate:.1f}%, collisions "
+        f"{summary['collisions']}, stalled {summary['stalled']}, timeouts {summary['timeouts']}"
+        f", median path ratio "
         + (f"{summary['median_path_ratio']:.3f}" if summary["median_path_ratio"] else "n/a")
     )
     if args.json:
@@ -186,8 +256,57 @@ def run_simulate(args: argparse.Namespace) -> int:
     if args.plot:
         from confnav.plot_navigation import save_navigation_figure
 
-        save_navigation_figure(ctl, res.paths or (), args.plot, title=str(args.workspace))
+        save_navigation_figure(
+            ctl,
+            res.paths or (),
+            args.plot,
+            title=f"{args.workspace}: {100 * res.success_rate:.1f}% of {summary['n']} arrived",
+            outcomes=[r["status"] for r in runs],
+        )
+    if args.require is not None and res.success_rate < args.require:
+        print(
+            f"FAIL: success rate {res.success_rate:.4f} is below --require {args.require:g}",
+            file=sys.stderr,
+        )
+        return 1
     return 0
+
+
+TABLE_ROWS = 20
+
+
+def run_table(runs: list[dict[str, Any]], max_rows: int = TABLE_ROWS) -> str:
+    """Per-robot table (start, outcome, reason, time, path ratio, min clearance) for the first
+    ``max_rows`` robots, then one line per failure beyond them."""
+    head = ("#", "start [m]", "outcome", "time [s]", "path ratio", "min clear [m]", "reason")
+    rows: list[tuple[str, ...]] = [head]
+    for i, r in enumerate(runs[:max_rows]):
+        rows.append(_row(i, r))
+    widths = [max(len(row[c]) for row in rows) for c in range(len(head) - 1)]
+    lines = ["  ".join(c.ljust(w) for c, w in zip(row[:-1], widths, strict=True)) + "  " + row[-1]
+             for row in rows]  # fmt: skip
+    lines.insert(1, "-" * len(lines[0]))
+    failed = [(i, r) for i, r in enumerate(runs) if i >= max_rows and not r["success"]]
+    if len(runs) > max_rows:
+        lines.append(
+            f"... {len(runs) - max_rows} more robots, {len(failed)} of them failed"
+            + (":" if failed else "")
+        )
+        lines += ["  " + "  ".join(_row(i, r)) for i, r in failed]
+    return "\n".join(lines)
+
+
+def _row(i: int, r: dict[str, Any]) -> tuple[str, ...]:
+    ratio = r.get("path_ratio")
+    return (
+        str(i),
+        f"({r['start'][0]:.2f}, {r['start'][1]:.2f})",
+        r["status"],
+        f"{r['time']:.1f}",
+        "-" if ratio is None else f"{ratio:.3f}",
+        f"{r['min_clearance']:.3f}",
+        r.get("reason", ""),
+    )
 
 
 def _jsonable(x: Any) -> Any:

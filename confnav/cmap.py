@@ -21,7 +21,7 @@ from __future__ import annotations
 import base64
 import hashlib
 import json
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -29,21 +29,47 @@ import shapely
 from numpy.typing import ArrayLike
 
 from confnav.cauchy import FMM_THRESHOLD, cauchy_sums, cauchy_sums2
-from confnav.errors import SerializationError
+from confnav.errors import MapMismatchError, SerializationError
+from confnav.expansion import LocalExpansions
 from confnav.geometry import ComplexArray, FloatArray, Workspace, distance_to_boundary
 
 FORMAT = "confnav.map"
 #: Points this close to the boundary (relative to the workspace size) count as on it.
 BOUNDARY_RTOL = 1e-12
-FORMAT_VERSION = 1
+#: Version 2 added ``workspace_hash`` and the full error budget of the diagnostics (iteration
+#: error, boundary residual). Version 1 maps are refused: their error estimate could not see an
+#: iteration stopped early (issue 8), so loading them would pass on an unverified accuracy.
+FORMAT_VERSION = 2
+#: Where the boundary residual is checked besides the midpoints between nodes: fractions of
+#: every side, graded geometrically towards both of its corners (and the side's midpoint).
+CORNER_FRACTIONS = (0.5, 0.1, 1e-2, 1e-3, 1e-4)
+#: The residual is certified down to this distance from every corner, relative to the shorter
+#: side at the corner (1e-4: 50 um on a 0.5 m side). Closer to a corner of an obstacle (a
+#: re-entrant corner of the free space) the node images carry rounding of ~1e-9 and T was
+#: measured 2e-9 (at 1e-6) to 1e-6 (at 1e-11) off its circle on the seed's workspace -- far
+#: inside any robot's clearance, but not within a tight tol, so it is not claimed.
+CORNER_ZONE = 1e-4
+#: Batches at least this large build the local expansions (confnav/expansion.py) of any map.
+EXPANSION_MIN_POINTS = 20_000
 
 
 @dataclass
 class SolveDiagnostics:
     """How the map was obtained and how accurate it is believed to be.
 
-    ``error_estimate`` is the largest change of any centre or radius between the final solve and
-    a solve on a coarser mesh (an upper bound in practice, since the error decays like n^-5).
+    ``error_estimate`` is the largest of every error source, each measured independently:
+
+    * ``discretisation_error``: extrapolated change of the centres and radii between mesh
+      levels (:mod:`confnav.solver`);
+    * ``iteration_error``: the Koebe iteration's remaining error, extrapolated from its
+      observed contraction (``iteration_converged`` is False if it stalled or hit its limit);
+    * ``boundary_residual``: the largest distance of T(z) from its circle over points *between*
+      the nodes on every side (midpoints and points graded towards every corner), an
+      a-posteriori check of the map actually returned (:meth:`ConformalMap.boundary_residual`);
+    * ``resolution_error``: the Fourier tail of any smooth grid held at its size cap.
+
+    ``tol_met`` is true only if all of them are within ``tol`` and no size cap was hit
+    (``caps`` lists any that were).
     """
 
     tol: float
@@ -56,13 +82,52 @@ class SolveDiagnostics:
     circularity: float
     gmres_iterations: int
     wall_time: float
+    discretisation_error: float
+    iteration_error: float
+    iteration_converged: bool
+    boundary_residual: float
+    resolution_error: float
+    caps: list[str] = field(default_factory=list)
     refinements: list[dict[str, float]] = field(default_factory=list)
+
+    def _budget(self, *extra: float) -> tuple[float, bool]:
+        """(error_estimate, tol_met) from every error source (see the class docstring)."""
+        est = max(
+            self.discretisation_error,
+            self.iteration_error,
+            self.boundary_residual,
+            self.resolution_error,
+            *extra,
+        )
+        ok = bool(est <= self.tol and self.iteration_converged and not self.caps)
+        return est, ok
+
+    def with_residual(self, residual: float) -> SolveDiagnostics:
+        """These diagnostics for the same solution evaluated from other nodes (its residual)."""
+        d = replace(self, boundary_residual=residual)
+        d.error_estimate, d.tol_met = d._budget()
+        return d
+
+    def with_deviation(self, deviation: float) -> SolveDiagnostics:
+        """Fold a measured deviation from the full map (coarsened evaluation) into the budget."""
+        d = replace(self)
+        d.error_estimate, d.tol_met = d._budget(self.error_estimate, deviation)
+        return d
 
     def table(self) -> str:
         rows = [
             ("requested tolerance", f"{self.tol:.1e}"),
-            ("estimated error (centres, radii)", f"{self.error_estimate:.1e}"),
+            ("estimated error (all sources)", f"{self.error_estimate:.1e}"),
             ("tolerance met", "yes" if self.tol_met else "NO"),
+            ("  discretisation (mesh levels)", f"{self.discretisation_error:.1e}"),
+            (
+                "  Koebe iteration (extrapolated)",
+                f"{self.iteration_error:.1e}"
+                + ("" if self.iteration_converged else "  NOT CONVERGED (stalled or sweep limit)"),
+            ),
+            ("  boundary residual (between nodes)", f"{self.boundary_residual:.1e}"),
+            ("  smooth-grid resolution at cap", f"{self.resolution_error:.1e}"),
+            ("size caps hit", "; ".join(self.caps) if self.caps else "none"),
             ("Koebe sweeps (final solve)", str(self.sweeps)),
             ("last sweep change", f"{self.history[-1]:.1e}" if self.history else "-"),
             ("boundary circularity residual", f"{self.circularity:.1e}"),
@@ -136,6 +201,8 @@ class ConformalMap:
         self._inv_q_dW = self._q_dW[keep]
         self._inv_q_etadW = self._inv_q_dW * self._inv_eta
         self._revision: str | None = None
+        self._expansion: LocalExpansions | None = None
+        self._fast = False  # build the expansions on first use (set by for_navigation)
 
     # ------------------------------------------------------------------ evaluation
     @property
@@ -170,6 +237,16 @@ class ConformalMap:
         idx = np.flatnonzero(ok)
         if idx.size:
             pts = flat[idx]
+            ex = self._expansions(pts.size)
+            if ex is not None:  # O(1) per point away from the walls (confnav/expansion.py)
+                far, S, dS = ex.sums(pts)
+                (Nf, Df), (dNf, dDf) = S[far].T, dS[far].T
+                w[idx[far]] = Nf / Df
+                if dw is not None:
+                    dw[idx[far]] = (dNf * Df - Nf * dDf) / Df**2
+                idx, pts = idx[~far], pts[~far]  # near a wall: the direct formula below
+                if not idx.size:
+                    return w.reshape(shape), (dw.reshape(shape) if dw is not None else None)
             with np.errstate(divide="ignore", invalid="ignore"):
                 # N = sum q_W/(eta - z), D = sum q_eta/(eta - z), T = N/D and
                 # T' = (N'D - N D')/D^2 with N' = sum q_W/(eta - z)^2 (likewise D'): the exact
@@ -206,6 +283,22 @@ class ConformalMap:
                     dw[idx] = (dN * D - N * dD) / D**2
             self._fix_nodes(pts, idx, w, dw)
         return w.reshape(shape), (dw.reshape(shape) if dw is not None else None)
+
+    def _expansions(self, n_points: int) -> LocalExpansions | None:
+        """The local-expansion evaluator if built, or worth building for ``n_points``.
+
+        Built on first use by maps from :meth:`for_navigation` (evaluated again and again), or
+        for a batch of at least :data:`EXPANSION_MIN_POINTS` (whose direct cost already
+        exceeds the build's); once built it serves every evaluation of two or more points (T and
+        T' within 1e-12 of the exact sums, see tests/test_expansion.py).
+        """
+        if self._expansion is None and (self._fast or n_points >= EXPANSION_MIN_POINTS):
+            self._expansion = LocalExpansions(
+                self._eta, self._Q_fwd, region=self.workspace.polygon
+            )
+        # one point: the direct 1-D dots cost less than numpy's overhead (the build happens
+        # anyway, e.g. in a Controller's constructor, not in the first control step)
+        return None if n_points == 1 else self._expansion
 
     def _fix_nodes(
         self, pts: ComplexArray, idx: np.ndarray, w: ComplexArray, dw: ComplexArray | None
@@ -285,6 +378,8 @@ class ConformalMap:
             self.diagnostics,
         )
         coarse._revision = self.revision  # the same solution, evaluated from fewer nodes
+        # its own a-posteriori check: fewer nodes are least accurate right at the walls
+        coarse.diagnostics = self.diagnostics.with_residual(coarse.boundary_residual())
         return coarse
 
     def for_navigation(
@@ -292,21 +387,78 @@ class ConformalMap:
     ) -> ConformalMap:
         """The cheapest coarsened map whose T and T' stay within ``accuracy`` of this one.
 
-        Checked at 400 random free-space points at least 1% of the workspace size from the
-        boundary (T absolute, T' relative); returns ``self`` if no coarsening qualifies.
+        Checked (T absolute, T' relative) at up to 400 random free-space points, preferring
+        those at least 1% of the workspace size from the boundary but taking the ones with the
+        most clearance where the domain is narrower than that, and at the walls themselves
+        through the coarsened map's own :meth:`boundary_residual` (it must be within
+        ``accuracy`` too). The result carries its own diagnostics (its residual, and the
+        deviation measured here folded into its error estimate); returns ``self`` if no
+        coarsening qualifies.
+        The result evaluates through local expansions (built on first use, ~0.5 s).
         """
-        ws = self.workspace
-        x0, y0, x1, y1 = ws.bounds
-        rng = np.random.default_rng(seed)
-        z = rng.uniform(x0, x1, 4000) + 1j * rng.uniform(y0, y1, 4000)
-        z = z[ws.clearance(z) > 0.01 * ws.diameter][:400]
+        z = self._check_points(seed)
         w, dw = self.T_and_dT(z, check=False)
         for s in strides:
             c = self.coarsened(s)
             wc, dwc = c.T_and_dT(z, check=False)
-            if max(np.max(np.abs(wc - w)), np.max(np.abs(dwc - dw) / np.abs(dw))) <= accuracy:
+            dev = (
+                max(float(np.max(np.abs(wc - w))), float(np.max(np.abs(dwc - dw) / np.abs(dw))))
+                if z.size
+                else 0.0
+            )
+            if dev <= accuracy and c.diagnostics.boundary_residual <= accuracy:
+                c.diagnostics = c.diagnostics.with_deviation(dev)
+                c._fast = True
                 return c
+        self._fast = True
         return self
+
+    def _check_points(self, seed: int, count: int = 400) -> ComplexArray:
+        """Random free-space points, those farther than 1% of the workspace size from the
+        boundary first, then (narrow domains) the ones with the largest clearance."""
+        ws = self.workspace
+        x0, y0, x1, y1 = ws.bounds
+        rng = np.random.default_rng(seed)
+        z = rng.uniform(x0, x1, 10 * count) + 1j * rng.uniform(y0, y1, 10 * count)
+        d = ws.clearance(z)
+        inside = d > 0
+        z, d = z[inside], d[inside]
+        far = d > 0.01 * ws.diameter
+        if int(far.sum()) >= count:
+            return np.asarray(z[far][:count])
+        return np.asarray(z[np.argsort(-d)][:count])
+
+    def boundary_residual(self) -> float:
+        """Largest distance of T(z) from its circle over boundary points between the nodes.
+
+        An a-posteriori check of the map as evaluated (independent of the solver's own
+        estimates): the midpoint between every two consecutive nodes (on the polygon, since
+        consecutive nodes share a side) and, on every side, the points at the fractions
+        :data:`CORNER_FRACTIONS` from each of its corners -- all but within
+        :data:`CORNER_ZONE` of a corner. T maps the outer polygon onto
+        ``|w| = 1`` and obstacle j onto ``|w - c_j| = r_j`` (DESIGN.md sec. 2).
+        """
+        eta = self._parts[0]
+        targets, owner = [], []
+        frac = np.array(CORNER_FRACTIONS)
+        frac = np.concatenate([frac, 1.0 - frac[1:]])
+        for j, (e, v) in enumerate(zip(eta, self.workspace.boundaries, strict=True)):
+            mid = 0.5 * (e + np.roll(e, -1))
+            lens = np.abs(np.roll(v, -1) - v)
+            at = np.minimum(lens, np.roll(lens, 1))  # shorter side at each vertex
+            rel = np.min(np.abs(mid[:, None] - v[None, :]) / at[None, :], axis=1)
+            mid = mid[rel >= CORNER_ZONE]
+            side = (v[:, None] + np.outer(np.roll(v, -1) - v, frac)).ravel()
+            pts = np.concatenate([mid, side])
+            targets.append(pts)
+            owner.append(np.full(pts.size, j))
+        z = np.concatenate(targets)
+        which = np.concatenate(owner)
+        w = self.T(z, check=False)
+        c = np.concatenate([[0j], self.centers])[which]
+        r = np.concatenate([[1.0], self.radii])[which]
+        res = np.abs(np.abs(w - c) - r)
+        return float(np.max(res)) if np.all(np.isfinite(res)) else float("inf")
 
     @property
     def n_nodes(self) -> int:
@@ -321,6 +473,7 @@ class ConformalMap:
             "format": FORMAT,
             "version": FORMAT_VERSION,
             "workspace": self.workspace.to_dict(),
+            "workspace_hash": self.workspace_hash,
             "centers": _pack(self.centers),
             "radii": _pack(self.radii),
             "boundaries": [
@@ -334,6 +487,12 @@ class ConformalMap:
     def from_dict(cls, d: Any) -> ConformalMap:
         if not isinstance(d, dict) or d.get("format") != FORMAT:
             raise SerializationError(f"not a confnav map (expected format {FORMAT!r})")
+        if d.get("version") == 1:
+            raise SerializationError(
+                "map format version 1 is no longer accepted: its error estimate could not see "
+                "an iteration stopped early and it carries no workspace hash; re-solve the "
+                "workspace (confnav solve WS.json --out MAP.json)"
+            )
         if d.get("version") != FORMAT_VERSION:
             raise SerializationError(
                 f"map format version {d.get('version')!r} is not supported "
@@ -341,6 +500,11 @@ class ConformalMap:
             )
         try:
             ws = Workspace.from_dict(d["workspace"])
+            if d["workspace_hash"] != ws.content_hash:
+                raise SerializationError(
+                    "map's workspace_hash does not match the workspace stored with it "
+                    "(the file was altered or written by an incompatible program)"
+                )
             bnd = d["boundaries"]
             parts = [[_unpack(b[k], k) for b in bnd] for k in ("eta", "deta", "W", "dW")]
             centers = _unpack(d["centers"], "centers")
@@ -367,10 +531,25 @@ class ConformalMap:
         return cls.from_dict(d)
 
     @property
+    def workspace_hash(self) -> str:
+        """:attr:`Workspace.content_hash` of the workspace this map was solved for."""
+        return self.workspace.content_hash
+
+    def check_workspace(self, workspace: Workspace) -> None:
+        """Raise :class:`MapMismatchError` unless this map was solved for ``workspace``."""
+        if workspace.content_hash != self.workspace_hash:
+            raise MapMismatchError(
+                f"the map was solved for workspace {self.workspace_hash[:12]} "
+                f"({self.n_obstacles} obstacles), not for the one in use "
+                f"{workspace.content_hash[:12]} ({workspace.n_obstacles} obstacles): "
+                "solve this workspace or load its own map"
+            )
+
+    @property
     def revision(self) -> str:
         """sha256 of the workspace and coefficients (not of the diagnostics)."""
         if self._revision is None:
-            h = hashlib.sha256(self.workspace.content_hash().encode())
+            h = hashlib.sha256(self.workspace.content_hash.encode())
             for arr in (*self._parts[2], *self._parts[3], self.centers, self.radii):
                 h.update(np.ascontiguousarray(arr).tobytes())
             self._revision = h.hexdigest()

@@ -40,7 +40,7 @@ import numpy as np
 
 from confnav.cauchy import cauchy_sums
 from confnav.geometry import ComplexArray
-from confnav.gnk import solve_gnk, spectral_derivative, spectral_derivative_complex
+from confnav.gnk import GMRES_RTOL, solve_gnk, spectral_derivative, spectral_derivative_complex
 
 
 @dataclass(frozen=True)
@@ -116,11 +116,15 @@ class CurveMap:
         return Fz, gz + (z - a) * dgz
 
 
-def interior_map(eta: ComplexArray, deta: ComplexArray, alpha: complex) -> CurveMap:
-    """Map the inside of a counter-clockwise curve onto the unit disk (DESIGN.md sec. 2)."""
+def interior_map(
+    eta: ComplexArray, deta: ComplexArray, alpha: complex, rtol: float = GMRES_RTOL
+) -> CurveMap:
+    """Map the inside of a counter-clockwise curve onto the unit disk (DESIGN.md sec. 2).
+
+    ``rtol``: relative GMRES residual of the GNK solve (:func:`confnav.gnk.gmres_rtol`)."""
     A = eta - alpha
     gamma = -np.log(np.abs(A))
-    sol = solve_gnk(eta, deta, A, gamma)
+    sol = solve_gnk(eta, deta, A, gamma, rtol)
     theta_dot = (deta / A).imag + spectral_derivative(sol.mu)
     f = A / np.abs(A) * np.exp(1j * sol.mu)
     return CurveMap(
@@ -135,11 +139,15 @@ def interior_map(eta: ComplexArray, deta: ComplexArray, alpha: complex) -> Curve
     )
 
 
-def exterior_map(eta: ComplexArray, deta: ComplexArray, alpha: complex) -> CurveMap:
-    """Map the outside of a clockwise curve onto |w| > 1 with F'(inf) > 0 (DESIGN.md sec. 2)."""
+def exterior_map(
+    eta: ComplexArray, deta: ComplexArray, alpha: complex, rtol: float = GMRES_RTOL
+) -> CurveMap:
+    """Map the outside of a clockwise curve onto |w| > 1 with F'(inf) > 0 (DESIGN.md sec. 2).
+
+    ``rtol``: relative GMRES residual of the GNK solve (:func:`confnav.gnk.gmres_rtol`)."""
     A = np.ones_like(eta)
     gamma = np.log(np.abs(eta - alpha))
-    sol = solve_gnk(eta, deta, A, gamma)
+    sol = solve_gnk(eta, deta, A, gamma, rtol)
     phi = gamma + sol.h + 1j * sol.mu
     # Phi_inf = (1/2pi i) oint_ccw Phi/(zeta - alpha) dzeta; eta runs clockwise -> minus sign.
     phi_inf = -(2 * np.pi / eta.size) / (2j * np.pi) * np.sum(phi * deta / (eta - alpha))

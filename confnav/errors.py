@@ -33,3 +33,11 @@ class NavigationError(ConfnavError, ValueError):
 
 class SerializationError(ConfnavError, ValueError):
     """A serialized map or workspace cannot be loaded (wrong format, version or content)."""
+
+
+class GapError(SolverError):
+    """Two boundaries come closer than the mesh can resolve (names both and the gap)."""
+
+
+class MapMismatchError(ConfnavError, ValueError):
+    """A map is used with a workspace other than the one it was solved for."""

@@ -318,9 +318,19 @@ class Workspace:
     def save(self, path: str | Path) -> None:
         Path(path).write_text(self.to_json(indent=2) + "\n")
 
+    @property
     def content_hash(self) -> str:
-        """sha256 of the canonical JSON: equal workspaces (after normalisation) hash equal."""
-        canon = json.dumps(self.to_dict(), sort_keys=True, separators=(",", ":"))
+        """sha256 (hex) of the canonical form: what a map solved for this workspace is bound to.
+
+        Canonical form: :meth:`to_dict` after validation (every polygon counter-clockwise,
+        closing vertex dropped, the default anchor resolved to its point), coordinates as
+        float64 with -0.0 written as 0.0, serialised as JSON with sorted keys, no whitespace
+        and Python's shortest round-trip float repr, UTF-8. Equal geometry and anchor give
+        equal hashes; any change of a coordinate, of the obstacle order or of the anchor gives
+        another hash (obstacle j is circle j of the map, and the anchor is sent to 0).
+        """
+        d = self.to_dict()
+        canon = json.dumps(_zero_signs(d), sort_keys=True, separators=(",", ":"))
         return hashlib.sha256(canon.encode()).hexdigest()
 
     def with_anchor(self, anchor: complex | Sequence[float] | None) -> Workspace:
@@ -330,7 +340,7 @@ class Workspace:
         return isinstance(other, Workspace) and self.to_dict() == other.to_dict()
 
     def __hash__(self) -> int:
-        return hash(self.content_hash())
+        return hash(self.content_hash)
 
 
 def _as_point(p: complex | Sequence[float], name: str) -> complex:
@@ -345,6 +355,15 @@ def _as_point(p: complex | Sequence[float], name: str) -> complex:
     if not (math.isfinite(z.real) and math.isfinite(z.imag)):
         raise WorkspaceError(f"{name} must be finite")
     return z
+
+
+def _zero_signs(x: Any) -> Any:
+    """The same nested lists/dicts with every float -0.0 replaced by 0.0 (canonical form)."""
+    if isinstance(x, dict):
+        return {k: _zero_signs(v) for k, v in x.items()}
+    if isinstance(x, list):
+        return [_zero_signs(v) for v in x]
+    return x + 0.0 if isinstance(x, float) else x
 
 
 def _xy_list(z: ComplexArray) -> list[list[float]]:

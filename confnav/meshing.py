@@ -30,6 +30,7 @@ import numpy as np
 import shapely
 
 from confnav.boundary import GRADING_P
+from confnav.errors import GapError
 from confnav.geometry import ComplexArray, Workspace
 
 #: Free-space corner angle (units of pi) taken as the reference for ``level``.
@@ -46,8 +47,10 @@ LEVEL_BASE = 80
 NODE_MULTIPLE = 8
 #: Fewest nodes on any panel.
 MIN_NODES = 12
-#: Cap on the proximity requirement per panel.
-MAX_NODES_PER_PANEL = 2000
+#: Most nodes a side may get from the proximity rule; a gap needing more raises GapError
+#: (a silently capped mesh would under-resolve the gap at every level alike, invisible to the
+#: level-difference estimate).
+MAX_NODES_PER_PANEL = 4000
 
 
 @dataclass(frozen=True)
@@ -79,25 +82,44 @@ def _lines(a: ComplexArray, b: ComplexArray) -> np.ndarray:
 def _proximity_nodes(length: np.ndarray, d: np.ndarray, tol: float) -> np.ndarray:
     """Nodes for mesh spacing 2 len/n <= 2 pi d / (GRADING_STRIP ln(10/tol))."""
     n = np.ceil(GRADING_STRIP * 2 * length * np.log(10 / tol) / (2 * np.pi * np.maximum(d, 1e-12)))
-    return np.asarray(np.minimum(n, MAX_NODES_PER_PANEL))
+    return np.asarray(n)
 
 
-def _feature_distance(z: ComplexArray, features: shapely.Geometry) -> np.ndarray:
-    """Distance of each side to the features and to the non-adjacent sides of its polygon."""
+def _feature_distance(
+    z: ComplexArray, features: list[shapely.Geometry]
+) -> tuple[np.ndarray, np.ndarray]:
+    """Distance of each side to the nearest feature and which one it is (index into
+    ``features``, or -1 for a non-adjacent side of the same polygon)."""
     L = z.size
     segs = _lines(z, np.roll(z, -1))
-    d = np.asarray(shapely.distance(segs, features), dtype=float)
+    D = np.stack([np.asarray(shapely.distance(segs, f), dtype=float) for f in features], axis=1)
+    which = np.argmin(D, axis=1)
+    d = D[np.arange(L), which]
     if L > 3:  # non-adjacent sides of the same polygon (the arms of a U, a spiral)
         dd = shapely.distance(segs[:, None], segs[None, :])
         k = np.arange(L)
         gap = (k[:, None] - k[None, :]) % L
         dd = np.where((gap <= 1) | (gap >= L - 1), np.inf, dd)
-        d = np.minimum(d, dd.min(axis=1))
-    return d
+        own = dd.min(axis=1)
+        which = np.where(own < d, -1, which)
+        d = np.minimum(d, own)
+    return d, which
+
+
+def _name(j: int) -> str:
+    return "the outer boundary" if j == 0 else f"obstacle {j - 1}"
 
 
 def plan_boundaries(ws: Workspace, level: int, tol: float) -> list[PanelPlan]:
-    """Panels and nodes for every boundary (outer first) at one refinement level."""
+    """Panels and nodes for every boundary (outer first) at one refinement level.
+
+    Raises
+    ------
+    GapError
+        A side is so close to another boundary (or to the anchor, or to another side of its
+        own polygon) that resolving the gap at this level and ``tol`` needs more than
+        :data:`MAX_NODES_PER_PANEL` nodes on it; the message names both and the gap.
+    """
     e_ref = GRADING_P / REF_ANGLE + 1.0
     # The proximity requirement refines with the level too (like a straight corner, exponent
     # p + 1), so that every error source shrinks as the level grows.
@@ -107,10 +129,25 @@ def plan_boundaries(ws: Workspace, level: int, tol: float) -> list[PanelPlan]:
     anchor = shapely.Point(ws.anchor.real, ws.anchor.imag)
     plans = []
     for j, z in enumerate(polys):
-        others = shapely.union_all([anchor, *(g for i, g in enumerate(rings) if i != j)])
+        idx = [i for i in range(len(rings)) if i != j]
         n_corner = max(MIN_NODES, int(np.ceil(level ** (e_ref / corner_exponent(z, j > 0)))))
-        d = _feature_distance(z, others)
+        d, which = _feature_distance(z, [anchor, *(rings[i] for i in idx)])
         n_prox = np.ceil(scale * _proximity_nodes(np.abs(np.roll(z, -1) - z), d, tol))
+        over = np.flatnonzero(n_prox > MAX_NODES_PER_PANEL)
+        if over.size:
+            k = int(over[np.argmin(d[over])])
+            w = int(which[k])
+            other = (
+                f"side {k} and another side of {_name(j)}"
+                if w < 0
+                else ("the anchor" if w == 0 else _name(idx[w - 1]))
+            )
+            raise GapError(
+                f"{_name(j)} (side {k}) and {other} are {d[k]:.3g} apart: resolving that gap "
+                f"to tol {tol:.0e} needs {int(n_prox[k])} nodes on the side, more than the "
+                f"{MAX_NODES_PER_PANEL} the mesh allows (widen the gap, merge the two, or "
+                "ask for a looser tol)"
+            )
         n = np.maximum(n_corner, n_prox).astype(np.intp)
         n[0] += (-int(n.sum())) % NODE_MULTIPLE  # totals divisible: see ConformalMap.coarsened
         plans.append(PanelPlan(vertices=z, nodes=n))

@@ -236,11 +236,14 @@ def make_navfn(
     goal: complex,
     *,
     k: float | Literal["auto"] = "auto",
+    samples: ArrayLike | None = None,
 ) -> NavigationFunction:
     """Build a navigation function by name (``"kr"`` or ``"harmonic"``).
 
     For ``"kr"``, ``k="auto"`` picks the smallest k of :data:`confnav.critical.K_LADDER`
     whose critical points check out (one minimum, M saddles); an integer k is used as is.
+    ``samples`` (harmonic only): circle-domain points where the fit must be accurate relative
+    to the size of G (see :meth:`confnav.harmonic.GreenBasis.fit`).
     """
     dom = CircleDomain.of(domain)
     if name == "kr":
@@ -254,5 +257,5 @@ def make_navfn(
     if name == "harmonic":
         from confnav.harmonic import HarmonicNavigation
 
-        return HarmonicNavigation(dom, goal)
+        return HarmonicNavigation(dom, goal, samples=samples)
     raise NavigationError(f"unknown navigation function {name!r}; choose from {NAVFN_NAMES}")

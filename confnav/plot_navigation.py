@@ -33,10 +33,25 @@ def _levels(v: NDArray[np.float64], n: int = 24) -> NDArray[np.float64]:
     return q if q.size >= 2 else np.linspace(0, 1, n)
 
 
+#: Marker of each run outcome at the end of its path (names of confnav.sim.STATUS_NAMES).
+OUTCOME_MARKERS: dict[str, tuple[str, str]] = {
+    "arrived": ("o", "tab:green"),
+    "collided": ("X", "red"),
+    "stalled": ("s", "darkorange"),
+    "timeout": ("v", "purple"),
+    "error": ("D", "black"),
+}
+
+
 def plot_workspace(
-    ax: Axes, ctl: Controller, paths: Sequence[CArray] = (), n_grid: int = 260
+    ax: Axes,
+    ctl: Controller,
+    paths: Sequence[CArray] = (),
+    n_grid: int = 260,
+    outcomes: Sequence[str] = (),
 ) -> None:
-    """Level sets of V = phi(T(x)), the obstacles, the goal and the trajectories."""
+    """Level sets of V = phi(T(x)), the obstacles, the goal and the trajectories (axes in
+    metres; with ``outcomes`` a marker per path end and a legend)."""
     ws = getattr(ctl.cmap, "workspace", None)
     if ws is None:
         raise ValueError("the map has no workspace to plot")
@@ -54,10 +69,13 @@ def plot_workspace(
             ax.plot(q.real, q.imag, "k-", lw=1.2)
         else:
             ax.fill(q.real, q.imag, color="0.55", ec="k", lw=1.0)
-    _trajectories(ax, paths)
-    ax.plot(ctl.goal.real, ctl.goal.imag, "k*", ms=12, mfc="gold")
+    _trajectories(ax, paths, outcomes)
+    ax.plot(ctl.goal.real, ctl.goal.imag, "k*", ms=12, mfc="gold", ls="none", label="goal")
     ax.set_aspect("equal")
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
     ax.set_title(f"workspace: level sets of {ctl.navfn.name} phi(T(x))")
+    ax.legend(loc="best", fontsize=8, framealpha=0.8)
 
 
 def plot_circle_domain(
@@ -79,20 +97,33 @@ def plot_circle_domain(
     _trajectories(ax, mapped)
     ax.plot(ctl.goal_w.real, ctl.goal_w.imag, "k*", ms=12, mfc="gold")
     ax.set_aspect("equal")
+    ax.set_xlabel("Re w (dimensionless)")
+    ax.set_ylabel("Im w")
     ax.set_title(f"circle domain: level sets of {ctl.navfn.name} phi(w)")
 
 
-def _trajectories(ax: Axes, paths: Sequence[CArray]) -> None:
+def _trajectories(ax: Axes, paths: Sequence[CArray], outcomes: Sequence[str] = ()) -> None:
+    many = len(paths) > len(_COLORS)
+    seen: set[str] = set()
     for i, p in enumerate(paths):
-        col = _COLORS[i % len(_COLORS)]
-        ax.plot(p.real, p.imag, "-", color=col, lw=1.6)
-        ax.plot(p[0].real, p[0].imag, "o", color=col, ms=5)
+        col = "tab:blue" if many else _COLORS[i % len(_COLORS)]
+        ax.plot(p.real, p.imag, "-", color=col, lw=0.8 if many else 1.6, alpha=0.7)
+        first = i == 0
+        ax.plot(p[0].real, p[0].imag, "o", color="0.3", ms=3, mfc="none",
+                label="start" if first and outcomes else None)  # fmt: skip
+        if i < len(outcomes):
+            mk, mc = OUTCOME_MARKERS.get(outcomes[i], ("o", "k"))
+            lab = outcomes[i] if outcomes[i] not in seen else None
+            seen.add(outcomes[i])
+            ax.plot(p[-1].real, p[-1].imag, mk, color=mc, ms=6, ls="none", label=lab)
 
 
-def navigation_figure(ctl: Controller, paths: Sequence[CArray], title: str = "") -> Figure:
+def navigation_figure(
+    ctl: Controller, paths: Sequence[CArray], title: str = "", outcomes: Sequence[str] = ()
+) -> Figure:
     """Two panels: workspace (seed Fig. 2) and circle domain (seed Fig. 3)."""
     fig, (a, b) = plt.subplots(1, 2, figsize=(12, 6), constrained_layout=True)
-    plot_workspace(a, ctl, paths)
+    plot_workspace(a, ctl, paths, outcomes=outcomes)
     plot_circle_domain(b, ctl, paths)
     if title:
         fig.suptitle(title)
@@ -103,7 +134,7 @@ def save_navigation_figure(
     ctl: Controller, paths: Sequence[CArray], path: str | Path, title: str = "", **kw: Any
 ) -> Path:
     """Write :func:`navigation_figure` to ``path`` (PNG/PDF/SVG by extension)."""
-    fig = navigation_figure(ctl, paths, title)
+    fig = navigation_figure(ctl, paths, title, outcomes=kw.get("outcomes", ()))
     out = Path(path)
     fig.savefig(out, dpi=kw.get("dpi", 120))
     plt.close(fig)

@@ -8,6 +8,11 @@ polygons (``Workspace.clearance``) at every accepted point and along every chord
 a chord of length L between points of clearance c_a, c_b is certified free when
 L < c_a + c_b (clearance is 1-Lipschitz); otherwise it is bisected.
 
+A robot is ``stalled`` only when it makes no progress: over a time window its image in the
+circle domain moved less than a fraction of its local length scale (see :func:`simulate`), or
+it stays put for many accepted steps.  A small ``|grad phi|`` alone never counts (flat is not
+stalled); the reason names a critical point of phi when the robot is near one.
+
 References
 ----------
 .. [1] J. R. Dormand and P. J. Prince, "A family of embedded Runge-Kutta formulae",
@@ -73,9 +78,11 @@ class RunResult:
     final_distance: float
     max_speed: float
     n_steps: int
+    reason: str = ""
 
     def to_dict(self) -> dict[str, Any]:
         return {
+            "reason": self.reason,
             "start": [self.start.real, self.start.imag],
             "success": self.success,
             "collided": self.collided,
@@ -112,6 +119,7 @@ class SimulationResult:
     nfev: int
     wall_time: float
     paths: tuple[CArray, ...] | None = field(default=None, repr=False)
+    reasons: tuple[str, ...] = ()
 
     @property
     def success_rate(self) -> float:
@@ -134,6 +142,7 @@ class SimulationResult:
             final_distance=float(self.final_distance[i]),
             max_speed=float(self.max_speed[i]),
             n_steps=int(self.n_steps[i]),
+            reason=self.reasons[i] if self.reasons else "",
         )
 
     def runs(self) -> list[RunResult]:
@@ -218,6 +227,8 @@ def simulate(
     max_steps: int = 20000,
     stall_distance: float | None = None,
     stall_steps: int = 100,
+    stall_window: float = 10.0,
+    stall_progress: float = 0.05,
     record_paths: bool = False,
 ) -> SimulationResult:
     """Integrate ``x' = u(x)`` from every start until goal, collision, ``t_max`` or
@@ -233,13 +244,23 @@ def simulate(
     atol : local error bound on the position per step.
     max_step : largest chord per step (workspace units).
     max_steps : step limit per robot.
-    stall_distance : a robot that moved less than this during the second half of ``t_max``
-        is reported ``stalled`` (no progress: at a saddle or a spurious minimum, or crawling
-        where the field is nearly zero, e.g. a flat phi_k or a tiny ``|T'|``), otherwise
-        ``timeout``;
-        default: 10 goal tolerances.  A robot is also ``stalled`` as soon as it
-        stays within ``stall_distance`` of one point for ``stall_steps`` accepted steps
-        (chattering at a spurious minimum of a non-smooth field).
+    stall_window, stall_progress : a robot whose progress over ``stall_window`` time units is
+        below ``stall_progress`` is ``stalled``.  Progress is measured in the circle domain
+        when the field has ``circle_domain_position`` (a :class:`Controller`): ``|w(t) -
+        w(t - W)| / s``, ``w = T(x)``, ``s = min(clearance of w, |w - w_d|)`` at the window
+        start.  Why this quantity and not phi itself: along the law's paths ``w`` follows an
+        integral curve of ``-grad phi`` (a time change, see :mod:`confnav.control`), which
+        never closes, so a robot that is not at a critical point moves ``w`` by a fair share
+        of its local scale; the ratio does not vanish in pockets (there ``|T'|`` shrinks
+        numerator and denominator alike), whereas ``1 - phi`` is 1e-11 in a pocket and below
+        the accuracy of the harmonic fit (measured: ``1 - phi`` negative at 1e-11 in a
+        charging-alcove scene), so neither phi nor ``log(1 - phi)`` can be trusted there.
+        Near the goal ``s = |w - w_d|`` and the law's exponential approach gives a ratio
+        near 1.  Other fields: the same test on the workspace position with
+        ``s = min(clearance, |x - x_d|)``.
+    stall_distance, stall_steps : a robot that stays within ``stall_distance`` (default 10
+        goal tolerances) of one point for ``stall_steps`` accepted steps is ``stalled`` too
+        (chattering at a critical point of a non-smooth field).
     record_paths : keep every accepted point of every robot.
 
     Raises
@@ -263,7 +284,18 @@ def simulate(
     goal = complex(fld.goal)
     tol = float(fld.goal_tol)
     t = np.zeros(n)
-    z_half = np.full(n, np.nan + 0j)
+    progress_of = getattr(fld, "circle_domain_position", None)
+    near_critical = getattr(fld, "near_critical", None)
+
+    def position_and_scale(zz: CArray) -> tuple[CArray, FArray]:
+        if progress_of is not None:
+            w, sc = progress_of(zz)
+            return np.asarray(w, dtype=np.complex128), np.asarray(sc, dtype=np.float64)
+        sc = np.minimum(np.asarray(clr(zz), dtype=np.float64), np.abs(zz - goal))
+        return zz, sc
+
+    w_ref, s_ref = position_and_scale(z)
+    t_ref = np.zeros(n)
     z_anchor = z.copy()
     n_anchor = np.zeros(n, dtype=np.int64)
     if stall_distance is None:
@@ -357,12 +389,17 @@ def simulate(
             chatter = rest & (nsteps[ia] - n_anchor[ia] >= stall_steps)
             status[ia[chatter]] = STALLED
             rest &= ~chatter
-            half = np.isnan(z_half[ia]) & (t[ia] >= 0.5 * t_max)
-            z_half[ia[half]] = zn[half]
+            due = rest & (t[ia] - t_ref[ia] >= stall_window)
+            if due.any():
+                idx = ia[due]
+                w_now, s_now = position_and_scale(zn[due])
+                rel = np.abs(w_now - w_ref[idx]) / np.maximum(s_ref[idx], 1e-300)
+                stuck = ~(rel >= stall_progress)
+                status[idx[stuck]] = STALLED
+                w_ref[idx], s_ref[idx], t_ref[idx] = w_now, s_now, t[idx]
+                rest[np.flatnonzero(due)[stuck]] = False
             late = rest & (t[ia] >= t_max * (1 - 1e-12))
-            parked = np.abs(zn - z_half[ia]) < stall_distance
-            status[ia[late & parked]] = STALLED
-            status[ia[late & ~parked]] = TIMEOUT
+            status[ia[late]] = TIMEOUT
             status[ia[rest & ~late & (nsteps[ia] >= max_steps)]] = TIMEOUT
         h[ai] = np.minimum(hn, t_max - t[ai])
         h[ai] = np.where(h[ai] > 0, h[ai], 1e-300)
@@ -377,6 +414,7 @@ def simulate(
         order = np.argsort(who, kind="stable")
         path_tuple = tuple(np.split(pts[order], np.cumsum(np.bincount(who, minlength=n))[:-1]))
     final_distance = np.abs(z - goal)
+    reasons = _reasons(status, z, t, nsteps, t_max, max_steps, stall_window, near_critical)
     return SimulationResult(
         starts=z0,
         goal=goal,
@@ -393,7 +431,41 @@ def simulate(
         nfev=nfev,
         wall_time=_time.perf_counter() - t0,
         paths=path_tuple,
+        reasons=reasons,
     )
+
+
+def _reasons(
+    status: NDArray[np.int8],
+    z: CArray,
+    t: FArray,
+    nsteps: NDArray[np.int64],
+    t_max: float,
+    max_steps: int,
+    window: float,
+    near_critical: Callable[[CArray], Any] | None,
+) -> tuple[str, ...]:
+    """One line per robot saying why its run ended."""
+    out = [""] * status.size
+    st = np.flatnonzero(status == STALLED)
+    crit = np.zeros(st.size, dtype=bool)
+    if st.size and near_critical is not None:
+        crit = np.asarray(near_critical(z[st]), dtype=bool)
+    for i, c in zip(st, crit, strict=True):
+        out[i] = (
+            f"at a critical point of phi near ({z[i].real:.3f}, {z[i].imag:.3f})"
+            if c
+            else f"no progress over {window:g} s near ({z[i].real:.3f}, {z[i].imag:.3f})"
+        )
+    for i in np.flatnonzero(status == COLLIDED):
+        out[i] = f"hit an obstacle near ({z[i].real:.3f}, {z[i].imag:.3f})"
+    for i in np.flatnonzero(status == TIMEOUT):
+        out[i] = "step limit" if nsteps[i] >= max_steps else f"time limit {t_max:g} s"
+    for i in np.flatnonzero(status == ERROR):
+        out[i] = "velocity undefined (NaN) or step size underflow"
+    for i in np.flatnonzero(status == ARRIVED):
+        out[i] = "arrived"
+    return tuple(out)
 
 
 def _as_points(p: ArrayLike) -> CArray:

@@ -4,6 +4,7 @@ from confnav.schemas.messages import (
     SCHEMA_VERSION,
     CollisionEvent,
     Goal,
+    GoalCancel,
     Message,
     Pose,
     RobotStatus,
@@ -15,6 +16,7 @@ from confnav.schemas.messages import (
     TransformStatus,
     VelocityCommand,
     WorkspaceDefinition,
+    WorkspaceDelete,
 )
 from confnav.schemas.registry import (
     MESSAGE_MODELS,
@@ -37,6 +39,7 @@ __all__ = [
     "CollisionEvent",
     "DecodeError",
     "Goal",
+    "GoalCancel",
     "Message",
     "Pose",
     "RobotStatus",
@@ -48,6 +51,7 @@ __all__ = [
     "TransformStatus",
     "VelocityCommand",
     "WorkspaceDefinition",
+    "WorkspaceDelete",
     "decode",
     "encode",
     "export_schemas",

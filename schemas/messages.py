@@ -16,6 +16,8 @@ from typing import Annotated, ClassVar, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, JsonValue, StringConstraints
 
+from confnav import defaults
+
 SCHEMA_VERSION: int = 1
 """Version of every model below; bump (and keep a reader for the old one) on breaking change."""
 
@@ -69,6 +71,17 @@ class WorkspaceDefinition(Message):
     stamp_ns: TimeNs = 0
 
 
+class WorkspaceDelete(Message):
+    """Remove a workspace from the transform service (and its saved definition), on
+    ``{prefix}/ws/{ws}/delete``; controllers drop its map and stop its robots."""
+
+    TYPE: ClassVar[str] = "confnav.WorkspaceDelete"
+    type: Literal["confnav.WorkspaceDelete"] = "confnav.WorkspaceDelete"
+    schema_version: Literal[1] = 1
+    ws_id: Id
+    stamp_ns: TimeNs = 0
+
+
 class SolveDiagnostics(Message):
     """Solver diagnostics copied from :class:`confnav.ConformalMap.diagnostics`."""
 
@@ -80,13 +93,17 @@ class SolveDiagnostics(Message):
     wall_time: Annotated[float, Field(ge=0.0)]
     tol: Annotated[float, Field(ge=0.0)]
     nodes: list[Annotated[int, Field(ge=0)]] = []
+    #: Largest distance of T from its circle at boundary points between the nodes (issue 8).
+    boundary_residual: Annotated[float, Field(ge=0.0)]
+    tol_met: bool
 
 
 class TransformSolution(Message):
     """A solved map, put on ``{prefix}/ws/{ws}/transform`` and served by its queryable.
 
     ``revision`` is the content hash of the coefficients (:attr:`ConformalMap.revision`),
-    ``definition_hash`` that of the workspace definition it was solved from. ``coefficients``
+    ``definition_hash`` that of the workspace definition it was solved from, ``workspace_hash``
+    the :attr:`Workspace.content_hash` the map is bound to. ``coefficients``
     is :meth:`ConformalMap.to_dict` (lossless); ``centers``/``radii`` the circle domain.
     """
 
@@ -96,6 +113,8 @@ class TransformSolution(Message):
     ws_id: Id
     revision: Annotated[str, Field(min_length=1, max_length=128)]
     definition_hash: Annotated[str, Field(min_length=1, max_length=128)]
+    #: ``Workspace.content_hash`` of the workspace the map was solved for (issue 8).
+    workspace_hash: Annotated[str, Field(min_length=1, max_length=128)]
     stamp_ns: TimeNs
     anchor: Point
     centers: list[Point]
@@ -112,13 +131,15 @@ class TransformStatus(Message):
     schema_version: Literal[1] = 1
     ws_id: Id
     stamp_ns: TimeNs
-    state: Literal["solving", "solved", "failed"]
+    state: Literal["solving", "solved", "failed", "deleted"]
     definition_hash: str
     revision: str | None = None
     message: Annotated[str, Field(max_length=4096)] = ""
 
 
 NavFnName = Literal["harmonic", "kr"]
+SpeedLawName = Literal["normalized", "theorem2"]
+DriveName = Literal["holonomic", "unicycle"]
 
 
 class Goal(Message):
@@ -126,8 +147,14 @@ class Goal(Message):
 
     ``navfn`` names the navigation function (``harmonic``: tuning free; ``kr``:
     Koditschek-Rimon with exponent ``k``, None for the library's certified default);
-    ``gain`` is K of the control law, ``v_max`` the speed limit (m/s), ``tolerance`` the arrival
-    radius (m).
+    ``speed_law`` ``normalized`` commands the unit direction of the Theorem 2 field times
+    ``min(v_max, gain * distance to goal)``, ``theorem2`` the plain law (``gain`` = K)
+    saturated at ``v_max``; ``v_max`` is the speed limit (m/s), ``tolerance`` the arrival
+    radius (m).  Every default is the library's (``confnav.defaults``).
+    ``robot_radius`` (m, 0: a point) navigates the robot's centre in the free space shrunk by
+    it (the map of the derived workspace ``{ws_id}~r{radius}``); ``drive`` ``unicycle`` steers
+    the point ``lookahead`` (m) ahead of the axle with ``v`` and ``omega`` limited by ``v_max``
+    and ``omega_max`` (rad/s), and the free space is shrunk by ``robot_radius + lookahead``.
     """
 
     TYPE: ClassVar[str] = "confnav.Goal"
@@ -136,11 +163,27 @@ class Goal(Message):
     robot_id: Id
     ws_id: Id
     goal: Point
-    navfn: NavFnName = "harmonic"
+    navfn: NavFnName = defaults.NAVFN
     k: Annotated[float, Field(ge=1.0, le=1000.0)] | None = None
-    gain: Positive = 1.0
-    v_max: Positive = 0.5
-    tolerance: Positive = 0.02
+    speed_law: SpeedLawName = defaults.SPEED_LAW
+    gain: Positive = defaults.GAIN
+    v_max: Positive = defaults.V_MAX
+    tolerance: Positive = defaults.GOAL_TOL
+    stamp_ns: TimeNs = 0
+    robot_radius: Annotated[float, Field(ge=0.0, le=1000.0, allow_inf_nan=False)] = 0.0
+    drive: DriveName = "holonomic"
+    lookahead: Positive = 0.1
+    omega_max: Positive = 2.0
+
+
+class GoalCancel(Message):
+    """Cancel the goal of one robot, on ``{prefix}/robot/{r}/cancel``: the controller sends a
+    zero command, reports ``idle`` and forgets the robot."""
+
+    TYPE: ClassVar[str] = "confnav.GoalCancel"
+    type: Literal["confnav.GoalCancel"] = "confnav.GoalCancel"
+    schema_version: Literal[1] = 1
+    robot_id: Id
     stamp_ns: TimeNs = 0
 
 
@@ -161,8 +204,11 @@ class Pose(Message):
 class VelocityCommand(Message):
     """Twist-like command, on ``{prefix}/robot/{r}/cmd_vel``.
 
-    ``linear`` is ``[vx, vy]`` in the workspace frame (m/s), ``angular`` the yaw rate (rad/s);
-    ``pose_seq``/``pose_stamp_ns`` identify the pose it answers (-1/0: none, e.g. watchdog stop).
+    ``frame`` ``world`` (default): ``linear`` is ``[vx, vy]`` in the workspace frame (m/s),
+    ``angular`` the yaw rate (rad/s). ``frame`` ``body`` (unicycles): a twist in the robot's
+    body frame, ``linear = [v, 0]`` (linear.x, forward speed, m/s) and ``angular`` = angular.z
+    (rad/s). ``pose_seq``/``pose_stamp_ns`` identify the pose it answers (-1/0: none, e.g.
+    watchdog stop).
     """
 
     TYPE: ClassVar[str] = "confnav.VelocityCommand"
@@ -175,6 +221,7 @@ class VelocityCommand(Message):
     pose_seq: Annotated[int, Field(ge=-1)] = -1
     pose_stamp_ns: TimeNs = 0
     map_revision: str | None = None
+    frame: Literal["world", "body"] = "world"
 
 
 RobotState = Literal["idle", "navigating", "arrived", "stopped"]
@@ -190,6 +237,7 @@ StatusReason = Literal[
     "outside_workspace",
     "solve_failed",
     "navigation_error",
+    "map_outdated",
 ]
 
 
@@ -227,7 +275,12 @@ class CollisionEvent(Message):
 
 
 class SpawnRequest(Message):
-    """Ask the simulator ``{prefix}/sim/{sim}/spawn`` to add (or move) a robot."""
+    """Ask the simulator ``{prefix}/sim/{sim}/spawn`` to add (or move) a robot.
+
+    ``robot_radius`` (m): the simulator checks collisions of the disk of this radius;
+    ``drive`` ``unicycle``: the robot moves only by body-frame twists (``VelocityCommand``
+    with ``frame="body"``).
+    """
 
     TYPE: ClassVar[str] = "confnav.SpawnRequest"
     type: Literal["confnav.SpawnRequest"] = "confnav.SpawnRequest"
@@ -237,6 +290,8 @@ class SpawnRequest(Message):
     position: Point
     theta: Finite = 0.0
     stamp_ns: TimeNs = 0
+    robot_radius: Annotated[float, Field(ge=0.0, le=1000.0, allow_inf_nan=False)] = 0.0
+    drive: DriveName = "holonomic"
 
 
 class SimControl(Message):

@@ -11,6 +11,7 @@ from pydantic import ValidationError
 from confnav.schemas.messages import (
     CollisionEvent,
     Goal,
+    GoalCancel,
     Message,
     Pose,
     RobotStatus,
@@ -21,15 +22,18 @@ from confnav.schemas.messages import (
     TransformStatus,
     VelocityCommand,
     WorkspaceDefinition,
+    WorkspaceDelete,
 )
 
 M = TypeVar("M", bound=Message)
 
 MESSAGE_MODELS: tuple[type[Message], ...] = (
     WorkspaceDefinition,
+    WorkspaceDelete,
     TransformSolution,
     TransformStatus,
     Goal,
+    GoalCancel,
     Pose,
     VelocityCommand,
     RobotStatus,
@@ -43,9 +47,11 @@ MODELS_BY_TYPE: dict[str, type[Message]] = {m.TYPE: m for m in MESSAGE_MODELS}
 #: (key group, key kind) -> model; groups and kinds as in :mod:`confnav.services.keys`.
 MODEL_BY_KEY_KIND: dict[tuple[str, str], type[Message]] = {
     ("ws", "definition"): WorkspaceDefinition,
+    ("ws", "delete"): WorkspaceDelete,
     ("ws", "transform"): TransformSolution,
     ("ws", "status"): TransformStatus,
     ("robot", "goal"): Goal,
+    ("robot", "cancel"): GoalCancel,
     ("robot", "pose"): Pose,
     ("robot", "cmd_vel"): VelocityCommand,
     ("robot", "status"): RobotStatus,

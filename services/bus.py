@@ -3,9 +3,11 @@ liveliness. :class:`ZenohBus` is the real one; :class:`InMemoryBus` (on a shared
 :class:`InMemoryNetwork`) runs service logic in one process for fast tests.
 
 Threading contract (both implementations): handlers never run on a Zenoh thread. The Zenoh
-callbacks only append to an unbounded queue (never block, never drop); one dispatcher thread
-per subscription / queryable calls the handler in arrival order. Handlers may publish and
-query. A handler that raises is logged and the subscription carries on.
+callbacks only append to a queue (never block); one dispatcher thread per subscription /
+queryable calls the handler in arrival order. Handlers may publish and query. A handler that
+raises is logged and the subscription carries on. ``subscribe``/``subscribe_batch`` queues
+never drop; ``subscribe_latest`` keeps only the newest sample per concrete key (bounded by
+the number of keys; the superseded ones are reported, never silently lost).
 """
 
 from __future__ import annotations
@@ -20,6 +22,8 @@ from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 import zenoh
+
+from confnav.services.shard import chunk_matches
 
 log = logging.getLogger(__name__)
 
@@ -67,6 +71,15 @@ class Bus(Protocol):
 
     def subscribe_batch(
         self, keyexpr: str, handler: BatchHandler, max_batch: int = 1024, linger: float = 0.0
+    ) -> Closeable: ...
+
+    def subscribe_latest(
+        self,
+        keyexpr: str,
+        handler: BatchHandler,
+        on_dropped: Callable[[int], None] | None = None,
+        max_keys: int = 100_000,
+        linger: float = 0.0,
     ) -> Closeable: ...
 
     def query(
@@ -139,6 +152,66 @@ class _Dispatcher:
             self._thread.join(timeout)
 
 
+class _LatestDispatcher:
+    """Newest sample per key + one daemon thread calling ``fn(items)`` with every waiting
+    (key, payload), in order of last arrival, ``linger`` s after the first one arrived. A
+    sample that replaces a waiting one of the same key, or arrives while ``max_keys`` keys
+    wait, is counted through ``on_dropped``."""
+
+    def __init__(
+        self,
+        name: str,
+        fn: Callable[[list[tuple[str, bytes]]], None],
+        on_dropped: Callable[[int], None] | None,
+        max_keys: int,
+        linger: float = 0.0,
+    ) -> None:
+        self._fn = fn
+        self._linger = linger
+        self._on_dropped = on_dropped
+        self._max_keys = max_keys
+        self._waiting: dict[str, bytes] = {}
+        self._cond = threading.Condition()
+        self._stopped = False
+        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
+        self._thread.start()
+
+    def put(self, item: tuple[str, bytes]) -> None:
+        key, payload = item
+        with self._cond:
+            dropped = self._waiting.pop(key, None) is not None
+            if dropped or len(self._waiting) < self._max_keys:
+                self._waiting[key] = payload  # re-inserted: ordered by last arrival
+            else:
+                dropped = True
+            self._cond.notify()
+        if dropped and self._on_dropped is not None:
+            self._on_dropped(1)
+
+    def _run(self) -> None:
+        while True:
+            with self._cond:
+                while not self._waiting and not self._stopped:
+                    self._cond.wait()
+                if self._stopped:
+                    return
+            if self._linger > 0:
+                time.sleep(self._linger)
+            with self._cond:
+                items, self._waiting = list(self._waiting.items()), {}
+            try:
+                self._fn(items)
+            except Exception:
+                log.exception("handler failed in %s", self._thread.name)
+
+    def stop(self, timeout: float = 10.0) -> None:
+        with self._cond:
+            self._stopped = True
+            self._cond.notify()
+        if threading.current_thread() is not self._thread:
+            self._thread.join(timeout)
+
+
 class _Handle:
     def __init__(self, close: Callable[[], None]) -> None:
         self._close = close
@@ -177,20 +250,33 @@ def zenoh_config(
 class _Subscriptions:
     """``subscribe``/``subscribe_batch`` for both buses, on top of their ``_subscribe``."""
 
-    def _subscribe(
-        self, keyexpr: str, fn: Callable[[Any], None], batch: int, linger: float = 0.0
-    ) -> Closeable:
+    def _subscribe(self, keyexpr: str, disp: _Dispatcher | _LatestDispatcher) -> Closeable:
         raise NotImplementedError
 
     def subscribe(self, keyexpr: str, handler: Handler) -> Closeable:
-        return self._subscribe(keyexpr, lambda item: handler(item[0], item[1]), 0)
+        fn: Callable[[Any], None] = lambda item: handler(item[0], item[1])  # noqa: E731
+        return self._subscribe(keyexpr, _Dispatcher(f"sub:{keyexpr}", fn))
 
     def subscribe_batch(
         self, keyexpr: str, handler: BatchHandler, max_batch: int = 1024, linger: float = 0.0
     ) -> Closeable:
         """Like :meth:`subscribe`, but the handler gets every waiting sample at once (at most
         ``max_batch``), waiting up to ``linger`` s after the first one for more."""
-        return self._subscribe(keyexpr, handler, max_batch, linger)
+        return self._subscribe(keyexpr, _Dispatcher(f"sub:{keyexpr}", handler, max_batch, linger))
+
+    def subscribe_latest(
+        self,
+        keyexpr: str,
+        handler: BatchHandler,
+        on_dropped: Callable[[int], None] | None = None,
+        max_keys: int = 100_000,
+        linger: float = 0.0,
+    ) -> Closeable:
+        """Like :meth:`subscribe_batch`, but only the newest waiting sample of each concrete
+        key is delivered (a bounded queue: at most ``max_keys`` keys wait); every sample not
+        delivered is counted through ``on_dropped``."""
+        disp = _LatestDispatcher(f"latest:{keyexpr}", handler, on_dropped, max_keys, linger)
+        return self._subscribe(keyexpr, disp)
 
 
 class ZenohBus(_Subscriptions):
@@ -247,11 +333,7 @@ class ZenohBus(_Subscriptions):
                     self._publishers[key] = pub
         pub.put(payload)
 
-    def _subscribe(
-        self, keyexpr: str, fn: Callable[[Any], None], batch: int, linger: float = 0.0
-    ) -> Closeable:
-        disp = _Dispatcher(f"sub:{keyexpr}", fn, batch, linger)
-
+    def _subscribe(self, keyexpr: str, disp: _Dispatcher | _LatestDispatcher) -> Closeable:
         def on_sample(sample: zenoh.Sample) -> None:  # Zenoh thread: enqueue only
             disp.put((str(sample.key_expr), sample.payload.to_bytes()))
 
@@ -352,7 +434,8 @@ class ZenohBus(_Subscriptions):
 # in memory
 # ------------------------------------------------------------------------------------------
 def key_matches(expr: str, key: str) -> bool:
-    """Whether concrete ``key`` matches ``expr`` (``*`` one chunk, ``**`` any number)."""
+    """Whether concrete ``key`` matches ``expr`` (``*`` one chunk, ``**`` any number, ``$*``
+    any run of characters within a chunk)."""
     e = expr.split("/")
     k = key.split("/")
 
@@ -363,7 +446,7 @@ def key_matches(expr: str, key: str) -> bool:
             return any(rec(i + 1, jj) for jj in range(j, len(k) + 1))
         if j == len(k):
             return False
-        if e[i] == "*" or e[i] == k[j]:
+        if e[i] == "*" or e[i] == k[j] or ("$*" in e[i] and chunk_matches(e[i], k[j])):
             return rec(i + 1, j + 1)
         return False
 
@@ -375,7 +458,7 @@ class InMemoryNetwork:
     """A shared in-process 'network' for :class:`InMemoryBus` instances."""
 
     lock: threading.RLock = field(default_factory=threading.RLock)
-    subs: list[tuple[str, _Dispatcher]] = field(default_factory=list)
+    subs: list[tuple[str, _Dispatcher | _LatestDispatcher]] = field(default_factory=list)
     queryables: list[tuple[str, QueryHandler]] = field(default_factory=list)
     tokens: dict[str, int] = field(default_factory=dict)
     live_subs: list[tuple[str, _Dispatcher]] = field(default_factory=list)
@@ -413,10 +496,7 @@ class InMemoryBus(_Subscriptions):
         for d in targets:
             d.put((key, bytes(payload)))
 
-    def _subscribe(
-        self, keyexpr: str, fn: Callable[[Any], None], batch: int, linger: float = 0.0
-    ) -> Closeable:
-        disp = _Dispatcher(f"memsub:{keyexpr}", fn, batch, linger)
+    def _subscribe(self, keyexpr: str, disp: _Dispatcher | _LatestDispatcher) -> Closeable:
         entry = (keyexpr, disp)
         with self._net.lock:
             self._net.subs.append(entry)

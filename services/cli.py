@@ -1,12 +1,22 @@
 """Service subcommands of ``confnav``: ``launch``, ``demo``, ``schemas export DIR`` and
-``serve transform|controller|simulator|recorder|router``."""
+``serve transform|controller|simulator|recorder|router|ros2|foxglove``."""
 
 from __future__ import annotations
 
 import argparse
 from typing import Any
 
-from confnav.services import controller, demo, launcher, recorder, router, simulator, transform
+from confnav.services import (
+    controller,
+    demo,
+    foxglove_live,
+    launcher,
+    recorder,
+    router,
+    simulator,
+    transform,
+)
+from confnav.services.ros2 import bridge as ros2_bridge
 
 
 def _schemas_export(args: argparse.Namespace) -> int:
@@ -31,5 +41,5 @@ def register(subparsers: Any) -> None:
 
     serve = subparsers.add_parser("serve", help="run one service process")
     serve_sub = serve.add_subparsers(dest="service", metavar="SERVICE", required=True)
-    for mod in (transform, controller, simulator, recorder, router):
+    for mod in (transform, controller, simulator, recorder, router, ros2_bridge, foxglove_live):
         mod.add_parser(serve_sub)

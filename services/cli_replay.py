@@ -26,7 +26,8 @@ def register(subparsers: Any) -> None:
         "replay",
         help="republish a recording on Zenoh, or --check it against the controller code",
         description="Republish the messages of FILE.mcap on Zenoh with their recorded timing "
-        "(or as fast as possible), to the recorded keys or under a new --prefix. With --check: "
+        "(or as fast as possible), under the prefix replay/PREFIX (never driving a live "
+        "system), onto the recorded keys with --live, or under --prefix. With --check: "
         "recompute every recorded command from the recorded maps, goals and poses through the "
         "controller's code (no Zenoh) and exit 1 if any differs.",
     )
@@ -58,11 +59,16 @@ def register(subparsers: Any) -> None:
         metavar="S",
         help="wait up to S seconds for subscribers on the replayed keys (default %(default)s)",
     )
+    p.add_argument(
+        "--live",
+        action="store_true",
+        help="replay onto the recorded keys: drives a running system's controller and robots",
+    )
     add_zenoh_args(p)
-    p.set_defaults(prefix=None)  # replay: default is the recorded keys, --prefix remaps
+    p.set_defaults(prefix=None)  # replay: default replay/PREFIX, --prefix remaps, --live none
     for action in p._actions:
         if action.dest == "prefix":
-            action.help = "replay under this key prefix instead of the recorded one"
+            action.help = "replay under this key prefix (default: replay/ + the recorded one)"
     chk = p.add_argument_group("check")
     chk.add_argument(
         "--check", action="store_true", help="recompute and compare the commands (no Zenoh)"
@@ -157,6 +163,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
                 wait_subscribers=args.wait_subscribers,
                 stop=stop,
                 inputs_only=args.inputs_only,
+                live=args.live,
             )
     except zenoh.ZError as exc:
         print(f"confnav replay: zenoh error: {exc}", file=sys.stderr)

@@ -1,13 +1,26 @@
 """Controller service: per robot, goal + map + pose -> velocity command and status.
 
-Subscribes ``{prefix}/robot/*/goal``, ``{prefix}/robot/*/pose``, ``{prefix}/ws/*/transform``
-and the liveliness of ``{prefix}/alive/transform/*``; fetches missing maps with a query on
-``{prefix}/ws/{ws}/transform``; publishes ``cmd_vel`` and ``status`` per robot. A re-solved
-map is loaded and the robots' controllers rebuilt off the pose path, then swapped in
-atomically: robots keep moving on the old map until the new one is ready.
+Subscribes ``{prefix}/robot/*/goal``, ``.../cancel``, ``.../pose``, ``{prefix}/ws/*/transform``,
+``{prefix}/ws/*/definition`` and the liveliness of ``{prefix}/alive/transform/*``; fetches
+missing maps with a query on ``{prefix}/ws/{ws}/transform``; publishes ``cmd_vel`` and
+``status`` per robot. A re-solved map is loaded and the robots' controllers rebuilt off the
+pose path, then swapped in atomically.
 
-Watchdog (zero velocity and a status saying why): stale pose (none for ``stale_after`` s),
-missing map, NaN or invalid pose, position outside the map, no live transform service.
+A workspace definition that differs from the one the installed map was solved from makes
+that map outdated: until a map of the new definition is installed, every robot of the
+workspace closer than ``margin`` to the new geometry (or inside a new obstacle) is stopped
+(reason ``map_outdated``) at once, and at each of its poses; the others keep moving on the old
+map (a robot moves at most ``v_max`` per control period, so with ``margin`` above that it is
+stopped before it can reach the new geometry).
+
+Watchdog (zero velocity and a status saying why): stale pose (none for ``stale_after`` s since
+the last pose or the goal; a pose only counts when its ``(stamp_ns, seq)`` is newer than the
+last one, so replayed or reordered poses are not fresh), missing map, NaN or invalid pose,
+position outside the map, no live transform service. Malformed goals (and goals above the
+``max_gain``/``max_speed`` caps) clear the robot's goal and are answered with a status
+(``idle``, ``invalid_input``); a ``GoalCancel`` and ``idle_ttl`` s without a pose or goal
+forget a robot. Poses go through a bounded latest-per-robot queue; commands and statuses are
+published by one publisher thread (never under a lock), in the order they were decided.
 Many robots per process; ``robots`` restricts which ones this process drives.
 """
 
@@ -15,6 +28,8 @@ from __future__ import annotations
 
 import argparse
 import logging
+import queue
+import sys
 import threading
 import time
 from collections.abc import Callable
@@ -26,10 +41,13 @@ import numpy as np
 from confnav.schemas import (
     DecodeError,
     Goal,
+    GoalCancel,
     Pose,
     RobotStatus,
     TransformSolution,
     VelocityCommand,
+    WorkspaceDefinition,
+    WorkspaceDelete,
     decode,
     encode,
 )
@@ -37,14 +55,16 @@ from confnav.services import navigation
 from confnav.services.bus import Bus
 from confnav.services.keys import KeyError_, Keys
 from confnav.services.runtime import Service, add_zenoh_args, run_until_signal
+from confnav.services.shard import RobotSelector, robot_key_exprs, serialized
+from confnav.services.transform import definition_hash, workspace_of
 
 log = logging.getLogger(__name__)
 
 POSE_BLOCK = 32
 """Most poses per control step: one vectorized block, whose commands go out before the next
 block is computed (pipelining)."""
-MAX_BACKLOG = 4096
-"""Most queued poses taken at once. Of several waiting poses of one robot only the newest is
+MAX_BACKLOG = 100_000
+"""Most robots with a pose waiting. Of several waiting poses of one robot only the newest is
 answered (the older ones are superseded: counted, never commanded), so an overloaded
 controller falls back to answering every robot's latest pose instead of a growing queue."""
 
@@ -56,6 +76,15 @@ ControllerFactory = Callable[[Any, Goal], navigation.ControllerLike]
 class _Map:
     revision: str
     cmap: Any
+    definition_hash: str = ""
+
+
+@dataclass
+class _Pending:
+    """A definition newer than the installed map: its geometry, until its map is installed."""
+
+    definition_hash: str
+    workspace: Any  # confnav.geometry.Workspace
 
 
 @dataclass
@@ -65,7 +94,10 @@ class _Robot:
     ctrl: navigation.ControllerLike | None = None
     ctrl_revision: str | None = None
     ctrl_error: str = ""
-    last_pose_t: float | None = None  # monotonic receive time
+    last_pose_t: float | None = None  # monotonic receive time of the last fresh pose
+    last_stamp: tuple[int, int] = (-1, -1)  # (stamp_ns, seq) of the last fresh pose
+    goal_t: float = 0.0  # monotonic time the goal was set
+    seen_t: float = 0.0  # monotonic time of the last pose or goal (idle TTL)
     position: tuple[float, float] | None = None
     status_key: tuple[str, str, str | None, str] = ("", "", None, "")
     status_t: float = 0.0
@@ -82,7 +114,7 @@ class ControllerService(Service):
         self,
         bus: Bus,
         keys: Keys | None = None,
-        robots: set[str] | None = None,
+        robots: set[str] | RobotSelector | None = None,
         stale_after: float = 0.5,
         status_period: float = 0.25,
         fetch_period: float = 0.5,
@@ -91,6 +123,11 @@ class ControllerService(Service):
         controller_factory: ControllerFactory = navigation.make_controller,
         health_period: float = 1.0,
         linger: float = 0.0,
+        margin: float = 0.25,
+        max_gain: float = 1000.0,
+        max_speed: float = 2.0,
+        idle_ttl: float = 60.0,
+        max_robots: int = 100_000,
     ) -> None:
         super().__init__(bus, keys, health_period)
         self.only = robots
@@ -99,12 +136,19 @@ class ControllerService(Service):
         self.fetch_period = fetch_period
         self.require_transform = require_transform
         self.linger = linger  # s to wait for more poses before a control step (throughput)
+        self.margin = margin  # m from a changed geometry within which robots stop
+        self.max_gain = max_gain
+        self.max_speed = max_speed
+        self.idle_ttl = idle_ttl  # s without pose or goal after which a robot is forgotten
+        self.max_robots = max_robots
         self._load_map = map_loader
         self._make_ctrl = controller_factory
         self._lock = threading.Lock()
         self._robots: dict[str, _Robot] = {}
         self._maps: dict[str, _Map] = {}
         self._map_errors: dict[str, str] = {}
+        self._pending: dict[str, _Pending] = {}  # ws id -> definition newer than its map
+        self._out: queue.SimpleQueue[tuple[str, bytes]] = queue.SimpleQueue()
         self._transform_alive: set[str] = set()
         self._wake_fetch = threading.Event()
         # (map revision, goal key) -> controller: robots with the same goal share one (the
@@ -118,15 +162,58 @@ class ControllerService(Service):
     def _start(self) -> None:
         k = self.keys
         self._handles.append(self.bus.subscribe_liveliness(k.alive_of("transform"), self._on_live))
+        self.spawn(self._publish_loop, "publish")
         self._handles.append(self.bus.subscribe(k.any_ws("transform"), self._on_transform))
-        self._handles.append(self.bus.subscribe(k.any_robot("goal"), self._on_goal))
-        self._handles.append(
-            self.bus.subscribe_batch(
-                k.any_robot("pose"), self._on_poses, max_batch=MAX_BACKLOG, linger=self.linger
+        self._handles.append(self.bus.subscribe(k.any_ws("definition"), self._on_definition))
+        self._handles.append(self.bus.subscribe(k.any_ws("delete"), self._on_ws_delete))
+        # this process's robots only (scale-out: services/shard.py, docs/SERVICES.md)
+        exprs = robot_key_exprs(k, "goal", self.only)
+        on_goals = serialized(self._on_goals) if len(exprs) > 1 else self._on_goals
+        for expr in exprs:
+            self._handles.append(self.bus.subscribe_latest(expr, on_goals, self._goals_dropped))
+        for expr in robot_key_exprs(k, "cancel", self.only):
+            self._handles.append(self.bus.subscribe(expr, self._on_cancel))
+        exprs = robot_key_exprs(k, "pose", self.only)
+        on_poses = serialized(self._on_poses) if len(exprs) > 1 else self._on_poses
+        for expr in exprs:
+            self._handles.append(  # bounded: the newest waiting pose of each robot wins
+                self.bus.subscribe_latest(
+                    expr,
+                    on_poses,
+                    self._poses_dropped,
+                    max_keys=MAX_BACKLOG,
+                    linger=self.linger,
+                )
             )
-        )
         self.spawn(self._fetch_loop, "fetch")
         self.spawn(self._watchdog_loop, "watchdog")
+
+    # publishing (one thread, never under a lock) ---------------------------------------
+    def _emit(self, key: str, payload: bytes) -> None:
+        """Queue a message; the publisher thread sends them in this order."""
+        self._out.put((key, payload))
+
+    def _publish_loop(self) -> None:
+        while True:
+            try:
+                key, payload = self._out.get(timeout=0.1)
+            except queue.Empty:
+                if self._stop.is_set():
+                    return
+                continue
+            try:
+                self.bus.publish(key, payload)
+            except Exception:
+                self.count("publish_errors")
+                log.exception("publishing on %s failed", key)
+
+    def _poses_dropped(self, n: int) -> None:
+        self.count("poses", n)
+        self.count("poses_superseded", n)
+
+    def _goals_dropped(self, n: int) -> None:
+        self.count("goals_received", n)
+        self.count("goals_superseded", n)
 
     def stop(self) -> None:
         self._stop.set()
@@ -177,7 +264,7 @@ class ControllerService(Service):
             self._map_errors[ws_id] = f"cannot load map: {exc}"
             log.error("workspace %r: cannot load map %s: %s", ws_id, sol.revision[:12], exc)
             return
-        new = _Map(sol.revision, cmap)
+        new = _Map(sol.revision, cmap, sol.definition_hash)
         with self._lock:
             robots = [r for r in self._robots.values() if r.goal and r.goal.ws_id == ws_id]
         built = {r.robot_id: self._build(new, r.goal) for r in robots if r.goal}
@@ -187,6 +274,9 @@ class ControllerService(Service):
         with self._lock:
             self._maps[ws_id] = new
             self._map_errors.pop(ws_id, None)
+            pending = self._pending.get(ws_id)
+            if pending is not None and pending.definition_hash == sol.definition_hash:
+                del self._pending[ws_id]  # the map of the current geometry: robots go on
             for r in robots:
                 ctrl, err = built[r.robot_id]
                 with r.lock:
@@ -198,6 +288,82 @@ class ControllerService(Service):
             "workspace %r: map %s installed (%d robots)", ws_id, sol.revision[:12], len(robots)
         )
         self.swapped.set()
+
+    # definition changes -----------------------------------------------------------------
+    def _on_definition(self, key: str, payload: bytes) -> None:
+        """A definition unlike the installed map's: stop the robots near the new geometry."""
+        try:
+            ws_id = self.keys.parse(key).ident
+            defn = decode(WorkspaceDefinition, payload)
+            if defn.ws_id != ws_id:
+                raise DecodeError("invalid_input", f"definition on {key} names {defn.ws_id!r}")
+            h = definition_hash(defn)
+            workspace = workspace_of(defn)
+        except (KeyError_, DecodeError, ValueError) as exc:  # WorkspaceError is a ValueError
+            self.count("rejected")
+            log.warning("rejected definition on %s: %s", key, exc)
+            return
+        self.count("definitions")
+        now = time.monotonic()
+        with self._lock:
+            cur = self._maps.get(ws_id)
+            if cur is not None and cur.definition_hash == h:
+                self._pending.pop(ws_id, None)  # back to the geometry of the installed map
+                return
+            old = self._pending.get(ws_id)
+            if old is not None and old.definition_hash == h:
+                return  # announced again
+            self._pending[ws_id] = _Pending(h, workspace)
+            robots = [r for r in self._robots.values() if r.goal and r.goal.ws_id == ws_id]
+        self.count("definitions_changed")
+        log.warning("workspace %r: definition changed; robots near it stop until its map", ws_id)
+        for r in robots:
+            with r.lock:
+                if r.goal is None or r.goal.ws_id != ws_id or r.position is None:
+                    continue
+                blocker = self._outdated(r)
+                if blocker is not None:
+                    self._stop_robot(r, "map_outdated", blocker, now)
+        self._wake_fetch.set()
+
+    def _on_ws_delete(self, key: str, payload: bytes) -> None:
+        """A deleted workspace: its map is dropped, its robots stop (missing_map)."""
+        try:
+            ws_id = self.keys.parse(key).ident
+            msg = decode(WorkspaceDelete, payload)
+            if msg.ws_id != ws_id:
+                raise DecodeError("invalid_input", f"delete on {key} names {msg.ws_id!r}")
+        except (KeyError_, DecodeError) as exc:
+            self.count("rejected")
+            log.warning("rejected delete on %s: %s", key, exc)
+            return
+        now = time.monotonic()
+        with self._lock:
+            self._maps.pop(ws_id, None)
+            self._pending.pop(ws_id, None)
+            self._map_errors[ws_id] = f"workspace {ws_id!r} was deleted"
+            robots = [r for r in self._robots.values() if r.goal and r.goal.ws_id == ws_id]
+        self.count("workspaces_deleted")
+        for r in robots:
+            with r.lock:
+                if r.goal is None or r.goal.ws_id != ws_id:
+                    continue
+                r.ctrl, r.ctrl_revision, r.ctrl_error = None, None, ""
+                self._stop_robot(r, "missing_map", self._map_errors[ws_id], now)
+
+    def _outdated(self, r: _Robot) -> str | None:
+        """Why the robot's map contradicts the current geometry near it, or None."""
+        assert r.goal is not None
+        pending = self._pending.get(r.goal.ws_id)
+        if pending is None or r.position is None:
+            return None
+        c = float(pending.workspace.clearance(complex(*r.position)))
+        if c >= self.margin:
+            return None
+        return (
+            f"workspace {r.goal.ws_id!r} changed: {c:.3f} m from the new geometry "
+            f"(margin {self.margin:g} m); waiting for its map"
+        )
 
     def _build(self, m: _Map, goal: Goal) -> tuple[navigation.ControllerLike | None, str]:
         key = (m.revision, *navigation.goal_key(goal))
@@ -225,7 +391,7 @@ class ControllerService(Service):
                     r.goal.ws_id
                     for r in self._robots.values()
                     if r.goal is not None and r.goal.ws_id not in self._maps
-                }
+                } | set(self._pending)
             for ws_id in sorted(needed):
                 self._fetch(ws_id)
 
@@ -253,26 +419,47 @@ class ControllerService(Service):
 
     # goals -------------------------------------------------------------------------------
     def _robot(self, rid: str) -> _Robot | None:
+        """The robot's record (created; None if not driven here or over ``max_robots``)."""
         if self.only is not None and rid not in self.only:
             return None
         with self._lock:
             r = self._robots.get(rid)
             if r is None:
-                r = self._robots[rid] = _Robot(rid)
+                if len(self._robots) >= self.max_robots:
+                    self.count("robots_over_limit")
+                    return None
+                r = self._robots[rid] = _Robot(rid, seen_t=time.monotonic())
             return r
+
+    def _on_goals(self, items: list[tuple[str, bytes]]) -> None:
+        self.count("goals_received", len(items))
+        for key, payload in items:
+            self._on_goal(key, payload)
 
     def _on_goal(self, key: str, payload: bytes) -> None:
         try:
             rid = self.keys.parse(key).ident
-            goal = decode(Goal, payload)
-        except (KeyError_, DecodeError) as exc:
+        except KeyError_ as exc:
             self.count("rejected")
             log.warning("rejected goal on %s: %s", key, exc)
             return
-        if goal.robot_id != rid:
+        try:
+            goal = decode(Goal, payload)
+            if goal.robot_id != rid:
+                raise DecodeError("invalid_input", f"goal on {key} names robot {goal.robot_id!r}")
+            if goal.gain > self.max_gain or goal.v_max > self.max_speed:
+                raise DecodeError(
+                    "invalid_input",
+                    f"gain {goal.gain:g} / v_max {goal.v_max:g} above the caps "
+                    f"{self.max_gain:g} / {self.max_speed:g}",
+                )
+        except DecodeError as exc:
             self.count("rejected")
-            log.warning("goal on %s names robot %r: ignored", key, goal.robot_id)
+            log.warning("rejected goal on %s: %s", key, exc)
+            self._reject_goal(rid, str(exc))
             return
+        # a robot with a footprint drives on the map of the shrunk workspace ({ws}~r{radius})
+        goal = goal.model_copy(update={"ws_id": navigation.map_ws_id(goal)})
         r = self._robot(rid)
         if r is None:
             return
@@ -284,9 +471,52 @@ class ControllerService(Service):
             r.ctrl_revision = m.revision if m is not None else None
             r.stale_reported = False
             r.status_key = ("", "", None, "")
+            r.goal_t = r.seen_t = time.monotonic()
         if m is None:
             self._wake_fetch.set()
         log.info("robot %r: goal %s on %r", rid, goal.goal, goal.ws_id)
+
+    def _reject_goal(self, rid: str, message: str) -> None:
+        """A malformed goal: the robot's goal is cleared (zero command) and the sender told."""
+        r = self._robot(rid)
+        if r is None:
+            return
+        now = time.monotonic()
+        with r.lock:
+            if r.goal is not None:
+                self._publish_cmd(r, 0j, None)
+            r.goal, r.ctrl, r.ctrl_error, r.ctrl_revision = None, None, "", None
+            r.seen_t = now
+            r.status_key = ("", "", None, "")
+            self._status(r, "idle", "invalid_input", f"goal rejected: {message}", now)
+
+    def _on_cancel(self, key: str, payload: bytes) -> None:
+        """Cancel: zero command, ``idle`` status, and the robot is forgotten."""
+        try:
+            rid = self.keys.parse(key).ident
+            cancel = decode(GoalCancel, payload)
+            if cancel.robot_id != rid:
+                raise DecodeError("invalid_input", f"cancel on {key} names {cancel.robot_id!r}")
+        except (KeyError_, DecodeError) as exc:
+            self.count("rejected")
+            log.warning("rejected cancel on %s: %s", key, exc)
+            return
+        self.count("cancels")
+        self._forget(rid, "cancelled")
+
+    def _forget(self, rid: str, why: str) -> None:
+        with self._lock:
+            r = self._robots.pop(rid, None)
+        if r is None:
+            return
+        with r.lock:
+            if r.goal is not None:
+                self._publish_cmd(r, 0j, None)
+            r.goal = None
+            r.status_key = ("", "", None, "")
+            self._status(r, "idle", "no_goal", why, time.monotonic())
+        self._cmd_keys.pop(rid, None)
+        self.count("robots_forgotten")
 
     # poses (hot path) -------------------------------------------------------------------------
     def _on_poses(self, items: list[tuple[str, bytes]]) -> None:
@@ -323,8 +553,10 @@ class ControllerService(Service):
                 continue
             with self._lock:
                 r = self._robots.get(rid)
-            if r is None or r.goal is None:
-                continue
+            if r is None:  # remembered before its goal (the watchdog must not miss it)
+                r = self._robot(rid)
+                if r is None:
+                    continue
             try:
                 pose = decode(Pose, payload)
                 if pose.robot_id != rid:
@@ -333,13 +565,23 @@ class ControllerService(Service):
                 self.count("rejected")
                 reason = "nan_input" if exc.reason == "nan_input" else "invalid_input"
                 with r.lock:
-                    r.last_pose_t = now  # the robot is alive, but its input is unusable
-                    self._stop_robot(r, reason, str(exc), now)
+                    r.seen_t = now
+                    if r.goal is not None:
+                        r.last_pose_t = now  # the robot is alive, but its input is unusable
+                        self._stop_robot(r, reason, str(exc), now)
                 continue
             with r.lock:
+                r.seen_t = now
+                stamp = (pose.stamp_ns, pose.seq)
+                if stamp <= r.last_stamp:  # replayed or reordered: not fresh, not answered
+                    self.count("poses_out_of_order")
+                    continue
+                r.last_stamp = stamp
                 r.last_pose_t = now
                 r.position = (pose.x, pose.y)
                 r.stale_reported = False
+                if r.goal is None:
+                    continue
                 blocker = self._blocker(r)
                 if blocker is not None:
                     self._stop_robot(r, blocker[0], blocker[1], now, pose)
@@ -349,8 +591,9 @@ class ControllerService(Service):
             groups.setdefault(id(ctrl), (ctrl, []))[1].append((r, pose))
         for ctrl, members in groups.values():
             z = np.array([complex(p.x, p.y) for _, p in members])
+            th = np.array([p.theta for _, p in members])
             try:
-                u, codes = navigation.commands(ctrl, z)
+                u, codes = navigation.commands(ctrl, z, th)
             except Exception as exc:
                 self.count("navigation_errors")
                 for r, pose in members:
@@ -361,20 +604,20 @@ class ControllerService(Service):
                 continue
             for (r, pose), ui, code in zip(members, u.tolist(), codes.tolist(), strict=True):
                 with r.lock:
-                    self._act(r, pose, complex(ui), int(code), now)
+                    self._act(r, pose, navigation.decide(ctrl, complex(ui), int(code)), now)
 
-    def _act(self, r: _Robot, pose: Pose, u: complex, code: int, now: float) -> None:
-        if code == navigation.ERROR or u != u:  # NaN guard
-            self._stop_robot(
-                r, "outside_workspace", "pose outside the mapped free space", now, pose
-            )
-        elif code == navigation.ARRIVED:
-            self._publish_cmd(r, 0j, pose)
-            self._status(r, "arrived", "arrived", "", now)
+    def _act(self, r: _Robot, pose: Pose, d: navigation.Decision, now: float) -> None:
+        """Publish what :func:`navigation.decide` made of the control law's output."""
+        if r.goal is None or r.last_stamp != (pose.stamp_ns, pose.seq):
+            return  # cancelled, or a newer pose came meanwhile: it gets the answer
+        blocker = self._blocker(r)  # again: the geometry may have changed meanwhile
+        if blocker is not None:
+            self._stop_robot(r, blocker[0], blocker[1], now, pose)
+        elif d.state == "stopped":
+            self._stop_robot(r, d.reason, d.message, now, pose)
         else:
-            self._publish_cmd(r, u, pose)
-            msg = "stalled at a saddle" if code == navigation.STALLED else ""
-            self._status(r, "navigating", "ok", msg, now)
+            self._publish_cmd(r, d.u, pose)
+            self._status(r, d.state, d.reason, d.message, now)
 
     def _blocker(self, r: _Robot) -> tuple[str, str] | None:
         """Why this robot must not move now, or None."""
@@ -386,6 +629,10 @@ class ControllerService(Service):
                 return "navigation_error", r.ctrl_error
             err = self._map_errors.get(r.goal.ws_id, "waiting for the map")
             return "missing_map", err
+        if self._pending:
+            outdated = self._outdated(r)
+            if outdated is not None:
+                return "map_outdated", outdated
         return None
 
     def _stop_robot(
@@ -398,10 +645,13 @@ class ControllerService(Service):
     def _publish_cmd(self, r: _Robot, u: complex, pose: Pose | None) -> None:
         # model_construct: our own finite values, no re-validation on the hot path (the
         # payloads are checked against the schema in the tests and by every reader)
+        body = getattr(r.ctrl, "frame", "world") == "body"  # unicycle: u = v + i omega
         cmd = VelocityCommand.model_construct(
             robot_id=r.robot_id,
             stamp_ns=time.time_ns(),
-            linear=(u.real, u.imag),
+            linear=(u.real, 0.0) if body else (u.real, u.imag),
+            angular=u.imag if body else 0.0,
+            frame="body" if body else "world",
             pose_seq=pose.seq if pose is not None else -1,
             pose_stamp_ns=pose.stamp_ns if pose is not None else 0,
             map_revision=r.ctrl_revision,
@@ -409,7 +659,7 @@ class ControllerService(Service):
         key = self._cmd_keys.get(r.robot_id)
         if key is None:
             key = self._cmd_keys[r.robot_id] = self.keys.robot(r.robot_id, "cmd_vel")
-        self.bus.publish(key, encode(cmd))
+        self._emit(key, encode(cmd))
         self.count("commands")
 
     def _status(self, r: _Robot, state: str, reason: str, message: str, now: float) -> None:
@@ -432,20 +682,27 @@ class ControllerService(Service):
             position=r.position,
             distance_to_goal=dist,
         )
-        self.bus.publish(self.keys.robot(r.robot_id, "status"), encode(status))
+        self._emit(self.keys.robot(r.robot_id, "status"), encode(status))
 
     # watchdog -------------------------------------------------------------------------------
     def _watchdog_loop(self) -> None:
         period = min(0.05, self.stale_after / 4)
+        next_ttl = time.monotonic() + 1.0
         while not self._stop.wait(period):
             now = time.monotonic()
             with self._lock:
                 robots = list(self._robots.values())
+            if now >= next_ttl:  # forget robots silent for idle_ttl s
+                next_ttl = now + 1.0
+                for r in robots:
+                    if now - r.seen_t > self.idle_ttl:
+                        self._forget(r.robot_id, f"forgotten after {self.idle_ttl:g} s silent")
             for r in robots:
                 with r.lock:
                     if r.goal is None:
                         continue
-                    if r.last_pose_t is None or now - r.last_pose_t > self.stale_after:
+                    last = r.goal_t if r.last_pose_t is None else max(r.last_pose_t, r.goal_t)
+                    if now - last > self.stale_after:
                         if not r.stale_reported:
                             r.stale_reported = True
                             self._stop_robot(
@@ -471,7 +728,13 @@ class ControllerService(Service):
 def add_parser(sub: Any) -> None:
     p: argparse.ArgumentParser = sub.add_parser("controller", help="run the controller service")
     add_zenoh_args(p)
-    p.add_argument("--robots", default=None, help="comma-separated robot ids (default: all)")
+    p.add_argument(
+        "--robots",
+        default=None,
+        help="robots this process drives: comma-separated ids and Zenoh chunk patterns such "
+        "as 'a$*' (ids starting with a) or '$*7'; others' poses are not even delivered "
+        "(default: all; see docs/SERVICES.md, scale-out)",
+    )
     p.add_argument("--stale-after", type=float, default=0.5, help="pose timeout, s")
     p.add_argument(
         "--linger-ms",
@@ -479,14 +742,38 @@ def add_parser(sub: Any) -> None:
         default=0.0,
         help="wait this long for more poses before a control step (larger batches, less CPU)",
     )
+    p.add_argument(
+        "--margin",
+        type=float,
+        default=0.25,
+        help="m: on a definition change, robots this close to the new geometry stop until "
+        "its map is installed (default %(default)s)",
+    )
+    p.add_argument("--max-gain", type=float, default=1000.0, help="largest goal gain accepted")
+    p.add_argument("--max-speed", type=float, default=2.0, help="largest goal v_max, m/s")
+    p.add_argument(
+        "--idle-ttl", type=float, default=60.0, help="s without pose or goal: robot forgotten"
+    )
     p.set_defaults(func=main)
 
 
 def main(args: argparse.Namespace) -> int:
-    robots = set(args.robots.split(",")) if args.robots else None
+    try:
+        robots = RobotSelector.parse(args.robots) if args.robots else None
+    except KeyError_ as exc:
+        print(f"confnav serve controller: --robots: {exc}", file=sys.stderr)
+        return 2
     return run_until_signal(
         lambda bus, keys: ControllerService(
-            bus, keys, robots, stale_after=args.stale_after, linger=args.linger_ms / 1e3
+            bus,
+            keys,
+            robots,
+            stale_after=args.stale_after,
+            linger=args.linger_ms / 1e3,
+            margin=args.margin,
+            max_gain=args.max_gain,
+            max_speed=args.max_speed,
+            idle_ttl=args.idle_ttl,
         ),
         args,
     )

@@ -19,12 +19,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from confnav import defaults
 from confnav.schemas import (
     CollisionEvent,
     DecodeError,
     Goal,
     Pose,
     RobotStatus,
+    SpawnRequest,
     decode,
     encode,
 )
@@ -34,6 +36,9 @@ from confnav.services.runtime import stop_on_signals
 log = logging.getLogger(__name__)
 
 WS_ID = "default"
+#: A differential-drive robot (id, start, heading, body radius, look-ahead) driven by body
+#: twists on the map of the default workspace shrunk by radius + look-ahead.
+UNICYCLE = ("u1", complex(1.6, -1.6), 3.0, 0.03, 0.05)
 
 
 @dataclass
@@ -107,7 +112,12 @@ class DemoMonitor:
 
 
 def demo_config(
-    sock: str, out: Path, starts: dict[str, complex], time_scale: float, cache_dir: str | None
+    sock: str,
+    out: Path,
+    starts: dict[str, complex],
+    time_scale: float,
+    cache_dir: str | None,
+    live_port: int | None = None,
 ) -> LaunchConfig:
     sim_args = ["--workspace", f"{WS_ID}=builtin:default", "--time-scale", str(time_scale)]
     for rid, z in starts.items():
@@ -115,9 +125,11 @@ def demo_config(
     tr_args = ["--workspace", f"{WS_ID}=builtin:default"]
     if cache_dir:
         tr_args += ["--cache-dir", cache_dir]
+    live = [] if live_port is None else [ServiceSpec("foxglove", ["--port", str(live_port)])]
     return LaunchConfig(
         listen=[sock],
         services=[
+            *live,  # first: it sees every message, like the recorder
             ServiceSpec("recorder", ["--out", str(out / "demo.mcap"), "--foxglove"]),
             ServiceSpec("transform", tr_args),
             ServiceSpec("controller", []),
@@ -224,22 +236,26 @@ def run_demo(
     out: Path,
     timeout: float = 120.0,
     time_scale: float = 1.0,
-    navfn: str = "harmonic",
-    gain: float = 100.0,
-    v_max: float = 0.5,
-    tolerance: float = 0.02,
+    navfn: str = defaults.NAVFN,
+    gain: float = defaults.GAIN,
+    v_max: float = defaults.V_MAX,
+    tolerance: float = defaults.GOAL_TOL,
+    speed_law: str = defaults.SPEED_LAW,
     cache_dir: str | None = None,
     verbose: int = 0,
+    live_port: int | None = None,
 ) -> int:
     from confnav.workspaces import DEFAULT_GOAL, DEFAULT_STARTS
 
     out.mkdir(parents=True, exist_ok=True)
+    old_recordings = set(out.glob("demo*.mcap"))  # never overwritten: demo.1.mcap... follow
     starts = {f"r{i + 1}": z for i, z in enumerate(DEFAULT_STARTS)}
     tracks = {rid: Track(rid, z, DEFAULT_GOAL) for rid, z in starts.items()}
+    tracks[UNICYCLE[0]] = Track(UNICYCLE[0], UNICYCLE[1], DEFAULT_GOAL)
     sockdir = tempfile.mkdtemp(prefix="confnav-demo-")
     sock = f"unixsock-stream/{sockdir}/router.sock"
     launcher = Launcher(
-        demo_config(sock, out, starts, time_scale, cache_dir), verbose=max(verbose, 1)
+        demo_config(sock, out, starts, time_scale, cache_dir, live_port), verbose=max(verbose, 1)
     )
     mon = DemoMonitor(tracks)
     t_start = time.monotonic()
@@ -249,11 +265,17 @@ def run_demo(
                 f"confnav demo: starting router and 4 services (logs in {out / 'logs'})", flush=True
             )
             launcher.start()
+            if live_port is not None:
+                print(f"confnav demo: live view in Foxglove at ws://127.0.0.1:{live_port}")
             assert launcher.bus is not None
             bus, keys = launcher.bus, launcher.keys
             bus.subscribe(keys.any_robot("pose"), mon.on_pose)
             bus.subscribe(keys.any_robot("status"), mon.on_status)
             bus.subscribe(keys.any_robot("collision"), mon.on_collision)
+            uid, uz, uth, urad, ud = UNICYCLE
+            spawn = SpawnRequest(robot_id=uid, ws_id=WS_ID, position=(uz.real, uz.imag),
+                                 theta=uth, robot_radius=urad, drive="unicycle")
+            bus.publish(keys.sim("sim", "spawn"), encode(spawn))
             print(
                 "confnav demo: waiting for the conformal map of the default workspace...",
                 flush=True,
@@ -271,12 +293,17 @@ def run_demo(
                     ws_id=WS_ID,
                     goal=(DEFAULT_GOAL.real, DEFAULT_GOAL.imag),
                     navfn=navfn,  # type: ignore[arg-type]
+                    speed_law=speed_law,  # type: ignore[arg-type]
                     gain=gain,
                     v_max=v_max,
                     tolerance=tolerance,
                     stamp_ns=time.time_ns(),
                 )
                 bus.publish(keys.robot(rid, "goal"), encode(goal))
+            ugoal = goal.model_copy(
+                update={"robot_id": uid, "robot_radius": urad, "drive": "unicycle", "lookahead": ud}
+            )
+            bus.publish(keys.robot(uid, "goal"), encode(ugoal))
             deadline = mon.t0 + timeout
             next_print = 0.0
             while not stop.is_set() and time.monotonic() < deadline and not mon.done():
@@ -301,7 +328,10 @@ def run_demo(
     print()
     print(table)
     print()
-    print(f"recording: {out / 'demo.mcap'}   plot: {out / 'demo.png'}")
+    recordings = sorted(
+        set(out.glob("demo*.mcap")) - old_recordings, key=lambda p: p.stat().st_mtime
+    )
+    print(f"recording: {', '.join(map(str, recordings)) or '-'}   plot: {out / 'demo.png'}")
     print("result:", "all robots arrived without collision" if ok else "FAILED")
     return 0 if ok else 1
 
@@ -313,16 +343,26 @@ def add_parser(sub: Any) -> None:
     p.add_argument("--out", default="out", help="output folder (default %(default)s)")
     p.add_argument("--timeout", type=float, default=120.0, help="seconds (default %(default)s)")
     p.add_argument("--time-scale", type=float, default=1.0, help=">1: faster than real time")
-    p.add_argument("--navfn", default="harmonic", choices=("harmonic", "kr"))
+    p.add_argument("--navfn", default=defaults.NAVFN, choices=("harmonic", "kr"))
+    p.add_argument("--speed-law", default=defaults.SPEED_LAW, choices=defaults.SPEED_LAWS)
     p.add_argument(
         "--gain",
         type=float,
-        default=100.0,
-        help="K of the control law (default %(default)s; the command saturates at v_max)",
+        default=defaults.GAIN,
+        help="1/s of the normalized law, K of theorem2 (default %(default)s)",
     )
-    p.add_argument("--v-max", type=float, default=0.5)
-    p.add_argument("--tolerance", type=float, default=0.02)
+    p.add_argument("--v-max", type=float, default=defaults.V_MAX, help="m/s")
+    p.add_argument("--tolerance", type=float, default=defaults.GOAL_TOL, help="m")
     p.add_argument("--cache-dir", default=None, help="transform solution cache")
+    p.add_argument(
+        "--live",
+        nargs="?",
+        type=int,
+        const=8765,
+        default=None,
+        metavar="PORT",
+        help="serve the live scene to Foxglove on ws://127.0.0.1:PORT (default 8765)",
+    )
     p.set_defaults(func=main)
 
 
@@ -332,9 +372,11 @@ def main(args: argparse.Namespace) -> int:
         timeout=args.timeout,
         time_scale=args.time_scale,
         navfn=args.navfn,
+        speed_law=args.speed_law,
         gain=args.gain,
         v_max=args.v_max,
         tolerance=args.tolerance,
         cache_dir=args.cache_dir,
         verbose=getattr(args, "verbose", 0),
+        live_port=args.live,
     )

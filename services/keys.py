@@ -29,8 +29,8 @@ DEFAULT_PREFIX: Final = "confnav"
 MAX_ID_LENGTH: Final = 64
 _ID_FORBIDDEN = re.compile(r"[*$#?/\s]")
 
-WS_KINDS: Final = ("definition", "transform", "status")
-ROBOT_KINDS: Final = ("goal", "pose", "cmd_vel", "status", "collision")
+WS_KINDS: Final = ("definition", "delete", "transform", "status")
+ROBOT_KINDS: Final = ("goal", "cancel", "pose", "cmd_vel", "status", "collision")
 SIM_KINDS: Final = ("spawn", "control")
 
 

@@ -3,38 +3,92 @@
 Starts the router (a Python Zenoh session in router mode) unless the manifest points at an
 existing one, then each service in order (``python -m confnav.cli serve NAME ...``, connected
 as a client to the router), waiting for its liveliness token ``{prefix}/alive/{name}/*``.
-A service that exits while running is restarted (with backoff, at most ``max_restarts``
-times). Ctrl-C / SIGTERM stops the services in reverse order with SIGTERM (the recorder
-finishes its file), then the router. Manifest format: see ``deploy/local.toml``.
+
+Before starting anything it refuses (:class:`LaunchError`, one line, exit 1) when a router
+endpoint is already taken, so that its services never join another system's router; its own
+router gets a fresh Zenoh id, and the launcher waits for that router's liveliness token before
+starting a service. A process that exits while running (the router included) is restarted
+after a backoff (0.5 s, doubling, at most 10 s), at most ``max_restarts`` times; a router
+that is given up on (or whose endpoint was taken meanwhile) stops the launch with exit 1.
+Ctrl-C / SIGTERM stops the services in reverse order with SIGTERM (the recorder finishes its
+file), then the router. Manifest format: see ``deploy/local.toml``.
 """
 
 from __future__ import annotations
 
 import argparse
+import errno
 import logging
 import os
+import secrets
 import signal
+import socket
 import subprocess
 import sys
 import threading
 import time
 import tomllib
+from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any
 
+from confnav.errors import ConfnavError
 from confnav.services.bus import ZenohBus, zenoh_config
 from confnav.services.keys import DEFAULT_PREFIX, Keys
 from confnav.services.runtime import stop_on_signals
 
 log = logging.getLogger(__name__)
 
-SERVICES = ("transform", "controller", "simulator", "recorder")
+SERVICES = ("transform", "controller", "simulator", "recorder", "ros2", "foxglove")
 
 #: Environment of the service processes unless set already: one BLAS thread each. The
 #: services get their parallelism from processes; a multi-threaded OpenBLAS waking its
 #: threads for the tiny products of one control step stalls ~15 ms on a busy machine.
 SINGLE_THREAD_BLAS = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+
+
+class LaunchError(ConfnavError, RuntimeError):
+    """The system cannot be launched or kept running (endpoint taken, a process not coming
+    up, the router given up on)."""
+
+
+def endpoint_in_use(endpoint: str) -> bool:
+    """Whether something already listens on a Zenoh ``tcp``/``tls``/``ws``/``udp``/``quic``
+    endpoint (a bind test with ``SO_REUSEADDR``, as Zenoh binds) or ``unixsock-stream``
+    endpoint (the socket file accepts a connection). Other kinds: False (Zenoh reports)."""
+    proto, _, addr = endpoint.split("#", 1)[0].split("?", 1)[0].partition("/")
+    if proto == "unixsock-stream":
+        if not os.path.exists(addr):
+            return False
+        with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as sock:
+            try:
+                sock.connect(addr)
+            except OSError:
+                return False  # a stale file: nobody listens
+            return True
+    if proto not in ("tcp", "tls", "ws", "udp", "quic"):
+        return False
+    host, _, port = addr.rpartition(":")
+    kind = socket.SOCK_DGRAM if proto in ("udp", "quic") else socket.SOCK_STREAM
+    try:
+        infos = socket.getaddrinfo(host.strip("[]"), int(port), type=kind)
+    except (OSError, ValueError):
+        return False  # not resolvable: the router reports it
+    for family, stype, _proto, _name, sockaddr in infos:
+        with socket.socket(family, stype) as sock:
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            try:
+                sock.bind(sockaddr)
+            except OSError as exc:
+                if exc.errno == errno.EADDRINUSE:
+                    return True
+    return False
+
+
+def backoff_s(restarts: int) -> float:
+    """Wait before restart number ``restarts + 1``: 0.5 s, doubling, at most 10 s."""
+    return float(min(0.5 * 2**restarts, 10.0))
 
 
 @dataclass
@@ -78,6 +132,8 @@ class LaunchConfig:
         for s in data.get("service", []):
             if s.get("name") not in SERVICES:
                 raise ValueError(f"unknown service {s.get('name')!r}; choose from {SERVICES}")
+            if not s.get("enabled", True):  # kept in the manifest, not started
+                continue
             services.append(
                 ServiceSpec(
                     name=s["name"],
@@ -114,6 +170,7 @@ class _Proc:
     log: IO[bytes] | None
     restarts: int = 0
     started: float = 0.0
+    restart_at: float | None = None  # exited: restart at this monotonic time
 
 
 class Launcher:
@@ -129,6 +186,9 @@ class Launcher:
         self._stopping = False
         self.restarts = 0
         self._lock = threading.Lock()
+        #: Zenoh id given to the router this launcher starts (its services must reach it)
+        self.router_id = "a" + secrets.token_hex(7)
+        self.failed: str | None = None  # why the launch cannot go on (set by check())
 
     # processes ---------------------------------------------------------------------------
     def _open_log(self, label: str) -> IO[bytes] | None:
@@ -164,7 +224,18 @@ class Launcher:
             argv += ["--connect", ep]
         return [*argv, "--prefix", self.config.prefix, *spec.args]
 
-    def start_router(self) -> None:
+    def check_endpoints(self) -> None:
+        """Raise :class:`LaunchError` if a router endpoint of the manifest is taken."""
+        if self.config.external_router:
+            return
+        for ep in self.config.listen:
+            if endpoint_in_use(ep):
+                raise LaunchError(
+                    f"router endpoint {ep} is already in use (another confnav launch or "
+                    "Zenoh router?): stop it or change [router] listen"
+                )
+
+    def start_router(self, restarts: int = 0) -> None:
         if self.config.external_router:
             return
         argv = confnav_command(
@@ -174,23 +245,34 @@ class Launcher:
             argv += ["--listen", ep]
         if self.config.router_config:
             argv += ["--zenoh-config", self.config.router_config]
+        argv += ["--id", self.router_id]
         popen, logf = self._spawn(argv, "router")
-        self.router = _Proc(ServiceSpec("router"), popen, logf, started=time.monotonic())
+        self.router = _Proc(ServiceSpec("router"), popen, logf, restarts, time.monotonic())
 
     def connect(self) -> ZenohBus:
-        """The launcher's own client session (retried until the router accepts it)."""
+        """The launcher's own client session (retried until the router accepts it); with a
+        router of its own, waits for that router's liveliness token (never another's)."""
         deadline = time.monotonic() + self.config.startup_timeout
         last: Exception | None = None
         while time.monotonic() < deadline:
             if self.router is not None and self.router.popen.poll() is not None:
-                raise RuntimeError(f"router exited with code {self.router.popen.returncode}")
+                raise LaunchError(
+                    f"router exited with code {self.router.popen.returncode}"
+                    + (f"; see {self.config.log_dir}/router.log" if self.config.log_dir else "")
+                )
             try:
-                self.bus = ZenohBus(zenoh_config("client", connect=self.config.connect))
-                return self.bus
+                if self.bus is None:
+                    self.bus = ZenohBus(zenoh_config("client", connect=self.config.connect))
+                if self.router is None or self._own_router_alive():
+                    return self.bus
             except Exception as exc:  # router not listening yet
                 last = exc
-                time.sleep(0.2)
-        raise RuntimeError(f"cannot connect to the router at {self.config.connect}: {last}")
+            time.sleep(0.2)
+        raise LaunchError(f"cannot connect to the router at {self.config.connect}: {last}")
+
+    def _own_router_alive(self) -> bool:
+        assert self.bus is not None
+        return bool(self.bus.alive(self.keys.alive("router", self.router_id), 1.0))
 
     def alive_zids(self, name: str) -> set[str]:
         assert self.bus is not None
@@ -213,7 +295,7 @@ class Launcher:
         with self._lock:
             self.procs[spec.label] = proc
         if spec.wait and not self.wait_alive(proc, before, self.config.startup_timeout):
-            raise RuntimeError(
+            raise LaunchError(
                 f"service {spec.label} did not come alive (exit code {popen.poll()}); "
                 f"see {self.config.log_dir or 'its output'}"
             )
@@ -221,19 +303,55 @@ class Launcher:
         return proc
 
     def start(self) -> None:
-        """Router, launcher session, then each service in order (waiting for liveliness)."""
+        """Endpoint check, router, launcher session (on the own router), then each service in
+        order (waiting for liveliness). Raises :class:`LaunchError`."""
+        self.check_endpoints()
         self.start_router()
         self.connect()
         for spec in self.config.services:
             self.start_service(spec)
 
+    def _exited(self, label: str, proc: _Proc, code: int, now: float) -> bool:
+        """Handle an exited process; True when it is due for a restart now."""
+        if proc.restart_at is None:
+            wait = backoff_s(proc.restarts)
+            proc.restart_at = now + wait
+            log.warning(
+                "%s exited with code %s: restarting in %.1f s (%d/%d)",
+                label,
+                code,
+                wait,
+                proc.restarts + 1,
+                self.config.max_restarts,
+            )
+            if proc.log is not None:
+                proc.log.close()
+                proc.log = None
+        return now >= proc.restart_at
+
     def check(self) -> None:
-        """Restart services that exited (called periodically by :meth:`monitor`)."""
-        if self._stopping:
+        """Restart processes that exited, after their backoff, at most ``max_restarts`` times
+        each (called periodically by :meth:`monitor`; never blocks on a backoff). Sets
+        :attr:`failed` when the router is given up on."""
+        if self._stopping or self.failed:
             return
-        if self.router is not None and self.router.popen.poll() is not None:
-            log.error("router exited (code %s): restarting it", self.router.popen.returncode)
-            self.start_router()
+        now = time.monotonic()
+        router = self.router
+        if router is not None and (code := router.popen.poll()) is not None:
+            if router.restarts >= self.config.max_restarts:
+                self.failed = f"router exited with code {code} after {router.restarts} restarts"
+            elif self._exited("router", router, code, now):
+                if any(endpoint_in_use(ep) for ep in self.config.listen):
+                    self.failed = (
+                        f"router endpoint {self.config.listen} was taken by another process "
+                        "while the router was down"
+                    )
+                else:
+                    self.restarts += 1
+                    self.start_router(router.restarts + 1)
+            if self.failed:
+                log.error("%s: stopping", self.failed)
+                return
         for label, proc in list(self.procs.items()):
             code = proc.popen.poll()
             if code is None or self._stopping:
@@ -243,22 +361,45 @@ class Launcher:
                 with self._lock:
                     self.procs.pop(label, None)
                 continue
-            log.warning("%s exited with code %s: restarting (%d)", label, code, proc.restarts + 1)
-            if proc.log is not None:
-                proc.log.close()
-            time.sleep(min(0.2 * 2**proc.restarts, 5.0))
+            if not self._exited(label, proc, code, now):
+                continue
             self.restarts += 1
             spec = ServiceSpec(
                 proc.spec.name, proc.spec.args, proc.spec.instance, proc.spec.restart, False
             )
             self.start_service(spec, proc.restarts + 1)
 
+    def status(self) -> str:
+        """The real state: the router (own process and its liveliness token) and, per
+        service, whether its process runs and its liveliness token is there."""
+        if self.router is None:
+            router = f"external router {','.join(self.config.connect)}"
+        else:
+            up = self.router.popen.poll() is None and self.bus is not None
+            up = up and self._own_router_alive()
+            router = f"router {','.join(self.config.listen)} {'up' if up else 'DOWN'}"
+        with self._lock:
+            procs = list(self.procs.values())
+        running: Counter[str] = Counter(p.spec.name for p in procs if p.popen.poll() is None)
+        alive = {n: min(c, len(self.alive_zids(n))) for n, c in running.items()}
+        down = [
+            p.spec.label
+            for p in procs
+            if p.popen.poll() is not None or alive.get(p.spec.name, 0) == 0
+        ]
+        total = len(self.config.services)
+        text = f"{router}; {sum(alive.values())}/{total} services alive"
+        return text + (f" (down: {', '.join(down)})" if down else "")
+
     def monitor(self, stop: threading.Event, period: float = 0.2) -> None:
+        """Call :meth:`check` every ``period`` s until ``stop`` is set or the launch failed."""
         while not stop.wait(period):
             try:
                 self.check()
             except Exception:
                 log.exception("monitor failed")
+            if self.failed:
+                return
 
     def shutdown(self) -> dict[str, int | None]:
         """SIGTERM the services in reverse order, then the router; return the exit codes."""
@@ -305,8 +446,10 @@ def main(args: argparse.Namespace) -> int:
     with stop_on_signals() as ev:
         try:
             launcher.start()
-            print(f"confnav launch: {len(launcher.procs)} services up; Ctrl-C to stop", flush=True)
+            print(f"confnav launch: {launcher.status()}; Ctrl-C to stop", flush=True)
             launcher.monitor(ev)
         finally:
             launcher.shutdown()
+    if launcher.failed:
+        raise LaunchError(launcher.failed)
     return 0

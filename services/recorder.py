@@ -1,11 +1,18 @@
 """Recorder: everything under the prefix into one MCAP file (layout: :mod:`.mcap_layout`).
 
 One channel per concrete key, the model's JSON Schema as channel schema, zstd chunks. A chunk
-is closed and written to the OS at least every ``flush_interval`` seconds, so a SIGKILL loses
-at most about that much (the non-seeking reader, or ``confnav recover``, gets the rest);
-SIGINT/SIGTERM drain the queue and finish the file. Payloads that are not valid messages are
-recorded too, on a raw channel with the same topic: every message that reached the recorder is
-in the file.
+is closed and written to the OS at least every ``flush_interval`` seconds (the public
+``mcap.writer.Writer.flush``), so a SIGKILL loses at most about that much (the non-seeking
+reader, or ``confnav recover``, gets the rest); SIGINT/SIGTERM drain the queue and finish the
+file.
+
+An existing file is never truncated nor overwritten: each start writes a new file, ``--out``
+itself if it does not exist yet, else the first free ``STEM.N.SUFFIX`` (``demo.mcap`` ->
+``demo.1.mcap`` -> ``demo.2.mcap``...), created exclusively, so a restart (after a crash, by
+the launcher) is visible as a new file next to the footer-less one ``confnav recover`` mends.
+
+Payloads that are not valid messages are recorded too, on a raw channel with the same topic:
+every message that reached the recorder is in the file.
 """
 
 from __future__ import annotations
@@ -29,8 +36,32 @@ log = logging.getLogger(__name__)
 MAX_RAW_BYTES = 64 * 1024 * 1024
 
 
+def free_path(path: str | Path) -> Path:
+    """``path`` if nothing exists there, else the first ``STEM.N.SUFFIX`` (N = 1, 2...) free."""
+    p = Path(path)
+    n = 0
+    cand = p
+    while cand.exists():
+        n += 1
+        cand = p.with_name(f"{p.stem}.{n}{p.suffix}")
+    return cand
+
+
+def open_new(path: str | Path) -> tuple[Path, IO[bytes]]:
+    """Create a new file at :func:`free_path` (exclusively: never truncates one, even if
+    another process creates the same name meanwhile); return its path and binary stream."""
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    while True:
+        cand = free_path(path)
+        try:
+            return cand, open(cand, "xb")
+        except FileExistsError:
+            continue
+
+
 class Recorder(Service):
-    """See the module docstring. ``config`` goes into the ``confnav`` metadata record."""
+    """See the module docstring. ``config`` goes into the ``confnav`` metadata record;
+    ``requested_path`` is ``path`` as given, ``path`` the file actually written (after start)."""
 
     name = "recorder"
 
@@ -46,6 +77,7 @@ class Recorder(Service):
         health_period: float = 1.0,
     ) -> None:
         super().__init__(bus, keys, health_period)
+        self.requested_path = Path(path)
         self.path = Path(path)
         self.config = dict(config or {})
         self.flush_interval = flush_interval
@@ -62,8 +94,9 @@ class Recorder(Service):
         self.recorded = 0
 
     def _start(self) -> None:
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._stream = open(self.path, "wb")  # noqa: SIM115 - closed in stop()
+        self.path, self._stream = open_new(self.requested_path)
+        if self.path != self.requested_path:
+            log.warning("%s exists: recording to %s", self.requested_path, self.path)
         w = Writer(self._stream, chunk_size=self.chunk_size, compression=CompressionType.ZSTD)
         w.start(
             profile=L.PROFILE,
@@ -71,12 +104,6 @@ class Recorder(Service):
         )
         w.add_metadata(L.METADATA_NAME, L.metadata_record(self.keys.prefix, self.config))
         self._writer = w
-        if not hasattr(w, "_Writer__finalize_chunk"):  # mcap internals changed
-            log.warning(
-                "this mcap version cannot close chunks early: a SIGKILL may lose up "
-                "to %d bytes of messages",
-                self.chunk_size,
-            )
         if self._foxglove:
             from confnav.services.foxglove import FoxgloveSceneWriter
 
@@ -149,12 +176,11 @@ class Recorder(Service):
         with self._wlock:
             if self._writer is None or self._finished or not self._dirty:
                 return
-            finalize = getattr(self._writer, "_Writer__finalize_chunk", None)
-            if finalize is not None:
-                finalize()
-            assert self._stream is not None
-            self._stream.flush()
+            self._writer.flush()  # type: ignore[no-untyped-call]  # closes the chunk, writes
             self._dirty = False
+
+    def health_detail(self) -> tuple[str, str]:
+        return "ok", f"file {self.path}"
 
     def _flush_loop(self) -> None:
         while not self._stop.wait(self.flush_interval):
@@ -181,7 +207,11 @@ class Recorder(Service):
 def add_parser(sub: Any) -> None:
     p: argparse.ArgumentParser = sub.add_parser("recorder", help="record everything to MCAP")
     add_zenoh_args(p)
-    p.add_argument("--out", default="confnav.mcap", help="MCAP file to write")
+    p.add_argument(
+        "--out",
+        default="confnav.mcap",
+        help="MCAP file to write; if it exists, the first free OUT-STEM.N.mcap instead",
+    )
     p.add_argument("--foxglove", action="store_true", help="add Foxglove scene channels")
     p.add_argument("--flush-interval", type=float, default=L.FLUSH_INTERVAL_S)
     p.set_defaults(func=main)

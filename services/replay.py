@@ -1,7 +1,9 @@
 """``confnav replay FILE.mcap``: republish a recording onto Zenoh with its original timing.
 
-Messages are sent in log-time order, each to its recorded key (the channel topic) or, with
-``prefix``, to the same key under a new prefix. Message ``i`` goes out at
+Messages are sent in log-time order, by default under the separate prefix
+``replay/{recorded prefix}`` (:data:`REPLAY_PREFIX`), so that a replay next to a running system
+never drives its robots; ``live=True`` sends each to its recorded key (the channel topic), and
+``prefix`` to the same key under another prefix. Message ``i`` goes out at
 ``t_start + (log_time_i - log_time_0) / speed`` on the monotonic clock (``speed=None``: as fast
 as possible); payloads are the recorded bytes, unchanged. Puts use congestion control BLOCK
 (no silent drops) and encoding ``application/json``.
@@ -138,6 +140,10 @@ def _wait_matching(
     return sorted(pending)
 
 
+REPLAY_PREFIX = "replay"
+"""Default: a recording of prefix ``P`` is replayed under ``replay/P``."""
+
+
 def replay(
     path: str | os.PathLike[str],
     conf: zenoh.Config,
@@ -150,6 +156,7 @@ def replay(
     stop: threading.Event | None = None,
     on_message: Callable[[str, int], None] | None = None,
     inputs_only: bool = False,
+    live: bool = False,
 ) -> ReplayReport:
     """Republish the recording ``path`` on a Zenoh session opened from ``conf``.
 
@@ -157,7 +164,9 @@ def replay(
     ----------
     speed : playback rate (2.0: twice as fast); None: as fast as possible.
     include, exclude : key expressions selecting recorded topics (see module docstring).
-    prefix : new key prefix replacing the recorded one (None: the recorded keys).
+    prefix : new key prefix replacing the recorded one (None: ``replay/{recorded prefix}``,
+        or the recorded keys with ``live``).
+    live : replay onto the recorded keys (drives the live system listening there).
     wait_subscribers : seconds to wait for subscribers on the replayed keys before sending.
     stop : set it to end the replay early (the report says ``interrupted``).
     on_message : called with (key, log_time_ns) after each put (progress, tests).
@@ -166,6 +175,8 @@ def replay(
     """
     if speed is not None and not (speed > 0 and speed < float("inf")):
         raise ReplayError(f"speed must be a positive finite number, got {speed}")
+    if live and prefix is not None:
+        raise ReplayError("live (the recorded keys) and a prefix exclude each other")
     if prefix is not None:
         from confnav.services.keys import KeyError_, validate_prefix
 
@@ -181,6 +192,8 @@ def replay(
             raise ReplayError(
                 f"{rec.path}: no recorded topic selected (recorded: {', '.join(rec.topics())})"
             )
+        if prefix is None and not live:
+            prefix = f"{REPLAY_PREFIX}/{rec.prefix}"
         keys = {t: remap(t, rec.prefix, prefix) for t in topics}
         report.recorded_duration_s = rec.duration_s
         with zenoh.open(conf) as session:

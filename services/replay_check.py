@@ -49,7 +49,7 @@ logger = logging.getLogger(__name__)
 NS_PER_S = 1_000_000_000
 DEFAULT_ATOL = 1e-9  # m/s
 DEFAULT_RTOL = 1e-9
-GOAL_OVERRIDABLE = ("gain", "v_max", "k", "navfn", "tolerance")
+GOAL_OVERRIDABLE = ("gain", "v_max", "k", "navfn", "speed_law", "tolerance")
 _POSE_MEMORY = 4096  # poses kept per robot to match commands to (pose_seq, pose_stamp_ns)
 
 
@@ -135,17 +135,14 @@ class CheckReport:
 
 
 def decide(ctrl: navigation.ControllerLike | None, x: float, y: float) -> tuple[complex, str]:
-    """The command the live controller publishes for a pose (see ``ControllerService._on_pose``):
-    zero without a controller, outside the free space (ERROR or NaN) and at the goal;
-    otherwise the control law's ``u`` from :func:`confnav.services.navigation.command`."""
+    """The command the live controller publishes for a pose: zero without a controller, else
+    what :func:`confnav.services.navigation.decide` (the controller service's own decision)
+    makes of the control law's output from :func:`confnav.services.navigation.command`."""
     if ctrl is None:
         return 0j, "no controller"
     u, code = navigation.command(ctrl, x, y)
-    if code == navigation.ERROR or u != u:
-        return 0j, "outside workspace"
-    if code == navigation.ARRIVED:
-        return 0j, "arrived"
-    return u, "stalled" if code == navigation.STALLED else "moving"
+    d = navigation.decide(ctrl, u, code)
+    return d.u, d.message or d.reason
 
 
 def parse_overrides(items: list[str] | None) -> dict[str, Any]:
@@ -159,7 +156,7 @@ def parse_overrides(items: list[str] | None) -> dict[str, Any]:
                 f"bad override {item!r}: use FIELD=VALUE, FIELD one of "
                 f"{', '.join(GOAL_OVERRIDABLE)}"
             )
-        if name == "navfn":
+        if name in ("navfn", "speed_law"):
             out[name] = value.strip()
         elif name == "k" and value.strip().lower() in ("auto", "none"):
             out[name] = None
@@ -293,6 +290,9 @@ def _check_one(
     recorded = complex(cmd.linear[0], cmd.linear[1])
     if cmd.pose_seq < 0:
         report.skipped["watchdog stop (no pose)"] += 1
+        return
+    if cmd.frame == "body":
+        report.skipped["body-frame twist (unicycle)"] += 1
         return
     pose = poses.get(rid, OrderedDict()).get((cmd.pose_seq, cmd.pose_stamp_ns))
     if pose is None:

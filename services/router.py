@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 from typing import Any
 
@@ -27,11 +28,19 @@ def add_parser(sub: Any) -> None:
     )
     p.add_argument("--zenoh-config", default=None, metavar="FILE", help="zenoh JSON5 config")
     p.add_argument("--prefix", default=DEFAULT_PREFIX)
+    p.add_argument(
+        "--id",
+        default=None,
+        metavar="HEX",
+        help="Zenoh id of the router (the launcher sets one to recognise its own router)",
+    )
     p.set_defaults(func=main)
 
 
 def main(args: argparse.Namespace) -> int:
     conf = zenoh_config("router", args.listen, args.connect, args.zenoh_config)
+    if args.id:
+        conf.insert_json5("id", json.dumps(args.id))
     keys = Keys(args.prefix)
     with stop_on_signals() as ev, zenoh.open(conf) as session:
         zid = str(session.zid())

@@ -1,4 +1,6 @@
-"""Simulator service: kinematic point robots ``x' = u`` driven by the last ``cmd_vel``.
+"""Simulator service: kinematic robots driven by the last ``cmd_vel``: points ``x' = u``
+(world-frame commands) or unicycles (body-frame twists ``v``, ``omega``, moved along exact
+arcs); a robot with a radius collides as a disk and reports its body's clearance.
 
 Robots come from the config or from ``SpawnRequest`` on ``{prefix}/sim/{sim}/spawn``. Every
 tick (``rate_hz``, sim time step ``1/rate_hz``; ``time_scale`` > 1 runs faster than real time)
@@ -38,6 +40,7 @@ from confnav.services.bus import Bus
 from confnav.services.keys import KeyError_, Keys, validate_id
 from confnav.services.runtime import Service, add_zenoh_args, run_until_signal
 from confnav.services.transform import load_definition, parse_sources, workspace_of
+from confnav.unicycle import step_exact
 
 log = logging.getLogger(__name__)
 
@@ -55,6 +58,9 @@ class SimRobot:
     seq: int = 0
     collided: bool = False
     sim_time: float = 0.0
+    radius: float = 0.0  # body disk (m): collisions and clearances are the body's
+    drive: str = "holonomic"  # "unicycle": moves only by body-frame twists
+    twist: tuple[float, float] | None = None  # (v, omega) of the last body-frame command
 
 
 class SimulatorService(Service):
@@ -89,11 +95,16 @@ class SimulatorService(Service):
         for rid, ws, x, y in robots or []:
             self.spawn_robot(rid, ws, complex(x, y))
 
-    def spawn_robot(self, rid: str, ws_id: str, z: complex, theta: float = 0.0) -> None:
+    def spawn_robot(
+        self, rid: str, ws_id: str, z: complex, theta: float = 0.0, radius: float = 0.0,
+        drive: str = "holonomic",
+    ) -> None:
         validate_id(rid, "robot id")
         validate_id(ws_id, "workspace id")
         with self._lock:
-            self._robots[rid] = SimRobot(rid, ws_id, z, theta, z, theta)
+            self._robots[rid] = SimRobot(
+                rid, ws_id, z, theta, z, theta, radius=radius, drive=drive
+            )
         log.info("robot %r spawned at %s on %r", rid, z, ws_id)
 
     def _start(self) -> None:
@@ -132,18 +143,29 @@ class SimulatorService(Service):
             self._workspaces[ws_id] = ws
 
     def _on_cmd(self, key: str, payload: bytes) -> None:
+        """A command counts only on a robot's exact key and naming that robot: a put on
+        ``{prefix}/robot/*/cmd_vel`` (which reaches this subscriber too) or with another
+        robot's id is rejected."""
         try:
-            rid = self.keys.parse(key).ident
+            rid = self.keys.parse(key).ident  # a wildcard chunk is not an id: rejected
             cmd = decode(VelocityCommand, payload)
+            if cmd.robot_id != rid:
+                raise DecodeError("invalid_input", f"command on {key} names {cmd.robot_id!r}")
         except (KeyError_, DecodeError) as exc:
             self.count("rejected")
             log.debug("rejected command on %s: %s", key, exc)
             return
         with self._lock:
             r = self._robots.get(rid)
-            if r is None or cmd.robot_id != rid:
+            if r is None:
+                self.count("commands_unknown_robot")
                 return
-            r.u = complex(cmd.linear[0], cmd.linear[1])
+            u = complex(cmd.linear[0], cmd.linear[1])
+            if cmd.frame == "world" and r.drive == "unicycle" and u != 0j:
+                self.count("rejected")  # a differential drive cannot move sideways
+                return
+            r.u = u if cmd.frame == "world" else 0j
+            r.twist = (cmd.linear[0], cmd.angular) if cmd.frame == "body" else None
             r.cmd_t = time.monotonic()
         self.count("commands")
 
@@ -154,7 +176,10 @@ class SimulatorService(Service):
             self.count("rejected")
             log.warning("rejected spawn request: %s", exc)
             return
-        self.spawn_robot(req.robot_id, req.ws_id, complex(*req.position), req.theta)
+        self.spawn_robot(
+            req.robot_id, req.ws_id, complex(*req.position), req.theta, req.robot_radius,
+            req.drive,
+        )
 
     def _on_control(self, key: str, payload: bytes) -> None:
         try:
@@ -172,6 +197,7 @@ class SimulatorService(Service):
             elif ctl.action == "reset":
                 for r in targets:
                     r.z, r.theta, r.u, r.collided = r.start, r.start_theta, 0j, False
+                    r.twist = None
                     r.cmd_t = -1e18
             elif ctl.action == "remove":
                 for r in targets:
@@ -192,8 +218,12 @@ class SimulatorService(Service):
             for r in robots:
                 if r.collided:
                     continue
-                u = r.u if now - r.cmd_t <= self.cmd_timeout else 0j
-                if u != 0j:
+                fresh = now - r.cmd_t <= self.cmd_timeout
+                u = r.u if fresh else 0j
+                if fresh and r.twist is not None:  # body-frame twist: exact arc (unicycle)
+                    z1, th1 = step_exact(r.z, r.theta, r.twist[0], r.twist[1], dt)
+                    r.z, r.theta = complex(z1), float(th1)
+                elif u != 0j:
                     r.z += u * dt
                     r.theta = math.atan2(u.imag, u.real)
                 r.sim_time += dt
@@ -203,6 +233,7 @@ class SimulatorService(Service):
                 if ws is None:
                     continue
                 clear = np.asarray(ws.clearance(np.array([r.z for r in group])), dtype=float)
+                clear -= np.array([r.radius for r in group])  # the body's clearance
                 for r, c in zip(group, clear, strict=True):
                     if not c > 0.0:  # also NaN
                         r.collided = True

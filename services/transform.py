@@ -7,7 +7,17 @@
   cached by the definition's content hash (optionally on disk, so a restart is instant);
 - publishes ``TransformStatus`` and, when the solution changes, ``TransformSolution`` on
   ``{prefix}/ws/{ws}/transform``; serves the current solution from a complete queryable on
-  ``{prefix}/ws/*/transform`` (``reply_err`` for unknown, invalid or not yet solved ones).
+  ``{prefix}/ws/*/transform`` (``reply_err`` for every query it cannot answer: unknown,
+  invalid, not yet solved, malformed key, no match);
+- a solver worker that dies (killed, out of memory) breaks the process pool: the pool is
+  rebuilt and the solve retried, and after ``max_attempts`` attempts the workspace is marked
+  failed with the reason; a solve running longer than ``solve_timeout`` s fails the
+  workspace (its worker is killed, the other solves retried on a new pool);
+- results are kept in memory in an LRU of ``max_cached`` entries (and on disk by content
+  hash with ``--cache-dir``); only valid definitions are persisted, in files named from an
+  encoding of the id (never a path component such as ``..``);
+- ``WorkspaceDelete`` on ``{prefix}/ws/{ws}/delete`` forgets a workspace (status
+  ``deleted``; its saved definition removed).
 
 The math is :func:`confnav.solve`; this module only parses, caches and publishes.
 """
@@ -23,6 +33,8 @@ import multiprocessing
 import os
 import threading
 import time
+import urllib.parse
+from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -34,6 +46,7 @@ from confnav.schemas import (
     TransformSolution,
     TransformStatus,
     WorkspaceDefinition,
+    WorkspaceDelete,
     decode,
     encode,
 )
@@ -52,7 +65,7 @@ def definition_hash(defn: WorkspaceDefinition) -> str:
     """Content hash of what determines the solution: the workspace geometry and ``tol``
     (not the ws id, not the time stamp). Validates the workspace with the core."""
     ws = workspace_of(defn)
-    return hashlib.sha256(f"{ws.content_hash()}|tol={defn.tol!r}".encode()).hexdigest()
+    return hashlib.sha256(f"{ws.content_hash}|tol={defn.tol!r}".encode()).hexdigest()
 
 
 def workspace_of(defn: WorkspaceDefinition) -> Any:
@@ -77,6 +90,16 @@ def definition_of(ws_id: str, workspace: Any, tol: float = 1e-10) -> WorkspaceDe
         tol=tol,
         stamp_ns=time.time_ns(),
     )
+
+
+def derived_definition(ws_id: str, base: WorkspaceDefinition) -> WorkspaceDefinition:
+    """The definition of ``{base}~r{R}``: ``base`` shrunk by a robot footprint of radius R
+    (:func:`confnav.footprint.inflate`, largest component; raises WorkspaceError)."""
+    from confnav.footprint import inflate, parse_derived_ws_id
+
+    parsed = parse_derived_ws_id(ws_id)
+    assert parsed is not None and parsed[0] == base.ws_id
+    return definition_of(ws_id, inflate(workspace_of(base), parsed[1]), tol=base.tol)
 
 
 def load_definition(ws_id: str, source: str) -> WorkspaceDefinition:
@@ -113,7 +136,10 @@ def solve_definition(defn_json: str) -> dict[str, Any]:
             "wall_time": float(getattr(diag, "wall_time", 0.0)),
             "tol": float(getattr(diag, "tol", defn.tol)),
             "nodes": [int(n) for n in nodes],
+            "boundary_residual": float(diag.boundary_residual),
+            "tol_met": bool(diag.tol_met),
         },
+        "workspace_hash": str(cmap.workspace_hash),
         # through JSON so that the result is plain JSON values (lists, not tuples/arrays)
         "coefficients": json.loads(cmap.to_json()),
     }
@@ -164,6 +190,9 @@ class TransformService(Service):
         solve_fn: SolveFn = solve_definition,
         cache_dir: str | Path | None = None,
         health_period: float = 1.0,
+        max_attempts: int = 3,
+        solve_timeout: float = 900.0,
+        max_cached: int = 32,
     ) -> None:
         super().__init__(bus, keys, health_period)
         self.sources = dict(sources or {})
@@ -173,25 +202,36 @@ class TransformService(Service):
         self._pool: cf.Executor | None = None
         self._lock = threading.Lock()
         self._ws: dict[str, _WsState] = {}
-        self._results: dict[str, dict[str, Any]] = {}  # definition hash -> solve result
+        self.max_attempts = max_attempts
+        self.solve_timeout = solve_timeout
+        self.max_cached = max_cached
+        # definition hash -> solve result, least recently used first
+        self._results: OrderedDict[str, dict[str, Any]] = OrderedDict()
         self._inflight: dict[str, cf.Future[dict[str, Any]]] = {}
+        self._started: dict[str, float] = {}  # hash -> monotonic start of its current solve
+        self._attempts: dict[str, int] = {}  # hash -> solves started (worker deaths retry)
+        self._abandoned: set[cf.Future[dict[str, Any]]] = set()  # timed out: result ignored
         self._cache_dir = Path(cache_dir) if cache_dir else None
         self.solved = threading.Event()  # set each time a solution is published (tests)
 
     # lifecycle -------------------------------------------------------------------------
-    def _start(self) -> None:
+    def _new_pool(self) -> cf.Executor:
         if self._executor_kind == "process":
             ctx = multiprocessing.get_context("spawn")  # never fork a process holding Zenoh
-            self._pool = cf.ProcessPoolExecutor(
+            return cf.ProcessPoolExecutor(
                 self._workers, mp_context=ctx, initializer=_worker_init, initargs=(os.getpid(),)
             )
-        else:
-            self._pool = cf.ThreadPoolExecutor(self._workers, thread_name_prefix="solve")
+        return cf.ThreadPoolExecutor(self._workers, thread_name_prefix="solve")
+
+    def _start(self) -> None:
+        self._pool = self._new_pool()
+        self.spawn(self._timeout_loop, "timeouts")
         if self._cache_dir:
             self._cache_dir.mkdir(parents=True, exist_ok=True)
         self._handles.append(
             self.bus.subscribe(self.keys.any_ws("definition"), self._on_definition)
         )
+        self._handles.append(self.bus.subscribe(self.keys.any_ws("delete"), self._on_delete))
         self._handles.append(self.bus.queryable(self.keys.any_ws("transform"), self._on_query))
         defs: dict[str, WorkspaceDefinition] = {}
         for ws_id, source in self.sources.items():
@@ -202,8 +242,8 @@ class TransformService(Service):
                 self.count("load_errors")
         defs.update(self._load_saved_definitions())  # later puts override the files
         for defn in defs.values():
-            self.submit(defn)
-            self.bus.publish(self.keys.ws(defn.ws_id, "definition"), encode(defn))
+            if self.submit(defn):
+                self.bus.publish(self.keys.ws(defn.ws_id, "definition"), encode(defn))
 
     def stop(self) -> None:
         super().stop()
@@ -231,55 +271,185 @@ class TransformService(Service):
             self.count("rejected")
             log.warning("definition on %s names workspace %r: ignored", key, defn.ws_id)
             return
-        self.submit(defn)
+        if not self.submit(defn):
+            return
         self._save_definition(defn)
+        with self._lock:  # re-derive the footprint workspaces of this one ({ws}~r{R})
+            derived = [w for w in self._ws if w.startswith(ws_id + "~r")]
+        for w in derived:
+            err = self._derive(w)
+            if err:
+                log.warning("%s", err)
 
-    def submit(self, defn: WorkspaceDefinition) -> None:
-        """Validate and (re)solve ``defn`` unless its solution is current or cached."""
+    def _derive(self, ws_id: str) -> str:
+        """Solve ``{base}~r{R}`` (a footprint workspace) from the known base definition;
+        returns why it cannot be derived ("" if it was submitted or is not a derived id)."""
+        from confnav.footprint import parse_derived_ws_id
+
+        parsed = parse_derived_ws_id(ws_id)
+        with self._lock:
+            base = self._ws.get(parsed[0]) if parsed else None
+        if base is None:
+            return ""
+        try:
+            defn = derived_definition(ws_id, base.definition)
+        except Exception as exc:
+            return f"workspace {ws_id!r}: {exc}"
+        self.submit(defn)
+        return ""
+
+    def _on_delete(self, key: str, payload: bytes) -> None:
+        """Forget a workspace: state, saved definition; status ``deleted``."""
+        try:
+            ws_id = self.keys.parse(key).ident
+            msg = decode(WorkspaceDelete, payload)
+            if msg.ws_id != ws_id:
+                raise DecodeError("invalid_input", f"delete on {key} names {msg.ws_id!r}")
+        except (KeyError_, DecodeError) as exc:
+            self.count("rejected")
+            log.warning("rejected delete on %s: %s", key, exc)
+            return
+        with self._lock:
+            st = self._ws.pop(ws_id, None)
+        path = self._definition_path(ws_id)
+        if path is not None:
+            path.unlink(missing_ok=True)
+        if st is None:
+            self.count("deletes_unknown")
+            return
+        self.count("deletes")
+        log.info("workspace %r deleted", ws_id)
+        self._publish_status(ws_id, "deleted", st.definition_hash, None, "deleted")
+
+    def submit(self, defn: WorkspaceDefinition) -> bool:
+        """Validate and (re)solve ``defn`` unless its solution is current or cached; False
+        if the definition is invalid (the workspace is then marked failed)."""
         ws_id = defn.ws_id
         try:
             h = definition_hash(defn)
         except Exception as exc:  # WorkspaceError and anything the validation raises
             self._fail(defn, "invalid:" + ws_id, f"invalid workspace: {exc}")
-            return
+            return False
         with self._lock:
             cur = self._ws.get(ws_id)
             if cur is not None and cur.definition_hash == h and cur.state != "failed":
-                return  # unchanged: nothing to do
+                return True  # unchanged: nothing to do
             old_solution = cur.solution if cur else None
             old_rev = cur.revision if cur else None
             self._ws[ws_id] = _WsState(defn, h, "solving", "", old_solution, old_rev)
-            result = self._results.get(h) or self._load_cached(h)
-            fut = None
-            if result is None:
-                fut = self._inflight.get(h)
-                if fut is None:
-                    assert self._pool is not None, "service not started"
-                    fut = self._pool.submit(self._solve_fn, defn.model_dump_json())
-                    self._inflight[h] = fut
-                    self.count("solves_started")
+            result = self._cached(h)
+            if result is None and h not in self._inflight:
+                self._attempts.pop(h, None)  # a new request: a fresh budget of attempts
         if result is not None:
             self.count("cache_hits")
             self._finish(ws_id, h, result, None)
-            return
+            return True
         self._publish_status(ws_id, "solving", h, old_rev, "")
-        assert fut is not None
-        fut.add_done_callback(lambda f: self._done(ws_id, h, f))
+        self._solve(ws_id, h, defn)
+        return True
 
-    def _done(self, ws_id: str, h: str, fut: cf.Future[dict[str, Any]]) -> None:
+    def _cached(self, h: str) -> dict[str, Any] | None:
+        """The result for hash ``h`` from the LRU or the disk cache (lock held)."""
+        result = self._results.get(h)
+        if result is not None:
+            self._results.move_to_end(h)
+            return result
+        return self._load_cached(h)
+
+    def _remember(self, h: str, result: dict[str, Any]) -> None:
+        """Put a result into the LRU, dropping the least recently used (lock held)."""
+        self._results[h] = result
+        self._results.move_to_end(h)
+        while len(self._results) > self.max_cached:
+            self._results.popitem(last=False)
+            self.count("cache_evictions")
+
+    def _solve(self, ws_id: str, h: str, defn: WorkspaceDefinition) -> None:
+        """Attach ``ws_id`` to the running solve of ``h``, starting one if there is none
+        (on a new pool if the current one is broken)."""
         with self._lock:
-            self._inflight.pop(h, None)
+            fut = self._inflight.get(h)
+            if fut is None:
+                assert self._pool is not None, "service not started"
+                try:
+                    fut = self._pool.submit(self._solve_fn, defn.model_dump_json())
+                except (cf.BrokenExecutor, RuntimeError):  # a worker died: new pool
+                    self._rebuild_pool()
+                    fut = self._pool.submit(self._solve_fn, defn.model_dump_json())
+                self._inflight[h] = fut
+                self._started[h] = time.monotonic()
+                self._attempts[h] = self._attempts.get(h, 0) + 1
+                self.count("solves_started")
+        fut.add_done_callback(lambda f: self._done(ws_id, h, defn, f))
+
+    def _rebuild_pool(self) -> None:
+        """Replace a broken pool (lock held)."""
+        old = self._pool
+        self._pool = self._new_pool()
+        self.count("pool_rebuilds")
+        log.warning("solver pool broken: rebuilt")
+        if old is not None:
+            old.shutdown(wait=False, cancel_futures=True)
+
+    def _done(
+        self, ws_id: str, h: str, defn: WorkspaceDefinition, fut: cf.Future[dict[str, Any]]
+    ) -> None:
+        with self._lock:
+            if self._inflight.get(h) is fut:
+                del self._inflight[h]
+                self._started.pop(h, None)
+            if fut in self._abandoned:
+                return  # timed out: the workspace was failed already
+            attempts = self._attempts.get(h, 0)
         try:
             result = fut.result()
         except cf.CancelledError:
+            return
+        except cf.BrokenExecutor as exc:  # the worker died (or was killed for a timeout)
+            with self._lock:
+                st = self._ws.get(ws_id)
+                wanted = st is not None and st.definition_hash == h and st.state == "solving"
+            if not wanted:
+                return
+            if attempts < self.max_attempts:
+                self.count("solve_retries")
+                log.warning("workspace %r: solver worker died (%s): retrying", ws_id, exc)
+                self._solve(ws_id, h, defn)
+                return
+            reason = f"solver worker died {attempts} times ({type(exc).__name__}: {exc})"
+            self._finish(ws_id, h, None, reason)
             return
         except Exception as exc:
             self._finish(ws_id, h, None, f"{type(exc).__name__}: {exc}")
             return
         with self._lock:
-            self._results[h] = result
+            self._remember(h, result)
         self._store_cached(h, result)
         self._finish(ws_id, h, result, None)
+
+    def _timeout_loop(self) -> None:
+        """Fail the solves running longer than ``solve_timeout`` s and kill their workers."""
+        while not self._stop.wait(min(1.0, self.solve_timeout / 4)):
+            now = time.monotonic()
+            with self._lock:
+                late = [h for h, t in self._started.items() if now - t > self.solve_timeout]
+                futs = {h: self._inflight.pop(h) for h in late if h in self._inflight}
+                for h in late:
+                    self._started.pop(h, None)
+                self._abandoned.update(futs.values())
+                victims = [
+                    (w, st.definition_hash)
+                    for w, st in self._ws.items()
+                    if st.definition_hash in futs and st.state == "solving"
+                ]
+            if not futs:
+                continue
+            self.count("solve_timeouts", len(futs))
+            for ws_id, h in victims:
+                self._finish(ws_id, h, None, f"solve timed out after {self.solve_timeout:g} s")
+            if self._executor_kind == "process":  # the only way to stop a running solve
+                for child in multiprocessing.active_children():
+                    child.terminate()  # the pool breaks: other solves are retried
 
     def _finish(self, ws_id: str, h: str, result: dict[str, Any] | None, error: str | None) -> None:
         if self.stopped:
@@ -291,6 +461,7 @@ class TransformService(Service):
                     ws_id=ws_id,
                     revision=result["revision"],
                     definition_hash=h,
+                    workspace_hash=result["workspace_hash"],
                     stamp_ns=time.time_ns(),
                     anchor=tuple(result["anchor"]),
                     centers=[tuple(c) for c in result["centers"]],
@@ -357,17 +528,27 @@ class TransformService(Service):
         self.count("queries")
         try:
             parsed = self.keys.parse(keyexpr)
-        except KeyError_:
+        except KeyError_ as exc:
+            if "*" not in keyexpr:  # not a wildcard: a malformed key (e.g. a 500-char id)
+                self.count("bad_queries")
+                raise QueryError(f"bad key {keyexpr[:80]!r}: {exc}") from None
             parsed = None
+        if parsed is not None and parsed.ident not in self._ws:
+            err = self._derive(parsed.ident)  # a footprint workspace {ws}~r{R} of a known one
+            if err:
+                raise QueryError(err)
         with self._lock:
             if parsed is None:  # a wildcard query: every solved workspace that matches
                 from confnav.services.bus import key_matches
 
-                return [
+                found = [
                     (self.keys.ws(w, "transform"), s.solution)
                     for w, s in sorted(self._ws.items())
                     if s.solution is not None and key_matches(keyexpr, self.keys.ws(w, "transform"))
                 ]
+                if not found:
+                    raise QueryError(f"no solved workspace matches {keyexpr[:80]!r}")
+                return found
             st = self._ws.get(parsed.ident)
             if st is None:
                 raise QueryError(f"unknown workspace {parsed.ident!r}")
@@ -383,16 +564,22 @@ class TransformService(Service):
             return st.state if st else None
 
     # disk cache ------------------------------------------------------------------------
-    def _save_definition(self, defn: WorkspaceDefinition) -> None:
-        """Remember definitions put on the bus, so that a restarted service serves them."""
+    def _definition_path(self, ws_id: str) -> Path | None:
+        """``definitions/ws-<id, percent-encoded>.json``: never ``..`` or a path separator."""
         if self._cache_dir is None:
+            return None
+        return self._cache_dir / "definitions" / f"ws-{urllib.parse.quote(ws_id, safe='')}.json"
+
+    def _save_definition(self, defn: WorkspaceDefinition) -> None:
+        """Remember valid definitions put on the bus, so that a restarted service serves them."""
+        path = self._definition_path(defn.ws_id)
+        if path is None:
             return
-        d = self._cache_dir / "definitions"
         try:
-            d.mkdir(parents=True, exist_ok=True)
-            tmp = d / f"{defn.ws_id}.tmp"
+            path.parent.mkdir(parents=True, exist_ok=True)
+            tmp = path.with_suffix(".tmp")
             tmp.write_bytes(encode(defn))
-            tmp.replace(d / f"{defn.ws_id}.json")
+            tmp.replace(path)
         except OSError:
             log.warning("cannot save definition of %r", defn.ws_id, exc_info=True)
 
@@ -403,7 +590,8 @@ class TransformService(Service):
         for path in sorted((self._cache_dir / "definitions").glob("*.json")):
             try:
                 defn = decode(WorkspaceDefinition, path.read_bytes())
-            except (OSError, DecodeError) as exc:
+                definition_hash(defn)  # valid geometry
+            except Exception as exc:  # OSError, DecodeError, WorkspaceError
                 log.warning("ignoring saved definition %s: %s", path, exc)
                 continue
             out[defn.ws_id] = defn
@@ -421,7 +609,7 @@ class TransformService(Service):
         except (OSError, ValueError):
             log.warning("unreadable cache entry %s", path)
             return None
-        self._results[h] = result
+        self._remember(h, result)
         return result
 
     def _store_cached(self, h: str, result: dict[str, Any]) -> None:
@@ -459,6 +647,13 @@ def add_parser(sub: Any) -> None:
     )
     p.add_argument("--workers", type=int, default=2, help="concurrent solves")
     p.add_argument("--cache-dir", default=None, help="persist solutions by content hash here")
+    p.add_argument(
+        "--solve-timeout", type=float, default=900.0, help="s before a solve fails (killed)"
+    )
+    p.add_argument(
+        "--max-attempts", type=int, default=3, help="solves per definition when workers die"
+    )
+    p.add_argument("--max-cached", type=int, default=32, help="solutions kept in memory (LRU)")
     p.set_defaults(func=main)
 
 
@@ -466,7 +661,14 @@ def main(args: argparse.Namespace) -> int:
     sources = parse_sources(args.workspace)
     return run_until_signal(
         lambda bus, keys: TransformService(
-            bus, keys, sources, workers=args.workers, cache_dir=args.cache_dir
+            bus,
+            keys,
+            sources,
+            workers=args.workers,
+            cache_dir=args.cache_dir,
+            solve_timeout=args.solve_timeout,
+            max_attempts=args.max_attempts,
+            max_cached=args.max_cached,
         ),
         args,
     )

@@ -80,7 +80,15 @@ def fake_solve(defn_json: str) -> dict[str, Any]:
         "anchor": (0.0, 0.0),
         "centers": centers,
         "radii": radii,
-        "diagnostics": {"sweeps": 1, "error_estimate": 0.0, "wall_time": 0.0, "tol": d.tol},
+        "diagnostics": {
+            "sweeps": 1,
+            "error_estimate": 0.0,
+            "wall_time": 0.0,
+            "tol": d.tol,
+            "boundary_residual": 0.0,
+            "tol_met": True,
+        },
+        "workspace_hash": "fake-" + rev,
         "coefficients": {"centers": [list(c) for c in centers], "radii": radii},
     }
 

@@ -1,18 +1,22 @@
-"""Theorem 2 control law against exact maps (Mobius self-maps and the identity of a circle
-domain), saturation, status codes, goal changes, bad input."""
+"""Theorem 2 control law and the normalized speed law against exact maps (Mobius self-maps and
+the identity of a circle domain): same paths, speed profile, saturation, status codes (flat is
+not stalled), goal changes, bad input, defaults shared with the Goal message."""
 
 from __future__ import annotations
 
+import inspect
 from typing import Any
 
 import numpy as np
 import pytest
 from numpy.testing import assert_allclose
 
-from confnav.control import Controller, Status
+from confnav import defaults
+from confnav.control import Controller, Status, speed_law
 from confnav.critical import find_critical_points
 from confnav.errors import NavigationError
 from confnav.navfn import CircleDomain
+from confnav.schemas import Goal
 from confnav.sim import simulate
 
 SEED = CircleDomain(
@@ -82,7 +86,7 @@ def interior_points(dom: CircleDomain, n: int, margin: float, seed: int = 0) -> 
 
 @pytest.mark.parametrize("navfn", ["kr", "harmonic"])
 def test_law_is_minus_gradient_of_pulled_back_lyapunov(navfn: str) -> None:
-    ctl = Controller(MOB, 0.1j, navfn=navfn, k=6, gain=2.5)
+    ctl = Controller(MOB, 0.1j, navfn=navfn, k=6, speed_law="theorem2", gain=2.5, v_max=np.inf)
     z = interior_points(SEED, 200, 1e-3)
     u = ctl.velocity(z)
     v = ctl.lyapunov
@@ -92,14 +96,14 @@ def test_law_is_minus_gradient_of_pulled_back_lyapunov(navfn: str) -> None:
 
 
 def test_identity_map_gives_the_plain_gradient() -> None:
-    ctl = Controller(IdentityMap(SEED), 0.2j, navfn="kr", k=6)
+    ctl = Controller(IdentityMap(SEED), 0.2j, navfn="kr", k=6, speed_law="theorem2", v_max=np.inf)
     z = interior_points(SEED, 50, 1e-3)
     assert_allclose(ctl.velocity(z), -ctl.navfn.gradient(z), rtol=1e-14)
 
 
 def test_saturation_keeps_direction_and_bound() -> None:
-    free = Controller(MOB, 0.1j, navfn="harmonic", gain=3.0)
-    sat = Controller(MOB, 0.1j, navfn=free.navfn, gain=3.0, v_max=0.05)
+    free = Controller(MOB, 0.1j, navfn="harmonic", speed_law="theorem2", gain=3.0, v_max=np.inf)
+    sat = Controller(MOB, 0.1j, navfn=free.navfn, speed_law="theorem2", gain=3.0, v_max=0.05)
     z = interior_points(SEED, 300, 1e-3)
     u0, out = free.velocity(z), sat(z)
     assert np.all(np.abs(out.u) <= 0.05 * (1 + 1e-12))
@@ -111,7 +115,7 @@ def test_saturation_keeps_direction_and_bound() -> None:
 
 
 def test_saturated_law_decreases_lyapunov_along_paths() -> None:
-    ctl = Controller(MOB, 0.1j, navfn="kr", k=6, v_max=0.02)
+    ctl = Controller(MOB, 0.1j, navfn="kr", k=6, speed_law="theorem2", v_max=0.02)
     starts = interior_points(SEED, 20, 0.05, seed=2)
     res = simulate(ctl, starts, record_paths=True, atol=1e-7)
     assert res.success.all(), res.message
@@ -126,6 +130,9 @@ def test_status_codes() -> None:
     cp = find_critical_points(ctl.navfn)
     saddle_ws = MOB.inverse(cp.saddles[0])  # workspace point of a saddle
     z = np.array([0.1j + 5e-4, 0.5 + 0j, np.nan, 0.99 + 0.5j, saddle_ws, SEED.centers[0]])
+    # the critical points are not searched on the control path: unknown saddle -> MOVING
+    assert ctl(saddle_ws).status == Status.MOVING
+    ctl.critical_points()
     out = ctl(z)
     assert list(out.status) == [
         Status.ARRIVED,
@@ -171,24 +178,57 @@ def test_bad_input() -> None:
         Controller(MOB, 0j).with_goal(SEED.centers[0])
 
 
-def test_speed_floor_keeps_direction_and_lyapunov_decrease() -> None:
-    plain = Controller(MOB, 0.1j, navfn="harmonic", v_max=1.0)
-    lifted = Controller(MOB, 0.1j, navfn=plain.navfn, v_max=1.0, v_min=0.3, floor_radius=0.2)
+def test_normalized_law_has_the_theorem2_paths_and_the_speed_profile() -> None:
+    plain = Controller(
+        MOB, 0.1j, navfn="harmonic", speed_law="theorem2", v_max=np.inf, goal_tol=1e-3
+    )
+    norm = Controller(MOB, 0.1j, navfn=plain.navfn, gain=2.0, v_max=0.4, goal_tol=1e-3)
     z = interior_points(SEED, 300, 1e-3, seed=7)
-    u0, u1 = plain.velocity(z), lifted.velocity(z)
-    floor = 0.3 * np.minimum(1.0, np.abs(z - 0.1j) / 0.2)
-    assert np.all(np.abs(u1) >= floor * (1 - 1e-12))
-    assert np.all(np.abs(u1) <= 1.0 * (1 + 1e-12))
+    u0, u1 = plain.velocity(z), norm.velocity(z)
+    # same direction, speed min(v_max, gain |x - x_d|) whatever |grad phi| is
     assert_allclose(np.angle(u1 / u0), 0, atol=1e-12)
-    lifted_some = np.abs(u0) < floor
-    assert lifted_some.any()
-    res0 = simulate(plain, z[:40], record_paths=True)
-    res1 = simulate(lifted, z[:40], record_paths=True)
-    assert res0.success.all() and res1.success.all()
-    assert np.all(res1.time <= res0.time * (1 + 1e-3))
-    # same paths (up to the integrator's tolerance): same lengths
-    assert_allclose(res1.path_length, res0.path_length, rtol=1e-3)
+    assert_allclose(np.abs(u1), np.minimum(0.4, 2.0 * np.abs(z - 0.1j)), rtol=1e-13)
+    assert np.ptp(np.log10(np.abs(u0))) > 1.5  # the plain law's speed varies a lot here
+    starts = z[:30]
+    res0 = simulate(plain, starts, record_paths=True, atol=1e-7)
+    res1 = simulate(norm, starts, record_paths=True, atol=1e-7)
+    assert res0.success.all() and res1.success.all(), (res0.message, res1.message)
+    # a time change: the same curves (same lengths up to the integrator's tolerance) ...
+    assert_allclose(res1.path_length, res0.path_length, rtol=2e-3)
     for p in res1.paths or ():
-        assert np.all(np.diff(lifted.lyapunov(p)) < 0)
-    with pytest.raises(NavigationError, match="v_min"):
-        Controller(MOB, 0j, v_max=1.0, v_min=2.0)
+        assert np.all(np.diff(norm.lyapunov(p)) < 0)
+    # ... traversed within the bound L / v_max + log(v_max / (gain tol)) / gain
+    bound = res1.path_length / 0.4 + np.log(0.4 / (2.0 * 1e-3)) / 2.0
+    assert np.all(res1.time <= bound * (1 + 1e-3))
+
+
+def test_undefined_direction_gives_zero_not_nan() -> None:
+    ctl = Controller(MOB, 0.1j, navfn="kr", k=6, goal_tol=1e-9)
+    saddle_ws = MOB.inverse(ctl.critical_points().saddles[0])
+    u = ctl.velocity(np.array([0.1j, saddle_ws]))
+    # at the goal f = 0 exactly: u = 0; at the numerical saddle f is rounding noise, so the
+    # direction is defined (and flips around it): finite, at most v_max
+    assert np.all(np.isfinite(u)) and u[0] == 0 and abs(u[1]) <= ctl.v_max * (1 + 1e-12)
+    f = np.array([0j, 1e-300 + 0j, np.nan + 0j, 3 - 4j])
+    out, sat = speed_law(f, np.array([1.0, 1.0, 1.0, 0.1]), gain=1.0, v_max=0.5)
+    assert out[0] == 0 and np.isnan(out[2]) and np.isfinite(out[1])
+    assert_allclose(out[[1, 3]], [0.5, 0.1 * (3 - 4j) / 5], rtol=1e-15)
+    assert list(sat) == [False, True, False, False]
+
+
+def test_goal_message_defaults_are_the_library_defaults() -> None:
+    goal = Goal(robot_id="r", ws_id="w", goal=(0.0, 0.0))
+    ctl_defaults = {
+        k: p.default for k, p in inspect.signature(Controller.__init__).parameters.items()
+    }
+    pairs = {
+        "navfn": ("navfn", defaults.NAVFN),
+        "speed_law": ("speed_law", defaults.SPEED_LAW),
+        "gain": ("gain", defaults.GAIN),
+        "v_max": ("v_max", defaults.V_MAX),
+        "tolerance": ("goal_tol", defaults.GOAL_TOL),
+    }
+    for field, (param, value) in pairs.items():
+        assert getattr(goal, field) == ctl_defaults[param] == value, field
+    assert goal.k is None and ctl_defaults["k"] == "auto"  # None on the wire means auto
+    assert (defaults.SPEED_LAW, defaults.V_MAX, defaults.GAIN) == ("normalized", 0.5, 1.0)

@@ -77,7 +77,7 @@ def test_json_round_trip_and_errors() -> None:
     ws = default_workspace()
     again = Workspace.from_json(ws.to_json())
     assert again == ws
-    assert again.content_hash() == ws.content_hash()
+    assert again.content_hash == ws.content_hash
     assert json.loads(ws.to_json())["anchor"] == [0.0, 0.0]
     with pytest.raises(WorkspaceError, match="not valid JSON"):
         Workspace.from_json("{")
@@ -90,7 +90,7 @@ def test_json_round_trip_and_errors() -> None:
 def test_content_hash_changes_with_the_geometry() -> None:
     a = Workspace(SQUARE, [SMALL], anchor=[0.6, 0])
     b = Workspace(SQUARE, [[[-0.2, -0.2], [0.2, -0.2], [0.2, 0.21], [-0.2, 0.2]]], anchor=[0.6, 0])
-    assert a.content_hash() != b.content_hash()
+    assert a.content_hash != b.content_hash
 
 
 def test_geojson_round_trip(tmp_path: object) -> None:

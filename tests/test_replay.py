@@ -131,7 +131,11 @@ def test_timing_follows_the_recording(
     payloads = _timed(path)
     got, _bus = _collect(make_bus, "confnav/**")
     report = replay(
-        path, zenoh_config("client", connect=[zenoh_router]), speed=speed, wait_subscribers=5.0
+        path,
+        zenoh_config("client", connect=[zenoh_router]),
+        speed=speed,
+        wait_subscribers=5.0,
+        live=True,
     )
     wait_for(lambda: len(got) >= len(payloads), timeout=10)
     assert report.unmatched_keys == [] and report.total == len(payloads)
@@ -165,6 +169,33 @@ def test_prefix_and_include(tmp_path: Path, zenoh_router: str, make_bus: Any) ->
         replay(path, zenoh_config("client", connect=[zenoh_router]), include=["nothing/**"])
     with pytest.raises(ReplayError, match="speed"):
         replay(path, zenoh_config("client", connect=[zenoh_router]), speed=0.0)
+    with pytest.raises(ReplayError, match="exclude each other"):
+        replay(path, zenoh_config("client", connect=[zenoh_router]), prefix="lab", live=True)
+
+
+def test_replay_defaults_to_a_separate_prefix(
+    tmp_path: Path, zenoh_router: str, make_bus: Any
+) -> None:
+    """Without --live nothing reaches the live keys: a running system is never driven."""
+    path = tmp_path / "timed.mcap"
+    payloads = _timed(path, n=10, step_ns=1_000_000)
+    live, _b1 = _collect(make_bus, "confnav/**")
+    moved, _b2 = _collect(make_bus, "replay/confnav/**")
+    res = subprocess.run(
+        confnav_cmd(
+            "replay", str(path), "--max", "--connect", zenoh_router, "--wait-subscribers", "5"
+        ),
+        capture_output=True,
+        text=True,
+        timeout=60,
+        env=subprocess_env(),
+    )
+    assert res.returncode == 0, res.stderr
+    wait_for(lambda: len(moved) >= 10, timeout=10)
+    assert {k for _t, k, _p in moved} == {"replay/confnav/robot/r1/pose"}
+    assert [p for _t, _k, p in moved] == payloads
+    time.sleep(0.3)
+    assert live == []
 
 
 def _round_trip(source: Path, again: Path, zenoh_router: str, make_bus: Any) -> None:
@@ -184,6 +215,7 @@ def _round_trip(source: Path, again: Path, zenoh_router: str, make_bus: Any) -> 
                 zenoh_router,
                 "--wait-subscribers",
                 "5",
+                "--live",
             ),
             capture_output=True,
             text=True,
@@ -227,7 +259,10 @@ def test_replay_at_recorded_speed_keeps_relative_timing(
     rec.start()
     try:
         report = replay(
-            run_file, zenoh_config("client", connect=[zenoh_router]), wait_subscribers=5.0
+            run_file,
+            zenoh_config("client", connect=[zenoh_router]),
+            wait_subscribers=5.0,
+            live=True,
         )
         wait_for(lambda: rec.recorded >= report.total, timeout=20)
     finally:
@@ -283,6 +318,7 @@ def test_recorded_inputs_drive_a_live_controller_to_the_recorded_commands(
             zenoh_config("client", connect=[zenoh_router]),
             inputs_only=True,
             wait_subscribers=5.0,
+            live=True,
         )
         assert report.unmatched_keys == []
         kinds = {k.rsplit("/", 1)[-1] for k in report.published}

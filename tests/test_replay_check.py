@@ -91,12 +91,17 @@ def test_decide_matches_the_controller_policy() -> None:
         def __call__(self, z: Any) -> Any:
             return self
 
+    # the same decision function as the live controller service (navigation.decide)
+    outside = "pose outside the mapped free space"
     assert decide(None, 0.0, 0.0) == (0j, "no controller")
-    assert decide(Fixed(1 + 1j, navigation.MOVING), 0, 0) == (1 + 1j, "moving")
+    assert decide(Fixed(1 + 1j, navigation.MOVING), 0, 0) == (1 + 1j, "ok")
     assert decide(Fixed(1 + 1j, navigation.ARRIVED), 0, 0) == (0j, "arrived")
-    assert decide(Fixed(complex("nan"), navigation.MOVING), 0, 0) == (0j, "outside workspace")
-    assert decide(Fixed(1j, navigation.ERROR), 0, 0) == (0j, "outside workspace")
-    assert decide(Fixed(1j, navigation.STALLED), 0, 0) == (1j, "stalled")
+    assert decide(Fixed(complex("nan"), navigation.MOVING), 0, 0) == (0j, outside)
+    assert decide(Fixed(1j, navigation.ERROR), 0, 0) == (0j, outside)
+    u, why = decide(Fixed(1j, navigation.STALLED), 0, 0)
+    assert u == 1j and "stalled" in why
+    d = navigation.decide(Fixed(1j, navigation.ERROR), 1j, navigation.ERROR)
+    assert (d.state, d.reason) == ("stopped", "outside_workspace")
 
 
 def test_bad_overrides() -> None:

@@ -11,7 +11,15 @@ import pytest
 from confnav import schemas as S
 from confnav.services.keys import KeyError_, Keys, is_valid_id, validate_id
 
-DIAG = S.SolveDiagnostics(sweeps=7, error_estimate=1e-13, wall_time=0.5, tol=1e-10, nodes=[64])
+DIAG = S.SolveDiagnostics(
+    sweeps=7,
+    error_estimate=1e-13,
+    wall_time=0.5,
+    tol=1e-10,
+    nodes=[64],
+    boundary_residual=1e-13,
+    tol_met=True,
+)
 
 SAMPLES: list[S.Message] = [
     S.WorkspaceDefinition(
@@ -24,6 +32,7 @@ SAMPLES: list[S.Message] = [
         ws_id="w1",
         revision="abc",
         definition_hash="def",
+        workspace_hash="ws",
         stamp_ns=1,
         anchor=(0.0, 0.0),
         centers=[(0.1, 0.2)],
@@ -31,8 +40,10 @@ SAMPLES: list[S.Message] = [
         diagnostics=DIAG,
         coefficients={"nodes": [[0.1, 0.2]], "meta": {"n": 3}},
     ),
+    S.WorkspaceDelete(ws_id="w1", stamp_ns=1),
     S.TransformStatus(ws_id="w1", stamp_ns=2, state="failed", definition_hash="h", message="x"),
     S.Goal(robot_id="r1", ws_id="w1", goal=(0.0, 0.0), navfn="kr", k=8.0),
+    S.GoalCancel(robot_id="r1", stamp_ns=2),
     S.Pose(robot_id="r1", stamp_ns=3, seq=4, x=0.5, y=-0.5, theta=1.0),
     S.VelocityCommand(robot_id="r1", stamp_ns=5, linear=(0.1, 0.2), pose_seq=4, pose_stamp_ns=3),
     S.RobotStatus(robot_id="r1", stamp_ns=6, state="stopped", reason="stale_pose"),

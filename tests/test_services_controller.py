@@ -14,17 +14,21 @@ from conftest import IdentityMap, identity_loader, wait_for
 from confnav.control import Controller
 from confnav.schemas import (
     Goal,
+    GoalCancel,
     Pose,
     RobotStatus,
     SolveDiagnostics,
     TransformSolution,
     VelocityCommand,
+    WorkspaceDefinition,
+    WorkspaceDelete,
     decode,
     encode,
 )
 from confnav.services.bus import InMemoryNetwork, QueryError
 from confnav.services.controller import ControllerService
 from confnav.services.keys import Keys
+from confnav.services.transform import definition_hash
 
 K = Keys()
 CENTERS = [(0.4, 0.0)]
@@ -44,11 +48,14 @@ def solution(
         ws_id=ws,
         revision=rev,
         definition_hash="h-" + rev,
+        workspace_hash="ws-" + ws,
         stamp_ns=time.time_ns(),
         anchor=(0.0, 0.0),
         centers=centers,
         radii=RADII,
-        diagnostics=SolveDiagnostics(sweeps=1, error_estimate=0, wall_time=0, tol=1e-10),
+        diagnostics=SolveDiagnostics(
+            sweeps=1, error_estimate=0, wall_time=0, tol=1e-10, boundary_residual=0, tol_met=True
+        ),
         coefficients={"centers": [list(c) for c in centers], "radii": RADII},
     )
 
@@ -309,8 +316,12 @@ def test_bad_goal_is_rejected_and_bad_goal_point_reported(mem_net: InMemoryNetwo
     ctl, _tr, cl = setup(mem_net)
     try:
         cl.bus.publish(K.robot("r1", "goal"), b'{"robot_id":"r1"}')
+        wait_for(lambda: ctl.counters["rejected"] == 1)
+        wait_for(lambda: getattr(cl.last_status("r1"), "reason", "") == "invalid_input")
+        assert "goal rejected" in cl.last_status("r1").message  # answered on the bus
         cl.bus.publish(K.robot("r1", "goal"), encode(Goal(robot_id="r9", ws_id="cd", goal=(0, 0))))
         wait_for(lambda: ctl.counters["rejected"] == 2)
+        wait_for(lambda: "'r9'" in cl.last_status("r1").message)
         cl.goal("r1", xy=(0.4, 0.0))  # inside the obstacle: NavigationError from the library
         wait_for(lambda: ctl.counters["navigation_errors"] >= 1)
         cl.pose("r1", 0.0, 0.5)
@@ -363,5 +374,169 @@ def test_only_the_newest_waiting_pose_of_a_robot_is_answered(mem_net: InMemoryNe
         answered = [(c.robot_id, c.pose_seq) for c in cl.cmds if c.pose_seq > 0]
         assert sorted(answered) == [("r1", 3), ("r2", 2)]
         assert ctl.counters["poses_superseded"] == 3
+    finally:
+        ctl.stop()
+
+
+def test_poses_before_the_goal_count_no_spurious_stale_pose(mem_net: InMemoryNetwork) -> None:
+    """A robot publishing poses (10 Hz) before its goal: the goal is followed by commands,
+    never by a stale_pose stop (the pose before the goal is remembered, the goal time counts
+    as the start of the watchdog)."""
+    ctl, _tr, cl = setup(mem_net, stale_after=0.3)
+    try:
+        cl.goal("r0")  # another robot, so that the map is there
+        wait_for(lambda: ctl.counters["maps_installed"])
+        for _ in range(3):
+            cl.pose("r1", 0.0, 0.5)
+            time.sleep(0.1)
+        cl.goal("r1")
+        for _ in range(10):
+            time.sleep(0.1)
+            cl.pose("r1", 0.0, 0.5)
+        wait_for(lambda: _state(cl, "r1") == "navigating")
+        assert not [s for s in cl.status if s.robot_id == "r1" and s.reason == "stale_pose"]
+    finally:
+        ctl.stop()
+
+
+def test_replayed_or_reordered_poses_are_not_fresh(mem_net: InMemoryNetwork) -> None:
+    ctl, _tr, cl = setup(mem_net, stale_after=0.3)
+    try:
+        cl.goal("r1")
+        wait_for(lambda: ctl.counters["maps_installed"])
+        t = time.time_ns()
+        newest = Pose(robot_id="r1", stamp_ns=t, seq=10, x=0.0, y=0.5)
+        cl.bus.publish(K.robot("r1", "pose"), encode(newest))
+        wait_for(lambda: any(c.pose_seq == 10 for c in cl.cmds))
+        # older poses (a replay of the past, or reordered delivery) keep coming: not answered,
+        # and the robot goes stale as if no pose came
+        t0 = time.monotonic()
+        for i in range(8):
+            old = Pose(robot_id="r1", stamp_ns=t - 1000 * (i + 1), seq=9, x=0.0, y=0.5)
+            cl.bus.publish(K.robot("r1", "pose"), encode(old))
+            time.sleep(0.05)
+        wait_for(lambda: getattr(cl.last_status("r1"), "reason", "") == "stale_pose", timeout=2)
+        assert time.monotonic() - t0 < 1.0
+        assert ctl.counters["poses_out_of_order"] >= 7  # some may be superseded in the queue
+        assert {c.pose_seq for c in cl.cmds} <= {10, -1}
+    finally:
+        ctl.stop()
+
+
+def test_cancel_and_idle_ttl_forget_robots(mem_net: InMemoryNetwork) -> None:
+    ctl, _tr, cl = setup(mem_net, idle_ttl=0.3)
+    try:
+        cl.goal("r1")
+        wait_for(lambda: ctl.counters["maps_installed"])
+        cl.pose("r1", 0.0, 0.5)
+        wait_for(lambda: _state(cl, "r1") == "navigating")
+        cl.bus.publish(K.robot("r1", "cancel"), encode(GoalCancel(robot_id="r1")))
+        wait_for(lambda: _state(cl, "r1") == "idle")
+        assert cl.last_cmd("r1").linear == (0.0, 0.0)
+        assert "r1" not in ctl._robots
+        # a robot with a goal that falls silent is forgotten after the TTL: statuses stop
+        cl.goal("r2")
+        wait_for(lambda: _state(cl, "r2") == "stopped")  # stale_pose
+        wait_for(lambda: "r2" not in ctl._robots, timeout=3)
+        assert cl.last_status("r2").state == "idle" and "forgotten" in cl.last_status("r2").message
+        n = len(cl.status)
+        time.sleep(0.6)
+        assert len(cl.status) == n  # nothing more about forgotten robots
+        assert ctl.counters["robots_forgotten"] == 2
+    finally:
+        ctl.stop()
+
+
+def test_goal_above_the_caps_is_refused_with_a_status(mem_net: InMemoryNetwork) -> None:
+    ctl, _tr, cl = setup(mem_net, max_gain=5.0, max_speed=1.0)
+    try:
+        for kw in ({"gain": 50.0}, {"v_max": 3.0}):
+            g = Goal(robot_id="r1", ws_id="cd", goal=(-0.5, 0.0), **kw)  # type: ignore[arg-type]
+            cl.bus.publish(K.robot("r1", "goal"), encode(g))
+            wait_for(lambda: "above the caps" in getattr(cl.last_status("r1"), "message", ""))
+            assert cl.last_status("r1").reason == "invalid_input"
+            cl.status.clear()
+        assert ctl._robots["r1"].goal is None
+    finally:
+        ctl.stop()
+
+
+def _definition(obstacles: list[list[tuple[float, float]]]) -> WorkspaceDefinition:
+    return WorkspaceDefinition(
+        ws_id="cd", outer=[(-1, -1), (1, -1), (1, 1), (-1, 1)], obstacles=obstacles
+    )
+
+
+def test_definition_change_stops_robots_near_the_new_geometry(mem_net: InMemoryNetwork) -> None:
+    """An obstacle appears 0.1 m from robot A: A is stopped at once (zero command, reason
+    map_outdated, before any new pose), B (0.5 m away) keeps moving on the old map; A's poses
+    are refused until the map of the new definition is installed, then A moves again."""
+    ctl, tr, cl = setup(mem_net, margin=0.25)
+    old = _definition([[(0.35, -0.05), (0.45, -0.05), (0.4, 0.05)]])
+    tr.solutions["cd"] = solution()
+    try:
+        cl.goal("A")
+        cl.goal("B")
+        wait_for(lambda: ctl.counters["goals"] == 2 and ctl.counters["maps_installed"])
+        cl.pose("A", 0.0, 0.5)
+        cl.pose("B", 0.0, -0.5)
+        wait_for(lambda: _state(cl, "A") == _state(cl, "B") == "navigating")
+        assert ctl.counters["definitions_changed"] == 0
+        new = _definition([*old.obstacles, [(-0.1, 0.6), (0.1, 0.6), (0.0, 0.75)]])
+        n_cmds = len(cl.cmds)
+        t0 = time.time_ns()
+        tr.bus.publish(K.ws("cd", "definition"), encode(new))
+        stop = wait_for(lambda: [c for c in cl.cmds[n_cmds:] if c.robot_id == "A"])[0]
+        latency = (stop.stamp_ns - t0) / 1e9  # definition put -> stop command decided
+        assert stop.linear == (0.0, 0.0) and stop.pose_seq == -1  # no pose needed
+        wait_for(lambda: getattr(cl.last_status("A"), "reason", "") == "map_outdated")
+        print(f"definition -> stop latency {latency * 1e3:.2f} ms")
+        for _ in range(3):
+            cl.pose("A", 0.0, 0.5)
+            cl.pose("B", 0.0, -0.5)
+            time.sleep(0.02)
+        seq_a, seq_b = cl.seq - 1, cl.seq
+
+        def answer(rid: str, seq: int) -> VelocityCommand | None:
+            c = [m for m in cl.cmds if m.robot_id == rid and m.pose_seq == seq]
+            return c[-1] if c else None
+
+        a, b = wait_for(
+            lambda: (
+                (answer("A", seq_a), answer("B", seq_b))
+                if answer("A", seq_a) and answer("B", seq_b)
+                else None
+            )
+        )
+        assert a.linear == (0.0, 0.0)
+        assert abs(complex(*b.linear)) > 0 and _state(cl, "B") == "navigating"
+        # the map of the new definition arrives: A moves again
+        sol = solution(rev="rev2").model_copy(update={"definition_hash": definition_hash(new)})
+        tr.bus.publish(K.ws("cd", "transform"), encode(sol))
+        wait_for(lambda: ctl.counters["maps_installed"] == 2)
+
+        def moving() -> bool:
+            cl.pose("A", 0.0, 0.5)
+            return _state(cl, "A") == "navigating"
+
+        wait_for(moving, timeout=5, interval=0.05)
+    finally:
+        ctl.stop()
+
+
+def test_deleted_workspace_stops_its_robots(mem_net: InMemoryNetwork) -> None:
+    ctl, tr, cl = setup(mem_net)
+    try:
+        cl.goal("r1")
+        wait_for(lambda: ctl.counters["maps_installed"])
+        cl.pose("r1", 0.0, 0.5)
+        wait_for(lambda: _state(cl, "r1") == "navigating")
+        del tr.solutions["cd"]
+        tr.bus.publish(K.ws("cd", "delete"), encode(WorkspaceDelete(ws_id="cd")))
+        wait_for(lambda: getattr(cl.last_status("r1"), "reason", "") == "missing_map")
+        assert cl.last_cmd("r1").linear == (0.0, 0.0)
+        cl.pose("r1", 0.0, 0.5)
+        wait_for(lambda: cl.answer("r1") is not None)
+        assert cl.answer("r1").linear == (0.0, 0.0)
     finally:
         ctl.stop()

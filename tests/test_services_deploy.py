@@ -143,3 +143,100 @@ def test_cli_registers_the_service_commands() -> None:
     ):
         args = parser.parse_args(argv)
         assert callable(args.func), argv
+
+
+def test_endpoint_in_use_sees_tcp_and_unix_listeners(sockdir: Path) -> None:
+    import socket
+
+    from confnav.services.launcher import endpoint_in_use
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+        s.listen()
+        assert endpoint_in_use(f"tcp/127.0.0.1:{port}")
+        assert endpoint_in_use(f"tls/127.0.0.1:{port}")
+    assert not endpoint_in_use(f"tcp/127.0.0.1:{port}")
+    path = sockdir / "u.sock"
+    assert not endpoint_in_use(f"unixsock-stream/{path}")
+    with socket.socket(socket.AF_UNIX) as u:
+        u.bind(str(path))
+        u.listen()
+        assert endpoint_in_use(f"unixsock-stream/{path}")
+    assert not endpoint_in_use(f"unixsock-stream/{path}")  # a stale file: nobody listens
+
+
+def _manifest(tmp_path: Path, sock: str, body: str, max_restarts: int = 5) -> Path:
+    m = tmp_path / "m.toml"
+    m.write_text(
+        f'log_dir = "{tmp_path / "logs"}"\nmax_restarts = {max_restarts}\n'
+        f'[router]\nlisten = ["{sock}"]\n{body}'
+    )
+    return m
+
+
+@pytest.mark.integration
+@pytest.mark.timeout(60)
+def test_launch_refuses_a_taken_router_endpoint(tmp_path: Path, zenoh_router: str) -> None:
+    """Another system's router holds the endpoint: one-line error, exit 1, nothing started."""
+    manifest = _manifest(tmp_path, zenoh_router, '[[service]]\nname = "controller"\n')
+    res = subprocess.run(
+        confnav_cmd("launch", str(manifest)),
+        env=subprocess_env(),
+        capture_output=True,
+        text=True,
+        timeout=50,
+    )
+    assert res.returncode == 1
+    assert res.stderr.strip().count("\n") == 0, res.stderr
+    assert "already in use" in res.stderr and zenoh_router in res.stderr
+    assert not (tmp_path / "logs").exists()  # no process was started
+
+
+@pytest.mark.integration
+@pytest.mark.timeout(120)
+def test_launch_honours_max_restarts_with_backoff(tmp_path: Path, sockdir: Path) -> None:
+    """A service that always crashes is restarted max_restarts times, with growing waits, and
+    the status line says it is down; a router killed more than max_restarts times stops the
+    launch with exit 1 (instead of being restarted forever)."""
+    sock = f"unixsock-stream/{sockdir}/r.sock"
+    body = '[[service]]\nname = "controller"\nargs = ["--no-such-flag"]\nwait = false\n'
+    manifest = _manifest(tmp_path, sock, body, max_restarts=2)
+    proc = subprocess.Popen(
+        confnav_cmd("launch", str(manifest)),
+        env=subprocess_env(),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        start_new_session=True,
+    )
+    try:
+        assert proc.stdout is not None
+        lines: list[str] = []
+        while "not restarting" not in "".join(lines):
+            line = proc.stdout.readline().decode()
+            assert line, "".join(lines)
+            lines.append(line)
+        text = "".join(lines)
+        assert "0/1 services alive (down: controller)" in text
+        assert "restarting in 0.5 s (1/2)" in text and "restarting in 1.0 s (2/2)" in text
+        assert "(3/2)" not in text
+        for kill in range(3):  # the router: killed 3 times with max_restarts = 2
+            pid = _pid_of(proc.pid, "router")
+            os.kill(pid, signal.SIGKILL)
+            if kill < 2:  # restarted after its backoff
+                wait_for(lambda pid=pid: _router_pid(proc.pid) not in (None, pid), 30, 0.1)
+        out, _err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+    text += out.decode()
+    assert proc.returncode == 1, text[-3000:]
+    assert "router exited with code -9 after 2 restarts" in text
+
+
+def _router_pid(parent: int) -> int | None:
+    try:
+        return _pid_of(parent, "router")
+    except AssertionError:
+        return None

@@ -22,7 +22,8 @@ from confnav.schemas import MODELS_BY_TYPE, Goal, Pose, RobotStatus, encode, sch
 from confnav.services import mcap_layout as L
 from confnav.services.bus import InMemoryNetwork
 from confnav.services.keys import Keys
-from confnav.services.recorder import Recorder
+from confnav.services.recorder import Recorder, free_path
+from confnav.services.recover import has_footer, scan
 
 K = Keys()
 
@@ -104,6 +105,57 @@ def test_exact_counts_schemas_and_metadata(mem_net: InMemoryNetwork, tmp_path: P
     md = meta[L.METADATA_NAME]
     assert md["prefix"] == "confnav" and json.loads(md["config"]) == {"run": "test"}
     assert md["zenoh_version"] != "" and md["mcap_version"] != ""
+
+
+def test_never_overwrites_an_existing_recording(mem_net: InMemoryNetwork, tmp_path: Path) -> None:
+    """Each start writes a new file (demo.mcap, demo.1.mcap, demo.2.mcap); the bytes of the
+    files already there are untouched, also of a footer-less one left by a crash."""
+    path = tmp_path / "demo.mcap"
+    path.write_bytes(b"\x89MCAP0\r\nprevious run, killed")
+    before = path.read_bytes()
+    written = []
+    for run in range(2):
+        rec = Recorder(mem_net.bus(f"rec{run}"), K, path, health_period=0)
+        rec.start()
+        pub = mem_net.bus(f"pub{run}")
+        pub.publish(
+            K.robot("r1", "pose"), encode(Pose(robot_id="r1", stamp_ns=1, seq=run, x=0, y=0))
+        )
+        wait_for(lambda rec=rec: rec.recorded == 1)  # type: ignore[misc]
+        rec.stop()
+        written.append(rec.path)
+    assert written == [tmp_path / "demo.1.mcap", tmp_path / "demo.2.mcap"]
+    assert path.read_bytes() == before
+    for run, p in enumerate(written):
+        counts, msgs, _meta = read_all(p)
+        assert counts == {K.robot("r1", "pose"): 1}
+        assert json.loads(msgs[0][2].data)["seq"] == run
+    assert free_path(path) == tmp_path / "demo.3.mcap"
+    assert free_path(tmp_path / "new.mcap") == tmp_path / "new.mcap"
+
+
+def test_mcap_writer_flush_makes_every_message_durable(tmp_path: Path) -> None:
+    """Pins the mcap API the bounded SIGKILL loss rests on: after the public
+    ``Writer.flush()`` every message added so far is in a complete chunk in the file (as a
+    killed process leaves it), and writing continues in a new chunk."""
+    from mcap.writer import CompressionType, Writer
+
+    path = tmp_path / "f.mcap"
+    with open(path, "wb") as f:
+        w = Writer(f, chunk_size=1 << 20, compression=CompressionType.ZSTD)
+        w.start("confnav", "test")
+        cid = w.register_channel("t", "json", 0)
+        for i in range(3):
+            w.add_message(cid, log_time=i, data=b"%d" % i, publish_time=i)
+        w.flush()  # type: ignore[no-untyped-call]
+        got = [bytes(r.data) for r in scan(path).records if type(r).__name__ == "Message"]
+        assert got == [b"0", b"1", b"2"] and not has_footer(path)
+        w.add_message(cid, log_time=3, data=b"3", publish_time=3)
+        w.flush()  # type: ignore[no-untyped-call]
+        got = [bytes(r.data) for r in scan(path).records if type(r).__name__ == "Message"]
+        assert got == [b"0", b"1", b"2", b"3"]
+        w.finish()  # type: ignore[no-untyped-call]
+    assert has_footer(path)
 
 
 def _start_recorder(endpoint: str, out: Path, flush: float = 0.5) -> subprocess.Popen[bytes]:
@@ -204,3 +256,17 @@ def test_sigkill_loses_at_most_about_a_second(
     assert not lost or t_kill - min(lost) <= 1.0, (
         f"lost {len(lost)} messages from the last {t_kill - min(lost):.2f} s"
     )
+    # a restart (as the launcher does it) writes a new file and leaves the killed one intact
+    killed = out.read_bytes()
+    proc = _start_recorder(zenoh_router, out, flush=0.5)
+    try:
+        _wait_alive(bus, "recorder")
+        wait_for(lambda: (tmp_path / "kill.1.mcap").exists())
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(20) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert out.read_bytes() == killed
+    assert has_footer(tmp_path / "kill.1.mcap")

@@ -144,3 +144,26 @@ def test_simulator_over_real_zenoh_faster_than_real_time(make_bus: Callable[[], 
         assert poses[-1].x > 0.5  # 0.2 m/s for ~4 sim seconds
     finally:
         sim.stop()
+
+
+@pytest.mark.timeout(60)
+def test_commands_only_on_the_exact_key_with_the_robots_id(make_bus: Callable[[], Any]) -> None:
+    """Over real Zenoh: a put on ``confnav/robot/*/cmd_vel`` reaches the simulator's
+    subscriber but is rejected, and so is a command naming another robot."""
+    sim = SimulatorService(make_bus(), K, robots=[("r1", "sq", 0.0, 0.0)], cmd_timeout=5.0)
+    sim._stop.set()  # stepped by hand
+    sim.start()
+    client = make_bus()
+    try:
+        time.sleep(0.3)
+        client.publish("confnav/robot/*/cmd_vel", cmd("r1", 1.0, 0.0))
+        client.publish(K.robot("r1", "cmd_vel"), cmd("r2", 1.0, 0.0))
+        wait_for(lambda: sim.counters["rejected"] == 2, timeout=10)
+        sim.step(0.1)
+        assert sim.positions()["r1"] == 0j and sim.counters["commands"] == 0
+        client.publish(K.robot("r1", "cmd_vel"), cmd("r1", 1.0, 0.0))
+        wait_for(lambda: sim.counters["commands"] == 1, timeout=10)
+        sim.step(0.1)
+        assert sim.positions()["r1"] == pytest.approx(0.1)
+    finally:
+        sim.stop()

@@ -12,7 +12,14 @@ from typing import Any
 import pytest
 from conftest import fake_solve, square_definition, wait_for
 
-from confnav.schemas import TransformSolution, TransformStatus, WorkspaceDefinition, decode, encode
+from confnav.schemas import (
+    TransformSolution,
+    TransformStatus,
+    WorkspaceDefinition,
+    WorkspaceDelete,
+    decode,
+    encode,
+)
 from confnav.services.bus import InMemoryNetwork
 from confnav.services.keys import Keys
 from confnav.services.transform import TransformService, solve_definition
@@ -238,5 +245,135 @@ def test_real_solver_in_process_pool_over_zenoh(make_bus: Callable[[], Any]) -> 
         assert not bad.ok and "unknown workspace" in (bad.error or "")
         alive = client.alive(K.alive_of("transform"))
         assert alive == [K.alive("transform", svc_bus.zid)]
+    finally:
+        svc.stop()
+
+
+def dying_solve(defn_json: str) -> dict[str, Any]:
+    """Runs in a pool worker: the worker dies (like an OOM kill) while solving a workspace
+    with two obstacles, every time, and a one-obstacle workspace on its first attempt
+    (a marker file in $CONFNAV_TEST_DIR remembers it)."""
+    import os
+
+    defn = WorkspaceDefinition.model_validate_json(defn_json)
+    marker = Path(os.environ["CONFNAV_TEST_DIR"]) / f"{defn.ws_id}.died"
+    if len(defn.obstacles) >= 2 or not marker.exists():
+        marker.touch()
+        os._exit(9)
+    return fake_solve(defn_json)
+
+
+@pytest.mark.timeout(120)
+def test_dead_worker_rebuilds_the_pool_retries_then_fails_with_the_reason(
+    mem_net: InMemoryNetwork, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setenv("CONFNAV_TEST_DIR", str(tmp_path))
+    client = mem_net.bus("client")
+    rec = Recorder(client)
+    svc = start(mem_net, executor="process", workers=1, solve_fn=dying_solve, max_attempts=2)
+    try:
+        client.publish(K.ws("once", "definition"), encode(square_definition("once", [(0.2, 0)])))
+        wait_for(lambda: svc.state_of("once") == "solved", timeout=60)
+        assert svc.counters["pool_rebuilds"] >= 1 and svc.counters["solve_retries"] == 1
+        two = square_definition("two", [(0.2, 0), (-0.3, 0.1)])
+        client.publish(K.ws("two", "definition"), encode(two))
+        wait_for(lambda: svc.state_of("two") == "failed", timeout=60)
+        st = decode(TransformStatus, rec.on(K.ws("two", "status"))[-1])
+        assert st.state == "failed" and "solver worker died 2 times" in st.message
+        [r] = client.query(K.ws("two", "transform"))
+        assert not r.ok and "died" in (r.error or "")
+        assert svc.health().state == "degraded"
+        # the service still solves after all that
+        client.publish(K.ws("sq", "definition"), encode(square_definition("sq", [(0.1, 0)])))
+        (tmp_path / "sq.died").touch()
+        wait_for(lambda: svc.state_of("sq") == "solved", timeout=60)
+    finally:
+        svc.stop()
+
+
+def test_solve_timeout_fails_the_workspace(mem_net: InMemoryNetwork) -> None:
+    gate = threading.Event()
+
+    def stuck(defn_json: str) -> dict[str, Any]:
+        gate.wait(20)
+        return fake_solve(defn_json)
+
+    client = mem_net.bus("client")
+    rec = Recorder(client)
+    svc = start(mem_net, solve_fn=stuck, solve_timeout=0.4)
+    try:
+        t0 = time.monotonic()
+        client.publish(K.ws("sq", "definition"), encode(square_definition("sq")))
+        wait_for(lambda: svc.state_of("sq") == "failed", timeout=5)
+        assert 0.4 <= time.monotonic() - t0 < 3.0
+        st = decode(TransformStatus, rec.on(K.ws("sq", "status"))[-1])
+        assert "timed out after 0.4 s" in st.message
+        gate.set()  # the late result is ignored
+        time.sleep(0.2)
+        assert svc.state_of("sq") == "failed" and not rec.on(K.ws("sq", "transform"))
+    finally:
+        gate.set()
+        svc.stop()
+
+
+def test_lru_cache_persist_valid_only_delete_and_path_safe_ids(
+    mem_net: InMemoryNetwork, tmp_path: Path
+) -> None:
+    client = mem_net.bus("client")
+    rec = Recorder(client)
+    cache = tmp_path / "cache"
+    svc = start(mem_net, cache_dir=cache, max_cached=2)
+    try:
+        for i in range(4):
+            client.publish(
+                K.ws(f"w{i}", "definition"), encode(square_definition(f"w{i}", [(0.1 * i, 0)]))
+            )
+        wait_for(lambda: all(svc.state_of(f"w{i}") == "solved" for i in range(4)))
+        assert len(svc._results) == 2 and svc.counters["cache_evictions"] == 2
+        # invalid definitions are not persisted (not re-announced at the next start)
+        bow = WorkspaceDefinition(ws_id="bow", outer=[(0, 0), (1, 1), (1, 0), (0, 1)])
+        client.publish(K.ws("bow", "definition"), encode(bow))
+        wait_for(lambda: svc.state_of("bow") == "failed")
+        # ids that look like path parts stay inside the definitions directory
+        for ws_id in ("..", ".", "~"):
+            client.publish(K.ws(ws_id, "definition"), encode(square_definition(ws_id)))
+            wait_for(lambda ws_id=ws_id: svc.state_of(ws_id) == "solved")
+        files = sorted(p.name for p in (cache / "definitions").iterdir())
+        assert files == sorted(
+            ["ws-...json", "ws-..json", "ws-~.json", *[f"ws-w{i}.json" for i in range(4)]]
+        )
+        assert [p.name for p in tmp_path.iterdir()] == ["cache"]
+        # delete: forgotten, reported, not served, not restored at the next start
+        client.publish(K.ws("w1", "delete"), encode(WorkspaceDelete(ws_id="w1")))
+        wait_for(lambda: svc.state_of("w1") is None)
+        assert decode(TransformStatus, rec.on(K.ws("w1", "status"))[-1]).state == "deleted"
+        [r] = client.query(K.ws("w1", "transform"))
+        assert not r.ok and "unknown workspace" in (r.error or "")
+    finally:
+        svc.stop()
+    svc = start(mem_net, cache_dir=cache)
+    try:
+        wait_for(lambda: svc.state_of("w0") == "solved" and svc.state_of("..") == "solved")
+        assert svc.state_of("w1") is None and svc.state_of("bow") is None
+    finally:
+        svc.stop()
+
+
+@pytest.mark.timeout(60)
+def test_every_bad_query_gets_reply_err(make_bus: Callable[[], Any]) -> None:
+    """(A verbatim chunk such as ``@x`` never matches the ``*`` of the queryable: Zenoh does not
+    route such a query to it at all.)"""
+    svc = start(make_bus())
+    client = make_bus()
+    try:
+        time.sleep(0.3)
+        for key in (
+            "confnav/ws/" + "x" * 500 + "/transform",  # an id longer than 64 characters
+            "confnav/ws/*/transform",  # nothing solved yet: no match
+            "confnav/ws/nope/transform",
+        ):
+            replies = client.query(key, timeout=5)
+            assert len(replies) == 1 and not replies[0].ok, key
+            assert replies[0].error, key
     finally:
         svc.stop()

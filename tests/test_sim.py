@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from numpy.testing import assert_allclose
 
-from confnav.control import Controller
+from confnav.control import Controller, Status
 from confnav.errors import NavigationError
 from confnav.navfn import CircleDomain
 from confnav.sim import COLLIDED, STALLED, simulate
@@ -42,7 +42,15 @@ class ConstantField:
 def test_exact_exponential_approach() -> None:
     # harmonic phi on the disk with goal 0 is |w|^2: u = -2K z, z(t) = z0 exp(-2Kt)
     gain, tol = 0.7, 1e-3
-    ctl = Controller(IdentityMap(DISK), 0j, navfn="harmonic", gain=gain, goal_tol=tol)
+    ctl = Controller(
+        IdentityMap(DISK),
+        0j,
+        navfn="harmonic",
+        speed_law="theorem2",
+        gain=gain,
+        v_max=np.inf,
+        goal_tol=tol,
+    )
     z0 = np.array([0.9, -0.5 + 0.5j, 0.01j, 0.3 - 0.8j])
     res = simulate(ctl, z0, atol=1e-8)
     assert res.success.all()
@@ -55,8 +63,24 @@ def test_exact_exponential_approach() -> None:
     assert (res.starts == z0).all()
 
 
+def test_normalized_law_exact_arrival_time() -> None:
+    # radial paths on the disk; speed v_max until d = v_max/gain, then d' = -gain d:
+    # t = (d0 - v/g)/v + log((v/g)/tol)/g for d0 > v/g, log(d0/tol)/g otherwise
+    v, g, tol = 0.5, 2.0, 1e-3
+    ctl = Controller(IdentityMap(DISK), 0j, navfn="harmonic", gain=g, v_max=v, goal_tol=tol)
+    z0 = np.array([0.9, -0.5 + 0.5j, 0.1j, 0.3 - 0.8j])
+    d0 = np.abs(z0)
+    res = simulate(ctl, z0, atol=1e-9)
+    assert res.success.all()
+    knee = v / g
+    exact = np.where(d0 > knee, (d0 - knee) / v + np.log(knee / tol) / g, np.log(d0 / tol) / g)
+    assert_allclose(res.time, exact, rtol=1e-4)
+    assert_allclose(res.path_length, d0 - tol, rtol=1e-9)
+    assert_allclose(res.max_speed, np.minimum(v, g * d0), rtol=1e-12)
+
+
 def test_kr_paths_are_radial_on_the_disk() -> None:
-    ctl = Controller(IdentityMap(DISK), 0j, navfn="kr", k=6)
+    ctl = Controller(IdentityMap(DISK), 0j, navfn="kr", k=6, goal_tol=1e-3)
     z0 = np.array([0.95 + 0j, 0.6 - 0.7j])
     res = simulate(ctl, z0, record_paths=True)
     assert res.success.all()
@@ -97,10 +121,48 @@ def test_k6_stalls_in_clutter_and_auto_k_does_not() -> None:
     assert spurious.size == 1
     assert np.all(np.abs(stuck - spurious[0]) < 1e-3)  # they all sit in the spurious minimum
     assert np.all(bad.status[~bad.success] == STALLED)
+    # classified by the critical point they sit at, not by a small gradient
+    runs = bad.runs()
+    assert all("critical point" in runs[i].reason for i in np.flatnonzero(~bad.success))
+    k6 = Controller(ident, 0j, navfn="kr", k=6)
+    k6.critical_points()
+    assert np.all(k6(stuck).status == Status.STALLED)
     good = simulate(Controller(ident, 0j, navfn="kr", k="auto"), z, t_max=1e5)
     assert good.success.all(), good.message
     harm = simulate(Controller(ident, 0j, navfn="harmonic"), z, t_max=1e3)
     assert harm.success.all(), harm.message
+
+
+def test_flat_is_not_stalled(alcove_map: Any) -> None:
+    # goal at the end of a 0.5 x 1.5 m alcove: in the room 1 - phi ~ 1e-5 and the Theorem 2
+    # field is ~5e-5 m/s (a crawl), yet with the defaults the robots are MOVING at v_max and
+    # arrive; the plain law makes no progress and is classified as such, not as a saddle
+    starts = np.array([0.3 + 0.3j, 2.7 + 0.3j, 0.3 + 1.7j])
+    ctl = Controller(alcove_map, ALCOVE_GOAL)
+    plain = Controller(alcove_map, ALCOVE_GOAL, speed_law="theorem2")
+    assert np.all(np.abs(plain.velocity(starts)) < 1e-4)
+    out = ctl(starts)
+    assert np.all(out.status == Status.MOVING)
+    assert_allclose(np.abs(out.u), ctl.v_max, rtol=1e-12)
+    res = simulate(ctl, starts)
+    assert res.success.all() and not res.collided.any(), res.message
+    assert np.all(res.time < 15.0)
+    crawl = simulate(plain, starts, t_max=100.0)
+    assert np.all(crawl.status == STALLED)
+    assert all(r.reason.startswith("no progress") for r in crawl.runs())
+
+
+@pytest.mark.slow
+def test_goal_in_a_pocket_is_reached_from_far_starts_with_the_defaults(cup_map: Any) -> None:
+    from confnav.scenarios import random_starts
+
+    starts = np.r_[np.array([1.8 + 0j, 1.8 + 1.8j, -1.8 - 1.8j, 0.0 + 1.5j]),
+                   random_starts(cup_map.workspace, 40, seed=11)]  # fmt: skip
+    for navfn in ("harmonic", "kr"):
+        ctl = Controller(cup_map, CUP_GOAL, navfn=navfn)
+        res = simulate(ctl, starts)
+        assert res.success.all() and not res.collided.any(), (navfn, res.message)
+        assert np.all(res.time < 60.0)  # a few metres at 0.5 m/s, not a crawl
 
 
 def test_bad_starts() -> None:
@@ -125,9 +187,7 @@ def test_runs_are_typed_records() -> None:
 
 
 def _default_map() -> Any:
-    confnav = pytest.importorskip("confnav")
-    if not hasattr(confnav, "solve"):
-        pytest.skip("core solver not available yet")
+    import confnav
     from confnav.workspaces import default_workspace
 
     return confnav.solve(default_workspace())
@@ -136,6 +196,33 @@ def _default_map() -> Any:
 @pytest.fixture(scope="module")
 def default_map() -> Any:
     return _default_map()
+
+
+ALCOVE_GOAL = 1.75 + 3.2j  # 0.3 m from the end of a 0.5 m wide, 1.5 m deep alcove
+
+
+@pytest.fixture(scope="module")
+def alcove_map() -> Any:
+    import warnings
+
+    import confnav
+    from confnav.geometry import Workspace
+
+    ws = Workspace([(0, 0), (3, 0), (3, 2), (2, 2), (2, 3.5), (1.5, 3.5), (1.5, 2), (0, 2)])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # accuracy 3e-9 at the re-entrant corners: plenty
+        return confnav.solve(ws).for_navigation()
+
+
+CUP_GOAL = 0.2 + 0.0j  # 0.15 m from the bottom of a 0.8 x 0.8 cup that opens away from it
+
+
+@pytest.fixture(scope="module")
+def cup_map() -> Any:
+    import confnav
+    from confnav.scenarios import cup_trap
+
+    return confnav.solve(cup_trap(0.8).workspace).for_navigation()
 
 
 @pytest.mark.parametrize("navfn", ["kr", "harmonic"])

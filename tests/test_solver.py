@@ -7,6 +7,7 @@ loosened to pass: each one would fail if the map were wrong in the 10th digit.
 from __future__ import annotations
 
 import warnings
+from collections.abc import Callable
 
 import numpy as np
 import pytest
@@ -26,15 +27,38 @@ def _solve(ws: Workspace, tol: float) -> ConformalMap:
         return confnav.solve(ws, tol=tol)
 
 
+def _solve_honest(
+    ws: Workspace, tol: float, true_error: Callable[[ConformalMap], float]
+) -> ConformalMap:
+    """At tolerances near double precision the map may honestly miss ``tol`` (its boundary
+    residual between the nodes near corners is ~1e-11): then it must say so (warning,
+    tol_met False) and its estimate must cover the true error; if it claims tol, it holds."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", confnav.AccuracyWarning)
+        m = confnav.solve(ws, tol=tol)
+    d = m.diagnostics
+    err = true_error(m)
+    assert err <= d.error_estimate or err <= tol, d.table()
+    assert d.tol_met == (d.error_estimate <= tol)
+    assert d.tol_met == (not any(w.category is confnav.AccuracyWarning for w in caught))
+    return m
+
+
 @pytest.fixture(scope="module")
 def default_map() -> ConformalMap:
     return _solve(default_workspace(), 1e-10)
 
 
 # ---------------------------------------------------------------- exact answers
-def test_square_onto_disk() -> None:
-    m = _solve(Workspace(SQUARE, anchor=[0, 0]), 1e-12)
+def _square_error(m: ConformalMap) -> float:
     # f'(0) = Gamma(1/4)^2 / (8 sqrt(pi)); the vertex 1+i goes to e^{i pi/4}
+    return float(max(abs(m.dT(0) - 0.9270373386506859), abs(m.T(1 + 1j) - np.exp(1j * np.pi / 4))))
+
+
+def test_square_onto_disk() -> None:
+    ws = Workspace(SQUARE, anchor=[0, 0])
+    _solve(ws, 1e-10)  # certified
+    m = _solve_honest(ws, 1e-12, _square_error)
     assert abs(m.dT(0) - 0.9270373386506859) < 1e-11
     # the issue asks 1e-10 for exact answers; tol bounds the circle domain, not the vertex image
     assert abs(m.T(1 + 1j) - np.exp(1j * np.pi / 4)) < 1e-10
@@ -42,8 +66,9 @@ def test_square_onto_disk() -> None:
 
 
 def test_rectangle_onto_disk() -> None:
-    m = _solve(Workspace([[-2, -1], [2, -1], [2, 1], [-2, 1]], anchor=[0, 0]), 1e-12)
+    ws = Workspace([[-2, -1], [2, -1], [2, 1], [-2, 1]], anchor=[0, 0])
     # f'(0) = (1 + k) K / (2a) with k = 1/sqrt(2) for the 4x2 rectangle
+    m = _solve_honest(ws, 1e-12, lambda m: abs(complex(m.dT(0)) - 0.7912758636118579))
     assert abs(m.dT(0) - 0.7912758636118579) < 1e-11
 
 
@@ -69,11 +94,16 @@ def test_interior_map_boundary_values_lie_on_the_circle() -> None:
 )
 def test_square_frame_onto_annulus(a: float, capacity: float, tol: float) -> None:
     ws = Workspace(SQUARE, [[[-a, -a], [a, -a], [a, a], [-a, a]]], anchor=[(1 + a) / 2, 0])
-    m = _solve(ws, tol)
-    c, r = complex(m.centers[0]), float(m.radii[0])
-    rhs = (1 + r * r - abs(c) ** 2) / (2 * r)  # (1 + q^2)/(2q) for the equivalent annulus
-    q = rhs - np.sqrt(rhs * rhs - 1)
-    assert abs(2 * np.pi / np.log(1 / q) - capacity) < 1e-10
+
+    def cap(m: ConformalMap) -> float:
+        c, r = complex(m.centers[0]), float(m.radii[0])
+        rhs = (1 + r * r - abs(c) ** 2) / (2 * r)  # (1 + q^2)/(2q) for the equivalent annulus
+        q = rhs - np.sqrt(rhs * rhs - 1)
+        return float(2 * np.pi / np.log(1 / q))
+
+    # the circle domain's error is what the estimate bounds: cap error / (d cap / d q)
+    m = _solve_honest(ws, tol, lambda m: abs(cap(m) - capacity) / 30)
+    assert abs(cap(m) - capacity) < 1e-10
 
 
 def test_default_workspace_matches_design_reference(default_map: ConformalMap) -> None:
@@ -180,8 +210,14 @@ def test_bad_tolerance_is_rejected() -> None:
 
 
 def test_navigation_map_is_cheaper_and_as_accurate(default_map: ConformalMap) -> None:
+    # checked at the walls too (issue 8): a coarsening that misses 1e-7 there is not taken
     fast = default_map.for_navigation(accuracy=1e-7)
-    assert fast.n_nodes <= default_map.n_nodes // 2  # the 1e-10 map has nodes to spare
+    assert fast.diagnostics.boundary_residual <= 1e-7
+    assert fast.diagnostics.error_estimate >= fast.diagnostics.boundary_residual
+    loose = default_map.for_navigation(accuracy=1e-4)
+    assert loose.n_nodes <= default_map.n_nodes // 2  # the 1e-10 map has nodes to spare
+    assert loose.diagnostics.boundary_residual <= 1e-4
+    assert not loose.diagnostics.tol_met  # its own residual, not the full map's 1e-10
     # checked at other points than the ones for_navigation looked at
     ws = default_map.workspace
     rng = np.random.default_rng(123)

@@ -149,6 +149,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--out-dir", default=str(HERE))
     args = parser.parse_args(argv)
     out = Path(args.out_dir)
+    # regenerating replaces the goldens on purpose (the recorder itself never overwrites)
+    for name in ("golden_square.mcap", "golden_square_kr.mcap"):
+        (out / name).unlink(missing_ok=True)
     result = run_pipeline(out / "golden_square.mcap", solver="real")
     print(f"golden_square.mcap: {result}")
     result = run_pipeline(out / "golden_square_kr.mcap", solver="real", navfn="kr", gain=0.5)

@@ -1,0 +1,346 @@
+"""Map evaluation and control-step costs: direct Cauchy sums, local expansions, pyfmmlib.
+
+Measures on the default workspace (seed Sec. VI, DESIGN.md sec. 5), for the navigation map
+the controller service uses (``for_navigation()``) and for the full solver map:
+
+* T and T' per point for a batch of 1000 robots and for one robot: the direct barycentric
+  formula (linear in the boundary nodes), the local expansions of confnav/expansion.py (one
+  polynomial per point away from the walls, direct near them) and the pyfmmlib FMM;
+* the build of the expansions (time, leaves, recorded truncation bound, coverage);
+* their accuracy against the barycentric sums in extended precision;
+* the control step through the public ``confnav.Controller`` API (KR k = 6 and harmonic,
+  v_max saturation on) on both evaluation paths.
+
+Targets (issue 12, item 2): batch of 1000 robots <= 5 us per robot, single robot <= 50 us,
+with either navigation function. Timings are the best of several repetitions under whatever
+load the shared machine has (recorded beside them).
+
+Usage: ``python bench/bench_eval.py [--quick] [--out bench/results/eval.json]``
+"""
+
+from __future__ import annotations
+
+import os
+
+for _v in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_v, "1")
+
+import argparse  # noqa: E402
+import datetime as dt  # noqa: E402
+import json  # noqa: E402
+import subprocess  # noqa: E402
+import time  # noqa: E402
+from collections.abc import Callable  # noqa: E402
+from functools import partial  # noqa: E402
+from pathlib import Path  # noqa: E402
+from typing import Any  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+import confnav  # noqa: E402
+from confnav.cauchy import HAVE_FMM, _fmm  # noqa: E402
+from confnav.cmap import ConformalMap  # noqa: E402
+from confnav.control import Controller  # noqa: E402
+from confnav.scenarios import default_scenario, random_starts  # noqa: E402
+
+RESULTS = Path(__file__).resolve().parent / "results" / "eval.json"
+V_MAX = 1.0
+BATCH_TARGET_US = 5.0
+SINGLE_TARGET_US = 50.0
+
+
+def commit() -> str:
+    try:
+        out = subprocess.run(
+            ["git", "rev-parse", "HEAD"],
+            cwd=Path(__file__).resolve().parent,
+            capture_output=True,
+            text=True,
+            timeout=10,
+        )
+        dirty = subprocess.run(
+            ["git", "status", "--porcelain", "--", "confnav", "bench"],
+            cwd=Path(__file__).resolve().parent,
+            capture_output=True,
+            text=True,
+            timeout=10,
+        ).stdout.strip()
+        return out.stdout.strip() + ("+dirty" if dirty else "")
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+
+
+def timed(fn: Callable[[], Any], reps: int, rounds: int = 5) -> tuple[float, float]:
+    """Best mean seconds per call over ``rounds`` rounds of ``reps`` calls (after a warm-up):
+    (wall clock, CPU time of this process). On a loaded machine the CPU time, which leaves out
+    the time spent waiting for a core, is the closer estimate of the idle figure."""
+    fn()
+    wall = cpu = np.inf
+    for _ in range(rounds):
+        t0, c0 = time.perf_counter(), time.process_time()
+        for _ in range(reps):
+            fn()
+        wall = min(wall, (time.perf_counter() - t0) / reps)
+        cpu = min(cpu, (time.process_time() - c0) / reps)
+    return float(wall), float(cpu)
+
+
+def best_time(fn: Callable[[], Any], reps: int, rounds: int = 5) -> float:
+    """Wall-clock part of :func:`timed`."""
+    return timed(fn, reps, rounds)[0]
+
+
+def longdouble_T(m: ConformalMap, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The barycentric T and T' summed in extended precision (reference)."""
+    eta = m._eta.astype(np.clongdouble)
+    q = m._Q_fwd.astype(np.clongdouble)
+    R = 1 / (eta[None, :] - z.astype(np.clongdouble)[:, None])
+    S, S2 = R @ q, (R * R) @ q
+    T = S[:, 0] / S[:, 1]
+    dT = (S2[:, 0] * S[:, 1] - S[:, 0] * S2[:, 1]) / S[:, 1] ** 2
+    return T.astype(np.complex128), dT.astype(np.complex128)
+
+
+def fmm_T(m: ConformalMap, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """T and T' from the pyfmmlib FMM (both sums, first and second order)."""
+    (n1, dn), (d1, dd) = (_fmm(m._eta, m._Q_fwd[:, j], z, True) for j in range(2))
+    assert dn is not None and dd is not None
+    N, D = -n1, -d1
+    return N / D, (dn * D - N * dd) / D**2
+
+
+def evaluation_rows(name: str, m: ConformalMap, zb: np.ndarray, quick: bool) -> dict[str, Any]:
+    """Costs and accuracy of T and T' on one map, direct vs expansions vs FMM."""
+    reps_b, reps_1 = (5, 100) if quick else (20, 1000)
+    direct = ConformalMap.from_dict(m.to_dict())  # no expansions: the direct formula
+    fast = ConformalMap.from_dict(m.to_dict())
+    fast._fast = True  # what for_navigation() sets
+    t0 = time.perf_counter()
+    fast.T_and_dT(zb[:2])  # builds the expansions
+    build = time.perf_counter() - t0
+    ex = fast._expansion
+    assert ex is not None
+    covered = ex.sums(zb)[0]
+    z1 = np.asarray(zb[0])
+    row: dict[str, Any] = {
+        "map": name,
+        "nodes": m.n_nodes,
+        "expansion": {
+            "build_s": build,
+            "leaves": ex.stats.leaves,
+            "leaves_per_level": ex.stats.leaves_per_level,
+            "degree": ex.stats.degree,
+            "separation": ex.stats.separation,
+            "bound_sums": ex.stats.max_bound,
+            "bound_derivatives": ex.stats.max_bound_derivative,
+            "covered_fraction": float(covered.mean()),
+            "memory_mb": ex._coef.nbytes / 1e6,
+        },
+        "direct_batch_us": 1e6 * best_time(lambda: direct.T_and_dT(zb), reps_b) / zb.size,
+        "expansion_batch_us": 1e6 * best_time(lambda: fast.T_and_dT(zb), reps_b) / zb.size,
+        "expansion_batch_nocheck_us": 1e6
+        * best_time(lambda: fast.T_and_dT(zb, check=False), reps_b)
+        / zb.size,
+        "single_us": 1e6 * best_time(lambda: fast.T_and_dT(z1), reps_1),
+        "single_nocheck_us": 1e6 * best_time(lambda: fast.T_and_dT(z1, check=False), reps_1),
+    }
+    if HAVE_FMM:
+        row["fmm_batch_us"] = 1e6 * best_time(lambda: fmm_T(m, zb), max(2, reps_b // 4)) / zb.size
+    ref, dref = longdouble_T(m, zb)
+    for label, (w, dw) in (
+        ("direct", direct.T_and_dT(zb)),
+        ("expansion", fast.T_and_dT(zb)),
+        *((("fmm", fmm_T(m, zb)),) if HAVE_FMM else ()),
+    ):
+        c = covered
+        row[f"{label}_err_T"] = float(np.max(np.abs(w[c] - ref[c])))
+        row[f"{label}_err_dT_rel"] = float(np.max(np.abs(dw[c] - dref[c]) / np.abs(dref[c])))
+    return row
+
+
+def control_rows(
+    m: ConformalMap, zb: np.ndarray, goal: complex, quick: bool
+) -> list[dict[str, Any]]:
+    """The control step through the public Controller API, on both evaluation paths."""
+    reps_b, reps_1 = (5, 100) if quick else (20, 500)
+    direct = ConformalMap.from_dict(m.to_dict())
+    fast = ConformalMap.from_dict(m.to_dict())
+    fast._fast = True
+    fast.T_and_dT(zb[:2])
+    z1 = np.asarray(zb[0])
+    rows = []
+    wb = fast.T_and_dT(zb)[0]
+    for navfn in ("kr", "harmonic"):
+        for label, cm in (("direct", direct), ("expansion", fast)):
+            ctl = Controller(cm, goal, navfn=navfn, k=6, v_max=V_MAX)
+            step_b = partial(ctl, zb)
+            step_1 = partial(ctl, z1)
+            eval_b = partial(cm.T_and_dT, zb)
+            nav_b = partial(ctl.navfn.value_and_gradient, wb)
+            tb, t1 = timed(step_b, reps_b), timed(step_1, reps_1)
+            rows.append(
+                {
+                    "navfn": navfn,
+                    "evaluation": label,
+                    "batch1000_per_robot_us": 1e6 * tb[0] / zb.size,
+                    "batch1000_per_robot_cpu_us": 1e6 * tb[1] / zb.size,
+                    "single_us": 1e6 * t1[0],
+                    "single_cpu_us": 1e6 * t1[1],
+                    "T_and_dT_batch_per_robot_us": 1e6 * best_time(eval_b, reps_b) / zb.size,
+                    "navfn_batch_per_robot_us": 1e6 * best_time(nav_b, reps_b) / zb.size,
+                }
+            )
+    return rows
+
+
+def fmt_table(headers: list[str], rows: list[list[str]]) -> str:
+    widths = [max(len(h), *(len(r[i]) for r in rows)) for i, h in enumerate(headers)]
+    line = "  ".join(h.rjust(w) for h, w in zip(headers, widths, strict=True))
+    out = [line, "-" * len(line)]
+    out += ["  ".join(c.rjust(w) for c, w in zip(r, widths, strict=True)) for r in rows]
+    return "\n".join(out)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--quick", action="store_true", help="fewer repetitions")
+    ap.add_argument("--out", type=Path, default=RESULTS)
+    ap.add_argument("--map", type=Path, default=None, help="a solved map JSON (else solve)")
+    args = ap.parse_args(argv)
+    load_start = list(os.getloadavg())
+    sc = default_scenario()
+    if args.map is not None:
+        full = ConformalMap.from_json(args.map.read_text())
+    else:
+        full = confnav.solve(sc.workspace)
+    nav = full.for_navigation()
+    zb = random_starts(sc.workspace, 1000, seed=3, margin=0.01)
+    ev = [evaluation_rows("navigation", nav, zb, args.quick)]
+    ev.append(evaluation_rows("full", full, zb, args.quick))
+    ctl = control_rows(nav, zb, sc.goal, args.quick)
+
+    print(f"load average at start: {load_start} (2 cores, shared; timings are not idle figures)")
+    print("\nT and T' per point, default workspace, 1000 robots uniform at clearance >= 0.01:")
+    print(
+        fmt_table(
+            [
+                "map",
+                "nodes",
+                "direct us",
+                "expans. us",
+                "no-check",
+                "fmm us",
+                "single",
+                "build s",
+                "leaves",
+                "covered",
+                "bound T'",
+                "err T'(exp)",
+                "err T'(dir)",
+            ],
+            [
+                [
+                    r["map"],
+                    str(r["nodes"]),
+                    f"{r['direct_batch_us']:.2f}",
+                    f"{r['expansion_batch_us']:.2f}",
+                    f"{r['expansion_batch_nocheck_us']:.2f}",
+                    f"{r.get('fmm_batch_us', float('nan')):.2f}",
+                    f"{r['single_us']:.1f}",
+                    f"{r['expansion']['build_s']:.2f}",
+                    str(r["expansion"]["leaves"]),
+                    f"{r['expansion']['covered_fraction']:.3f}",
+                    f"{r['expansion']['bound_derivatives']:.1e}",
+                    f"{r['expansion_err_dT_rel']:.1e}",
+                    f"{r['direct_err_dT_rel']:.1e}",
+                ]
+                for r in ev
+            ],
+        )
+    )
+    print("\ncontrol step through confnav.Controller (navigation map, v_max = 1):")
+    print(
+        fmt_table(
+            [
+                "navfn",
+                "T,T' by",
+                "batch us/robot",
+                "(cpu)",
+                "single us",
+                "(cpu)",
+                "T,T' us/robot",
+                "navfn us/robot",
+            ],
+            [
+                [
+                    r["navfn"],
+                    r["evaluation"],
+                    f"{r['batch1000_per_robot_us']:.2f}",
+                    f"{r['batch1000_per_robot_cpu_us']:.2f}",
+                    f"{r['single_us']:.1f}",
+                    f"{r['single_cpu_us']:.1f}",
+                    f"{r['T_and_dT_batch_per_robot_us']:.2f}",
+                    f"{r['navfn_batch_per_robot_us']:.2f}",
+                ]
+                for r in ctl
+            ],
+        )
+    )
+    targets = []
+    for r in ctl:
+        if r["evaluation"] != "expansion":
+            continue
+        for what, val, cpu, lim in (
+            (
+                "batch of 1000, us/robot",
+                r["batch1000_per_robot_us"],
+                r["batch1000_per_robot_cpu_us"],
+                BATCH_TARGET_US,
+            ),
+            ("single robot, us", r["single_us"], r["single_cpu_us"], SINGLE_TARGET_US),
+        ):
+            targets.append(
+                {
+                    "target": f"{r['navfn']}: {what} <= {lim:g} (wall clock)",
+                    "measured": val,
+                    "cpu_time": cpu,
+                    "met": val <= lim,
+                    "met_in_cpu_time": cpu <= lim,
+                }
+            )
+    acc = max(ev[0]["expansion_err_T"], ev[0]["expansion_err_dT_rel"])
+    targets.append(
+        {
+            "target": "expansion vs exact sums <= 1e-12 (T abs, T' rel)",
+            "measured": acc,
+            "met": acc <= 1e-12,
+        }
+    )
+    load_end = list(os.getloadavg())
+    print("\ntargets:")
+    for t in targets:
+        cpu = f" (CPU time {t['cpu_time']:.3g})" if "cpu_time" in t else ""
+        print(
+            f"  {'met   ' if t['met'] else 'MISSED'}  {t['target']}: "
+            f"measured {t['measured']:.3g}{cpu}"
+        )
+    print(f"load average at end: {load_end}")
+    out = {
+        "commit": commit(),
+        "date": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
+        "loadavg_start": load_start,
+        "loadavg_end": load_end,
+        "cpu_count": os.cpu_count(),
+        "quick": args.quick,
+        "evaluation": ev,
+        "control": ctl,
+        "targets": targets,
+    }
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(out, indent=1))
+    print(f"wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,173 @@
+"""``confnav serve foxglove``: the running system, live in the Foxglove app.
+
+Serves Foxglove's WebSocket protocol (``foxglove.websocket.v1``) through the official
+``foxglove-sdk``: open Foxglove, "Open connection", ``ws://HOST:PORT`` (default
+``ws://127.0.0.1:8765``). The scene is the one the recordings carry, built by the same
+:class:`confnav.services.foxglove.SceneBuilder` from the same messages: per workspace
+``{prefix}/viz/{ws}/scene`` (polygons, robots, trails, goals; frame ``workspace``) and
+``{prefix}/viz/{ws}/circle_domain``; the robots' and workspaces' status messages are passed
+through unchanged on their own keys (``{prefix}/robot/{r}/status``, ``{prefix}/ws/{ws}/status``,
+JSON with the confnav JSON Schema).
+
+A full scene goes out every ``full_period`` seconds even when nothing moves, so a client that
+connects late sees the workspace at once; on start the service asks the transform services
+for the solved maps (the queryable on ``{prefix}/ws/*/transform``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import threading
+import time
+from typing import Any
+
+from confnav.schemas import model_for_key_parts, schema_bytes, schema_name
+from confnav.services.bus import Bus
+from confnav.services.foxglove import (
+    MESSAGE_ENCODING,
+    SCENE_SCHEMA_NAME,
+    SCHEMA_ENCODING,
+    SceneBuilder,
+    SceneMessage,
+    parse_key,
+    scene_update_schema_text,
+)
+from confnav.services.keys import Keys
+from confnav.services.runtime import Service, add_zenoh_args, run_until_signal
+
+log = logging.getLogger(__name__)
+
+DEFAULT_PORT = 8765
+STATUS_KINDS = ("status",)  # passed through as they are (robot and workspace status)
+
+
+class FoxgloveLiveService(Service):
+    """See the module docstring. ``port=0`` picks a free port (then read :attr:`port`)."""
+
+    name = "foxglove"
+
+    def __init__(
+        self,
+        bus: Bus,
+        keys: Keys | None = None,
+        host: str = "127.0.0.1",
+        port: int = DEFAULT_PORT,
+        full_period: float = 1.0,
+        health_period: float = 1.0,
+    ) -> None:
+        super().__init__(bus, keys, health_period)
+        self.host = host
+        self.port = port
+        self.full_period = full_period
+        self._builder = SceneBuilder(self.keys.prefix)
+        self._lock = threading.Lock()  # the builder and the channel table
+        self._channels: dict[str, Any] = {}
+        self._server: Any = None
+        self._ctx: Any = None
+
+    def _start(self) -> None:
+        import foxglove  # 0.6 s to import: only where the live view runs
+
+        self._ctx = foxglove.Context()
+        self._server = foxglove.start_server(
+            name="confnav", host=self.host, port=self.port, context=self._ctx
+        )
+        self.port = int(self._server.port)
+        self._handles.append(self.bus.subscribe(self.keys.all(), self._on_message))
+        self.spawn(self._periodic, "scene")
+        log.info("foxglove live view on ws://%s:%d", self.host, self.port)
+
+    def stop(self) -> None:
+        super().stop()
+        if self._server is not None:
+            self._server.stop()
+            self._server = None
+
+    # channels -----------------------------------------------------------------------------
+    def _channel(self, topic: str, schema: str, data: bytes) -> Any:
+        import foxglove
+
+        ch = self._channels.get(topic)
+        if ch is None:
+            ch = self._channels[topic] = foxglove.Channel(
+                topic,
+                schema=foxglove.Schema(name=schema, encoding=SCHEMA_ENCODING, data=data),
+                message_encoding=MESSAGE_ENCODING,
+                context=self._ctx,
+            )
+        return ch
+
+    def _send(self, messages: list[SceneMessage]) -> None:
+        schema = scene_update_schema_text().encode()
+        for m in messages:
+            ch = self._channel(m.topic, SCENE_SCHEMA_NAME, schema)
+            ch.log(json.dumps(m.message, separators=(",", ":")), log_time=m.log_time_ns)
+            self.count("scenes")
+
+    # input --------------------------------------------------------------------------------
+    def _on_message(self, key: str, payload: bytes) -> None:
+        parsed = parse_key(key, self.keys.prefix)
+        if parsed is None:
+            return
+        group, _, kind = parsed
+        try:
+            message = json.loads(payload)
+        except ValueError:
+            self.count("rejected")
+            return
+        if not isinstance(message, dict):
+            self.count("rejected")
+            return
+        now = time.time_ns()
+        with self._lock:
+            model = model_for_key_parts(group, kind) if kind in STATUS_KINDS else None
+            if model is not None:
+                ch = self._channel(key, schema_name(model), schema_bytes(model))
+                ch.log(payload.decode("utf-8", "replace"), log_time=now)
+                self.count("status")
+                return
+            try:
+                self._send(self._builder.observe(key, message, now))
+            except Exception:  # a bad message never stops the live view
+                self.count("errors")
+                log.exception("scene update failed for %s", key)
+
+    def _periodic(self) -> None:
+        self._fetch_maps()
+        while not self._stop.wait(self.full_period):
+            with self._lock:
+                try:
+                    self._send(self._builder.flush(time.time_ns()))
+                except Exception:
+                    self.count("errors")
+                    log.exception("periodic scene failed")
+
+    def _fetch_maps(self) -> None:
+        try:
+            replies = self.bus.query(self.keys.any_ws("transform"), timeout=2.0)
+        except Exception as exc:
+            log.info("no maps fetched at start: %s", exc)
+            return
+        for r in replies:
+            if r.ok and r.payload is not None:
+                self._on_message(r.key, r.payload)
+
+
+def add_parser(sub: Any) -> None:
+    p: argparse.ArgumentParser = sub.add_parser(
+        "foxglove", help="serve the live scene to the Foxglove app (WebSocket)"
+    )
+    p.add_argument("--host", default="127.0.0.1", help="bind address (default %(default)s)")
+    p.add_argument("--port", type=int, default=DEFAULT_PORT, help="(default %(default)s)")
+    p.add_argument("--full-period", type=float, default=1.0, help="s between full scenes")
+    add_zenoh_args(p)
+    p.set_defaults(func=main)
+
+
+def main(args: argparse.Namespace) -> int:
+    def make(bus: Bus, keys: Keys) -> Service:
+        return FoxgloveLiveService(bus, keys, args.host, args.port, args.full_period)
+
+    return run_until_signal(make, args)

@@ -1,0 +1,220 @@
+"""Footprint inflation against shapes with known Minkowski sums (Steiner's formula for convex
+polygons: area(P + D_r) = area(P) + perimeter(P) r + pi r^2), containment of the true sum,
+merging of obstacles and walls, and the typed error for a goal cut off by a narrow passage."""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+import pytest
+import shapely
+
+from confnav.errors import WorkspaceError
+from confnav.footprint import (
+    UnreachableGoalError,
+    derived_ws_id,
+    inflate,
+    parse_derived_ws_id,
+    shrink_free_space,
+)
+from confnav.geometry import Workspace
+
+ROOM = [(-5, -5), (5, -5), (5, 5), (-5, 5)]
+
+
+def square(c: complex, s: float) -> list[tuple[float, float]]:
+    h = s / 2
+    return [
+        (c.real - h, c.imag - h),
+        (c.real + h, c.imag - h),
+        (c.real + h, c.imag + h),
+        (c.real - h, c.imag + h),
+    ]
+
+
+def true_sum_boundary(poly: np.ndarray, r: float, n: int = 64) -> np.ndarray:
+    """Points on the boundary of (convex ccw polygon) + D_r: offset edges and corner arcs."""
+    pts = []
+    m = len(poly)
+    for k in range(m):
+        a, b = poly[k], poly[(k + 1) % m]
+        nrm = -1j * (b - a) / abs(b - a)  # outward normal of a ccw polygon
+        t = np.linspace(0, 1, n)
+        pts.append(a + t * (b - a) + r * nrm)
+        nxt = -1j * (poly[(k + 2) % m] - b) / abs(poly[(k + 2) % m] - b)
+        ang0, ang1 = np.angle(nrm), np.angle(nxt)
+        ang1 = ang1 + 2 * np.pi * (ang1 < ang0)
+        pts.append(b + r * np.exp(1j * np.linspace(ang0, ang1, n)))
+    return np.concatenate(pts)
+
+
+@pytest.mark.parametrize("quad_segs", [2, 4, 16])
+def test_square_round_join_area_and_containment(quad_segs: int) -> None:
+    s, r = 1.0, 0.3
+    ws = Workspace(ROOM, [square(0.5 + 0.2j, s)])
+    inf = shrink_free_space(ws, r, join="round", quad_segs=quad_segs)
+    assert len(inf.components) == 1
+    hole = shapely.Polygon(inf.components[0].interiors[0])
+    exact = s * s + 4 * s * r + math.pi * r * r
+    rp = inf.effective_radius
+    assert rp > r
+    # the polygon contains the true sum, so its area lies between the exact area and that of
+    # the sum with the circumscribed radius r' (the polygonisation bound)
+    assert exact <= hole.area <= s * s + 4 * s * rp + math.pi * rp * rp
+    # containment, checked on the analytic boundary of the true sum
+    b = true_sum_boundary(np.array([complex(*p) for p in square(0.5 + 0.2j, s)]), r)
+    assert not np.any(shapely.contains_xy(inf.components[0], b.real, b.imag))
+    # and every point of the shrunk boundary is at least r from the square
+    assert shapely.distance(
+        inf.components[0].boundary, shapely.Polygon(square(0.5 + 0.2j, s))
+    ) >= r * (1 - 1e-12)
+
+
+def test_square_mitre_is_exact_square() -> None:
+    s, r = 1.0, 0.25
+    ws = Workspace(ROOM, [square(0j, s)])
+    out = inflate(ws, r, join="mitre")
+    assert out.n_obstacles == 1
+    assert (
+        abs(
+            shapely.Polygon(np.column_stack([out.obstacles[0].real, out.obstacles[0].imag])).area
+            - (s + 2 * r) ** 2
+        )
+        < 1e-12
+    )
+    # walls: the room [-5,5]^2 shrinks to [-4.75, 4.75]^2 (convex corners need no join)
+    x0, y0, x1, y1 = shapely.Polygon(np.column_stack([out.outer.real, out.outer.imag])).bounds
+    assert np.allclose([x0, y0, x1, y1], [-4.75, -4.75, 4.75, 4.75], atol=1e-12)
+
+
+def test_triangle_steiner_formula() -> None:
+    tri = np.array([0.6 + 0.3j, 1.3 + 0.4j, 0.85 + 1.0j])
+    r = 0.1
+    ws = Workspace(ROOM, [np.column_stack([tri.real, tri.imag])])
+    inf = shrink_free_space(ws, r, join="round", quad_segs=16)
+    hole = shapely.Polygon(inf.components[0].interiors[0])
+    p = shapely.Polygon(np.column_stack([tri.real, tri.imag]))
+    exact = p.area + p.length * r + math.pi * r * r
+    rp = inf.effective_radius
+    assert exact <= hole.area <= p.area + p.length * rp + math.pi * rp * rp
+    assert (hole.area - exact) / exact < 0.01  # 16 segments per quadrant: well under 1 %
+    b = true_sum_boundary(tri, r)
+    assert not np.any(shapely.contains_xy(inf.components[0], b.real, b.imag))
+
+
+def test_merging_obstacles_and_walls() -> None:
+    # two squares 0.3 apart merge at r = 0.2; a square 0.1 from the wall joins the outer boundary
+    ws = Workspace(ROOM, [square(0j, 1), square(1.3 + 0j, 1), square(-3 + 4.4j, 1)])
+    out = inflate(ws, 0.2)
+    assert out.n_obstacles == 1  # the merged pair; the third is part of the wall now
+    assert len(out.outer) > 4
+    # and nothing of it is within r of the original obstacles
+    orig = shapely.MultiPolygon(
+        [
+            shapely.Polygon(square(0j, 1)),
+            shapely.Polygon(square(1.3 + 0j, 1)),
+            shapely.Polygon(square(-3 + 4.4j, 1)),
+        ]
+    )
+    assert shapely.distance(out.polygon, orig) >= 0.2 * (1 - 1e-12)
+
+
+def test_narrow_passage_names_goal_and_component() -> None:
+    # a wall across the room at x in [-0.1, 0.1] with a 0.3 m gap: too narrow for r = 0.2
+    outer = [(-5, -5), (5, -5), (5, 5), (0.1, 5), (0.1, 0.15), (-0.1, 0.15), (-0.1, 5), (-5, 5)]
+    wall_low = [(-0.1, -4.85), (0.1, -4.85), (0.1, -0.15), (-0.1, -0.15)]
+    ws = Workspace(outer, [wall_low])
+    inf = shrink_free_space(ws, 0.2)
+    assert len(inf.components) == 2
+    # r = 0.1 passes the gap; the wall stub (0.15 from the outer wall) joins the outer boundary
+    passed = inflate(ws, 0.1, require={"goal": 3 + 0j}, keep=-3 + 0j)
+    assert passed.n_obstacles == 0 and passed.contains(3 + 0j) and passed.contains(-3 + 0j)
+    with pytest.raises(UnreachableGoalError, match=r"goal \(3, 0\).*component 1 of 2"):
+        inflate(ws, 0.2, keep=-3 + 2j, require={"goal": 3 + 0j})
+    with pytest.raises(UnreachableGoalError, match=r"within r=0\.2"):
+        inflate(ws, 0.2, require={"goal": 4.9 + 0j})
+
+
+def test_bad_input() -> None:
+    ws = Workspace(ROOM, [square(0j, 1)])
+    with pytest.raises(WorkspaceError, match="bevel"):
+        shrink_free_space(ws, 0.1, join="bevel")  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="radius"):
+        inflate(ws, -0.1)
+    with pytest.raises(WorkspaceError, match="no free space"):
+        inflate(ws, 6.0)
+    assert inflate(ws, 0.0) is ws
+
+
+def test_derived_ids() -> None:
+    assert derived_ws_id("office", 0.25) == "office~r0.25"
+    assert derived_ws_id("office", 0.25000001) == "office~r0.2501"  # rounded up
+    assert derived_ws_id("office", 0.0) == "office"
+    assert parse_derived_ws_id("office~r0.25") == ("office", 0.25)
+    assert parse_derived_ws_id("office") is None
+    assert parse_derived_ws_id("office~rx") is None
+
+
+def test_transform_service_solves_footprint_workspaces(mem_net: Any) -> None:
+    """A query for {ws}~r{R} makes the transform service solve ws shrunk by R (own cache key);
+    an impossible radius gets a reply_err saying why."""
+    from conftest import fake_solve, square_definition, wait_for
+
+    from confnav.schemas import TransformSolution, WorkspaceDefinition, decode, encode
+    from confnav.services.keys import Keys
+    from confnav.services.transform import TransformService
+
+    K = Keys()
+    solved: list[WorkspaceDefinition] = []
+
+    def solve_fn(defn_json: str) -> dict[str, Any]:
+        d = WorkspaceDefinition.model_validate_json(defn_json)
+        solved.append(d)
+        ws = Workspace(d.outer, d.obstacles)
+        res = fake_solve(defn_json)
+        res["diagnostics"] = {**res["diagnostics"], "boundary_residual": 0.0, "tol_met": True}
+        return {**res, "workspace_hash": ws.content_hash}
+
+    svc = TransformService(mem_net.bus("tr"), K, executor="thread", solve_fn=solve_fn)
+    svc.start()
+    client = mem_net.bus("client")
+    try:
+        client.publish(K.ws("sq", "definition"), encode(square_definition("sq", [(0.2, 0.0)])))
+        wait_for(lambda: svc.state_of("sq") == "solved")
+        first = client.query(K.ws("sq~r0.05", "transform"))  # not solved yet: retry later
+        assert len(first) == 1 and not first[0].ok
+        wait_for(lambda: svc.state_of("sq~r0.05") == "solved")
+        rep = client.query(K.ws("sq~r0.05", "transform"))
+        assert rep[0].ok and decode(TransformSolution, rep[0].payload or b"").ws_id == "sq~r0.05"
+        d = solved[-1]
+        assert d.ws_id == "sq~r0.05"
+        ws = Workspace(d.outer, d.obstacles)
+        # the room [-0.7, 0.7]^2 shrinks to [-0.65, 0.65]^2; the 0.05 square grows to 0.15
+        assert np.allclose(ws.bounds, (-0.65, -0.65, 0.65, 0.65), atol=1e-12)
+        assert shapely.Polygon(d.obstacles[0]).area == pytest.approx(0.15**2, rel=1e-12)
+        bad = client.query(K.ws("sq~r0.8", "transform"))
+        assert not bad[0].ok and "no free space" in (bad[0].error or "")
+        assert svc.state_of("nope~r0.1") is None
+    finally:
+        svc.stop()
+
+
+def test_controller_names_an_unreachable_goal() -> None:
+    """The controller service's adapter turns 'goal not in the map' on a footprint map into an
+    UnreachableGoalError naming the robot, the goal and the shrunk workspace."""
+    from conftest import IdentityMap
+
+    from confnav.schemas import Goal
+    from confnav.services import navigation
+
+    cmap = IdentityMap([0.4 + 0j], [0.25])  # the map of "room~r0.1": the obstacle grown by 0.1
+    ok = Goal(robot_id="r1", ws_id="room", goal=(-0.5, 0.0), robot_radius=0.1)
+    assert navigation.map_ws_id(ok) == "room~r0.1"
+    navigation.make_controller(cmap, ok)
+    bad = ok.model_copy(update={"goal": (0.2, 0.0)})  # free for a point, not for the body
+    with pytest.raises(UnreachableGoalError, match=r"robot 'r1'.*'room~r0\.1'"):
+        navigation.make_controller(cmap, bad)
+    uni = ok.model_copy(update={"drive": "unicycle", "lookahead": 0.05})
+    assert navigation.map_ws_id(uni) == "room~r0.15"

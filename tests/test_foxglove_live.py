@@ -1,0 +1,143 @@
+"""The live view: ``FoxgloveLiveService`` over real Zenoh, read by a WebSocket client speaking
+Foxglove's WebSocket protocol (the ``websockets`` package): advertised channels, a scene with the
+workspace polygon, the robot at its pose and its goal, and the status passed through."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import struct
+import time
+from typing import Any
+
+import pytest
+import websockets
+from conftest import square_definition
+
+from confnav.schemas import Goal, Pose, RobotStatus, encode
+from confnav.services.foxglove_live import FoxgloveLiveService
+from confnav.services.keys import Keys
+
+pytestmark = pytest.mark.integration
+
+K = Keys()
+SCENE = "confnav/viz/room/scene"
+STATUS = "confnav/robot/r1/status"
+SUBPROTOCOL = "foxglove.sdk.v1"
+"""foxglove-sdk 0.30 accepts only this name of the protocol (the successor of
+``foxglove.websocket.v1``, same ops and binary framing); it rejects a client offering only
+the old name with HTTP 400."""
+
+
+def _publish(bus: Any) -> None:
+    bus.publish(K.ws("room", "definition"), encode(square_definition("room", [(0.3, 0.3)])))
+    bus.publish(K.robot("r1", "goal"), encode(Goal(robot_id="r1", ws_id="room", goal=(-0.5, 0.25))))
+    for i in range(3):
+        pose = Pose(robot_id="r1", stamp_ns=time.time_ns(), seq=i, x=0.1 * i, y=-0.2, theta=0.5)
+        bus.publish(K.robot("r1", "pose"), encode(pose))
+    status = RobotStatus(
+        robot_id="r1", stamp_ns=time.time_ns(), state="navigating", reason="ok", ws_id="room"
+    )
+    bus.publish(K.robot("r1", "status"), encode(status))
+
+
+async def _client(port: int, bus: Any) -> tuple[dict[str, Any], dict[str, Any], dict[str, Any]]:
+    async with websockets.connect(
+        f"ws://127.0.0.1:{port}", subprotocols=[SUBPROTOCOL, "foxglove.websocket.v1"]
+    ) as ws:
+        assert ws.subprotocol == SUBPROTOCOL
+        info = json.loads(await asyncio.wait_for(ws.recv(), 5))
+        assert info["op"] == "serverInfo"
+        channels: dict[str, dict[str, Any]] = {}
+        _publish(bus)
+        while SCENE not in channels or STATUS not in channels:
+            msg = await asyncio.wait_for(ws.recv(), 10)
+            if isinstance(msg, str) and json.loads(msg)["op"] == "advertise":
+                for ch in json.loads(msg)["channels"]:
+                    channels[ch["topic"]] = ch
+        subs = {1: channels[SCENE]["id"], 2: channels[STATUS]["id"]}
+        request = json.dumps(
+            {
+                "op": "subscribe",
+                "subscriptions": [{"id": s, "channelId": c} for s, c in subs.items()],
+            }
+        )
+        await ws.send(request)
+        got: dict[int, dict[str, Any]] = {}
+        deadline = time.monotonic() + 10
+        republish = 0.0
+        while len(got) < 2 or not _has_robot(got.get(1)):
+            now = time.monotonic()
+            if now > deadline:
+                raise AssertionError(f"no scene with the robot and goal; got {sorted(got)}")
+            if now > republish:  # messages sent before the subscription are not replayed
+                _publish(bus)
+                republish = now + 0.5
+            msg = await asyncio.wait_for(ws.recv(), 5)
+            if isinstance(msg, str) and "Unknown channel" in json.loads(msg).get("message", ""):
+                # foxglove-sdk 0.30 race: a channel advertised while a client is connected can
+                # be unknown to that client for a moment; the Foxglove app subscribes later
+                await asyncio.sleep(0.2)
+                await ws.send(request)
+            if isinstance(msg, bytes) and msg[0] == 0x01:  # MessageData
+                sub_id, _log_time = struct.unpack_from("<IQ", msg, 1)
+                got[sub_id] = json.loads(msg[13:])
+        return channels[SCENE], got[1], got[2]
+
+
+def _has_robot(scene: dict[str, Any] | None) -> bool:
+    ids = {e["id"] for e in (scene or {}).get("entities", [])}
+    return {"workspace", "robot/r1", "goal/r1"} <= ids
+
+
+def test_live_scene_over_websocket(make_bus: Any) -> None:
+    service_bus, pub_bus = make_bus(), make_bus()
+    svc = FoxgloveLiveService(service_bus, port=0, full_period=0.3, health_period=0)
+    svc.start()
+    try:
+        channel, scene, status = asyncio.run(_client(svc.port, pub_bus))
+    finally:
+        svc.stop()
+    assert channel["schemaName"] == "foxglove.SceneUpdate"
+    assert channel["encoding"] == "json"
+    assert channel["schemaEncoding"] == "jsonschema"
+    ents = {e["id"]: e for e in scene["entities"]}
+    outer = [(p["x"], p["y"]) for p in ents["workspace"]["lines"][0]["points"]]
+    assert outer[:4] == [(-0.7, -0.7), (0.7, -0.7), (0.7, 0.7), (-0.7, 0.7)]
+    assert len(ents["workspace"]["lines"]) == 2  # outer polygon and one obstacle
+    cube = ents["robot/r1"]["cubes"][0]["pose"]["position"]
+    assert (cube["x"], cube["y"]) == (pytest.approx(0.2), pytest.approx(-0.2))
+    goal = ents["goal/r1"]["spheres"][0]["pose"]["position"]
+    assert (goal["x"], goal["y"]) == (pytest.approx(-0.5), pytest.approx(0.25))
+    assert status["type"] == "confnav.RobotStatus" and status["state"] == "navigating"
+
+
+def test_demo_live_and_manifest_entries(tmp_path: Any) -> None:
+    import shlex
+    import tomllib
+
+    from conftest import REPO
+
+    from confnav.cli import build_parser
+    from confnav.services.demo import demo_config
+    from confnav.services.launcher import LaunchConfig
+
+    parser = build_parser()
+    assert parser.parse_args(["demo", "--live"]).live == 8765
+    assert parser.parse_args(["demo", "--live", "9000"]).live == 9000
+    assert parser.parse_args(["demo"]).live is None
+    cfg = demo_config("unixsock-stream/x", tmp_path, {"r1": 0j}, 1.0, None, live_port=9000)
+    assert [s.name for s in cfg.services][:2] == ["foxglove", "recorder"]
+    assert cfg.services[0].args == ["--port", "9000"]
+    assert "foxglove" not in [s.name for s in demo_config("u", tmp_path, {}, 1.0, None).services]
+
+    # deploy/local.toml: both entries present and valid, off by default (enabled = false)
+    path = REPO / "deploy" / "local.toml"
+    raw = {s["name"]: s for s in tomllib.loads(path.read_text())["service"]}
+    assert raw["foxglove"]["enabled"] is False and raw["ros2"]["enabled"] is False
+    assert not {"ros2", "foxglove"} & {s.name for s in LaunchConfig.load(path).services}
+    for name in ("ros2", "foxglove"):
+        args = parser.parse_args(["serve", name, *raw[name]["args"]])
+        assert callable(args.func), shlex.join(raw[name]["args"])
+    on = dict(raw["ros2"], enabled=True)
+    assert [s.name for s in LaunchConfig.from_dict({"service": [on]}).services] == ["ros2"]
