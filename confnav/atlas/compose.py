@@ -165,7 +165,8 @@ class AtlasNavigator:
         lie at least ``margin`` deep).
     speed : commanded speed (workspace units per time unit): the unit direction of the
         Theorem 2 field times ``speed``, slowing linearly within ``floor_radius`` of a goal
-        (``Controller(v_min=v_max=speed)``; a positive rescaling keeps the integral curves).
+        (the controller's normalized speed law, ``v = min(speed, speed |x - x_d| /
+        floor_radius)``; a positive rescaling keeps the integral curves).
     controller_kw : further :class:`confnav.Controller` keywords (``navfn``, ``goal_tol``).
     """
 
@@ -210,8 +211,7 @@ class AtlasNavigator:
                 self._nav_maps[i],
                 complex(self.plan.local_goal[i]),
                 v_max=self.speed,
-                v_min=self.speed,
-                floor_radius=self.floor_radius,
+                gain=self.speed / self.floor_radius,
                 **self.controller_kw,
             )
         return self._controllers[i]
