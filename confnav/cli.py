@@ -22,6 +22,7 @@ SUBCOMMAND_MODULES: tuple[str, ...] = (
     "confnav.cli_atlas",
     "confnav.services.cli",
     "confnav.services.cli_replay",
+    "confnav.cli_ops",
 )
 
 
