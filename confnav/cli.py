@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import logging
+import os
 import sys
 from collections.abc import Sequence
 
@@ -24,6 +25,23 @@ SUBCOMMAND_MODULES: tuple[str, ...] = (
     "confnav.services.cli_replay",
     "confnav.cli_ops",
 )
+
+
+class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
+    """Every option's help shows its default; the epilog (examples) keeps its line breaks."""
+
+
+def output_path(text: str) -> str:
+    """An argparse ``type=`` for files a command writes: the directory must exist, checked at
+    parse time so a mistake costs one line, not the whole computation."""
+    parent = os.path.dirname(os.path.abspath(text))
+    if not os.path.isdir(parent):
+        raise argparse.ArgumentTypeError(f"cannot write {text!r}: no directory {parent!r}")
+    if os.path.isdir(text):
+        raise argparse.ArgumentTypeError(f"cannot write {text!r}: it is a directory")
+    if not os.access(parent, os.W_OK):
+        raise argparse.ArgumentTypeError(f"cannot write {text!r}: {parent!r} is not writable")
+    return text
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -20,6 +20,7 @@ from typing import Any, get_args
 from pydantic import ValidationError
 
 from confnav import defaults
+from confnav.cli import HelpFormatter
 from confnav.errors import ConfnavError
 from confnav.schemas import (
     Goal,
@@ -302,13 +303,13 @@ def _common(p: argparse.ArgumentParser) -> None:
 
 
 def register(subparsers: Any) -> None:
-    fmt = argparse.ArgumentDefaultsHelpFormatter
+    fmt = HelpFormatter
     g = subparsers.add_parser(
         "goal",
         help="send a goal to a robot of a running system",
         formatter_class=fmt,
         epilog="example: confnav goal r1 0.6,0.2 --ws room --connect tcp/127.0.0.1:7447\n"
-        "(a negative X after --: confnav goal r1 --ws room -- -0.6,0.2)",
+        "         (a negative X after --: confnav goal r1 --ws room -- -0.6,0.2)",
     )
     g.add_argument("robot", type=robot_id, metavar="ROBOT", help="robot id")
     g.add_argument("point", type=point, metavar="X,Y", help="goal position, m")
