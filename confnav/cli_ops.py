@@ -41,6 +41,10 @@ DEFAULT_ROUTER = "tcp/127.0.0.1:7447"
 """Where ``confnav launch`` puts its router by default; used when no ``--connect`` is given."""
 
 
+REJECTED = ("invalid_input", "navigation_error", "outside_workspace")
+"""Status reasons that answer a goal with a refusal (the goal is dropped)."""
+
+
 class OpsError(ConfnavError):
     """A command driving a running system failed (no router, no answer, goal rejected)."""
 
@@ -158,25 +162,26 @@ def _goal(args: argparse.Namespace) -> int:
         x, y = args.point
         print(f"goal ({x:g}, {y:g}) in workspace {args.ws} sent to robot {args.robot}")
         deadline = time.monotonic() + args.timeout
-        answer: RobotStatus | None = None
+        last: RobotStatus | None = None  # newest status since the goal went out
         while time.monotonic() < deadline:
             s = seen.snapshot().get("s")
-            if (
-                s is not None
-                and s.stamp_ns >= t_sent
-                and (s.state != "idle" or s.reason == "invalid_input")
-            ):
-                answer = s
-                break
+            if s is not None and s.stamp_ns >= t_sent:
+                last = s
+                if s.state in ("navigating", "arrived") or s.reason in REJECTED:
+                    break
             time.sleep(0.05)
-    if answer is None:
+    if last is None:
         raise OpsError(
             f"no status from robot {args.robot} within {args.timeout:g} s "
             "(is a controller running under this prefix?)"
         )
-    print(_robot_line(answer))
-    if answer.reason == "invalid_input":
-        raise OpsError(f"goal rejected: {answer.message}")
+    print(_robot_line(last))
+    if last.reason in REJECTED:
+        raise OpsError(f"goal rejected: {last.message}")
+    if last.state not in ("navigating", "arrived"):
+        raise OpsError(
+            f"robot {args.robot} is {last.state} ({last.reason}) {args.timeout:g} s after the goal"
+        )
     return 0
 
 
@@ -325,7 +330,11 @@ def register(subparsers: Any) -> None:
     g.add_argument("--robot-radius", type=float, default=0.0, help="robot disc radius, m")
     g.add_argument("--drive", default="holonomic", choices=get_args(DriveName))
     g.add_argument(
-        "--timeout", type=float, default=3.0, metavar="S", help="seconds to wait for a status"
+        "--timeout",
+        type=float,
+        default=10.0,
+        metavar="S",
+        help="seconds to wait for the robot to start navigating",
     )
     _common(g)
     g.set_defaults(func=_goal)

@@ -27,7 +27,7 @@ from scipy.sparse.csgraph import dijkstra
 from confnav.atlas.charts import Atlas
 from confnav.atlas.decompose import _polygons, inscribed
 from confnav.control import Controller
-from confnav.errors import NavigationError
+from confnav.errors import NavigationError, fmt_point
 from confnav.sim import ARRIVED, COLLIDED, ERROR, STALLED, STATUS_NAMES, TIMEOUT, simulate
 
 __all__ = ["AtlasNavigator", "AtlasRun", "CellPlan", "Overlap", "overlaps", "plan"]
@@ -94,7 +94,7 @@ def plan(atlas: Atlas, goal: complex, links: list[Overlap] | None = None) -> Cel
     at = shapely.Point(goal.real, goal.imag)
     inside = [i for i, c in enumerate(cells) if bool(c.polygon.contains(at))]
     if not inside:
-        raise NavigationError(f"goal {goal:.6g} lies in no cell of the atlas")
+        raise NavigationError(f"goal {fmt_point(goal)} lies in no cell of the atlas")
     # node n is the goal; edges cell <-> cell through the overlap point
     rows, cols, w = [], [], []
     via: dict[tuple[int, int], complex] = {}
