@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from confnav.cli import output_path
 from confnav.cli_simulate import _point, _points
 
 
@@ -40,7 +41,7 @@ def register(subparsers: Any) -> None:
     p.add_argument("--margin", type=float, help="local-goal depth in overlaps")
     p.add_argument("--hysteresis", type=float, help="switching depth (default margin/2)")
     p.add_argument("--speed", type=float, default=1.0, help="commanded speed")
-    p.add_argument("--json", type=Path, help="write cells, plan and runs here")
+    p.add_argument("--json", type=output_path, help="write cells, plan and runs here")
     p.set_defaults(func=run_atlas)
 
 

@@ -1,7 +1,7 @@
 """``confnav simulate`` and ``confnav figures``: drive robots with the Theorem 2 law.
 
 ``confnav simulate WS.json --goal=X,Y (--starts="X,Y;X,Y" | --random N --seed S)
-[--navfn harmonic|kr] [--k auto|6] [--speed-law normalized|theorem2] [--gain G] [--vmax V]
+[--navfn harmonic|kr] [--k auto|6] [--speed-law normalized|theorem2] [--gain G] [--v-max V]
 [--json OUT.json] [--plot OUT.png] [--require RATE]``
 
 Defaults are the library's (:mod:`confnav.defaults`): navigation succeeds without tuning
@@ -25,6 +25,7 @@ from typing import Any
 
 import numpy as np
 
+from confnav.cli import output_path
 from confnav.errors import NavigationError
 
 log = logging.getLogger(__name__)
@@ -79,8 +80,8 @@ def register(subparsers: Any) -> None:
         metavar="RATE",
         help="exit 1 if the success rate (0..1) is below RATE",
     )
-    p.add_argument("--json", type=Path, help="write runs and summary here")
-    p.add_argument("--plot", type=Path, help="write a figure with the trajectories here")
+    p.add_argument("--json", type=output_path, help="write runs and summary here")
+    p.add_argument("--plot", type=output_path, help="write a figure with the trajectories here")
     p.set_defaults(func=run_simulate)
 
     f = subparsers.add_parser(
@@ -125,8 +126,9 @@ def _law_options(p: argparse.ArgumentParser) -> None:
         help="1/s for normalized, K for theorem2 (default %(default)s)",
     )
     p.add_argument(
-        "--vmax", type=float, default=defaults.V_MAX, help="speed limit, m/s (default %(default)s)"
+        "--v-max", type=float, default=defaults.V_MAX, help="speed limit, m/s (default %(default)s)"
     )
+    p.add_argument("--vmax", dest="v_max", type=float, help=argparse.SUPPRESS)  # old name
     p.add_argument(
         "--tol",
         type=float,
@@ -175,7 +177,7 @@ def run_simulate(args: argparse.Namespace) -> int:
         k=args.k,
         speed_law=args.speed_law,
         gain=args.gain,
-        v_max=args.vmax,
+        v_max=args.v_max,
         goal_tol=args.tol,
     )
     if ctl.fallback:

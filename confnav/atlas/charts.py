@@ -126,7 +126,7 @@ def solve_atlas(
     try:
         for _round in range(max_rounds + 1):
             dec = decompose(ws, split=split, **decompose_kw)
-            keys = [c.workspace.content_hash() for c in dec.cells]
+            keys = [c.workspace.content_hash for c in dec.cells]
             todo = [i for i, k in enumerate(keys) if k not in done]
             # largest first: the pool's tail is then short
             todo.sort(key=lambda i: -dec.cells[i].polygon.length)
