@@ -83,6 +83,8 @@ def _polish(parser: argparse.ArgumentParser, path: str) -> None:
         if isinstance(action, argparse._SubParsersAction):
             for name, child in action.choices.items():
                 _polish(child, f"{path} {name}".strip())
+        elif action.default == [] and action.help and "%(default" not in action.help:
+            action.help += "%(default).0s"  # a repeatable option: "(default: [])" says nothing
         elif (
             action.help is None
             and action.option_strings

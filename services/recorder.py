@@ -215,7 +215,9 @@ def add_parser(sub: Any) -> None:
         help="MCAP file to write; if it exists, the first free OUT-STEM.N.mcap instead",
     )
     p.add_argument("--foxglove", action="store_true", help="add Foxglove scene channels")
-    p.add_argument("--flush-interval", type=float, default=L.FLUSH_INTERVAL_S)
+    p.add_argument(
+        "--flush-interval", type=float, default=L.FLUSH_INTERVAL_S, help="s between flushes"
+    )
     p.set_defaults(func=main)
 
 

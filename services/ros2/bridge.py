@@ -454,9 +454,9 @@ def add_parser(sub: Any) -> None:
     p.add_argument("--map-topic", default=None, help="OccupancyGrid topic (e.g. /map)")
     p.add_argument("--map-ws", default=None, help="workspace id of the map (default: 1st robot's)")
     p.add_argument("--navfn", choices=("harmonic", "kr"), default="harmonic")
-    p.add_argument("--gain", type=float, default=1.0)
-    p.add_argument("--v-max", type=float, default=0.5)
-    p.add_argument("--tolerance", type=float, default=0.02)
+    p.add_argument("--gain", type=float, default=1.0, help="goal gain, 1/s")
+    p.add_argument("--v-max", type=float, default=0.5, help="goal speed limit, m/s")
+    p.add_argument("--tolerance", type=float, default=0.02, help="arrival radius, m")
     add_zenoh_args(p)
     p.set_defaults(func=main)
 
