@@ -17,6 +17,29 @@ from pathlib import Path
 from confnav import __version__
 from confnav.errors import ConfnavError
 
+
+def positive_float(text: str) -> float:
+    """An argparse ``type=``: a finite number > 0 (gains, speeds, tolerances, times)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not (0.0 < value < float("inf")):
+        raise argparse.ArgumentTypeError(f"{text!r} must be a finite number > 0")
+    return value
+
+
+def positive_int(text: str) -> int:
+    """An argparse ``type=``: an integer >= 1 (counts)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"{text!r} must be at least 1")
+    return value
+
+
 SUBCOMMAND_MODULES: tuple[str, ...] = (
     "confnav.cli_solve",
     "confnav.cli_simulate",

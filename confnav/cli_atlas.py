@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from confnav.cli import output_path
+from confnav.cli import output_path, positive_int
 from confnav.cli_simulate import _point, _points
 
 
@@ -33,7 +33,7 @@ def register(subparsers: Any) -> None:
     p.add_argument("--goal", type=_point, required=True, help="goal X,Y (use --goal=X,Y)")
     g = p.add_mutually_exclusive_group()
     g.add_argument("--starts", type=_points, help='starts "X,Y;X,Y;..." (one argument)')
-    g.add_argument("--random", type=int, metavar="N", help="N random starts in free space")
+    g.add_argument("--random", type=positive_int, metavar="N", help="N random starts in free space")
     p.add_argument("--seed", type=int, default=0, help="seed for --random")
     p.add_argument("--tol", type=float, default=1e-8, help="accuracy of each chart's circle domain")
     p.add_argument("--workers", type=int, default=2, help="solver processes")

@@ -20,7 +20,7 @@ from typing import Any, get_args
 from pydantic import ValidationError
 
 from confnav import defaults
-from confnav.cli import HelpFormatter
+from confnav.cli import HelpFormatter, positive_float
 from confnav.errors import ConfnavError
 from confnav.schemas import (
     Goal,
@@ -323,10 +323,12 @@ def register(subparsers: Any) -> None:
         "--navfn", default=defaults.NAVFN, choices=get_args(NavFnName), help="navigation function"
     )
     g.add_argument("--k", type=float, default=None, help="navigation-function exponent (auto)")
-    g.add_argument("--gain", type=float, default=defaults.GAIN, help="control gain, 1/s")
-    g.add_argument("--v-max", type=float, default=defaults.V_MAX, help="speed limit, m/s")
-    g.add_argument("--vmax", dest="v_max", type=float, help=argparse.SUPPRESS)
-    g.add_argument("--tolerance", type=float, default=defaults.GOAL_TOL, help="arrival radius, m")
+    g.add_argument("--gain", type=positive_float, default=defaults.GAIN, help="control gain, 1/s")
+    g.add_argument("--v-max", type=positive_float, default=defaults.V_MAX, help="speed limit, m/s")
+    g.add_argument("--vmax", dest="v_max", type=positive_float, help=argparse.SUPPRESS)
+    g.add_argument(
+        "--tolerance", type=positive_float, default=defaults.GOAL_TOL, help="arrival radius, m"
+    )
     g.add_argument("--robot-radius", type=float, default=0.0, help="robot disc radius, m")
     g.add_argument("--drive", default="holonomic", choices=get_args(DriveName))
     g.add_argument(

@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from confnav.cli import output_path
+from confnav.cli import output_path, positive_float, positive_int
 from confnav.errors import NavigationError
 
 log = logging.getLogger(__name__)
@@ -66,14 +66,14 @@ def register(subparsers: Any) -> None:
     p.add_argument("--goal", type=_point, required=True, help="goal X,Y (use --goal=X,Y)")
     g = p.add_mutually_exclusive_group(required=True)
     g.add_argument("--starts", type=_points, help='starts "X,Y;X,Y;..." (one argument)')
-    g.add_argument("--random", type=int, metavar="N", help="N random starts in free space")
+    g.add_argument("--random", type=positive_int, metavar="N", help="N random starts in free space")
     p.add_argument("--seed", type=int, default=0, help="seed for --random")
     p.add_argument("--map", type=Path, help="a solved map (JSON) instead of solving")
     p.add_argument("--robot-radius", type=float, default=0.0, help="disk robot radius (m)")
     p.add_argument("--unicycle", type=float, metavar="D", help="differential drive, look-ahead D")
-    p.add_argument("--omega-max", type=float, default=2.0, help="unicycle yaw-rate limit")
+    p.add_argument("--omega-max", type=positive_float, default=2.0, help="unicycle yaw-rate limit")
     _law_options(p)
-    p.add_argument("--t-max", type=float, default=1e4, help="time limit per robot (s)")
+    p.add_argument("--t-max", type=positive_float, default=1e4, help="time limit per robot (s)")
     p.add_argument(
         "--require",
         type=float,
@@ -121,17 +121,20 @@ def _law_options(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--gain",
-        type=float,
+        type=positive_float,
         default=defaults.GAIN,
         help="1/s for normalized, K for theorem2 (default %(default)s)",
     )
     p.add_argument(
-        "--v-max", type=float, default=defaults.V_MAX, help="speed limit, m/s (default %(default)s)"
+        "--v-max",
+        type=positive_float,
+        default=defaults.V_MAX,
+        help="speed limit, m/s (default %(default)s)",
     )
-    p.add_argument("--vmax", dest="v_max", type=float, help=argparse.SUPPRESS)  # old name
+    p.add_argument("--vmax", dest="v_max", type=positive_float, help=argparse.SUPPRESS)  # old name
     p.add_argument(
         "--tol",
-        type=float,
+        type=positive_float,
         default=defaults.GOAL_TOL,
         help="goal tolerance, m (default %(default)s)",
     )

@@ -53,6 +53,25 @@ def test_output_in_missing_directory_fails_at_parse_time(make_args, tmp_path: Pa
     assert time.monotonic() - t0 < 30  # nothing was solved or simulated
 
 
+@pytest.mark.parametrize(
+    "extra, message",
+    [
+        (("--random", "-3"), "argument --random: '-3' must be at least 1"),
+        (("--random", "2", "--gain", "-1"), "argument --gain: '-1' must be a finite number > 0"),
+        (("--random", "2", "--v-max", "nan"), "argument --v-max: 'nan' must be a finite"),
+        (("--random", "2", "--tol", "0"), "argument --tol: '0' must be a finite number > 0"),
+    ],
+)
+def test_bad_numbers_fail_before_solving(
+    extra: tuple[str, ...], message: str, tmp_path: Path
+) -> None:
+    t0 = time.monotonic()
+    res = run("simulate", workspace(tmp_path), "--goal=0,0", *extra)
+    assert res.returncode == 2 and "Traceback" not in res.stderr
+    assert message in res.stderr.strip().splitlines()[-1]
+    assert time.monotonic() - t0 < 30
+
+
 def test_output_path_that_is_a_directory(tmp_path: Path) -> None:
     res = run("solve", workspace(tmp_path), "-o", str(tmp_path))
     assert res.returncode == 2
