@@ -65,6 +65,12 @@ BENCHMARKS: dict[str, Bench] = {
         "atlas solve and navigation on floor plans",
         quick=("--starts", "10", "--scenario", "office"),
     ),
+    "chaos": Bench(
+        "bench_chaos.py",
+        "chaos.json",
+        "fuzz, kill -9 and soak of the running system",
+        quick=("fuzz", "--n", "100", "--queries", "20"),
+    ),
 }
 
 

@@ -7,9 +7,9 @@ Scenarios: an office floor (30 x 2 m corridor, ten rooms behind 0.9 m doors); a 
 100 shelves (4 x 1 m) with 2 m aisles (62 x 32 m: 100 such shelves do not fit 40 x 20 m with
 2 m aisles, see confnav.atlas.scenes.warehouse); spiral corridors with L/w = 10 and 30.
 Per scenario: cells, per-chart solve times, total solve wall time and the parallel speed-up
-(sum of chart times / wall time), then uniform random starts run through
-:class:`confnav.atlas.AtlasNavigator` with default parameters: success, collisions, chart
-switches, and the path length over the visibility-graph shortest path.
+(sum of chart times / wall time; with --serial also the wall time of a 1-worker solve),
+then uniform random starts run through :class:`confnav.atlas.AtlasNavigator` with default
+parameters: success, collisions, chart switches, path length over the shortest path.
 
 Targets: >= 99.9 % success, 0 collisions, median path <= 1.3 x shortest, total solve <= 60 s
 on 2 cores.  Prints a table and writes JSON (commit, date, load average before and after).
@@ -35,6 +35,7 @@ import numpy as np  # noqa: E402
 
 from confnav.atlas import AtlasNavigator, needs_atlas, solve_atlas  # noqa: E402
 from confnav.atlas.scenes import office, spiral, warehouse  # noqa: E402
+from confnav.errors import ConfnavError  # noqa: E402
 from confnav.scenarios import Scenario, random_starts  # noqa: E402
 from confnav.shortest_path import ShortestPaths  # noqa: E402
 
@@ -69,10 +70,16 @@ def commit() -> str:
         return "unknown"
 
 
-def bench(sc: Scenario, n: int, seed: int, tol: float, workers: int) -> dict[str, Any]:
+def bench(
+    sc: Scenario, n: int, seed: int, tol: float, workers: int, serial: bool
+) -> dict[str, Any]:
     ws = sc.workspace
     load0 = loadavg()
-    atlas = solve_atlas(ws, tol, workers=workers)
+    try:
+        serial_wall = solve_atlas(ws, tol, workers=1).wall_time if serial else float("nan")
+        atlas = solve_atlas(ws, tol, workers=workers)
+    except ConfnavError as exc:  # a failure is a result too
+        return {"scenario": sc.name, "error": str(exc), "load_before": load0}
     times = np.array([r.wall_time for r in atlas.records if not r.error])
     failed = [r for r in atlas.records if r.error]
     nav = AtlasNavigator(atlas, sc.goal)
@@ -94,6 +101,8 @@ def bench(sc: Scenario, n: int, seed: int, tol: float, workers: int) -> dict[str
         "solve_wall_s": atlas.wall_time,
         "solve_cpu_s": atlas.cpu_time,
         "speedup": atlas.speedup,
+        "serial_wall_s": serial_wall,
+        "speedup_vs_serial": serial_wall / atlas.wall_time,
         "workers": workers,
         "chart_s": {
             "min": float(times.min()),
@@ -103,6 +112,11 @@ def bench(sc: Scenario, n: int, seed: int, tol: float, workers: int) -> dict[str
         "chart_times_s": [round(float(t), 4) for t in times],
         "chart_nodes": [r.n_nodes for r in atlas.records if not r.error],
         "failed_charts": [{"tile": r.tile, "error": r.error} for r in failed],
+        "charts_tol_missed": [
+            {"cell": r.cell, "error_estimate": r.error_estimate}
+            for r in atlas.records
+            if not r.error and not r.tol_met
+        ],
         "starts": n,
         "seed": seed,
         "success": run.success_rate,
@@ -131,19 +145,26 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--tol", type=float, default=1e-8, help="chart tolerance")
     ap.add_argument("--workers", type=int, default=2, help="solver processes")
+    ap.add_argument(
+        "--serial", action="store_true", help="also solve with 1 worker (true speed-up)"
+    )
     ap.add_argument("--scenario", action="append", choices=sorted(SCENARIOS), default=None)
     ap.add_argument("--out", type=Path, default=RESULTS)
     args = ap.parse_args()
     names = args.scenario or list(SCENARIOS)
     rows = []
     for name in names:
-        r = bench(SCENARIOS[name](), args.starts, args.seed, args.tol, args.workers)
+        r = bench(SCENARIOS[name](), args.starts, args.seed, args.tol, args.workers, args.serial)
         rows.append(r)
+        if "error" in r:
+            print(f"{r['scenario']:<15} FAILED: {r['error']}", flush=True)
+            continue
         m = r["met"]
         print(
             f"{r['scenario']:<15} cells {r['cells']:>4}  solve {r['solve_wall_s']:6.1f} s "
             f"(cpu {r['solve_cpu_s']:6.1f} s, x{r['speedup']:.2f}; chart "
-            f"{r['chart_s']['median']:.2f}/{r['chart_s']['max']:.2f} s med/max) "
+            f"{r['chart_s']['median']:.2f}/{r['chart_s']['max']:.2f} s med/max; "
+            f"1 worker {r['serial_wall_s']:.1f} s) "
             f"[{'met' if m['solve_s'] else 'missed'}]  "
             f"success {100 * r['success']:6.2f}% [{'met' if m['success'] else 'missed'}]  "
             f"collisions {r['collisions']} [{'met' if m['collisions'] else 'missed'}]  "

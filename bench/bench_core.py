@@ -608,6 +608,10 @@ def _case(name: str) -> confnav.Workspace:
         left = [[-1 - g, -0.5], [-g, -0.5], [-g, 0.5], [-1 - g, 0.5]]
         right = [[g, -0.5], [1 + g, -0.5], [1 + g, 0.5], [g, 0.5]]
         return confnav.Workspace(ROOM, [left, right], anchor=[0, 1.5])
+    if name == "ring":  # 10x10 room, 0.2-wide ring corridor (issue 8, item 3)
+        room = [[0, 0], [10, 0], [10, 10], [0, 10]]
+        inner = [[0.2, 0.2], [9.8, 0.2], [9.8, 9.8], [0.2, 9.8]]
+        return confnav.Workspace(room, [inner], anchor=[0.1, 5])
     if name == "triangles":
         tri = np.array([0.3 + 0.2j, 1.1 + 0.4j, 0.7 + 1.0j])
         return confnav.Workspace(ROOM, [-np.conj(tri)[::-1], tri], anchor=[0, -1])
@@ -641,7 +645,16 @@ def _run_case(name: str, tol: float, out: Any) -> None:
         nodes=sum(d.nodes),
         radii=[float(r) for r in m.radii],
     )
-    if name == "default":
+    if name == "ring":
+        t1 = time.perf_counter()
+        nav = m.for_navigation()
+        row.update(
+            navigation_s=time.perf_counter() - t1,
+            navigation_nodes=nav.n_nodes,
+            full_nodes=m.n_nodes,
+            navigation_residual=nav.diagnostics.boundary_residual,
+        )
+    elif name == "default":
         row["design_radii_error"] = float(np.max(np.abs(m.radii - DESIGN_RADII)))
         row["design_centers_error"] = float(np.max(np.abs(m.centers - DESIGN_CENTERS)))
         row["design_derivative_error"] = float(abs(abs(complex(m.dT(0))) - DESIGN_DERIVATIVE))
@@ -657,7 +670,7 @@ def certificate(limit_s: float) -> list[dict[str, Any]]:
     import multiprocessing as mp
 
     cases = [(f"gap {g:g}", CERT_TOL) for g in CERT_GAPS]
-    cases += [("triangles", 1e-9), ("default", 1e-10)]
+    cases += [("triangles", 1e-9), ("default", 1e-10), ("ring", 1e-6)]
     rows = []
     ctx = mp.get_context("fork")
     for name, tol in cases:
@@ -687,12 +700,20 @@ def _cert_line(r: dict[str, Any]) -> str:
     head = f"  {r['case']:<10} tol {r['tol']:.0e}  {r['wall_time']:7.1f} s  load {r['load1']:.2f}"
     if r["status"] != "map":
         return f"{head}  {r['status'][:150]}"
-    extra = (
-        f"asymmetry {r['asymmetry']:.1e} ({'honest' if r['honest'] else 'CLAIMS TOO MUCH'})"
-        if "asymmetry" in r
-        else f"vs DESIGN radii {r['design_radii_error']:.1e}, centres "
-        f"{r['design_centers_error']:.1e}, |T'(0)| {r['design_derivative_error']:.1e}"
-    )
+    if "asymmetry" in r:
+        extra = f"asymmetry {r['asymmetry']:.1e} " + (
+            "(honest)" if r["honest"] else "(CLAIMS TOO MUCH)"
+        )
+    elif "navigation_nodes" in r:
+        extra = (
+            f"for_navigation {r['navigation_s']:.1f} s: {r['navigation_nodes']} of "
+            f"{r['full_nodes']} nodes, residual {r['navigation_residual']:.1e}"
+        )
+    else:
+        extra = (
+            f"vs DESIGN radii {r['design_radii_error']:.1e}, centres "
+            f"{r['design_centers_error']:.1e}, |T'(0)| {r['design_derivative_error']:.1e}"
+        )
     return (
         f"{head}  est {r['error_estimate']:.1e} (disc {r['discretisation_error']:.1e}, it "
         f"{r['iteration_error']:.1e}{'' if r['iteration_converged'] else ' NOT CONVERGED'}, "

@@ -245,6 +245,8 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=RESULTS)
     args = ap.parse_args()
     started = datetime.now(UTC).isoformat(timespec="seconds")
+    commit = _git("rev-parse", "HEAD")  # the code that runs (read before any checkout/merge)
+    dirty = bool(_git("status", "--porcelain", "--untracked-files=no"))
     load0 = _load()
     t0 = time.perf_counter()
     cases = [s for s in scenarios() if not args.only or any(o in s.name for o in args.only)]
@@ -286,8 +288,8 @@ def main() -> None:
     for k, v in targets.items():
         print(f"  {k}: {v}")
     doc = {
-        "commit": _git("rev-parse", "HEAD"),
-        "dirty": bool(_git("status", "--porcelain", "--untracked-files=no")),
+        "commit": commit,
+        "dirty": dirty,
         "started": started,
         "finished": datetime.now(UTC).isoformat(timespec="seconds"),
         "load_before": load0,

@@ -3,7 +3,8 @@
 Measures, with a router, a transform service and C controller processes each in their own
 process (the fleet sharded by robot key ranges: controller c subscribes only to its zones,
 ``--robots z00r$*,z04r$*,...``, docs/SERVICES.md "Scale-out") and P processes playing the
-robots at 50 Hz each, at independent phases:
+robots (whole zones each) as real robots would: poses at 50 Hz per robot at independent
+phases, and their own robots' commands received (so no single receiver throttles the bus):
 
 - pose -> command latency (p50, p99, max; pose stamp to cmd_vel receipt, same clock) and the
   CPU of the controllers (summed) and the router, for each robot count and controller count
@@ -114,13 +115,20 @@ def free_points(n: int, seed: int = 1) -> list[complex]:
     return pts
 
 
-def publish_poses(
-    ep: str, n: int, rate: float, ticks: int, out: Any, part: int = 0, parts: int = 1
+def robots_of(part: int, parts: int, n: int) -> list[int]:
+    """The robots a robot-playing process plays: whole zones (parts divides 12)."""
+    return [i for i in range(n) if (i % ZONES) % parts == part]
+
+
+def play_robots(
+    ep: str, n: int, rate: float, ticks: int, warm: int, out: Any, done: Any, part: int, parts: int
 ) -> None:
-    """Child process: robots ``part::parts`` of N publish poses at ``rate`` Hz for ``ticks``
-    ticks, each robot at its own phase (robot i at i/N of the period: independent robots,
-    not one burst)."""
-    mine = list(range(part, n, parts))
+    """Child process playing robots ``robots_of(part, parts, n)`` like real robots would: it
+    publishes their poses at ``rate`` Hz for ``ticks`` ticks, each robot at its own phase
+    (robot i at i/N of the period: independent robots, not one burst), and receives their
+    commands (only its zones' ``cmd_vel`` keys) until ``done`` is set. Puts ``{"late"}`` when
+    the poses are out, then the latencies and the answered count."""
+    mine = robots_of(part, parts, n)
     ids = [robot_id(i) for i in mine]
     allpts = free_points(n)
     pts = [allpts[i] for i in mine]
@@ -128,7 +136,9 @@ def publish_poses(
     keys = [K.robot(r, "pose") for r in ids]
     period = 1.0 / rate
     late = 0
+    zones = [z for z in range(ZONES) if z % parts == part]
     with connect(ep) as bus:
+        cmds = Commands(bus, warm, [f"{K.prefix}/robot/z{z:02d}r$*/cmd_vel" for z in zones])
         time.sleep(0.5)
         t0 = time.monotonic() + 0.1
         for seq in range(ticks):
@@ -145,18 +155,23 @@ def publish_poses(
                     f'"theta":0.0}}'
                 ).encode()
                 bus.publish(key, payload)
-        out.put({"late": late})
+        out.put({"part": part, "late": late})
+        done.wait(300)
+        with cmds.lock:
+            lat = np.array(cmds.lat_ns, dtype=np.int64)
+            answered = len(cmds.seen)
+        out.put({"part": part, "lat_ns": lat, "answered": answered})
 
 
 class Commands:
     """Receives the commands: latency = receipt - the answered pose's own stamp (one clock)."""
 
-    def __init__(self, bus: ZenohBus, first_seq: int) -> None:
+    def __init__(self, bus: ZenohBus, first_seq: int, keyexprs: list[str]) -> None:
         self.first_seq = first_seq
         self.lock = threading.Lock()
         self.lat_ns: list[int] = []
         self.seen: set[tuple[str, int]] = set()
-        self.sub = bus.subscribe_batch(K.any_robot("cmd_vel"), self._on_cmds)
+        self.subs = [bus.subscribe_batch(e, self._on_cmds) for e in keyexprs]
 
     def _on_cmds(self, items: list[tuple[str, bytes]]) -> None:
         now = time.time_ns()
@@ -269,13 +284,13 @@ def run_load(
     time.sleep(1.0)
     warm = int(rate)  # first second: warm-up
     ticks = warm + int(seconds * rate)
-    cmds = Commands(bus, warm)
     sup0 = HEALTH.total("poses_superseded")
     poses0 = HEALTH.total("poses")
     ctx = mp.get_context("spawn")
     q = ctx.Queue()
+    done = ctx.Event()
     children = [
-        ctx.Process(target=publish_poses, args=(ep, n, rate, ticks, q, p, publishers))
+        ctx.Process(target=play_robots, args=(ep, n, rate, ticks, warm, q, done, p, publishers))
         for p in range(publishers)
     ]
     for ch in children:
@@ -285,8 +300,7 @@ def run_load(
     load0 = os.getloadavg()
     return_cpu = _cpu_probe({})
     t0 = time.monotonic()
-    for ch in children:
-        ch.join(seconds + 60)
+    late = sum(q.get(timeout=seconds + 120)["late"] for _ in children)
     wall = time.monotonic() - t0
     changes = 0
     if changer is not None:
@@ -302,13 +316,12 @@ def run_load(
     cpu = return_cpu(time.monotonic() - t0)
     load1 = os.getloadavg()
     superseded = HEALTH.total("poses_superseded") - sup0
-    late = 0
+    done.set()
+    parts = [q.get(timeout=60) for _ in children]
     for ch in children:
-        late += q.get(timeout=5)["late"] if ch.exitcode == 0 else 0
-    cmds.sub.close()
-    with cmds.lock:
-        lat = np.array(cmds.lat_ns, dtype=float) / 1e6
-        answered = len(cmds.seen)
+        ch.join(30)
+    lat = np.concatenate([r["lat_ns"] for r in parts]).astype(float) / 1e6
+    answered = sum(r["answered"] for r in parts)
     sent = n * (ticks - warm)
     ctl_cpu = sum(v for k, v in cpu.items() if k.startswith("cpu_controller"))
     return {
@@ -472,11 +485,15 @@ def main() -> int:
     )
     ap.add_argument("--modes", nargs="*", default=list(GOAL_MODES), choices=GOAL_MODES)
     ap.add_argument("--navfn", default="harmonic", choices=("harmonic", "kr"))
-    ap.add_argument("--publishers", type=int, default=2, help="robot-playing processes")
+    ap.add_argument(
+        "--publishers", type=int, default=2, help="robot-playing processes (divides 12)"
+    )
     ap.add_argument("--change-period", type=float, default=5.0, help="s between goal changes")
     ap.add_argument("--no-update", action="store_true", help="skip the workspace-update probe")
     ap.add_argument("--out", default=str(HERE / "results" / "services.json"))
     args = ap.parse_args()
+    if ZONES % args.publishers:
+        ap.error(f"--publishers must divide {ZONES} (each plays whole zones)")
     counts = args.robots or ([100] if args.quick else [100, 250, 500])
     n_ctls = args.controllers or ([1, 2] if args.quick else [1, 2, 4])
     seconds = args.seconds or (3.0 if args.quick else 10.0)
@@ -501,7 +518,8 @@ def main() -> int:
     try:
         PROCS["router"] = spawn("serve", "router", "--listen", ep, log=tmp / "router.log")
         time.sleep(1.0)
-        cache = Path(tempfile.gettempdir()) / "confnav-bench-cache"  # outside the repo
+        # outside the repo, one per commit (an older code's cached solutions may not load)
+        cache = Path(tempfile.gettempdir()) / f"confnav-bench-cache-{results['commit'][:12]}"
         PROCS["transform"] = spawn(
             "serve",
             "transform",
@@ -556,6 +574,9 @@ def main() -> int:
                         )  # fmt: skip
                         row["controllers"] = n_ctl
                         results["runs"].append(row)
+                        # partial results survive an interrupted run
+                        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+                        Path(args.out).write_text(json.dumps(results, indent=1))
                         print(
                             f"{n_ctl} ctl {mode:>8} {n:4d} robots: p50 {row['p50_ms']:.2f} ms  "
                             f"p99 {row['p99_ms']:.2f} ms  lost {row['lost']}/{row['sent']}  "
@@ -602,8 +623,9 @@ def report(results: dict[str, Any], rate: float, seconds: float) -> None:
     print(
         "(goals: own = every robot its own goal, changing = a new own goal every "
         f"{results['change_period_s']:g} s per robot, shared = one goal for all; navfn "
-        f"{results['navfn']}; robots publish at independent phases from "
-        f"{results['publishers']} processes; latency = cmd_vel receipt - the pose's own stamp; "
+        f"{results['navfn']}; {results['publishers']} processes play the robots (poses at "
+        "independent phases, commands received per zone); latency = cmd_vel receipt - the "
+        "pose's own stamp; "
         "superseded = poses replaced by a newer one of the same robot while the controller was "
         "busy; load = 1-min load average of the 2-core machine, shared with other work)"
     )

@@ -53,6 +53,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from confnav.boundary import BoundaryMesh
 from confnav.diskmap import CurveMap, exterior_map, interior_map
@@ -156,11 +157,12 @@ class _Boundary:
     dP: ComplexArray  # their t-derivatives
     mask: np.ndarray  # passive nodes away from vertices
     hole: bool
-    S: ComplexArray | None = None  # smooth grid (uniform in u), None before the first own map
-    dS: ComplexArray | None = None  # dS/du
+    S: ComplexArray | None = None  # smooth grid (uniform in s), None before the first own map
+    dS: ComplexArray | None = None  # dS/ds
     u: FloatArray | None = None  # parameter of each passive node along the smooth curve
     du: FloatArray | None = None  # du/dt at each passive node
     m: int = SMOOTH_START
+    c: complex = 0j  # Moebius grading of the smooth grid (0: uniform in angle)
     tail: float = SMOOTH_TAIL  # Fourier tail (relative) the smooth grid must reach
     capped_tail: float = 0.0  # Fourier tail of the grid while it is at SMOOTH_MAX (0: not)
 
@@ -173,7 +175,7 @@ class _Boundary:
         """
         if self.S is not None:
             assert self.dS is not None
-            m, capped = _grid_size(_gap(self.S, others), self.tail)
+            m, capped = _local_grid_size(self.S, self.dS, others, self.tail)
             self.capped_tail = _tail(self.S) if capped or self.S.size >= SMOOTH_MAX else 0.0
             if m > self.S.size:
                 self.S, self.dS = _upsample(self.S, m), _upsample(self.dS, m)
@@ -187,11 +189,13 @@ class _Boundary:
             assert self.dS is not None and self.u is not None and self.du is not None
             cm = (exterior_map if self.hole else interior_map)(self.S, self.dS, alpha, rtol)
             sgn = -1.0 if self.hole else 1.0
-            grid = 2 * np.pi * np.arange(self.S.size) / self.S.size
+            s_grid = 2 * np.pi * np.arange(self.S.size) / self.S.size
+            grid = _mobius_grid(self.c, sgn, s_grid)[2]  # angle of each grid point when laid
             new = sgn * np.unwrap(np.angle(cm.f))
             new = new - 2 * np.pi * np.round((new[0] - grid[0]) / (2 * np.pi))
-            delta, ddelta = _trig_eval(new - grid, self.u)
-            self.du = self.du * (1.0 + ddelta)
+            s_u, ds_du = _mobius_param(self.c, sgn, self.u)
+            delta, ddelta = _trig_eval(new - grid, s_u)
+            self.du = self.du * (1.0 + ddelta * ds_du)
             self.u = self.u + delta
             if _tail(self.S) > self.tail:
                 self.m = min(2 * self.S.size, SMOOTH_MAX)  # under-resolved: at least double
@@ -206,7 +210,11 @@ class _Boundary:
         if self.S is None:
             return self.P, self.dP
         assert self.dS is not None and self.u is not None and self.du is not None
-        return _trig_eval_complex(self.S, self.u), _trig_eval_complex(self.dS, self.u) * self.du
+        s_u, ds_du = _mobius_param(self.c, -1.0 if self.hole else 1.0, self.u)
+        return (
+            _trig_eval_complex(self.S, s_u),
+            _trig_eval_complex(self.dS, s_u) * ds_du * self.du,
+        )
 
     def regrid(self, others: ComplexArray) -> None:
         """Lay the smooth grid on the unit circle this boundary was just mapped to.
@@ -214,13 +222,103 @@ class _Boundary:
         The later maps are analytic outside (hole) / inside (outer) the other boundaries, which
         lie at relative distance delta from the circle; the Fourier coefficients of the curve
         then decay like (1 + delta)^-j, so m = 2 ln(1/eps) / ln(1 + delta) points resolve it.
+        Where another boundary comes close (delta small) on one side only, the grid is graded
+        towards it by a disk automorphism (:func:`_grading`): in the uniform parameter s the
+        close approach is magnified, and m follows from the gap seen in s.
         """
-        gap = float(np.min(np.abs(np.abs(others) - 1.0))) if others.size else 1.0
+        self.c, gap = _grading(others)
         self.m = max(self.m, _grid_size(gap, self.tail)[0])
         sgn = -1.0 if self.hole else 1.0
-        grid = 2 * np.pi * np.arange(self.m) / self.m
-        self.S = np.exp(1j * sgn * grid)
-        self.dS = 1j * sgn * self.S
+        s_grid = 2 * np.pi * np.arange(self.m) / self.m
+        self.S, self.dS = _mobius_grid(self.c, sgn, s_grid)[:2]
+
+
+#: Grading strengths tried (|c| of the Moebius map); 0 = uniform. Above 0.999 the angle of
+#: the grid would come within ~0.1 rad of wrapping (see :func:`_mobius_grid`).
+GRADING_RHO = (0.0, 0.5, 0.8, 0.9, 0.95, 0.98, 0.99, 0.995, 0.998, 0.999)
+
+
+def _wrap(x: FloatArray) -> FloatArray:
+    return np.asarray((x + np.pi) % (2 * np.pi) - np.pi)
+
+
+def _mobius_grid(
+    c: complex, sgn: float, s: FloatArray
+) -> tuple[ComplexArray, ComplexArray, FloatArray, FloatArray]:
+    """Grid graded by the disk automorphism phi(z) = (z + c)/(1 + conj(c) z).
+
+    Returns z(s) = phi(e^{i sgn s}), dz/ds, the angle theta(s) = sgn arg z(s) (continuous,
+    theta(s) - s periodic) and theta'(s) = |phi'(e^{i sgn s})| = (1 - |c|^2)/|1 + conj(c) e|^2:
+    points are denser by (1 + |c|)/(1 - |c|) towards c/|c| (Henrici, Vol. 1, sec. 5.3: the
+    automorphisms of the disk map the circle onto itself).
+    """
+    e = np.exp(1j * sgn * s)
+    den = 1.0 + np.conj(c) * e
+    z = (e + c) / den
+    dphi = (1.0 - abs(c) ** 2) / den**2
+    theta = s + _wrap(sgn * np.angle(z) - s)
+    return np.asarray(z), np.asarray(dphi * 1j * sgn * e), theta, np.asarray(np.abs(dphi))
+
+
+def _mobius_param(c: complex, sgn: float, u: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """The grid parameter s of the circle point at angle u (inverse of :func:`_mobius_grid`)
+    and ds/du = |phi^-1'(e^{i sgn u})|."""
+    if c == 0:
+        return u, np.ones_like(u)
+    e = np.exp(1j * sgn * u)
+    den = 1.0 - np.conj(c) * e
+    zeta = (e - c) / den
+    s = u + _wrap(sgn * np.angle(zeta) - u)
+    return s, np.asarray((1.0 - abs(c) ** 2) / np.abs(den) ** 2)
+
+
+def _grading(others: ComplexArray) -> tuple[complex, float]:
+    """Moebius grading of a grid on the unit circle and the gap it leaves to ``others``.
+
+    The other boundaries at relative distance delta limit the Fourier decay of the curve; in
+    the graded parameter s they are seen through phi^-1, which preserves the circle. Of the
+    strengths :data:`GRADING_RHO` towards the nearest other point, the one whose smallest gap
+    in s is largest wins (0 when nothing is close: the uniform grid).
+    """
+    if others.size == 0:
+        return 0j, 1.0
+    dist = np.abs(np.abs(others) - 1.0)
+    k = int(np.argmin(dist))
+    if dist[k] > 0.05:  # nothing close: uniform (the grid is small anyway)
+        return 0j, float(dist[k])
+    direction = others[k] / abs(others[k])
+    best = (0j, float(dist[k]))
+    for rho in GRADING_RHO[1:]:
+        c = rho * direction
+        zeta = (others - c) / (1.0 - np.conj(c) * others)
+        gap = float(np.min(np.abs(np.abs(zeta) - 1.0)))
+        if gap > best[1]:
+            best = (complex(c), gap)
+    return best
+
+
+def _local_grid_size(
+    S: ComplexArray, dS: ComplexArray, others: ComplexArray, tail: float
+) -> tuple[int, bool]:
+    """Grid size for which every other point keeps the distance the tail needs from the curve.
+
+    A uniform grid with spacing h resolves an analytic curve to the Fourier ``tail`` while the
+    nearest singularity keeps d/h >= ln(1/tail)/pi away (that is m = 2 ln(1/tail)/delta on a
+    circle, delta = d/r); checked point by point with the local spacing |dS| 2pi/m of the
+    nearest grid point, so it holds for graded grids too.
+    """
+    m = S.size
+    if others.size == 0:
+        return m, False
+    tree = cKDTree(np.column_stack([S.real, S.imag]))
+    d, i = tree.query(np.column_stack([others.real, others.imag]))
+    h = np.abs(dS[i]) * 2 * np.pi / m
+    ratio = float(np.min(d / np.maximum(h, 1e-300)))
+    need_ratio = np.log(1 / tail) / np.pi
+    if ratio >= need_ratio:
+        return m, False
+    want = int(2 ** np.ceil(np.log2(m * need_ratio / max(ratio, 1e-12))))
+    return min(want, SMOOTH_MAX), want > SMOOTH_MAX
 
 
 def _grid_size(gap: float, tail: float) -> tuple[int, bool]:
@@ -234,15 +332,6 @@ def _grid_size(gap: float, tail: float) -> tuple[int, bool]:
     need = 2 * np.log(1 / tail) / np.log1p(max(gap, 1e-6))
     m = int(2 ** np.ceil(np.log2(max(need, SMOOTH_START))))
     return min(m, SMOOTH_MAX), m > SMOOTH_MAX
-
-
-def _gap(curve: ComplexArray, others: ComplexArray) -> float:
-    """Distance of ``others`` from a near-circular curve, relative to its radius."""
-    if others.size == 0:
-        return 1.0
-    c = curve.mean()
-    r = float(np.mean(np.abs(curve - c)))
-    return float(np.min(np.abs(np.abs(others - c) - r)) / r)
 
 
 def _upsample(samples: ComplexArray, m: int) -> ComplexArray:
@@ -478,9 +567,12 @@ def _regrid(b: _Boundary, others: ComplexArray, name: str, sweep: int) -> None:
 
 
 def _radius(b: _Boundary, center: complex) -> float:
-    """Mean distance of the smooth grid (uniform in angle) from the centre."""
-    pts = b.S if b.S is not None else b.P
-    return float(np.mean(np.abs(pts - center)))
+    """Mean distance of the smooth grid from the centre (weighted uniform in angle)."""
+    if b.S is None:
+        return float(np.mean(np.abs(b.P - center)))
+    s = 2 * np.pi * np.arange(b.S.size) / b.S.size
+    w = _mobius_grid(b.c, -1.0 if b.hole else 1.0, s)[3]
+    return float(np.sum(np.abs(b.S - center) * w) / np.sum(w))
 
 
 __all__ = ["CROWDING_RADIUS", "CircleDomainResult", "koebe_iteration"]

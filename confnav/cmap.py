@@ -51,6 +51,8 @@ CORNER_FRACTIONS = (0.5, 0.1, 1e-2, 1e-3, 1e-4)
 CORNER_ZONE = 1e-4
 #: Batches at least this large build the local expansions (confnav/expansion.py) of any map.
 EXPANSION_MIN_POINTS = 20_000
+#: Up to this many boundary nodes a single point is evaluated directly (as fast, measured).
+EXPANSION_SINGLE_NODES = 2_000
 
 
 @dataclass
@@ -296,9 +298,10 @@ class ConformalMap:
             self._expansion = LocalExpansions(
                 self._eta, self._Q_fwd, region=self.workspace.polygon
             )
-        # one point: the direct 1-D dots cost less than numpy's overhead (the build happens
-        # anyway, e.g. in a Controller's constructor, not in the first control step)
-        return None if n_points == 1 else self._expansion
+        # one point on a small map: the direct 1-D dots cost less than the look-up's numpy
+        # overhead (the build happens anyway, e.g. in a Controller's constructor)
+        small = n_points == 1 and self.n_nodes <= EXPANSION_SINGLE_NODES
+        return None if small else self._expansion
 
     def _fix_nodes(
         self, pts: ComplexArray, idx: np.ndarray, w: ComplexArray, dw: ComplexArray | None

@@ -204,6 +204,7 @@ class LocalExpansions:
         b = np.concatenate(coefs) if coefs else np.zeros((0, p + 1, nsum), np.complex128)
         # columns [0, c): beta_m of the sums; [c, 2c): (m+1) beta_(m+1) / R of the derivatives,
         # so that S = sum beta_m zeta^m and S' = sum gamma_m zeta^m with zeta = (z - c)/R
+        self._exponents = np.arange(p + 1)
         self._coef = np.zeros((b.shape[0], p + 1, 2 * nsum), np.complex128)
         self._coef[:, :, :nsum] = b
         self._coef[:, :-1, nsum:] = (
@@ -273,6 +274,8 @@ class LocalExpansions:
         """(covered, S, S') at the points: S and S' are (points, c) arrays of the sums and
         their derivatives, valid where ``covered`` (NaN elsewhere)."""
         zz = np.asarray(z, dtype=np.complex128).ravel()
+        if zz.size == 1:  # one robot: scalar look-up, no per-array overhead
+            return self._sums1(complex(zz[0]))
         leaf = self.leaf_of(zz)
         covered = leaf >= 0
         out = np.full((zz.size, 2 * self._nsum), np.nan + 0j)
@@ -285,6 +288,19 @@ class LocalExpansions:
             np.cumprod(V, axis=2, out=V)
             out[covered] = np.matmul(V, self._coef[lf])[:, 0, :]
         return covered, out[:, : self._nsum], out[:, self._nsum :]
+
+    def _sums1(self, z: complex) -> tuple[BoolArray, ComplexArray, ComplexArray]:
+        """:meth:`sums` of a single point (same arithmetic, Python scalars for the look-up)."""
+        out = np.full((1, 2 * self._nsum), np.nan + 0j)
+        rel = (z - self._origin) / self._h_fine
+        x, y = rel.real, rel.imag
+        lf = -1
+        if 0 <= x < self._n_fine and 0 <= y < self._n_fine:
+            lf = int(self._table[int(y), int(x)])
+        if lf >= 0:
+            zeta = (z - complex(self._centres[lf])) / float(self._radii[lf])
+            out[0] = np.power(zeta, self._exponents) @ self._coef[lf]
+        return np.array([lf >= 0]), out[:, : self._nsum], out[:, self._nsum :]
 
     def error_bound(self) -> tuple[float, float]:
         """Largest truncation bound of any leaf: (sums, derivatives), absolute."""

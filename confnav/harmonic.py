@@ -149,7 +149,10 @@ class GreenBasis:
         fits = [n for n in TERM_LADDER if _level_bytes(domain.n_obstacles, n) <= MEMORY_BUDGET]
         self.max_terms = min(int(max_terms), max(fits or [TERM_LADDER[0]]))
         self._levels: dict[int, _Level] = {}
-        self._start = 0  # index in TERM_LADDER of the smallest level worth trying
+        # index in TERM_LADDER of the smallest level worth trying; advanced only by a converged
+        # fit, so a goal's function never depends on which goals failed before (replay --check
+        # recomputes commands in another order)
+        self._start = 0
         self._lock = threading.Lock()
 
     _cache: ClassVar[OrderedDict[tuple[bytes, bytes, float, int], GreenBasis]] = OrderedDict()
@@ -238,7 +241,7 @@ class GreenBasis:
                     break  # the geometric rate says max_terms will not do: give up now
                 i = max(i + 1, int(np.searchsorted(ladder, need)))
                 i = min(i, len(ladder) - 1)
-            if ok:
+            if ok:  # later goals start here (never after a failure: see _start in __init__)
                 self._start = max(self._start, i)
         diag = GreenDiagnostics(
             lv.n, lv.p, res, self.tol, ok, tuple(history), thr, tuple(int(j) for j in near), spent

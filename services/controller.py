@@ -239,6 +239,7 @@ class ControllerService(Service):
         self._wake_fetch.set()
 
     def _on_transform(self, key: str, payload: bytes) -> None:
+        self.count("transforms_received")
         try:
             ws_id = self.keys.parse(key).ident
             sol = decode(TransformSolution, payload)
@@ -292,6 +293,7 @@ class ControllerService(Service):
     # definition changes -----------------------------------------------------------------
     def _on_definition(self, key: str, payload: bytes) -> None:
         """A definition unlike the installed map's: stop the robots near the new geometry."""
+        self.count("definitions_received")
         try:
             ws_id = self.keys.parse(key).ident
             defn = decode(WorkspaceDefinition, payload)
@@ -328,6 +330,7 @@ class ControllerService(Service):
 
     def _on_ws_delete(self, key: str, payload: bytes) -> None:
         """A deleted workspace: its map is dropped, its robots stop (missing_map)."""
+        self.count("deletes_received")
         try:
             ws_id = self.keys.parse(key).ident
             msg = decode(WorkspaceDelete, payload)
@@ -463,6 +466,12 @@ class ControllerService(Service):
         r = self._robot(rid)
         if r is None:
             return
+        with r.lock:
+            r.seen_t = time.monotonic()
+            same = r.goal is not None and navigation.goal_key(r.goal) == navigation.goal_key(goal)
+        if same:  # goals are state: a repeated one (e.g. republished at 1 Hz) changes nothing
+            self.count("goals_repeated")
+            return
         self.count("goals")
         m = self._maps.get(goal.ws_id)
         ctrl, err = self._build(m, goal) if m is not None else (None, "")
@@ -492,6 +501,7 @@ class ControllerService(Service):
 
     def _on_cancel(self, key: str, payload: bytes) -> None:
         """Cancel: zero command, ``idle`` status, and the robot is forgotten."""
+        self.count("cancels_received")
         try:
             rid = self.keys.parse(key).ident
             cancel = decode(GoalCancel, payload)

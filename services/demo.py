@@ -1,4 +1,5 @@
-"""``confnav demo``: the whole system on the default workspace with the seed's four robots.
+"""``confnav demo``: the whole system on the default workspace with the seed's four robots and a
+differential-drive one.
 
 Starts a router (unix socket in a temp dir) and the recorder, transform, controller and
 simulator as separate processes, waits for the map, sends the four goals, shows progress,
@@ -169,7 +170,7 @@ def plot_demo(tracks: dict[str, Track], path: Path) -> None:
     from confnav.workspaces import default_workspace
 
     ws = default_workspace()
-    fig, ax = plt.subplots(figsize=(6, 6))
+    fig, ax = plt.subplots(figsize=(7, 6))
     outer = [*list(ws.outer), ws.outer[0]]
     ax.plot([z.real for z in outer], [z.imag for z in outer], "k-", lw=1.5)
     for ob in ws.obstacles:
@@ -191,9 +192,16 @@ def plot_demo(tracks: dict[str, Track], path: Path) -> None:
     goals = {t.goal for t in tracks.values()}
     for g in goals:
         ax.plot(g.real, g.imag, "k*", ms=14)
+    # marker key (proxy artists: the markers above are drawn once per robot / goal)
+    ax.plot([], [], "o", color="0.3", label="start")
+    ax.plot([], [], "k*", ms=10, label="goal")
+    if any(t.collided is not None for t in tracks.values()):
+        ax.plot([], [], "rx", label="collision")
     ax.set_aspect("equal")
-    ax.set_title("confnav demo: default workspace, four robots")
-    ax.legend(loc="upper right", fontsize=8)
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.set_title(f"confnav demo: default workspace, {len(tracks)} robots")
+    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8, frameon=False)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
@@ -338,7 +346,7 @@ def run_demo(
 
 def add_parser(sub: Any) -> None:
     p: argparse.ArgumentParser = sub.add_parser(
-        "demo", help="run the whole system on the default workspace with four robots"
+        "demo", help="run the whole system on the default workspace with five robots"
     )
     p.add_argument("--out", default="out", help="output folder (default %(default)s)")
     p.add_argument("--timeout", type=float, default=120.0, help="seconds (default %(default)s)")

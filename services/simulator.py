@@ -129,6 +129,7 @@ class SimulatorService(Service):
 
     # inputs ----------------------------------------------------------------------------
     def _on_definition(self, key: str, payload: bytes) -> None:
+        self.count("definitions_received")
         try:
             ws_id = self.keys.parse(key).ident
             defn = decode(WorkspaceDefinition, payload)
@@ -146,6 +147,7 @@ class SimulatorService(Service):
         """A command counts only on a robot's exact key and naming that robot: a put on
         ``{prefix}/robot/*/cmd_vel`` (which reaches this subscriber too) or with another
         robot's id is rejected."""
+        self.count("commands_received")
         try:
             rid = self.keys.parse(key).ident  # a wildcard chunk is not an id: rejected
             cmd = decode(VelocityCommand, payload)
@@ -170,6 +172,7 @@ class SimulatorService(Service):
         self.count("commands")
 
     def _on_spawn(self, key: str, payload: bytes) -> None:
+        self.count("spawns_received")
         try:
             req = decode(SpawnRequest, payload)
         except DecodeError as exc:
@@ -182,6 +185,7 @@ class SimulatorService(Service):
         )
 
     def _on_control(self, key: str, payload: bytes) -> None:
+        self.count("controls_received")
         try:
             ctl = decode(SimControl, payload)
         except DecodeError as exc:

@@ -300,6 +300,7 @@ class TransformService(Service):
 
     def _on_delete(self, key: str, payload: bytes) -> None:
         """Forget a workspace: state, saved definition; status ``deleted``."""
+        self.count("deletes_received")
         try:
             ws_id = self.keys.parse(key).ident
             msg = decode(WorkspaceDelete, payload)

@@ -160,30 +160,43 @@ def test_switching_has_hysteresis_and_never_goes_back(atlas: Atlas) -> None:
     nav = AtlasNavigator(atlas, GOAL)
     cells = atlas.decomposition.cells
     pl = nav.plan
-    i = int(np.argmax(pl.rank))
-    j = int(pl.next[i])
-    # walk along the corridor's centre line from cell i into cell j and back and forth
-    xs = np.linspace(0.0, 12.0, 2401) + 0.5j
-    xs = xs[cells[i].depth(xs) > 0]
-    d_j = cells[j].depth(xs)
-    active = np.full(xs.size, i, dtype=np.int64)
-    out = nav.switch(xs, active)
-    # a point of cell j closer to its cut than the hysteresis does not switch; deeper does
-    shallow = (d_j > 0) & (d_j <= nav.hysteresis)
-    assert shallow.any() and np.all(out[shallow] == i)
-    assert np.any(out[d_j > nav.hysteresis] != i)
-    assert np.all(pl.rank[out] <= pl.rank[i])
-    # a robot that jitters across the switching line switches once and never back
-    k = int(np.flatnonzero(d_j > nav.hysteresis)[0])
-    cur = np.array([i])
-    seq = [i]
-    for step in range(40):
-        z = xs[k - 3 : k + 4][step % 7 : step % 7 + 1]
-        cur = nav.switch(z, cur)
-        seq.append(int(cur[0]))
-    changes = sum(a != b for a, b in itertools.pairwise(seq))
-    assert changes == 1
-    assert np.all(np.diff(pl.rank[seq]) <= 0)
+    # points along the corridor's centre line
+    line = np.linspace(0.0, 12.0, 2401) + 0.5j
+    found = 0
+    for i in map(int, np.argsort(pl.rank)[::-1]):
+        j = int(pl.next[i])
+        if j < 0:
+            continue
+        xs = line[cells[i].depth(line) > 0]
+        out = nav.switch(xs, np.full(xs.size, i, dtype=np.int64))
+        # the rule, point by point: the lowest-ranked cell of lower rank than i holding the
+        # point deeper than the hysteresis, else i
+        lower = [c for c in range(len(cells)) if pl.rank[c] < pl.rank[i]]
+        depth = np.array([cells[c].depth(xs) for c in lower])
+        expected = np.full(xs.size, i)
+        for k in np.argsort([pl.rank[c] for c in lower])[::-1]:  # lowest rank written last
+            expected[depth[k] > nav.hysteresis] = lower[k]
+        assert np.array_equal(out, expected)
+        assert np.all(pl.rank[out] <= pl.rank[i])
+        # inside cell j but closer to its cut than the hysteresis (and no deeper in any other
+        # lower cell): no switch
+        d_j = cells[j].depth(xs)
+        shallow = (d_j > 0) & (d_j <= nav.hysteresis) & np.all(depth <= nav.hysteresis, axis=0)
+        found += int(shallow.sum())
+        assert np.all(out[shallow] == i)
+        # a robot jittering across the switching line: switches, never back, at most once
+        # per lower cell
+        k = int(np.flatnonzero(out != i)[0])
+        cur = np.array([i])
+        seq = [i]
+        for step in range(60):
+            z = xs[max(k - 3, 0) : k + 4]
+            cur = nav.switch(z[step % z.size : step % z.size + 1], cur)
+            seq.append(int(cur[0]))
+        changes = sum(a != b for a, b in itertools.pairwise(seq))
+        assert 1 <= changes <= len(lower)
+        assert np.all(np.diff(pl.rank[seq]) <= 0) and i not in seq[1 + seq.index(seq[-1]) :]
+    assert found > 0  # the hysteresis band was exercised
 
 
 # ---------------------------------------------------------------- end to end

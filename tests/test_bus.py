@@ -128,3 +128,46 @@ def test_zenoh_session_closed_on_exit(zenoh_router: str) -> None:
         tok = bus.declare_token("t/alive/x")
     assert bus.session.is_closed()
     tok.close()  # closing handles after the session is fine
+
+
+@pytest.mark.parametrize("kind", ["memory", "zenoh"])
+def test_subscribe_latest_keeps_the_newest_per_key_and_counts_the_rest(
+    kind: str, mem_net: InMemoryNetwork, request: pytest.FixtureRequest
+) -> None:
+    """While the handler is busy, only the newest sample of each key waits (a bounded
+    queue); every sample is either delivered or counted as dropped, none is lost unseen;
+    at most ``max_keys`` keys wait."""
+    if kind == "memory":
+        pub, sub = mem_net.bus("pub"), mem_net.bus("sub")
+    else:
+        make = request.getfixturevalue("make_bus")
+        pub, sub = make(), make()
+    gate = threading.Event()
+    got: list[tuple[str, bytes]] = []
+    dropped = [0]
+    lock = threading.Lock()
+
+    def handler(items: list[tuple[str, bytes]]) -> None:
+        gate.wait(10)
+        with lock:
+            got.extend(items)
+
+    def on_dropped(n: int) -> None:
+        with lock:
+            dropped[0] += n
+
+    sub.subscribe_latest("t/*", handler, on_dropped, max_keys=3)
+    time.sleep(0.3)
+    pub.publish("t/a", b"0")  # taken by the handler, which then blocks
+    time.sleep(0.2)
+    for i in range(1, 51):
+        for k in ("a", "b", "c", "d"):
+            pub.publish(f"t/{k}", str(i).encode())
+    time.sleep(0.5)
+    gate.set()
+    wait_for(lambda: len(got) + dropped[0] == 1 + 200, timeout=10)
+    time.sleep(0.2)
+    assert len(got) + dropped[0] == 201
+    assert got[0] == ("t/a", b"0")
+    # after the first: a, b, c with their newest sample; d never had room (3 keys waiting)
+    assert sorted(got[1:]) == [("t/a", b"50"), ("t/b", b"50"), ("t/c", b"50")]

@@ -179,3 +179,31 @@ def test_large_batch_builds_expansions_on_any_map(nav_map: ConformalMap, monkeyp
     ref, dref = _direct_longdouble(m, z)
     assert np.max(np.abs(w[c] - ref[c])) <= 1e-12
     assert np.max(np.abs(dw[c] - dref[c]) / np.abs(dref[c])) <= 1e-12
+
+
+def test_single_point_path_equals_the_batch_path(
+    nav_map: ConformalMap, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import confnav.cmap as cm
+
+    ex = nav_map._expansion or LocalExpansions(nav_map._eta, nav_map._Q_fwd)
+    pts = _test_points(nav_map)
+    z = np.concatenate([pts["random"][:20], pts["near walls"][:20], [9 + 9j]])
+    cov, S, dS = ex.sums(z)
+    assert cov.any() and not cov.all()
+    for k in range(z.size):
+        c1, S1, dS1 = ex.sums(z[k : k + 1])
+        assert c1[0] == cov[k]
+        if cov[k]:
+            # same polynomial, powers by np.power instead of cumprod: rounding only
+            # (D' ~ 0 in the free space: absolute against the sums' size)
+            np.testing.assert_allclose(S1[0], S[k], rtol=0, atol=1e-14 * np.abs(S[k]).max())
+            np.testing.assert_allclose(dS1[0], dS[k], rtol=0, atol=1e-13 * np.abs(dS[k]).max())
+        else:
+            assert np.isnan(S1[0]).all()
+    # a single robot through the map on the expansion path (as on a map with many nodes)
+    monkeypatch.setattr(cm, "EXPANSION_SINGLE_NODES", 0)
+    ref, dref = _direct_longdouble(nav_map, z[:40])
+    for k in np.flatnonzero(cov[:40]):  # (the others take the direct formula)
+        w, dw = nav_map.T_and_dT(z[k])
+        assert abs(w - ref[k]) <= 1e-12 and abs(dw - dref[k]) <= 1e-12 * abs(dref[k])

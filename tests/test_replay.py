@@ -12,6 +12,7 @@ from pathlib import Path
 from types import ModuleType
 from typing import Any
 
+import numpy as np
 import pytest
 from conftest import confnav_cmd, subprocess_env, wait_for
 from mcap.writer import Writer
@@ -276,8 +277,15 @@ def test_replay_at_recorded_speed_keeps_relative_timing(
     assert len(a) == len(b)
     rel_a = [t - a[0] for t in a]
     rel_b = [t - b[0] for t in b]
-    worst = max(abs(x - y) for x, y in zip(rel_a, rel_b, strict=True))
-    assert worst < 100_000_000, worst  # 0.1 s on a loaded 2-core machine
+    err = np.abs(np.array(rel_a) - np.array(rel_b)) / 1e9  # s
+    # The replayer schedules every message at t_start + offset on the monotonic clock, so its
+    # errors do not accumulate; what remains is per-message scheduling in the replayer, Zenoh
+    # and the recorder thread, where one descheduling on a busy 2-core machine was measured
+    # at 0.17 s. The bulk must be tight, the tail bounded; a replay that ignored the recorded
+    # timing (as fast as possible) would miss every bound by seconds.
+    assert np.median(err) < 0.02, np.median(err)
+    assert np.quantile(err, 0.95) < 0.1, np.quantile(err, 0.95)
+    assert err.max() < 0.5, err.max()
 
 
 def test_recorded_inputs_drive_a_live_controller_to_the_recorded_commands(

@@ -29,10 +29,12 @@ def workspaces(draw: st.DrawFn) -> Workspace:
     obstacles = []
     for c in cells:
         cx, cy = -0.5 + (c % 2), -0.5 + (c // 2)
-        w = draw(st.floats(0.08, 0.35))
-        h = draw(st.floats(0.08, 0.35))
-        dx = draw(st.floats(-0.1, 0.1))
-        dy = draw(st.floats(-0.1, 0.1))
+        # well separated (issue 8: these must solve): gaps >= 0.15 to the walls and >= 0.3
+        # between obstacles; near-touching pairs are tests/test_accuracy_certificate.py's
+        w = draw(st.floats(0.08, 0.3))
+        h = draw(st.floats(0.08, 0.3))
+        dx = draw(st.floats(-0.05, 0.05))
+        dy = draw(st.floats(-0.05, 0.05))
         x0, y0 = cx + dx, cy + dy
         if draw(st.booleans()):
             obstacles.append(
@@ -50,6 +52,8 @@ def test_random_workspaces_are_accurate_or_rejected(ws: Workspace) -> None:
     with warnings.catch_warnings():
         warnings.simplefilter("error", confnav.AccuracyWarning)
         m = confnav.solve(ws, tol=TOL)
+    with warnings.catch_warnings():  # the reference: its own tol may be out of reach
+        warnings.simplefilter("ignore", confnav.AccuracyWarning)
         fine = confnav.solve(ws, tol=TOL / 100)
     assert m.diagnostics.tol_met, m.diagnostics.table()
     assert m.diagnostics.boundary_residual <= TOL

@@ -35,7 +35,8 @@ SINGLE_MAP_MAX_RATIO = 8.0
 @dataclass(frozen=True)
 class ChartRecord:
     """How one cell's chart was obtained: solve wall time (in the worker), nodes, error
-    estimate, smallest radius; ``error`` is the failure message of a failed attempt."""
+    estimate, smallest radius; ``error`` is the failure message of a failed attempt;
+    ``tol_met`` False for a chart kept within ``accept`` but above ``tol``."""
 
     cell: int
     wall_time: float
@@ -44,6 +45,7 @@ class ChartRecord:
     min_radius: float
     tile: Tile
     error: str = ""
+    tol_met: bool = True
 
 
 @dataclass(frozen=True)
@@ -75,19 +77,18 @@ class Atlas:
         return self.cpu_time / self.wall_time if self.wall_time > 0 else float("nan")
 
 
-def _solve_one(ws_json: str, tol: float) -> tuple[str, float, str]:
-    """Worker: (map JSON or "", wall time, error message).  Runs in a child process."""
+def _solve_one(ws_json: str, tol: float, accept: float) -> tuple[str, float, str]:
+    """Worker: (map JSON or "", wall time, error message).  Runs in a child process.
+
+    A map that misses ``tol`` but whose error estimate is within ``accept`` is kept."""
     t0 = time.perf_counter()
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             m = solve(Workspace.from_json(ws_json), tol)
-        if not m.diagnostics.tol_met:
-            return (
-                "",
-                time.perf_counter() - t0,
-                (f"tolerance not met (estimate {m.diagnostics.error_estimate:.1e})"),
-            )
+        est = m.diagnostics.error_estimate
+        if est > max(tol, accept):
+            return "", time.perf_counter() - t0, f"tolerance not met (estimate {est:.1e})"
         return m.to_json(), time.perf_counter() - t0, ""
     except ConfnavError as exc:
         return "", time.perf_counter() - t0, f"{type(exc).__name__}: {exc}"
@@ -103,15 +104,19 @@ def solve_atlas(
     tol: float = 1e-8,
     *,
     workers: int = 2,
+    accept: float = 1e-6,
     max_rounds: int = 4,
     progress: Callable[[str], None] | None = None,
     **decompose_kw: Any,
 ) -> Atlas:
     """Decompose ``ws`` (:func:`confnav.atlas.decompose`) and solve every cell's map.
 
-    Cells are solved by a process pool of ``workers`` (1: in this process).  A failed cell's
-    tile is split and the decomposition redone (at most ``max_rounds`` times); unchanged
-    cells keep their maps.
+    Cells are solved by a process pool of ``workers`` (1: in this process).  A chart that
+    misses ``tol`` is kept if its error estimate is within ``accept`` (the accuracy the
+    controller evaluates to, ``ConformalMap.for_navigation``; recorded with ``tol_met``
+    False: splitting does not help a chart whose error comes from one re-entrant corner).
+    A failed cell's tile is split and the decomposition redone (at most ``max_rounds``
+    times); unchanged cells keep their maps.
 
     Raises
     ------
@@ -134,9 +139,9 @@ def solve_atlas(
                 progress(f"atlas: {len(dec.cells)} cells, solving {len(todo)}")
             jobs = [dec.cells[i].workspace.to_json() for i in todo]
             if pool is not None:
-                results = list(pool.map(_solve_one, jobs, [tol] * len(jobs)))
+                results = list(pool.map(_solve_one, jobs, [tol] * len(jobs), [accept] * len(jobs)))
             else:
-                results = [_solve_one(j, tol) for j in jobs]
+                results = [_solve_one(j, tol, accept) for j in jobs]
             failed: list[Tile] = []
             for i, (text, wall, err) in zip(todo, results, strict=True):
                 cell = dec.cells[i]
@@ -156,6 +161,7 @@ def solve_atlas(
                         float(m.diagnostics.error_estimate),
                         float(radii.min()) if radii.size else 1.0,
                         cell.tile,
+                        tol_met=bool(m.diagnostics.error_estimate <= tol),
                     )
                 )
             if not failed:

@@ -83,16 +83,20 @@ def plan(atlas: Atlas, goal: complex, links: list[Overlap] | None = None) -> Cel
 
     Edge weight between cells i and j: ``|c_i - p_ij| + |p_ij - c_j|`` with ``c`` the cells'
     deepest points and ``p_ij`` their overlap point (a path length through the overlap).
-    A goal cell (one containing the goal) has rank ``|c - goal|``; every other cell's next
-    cell has a strictly lower rank (weights > 0), so the order is acyclic by construction.
+    A goal cell (the goal a margin from its cut edges) has rank ``|c - goal|``; every other
+    cell's next cell has a strictly lower rank (weights > 0): the order is acyclic.
     """
     cells = atlas.decomposition.cells
     n = len(cells)
     links = overlaps(atlas) if links is None else links
     goal = complex(goal)
     centre = np.array([inscribed(c.polygon)[0] for c in cells])
-    at = shapely.Point(goal.real, goal.imag)
-    inside = [i for i, c in enumerate(cells) if bool(c.polygon.contains(at))]
+    # goal cells: the goal at least a margin from their cut edges (some tile's core holds
+    # it, that deep); a cell that merely touches it would put its chart's goal on its boundary
+    depth = np.array([c.depth(np.array([goal]))[0] for c in cells])
+    margin = atlas.decomposition.margin
+    inside = [int(i) for i in np.flatnonzero(depth >= margin)]
+    inside = inside or [int(i) for i in np.flatnonzero(depth > 0)]
     if not inside:
         raise NavigationError(f"goal {fmt_point(goal)} lies in no cell of the atlas")
     # node n is the goal; edges cell <-> cell through the overlap point
@@ -161,7 +165,8 @@ class AtlasNavigator:
         lie at least ``margin`` deep).
     speed : commanded speed (workspace units per time unit): the unit direction of the
         Theorem 2 field times ``speed``, slowing linearly within ``floor_radius`` of a goal
-        (``Controller(v_min=v_max=speed)``; a positive rescaling keeps the integral curves).
+        (the controller's normalized speed law, ``v = min(speed, speed |x - x_d| /
+        floor_radius)``; a positive rescaling keeps the integral curves).
     controller_kw : further :class:`confnav.Controller` keywords (``navfn``, ``goal_tol``).
     """
 
@@ -206,8 +211,7 @@ class AtlasNavigator:
                 self._nav_maps[i],
                 complex(self.plan.local_goal[i]),
                 v_max=self.speed,
-                v_min=self.speed,
-                floor_radius=self.floor_radius,
+                gain=self.speed / self.floor_radius,
                 **self.controller_kw,
             )
         return self._controllers[i]

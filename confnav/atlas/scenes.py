@@ -116,7 +116,7 @@ def spiral(ratio: float, width: float = 0.4) -> Scenario:
     first = 4 * width
     while True:  # smallest first leg whose inward spiral holds the whole length
         legs, seg, total, i = [], first, 0.0, 0
-        while seg > 0 and total < ratio * width:
+        while seg >= 2 * width and total < ratio * width:  # inner legs long enough to turn
             legs.append(min(seg, ratio * width - total))
             total += legs[-1]
             i += 1
