@@ -183,7 +183,9 @@ def list_benchmarks() -> None:
             except ValueError:
                 doc = None
             c = recorded_commit(doc)
-            made = "unrecorded" if c is None else c[:12] + ("" if c == commit else " (stale)")
+            made = (
+                "unrecorded" if c is None else c[:12] + ("" if commit.startswith(c) else " (stale)")
+            )
             prov = doc.get("provenance") if isinstance(doc, dict) else None
             date = str((prov or doc or {}).get("date", "-")) if isinstance(doc, dict) else "-"
         else:
