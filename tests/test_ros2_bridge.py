@@ -27,6 +27,7 @@ import pytest
 import zenoh
 from conftest import REPO, confnav_cmd, subprocess_env, wait_for
 
+from confnav import defaults
 from confnav.geometry import Workspace
 from confnav.schemas import (
     Goal,
@@ -39,7 +40,13 @@ from confnav.schemas import (
 )
 from confnav.services.keys import Keys
 from confnav.services.ros2 import codec, wire
-from confnav.services.ros2.bridge import BridgeConfig, RobotSpec, Ros2Bridge
+from confnav.services.ros2.bridge import (
+    BridgeConfig,
+    RobotSpec,
+    Ros2Bridge,
+    add_parser,
+    config_from_args,
+)
 
 pytestmark = pytest.mark.integration
 
@@ -155,19 +162,29 @@ def test_pose_goal_and_command_translation(bridge: Any) -> None:
             0.4,
         )
 
-        for i, lin in enumerate([(1.0, 0.0), (0.0, 2.0)]):
-            cmd = VelocityCommand(robot_id="r1", stamp_ns=time.time_ns(), linear=lin, pose_seq=i)
+        sent = [((1.0, 0.0), "world", 0.0), ((0.0, 2.0), "world", 0.0), ((0.3, 0.0), "body", 0.7)]
+        for i, (lin, frame, omega) in enumerate(sent):
+            cmd = VelocityCommand(
+                robot_id="r1",
+                stamp_ns=time.time_ns(),
+                linear=lin,
+                angular=omega,
+                pose_seq=i,
+                frame=frame,  # type: ignore[arg-type]
+            )
             bus.publish(K.robot("r1", "cmd_vel"), encode(cmd))
-        items = wait_for(lambda: t if len(t := twists.get()) >= 2 else None)
+        items = wait_for(lambda: t if len(t := twists.get()) >= 3 else None)
     finally:
         sub.undeclare()
     assert {k for k, _, _ in items} == {TWIST_KEY}
-    # yaw = pi/2: world (1, 0) is body (0, -1); world (0, 2) is body (2, 0)
-    v1, v2 = (codec.decode_twist(d) for _, d, _ in items)
+    # yaw = pi/2: world (1, 0) is body (0, -1); world (0, 2) is body (2, 0); a unicycle's body
+    # twist (v = 0.3, omega = 0.7) passes unrotated
+    v1, v2, v3 = (codec.decode_twist(d) for _, d, _ in items)
     np.testing.assert_allclose(v1, (0.0, -1.0, 0.0), atol=1e-15)
     np.testing.assert_allclose(v2, (2.0, 0.0, 0.0), atol=1e-15)
+    np.testing.assert_allclose(v3, (0.3, 0.0, 0.7), atol=1e-15)
     atts = [wire.Attachment.decode(a) for _, _, a in items if a is not None]
-    assert [a.sequence_number for a in atts] == [1, 2]
+    assert [a.sequence_number for a in atts] == [1, 2, 3]
     token = next(
         str(r.ok.key_expr)
         for r in ros.liveliness().get("@ros2_lv/0/**")
@@ -412,3 +429,35 @@ def test_map_through_the_occupancy_grid_import(make_bus: Any) -> None:
     blk = bbox(d.obstacles[0])
     assert np.all(np.abs(blk - want_block) <= res + 1e-9)
     assert blk[0] <= want_block[0] + 1e-9 and blk[2] >= want_block[2] - 1e-9
+
+
+def test_differential_drive_goal_asks_for_body_twists(make_bus: Any) -> None:
+    """``--drive unicycle``: goals from goal_pose ask the controller for a unicycle (its
+    commands are body twists, passed through unrotated: see the translation test)."""
+    bus, ros_bus = make_bus(), make_bus()
+    cfg = config_from_args(
+        build_args(["--robot", "r1=room", "--drive", "unicycle", "--robot-radius", "0.2",
+                    "--lookahead", "0.15"])
+    )  # fmt: skip
+    assert (cfg.drive, cfg.robot_radius, cfg.lookahead) == ("unicycle", 0.2, 0.15)
+    svc = Ros2Bridge(bus, bus.session, cfg, health_period=0, map_import=None)
+    svc.start()
+    goals = Collect()
+    bus.subscribe(K.robot("r1", "goal"), goals.bus)
+    try:
+        time.sleep(0.3)
+        ros_bus.session.put(GOAL_KEY, codec.encode_pose(codec.PlanarPose(1, 2, 0, 0, ""), "pose"))
+        g = decode(Goal, wait_for(goals.get)[0][1])
+    finally:
+        svc.stop()
+    assert (g.drive, g.robot_radius, g.lookahead, g.goal) == ("unicycle", 0.2, 0.15, (1.0, 2.0))
+    assert (g.gain, g.v_max, g.tolerance) == (defaults.GAIN, defaults.V_MAX, defaults.GOAL_TOL)
+
+
+def build_args(argv: list[str]) -> Any:
+    """The ``confnav serve ros2`` options parsed as the CLI parses them."""
+    import argparse
+
+    parser = argparse.ArgumentParser()
+    add_parser(parser.add_subparsers())
+    return parser.parse_args(["ros2", *argv])

@@ -43,6 +43,7 @@ from typing import Any, Literal
 import numpy as np
 import zenoh
 
+from confnav import defaults
 from confnav.schemas import (
     DecodeError,
     Goal,
@@ -58,6 +59,8 @@ from confnav.services.ros2 import codec, wire
 from confnav.services.ros2.codec import PoseKind
 from confnav.services.runtime import Service, add_zenoh_args, run_until_signal
 from confnav.services.transform import definition_of
+
+_GOAL_FIELDS = Goal.model_fields
 
 log = logging.getLogger(__name__)
 
@@ -108,10 +111,17 @@ class BridgeConfig:
     base_frame: str = "base_link"
     map_topic: str | None = None
     map_ws: str | None = None
-    navfn: Literal["harmonic", "kr"] = "harmonic"
-    gain: float = 1.0
-    v_max: float = 0.5
-    tolerance: float = 0.02
+    navfn: Literal["harmonic", "kr"] = defaults.NAVFN
+    gain: float = defaults.GAIN
+    v_max: float = defaults.V_MAX
+    tolerance: float = defaults.GOAL_TOL
+    #: ``unicycle``: differential-drive bases (Goal.drive): the controller then sends body
+    #: twists (linear.x, angular.z) that pass through unrotated; a holonomic base gets the
+    #: workspace-frame command rotated into its body frame.
+    drive: Literal["holonomic", "unicycle"] = "holonomic"
+    robot_radius: float = 0.0
+    lookahead: float = _GOAL_FIELDS["lookahead"].default
+    omega_max: float = _GOAL_FIELDS["omega_max"].default
 
 
 @dataclass
@@ -334,6 +344,10 @@ class Ros2Bridge(Service):
             v_max=c.v_max,
             tolerance=c.tolerance,
             stamp_ns=time.time_ns(),
+            drive=c.drive,
+            robot_radius=c.robot_radius,
+            lookahead=c.lookahead,
+            omega_max=c.omega_max,
         )
         self.bus.publish(self.keys.robot(robot.spec.robot_id, "goal"), encode(goal))
         self.count("goals")
@@ -374,14 +388,15 @@ class Ros2Bridge(Service):
         if robot is None:
             return
         vx, vy = cmd.linear
-        if self.config.cmd_frame == "body":
+        if cmd.frame != self.config.cmd_frame:  # a unicycle's command is a body twist already
             with robot.lock:
                 yaw = robot.yaw
             if yaw is None:  # no pose yet: the controller only commands with a pose
                 self.count("cmd_without_pose")
                 return
-            # world -> body: rotate by -yaw
-            c, s = math.cos(yaw), math.sin(yaw)
+            # world -> body: rotate by -yaw; body -> world: by +yaw
+            c = math.cos(yaw)
+            s = math.sin(yaw) if cmd.frame == "world" else -math.sin(yaw)
             vx, vy = c * vx + s * vy, -s * vx + c * vy
         payload_cdr = codec.encode_twist(
             vx, vy, cmd.angular, self.config.cmd_stamped, cmd.stamp_ns, self.config.base_frame
@@ -453,10 +468,34 @@ def add_parser(sub: Any) -> None:
     p.add_argument("--base-frame", default="base_link", help="frame_id of TwistStamped")
     p.add_argument("--map-topic", default=None, help="OccupancyGrid topic (e.g. /map)")
     p.add_argument("--map-ws", default=None, help="workspace id of the map (default: 1st robot's)")
-    p.add_argument("--navfn", choices=("harmonic", "kr"), default="harmonic")
-    p.add_argument("--gain", type=float, default=1.0, help="goal gain, 1/s")
-    p.add_argument("--v-max", type=float, default=0.5, help="goal speed limit, m/s")
-    p.add_argument("--tolerance", type=float, default=0.02, help="arrival radius, m")
+    p.add_argument("--navfn", choices=("harmonic", "kr"), default=defaults.NAVFN)
+    p.add_argument("--gain", type=float, default=defaults.GAIN, help="1/s (default %(default)s)")
+    p.add_argument(
+        "--v-max", type=float, default=defaults.V_MAX, help="m/s (default %(default)s)"
+    )
+    p.add_argument(
+        "--tolerance", type=float, default=defaults.GOAL_TOL, help="m (default %(default)s)"
+    )
+    p.add_argument(
+        "--drive",
+        choices=("holonomic", "unicycle"),
+        default="holonomic",
+        help="unicycle: differential-drive bases get (linear.x, angular.z) twists that steer a "
+        "point --lookahead ahead of the axle (default %(default)s)",
+    )
+    p.add_argument("--robot-radius", type=float, default=0.0, help="m (default %(default)s)")
+    p.add_argument(
+        "--lookahead",
+        type=float,
+        default=BridgeConfig.lookahead,
+        help="m, unicycle only (default %(default)s)",
+    )
+    p.add_argument(
+        "--omega-max",
+        type=float,
+        default=BridgeConfig.omega_max,
+        help="rad/s, unicycle only (default %(default)s)",
+    )
     add_zenoh_args(p)
     p.set_defaults(func=main)
 
@@ -484,6 +523,10 @@ def config_from_args(args: argparse.Namespace) -> BridgeConfig:
         gain=args.gain,
         v_max=args.v_max,
         tolerance=args.tolerance,
+        drive=args.drive,
+        robot_radius=args.robot_radius,
+        lookahead=args.lookahead,
+        omega_max=args.omega_max,
     )
 
 
