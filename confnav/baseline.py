@@ -17,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from confnav.errors import NavigationError
+from confnav.errors import NavigationError, fmt_point
 from confnav.geometry import Workspace
 
 __all__ = ["PotentialField"]
@@ -54,7 +54,7 @@ class PotentialField:
         self.workspace = workspace
         self.goal = complex(goal)
         if not np.isfinite(self.goal) or not bool(workspace.contains(self.goal)):
-            raise NavigationError(f"goal {self.goal:.6g} is not in the free space")
+            raise NavigationError(f"goal {fmt_point(self.goal)} is not in the free space")
         if d0 is None:
             # influence distance: 7.5% of the workspace size, and no obstacle pushes at the
             # goal (otherwise the goal is not an equilibrium: Ge & Cui's GNRON problem)

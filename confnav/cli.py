@@ -9,11 +9,36 @@ from __future__ import annotations
 import argparse
 import importlib
 import logging
+import os
 import sys
 from collections.abc import Sequence
+from pathlib import Path
 
 from confnav import __version__
 from confnav.errors import ConfnavError
+
+
+def positive_float(text: str) -> float:
+    """An argparse ``type=``: a finite number > 0 (gains, speeds, tolerances, times)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not (0.0 < value < float("inf")):
+        raise argparse.ArgumentTypeError(f"{text!r} must be a finite number > 0")
+    return value
+
+
+def positive_int(text: str) -> int:
+    """An argparse ``type=``: an integer >= 1 (counts)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"{text!r} must be at least 1")
+    return value
+
 
 SUBCOMMAND_MODULES: tuple[str, ...] = (
     "confnav.cli_solve",
@@ -22,7 +47,73 @@ SUBCOMMAND_MODULES: tuple[str, ...] = (
     "confnav.cli_atlas",
     "confnav.services.cli",
     "confnav.services.cli_replay",
+    "confnav.cli_ops",
 )
+
+
+class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
+    """Every option's help shows its default; the epilog (examples) keeps its line breaks."""
+
+
+def output_path(text: str) -> Path:
+    """An argparse ``type=`` for files a command writes: the directory must exist, checked at
+    parse time so a mistake costs one line, not the whole computation."""
+    parent = os.path.dirname(os.path.abspath(text))
+    if not os.path.isdir(parent):
+        raise argparse.ArgumentTypeError(f"cannot write {text!r}: no directory {parent!r}")
+    if os.path.isdir(text):
+        raise argparse.ArgumentTypeError(f"cannot write {text!r}: it is a directory")
+    if not os.access(parent, os.W_OK):
+        raise argparse.ArgumentTypeError(f"cannot write {text!r}: {parent!r} is not writable")
+    return Path(text)
+
+
+EXAMPLES: dict[str, str] = {
+    "solve": "confnav solve ws.json -o map.json --plot map.png",
+    "simulate": 'confnav simulate ws.json --goal=-0.6,0 --starts="0.8,-0.6;0.8,0.7" --plot run.png',
+    "figures": "confnav figures --out out/",
+    "import-map": "confnav import-map map.yaml --robot-radius 0.2 -o ws.json --plot ws.png",
+    "atlas": "confnav atlas ws.json --goal=1,1 --random 10 --json atlas.json",
+    "launch": "confnav launch deploy/local.toml",
+    "demo": "confnav demo --out out/",
+    "schemas": "confnav schemas export schemas/json",
+    "schemas export": "confnav schemas export schemas/json",
+    "serve": "confnav serve controller --connect tcp/127.0.0.1:7447",
+    "serve transform": "confnav serve transform --workspace room=room.json "
+    "--connect tcp/127.0.0.1:7447",
+    "serve controller": "confnav serve controller --connect tcp/127.0.0.1:7447",
+    "serve simulator": "confnav serve simulator --workspace room=room.json "
+    "--robot r1=room:0.8,-0.6 --connect tcp/127.0.0.1:7447",
+    "serve recorder": "confnav serve recorder --out run.mcap --connect tcp/127.0.0.1:7447",
+    "serve router": "confnav serve router --listen tcp/127.0.0.1:7447",
+    "serve ros2": "confnav serve ros2 --robot r1=room --connect tcp/127.0.0.1:7447",
+    "serve foxglove": "confnav serve foxglove --port 8765 --connect tcp/127.0.0.1:7447",
+    "replay": "confnav replay run.mcap --speed 2\n         confnav replay --check run.mcap",
+    "inspect": "confnav inspect run.mcap --plot run.png",
+    "recover": "confnav recover run.mcap -o fixed.mcap",
+    "viz": "confnav viz run.mcap -o scene.mcap",
+}
+"""One example per command, shown at the end of its ``--help`` unless the module gave one."""
+
+
+def _polish(parser: argparse.ArgumentParser, path: str) -> None:
+    """Give a (sub)command's help the shared look: defaults shown, an example, recursively."""
+    if parser.formatter_class in (argparse.HelpFormatter, argparse.RawDescriptionHelpFormatter):
+        parser.formatter_class = HelpFormatter
+    if parser.epilog is None and path in EXAMPLES:
+        parser.epilog = f"example: {EXAMPLES[path]}"
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for name, child in action.choices.items():
+                _polish(child, f"{path} {name}".strip())
+        elif action.default == [] and action.help and "%(default" not in action.help:
+            action.help += "%(default).0s"  # a repeatable option: "(default: [])" says nothing
+        elif (
+            action.help is None
+            and action.option_strings
+            and action.default not in (None, False, argparse.SUPPRESS, [])
+        ):
+            action.help = "default: %(default)s"
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -42,6 +133,8 @@ def build_parser() -> argparse.ArgumentParser:
                 raise
             continue
         module.register(sub)
+    for name, child in sub.choices.items():
+        _polish(child, name)
     return parser
 
 

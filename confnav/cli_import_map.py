@@ -12,6 +12,7 @@ import argparse
 from pathlib import Path
 from typing import Any
 
+from confnav.cli import output_path
 from confnav.cli_simulate import _point
 
 
@@ -23,7 +24,9 @@ def register(sub: Any) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("map", type=Path, help="map_server YAML file")
-    p.add_argument("-o", "--output", type=Path, required=True, help="workspace JSON to write")
+    p.add_argument(
+        "-o", "--output", type=output_path, required=True, help="workspace JSON to write"
+    )
     p.add_argument(
         "--robot-radius",
         type=float,
@@ -58,7 +61,9 @@ def register(sub: Any) -> None:
         metavar="CELLS",
         help="Hausdorff bound of the simplification in cells (default 1; larger: fewer vertices)",
     )
-    p.add_argument("--plot", type=Path, help="write a picture of the map and workspace (PNG)")
+    p.add_argument(
+        "--plot", type=output_path, help="write a picture of the map and workspace (PNG)"
+    )
     p.set_defaults(func=run)
 
 

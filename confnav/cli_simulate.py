@@ -1,7 +1,7 @@
 """``confnav simulate`` and ``confnav figures``: drive robots with the Theorem 2 law.
 
 ``confnav simulate WS.json --goal=X,Y (--starts="X,Y;X,Y" | --random N --seed S)
-[--navfn harmonic|kr] [--k auto|6] [--speed-law normalized|theorem2] [--gain G] [--vmax V]
+[--navfn harmonic|kr] [--k auto|6] [--speed-law normalized|theorem2] [--gain G] [--v-max V]
 [--json OUT.json] [--plot OUT.png] [--require RATE]``
 
 Defaults are the library's (:mod:`confnav.defaults`): navigation succeeds without tuning
@@ -25,6 +25,7 @@ from typing import Any
 
 import numpy as np
 
+from confnav.cli import output_path, positive_float, positive_int
 from confnav.errors import NavigationError
 
 log = logging.getLogger(__name__)
@@ -65,22 +66,22 @@ def register(subparsers: Any) -> None:
     p.add_argument("--goal", type=_point, required=True, help="goal X,Y (use --goal=X,Y)")
     g = p.add_mutually_exclusive_group(required=True)
     g.add_argument("--starts", type=_points, help='starts "X,Y;X,Y;..." (one argument)')
-    g.add_argument("--random", type=int, metavar="N", help="N random starts in free space")
+    g.add_argument("--random", type=positive_int, metavar="N", help="N random starts in free space")
     p.add_argument("--seed", type=int, default=0, help="seed for --random")
     p.add_argument("--map", type=Path, help="a solved map (JSON) instead of solving")
     p.add_argument("--robot-radius", type=float, default=0.0, help="disk robot radius (m)")
     p.add_argument("--unicycle", type=float, metavar="D", help="differential drive, look-ahead D")
-    p.add_argument("--omega-max", type=float, default=2.0, help="unicycle yaw-rate limit")
+    p.add_argument("--omega-max", type=positive_float, default=2.0, help="unicycle yaw-rate limit")
     _law_options(p)
-    p.add_argument("--t-max", type=float, default=1e4, help="time limit per robot (s)")
+    p.add_argument("--t-max", type=positive_float, default=1e4, help="time limit per robot (s)")
     p.add_argument(
         "--require",
         type=float,
         metavar="RATE",
         help="exit 1 if the success rate (0..1) is below RATE",
     )
-    p.add_argument("--json", type=Path, help="write runs and summary here")
-    p.add_argument("--plot", type=Path, help="write a figure with the trajectories here")
+    p.add_argument("--json", type=output_path, help="write runs and summary here")
+    p.add_argument("--plot", type=output_path, help="write a figure with the trajectories here")
     p.set_defaults(func=run_simulate)
 
     f = subparsers.add_parser(
@@ -120,16 +121,20 @@ def _law_options(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--gain",
-        type=float,
+        type=positive_float,
         default=defaults.GAIN,
         help="1/s for normalized, K for theorem2 (default %(default)s)",
     )
     p.add_argument(
-        "--vmax", type=float, default=defaults.V_MAX, help="speed limit, m/s (default %(default)s)"
+        "--v-max",
+        type=positive_float,
+        default=defaults.V_MAX,
+        help="speed limit, m/s (default %(default)s)",
     )
+    p.add_argument("--vmax", dest="v_max", type=positive_float, help=argparse.SUPPRESS)  # old name
     p.add_argument(
         "--tol",
-        type=float,
+        type=positive_float,
         default=defaults.GOAL_TOL,
         help="goal tolerance, m (default %(default)s)",
     )
@@ -175,7 +180,7 @@ def run_simulate(args: argparse.Namespace) -> int:
         k=args.k,
         speed_law=args.speed_law,
         gain=args.gain,
-        v_max=args.vmax,
+        v_max=args.v_max,
         goal_tol=args.tol,
     )
     if ctl.fallback:

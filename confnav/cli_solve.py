@@ -12,6 +12,7 @@ import sys
 import warnings
 from pathlib import Path
 
+from confnav.cli import output_path
 from confnav.cmap import ConformalMap
 from confnav.geometry import Workspace
 from confnav.solver import AccuracyWarning, solve
@@ -25,14 +26,14 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("workspace", type=Path, help="workspace file (JSON or GeoJSON)")
-    p.add_argument("-o", "--output", type=Path, help="write the solved map (JSON) here")
+    p.add_argument("-o", "--output", type=output_path, help="write the solved map (JSON) here")
     p.add_argument(
         "--tol",
         type=float,
         default=1e-10,
         help="target accuracy of the circle domain (default 1e-10)",
     )
-    p.add_argument("--plot", type=Path, help="write a picture of the map (PNG)")
+    p.add_argument("--plot", type=output_path, help="write a picture of the map (PNG)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress output")
     p.set_defaults(func=run)
 

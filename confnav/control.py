@@ -53,7 +53,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from confnav import defaults
-from confnav.errors import MapMismatchError, NavigationError
+from confnav.errors import MapMismatchError, NavigationError, fmt_point
 from confnav.navfn import CircleDomain, NavigationFunction, make_navfn
 
 if TYPE_CHECKING:
@@ -226,10 +226,12 @@ class Controller:
                 raise NavigationError("slow_distance needs a map with a workspace (clearance)")
             self._clearance = ws.clearance
         if _workspace_contains(cmap, self.goal) is False:
-            raise NavigationError(f"goal {self.goal:.6g} is not in the free space")
+            raise NavigationError(f"goal {fmt_point(self.goal)} is not in the free space")
         wd = complex(np.asarray(cmap.T_and_dT(np.asarray(self.goal))[0]))
         if not np.isfinite(wd):
-            raise NavigationError(f"goal {self.goal:.6g} is not in the free space (T is NaN)")
+            raise NavigationError(
+                f"goal {fmt_point(self.goal)} is not in the free space (T is NaN)"
+            )
         self.fallback = ""
         if isinstance(navfn, NavigationFunction):
             self.domain = navfn.domain
@@ -267,7 +269,7 @@ class Controller:
         z = _as_point(goal, "goal")
         wd = complex(np.asarray(self.cmap.T_and_dT(np.asarray(z))[0]))
         if not np.isfinite(wd) or _workspace_contains(self.cmap, z) is False:
-            raise NavigationError(f"goal {z:.6g} is not in the free space")
+            raise NavigationError(f"goal {fmt_point(z)} is not in the free space")
         return Controller(self.cmap, z, navfn=self.navfn.with_goal(wd), **self._params())
 
     def _command(self, z: CArray, dw: CArray, g: CArray) -> tuple[CArray, NDArray[np.bool_]]:

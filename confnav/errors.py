@@ -41,3 +41,8 @@ class GapError(SolverError):
 
 class MapMismatchError(ConfnavError, ValueError):
     """A map is used with a workspace other than the one it was solved for."""
+
+
+def fmt_point(z: complex) -> str:
+    """A point for an error message, ``(x, y)`` as the user typed it, never ``x+yj``."""
+    return f"({z.real:.6g}, {z.imag:.6g})"

@@ -59,7 +59,7 @@ import shapely
 from numpy.typing import NDArray
 from shapely.geometry import Polygon
 
-from confnav.errors import ConfnavError
+from confnav.errors import ConfnavError, fmt_point
 from confnav.footprint import inflate
 from confnav.geometry import Workspace, signed_area
 
@@ -275,7 +275,7 @@ def workspace_from_grid(
     if keep is not None:
         i, j = _world_to_cell(complex(keep), h, resolution, origin)
         if not (0 <= i < h and 0 <= j < w):
-            raise MapError(f"--keep point {keep:.6g} is outside the map")
+            raise MapError(f"--keep point {fmt_point(keep)} is outside the map")
         if not closed_free[i, j]:
             raise MapError(
                 f"--keep point ({keep.real:g}, {keep.imag:g}) is in an occupied or unknown cell "

@@ -28,7 +28,7 @@ from typing import Any, ClassVar, Literal, Protocol
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from confnav.errors import NavigationError
+from confnav.errors import NavigationError, fmt_point
 
 __all__ = [
     "NAVFN_NAMES",
@@ -127,7 +127,7 @@ class NavigationFunction(ABC):
         if not np.isfinite(goal):
             raise NavigationError(f"goal {goal} is not finite")
         if not bool(domain.contains(goal)):
-            raise NavigationError(f"goal {goal:.6g} is not inside the circle domain")
+            raise NavigationError(f"goal {fmt_point(goal)} is not inside the circle domain")
         self.domain = domain
         self.goal = goal
 

@@ -20,7 +20,7 @@ import shapely
 from numpy.typing import ArrayLike, NDArray
 from scipy.sparse.csgraph import dijkstra
 
-from confnav.errors import NavigationError
+from confnav.errors import NavigationError, fmt_point
 from confnav.geometry import Workspace
 
 __all__ = ["ShortestPaths", "bend_vertices"]
@@ -54,7 +54,7 @@ class ShortestPaths:
         self.workspace = workspace
         self.goal = complex(goal)
         if not bool(workspace.contains(self.goal)):
-            raise NavigationError(f"goal {self.goal:.6g} is not in the free space")
+            raise NavigationError(f"goal {fmt_point(self.goal)} is not in the free space")
         scale = workspace.diameter
         # a hair of tolerance so that segments grazing a vertex or running along an edge count
         self._free = workspace.polygon.buffer(1e-9 * scale)

@@ -28,7 +28,7 @@ from typing import Any, Protocol
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from confnav.errors import NavigationError
+from confnav.errors import NavigationError, fmt_point
 
 __all__ = ["RunResult", "SimulationResult", "VelocityField", "simulate"]
 
@@ -279,7 +279,7 @@ def simulate(
     c0 = np.asarray(clr(z), dtype=np.float64)
     if np.any(~(c0 > 0)):
         i = int(np.flatnonzero(~(c0 > 0))[0])
-        raise NavigationError(f"start {z[i]:.6g} is not in the free space")
+        raise NavigationError(f"start {fmt_point(z[i])} is not in the free space")
     n = z.size
     goal = complex(fld.goal)
     tol = float(fld.goal_tol)

@@ -126,8 +126,10 @@ def schema_name(model: type[Message]) -> str:
 
 
 def json_schema(model: type[Message]) -> dict[str, Any]:
-    """JSON Schema of what goes on the wire (serialization mode: every field required)."""
-    schema = model.model_json_schema(mode="serialization")
+    """JSON Schema of the wire contract: what :func:`decode` accepts. A field with a default
+    (``type`` and ``schema_version`` included) may be omitted, exactly as the services accept
+    it; :func:`encode` always writes every field, which the schema accepts too."""
+    schema = model.model_json_schema(mode="validation")
     schema["$id"] = model.TYPE
     schema["$schema"] = "https://json-schema.org/draft/2020-12/schema"
     return schema

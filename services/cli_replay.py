@@ -12,6 +12,7 @@ import logging
 import sys
 from typing import Any
 
+from confnav.cli import output_path
 from confnav.errors import ConfnavError
 
 logger = logging.getLogger(__name__)
@@ -97,7 +98,9 @@ def register(subparsers: Any) -> None:
         help="summarise a recording (channels, robots, arrival, clearance), --plot it",
     )
     i.add_argument("file", metavar="FILE.mcap")
-    i.add_argument("--plot", metavar="OUT.png", help="draw the trajectories on the workspace")
+    i.add_argument(
+        "--plot", type=output_path, metavar="OUT.png", help="draw the trajectories on the workspace"
+    )
     i.add_argument("--json", action="store_true", help="print the summary as JSON")
     i.set_defaults(func=cmd_inspect)
 
@@ -106,7 +109,11 @@ def register(subparsers: Any) -> None:
     )
     r.add_argument("file", metavar="FILE.mcap")
     r.add_argument(
-        "-o", "--output", metavar="OUT.mcap", help="default: FILE.recovered.mcap beside FILE"
+        "-o",
+        "--output",
+        type=output_path,
+        metavar="OUT.mcap",
+        help="default: FILE.recovered.mcap beside FILE",
     )
     r.add_argument("--force", action="store_true", help="overwrite OUT if it exists")
     r.set_defaults(func=cmd_recover)
@@ -115,7 +122,7 @@ def register(subparsers: Any) -> None:
         "viz", help="copy a recording adding the Foxglove scene channels (opens in Foxglove)"
     )
     v.add_argument("file", metavar="FILE.mcap")
-    v.add_argument("-o", "--output", metavar="OUT.mcap", required=True)
+    v.add_argument("-o", "--output", type=output_path, metavar="OUT.mcap", required=True)
     v.add_argument(
         "--period", type=float, default=0.1, metavar="S", help="scene period, s (%(default)s)"
     )

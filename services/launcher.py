@@ -122,8 +122,17 @@ class LaunchConfig:
 
     @classmethod
     def load(cls, path: str | Path) -> LaunchConfig:
-        data = tomllib.loads(Path(path).read_text())
-        return cls.from_dict(data, base=Path(path).parent)
+        """Read a TOML manifest; a missing, unreadable or invalid one is a :class:`LaunchError`."""
+        try:
+            data = tomllib.loads(Path(path).read_text())
+        except OSError as exc:
+            raise LaunchError(f"cannot read manifest {path}: {exc.strerror or exc}") from None
+        except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+            raise LaunchError(f"manifest {path} is not valid TOML: {exc}") from None
+        try:
+            return cls.from_dict(data, base=Path(path).parent)
+        except (KeyError, TypeError, ValueError) as exc:
+            raise LaunchError(f"manifest {path}: {exc}") from None
 
     @classmethod
     def from_dict(cls, data: dict[str, Any], base: Path | None = None) -> LaunchConfig:

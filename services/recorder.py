@@ -25,6 +25,7 @@ from typing import IO, Any
 
 from mcap.writer import CompressionType, Writer
 
+from confnav.cli import output_path
 from confnav.schemas import DecodeError, Message, decode, model_for_key_parts
 from confnav.services import mcap_layout as L
 from confnav.services.bus import Bus
@@ -209,11 +210,14 @@ def add_parser(sub: Any) -> None:
     add_zenoh_args(p)
     p.add_argument(
         "--out",
+        type=output_path,
         default="confnav.mcap",
         help="MCAP file to write; if it exists, the first free OUT-STEM.N.mcap instead",
     )
     p.add_argument("--foxglove", action="store_true", help="add Foxglove scene channels")
-    p.add_argument("--flush-interval", type=float, default=L.FLUSH_INTERVAL_S)
+    p.add_argument(
+        "--flush-interval", type=float, default=L.FLUSH_INTERVAL_S, help="s between flushes"
+    )
     p.set_defaults(func=main)
 
 

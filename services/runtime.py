@@ -23,9 +23,19 @@ log = logging.getLogger(__name__)
 def add_zenoh_args(parser: argparse.ArgumentParser) -> None:
     """``--mode --listen --connect --zenoh-config --prefix`` (the same for every service)."""
     g = parser.add_argument_group("zenoh")
-    g.add_argument("--mode", default="client", choices=("client", "peer", "router"))
-    g.add_argument("--listen", action="append", default=[], metavar="ENDPOINT")
-    g.add_argument("--connect", action="append", default=[], metavar="ENDPOINT")
+    g.add_argument(
+        "--mode", default="client", choices=("client", "peer", "router"), help="zenoh session mode"
+    )
+    g.add_argument(
+        "--listen", action="append", default=[], metavar="ENDPOINT", help="endpoint to listen on"
+    )
+    g.add_argument(
+        "--connect",
+        action="append",
+        default=[],
+        metavar="ENDPOINT",
+        help="router endpoint, e.g. tcp/127.0.0.1:7447 (repeatable)",
+    )
     g.add_argument("--zenoh-config", default=None, metavar="FILE", help="zenoh JSON5 config")
     g.add_argument("--prefix", default=DEFAULT_PREFIX, help="key prefix (default %(default)s)")
 

@@ -124,7 +124,11 @@ def test_export_writes_every_schema(tmp_path: Path) -> None:
         schema = json.loads(data)
         jsonschema.Draft202012Validator.check_schema(schema)
         assert schema["$id"] == model.TYPE
-        assert "type" in schema["required"] and "schema_version" in schema["required"]
+        # the wire contract is what decode accepts: type and schema_version may be omitted,
+        # but when present they must name this model and version
+        assert "type" not in schema["required"] and "schema_version" not in schema["required"]
+        assert schema["properties"]["type"]["const"] == model.TYPE
+        assert schema["properties"]["schema_version"]["const"] == S.SCHEMA_VERSION
         assert schema["additionalProperties"] is False
 
 
@@ -163,3 +167,47 @@ def test_keys_build_and_parse() -> None:
     assert S.model_for_key_parts("robot", "pose") is S.Pose
     assert S.model_for_key_parts("health", "zid") is S.ServiceHealth
     assert S.model_for_key_parts("robot", "odom") is None
+
+
+def _accepts(model: type[S.Message], payload: dict[str, object]) -> tuple[bool, bool]:
+    """(validates against the exported JSON Schema, decodes)."""
+    valid = jsonschema.Draft202012Validator(S.json_schema(model)).is_valid(payload)
+    try:
+        S.decode(model, json.dumps(payload).encode())
+        decodes = True
+    except S.DecodeError:
+        decodes = False
+    return valid, decodes
+
+
+def _variants(msg: S.Message) -> list[tuple[str, dict[str, object]]]:
+    """The full payload, each field left out in turn, every optional field left out, an unknown
+    field, a wrong type tag, a wrong version, a wrong-typed value of each field."""
+    full = json.loads(S.encode(msg))
+    required = set(S.json_schema(type(msg))["required"])
+    out: list[tuple[str, dict[str, object]]] = [("full", full)]
+    out.append(("minimal", {k: v for k, v in full.items() if k in required}))
+    for k in full:
+        out.append((f"without {k}", {j: v for j, v in full.items() if j != k}))
+        out.append((f"{k} as object", {**full, k: {"x": 1}}))
+    out.append(("extra field", {**full, "extra": 1}))
+    out.append(("other type", {**full, "type": "confnav.Other"}))
+    out.append(("version 2", {**full, "schema_version": 2}))
+    return out
+
+
+@pytest.mark.parametrize("msg", SAMPLES, ids=lambda m: type(m).__name__)
+def test_json_schema_accepts_exactly_what_decode_accepts(msg: S.Message) -> None:
+    """For every model: a payload that validates against the exported schema decodes, and one
+    that decodes validates; over accepted and rejected variants of a real message."""
+    model = type(msg)
+    seen = set()
+    for what, payload in _variants(msg):
+        valid, decodes = _accepts(model, payload)
+        assert valid == decodes, (model.TYPE, what, valid, decodes)
+        seen.add(valid)
+    assert seen == {True, False}  # both sides of the contract were exercised
+    # in particular type and schema_version may be left out, as the services accept
+    full = json.loads(S.encode(msg))
+    bare = {k: v for k, v in full.items() if k not in ("type", "schema_version")}
+    assert _accepts(model, bare) == (True, True)

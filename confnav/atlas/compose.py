@@ -27,7 +27,7 @@ from scipy.sparse.csgraph import dijkstra
 from confnav.atlas.charts import Atlas
 from confnav.atlas.decompose import _polygons, inscribed
 from confnav.control import Controller
-from confnav.errors import NavigationError
+from confnav.errors import NavigationError, fmt_point
 from confnav.sim import ARRIVED, COLLIDED, ERROR, STALLED, STATUS_NAMES, TIMEOUT, simulate
 
 __all__ = ["AtlasNavigator", "AtlasRun", "CellPlan", "Overlap", "overlaps", "plan"]
@@ -98,7 +98,7 @@ def plan(atlas: Atlas, goal: complex, links: list[Overlap] | None = None) -> Cel
     inside = [int(i) for i in np.flatnonzero(depth >= margin)]
     inside = inside or [int(i) for i in np.flatnonzero(depth > 0)]
     if not inside:
-        raise NavigationError(f"goal {goal:.6g} lies in no cell of the atlas")
+        raise NavigationError(f"goal {fmt_point(goal)} lies in no cell of the atlas")
     # node n is the goal; edges cell <-> cell through the overlap point
     rows, cols, w = [], [], []
     via: dict[tuple[int, int], complex] = {}

@@ -1,0 +1,1 @@
+"""Benchmarks; ``python -m bench NAME`` regenerates one (see bench/__main__.py)."""

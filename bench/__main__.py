@@ -1,0 +1,227 @@
+"""Regenerate a benchmark's JSON at HEAD: ``python -m bench NAME [--quick] [-- extra args]``.
+
+Runs ``bench/bench_*.py`` of that benchmark as a child process (under ``nice``), then stamps the
+JSON it wrote with its provenance: the commit (and whether the tree had uncommitted changes),
+the UTC date, the machine's load average (``os.getloadavg()``) before and after, the CPU count
+and the exact command. ``python -m bench --list`` lists the benchmarks with the commit their
+stored results were made at ("stale" when that is not HEAD). ``--quick`` runs the benchmark's
+short mode and writes ``results/NAME.quick.json``, never over the full results; ``--dry-run``
+prints the command without running it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import json
+import os
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+HERE = Path(__file__).resolve().parent
+ROOT = HERE.parent
+RESULTS = HERE / "results"
+
+
+@dataclass(frozen=True)
+class Bench:
+    script: str
+    results: str
+    about: str
+    args: tuple[str, ...] = ()
+    quick: tuple[str, ...] = ("--quick",)
+
+
+BENCHMARKS: dict[str, Bench] = {
+    "core": Bench("bench_core.py", "core.json", "solver accuracy and cost, scaling"),
+    "certificate": Bench(
+        "bench_core.py",
+        "core_certificate.json",
+        "near-touching / mirror-symmetric accuracy certificate",
+        args=("--certificate",),
+        quick=("--limit", "60"),
+    ),
+    "eval": Bench("bench_eval.py", "eval.json", "map evaluation and control-step costs"),
+    "navigation": Bench(
+        "bench_navigation.py",
+        "navigation.json",
+        "success / path ratio with the library defaults on realistic scenes",
+        quick=("--starts", "20", "--only", "default", "--no-cost"),
+    ),
+    "services": Bench("bench_services.py", "services.json", "latency and CPU over real Zenoh"),
+    "mapimport": Bench(
+        "bench_mapimport.py",
+        "mapimport.json",
+        "occupancy-grid import of 400x400 grids",
+        quick=("--runs", "1"),
+    ),
+    "atlas": Bench(
+        "bench_atlas.py",
+        "atlas.json",
+        "atlas solve and navigation on floor plans",
+        quick=("--starts", "10", "--scenario", "office"),
+    ),
+    "chaos": Bench(
+        "bench_chaos.py",
+        "chaos.json",
+        "fuzz, kill -9 and soak of the running system",
+        quick=("fuzz", "--n", "100", "--queries", "20"),
+    ),
+}
+
+
+def _git(*args: str) -> str:
+    try:
+        return subprocess.run(
+            ["git", *args], cwd=ROOT, capture_output=True, text=True, check=True
+        ).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return ""
+
+
+def head() -> tuple[str, bool]:
+    """(commit of HEAD, whether tracked files differ from it)."""
+    return _git("rev-parse", "HEAD"), bool(_git("status", "--porcelain", "--untracked-files=no"))
+
+
+def recorded_commit(doc: Any) -> str | None:
+    """The commit a results file says it was made at (its provenance, else older layouts)."""
+    if not isinstance(doc, dict):
+        return None
+    for holder in (doc.get("provenance"), doc, doc.get("code"), doc.get("machine")):
+        if isinstance(holder, dict) and isinstance(holder.get("commit"), str):
+            return str(holder["commit"])
+    return None
+
+
+def out_path(name: str, quick: bool, out: Path | None) -> Path:
+    if out is not None:
+        return out
+    results = BENCHMARKS[name].results
+    return RESULTS / (results.replace(".json", ".quick.json") if quick else results)
+
+
+def command(name: str, out: Path, quick: bool, extra: list[str]) -> list[str]:
+    b = BENCHMARKS[name]
+    return [
+        sys.executable,
+        str(HERE / b.script),
+        *b.args,
+        *(b.quick if quick else ()),
+        "--out",
+        str(out),
+        *extra,
+    ]
+
+
+def stamp(path: Path, provenance: dict[str, Any]) -> None:
+    """Add ``provenance`` to the JSON object the benchmark wrote at ``path``."""
+    doc = json.loads(path.read_text())
+    if not isinstance(doc, dict):
+        doc = {"results": doc}
+    doc["provenance"] = provenance
+    path.write_text(json.dumps(doc, indent=1) + "\n")
+
+
+def run(name: str, quick: bool, out: Path | None, extra: list[str], nice: int) -> int:
+    target = out_path(name, quick, out)
+    cmd = command(name, target, quick, extra)
+    commit, dirty = head()
+    load0 = list(os.getloadavg())
+    t0 = time.perf_counter()
+    started = dt.datetime.now(dt.UTC).isoformat(timespec="seconds")
+    print(
+        f"bench {name}: {' '.join(cmd)}\n  commit {commit[:12]}{' (dirty)' if dirty else ''}, "
+        f"load {' '.join(f'{x:.2f}' for x in load0)}",
+        flush=True,
+    )
+    env = dict(
+        os.environ,
+        PYTHONPATH=os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")])),
+    )
+    rc = subprocess.run(
+        cmd, cwd=ROOT, env=env, preexec_fn=(lambda: os.nice(nice)) if nice else None
+    ).returncode
+    if rc != 0:
+        print(f"bench {name}: exited {rc}; {target} not stamped", file=sys.stderr)
+        return rc
+    if not target.exists():
+        print(f"bench {name}: {target} was not written", file=sys.stderr)
+        return 1
+    stamp(
+        target,
+        {
+            "benchmark": name,
+            "commit": commit,
+            "dirty": dirty,
+            "date": started,
+            "loadavg_start": load0,
+            "loadavg_end": list(os.getloadavg()),
+            "cpu_count": os.cpu_count(),
+            "wall_time_s": round(time.perf_counter() - t0, 3),
+            "quick": quick,
+            "command": [Path(cmd[0]).name, *cmd[1:]],
+        },
+    )
+    print(f"bench {name}: wrote {target}")
+    return 0
+
+
+def list_benchmarks() -> None:
+    commit, _ = head()
+    print(f"{'name':<12} {'results':<28} {'made at':<22} {'date':<26} about")
+    for name, b in BENCHMARKS.items():
+        path = RESULTS / b.results
+        made, date = "-", "-"
+        if path.exists():
+            try:
+                doc = json.loads(path.read_text())
+            except ValueError:
+                doc = None
+            c = recorded_commit(doc)
+            made = (
+                "unrecorded" if c is None else c[:12] + ("" if commit.startswith(c) else " (stale)")
+            )
+            prov = doc.get("provenance") if isinstance(doc, dict) else None
+            date = str((prov or doc or {}).get("date", "-")) if isinstance(doc, dict) else "-"
+        else:
+            made = "missing"
+        print(f"{name:<12} {b.results:<28} {made:<22} {date:<26} {b.about}")
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(
+        prog="python -m bench",
+        description=__doc__.split("\n\n")[0],
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        epilog="example: python -m bench mapimport --quick; python -m bench core -- --runs 1",
+    )
+    ap.add_argument("name", nargs="?", choices=sorted(BENCHMARKS), help="benchmark to run")
+    ap.add_argument("--list", action="store_true", help="list the benchmarks and their results")
+    ap.add_argument("--quick", action="store_true", help="short mode, to NAME.quick.json")
+    ap.add_argument("--out", type=Path, default=None, help="results file (default: results/)")
+    ap.add_argument("--dry-run", action="store_true", help="print the command only")
+    ap.add_argument("--nice", type=int, default=10, help="niceness of the benchmark process")
+    argv = list(sys.argv[1:] if argv is None else argv)
+    extra = argv[argv.index("--") + 1 :] if "--" in argv else []  # passed on to the benchmark
+    args = ap.parse_args(argv[: len(argv) - len(extra) - (1 if "--" in argv else 0)])
+    if args.list:
+        list_benchmarks()
+        return 0
+    if args.name is None:
+        ap.error("a benchmark NAME or --list is needed")
+    if args.out is not None and not args.out.resolve().parent.is_dir():
+        ap.error(f"no directory {str(args.out.resolve().parent)!r} for --out")
+    if args.dry_run:
+        target = out_path(args.name, args.quick, args.out)
+        print(" ".join(command(args.name, target, args.quick, extra)))
+        return 0
+    return run(args.name, args.quick, args.out, extra, args.nice)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

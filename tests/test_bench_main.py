@@ -1,0 +1,58 @@
+"""``python -m bench``: the dispatcher lists every benchmark, builds its command, stamps the
+JSON with its provenance (the benchmarks themselves are not run here: too long)."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from bench.__main__ import BENCHMARKS, head, out_path, recorded_commit, stamp  # noqa: E402
+
+
+def bench(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "bench", *args], cwd=ROOT, capture_output=True, text=True, timeout=60
+    )
+
+
+def test_list_names_every_benchmark_with_its_script() -> None:
+    res = bench("--list")
+    assert res.returncode == 0, res.stderr
+    for name, b in BENCHMARKS.items():
+        assert (ROOT / "bench" / b.script).exists(), name
+        assert any(line.startswith(name + " ") for line in res.stdout.splitlines()), name
+
+
+def test_dry_run_builds_the_command_and_quick_never_overwrites_full_results() -> None:
+    res = bench("mapimport", "--quick", "--dry-run", "--", "--navigate")
+    assert res.returncode == 0, res.stderr
+    cmd = res.stdout.split()
+    assert cmd[1].endswith("bench/bench_mapimport.py")
+    assert cmd[2:] == ["--runs", "1", "--out", str(out_path("mapimport", True, None)), "--navigate"]
+    assert out_path("core", True, None).name == "core.quick.json"
+    assert out_path("core", False, None).name == "core.json"
+
+
+@pytest.mark.parametrize("args", [("nope",), (), ("core", "--out", "/nonexistent-dir/x.json")])
+def test_mistakes_are_one_line(args: tuple[str, ...]) -> None:
+    res = bench(*args)
+    assert res.returncode == 2 and "Traceback" not in res.stderr
+
+
+def test_stamp_records_commit_date_and_load(tmp_path: Path) -> None:
+    path = tmp_path / "r.json"
+    path.write_text(json.dumps({"rows": [1, 2], "commit": "old"}))
+    commit, _dirty = head()
+    stamp(path, {"commit": commit, "loadavg_start": [0.5, 0.4, 0.3]})
+    doc = json.loads(path.read_text())
+    assert doc["rows"] == [1, 2]
+    assert recorded_commit(doc) == commit != "old"
+    assert recorded_commit({"code": {"commit": "abc"}}) == "abc"
+    assert recorded_commit({"rows": []}) is None
