@@ -52,6 +52,7 @@ class Track:
     reason: str = ""
     arrived_at: float | None = None
     collided: CollisionEvent | None = None
+    radius: float = 0.0  # body radius (m): clearances are the body's, not the centre's
 
     @property
     def position(self) -> complex:
@@ -211,12 +212,14 @@ def summary(tracks: dict[str, Track]) -> tuple[str, bool]:
     from confnav.workspaces import default_workspace
 
     ws = default_workspace()
-    rows = [("robot", "start", "final", "dist", "arrived (s)", "path (m)", "min clear", "result")]
+    rows = [("robot", "start", "final", "dist", "arrived (s)", "path (m)", "body clear", "result")]
     ok = True
     for t in tracks.values():
         import numpy as np
 
-        clear = float(np.min(ws.clearance(np.asarray(t.path)))) if t.path else float("nan")
+        clear = (
+            float(np.min(ws.clearance(np.asarray(t.path)))) - t.radius if t.path else float("nan")
+        )
         good = t.arrived_at is not None and t.collided is None
         ok &= good
         result = (
@@ -259,7 +262,7 @@ def run_demo(
     old_recordings = set(out.glob("demo*.mcap"))  # never overwritten: demo.1.mcap... follow
     starts = {f"r{i + 1}": z for i, z in enumerate(DEFAULT_STARTS)}
     tracks = {rid: Track(rid, z, DEFAULT_GOAL) for rid, z in starts.items()}
-    tracks[UNICYCLE[0]] = Track(UNICYCLE[0], UNICYCLE[1], DEFAULT_GOAL)
+    tracks[UNICYCLE[0]] = Track(UNICYCLE[0], UNICYCLE[1], DEFAULT_GOAL, radius=UNICYCLE[3])
     sockdir = tempfile.mkdtemp(prefix="confnav-demo-")
     sock = f"unixsock-stream/{sockdir}/router.sock"
     launcher = Launcher(
