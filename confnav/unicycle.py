@@ -29,7 +29,7 @@ References
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -37,7 +37,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from confnav.control import Controller, Status
 from confnav.errors import NavigationError
-from confnav.sim import STATUS_NAMES, RunResult, SimulationResult, _chord_check, simulate
+from confnav.sim import SimulationResult, _chord_check, simulate
 
 __all__ = [
     "UnicycleController",
@@ -143,59 +143,15 @@ class UnicycleController:
         return UnicycleOutput(u=v + 1j * omega, status=out.status, point=p)
 
 
-@dataclass(frozen=True)
-class UnicycleResult:
-    """Runs of unicycle robots. ``min_clearance`` is the *body's* (axle clearance minus the
-    radius) along the whole path; ``final_distance`` is that of the look-ahead point; status
-    codes index :data:`confnav.sim.STATUS_NAMES`."""
+@dataclass(frozen=True, kw_only=True)
+class UnicycleResult(SimulationResult):
+    """Runs of unicycle robots: a :class:`confnav.sim.SimulationResult` whose ``final`` are axle
+    positions, plus the start and final ``headings`` (rad). ``min_clearance`` is the *body's*
+    (axle clearance minus the radius) along the whole path; ``final_distance`` is that of the
+    look-ahead point."""
 
-    starts: CArray
     headings: FArray
-    status: NDArray[np.int8]
-    time: FArray
-    path_length: FArray
-    min_clearance: FArray
-    final: CArray
     final_theta: FArray
-    final_distance: FArray
-    n_steps: NDArray[np.int64]
-    max_speed: FArray
-    wall_time: float
-    paths: tuple[CArray, ...] | None = field(default=None, repr=False)
-
-    @property
-    def success(self) -> NDArray[np.bool_]:
-        return np.asarray(self.status == ARRIVED, dtype=bool)
-
-    @property
-    def success_rate(self) -> float:
-        return float(np.mean(self.success)) if self.success.size else float("nan")
-
-    def runs(self) -> list[RunResult]:
-        return [
-            RunResult(
-                start=complex(self.starts[i]),
-                success=bool(self.success[i]),
-                collided=bool(self.collided[i]),
-                status=STATUS_NAMES[int(self.status[i])],
-                time=float(self.time[i]),
-                path_length=float(self.path_length[i]),
-                min_clearance=float(self.min_clearance[i]),
-                final_distance=float(self.final_distance[i]),
-                max_speed=float(self.max_speed[i]),
-                n_steps=int(self.n_steps[i]),
-            )
-            for i in range(self.starts.size)
-        ]
-
-    @property
-    def collided(self) -> NDArray[np.bool_]:
-        return np.asarray(self.status == COLLIDED, dtype=bool)
-
-    @property
-    def message(self) -> str:
-        counts = np.bincount(self.status, minlength=len(STATUS_NAMES))
-        return ", ".join(f"{n} {s}" for s, n in zip(STATUS_NAMES, counts, strict=False) if n)
 
 
 def _lowered(clearance: Any, margin: float) -> Any:
@@ -249,11 +205,13 @@ def simulate_unicycle(
     vmax = np.zeros(n)
     chunks: list[tuple[NDArray[np.intp], CArray]] = []
     max_steps = int(20 * t_max / dt) + 1
+    nfev = 0
     while True:
         a = np.flatnonzero(status < 0)
         if a.size == 0:
             break
         out = uc(z[a], th[a])
+        nfev += 1
         code = np.asarray(out.status)
         status[a[code == Status.ARRIVED]] = ARRIVED
         status[a[code == Status.ERROR]] = ERROR
@@ -290,18 +248,22 @@ def simulate_unicycle(
         paths = tuple(np.split(pts[order], np.cumsum(np.bincount(who, minlength=n))[:-1]))
     return UnicycleResult(
         starts=z0,
-        headings=th0,
+        goal=uc.goal,
+        success=np.asarray(status == ARRIVED, dtype=bool),
+        collided=np.asarray(status == COLLIDED, dtype=bool),
         status=status,
         time=t,
         path_length=length,
         min_clearance=minclr,
         final=z,
-        final_theta=th,
         final_distance=np.abs(look_ahead_point(z, th, uc.d) - uc.goal),
         n_steps=nsteps,
         max_speed=vmax,
+        nfev=nfev,
         wall_time=time.perf_counter() - t0,
         paths=paths,
+        headings=th0,
+        final_theta=th,
     )
 
 
