@@ -47,7 +47,6 @@ from confnav.schemas import (
     TransformSolution,
     VelocityCommand,
     WorkspaceDefinition,
-    WorkspaceDelete,
     decode,
     encode,
 )
@@ -330,15 +329,8 @@ class ControllerService(Service):
 
     def _on_ws_delete(self, key: str, payload: bytes) -> None:
         """A deleted workspace: its map is dropped, its robots stop (missing_map)."""
-        self.count("deletes_received")
-        try:
-            ws_id = self.keys.parse(key).ident
-            msg = decode(WorkspaceDelete, payload)
-            if msg.ws_id != ws_id:
-                raise DecodeError("invalid_input", f"delete on {key} names {msg.ws_id!r}")
-        except (KeyError_, DecodeError) as exc:
-            self.count("rejected")
-            log.warning("rejected delete on %s: %s", key, exc)
+        ws_id = self.workspace_to_delete(key, payload)
+        if ws_id is None:
             return
         now = time.monotonic()
         with self._lock:

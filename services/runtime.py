@@ -13,9 +13,9 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from types import FrameType
 
-from confnav.schemas import ServiceHealth, encode
+from confnav.schemas import DecodeError, ServiceHealth, WorkspaceDelete, decode, encode
 from confnav.services.bus import Bus, Closeable, ZenohBus, zenoh_config
-from confnav.services.keys import DEFAULT_PREFIX, Keys
+from confnav.services.keys import DEFAULT_PREFIX, KeyError_, Keys
 
 log = logging.getLogger(__name__)
 
@@ -119,6 +119,22 @@ class Service:
     def count(self, what: str, n: int = 1) -> None:
         with self._counter_lock:
             self.counters[what] += n
+
+    def workspace_to_delete(self, key: str, payload: bytes) -> str | None:
+        """The workspace id of a ``WorkspaceDelete`` on ``{prefix}/ws/{ws}/delete``, or None
+        (counted as ``rejected`` and logged) if the key or message is malformed or they
+        disagree."""
+        self.count("deletes_received")
+        try:
+            ws_id = self.keys.parse(key).ident
+            msg = decode(WorkspaceDelete, payload)
+            if msg.ws_id != ws_id:
+                raise DecodeError("invalid_input", f"delete on {key} names {msg.ws_id!r}")
+        except (KeyError_, DecodeError) as exc:
+            self.count("rejected")
+            log.warning("rejected delete on %s: %s", key, exc)
+            return None
+        return ws_id
 
     def health_detail(self) -> tuple[str, str]:
         """(state, detail) for the health message; override to report degradation."""

@@ -46,7 +46,6 @@ from confnav.schemas import (
     TransformSolution,
     TransformStatus,
     WorkspaceDefinition,
-    WorkspaceDelete,
     decode,
     encode,
 )
@@ -300,15 +299,8 @@ class TransformService(Service):
 
     def _on_delete(self, key: str, payload: bytes) -> None:
         """Forget a workspace: state, saved definition; status ``deleted``."""
-        self.count("deletes_received")
-        try:
-            ws_id = self.keys.parse(key).ident
-            msg = decode(WorkspaceDelete, payload)
-            if msg.ws_id != ws_id:
-                raise DecodeError("invalid_input", f"delete on {key} names {msg.ws_id!r}")
-        except (KeyError_, DecodeError) as exc:
-            self.count("rejected")
-            log.warning("rejected delete on %s: %s", key, exc)
+        ws_id = self.workspace_to_delete(key, payload)
+        if ws_id is None:
             return
         with self._lock:
             st = self._ws.pop(ws_id, None)
