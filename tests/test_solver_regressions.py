@@ -26,4 +26,4 @@ TRIANGLES = [
 @pytest.mark.parametrize("tri", TRIANGLES[:1])
 def test_single_convex_triangle_solves(tri: list[tuple[float, float]]) -> None:
     cm = confnav.solve(Workspace(SQUARE, [tri]), tol=1e-7, nodes_per_side=24)
-    assert cm.tol_met
+    assert cm.diagnostics.tol_met
