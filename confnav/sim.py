@@ -96,8 +96,25 @@ class RunResult:
         }
 
 
+class Outcomes:
+    """Success rate and outcome counts of a batch whose ``success`` and ``status`` (codes
+    indexing :data:`STATUS_NAMES`) are per-robot arrays; shared by the result types."""
+
+    success: NDArray[np.bool_]
+    status: NDArray[np.int8]
+
+    @property
+    def success_rate(self) -> float:
+        return float(np.mean(self.success)) if self.success.size else float("nan")
+
+    @property
+    def message(self) -> str:
+        counts = np.bincount(self.status, minlength=len(STATUS_NAMES))
+        return ", ".join(f"{n} {s}" for s, n in zip(STATUS_NAMES, counts, strict=False) if n)
+
+
 @dataclass(frozen=True)
-class SimulationResult:
+class SimulationResult(Outcomes):
     """A batch of runs: per-start arrays plus counters (scipy ``OdeResult`` style).
 
     status codes index :data:`STATUS_NAMES`; ``paths`` holds each robot's accepted points
@@ -121,14 +138,6 @@ class SimulationResult:
     paths: tuple[CArray, ...] | None = field(default=None, repr=False)
     reasons: tuple[str, ...] = ()
 
-    @property
-    def success_rate(self) -> float:
-        return float(np.mean(self.success)) if self.success.size else float("nan")
-
-    @property
-    def message(self) -> str:
-        counts = np.bincount(self.status, minlength=len(STATUS_NAMES))
-        return ", ".join(f"{n} {s}" for s, n in zip(STATUS_NAMES, counts, strict=False) if n)
 
     def run(self, i: int) -> RunResult:
         return RunResult(

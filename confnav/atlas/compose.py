@@ -28,7 +28,7 @@ from confnav.atlas.charts import Atlas
 from confnav.atlas.decompose import _polygons, inscribed
 from confnav.control import Controller
 from confnav.errors import NavigationError, fmt_point
-from confnav.sim import ARRIVED, COLLIDED, ERROR, STALLED, STATUS_NAMES, TIMEOUT, simulate
+from confnav.sim import ARRIVED, COLLIDED, ERROR, STALLED, TIMEOUT, Outcomes, simulate
 
 __all__ = ["AtlasNavigator", "AtlasRun", "CellPlan", "Overlap", "overlaps", "plan"]
 
@@ -126,7 +126,7 @@ def plan(atlas: Atlas, goal: complex, links: list[Overlap] | None = None) -> Cel
 
 
 @dataclass(frozen=True)
-class AtlasRun:
+class AtlasRun(Outcomes):
     """Result of :meth:`AtlasNavigator.run` (per start arrays; status names as in
     :data:`confnav.sim.STATUS_NAMES`).  ``switches`` counts chart switches per robot and
     ``cells`` lists each robot's sequence of active cells."""
@@ -143,14 +143,6 @@ class AtlasRun:
     cells: tuple[tuple[int, ...], ...]
     wall_time: float
 
-    @property
-    def success_rate(self) -> float:
-        return float(np.mean(self.success)) if self.success.size else float("nan")
-
-    @property
-    def message(self) -> str:
-        counts = np.bincount(self.status, minlength=len(STATUS_NAMES))
-        return ", ".join(f"{n} {s}" for s, n in zip(STATUS_NAMES, counts, strict=False) if n)
 
 
 class AtlasNavigator:
