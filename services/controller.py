@@ -494,15 +494,10 @@ class ControllerService(Service):
     def _on_cancel(self, key: str, payload: bytes) -> None:
         """Cancel: zero command, ``idle`` status, and the robot is forgotten."""
         self.count("cancels_received")
-        try:
-            rid = self.keys.parse(key).ident
-            cancel = decode(GoalCancel, payload)
-            if cancel.robot_id != rid:
-                raise DecodeError("invalid_input", f"cancel on {key} names {cancel.robot_id!r}")
-        except (KeyError_, DecodeError) as exc:
-            self.count("rejected")
-            log.warning("rejected cancel on %s: %s", key, exc)
+        got = self.decode_keyed(GoalCancel, key, payload, "robot_id", "cancel")
+        if got is None:
             return
+        rid = got[0]
         self.count("cancels")
         self._forget(rid, "cancelled")
 

@@ -12,12 +12,15 @@ from collections import Counter
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from types import FrameType
+from typing import TypeVar
 
-from confnav.schemas import DecodeError, ServiceHealth, WorkspaceDelete, decode, encode
+from confnav.schemas import DecodeError, Message, ServiceHealth, WorkspaceDelete, decode, encode
 from confnav.services.bus import Bus, Closeable, ZenohBus, zenoh_config
 from confnav.services.keys import DEFAULT_PREFIX, KeyError_, Keys
 
 log = logging.getLogger(__name__)
+
+M = TypeVar("M", bound=Message)
 
 
 def add_zenoh_args(parser: argparse.ArgumentParser) -> None:
@@ -120,21 +123,29 @@ class Service:
         with self._counter_lock:
             self.counters[what] += n
 
-    def workspace_to_delete(self, key: str, payload: bytes) -> str | None:
-        """The workspace id of a ``WorkspaceDelete`` on ``{prefix}/ws/{ws}/delete``, or None
-        (counted as ``rejected`` and logged) if the key or message is malformed or they
-        disagree."""
-        self.count("deletes_received")
+    def decode_keyed(
+        self, model: type[M], key: str, payload: bytes, id_field: str, what: str
+    ) -> tuple[str, M] | None:
+        """``(id, message)`` of a ``model`` message on ``key``, whose ``id_field`` must equal
+        the key's id; None (counted as ``rejected`` and logged) if the key or the message is
+        malformed or they disagree."""
         try:
-            ws_id = self.keys.parse(key).ident
-            msg = decode(WorkspaceDelete, payload)
-            if msg.ws_id != ws_id:
-                raise DecodeError("invalid_input", f"delete on {key} names {msg.ws_id!r}")
+            ident = self.keys.parse(key).ident
+            msg = decode(model, payload)
+            if getattr(msg, id_field) != ident:
+                named = getattr(msg, id_field)
+                raise DecodeError("invalid_input", f"{what} on {key} names {named!r}")
         except (KeyError_, DecodeError) as exc:
             self.count("rejected")
-            log.warning("rejected delete on %s: %s", key, exc)
+            log.warning("rejected %s on %s: %s", what, key, exc)
             return None
-        return ws_id
+        return ident, msg
+
+    def workspace_to_delete(self, key: str, payload: bytes) -> str | None:
+        """The workspace id of a ``WorkspaceDelete`` on ``{prefix}/ws/{ws}/delete``, or None."""
+        self.count("deletes_received")
+        got = self.decode_keyed(WorkspaceDelete, key, payload, "ws_id", "delete")
+        return None if got is None else got[0]
 
     def health_detail(self) -> tuple[str, str]:
         """(state, detail) for the health message; override to report degradation."""
