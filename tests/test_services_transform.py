@@ -278,6 +278,11 @@ def test_dead_worker_rebuilds_the_pool_retries_then_fails_with_the_reason(
         two = square_definition("two", [(0.2, 0), (-0.3, 0.1)])
         client.publish(K.ws("two", "definition"), encode(two))
         wait_for(lambda: svc.state_of("two") == "failed", timeout=60)
+        # the status message follows the state change: wait for it on the bus
+        wait_for(
+            lambda: decode(TransformStatus, rec.on(K.ws("two", "status"))[-1]).state == "failed",
+            timeout=10,
+        )
         st = decode(TransformStatus, rec.on(K.ws("two", "status"))[-1])
         assert st.state == "failed" and "solver worker died 2 times" in st.message
         [r] = client.query(K.ws("two", "transform"))
