@@ -36,8 +36,8 @@ import numpy as np  # noqa: E402
 from confnav.atlas import AtlasNavigator, needs_atlas, solve_atlas  # noqa: E402
 from confnav.atlas.scenes import office, spiral, warehouse  # noqa: E402
 from confnav.errors import ConfnavError  # noqa: E402
-from confnav.scenarios import Scenario, random_starts  # noqa: E402
-from confnav.shortest_path import ShortestPaths  # noqa: E402
+from confnav.navigation.shortest_path import ShortestPaths  # noqa: E402
+from confnav.scenes.scenarios import Scenario, random_starts  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results" / "atlas.json"
 SCENARIOS: dict[str, Callable[[], Scenario]] = {

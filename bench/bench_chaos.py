@@ -45,7 +45,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-
 from confnav.schemas import (
     CollisionEvent,
     DecodeError,
@@ -347,7 +346,7 @@ def system_config(
 
 def check_recordings(out: Path) -> list[dict[str, Any]]:
     """Every recording file: complete (footer) or restored by recover (messages)."""
-    from confnav.services.recover import has_footer, recover
+    from confnav.recording.recover import has_footer, recover
 
     rows: list[dict[str, Any]] = []
     for path in sorted(out.glob("chaos*.mcap")):
@@ -446,7 +445,7 @@ def run_fuzz(n: int, queries: int, work: Path) -> dict[str, Any]:
         launcher.shutdown()
         shutil.rmtree(sockdir, ignore_errors=True)
     # the recorder holds every delivered fuzz message, per topic
-    from confnav.services.inspection import Recording
+    from confnav.recording.inspect import Recording
 
     got_topics: Counter[str] = Counter()
     files = sorted(p for p in out.glob("chaos*.mcap") if ".recovered" not in p.name)
@@ -540,7 +539,7 @@ def _kill_victim(
 ) -> list[dict[str, Any]]:
     """One system; ``repeats`` kills of ``victim``; rows appended to ``runs`` and stop
     latencies to ``stops``; returns the state of its recording files."""
-    from confnav.workspaces import DEFAULT_GOAL
+    from confnav.scenes.workspaces import DEFAULT_GOAL
 
     out = work / f"kill-{victim}"
     out.mkdir(parents=True, exist_ok=True)
@@ -637,7 +636,7 @@ def _kill_victim(
 def run_kill(
     victims: list[str], repeats: int, work: Path, time_scale: float, cmd_timeout: float
 ) -> dict[str, Any]:
-    from confnav.workspaces import DEFAULT_STARTS
+    from confnav.scenes.workspaces import DEFAULT_STARTS
 
     starts = {f"r{i + 1}": z for i, z in enumerate(DEFAULT_STARTS)}
     rate = 50.0
@@ -666,7 +665,7 @@ def run_kill(
 # soak
 # ------------------------------------------------------------------------------------------
 def free_points(n: int, seed: int = 1) -> list[complex]:
-    from confnav.workspaces import default_workspace
+    from confnav.scenes.workspaces import default_workspace
 
     ws = default_workspace()
     rng = np.random.default_rng(seed)
@@ -679,7 +678,7 @@ def free_points(n: int, seed: int = 1) -> list[complex]:
 
 
 def run_soak(minutes: float, n_robots: int, work: Path, rate: float) -> dict[str, Any]:
-    from confnav.workspaces import DEFAULT_GOAL
+    from confnav.scenes.workspaces import DEFAULT_GOAL
 
     starts = {f"s{i}": z for i, z in enumerate(free_points(n_robots))}
     out = work / "soak"

@@ -7,7 +7,8 @@
 2. accuracy table for tol = 1e-6 .. 1e-12: wall time (median over fresh solves), true error of
    centres and radii against the reference, the solver's own error estimate and whether it bounds
    the true error, tol_met, level reached, nodes, sweeps;
-3. node-count scaling over ``confnav.solver.LEVELS`` (error and time exponents, least squares);
+3. node-count scaling over ``confnav.conformal.solver.LEVELS`` (error and time exponents, least
+   squares);
 4. obstacle-count scaling on ``mixed_obstacles(n, seed=0)`` at tol 1e-8 (time exponent in n);
 5. targets (issue): default workspace to 1e-10 in <= 1 s; 50 mixed obstacles to 1e-8 in <= 10 s.
 6. ``--certificate`` (issue 8, runs alone): near-touching mirror-symmetric square pairs (gaps
@@ -44,9 +45,9 @@ import numpy as np
 import scipy
 
 import confnav
+from confnav.conformal.solver import LEVELS, AccuracyWarning, _solve_level
 from confnav.errors import ConfnavError
-from confnav.solver import LEVELS, AccuracyWarning, _solve_level
-from confnav.workspaces import default_workspace, mixed_obstacles
+from confnav.scenes.workspaces import default_workspace, mixed_obstacles
 
 RESULTS = Path(__file__).resolve().parent / "results" / "core.json"
 REF_LEVEL = 256

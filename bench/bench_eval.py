@@ -4,7 +4,8 @@ Measures on the default workspace (seed Sec. VI, DESIGN.md sec. 5), for the navi
 the controller service uses (``for_navigation()``) and for the full solver map:
 
 * T and T' per point for a batch of 1000 robots and for one robot: the direct barycentric
-  formula (linear in the boundary nodes), the local expansions of confnav/expansion.py (one
+  formula (linear in the boundary nodes), the local expansions of confnav/conformal/expansion.py
+  (one
   polynomial per point away from the walls, direct near them) and the pyfmmlib FMM;
 * the build of the expansions (time, leaves, recorded truncation bound, coverage);
 * their accuracy against the barycentric sums in extended precision;
@@ -38,10 +39,10 @@ from typing import Any  # noqa: E402
 import numpy as np  # noqa: E402
 
 import confnav  # noqa: E402
-from confnav.cauchy import HAVE_FMM, _fmm  # noqa: E402
-from confnav.cmap import ConformalMap  # noqa: E402
-from confnav.control import Controller  # noqa: E402
-from confnav.scenarios import default_scenario, random_starts  # noqa: E402
+from confnav.conformal.cauchy import HAVE_FMM, _fmm  # noqa: E402
+from confnav.conformal.cmap import ConformalMap  # noqa: E402
+from confnav.navigation.control import Controller  # noqa: E402
+from confnav.scenes.scenarios import default_scenario, random_starts  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results" / "eval.json"
 V_MAX = 1.0

@@ -31,8 +31,8 @@ from typing import Any
 import numpy as np
 from PIL import Image
 
-from confnav.mapimport import import_map, rasterize
-from confnav.workspaces import default_workspace
+from confnav.maps.occupancy import import_map, rasterize
+from confnav.scenes.workspaces import default_workspace
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "bench" / "results" / "mapimport.json"
@@ -75,7 +75,7 @@ def navigate(tmp: Path) -> dict[str, Any]:
     """Import, solve and simulate the warehouse example through the CLI (the contract)."""
     ws = tmp / "warehouse.json"
     env = dict(os.environ, PYTHONPATH=str(ROOT))
-    cli = [sys.executable, "-m", "confnav.cli"]
+    cli = [sys.executable, "-m", "confnav"]
     t0 = time.perf_counter()
     subprocess.run(
         [*cli, "import-map", str(ROOT / "examples" / "warehouse.yaml"), "-o", str(ws)],

@@ -6,7 +6,7 @@
 Scenarios: the default workspace, the L-room, mixed 10 and mixed 20, two cups, rooms written
 like real ones (goal inside a U-shaped shelf's cup, at the end of a wall alcove, behind a 0.8 m
 door in a wall, an office with desks, counter, pillar and partition;
-:mod:`confnav.scenarios`) and the shared scenes (/work/shared/scenes, goal from scenes.json).
+:mod:`confnav.scenes.scenarios`) and the shared scenes (/work/shared/scenes, goal from scenes.json).
 Each scenario: ``--starts`` uniform random starts (0.05 m from walls), every robot driven by
 ``Controller(cmap, goal)`` or ``Controller(cmap, goal, navfn="kr")`` with nothing else set,
 on the map the controller service uses (``for_navigation`` at its accuracy).
@@ -39,9 +39,12 @@ import numpy as np  # noqa: E402
 
 import confnav  # noqa: E402
 from confnav import defaults  # noqa: E402
-from confnav.control import Controller  # noqa: E402
 from confnav.geometry import Workspace  # noqa: E402
-from confnav.scenarios import (  # noqa: E402
+from confnav.navigation.control import Controller  # noqa: E402
+from confnav.navigation.messages import NAV_ACCURACY  # noqa: E402
+from confnav.navigation.shortest_path import ShortestPaths  # noqa: E402
+from confnav.navigation.sim import simulate  # noqa: E402
+from confnav.scenes.scenarios import (  # noqa: E402
     Scenario,
     alcove_room,
     cup_room,
@@ -53,9 +56,6 @@ from confnav.scenarios import (  # noqa: E402
     office,
     random_starts,
 )
-from confnav.services.navigation import NAV_ACCURACY  # noqa: E402
-from confnav.shortest_path import ShortestPaths  # noqa: E402
-from confnav.sim import simulate  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results" / "navigation_defaults.json"
 SCENES = Path("/work/shared/scenes")
@@ -161,8 +161,8 @@ def run_case(sc: Scenario, n: int, seed: int, cache: Path | None, methods: list[
 
 def harmonic_cost(cache: Path | None, n_goals: int = 20) -> dict[str, Any]:
     """Per-map precompute, per-goal solve and memory of the harmonic fit on mixed 20."""
-    from confnav.harmonic import GreenBasis, HarmonicNavigation
-    from confnav.navfn import CircleDomain
+    from confnav.navigation.harmonic import GreenBasis, HarmonicNavigation
+    from confnav.navigation.navfn import CircleDomain
 
     sc = mixed(20)
     cmap = solve_cached(sc.workspace, cache)

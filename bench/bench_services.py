@@ -37,7 +37,6 @@ from pathlib import Path
 from typing import Any, cast
 
 import numpy as np
-
 from confnav.schemas import Goal, TransformSolution, WorkspaceDefinition, decode, encode
 from confnav.schemas.messages import NavFnName
 from confnav.services.bus import ZenohBus, zenoh_config
@@ -65,7 +64,10 @@ def spawn(*args: str, log: Path) -> subprocess.Popen[bytes]:
     env = dict(os.environ)
     env.update({k: v for k, v in SINGLE_THREAD_BLAS.items() if k not in os.environ})
     return subprocess.Popen(
-        [sys.executable, "-m", "confnav.cli", *args], stdout=f, stderr=subprocess.STDOUT, env=env
+        [sys.executable, "-m", "confnav", *args],
+        stdout=f,
+        stderr=subprocess.STDOUT,
+        env=env,
     )
 
 
@@ -103,7 +105,7 @@ def zone_selector(c: int, n_ctl: int) -> str:
 
 
 def free_points(n: int, seed: int = 1) -> list[complex]:
-    from confnav.workspaces import default_workspace
+    from confnav.scenes.workspaces import default_workspace
 
     ws = default_workspace()
     rng = np.random.default_rng(seed)

@@ -6,9 +6,8 @@ pulled back through ``T`` to drive robots.
 """
 
 from confnav.atlas import Atlas, AtlasNavigator, solve_atlas, solve_auto
-from confnav.cmap import ConformalMap, SolveDiagnostics
-from confnav.control import Controller
-from confnav.critical import choose_k, find_critical_points
+from confnav.conformal.cmap import ConformalMap, SolveDiagnostics
+from confnav.conformal.solver import AccuracyWarning, solve
 from confnav.errors import (
     ConfnavError,
     ConvergenceError,
@@ -20,14 +19,15 @@ from confnav.errors import (
     SolverError,
     WorkspaceError,
 )
-from confnav.footprint import UnreachableGoalError, inflate
 from confnav.geometry import Workspace
-from confnav.mapimport import MapError, import_map
-from confnav.navfn import make_navfn
-from confnav.sim import simulate
-from confnav.solver import AccuracyWarning, solve
-from confnav.unicycle import UnicycleController, simulate_unicycle
-from confnav.workspaces import default_workspace
+from confnav.maps.footprint import UnreachableGoalError, inflate
+from confnav.maps.occupancy import MapError, import_map
+from confnav.navigation.control import Controller
+from confnav.navigation.critical import choose_k, find_critical_points
+from confnav.navigation.factory import make_navfn
+from confnav.navigation.sim import simulate
+from confnav.navigation.unicycle import UnicycleController, simulate_unicycle
+from confnav.scenes.workspaces import default_workspace
 
 __version__ = "0.1.0"
 

@@ -16,7 +16,7 @@ from typing import Annotated, ClassVar, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, JsonValue, StringConstraints
 
-from confnav import defaults
+from confnav.navigation import defaults
 
 SCHEMA_VERSION: int = 1
 """Version of every model below; bump (and keep a reader for the old one) on breaking change."""
@@ -150,7 +150,7 @@ class Goal(Message):
     ``speed_law`` ``normalized`` commands the unit direction of the Theorem 2 field times
     ``min(v_max, gain * distance to goal)``, ``theorem2`` the plain law (``gain`` = K)
     saturated at ``v_max``; ``v_max`` is the speed limit (m/s), ``tolerance`` the arrival
-    radius (m).  Every default is the library's (``confnav.defaults``).
+    radius (m).  Every default is the library's (``confnav.navigation.defaults``).
     ``robot_radius`` (m, 0: a point) navigates the robot's centre in the free space shrunk by
     it (the map of the derived workspace ``{ws_id}~r{radius}``); ``drive`` ``unicycle`` steers
     the point ``lookahead`` (m) ahead of the axle with ``v`` and ``omega`` limited by ``v_max``

@@ -37,7 +37,6 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-
 from confnav.schemas import (
     DecodeError,
     Goal,
@@ -50,12 +49,13 @@ from confnav.schemas import (
     decode,
     encode,
 )
-from confnav.services import navigation
 from confnav.services.bus import Bus
 from confnav.services.keys import KeyError_, Keys
 from confnav.services.runtime import Service, add_zenoh_args, run_until_signal
 from confnav.services.shard import RobotSelector, robot_key_exprs, serialized
 from confnav.services.transform import definition_hash, workspace_of
+
+from confnav.navigation import messages as navigation
 
 log = logging.getLogger(__name__)
 

@@ -20,7 +20,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from confnav import defaults
 from confnav.schemas import (
     CollisionEvent,
     DecodeError,
@@ -33,6 +32,8 @@ from confnav.schemas import (
 )
 from confnav.services.launcher import LaunchConfig, Launcher, ServiceSpec
 from confnav.services.runtime import stop_on_signals
+
+from confnav.navigation import defaults
 
 log = logging.getLogger(__name__)
 
@@ -168,7 +169,7 @@ def plot_demo(tracks: dict[str, Track], path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from confnav.workspaces import default_workspace
+    from confnav.scenes.workspaces import default_workspace
 
     ws = default_workspace()
     fig, ax = plt.subplots(figsize=(7, 6))
@@ -209,7 +210,7 @@ def plot_demo(tracks: dict[str, Track], path: Path) -> None:
 
 
 def summary(tracks: dict[str, Track]) -> tuple[str, bool]:
-    from confnav.workspaces import default_workspace
+    from confnav.scenes.workspaces import default_workspace
 
     ws = default_workspace()
     rows = [("robot", "start", "final", "dist", "arrived (s)", "path (m)", "body clear", "result")]
@@ -256,7 +257,7 @@ def run_demo(
     verbose: int = 0,
     live_port: int | None = None,
 ) -> int:
-    from confnav.workspaces import DEFAULT_GOAL, DEFAULT_STARTS
+    from confnav.scenes.workspaces import DEFAULT_GOAL, DEFAULT_STARTS
 
     out.mkdir(parents=True, exist_ok=True)
     old_recordings = set(out.glob("demo*.mcap"))  # never overwritten: demo.1.mcap... follow
@@ -284,8 +285,14 @@ def run_demo(
             bus.subscribe(keys.any_robot("status"), mon.on_status)
             bus.subscribe(keys.any_robot("collision"), mon.on_collision)
             uid, uz, uth, urad, ud = UNICYCLE
-            spawn = SpawnRequest(robot_id=uid, ws_id=WS_ID, position=(uz.real, uz.imag),
-                                 theta=uth, robot_radius=urad, drive="unicycle")
+            spawn = SpawnRequest(
+                robot_id=uid,
+                ws_id=WS_ID,
+                position=(uz.real, uz.imag),
+                theta=uth,
+                robot_radius=urad,
+                drive="unicycle",
+            )
             bus.publish(keys.sim("sim", "spawn"), encode(spawn))
             print(
                 "confnav demo: waiting for the conformal map of the default workspace...",

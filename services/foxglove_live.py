@@ -3,7 +3,7 @@
 Serves Foxglove's WebSocket protocol (``foxglove.websocket.v1``) through the official
 ``foxglove-sdk``: open Foxglove, "Open connection", ``ws://HOST:PORT`` (default
 ``ws://127.0.0.1:8765``). The scene is the one the recordings carry, built by the same
-:class:`confnav.services.foxglove.SceneBuilder` from the same messages: per workspace
+:class:`confnav.recording.scene.SceneBuilder` from the same messages: per workspace
 ``{prefix}/viz/{ws}/scene`` (polygons, robots, trails, goals; frame ``workspace``) and
 ``{prefix}/viz/{ws}/circle_domain``; the robots' and workspaces' status messages are passed
 through unchanged on their own keys (``{prefix}/robot/{r}/status``, ``{prefix}/ws/{ws}/status``,
@@ -25,7 +25,10 @@ from typing import Any
 
 from confnav.schemas import model_for_key_parts, schema_bytes, schema_name
 from confnav.services.bus import Bus
-from confnav.services.foxglove import (
+from confnav.services.keys import Keys
+from confnav.services.runtime import Service, add_zenoh_args, run_until_signal
+
+from confnav.recording.scene import (
     MESSAGE_ENCODING,
     SCENE_SCHEMA_NAME,
     SCHEMA_ENCODING,
@@ -34,8 +37,6 @@ from confnav.services.foxglove import (
     parse_key,
     scene_update_schema_text,
 )
-from confnav.services.keys import Keys
-from confnav.services.runtime import Service, add_zenoh_args, run_until_signal
 
 log = logging.getLogger(__name__)
 

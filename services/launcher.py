@@ -1,7 +1,7 @@
 """``confnav launch``: a router and the services as separate processes, from a TOML manifest.
 
 Starts the router (a Python Zenoh session in router mode) unless the manifest points at an
-existing one, then each service in order (``python -m confnav.cli serve NAME ...``, connected
+existing one, then each service in order (``python -m confnav serve NAME ...``, connected
 as a client to the router), waiting for its liveliness token ``{prefix}/alive/{name}/*``.
 
 Before starting anything it refuses (:class:`LaunchError`, one line, exit 1) when a router
@@ -33,10 +33,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any
 
-from confnav.errors import ConfnavError
 from confnav.services.bus import ZenohBus, zenoh_config
 from confnav.services.keys import DEFAULT_PREFIX, Keys
 from confnav.services.runtime import stop_on_signals
+
+from confnav.errors import ConfnavError
 
 log = logging.getLogger(__name__)
 
@@ -169,7 +170,7 @@ class LaunchConfig:
 
 
 def confnav_command(*args: str) -> list[str]:
-    return [sys.executable, "-m", "confnav.cli", *args]
+    return [sys.executable, "-m", "confnav", *args]
 
 
 @dataclass

@@ -29,11 +29,11 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import zenoh
+from confnav.services.bus import key_matches
 
 from confnav.errors import ConfnavError
-from confnav.services.bus import key_matches
-from confnav.services.foxglove import is_viz_topic
-from confnav.services.inspection import Recording, RecordingError
+from confnav.recording.inspect import Recording, RecordingError
+from confnav.recording.scene import is_viz_topic
 
 logger = logging.getLogger(__name__)
 

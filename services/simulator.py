@@ -24,7 +24,6 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-
 from confnav.schemas import (
     CollisionEvent,
     DecodeError,
@@ -40,7 +39,8 @@ from confnav.services.bus import Bus
 from confnav.services.keys import KeyError_, Keys, validate_id
 from confnav.services.runtime import Service, add_zenoh_args, run_until_signal
 from confnav.services.transform import load_definition, parse_sources, workspace_of
-from confnav.unicycle import step_exact
+
+from confnav.navigation.unicycle import step_exact
 
 log = logging.getLogger(__name__)
 
@@ -96,15 +96,18 @@ class SimulatorService(Service):
             self.spawn_robot(rid, ws, complex(x, y))
 
     def spawn_robot(
-        self, rid: str, ws_id: str, z: complex, theta: float = 0.0, radius: float = 0.0,
+        self,
+        rid: str,
+        ws_id: str,
+        z: complex,
+        theta: float = 0.0,
+        radius: float = 0.0,
         drive: str = "holonomic",
     ) -> None:
         validate_id(rid, "robot id")
         validate_id(ws_id, "workspace id")
         with self._lock:
-            self._robots[rid] = SimRobot(
-                rid, ws_id, z, theta, z, theta, radius=radius, drive=drive
-            )
+            self._robots[rid] = SimRobot(rid, ws_id, z, theta, z, theta, radius=radius, drive=drive)
         log.info("robot %r spawned at %s on %r", rid, z, ws_id)
 
     def _start(self) -> None:
@@ -180,7 +183,11 @@ class SimulatorService(Service):
             log.warning("rejected spawn request: %s", exc)
             return
         self.spawn_robot(
-            req.robot_id, req.ws_id, complex(*req.position), req.theta, req.robot_radius,
+            req.robot_id,
+            req.ws_id,
+            complex(*req.position),
+            req.theta,
+            req.robot_radius,
             req.drive,
         )
 

@@ -93,8 +93,8 @@ def definition_of(ws_id: str, workspace: Any, tol: float = 1e-10) -> WorkspaceDe
 
 def derived_definition(ws_id: str, base: WorkspaceDefinition) -> WorkspaceDefinition:
     """The definition of ``{base}~r{R}``: ``base`` shrunk by a robot footprint of radius R
-    (:func:`confnav.footprint.inflate`, largest component; raises WorkspaceError)."""
-    from confnav.footprint import inflate, parse_derived_ws_id
+    (:func:`confnav.maps.footprint.inflate`, largest component; raises WorkspaceError)."""
+    from confnav.maps.footprint import inflate, parse_derived_ws_id
 
     parsed = parse_derived_ws_id(ws_id)
     assert parsed is not None and parsed[0] == base.ws_id
@@ -104,7 +104,7 @@ def derived_definition(ws_id: str, base: WorkspaceDefinition) -> WorkspaceDefini
 def load_definition(ws_id: str, source: str) -> WorkspaceDefinition:
     """``builtin:default`` or a workspace file (JSON / GeoJSON, see ``Workspace.load``)."""
     if source == "builtin:default":
-        from confnav.workspaces import default_workspace
+        from confnav.scenes.workspaces import default_workspace
 
         return definition_of(ws_id, default_workspace())
     from confnav.geometry import Workspace
@@ -118,7 +118,7 @@ def _xy(z: complex) -> tuple[float, float]:
 
 def solve_definition(defn_json: str) -> dict[str, Any]:
     """Solve one workspace (runs in a worker process): the map's coefficients and summary."""
-    from confnav.solver import solve
+    from confnav.conformal.solver import solve
 
     defn = WorkspaceDefinition.model_validate_json(defn_json)
     cmap = solve(workspace_of(defn), tol=defn.tol)
@@ -283,7 +283,7 @@ class TransformService(Service):
     def _derive(self, ws_id: str) -> str:
         """Solve ``{base}~r{R}`` (a footprint workspace) from the known base definition;
         returns why it cannot be derived ("" if it was submitted or is not a derived id)."""
-        from confnav.footprint import parse_derived_ws_id
+        from confnav.maps.footprint import parse_derived_ws_id
 
         parsed = parse_derived_ws_id(ws_id)
         with self._lock:

@@ -22,7 +22,6 @@ from typing import Any
 
 import numpy as np
 import pytest
-
 from confnav.schemas import WorkspaceDefinition
 
 REPO = Path(__file__).resolve().parents[1]
@@ -130,7 +129,6 @@ def zenoh_endpoint(sockdir: Path) -> str:
 def zenoh_router(zenoh_endpoint: str) -> Iterator[str]:
     """An in-process Zenoh router listening on a unix socket; yields its endpoint."""
     import zenoh
-
     from confnav.services.bus import zenoh_config
 
     with zenoh.open(zenoh_config("router", listen=[zenoh_endpoint])):
@@ -163,7 +161,7 @@ def mem_net() -> Any:
 
 def confnav_cmd(*args: str) -> list[str]:
     """Command line running the confnav CLI with this interpreter."""
-    return [sys.executable, "-m", "confnav.cli", *args]
+    return [sys.executable, "-m", "confnav", *args]
 
 
 def subprocess_env() -> dict[str, str]:

@@ -18,17 +18,10 @@ import numpy as np
 import pytest
 
 import confnav
-from confnav import (
-    ConformalMap,
-    GapError,
-    MapMismatchError,
-    SerializationError,
-    Workspace,
-    circledomain,
-    solver,
-)
-from confnav.cli import main
-from confnav.control import Controller
+from confnav import ConformalMap, GapError, MapMismatchError, SerializationError, Workspace
+from confnav.cli.app import main
+from confnav.conformal import circledomain, solver
+from confnav.navigation.control import Controller
 
 ROOM = [[-2, -2], [2, -2], [2, 2], [-2, 2]]
 

@@ -26,8 +26,8 @@ from confnav.atlas import (
 from confnav.atlas.scenes import corridor, office, spiral, warehouse
 from confnav.errors import SolverError, WorkspaceError
 from confnav.geometry import Workspace
-from confnav.scenarios import random_starts
-from confnav.shortest_path import ShortestPaths
+from confnav.navigation.shortest_path import ShortestPaths
+from confnav.scenes.scenarios import random_starts
 
 TOL = 1e-6  # navigation needs T to ~1e-6 of the unit disk; the test scenes are small
 

@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 from confnav.atlas.scenes import corridor
-from confnav.cli import main
+from confnav.cli.app import main
 
 
 def test_atlas_command_navigates_a_corridor(

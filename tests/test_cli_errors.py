@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 from conftest import confnav_cmd, subprocess_env
 
-from confnav.cli import build_parser
+from confnav.cli.app import build_parser
 from confnav.errors import fmt_point
 
 

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from confnav.cli import main
+from confnav.cli.app import main
 from confnav.geometry import Workspace
 
 ROOM = {
@@ -128,8 +128,8 @@ def test_figures(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
 def test_explicit_k_that_fails_the_check_is_reported(
     room: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    from confnav.control import Controller
-    from confnav.critical import CriticalPoints
+    from confnav.navigation.control import Controller
+    from confnav.navigation.critical import CriticalPoints
 
     spurious = CriticalPoints(
         minima=np.array([0j, 0.5 + 0.5j]),

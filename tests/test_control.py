@@ -9,15 +9,15 @@ from typing import Any
 
 import numpy as np
 import pytest
+from confnav.schemas import Goal
 from numpy.testing import assert_allclose
 
-from confnav import defaults
-from confnav.control import Controller, Status, speed_law
-from confnav.critical import find_critical_points
 from confnav.errors import NavigationError
-from confnav.navfn import CircleDomain
-from confnav.schemas import Goal
-from confnav.sim import simulate
+from confnav.navigation import defaults
+from confnav.navigation.control import Controller, Status, speed_law
+from confnav.navigation.critical import find_critical_points
+from confnav.navigation.navfn import CircleDomain
+from confnav.navigation.sim import simulate
 
 SEED = CircleDomain(
     np.array([0.4227371 + 0.2466153j, -0.4018952 + 0.2782662j, -0.4826272 - 0.3720324j,

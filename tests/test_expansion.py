@@ -1,4 +1,4 @@
-"""Local expansions of the Cauchy sums (confnav/expansion.py) against exact answers.
+"""Local expansions of the Cauchy sums (confnav/conformal/expansion.py) against exact answers.
 
 Exact references: the trapezoidal Cauchy sum of the unit circle has the closed form
 ``sum_k (2pi/n) i w^k/(w^k - z) = 2 pi i/(1 - z^n)`` (w = e^(2 pi i/n); expand in z); for
@@ -12,9 +12,9 @@ from typing import Any
 import numpy as np
 import pytest
 
-from confnav.cmap import ConformalMap
-from confnav.control import Controller
-from confnav.expansion import LocalExpansions
+from confnav.conformal.cmap import ConformalMap
+from confnav.conformal.expansion import LocalExpansions
+from confnav.navigation.control import Controller
 
 
 def _circle(n: int) -> tuple[np.ndarray, np.ndarray]:
@@ -80,7 +80,7 @@ def test_degree_and_separation_trade_accuracy() -> None:
 @pytest.fixture(scope="module")
 def nav_map() -> ConformalMap:
     import confnav
-    from confnav.workspaces import default_workspace
+    from confnav.scenes.workspaces import default_workspace
 
     return confnav.solve(default_workspace(), tol=1e-8).for_navigation()
 
@@ -165,7 +165,7 @@ def test_controller_commands_unchanged(nav_map: ConformalMap) -> None:
 
 
 def test_large_batch_builds_expansions_on_any_map(nav_map: ConformalMap, monkeypatch: Any) -> None:
-    import confnav.cmap as cm
+    import confnav.conformal.cmap as cm
 
     m = ConformalMap.from_dict(nav_map.to_dict())
     z = _test_points(nav_map)["random"][:300]
@@ -184,7 +184,7 @@ def test_large_batch_builds_expansions_on_any_map(nav_map: ConformalMap, monkeyp
 def test_single_point_path_equals_the_batch_path(
     nav_map: ConformalMap, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    import confnav.cmap as cm
+    import confnav.conformal.cmap as cm
 
     ex = nav_map._expansion or LocalExpansions(nav_map._eta, nav_map._Q_fwd)
     pts = _test_points(nav_map)

@@ -12,14 +12,14 @@ import pytest
 import shapely
 
 from confnav.errors import WorkspaceError
-from confnav.footprint import (
+from confnav.geometry import Workspace
+from confnav.maps.footprint import (
     UnreachableGoalError,
     derived_ws_id,
     inflate,
     parse_derived_ws_id,
     shrink_free_space,
 )
-from confnav.geometry import Workspace
 
 ROOM = [(-5, -5), (5, -5), (5, 5), (-5, 5)]
 
@@ -160,11 +160,10 @@ def test_derived_ids() -> None:
 def test_transform_service_solves_footprint_workspaces(mem_net: Any) -> None:
     """A query for {ws}~r{R} makes the transform service solve ws shrunk by R (own cache key);
     an impossible radius gets a reply_err saying why."""
-    from conftest import fake_solve, square_definition, wait_for
-
     from confnav.schemas import TransformSolution, WorkspaceDefinition, decode, encode
     from confnav.services.keys import Keys
     from confnav.services.transform import TransformService
+    from conftest import fake_solve, square_definition, wait_for
 
     K = Keys()
     solved: list[WorkspaceDefinition] = []
@@ -204,10 +203,10 @@ def test_transform_service_solves_footprint_workspaces(mem_net: Any) -> None:
 def test_controller_names_an_unreachable_goal() -> None:
     """The controller service's adapter turns 'goal not in the map' on a footprint map into an
     UnreachableGoalError naming the robot, the goal and the shrunk workspace."""
+    from confnav.schemas import Goal
     from conftest import IdentityMap
 
-    from confnav.schemas import Goal
-    from confnav.services import navigation
+    from confnav.navigation import messages as navigation
 
     cmap = IdentityMap([0.4 + 0j], [0.25])  # the map of "room~r0.1": the obstacle grown by 0.1
     ok = Goal(robot_id="r1", ws_id="room", goal=(-0.5, 0.0), robot_radius=0.1)

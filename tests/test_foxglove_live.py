@@ -12,11 +12,10 @@ from typing import Any
 
 import pytest
 import websockets
-from conftest import square_definition
-
 from confnav.schemas import Goal, Pose, RobotStatus, encode
 from confnav.services.foxglove_live import FoxgloveLiveService
 from confnav.services.keys import Keys
+from conftest import square_definition
 
 pytestmark = pytest.mark.integration
 
@@ -116,11 +115,11 @@ def test_demo_live_and_manifest_entries(tmp_path: Any) -> None:
     import shlex
     import tomllib
 
-    from conftest import REPO
-
-    from confnav.cli import build_parser
     from confnav.services.demo import demo_config
     from confnav.services.launcher import LaunchConfig
+    from conftest import REPO
+
+    from confnav.cli.app import build_parser
 
     parser = build_parser()
     assert parser.parse_args(["demo", "--live"]).live == 8765

@@ -13,12 +13,12 @@ from typing import Any
 
 import jsonschema
 import pytest
+from confnav.schemas import Goal, Pose, WorkspaceDefinition, encode
 from mcap.reader import make_reader
 from mcap.writer import Writer
 
-from confnav.schemas import Goal, Pose, WorkspaceDefinition, encode
-from confnav.services import foxglove as fx
-from confnav.services.inspection import add_scene_channels
+from confnav.recording import scene as fx
+from confnav.recording.inspect import add_scene_channels
 
 REPO = Path(__file__).resolve().parents[1]
 DATA = Path(__file__).resolve().parent / "data"
@@ -304,7 +304,8 @@ def test_viz_cli_on_a_golden_recording(tmp_path: Path, validator: Any) -> None:
     goal = next(e for e in last_cd["entities"] if e["id"] == "goal/r1")["spheres"][0]
     g = goal["pose"]["position"]
     from confnav.schemas import TransformSolution, decode
-    from confnav.services.navigation import load_map
+
+    from confnav.navigation.messages import load_map
 
     (sol,) = [decode(TransformSolution, d) for n, t, d, _t in msgs if t.endswith("/transform")]
     w = complex(load_map(sol).T(0j))  # the goal (0, 0) mapped by the recorded map

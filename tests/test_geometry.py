@@ -10,7 +10,7 @@ import shapely
 
 from confnav import Workspace, WorkspaceError
 from confnav.geometry import signed_area
-from confnav.workspaces import default_workspace, mixed_obstacles
+from confnav.scenes.workspaces import default_workspace, mixed_obstacles
 
 SQUARE = [[-1, -1], [1, -1], [1, 1], [-1, 1]]
 SMALL = [[-0.2, -0.2], [0.2, -0.2], [0.2, 0.2], [-0.2, 0.2]]

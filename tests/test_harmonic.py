@@ -6,10 +6,11 @@ import numpy as np
 import pytest
 from numpy.testing import assert_allclose
 
-from confnav.critical import find_critical_points
 from confnav.errors import NavigationError
-from confnav.harmonic import GreenFunction, HarmonicNavigation
-from confnav.navfn import CircleDomain, make_navfn
+from confnav.navigation.critical import find_critical_points
+from confnav.navigation.factory import make_navfn
+from confnav.navigation.harmonic import GreenFunction, HarmonicNavigation
+from confnav.navigation.navfn import CircleDomain
 
 SEED = CircleDomain(
     np.array([0.4227371 + 0.2466153j, -0.4018952 + 0.2782662j, -0.4826272 - 0.3720324j,

@@ -10,9 +10,6 @@ from pathlib import Path
 
 import pytest
 import shapely
-from conftest import confnav_cmd, subprocess_env
-from mcap.writer import Writer
-
 from confnav.schemas import (
     CollisionEvent,
     Goal,
@@ -23,8 +20,11 @@ from confnav.schemas import (
     WorkspaceDefinition,
     encode,
 )
-from confnav.services import mcap_layout as L
-from confnav.services.inspection import Recording, RecordingError, inspect_recording
+from conftest import confnav_cmd, subprocess_env
+from mcap.writer import Writer
+
+from confnav.recording import layout as L
+from confnav.recording.inspect import Recording, RecordingError, inspect_recording
 
 T0 = 1_700_000_000_000_000_000
 OUTER = [(-1.0, -1.0), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0)]
@@ -239,7 +239,7 @@ GOLDEN = sorted((Path(__file__).resolve().parent / "data").glob("golden_*.mcap")
 def test_plot_adds_the_circle_domain_when_the_map_is_recorded(
     recording: Path, tmp_path: Path
 ) -> None:
-    from confnav.services.inspection import plot_recording
+    from confnav.recording.inspect import plot_recording
 
     rep = inspect_recording(GOLDEN[0])
     assert all(r.arrived for r in rep.robots.values()) and len(rep.robots) == 2

@@ -18,10 +18,6 @@ from typing import Any
 
 import jsonschema
 import pytest
-from conftest import confnav_cmd, subprocess_env, wait_for
-from mcap.reader import make_reader
-
-from confnav.geometry import Workspace
 from confnav.schemas import (
     CollisionEvent,
     Goal,
@@ -34,10 +30,14 @@ from confnav.schemas import (
     decode,
     encode,
 )
-from confnav.services import mcap_layout as L
 from confnav.services.bus import ZenohBus, zenoh_config
 from confnav.services.launcher import LaunchConfig, Launcher, ServiceSpec
 from confnav.services.transform import definition_of
+from conftest import confnav_cmd, subprocess_env, wait_for
+from mcap.reader import make_reader
+
+from confnav.geometry import Workspace
+from confnav.recording import layout as L
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
 

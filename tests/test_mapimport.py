@@ -12,9 +12,9 @@ import pytest
 import shapely
 from PIL import Image
 
-from confnav.cli import main
+from confnav.cli.app import main
 from confnav.geometry import Workspace
-from confnav.mapimport import MapError, import_map, rasterize, workspace_from_grid
+from confnav.maps.occupancy import MapError, import_map, rasterize, workspace_from_grid
 
 RES = 0.05
 # axis-aligned, vertices on cell edges: the raster is exact, so the import must be within a cell

@@ -6,9 +6,10 @@ import numpy as np
 import pytest
 from numpy.testing import assert_allclose
 
-from confnav.critical import choose_k, find_critical_points
 from confnav.errors import NavigationError
-from confnav.navfn import CircleDomain, KoditschekRimon, make_navfn
+from confnav.navigation.critical import choose_k, find_critical_points
+from confnav.navigation.factory import make_navfn
+from confnav.navigation.navfn import CircleDomain, KoditschekRimon
 
 # circle domain of the default workspace (DESIGN.md section 5)
 SEED = CircleDomain(
@@ -58,7 +59,7 @@ def test_kr_is_zero_at_goal_one_on_boundary_and_in_between() -> None:
     nf = KoditschekRimon(SEED, 0.1 + 0.2j, 6)
     assert nf.value(0.1 + 0.2j) == 0.0
     assert nf.gradient(0.1 + 0.2j) == 0.0
-    from confnav.navfn import obstacle_function
+    from confnav.navigation.navfn import obstacle_function
 
     for b in boundary_points(SEED):
         # phi = 1 - beta / (k g^k) + O(beta^2): 1 on the circle, beta ~ 1e-12 a hair inside
@@ -90,7 +91,7 @@ def test_kr_gradient_has_no_cancellation_far_from_goal() -> None:
 
 
 def test_obstacle_function_matches_product() -> None:
-    from confnav.navfn import obstacle_function
+    from confnav.navigation.navfn import obstacle_function
 
     w = interior_points(SEED, 50, 0.0)
     beta, dbeta = obstacle_function(SEED, w)

@@ -12,15 +12,15 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from confnav.schemas import Pose, encode
 from conftest import confnav_cmd, subprocess_env, wait_for
 from mcap.exceptions import McapError
 from mcap.reader import make_reader
 from mcap.records import Channel, Message
 from mcap.writer import Writer
 
-from confnav.schemas import Pose, encode
-from confnav.services.inspection import Recording, RecordingError
-from confnav.services.recover import RecoverError, has_footer, recover, scan
+from confnav.recording.inspect import Recording, RecordingError
+from confnav.recording.recover import RecoverError, has_footer, recover, scan
 
 
 def _write(path: Path, n: int = 600, chunk_size: int = 1500) -> list[tuple[str, bytes, int]]:

@@ -14,17 +14,17 @@ from typing import Any
 
 import numpy as np
 import pytest
-from conftest import confnav_cmd, subprocess_env, wait_for
-from mcap.writer import Writer
-
 from confnav.schemas import Pose, encode
-from confnav.services import mcap_layout as L
 from confnav.services.bus import zenoh_config
-from confnav.services.foxglove import is_viz_topic
-from confnav.services.inspection import Recording
 from confnav.services.keys import Keys
 from confnav.services.recorder import Recorder
 from confnav.services.replay import ReplayError, remap, replay, select_topics
+from conftest import confnav_cmd, subprocess_env, wait_for
+from mcap.writer import Writer
+
+from confnav.recording import layout as L
+from confnav.recording.inspect import Recording
+from confnav.recording.scene import is_viz_topic
 
 DATA = Path(__file__).resolve().parent / "data"
 GOLDEN = sorted(DATA.glob("golden_*.mcap"))
@@ -293,10 +293,9 @@ def test_recorded_inputs_drive_a_live_controller_to_the_recorded_commands(
 ) -> None:
     """``inputs_only``: definitions, transforms, goals and poses replayed at recorded speed
     into a live controller service; it answers each pose with the recorded command."""
-    from conftest import identity_loader
-
     from confnav.schemas import VelocityCommand, decode
     from confnav.services.controller import ControllerService
+    from conftest import identity_loader
 
     recorded: dict[tuple[str, int], complex] = {}
     with Recording(run_file) as rec:

@@ -10,14 +10,14 @@ from types import ModuleType
 from typing import Any
 
 import pytest
+from confnav.schemas import Goal, Pose, VelocityCommand, encode
 from conftest import confnav_cmd, identity_loader, subprocess_env
 from mcap.writer import Writer
 
-from confnav.schemas import Goal, Pose, VelocityCommand, encode
-from confnav.services import mcap_layout as L
-from confnav.services import navigation
-from confnav.services.inspection import RecordingError
-from confnav.services.replay_check import (
+from confnav.navigation import messages as navigation
+from confnav.recording import layout as L
+from confnav.recording.inspect import RecordingError
+from confnav.recording.replay_check import (
     CheckError,
     check_recording,
     decide,

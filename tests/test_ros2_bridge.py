@@ -25,10 +25,6 @@ from typing import Any
 import numpy as np
 import pytest
 import zenoh
-from conftest import REPO, confnav_cmd, subprocess_env, wait_for
-
-from confnav import defaults
-from confnav.geometry import Workspace
 from confnav.schemas import (
     Goal,
     Pose,
@@ -47,6 +43,10 @@ from confnav.services.ros2.bridge import (
     add_parser,
     config_from_args,
 )
+from conftest import REPO, confnav_cmd, subprocess_env, wait_for
+
+from confnav.geometry import Workspace
+from confnav.navigation import defaults
 
 pytestmark = pytest.mark.integration
 
@@ -381,9 +381,9 @@ def _client_conf(endpoint: str) -> zenoh.Config:
 
 
 def test_map_through_the_occupancy_grid_import(make_bus: Any) -> None:
-    """With ``confnav.mapimport`` present, an OccupancyGrid becomes a WorkspaceDefinition in
+    """With ``confnav.maps.occupancy`` present, an OccupancyGrid becomes a WorkspaceDefinition in
     the grid's frame: a walled 2.0 m x 1.5 m room (0.05 m cells) with a 0.3 m x 0.2 m block."""
-    pytest.importorskip("confnav.mapimport")
+    pytest.importorskip("confnav.maps.occupancy")
     bus, ros_bus = make_bus(), make_bus()
     res, (w, h) = 0.05, (40, 30)
     cells = np.full((h, w), 0, dtype=np.int8)

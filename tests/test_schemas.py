@@ -7,9 +7,9 @@ from pathlib import Path
 
 import jsonschema
 import pytest
+from confnav.services.keys import KeyError_, Keys, is_valid_id, validate_id
 
 from confnav import schemas as S
-from confnav.services.keys import KeyError_, Keys, is_valid_id, validate_id
 
 DIAG = S.SolveDiagnostics(
     sweeps=7,
@@ -133,7 +133,7 @@ def test_export_writes_every_schema(tmp_path: Path) -> None:
 
 
 def test_cli_schemas_export(tmp_path: Path) -> None:
-    from confnav.cli import main
+    from confnav.cli.app import main
 
     assert main(["schemas", "export", str(tmp_path / "s")]) == 0
     assert len(list((tmp_path / "s").glob("confnav.*.schema.json"))) == len(S.MESSAGE_MODELS)

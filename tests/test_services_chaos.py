@@ -13,15 +13,15 @@ from types import ModuleType
 from typing import Any
 
 import pytest
-from conftest import REPO, fake_solve, identity_loader, wait_for
-
 from confnav.services.bus import InMemoryNetwork, key_matches
 from confnav.services.controller import ControllerService
-from confnav.services.inspection import Recording
 from confnav.services.keys import Keys
 from confnav.services.recorder import Recorder
 from confnav.services.simulator import SimulatorService
 from confnav.services.transform import TransformService
+from conftest import REPO, fake_solve, identity_loader, wait_for
+
+from confnav.recording.inspect import Recording
 
 K = Keys()
 

@@ -9,9 +9,6 @@ from typing import Any
 
 import numpy as np
 import pytest
-from conftest import IdentityMap, identity_loader, wait_for
-
-from confnav.control import Controller
 from confnav.schemas import (
     Goal,
     GoalCancel,
@@ -29,6 +26,9 @@ from confnav.services.bus import InMemoryNetwork, QueryError
 from confnav.services.controller import ControllerService
 from confnav.services.keys import Keys
 from confnav.services.transform import definition_hash
+from conftest import IdentityMap, identity_loader, wait_for
+
+from confnav.navigation.control import Controller
 
 K = Keys()
 CENTERS = [(0.4, 0.0)]

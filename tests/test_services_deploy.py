@@ -11,13 +11,13 @@ from pathlib import Path
 
 import pytest
 import zenoh
+from confnav.services.bus import ZenohBus, zenoh_config
+from confnav.services.keys import Keys
+from confnav.services.launcher import LaunchConfig
 from conftest import REPO, confnav_cmd, subprocess_env, wait_for
 from mcap.reader import make_reader
 
 from confnav.geometry import Workspace
-from confnav.services.bus import ZenohBus, zenoh_config
-from confnav.services.keys import Keys
-from confnav.services.launcher import LaunchConfig
 
 DEPLOY = REPO / "deploy"
 
@@ -128,7 +128,7 @@ def _pid_of(parent: int, label: str) -> int:
 
 
 def test_cli_registers_the_service_commands() -> None:
-    from confnav.cli import build_parser
+    from confnav.cli.app import build_parser
 
     parser = build_parser()
     for argv in (

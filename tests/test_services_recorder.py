@@ -14,16 +14,16 @@ from typing import Any
 
 import jsonschema
 import pytest
+from confnav.schemas import MODELS_BY_TYPE, Goal, Pose, RobotStatus, encode, schema_bytes
+from confnav.services.bus import InMemoryNetwork
+from confnav.services.keys import Keys
+from confnav.services.recorder import Recorder, free_path
 from conftest import confnav_cmd, square_definition, subprocess_env, wait_for
 from mcap.reader import make_reader
 from mcap.stream_reader import StreamReader
 
-from confnav.schemas import MODELS_BY_TYPE, Goal, Pose, RobotStatus, encode, schema_bytes
-from confnav.services import mcap_layout as L
-from confnav.services.bus import InMemoryNetwork
-from confnav.services.keys import Keys
-from confnav.services.recorder import Recorder, free_path
-from confnav.services.recover import has_footer, scan
+from confnav.recording import layout as L
+from confnav.recording.recover import has_footer, scan
 
 K = Keys()
 

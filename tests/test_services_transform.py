@@ -10,8 +10,6 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from conftest import fake_solve, square_definition, wait_for
-
 from confnav.schemas import (
     TransformSolution,
     TransformStatus,
@@ -23,6 +21,7 @@ from confnav.schemas import (
 from confnav.services.bus import InMemoryNetwork
 from confnav.services.keys import Keys
 from confnav.services.transform import TransformService, solve_definition
+from conftest import fake_solve, square_definition, wait_for
 
 K = Keys()
 
@@ -223,7 +222,7 @@ def test_disk_cache_survives_restart(mem_net: InMemoryNetwork, tmp_path: Path) -
 def test_real_solver_in_process_pool_over_zenoh(make_bus: Callable[[], Any]) -> None:
     """The real solver in a spawned worker process; the solution comes back over Zenoh and
     loads into a map identical to an in-process solve."""
-    from confnav.services.navigation import load_map
+    from confnav.navigation.messages import load_map
 
     svc_bus, client = make_bus(), make_bus()
     svc = TransformService(svc_bus, K, executor="process", workers=1, health_period=0.5)

@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 from numpy.testing import assert_allclose
 
-from confnav.control import Controller, Status
 from confnav.errors import NavigationError
-from confnav.navfn import CircleDomain
-from confnav.sim import COLLIDED, STALLED, simulate
+from confnav.navigation.control import Controller, Status
+from confnav.navigation.navfn import CircleDomain
+from confnav.navigation.sim import COLLIDED, STALLED, simulate
 
 DISK = CircleDomain(np.zeros(0, complex), np.zeros(0))
 CLUTTER = CircleDomain(
@@ -114,8 +114,8 @@ def test_k6_stalls_in_clutter_and_auto_k_does_not() -> None:
     assert not bad.collided.any()
     assert (~bad.success).sum() > 0
     stuck = bad.final[~bad.success]
-    from confnav.critical import find_critical_points
-    from confnav.navfn import KoditschekRimon
+    from confnav.navigation.critical import find_critical_points
+    from confnav.navigation.navfn import KoditschekRimon
 
     spurious = find_critical_points(KoditschekRimon(CLUTTER, 0j, 6)).spurious_minima
     assert spurious.size == 1
@@ -154,7 +154,7 @@ def test_flat_is_not_stalled(alcove_map: Any) -> None:
 
 @pytest.mark.slow
 def test_goal_in_a_pocket_is_reached_from_far_starts_with_the_defaults(cup_map: Any) -> None:
-    from confnav.scenarios import random_starts
+    from confnav.scenes.scenarios import random_starts
 
     starts = np.r_[np.array([1.8 + 0j, 1.8 + 1.8j, -1.8 - 1.8j, 0.0 + 1.5j]),
                    random_starts(cup_map.workspace, 40, seed=11)]  # fmt: skip
@@ -188,7 +188,7 @@ def test_runs_are_typed_records() -> None:
 
 def _default_map() -> Any:
     import confnav
-    from confnav.workspaces import default_workspace
+    from confnav.scenes.workspaces import default_workspace
 
     return confnav.solve(default_workspace())
 
@@ -220,14 +220,14 @@ CUP_GOAL = 0.2 + 0.0j  # 0.15 m from the bottom of a 0.8 x 0.8 cup that opens aw
 @pytest.fixture(scope="module")
 def cup_map() -> Any:
     import confnav
-    from confnav.scenarios import cup_trap
+    from confnav.scenes.scenarios import cup_trap
 
     return confnav.solve(cup_trap(0.8).workspace).for_navigation()
 
 
 @pytest.mark.parametrize("navfn", ["kr", "harmonic"])
 def test_seed_four_starts_reach_the_goal(default_map: Any, navfn: str) -> None:
-    from confnav.workspaces import DEFAULT_GOAL, DEFAULT_STARTS
+    from confnav.scenes.workspaces import DEFAULT_GOAL, DEFAULT_STARTS
 
     ctl = Controller(default_map, DEFAULT_GOAL, navfn=navfn, k=6, gain=1.0)
     res = simulate(ctl, np.array(DEFAULT_STARTS), t_max=1e6)
@@ -240,7 +240,7 @@ def test_seed_four_starts_reach_the_goal(default_map: Any, navfn: str) -> None:
 
 def test_shortest_path_around_a_square() -> None:
     from confnav.geometry import Workspace
-    from confnav.shortest_path import ShortestPaths, bend_vertices
+    from confnav.navigation.shortest_path import ShortestPaths, bend_vertices
 
     sq = [(-0.5, -0.5), (0.5, -0.5), (0.5, 0.5), (-0.5, 0.5)]
     ws = Workspace([(-2, -2), (2, -2), (2, 2), (-2, 2)], [sq])
@@ -257,8 +257,8 @@ def test_shortest_path_around_a_square() -> None:
 
 
 def test_potential_field_gets_trapped_in_the_cup() -> None:
-    from confnav.baseline import PotentialField
-    from confnav.scenarios import cup_trap
+    from confnav.navigation.baseline import PotentialField
+    from confnav.scenes.scenarios import cup_trap
 
     sc = cup_trap(1.2)
     apf = PotentialField(sc.workspace, sc.goal)
@@ -270,7 +270,13 @@ def test_potential_field_gets_trapped_in_the_cup() -> None:
 
 
 def test_scenarios_are_valid_and_random_starts_keep_the_margin() -> None:
-    from confnav.scenarios import cup_trap, default_scenario, l_room, random_starts, spiral_corridor
+    from confnav.scenes.scenarios import (
+        cup_trap,
+        default_scenario,
+        l_room,
+        random_starts,
+        spiral_corridor,
+    )
 
     for sc in (default_scenario(), cup_trap(0.4), l_room(), spiral_corridor(10)):
         assert sc.workspace.contains(sc.goal)
@@ -283,8 +289,8 @@ def test_scenarios_are_valid_and_random_starts_keep_the_margin() -> None:
 
 
 def test_harmonic_on_the_default_map(default_map: Any) -> None:
-    from confnav.critical import find_critical_points
-    from confnav.workspaces import DEFAULT_GOAL
+    from confnav.navigation.critical import find_critical_points
+    from confnav.scenes.workspaces import DEFAULT_GOAL
 
     ctl = Controller(default_map, DEFAULT_GOAL, navfn="harmonic")
     cp = find_critical_points(ctl.navfn)
@@ -304,14 +310,14 @@ def test_harmonic_on_the_default_map(default_map: Any) -> None:
 
 def test_goal_change_needs_no_solve(default_map: Any, monkeypatch: pytest.MonkeyPatch) -> None:
     import confnav
-    import confnav.solver
-    from confnav.workspaces import DEFAULT_STARTS
+    import confnav.conformal.solver
+    from confnav.scenes.workspaces import DEFAULT_STARTS
 
     def no_solve(*a: Any, **k: Any) -> Any:
         raise AssertionError("a goal change must not solve")
 
     monkeypatch.setattr(confnav, "solve", no_solve)
-    monkeypatch.setattr(confnav.solver, "solve", no_solve)
+    monkeypatch.setattr(confnav.conformal.solver, "solve", no_solve)
     ctl = Controller(default_map, 0j, navfn="kr", k=6)
     for goal in (1.5 - 1.5j, -1.5 + 1.5j):
         new = ctl.with_goal(goal)

@@ -14,9 +14,9 @@ import pytest
 
 import confnav
 from confnav import ConformalMap, SerializationError, SolverError, Workspace
-from confnav.boundary import graded_polygon
-from confnav.diskmap import exterior_map, interior_map
-from confnav.workspaces import default_workspace
+from confnav.conformal.boundary import graded_polygon
+from confnav.conformal.diskmap import exterior_map, interior_map
+from confnav.scenes.workspaces import default_workspace
 
 SQUARE = [[-1, -1], [1, -1], [1, 1], [-1, 1]]
 

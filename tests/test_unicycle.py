@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 from conftest import IdentityMap, identity_loader, square_definition, wait_for
 
-from confnav.control import Controller
 from confnav.errors import NavigationError
-from confnav.unicycle import (
+from confnav.navigation.control import Controller
+from confnav.navigation.unicycle import (
     UnicycleController,
     look_ahead_point,
     simulate_unicycle,

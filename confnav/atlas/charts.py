@@ -18,10 +18,10 @@ from typing import Any
 import numpy as np
 
 from confnav.atlas.decompose import Decomposition, Tile, decompose, elongation
-from confnav.cmap import ConformalMap
+from confnav.conformal.cmap import ConformalMap
+from confnav.conformal.solver import solve
 from confnav.errors import ConfnavError, CrowdingError, SolverError
 from confnav.geometry import Workspace
-from confnav.solver import solve
 
 __all__ = ["Atlas", "ChartRecord", "needs_atlas", "solve_atlas", "solve_auto"]
 

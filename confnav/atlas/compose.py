@@ -26,9 +26,9 @@ from scipy.sparse.csgraph import dijkstra
 
 from confnav.atlas.charts import Atlas
 from confnav.atlas.decompose import _polygons, inscribed
-from confnav.control import Controller
 from confnav.errors import NavigationError, fmt_point
-from confnav.sim import ARRIVED, COLLIDED, ERROR, STALLED, TIMEOUT, Outcomes, simulate
+from confnav.navigation.control import Controller
+from confnav.navigation.sim import ARRIVED, COLLIDED, ERROR, STALLED, TIMEOUT, Outcomes, simulate
 
 __all__ = ["AtlasNavigator", "AtlasRun", "CellPlan", "Overlap", "overlaps", "plan"]
 
@@ -128,7 +128,7 @@ def plan(atlas: Atlas, goal: complex, links: list[Overlap] | None = None) -> Cel
 @dataclass(frozen=True)
 class AtlasRun(Outcomes):
     """Result of :meth:`AtlasNavigator.run` (per start arrays; status names as in
-    :data:`confnav.sim.STATUS_NAMES`).  ``switches`` counts chart switches per robot and
+    :data:`confnav.navigation.sim.STATUS_NAMES`).  ``switches`` counts chart switches per robot and
     ``cells`` lists each robot's sequence of active cells."""
 
     starts: CArray
@@ -142,7 +142,6 @@ class AtlasRun(Outcomes):
     switches: NDArray[np.int64]
     cells: tuple[tuple[int, ...], ...]
     wall_time: float
-
 
 
 class AtlasNavigator:
@@ -251,7 +250,7 @@ class AtlasNavigator:
     ) -> AtlasRun:
         """Simulate robots from ``starts`` (complex array) to the goal.
 
-        Each active cell's robots are integrated by :func:`confnav.sim.simulate` for
+        Each active cell's robots are integrated by :func:`confnav.navigation.sim.simulate` for
         ``window`` time units (default: the time to cross 4 ``hysteresis``), collisions checked
         against the *whole* workspace; between windows the switching rule is applied (a
         supervisor at a fixed rate).  A robot that reaches a local goal switches to the next

@@ -1,7 +1,7 @@
 """Floor plans for atlases: an office floor (rooms off a corridor) and a shelf warehouse.
 
-Units are metres.  Both are :class:`confnav.scenarios.Scenario` objects (workspace + goal);
-the spiral corridors of :func:`confnav.scenarios.spiral_corridor` complete the benchmark set.
+Units are metres.  Both are :class:`confnav.scenes.scenarios.Scenario` objects (workspace + goal);
+the spiral corridors of :func:`confnav.scenes.scenarios.spiral_corridor` complete the benchmark set.
 """
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ from shapely.geometry import Polygon, box
 
 from confnav.errors import NavigationError
 from confnav.geometry import Workspace
-from confnav.scenarios import Scenario
+from confnav.scenes.scenarios import Scenario
 
 __all__ = ["corridor", "office", "spiral", "warehouse"]
 
@@ -106,7 +106,7 @@ def spiral(ratio: float, width: float = 0.4) -> Scenario:
     """A rectangular spiral corridor of centreline length ``ratio * width`` (walls 1 width
     thick between the turns), goal half a width from the inner end.
 
-    Unlike :func:`confnav.scenarios.spiral_corridor` (first leg 4 widths, so at most
+    Unlike :func:`confnav.scenes.scenarios.spiral_corridor` (first leg 4 widths, so at most
     L/w ~ 14), the first leg grows with the ratio so that any ratio fits.
     """
     if not ratio >= 1:

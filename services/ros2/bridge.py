@@ -15,7 +15,7 @@ The workspace frame is the frame of the poses (``map`` for AMCL, ``odom`` for od
 there is no TF lookup, so a goal in another frame is rejected (counted, logged).
 
 A map topic (``nav_msgs/msg/OccupancyGrid``) is subscribed when configured and published as a
-``WorkspaceDefinition`` through the occupancy-grid import (``confnav.mapimport``). Without that
+``WorkspaceDefinition`` through the occupancy-grid import (``confnav.maps.occupancy``). Without that
 module the bridge says so in its health (state ``degraded``, detail "map import not
 available") and a log line, and publishes nothing for the map.
 
@@ -42,8 +42,6 @@ from typing import Any, Literal
 
 import numpy as np
 import zenoh
-
-from confnav import defaults
 from confnav.schemas import (
     DecodeError,
     Goal,
@@ -59,6 +57,8 @@ from confnav.services.ros2 import codec, wire
 from confnav.services.ros2.codec import PoseKind
 from confnav.services.runtime import Service, add_zenoh_args, run_until_signal
 from confnav.services.transform import definition_of
+
+from confnav.navigation import defaults
 
 _GOAL_FIELDS = Goal.model_fields
 
@@ -418,11 +418,11 @@ occupied, as in the occupancy-grid import."""
 
 def _find_map_import() -> MapImport | None:
     """The OccupancyGrid -> WorkspaceDefinition conversion through the occupancy-grid import
-    (``confnav.mapimport.workspace_from_grid``), or None if this confnav has no import."""
+    (``confnav.maps.occupancy.workspace_from_grid``), or None if this confnav has no import."""
     try:
-        mod = importlib.import_module("confnav.mapimport")
+        mod = importlib.import_module("confnav.maps.occupancy")
     except ModuleNotFoundError as exc:
-        if exc.name != "confnav.mapimport":
+        if exc.name != "confnav.maps.occupancy":
             raise
         return None
     return partial(_grid_definition, mod.workspace_from_grid)
@@ -470,9 +470,7 @@ def add_parser(sub: Any) -> None:
     p.add_argument("--map-ws", default=None, help="workspace id of the map (default: 1st robot's)")
     p.add_argument("--navfn", choices=("harmonic", "kr"), default=defaults.NAVFN)
     p.add_argument("--gain", type=float, default=defaults.GAIN, help="1/s (default %(default)s)")
-    p.add_argument(
-        "--v-max", type=float, default=defaults.V_MAX, help="m/s (default %(default)s)"
-    )
+    p.add_argument("--v-max", type=float, default=defaults.V_MAX, help="m/s (default %(default)s)")
     p.add_argument(
         "--tolerance", type=float, default=defaults.GOAL_TOL, help="m (default %(default)s)"
     )

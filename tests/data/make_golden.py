@@ -10,7 +10,7 @@ over Zenoh), drives robots to their goals and records everything, Foxglove scene
 included, into an MCAP file:
 
 - ``solver="real"``: the transform service solves the workspace with the core solver
-  (``confnav.solver.solve``), the controller loads it with ``ConformalMap.from_dict``;
+  (``confnav.conformal.solver.solve``), the controller loads it with ``ConformalMap.from_dict``;
 - ``solver="fake"``: a stand-in map for fast tests (tests/conftest.py ``fake_solve`` and
   ``identity_loader``: the workspace's obstacles become small disks of a circle domain and the
   map is the identity), so no solve is needed.
@@ -64,16 +64,16 @@ def run_pipeline(
     Returns ``{"robots": {id: (state, reason)}, "wall_time": s}``. Raises ``TimeoutError``
     if some robot has not arrived within ``timeout`` seconds.
     """
-    from conftest import fake_solve, identity_loader, square_definition  # tests/conftest.py
-
     from confnav.schemas import Goal, encode
-    from confnav.services import navigation
     from confnav.services.bus import InMemoryNetwork
     from confnav.services.controller import ControllerService
     from confnav.services.keys import Keys
     from confnav.services.recorder import Recorder
     from confnav.services.simulator import SimulatorService
     from confnav.services.transform import TransformService, solve_definition
+    from conftest import fake_solve, identity_loader, square_definition  # tests/conftest.py
+
+    from confnav.navigation import messages as navigation
 
     if solver not in ("fake", "real"):
         raise ValueError("solver must be 'fake' or 'real'")

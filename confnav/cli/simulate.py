@@ -1,0 +1,350 @@
+"""``confnav simulate`` and ``confnav figures``: drive robots with the Theorem 2 law.
+
+``confnav simulate WS.json --goal=X,Y (--starts="X,Y;X,Y" | --random N --seed S)
+[--navfn harmonic|kr] [--k auto|6] [--speed-law normalized|theorem2] [--gain G] [--v-max V]
+[--json OUT.json] [--plot OUT.png] [--require RATE]``
+
+Defaults are the library's (:mod:`confnav.navigation.defaults`): navigation succeeds without tuning
+flags.  Prints a per-robot table (start, outcome, reason, time, path ratio, min clearance)
+for up to 20 robots and the failures beyond; ``--require RATE`` exits 1 when the success rate
+is below RATE.
+
+``confnav figures [--out DIR]``: the seed's Fig. 2/3 (default workspace, four starts) for both
+navigation functions.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from confnav.cli.app import output_path, positive_float, positive_int
+from confnav.errors import NavigationError
+
+log = logging.getLogger(__name__)
+
+
+def _point(text: str) -> complex:
+    try:
+        x, y = (float(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected X,Y, got {text!r}") from None
+    return complex(x, y)
+
+
+def _points(text: str) -> list[complex]:
+    parts = [p for p in text.replace(" ", "").split(";") if p]
+    if not parts:
+        raise argparse.ArgumentTypeError("expected X,Y;X,Y;...")
+    return [_point(p) for p in parts]
+
+
+def _k(text: str) -> float | str:
+    if text == "auto":
+        return "auto"
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--k must be a number or 'auto', got {text!r}") from None
+
+
+def register(subparsers: Any) -> None:
+    p = subparsers.add_parser(
+        "simulate",
+        help="simulate kinematic robots under the conformal navigation law",
+        description="Solve (or load) the map of a workspace and simulate x' = u(x) from "
+        "given or random starts; report success, collisions and path-length ratios.",
+    )
+    p.add_argument("workspace", type=Path, help="workspace JSON/GeoJSON")
+    p.add_argument("--goal", type=_point, required=True, help="goal X,Y (use --goal=X,Y)")
+    g = p.add_mutually_exclusive_group(required=True)
+    g.add_argument("--starts", type=_points, help='starts "X,Y;X,Y;..." (one argument)')
+    g.add_argument("--random", type=positive_int, metavar="N", help="N random starts in free space")
+    p.add_argument("--seed", type=int, default=0, help="seed for --random")
+    p.add_argument("--map", type=Path, help="a solved map (JSON) instead of solving")
+    p.add_argument("--robot-radius", type=float, default=0.0, help="disk robot radius (m)")
+    p.add_argument("--unicycle", type=float, metavar="D", help="differential drive, look-ahead D")
+    p.add_argument("--omega-max", type=positive_float, default=2.0, help="unicycle yaw-rate limit")
+    _law_options(p)
+    p.add_argument("--t-max", type=positive_float, default=1e4, help="time limit per robot (s)")
+    p.add_argument(
+        "--require",
+        type=float,
+        metavar="RATE",
+        help="exit 1 if the success rate (0..1) is below RATE",
+    )
+    p.add_argument("--json", type=output_path, help="write runs and summary here")
+    p.add_argument("--plot", type=output_path, help="write a figure with the trajectories here")
+    p.set_defaults(func=run_simulate)
+
+    f = subparsers.add_parser(
+        "figures",
+        help="the seed's Fig. 2/3: level sets and trajectories, KR and harmonic",
+        description="Level sets of phi(T(x)) in the workspace and of phi in the circle "
+        "domain with the trajectories from the seed's four starts, for both navigation "
+        "functions, on the default workspace (or WS.json with --goal/--starts).",
+    )
+    f.add_argument("workspace", type=Path, nargs="?", help="workspace (default: the seed's)")
+    f.add_argument("--goal", type=_point, help="goal X,Y")
+    f.add_argument("--starts", type=_points, help='starts "X,Y;X,Y;..."')
+    f.add_argument("--k", type=_k, default=6.0, help="k for KR (default 6, the seed's)")
+    f.add_argument("--gain", type=float, default=1.0)
+    f.add_argument("--out", type=Path, default=Path("."), help="output directory")
+    f.set_defaults(func=run_figures)
+
+
+def _law_options(p: argparse.ArgumentParser) -> None:
+    from confnav.navigation import defaults
+
+    p.add_argument(
+        "--navfn",
+        choices=("harmonic", "kr"),
+        default=defaults.NAVFN,
+        help="navigation function (default %(default)s: tuning-free)",
+    )
+    p.add_argument(
+        "--k", type=_k, default="auto", help="k of KR: a number (seed: 6) or auto (default)"
+    )
+    p.add_argument(
+        "--speed-law",
+        choices=defaults.SPEED_LAWS,
+        default=defaults.SPEED_LAW,
+        help="normalized: unit direction times min(v_max, gain*distance) (default); "
+        "theorem2: the plain law -gain conj(T') grad phi saturated at v_max",
+    )
+    p.add_argument(
+        "--gain",
+        type=positive_float,
+        default=defaults.GAIN,
+        help="1/s for normalized, K for theorem2 (default %(default)s)",
+    )
+    p.add_argument(
+        "--v-max",
+        type=positive_float,
+        default=defaults.V_MAX,
+        help="speed limit, m/s (default %(default)s)",
+    )
+    p.add_argument("--vmax", dest="v_max", type=positive_float, help=argparse.SUPPRESS)  # old name
+    p.add_argument(
+        "--tol",
+        type=positive_float,
+        default=defaults.GOAL_TOL,
+        help="goal tolerance, m (default %(default)s)",
+    )
+
+
+def _load_map(args: argparse.Namespace, ws: Any) -> Any:
+    import confnav
+
+    if getattr(args, "map", None):
+        cmap = confnav.ConformalMap.from_json(Path(args.map).read_text())
+        cmap.check_workspace(ws)  # a map of another workspace: MapMismatchError, exit != 0
+        return cmap.for_navigation()
+    t0 = time.perf_counter()
+    print(f"solving the conformal map of {ws.n_obstacles} obstacles...", file=sys.stderr)
+
+    def progress(msg: str) -> None:
+        print(f"  [{time.perf_counter() - t0:6.1f} s] {msg}", file=sys.stderr, flush=True)
+
+    cmap = confnav.solve(ws, progress=progress).for_navigation()
+    print(f"map solved in {time.perf_counter() - t0:.1f} s", file=sys.stderr)
+    return cmap
+
+
+def run_simulate(args: argparse.Namespace) -> int:
+    from confnav.geometry import Workspace
+    from confnav.maps.footprint import inflate
+    from confnav.navigation.control import Controller
+    from confnav.navigation.shortest_path import ShortestPaths
+    from confnav.navigation.unicycle import simulate_robots
+    from confnav.scenes.scenarios import random_starts
+
+    ws = Workspace.load(args.workspace)
+    if args.require is not None and not 0 <= args.require <= 1:
+        raise NavigationError("--require needs a rate in [0, 1]")
+    body = args.robot_radius + (args.unicycle or 0.0)  # the footprint shrinks the free space
+    named = {f"start {k}": z for k, z in enumerate(args.starts or [])}
+    nav_ws = inflate(ws, body, keep=args.goal, require=named) if body else ws
+    cmap = _load_map(args, nav_ws)
+    ctl = Controller(
+        cmap,
+        args.goal,
+        navfn=args.navfn,
+        k=args.k,
+        speed_law=args.speed_law,
+        gain=args.gain,
+        v_max=args.v_max,
+        goal_tol=args.tol,
+    )
+    if ctl.fallback:
+        print(f"note: {ctl.fallback}", file=sys.stderr)
+    if args.navfn == "kr" and args.k != "auto":
+        cp = ctl.check()
+        if not cp.ok:
+            print(
+                f"warning: k={args.k:g} is too small for this geometry ({cp.message}); "
+                "use --k auto or --navfn harmonic",
+                file=sys.stderr,
+            )
+    if args.random is not None:
+        if args.random < 1:
+            raise NavigationError("--random needs N >= 1")
+        starts = random_starts(nav_ws, args.random, args.seed, margin=0.05 + (args.unicycle or 0))
+    else:
+        starts = np.array(args.starts, dtype=np.complex128)
+    res = simulate_robots(
+        ctl,
+        starts,
+        workspace=ws,
+        radius=args.robot_radius,
+        lookahead=args.unicycle,
+        omega_max=args.omega_max,
+        seed=args.seed,
+        t_max=args.t_max,
+        record_paths=args.plot is not None,
+    )
+    shortest = ShortestPaths(nav_ws, ctl.goal).lengths(res.starts)
+    runs = [r.to_dict() for r in res.runs()]
+    for r, s in zip(runs, shortest, strict=True):
+        r["shortest_path"] = float(s)
+        r["path_ratio"] = (
+            r["path_length"] / float(s) if r["success"] and np.isfinite(s) and s > 0 else None
+        )
+    ok = res.success & np.isfinite(shortest) & (shortest > 0)
+    ratio = res.path_length[ok] / shortest[ok]
+    summary = {
+        "n": int(res.starts.size),
+        "success_rate": res.success_rate,
+        "collisions": int(res.collided.sum()),
+        "stalled": int((res.status == 2).sum()),
+        "timeouts": int((res.status == 3).sum()),
+        "errors": int((res.status == 4).sum()),
+        "median_path_ratio": float(np.median(ratio)) if ratio.size else None,
+        "median_time": float(np.median(res.time[res.success])) if res.success.any() else None,
+        "min_clearance": float(np.min(res.min_clearance)),
+        "wall_time": res.wall_time,
+    }
+    params = {
+        "navfn": ctl.navfn.name,
+        "k": getattr(ctl.navfn, "k", None),
+        "fallback": ctl.fallback or None,
+        "speed_law": ctl.speed_law,
+        "gain": ctl.gain,
+        "v_max": None if not np.isfinite(ctl.v_max) else ctl.v_max,
+        "goal": [ctl.goal.real, ctl.goal.imag],
+        "goal_tol": ctl.goal_tol,
+    }
+    print(run_table(runs))
+    print(
+        f"{summary['n']} robots, {params['navfn']}"
+        + (f" k={params['k']:g}" if params["k"] is not None else "")
+        + f", {ctl.speed_law} law: success {100 * res.success_rate:.1f}%, collisions "
+        f"{summary['collisions']}, stalled {summary['stalled']}, timeouts {summary['timeouts']}"
+        f", median path ratio "
+        + (f"{summary['median_path_ratio']:.3f}" if summary["median_path_ratio"] else "n/a")
+    )
+    if args.json:
+        doc: dict[str, Any] = {
+            "workspace": str(args.workspace),
+            "params": params,
+            "summary": summary,
+            "runs": runs,
+        }
+        Path(args.json).write_text(json.dumps(doc, indent=1, allow_nan=False, default=_jsonable))
+    if args.plot:
+        from confnav.plot.navigation import save_navigation_figure
+
+        save_navigation_figure(
+            ctl,
+            res.paths or (),
+            args.plot,
+            title=f"{args.workspace}: {100 * res.success_rate:.1f}% of {summary['n']} arrived",
+            outcomes=[r["status"] for r in runs],
+        )
+    if args.require is not None and res.success_rate < args.require:
+        print(
+            f"FAIL: success rate {res.success_rate:.4f} is below --require {args.require:g}",
+            file=sys.stderr,
+        )
+        return 1
+    return 0
+
+
+TABLE_ROWS = 20
+
+
+def run_table(runs: list[dict[str, Any]], max_rows: int = TABLE_ROWS) -> str:
+    """Per-robot table (start, outcome, reason, time, path ratio, min clearance) for the first
+    ``max_rows`` robots, then one line per failure beyond them."""
+    head = ("#", "start [m]", "outcome", "time [s]", "path ratio", "min clear [m]", "reason")
+    rows: list[tuple[str, ...]] = [head]
+    for i, r in enumerate(runs[:max_rows]):
+        rows.append(_row(i, r))
+    widths = [max(len(row[c]) for row in rows) for c in range(len(head) - 1)]
+    lines = ["  ".join(c.ljust(w) for c, w in zip(row[:-1], widths, strict=True)) + "  " + row[-1]
+             for row in rows]  # fmt: skip
+    lines.insert(1, "-" * len(lines[0]))
+    failed = [(i, r) for i, r in enumerate(runs) if i >= max_rows and not r["success"]]
+    if len(runs) > max_rows:
+        lines.append(
+            f"... {len(runs) - max_rows} more robots, {len(failed)} of them failed"
+            + (":" if failed else "")
+        )
+        lines += ["  " + "  ".join(_row(i, r)) for i, r in failed]
+    return "\n".join(lines)
+
+
+def _row(i: int, r: dict[str, Any]) -> tuple[str, ...]:
+    ratio = r.get("path_ratio")
+    return (
+        str(i),
+        f"({r['start'][0]:.2f}, {r['start'][1]:.2f})",
+        r["status"],
+        f"{r['time']:.1f}",
+        "-" if ratio is None else f"{ratio:.3f}",
+        f"{r['min_clearance']:.3f}",
+        r.get("reason", ""),
+    )
+
+
+def _jsonable(x: Any) -> Any:
+    if isinstance(x, np.generic):
+        return x.item()
+    raise TypeError(type(x))
+
+
+def run_figures(args: argparse.Namespace) -> int:
+    from confnav.geometry import Workspace
+    from confnav.navigation.control import Controller
+    from confnav.navigation.sim import simulate
+    from confnav.plot.navigation import save_navigation_figure
+    from confnav.scenes.workspaces import DEFAULT_GOAL, DEFAULT_STARTS, default_workspace
+
+    ws = Workspace.load(args.workspace) if args.workspace else default_workspace()
+    goal = args.goal if args.goal is not None else DEFAULT_GOAL
+    starts = np.array(args.starts if args.starts else DEFAULT_STARTS, dtype=np.complex128)
+    cmap = _load_map(args, ws)
+    args.out.mkdir(parents=True, exist_ok=True)
+    for name in ("kr", "harmonic"):
+        ctl = Controller(cmap, goal, navfn=name, k=args.k, gain=args.gain)
+        res = simulate(ctl, starts, t_max=1e6, atol=1e-6, max_step=0.02, record_paths=True)
+        label = f"{name}" + (f" k={ctl.navfn.k:g}" if name == "kr" else "")  # type: ignore[attr-defined]
+        out = save_navigation_figure(
+            ctl, res.paths or (), args.out / f"navigation_{name}.png", title=label
+        )
+        print(f"{out}: {res.message}")
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    parser = argparse.ArgumentParser(prog="confnav")
+    register(parser.add_subparsers())
+    a = parser.parse_args()
+    sys.exit(a.func(a))

@@ -1,0 +1,578 @@
+"""Koebe-type iteration: a multiply connected domain onto a circle domain.
+
+One sweep (Nasser, CMFT 2015; the seed's "multiple single-connected problems"):
+
+1. for each hole k: the exterior map F_k of the current image of hole k (alpha = c_k) is
+   applied to hole k (which becomes the unit circle) and, by the exterior Cauchy formula, to
+   every other boundary, the points c_j and the anchor image; c_k becomes 0;
+2. the interior map of the outer image with alpha = anchor image is applied to everything.
+
+At convergence every step is a similarity: ``c_j`` are the centres, ``r_j`` the radii. Each
+sweep normalises only its last map, so the rotations of the earlier exterior maps stay in the
+composition; at the end everything is rotated by ``e^{-i arg D}``, D = T'(anchor)
+(DESIGN.md sec. 2, "Final rotation").
+
+Two representations of each boundary (this module's design choice):
+
+* the *passive nodes*: the images of the graded polygon nodes, with their t-derivatives. They
+  are what the final map is made of (``W_k = T(eta_k)``).
+* after the boundary's own map in the first sweep, a *smooth grid*: ``m`` points uniform in the
+  angle of the circle it was just mapped to. Later maps are analytic near it, so it is an
+  analytic curve sampled uniformly, and its GNK solves converge exponentially. Only in the first
+  sweep is a GNK solved on a polygon (graded mesh, algebraic convergence ~ n^-p).
+
+A passive node keeps a parameter ``u`` along its boundary (position = smooth curve at ``u``).
+When a boundary's own map is applied again, ``u`` moves by the map's boundary correspondence,
+found by trigonometric interpolation on the smooth grid. Re-solving on the graded nodes instead
+would keep their corner-singular parametrisation in every sweep: slower convergence, and the
+images of the nodes next to sharp tips coalesce and destabilise the iteration.
+
+Convergence is measured as the change of the passive nodes away from the vertices and of the
+centres. The iteration converges linearly, its contraction factor rho depending on the geometry
+(~0.01 per sweep on the seed's workspace, but approaching 1 as two circles approach each other:
+the reflections that make up the Koebe/Schottky group move a circle by ~ (r/d)^2 of its
+neighbour's correction, and for nearly touching circles that ratio is close to 1). The loop
+stops only when the remaining error, extrapolated from the observed contraction as
+``change * rho / (1 - rho)`` (geometric tail), is below ``tol``; a run that stops making
+progress (rounding floor or a true stall) or reaches ``max_sweeps`` is returned with
+``converged = False`` and its extrapolated ``iteration_error``, never as converged.
+
+References
+----------
+.. [1] M. M. S. Nasser, "Fast computation of the circular map", Comput. Methods Funct. Theory
+   15 (2015) 187-223, secs. 3-4 (the iteration, ~100x error reduction per sweep).
+.. [2] P. Henrici, "Applied and Computational Complex Analysis", Vol. 3, Wiley 1986,
+   sec. 13.3 (trigonometric interpolation of boundary correspondence functions).
+.. [3] DESIGN.md sec. 2 (checked formulas, final rotation, convergence test).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from confnav.conformal.boundary import BoundaryMesh
+from confnav.conformal.diskmap import CurveMap, exterior_map, interior_map
+from confnav.conformal.gnk import GMRES_RTOL
+from confnav.errors import ConvergenceError, CrowdingError
+from confnav.geometry import ComplexArray, FloatArray
+
+#: Circles smaller than this (relative to the unit disk) cannot be resolved in double precision:
+#: the image nodes of such a boundary crowd together below rounding (DESIGN.md sec. 6).
+CROWDING_RADIUS = 1e-11
+MAX_SWEEPS = 200
+#: Sweeps without any decrease of the change (below the best of the three before) after which
+#: the iteration counts as stalled: at the rounding floor, or not converging at all.
+STALL_SWEEPS = 3
+#: Largest contraction factor used to extrapolate: a slower run is treated as stalled.
+RHO_MAX = 0.99
+#: Smooth-grid sizes: start, cap, and the smallest Fourier tail (relative) resolved: the grid
+#: resolves its curve to ``SMOOTH_PER_TOL * tol`` (the tail then adds nothing measurable to the
+#: map's error), but never below rounding, SMOOTH_TAIL.
+SMOOTH_START = 64
+SMOOTH_MAX = 16384
+SMOOTH_TAIL = 1e-15
+SMOOTH_PER_TOL = 1e-3
+
+
+@dataclass
+class CircleDomainResult:
+    """Boundary images and circle domain after the Koebe-type iteration."""
+
+    W: list[ComplexArray]
+    dW: list[ComplexArray]
+    centers: ComplexArray
+    radii: FloatArray
+    derivative_at_anchor: float
+    sweeps: int
+    history: list[float] = field(default_factory=list)
+    circularity: float = 0.0  # max deviation of the passive nodes from their circles
+    gmres_iterations: int = 0
+    smooth_nodes: list[int] = field(default_factory=list)
+    wall_time: float = 0.0
+    #: Remaining error of the iteration, extrapolated from the observed contraction.
+    iteration_error: float = 0.0
+    #: False if the iteration stopped without meeting its tolerance (stall or sweep limit).
+    converged: bool = True
+    #: Relative Fourier tail of smooth grids that needed more than SMOOTH_MAX points (0: none).
+    resolution_error: float = 0.0
+
+
+def _winding(curve: ComplexArray, z: complex) -> float:
+    """Winding number of a closed polyline about z (sanity check of alpha)."""
+    d = np.angle(np.roll(curve, -1) - z) - np.angle(curve - z)
+    d = (d + np.pi) % (2 * np.pi) - np.pi
+    return float(d.sum() / (2 * np.pi))
+
+
+def _trig_eval(samples: FloatArray, x: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Trigonometric interpolant of uniform periodic samples and its derivative at x."""
+    m = samples.size
+    c = np.fft.rfft(samples) / m
+    k = np.arange(c.size)
+    wts = np.full(c.size, 2.0)
+    wts[0] = 1.0
+    if m % 2 == 0:
+        wts[-1] = 1.0
+    E = np.empty((x.size, k.size), np.complex128)  # e^{ikx} by recurrence (cheaper than exp)
+    E[:, 0] = 1.0
+    if k.size > 1:
+        E[:, 1:] = np.exp(1j * x)[:, None]
+        np.cumprod(E, axis=1, out=E)
+    val = (E @ (wts * c)).real
+    der = (E @ (1j * k * wts * c)).real
+    return val, der
+
+
+def _trig_eval_complex(samples: ComplexArray, x: FloatArray) -> ComplexArray:
+    """Trigonometric interpolant of uniform periodic complex samples at x."""
+    m = samples.size
+    c = np.fft.fft(samples) / m
+    k = np.fft.fftfreq(m, 1.0 / m)
+    if m % 2 == 0:  # split the Nyquist mode symmetrically
+        c = np.r_[c, 0.5 * c[m // 2]]
+        c[m // 2] *= 0.5
+        k = np.r_[k, m // 2]
+    E = np.exp(1j * np.outer(x, k))
+    return np.asarray(E @ c)
+
+
+def _tail(samples: ComplexArray) -> float:
+    """Relative size of the top eighth of the Fourier modes of a periodic sample."""
+    c = np.abs(np.fft.fft(samples))
+    m = samples.size
+    q = max(1, m // 16)
+    return float(np.max(c[m // 2 - q : m // 2 + q + 1]) / max(np.max(c), 1e-300))
+
+
+@dataclass
+class _Boundary:
+    """One boundary during the iteration (j = 0 outer, ccw; j > 0 hole, cw)."""
+
+    P: ComplexArray  # passive node images
+    dP: ComplexArray  # their t-derivatives
+    mask: np.ndarray  # passive nodes away from vertices
+    hole: bool
+    S: ComplexArray | None = None  # smooth grid (uniform in s), None before the first own map
+    dS: ComplexArray | None = None  # dS/ds
+    u: FloatArray | None = None  # parameter of each passive node along the smooth curve
+    du: FloatArray | None = None  # du/dt at each passive node
+    m: int = SMOOTH_START
+    c: complex = 0j  # Moebius grading of the smooth grid (0: uniform in angle)
+    tail: float = SMOOTH_TAIL  # Fourier tail (relative) the smooth grid must reach
+    capped_tail: float = 0.0  # Fourier tail of the grid while it is at SMOOTH_MAX (0: not)
+
+    def own_map(self, alpha: complex, others: ComplexArray, rtol: float) -> CurveMap:
+        """Solve the disk map of this boundary's current image and move it onto |w| = 1.
+
+        ``others`` are points of the other boundaries: if they have come closer to this curve
+        than its smooth grid resolves, the grid is refined first (exact FFT upsampling of an
+        analytic curve), so that the GNK solve and the Cauchy sums across the gap are accurate.
+        """
+        if self.S is not None:
+            assert self.dS is not None
+            m, capped = _local_grid_size(self.S, self.dS, others, self.tail)
+            self.capped_tail = _tail(self.S) if capped or self.S.size >= SMOOTH_MAX else 0.0
+            if m > self.S.size:
+                self.S, self.dS = _upsample(self.S, m), _upsample(self.dS, m)
+        if self.S is None:  # first sweep: the polygon, on its graded mesh
+            cm = (exterior_map if self.hole else interior_map)(self.P, self.dP, alpha, rtol)
+            sgn = -1.0 if self.hole else 1.0
+            self.u = sgn * np.unwrap(np.angle(cm.f))
+            self.u = self.u - 2 * np.pi * np.floor(self.u[0] / (2 * np.pi))
+            self.du = sgn * (cm.df / cm.f).imag
+        else:
+            assert self.dS is not None and self.u is not None and self.du is not None
+            cm = (exterior_map if self.hole else interior_map)(self.S, self.dS, alpha, rtol)
+            sgn = -1.0 if self.hole else 1.0
+            s_grid = 2 * np.pi * np.arange(self.S.size) / self.S.size
+            grid = _mobius_grid(self.c, sgn, s_grid)[2]  # angle of each grid point when laid
+            new = sgn * np.unwrap(np.angle(cm.f))
+            new = new - 2 * np.pi * np.round((new[0] - grid[0]) / (2 * np.pi))
+            s_u, ds_du = _mobius_param(self.c, sgn, self.u)
+            delta, ddelta = _trig_eval(new - grid, s_u)
+            self.du = self.du * (1.0 + ddelta * ds_du)
+            self.u = self.u + delta
+            if _tail(self.S) > self.tail:
+                self.m = min(2 * self.S.size, SMOOTH_MAX)  # under-resolved: at least double
+        sgn = -1.0 if self.hole else 1.0
+        self.P = np.exp(1j * sgn * self.u)
+        self.dP = 1j * sgn * self.P * self.du
+        self.S = self.dS = None  # the grid is laid by regrid() once the others are mapped
+        return cm
+
+    def passive(self) -> tuple[ComplexArray, ComplexArray]:
+        """Passive nodes and their t-derivatives: the smooth curve at the parameters u."""
+        if self.S is None:
+            return self.P, self.dP
+        assert self.dS is not None and self.u is not None and self.du is not None
+        s_u, ds_du = _mobius_param(self.c, -1.0 if self.hole else 1.0, self.u)
+        return (
+            _trig_eval_complex(self.S, s_u),
+            _trig_eval_complex(self.dS, s_u) * ds_du * self.du,
+        )
+
+    def regrid(self, others: ComplexArray) -> None:
+        """Lay the smooth grid on the unit circle this boundary was just mapped to.
+
+        The later maps are analytic outside (hole) / inside (outer) the other boundaries, which
+        lie at relative distance delta from the circle; the Fourier coefficients of the curve
+        then decay like (1 + delta)^-j, so m = 2 ln(1/eps) / ln(1 + delta) points resolve it.
+        Where another boundary comes close (delta small) on one side only, the grid is graded
+        towards it by a disk automorphism (:func:`_grading`): in the uniform parameter s the
+        close approach is magnified, and m follows from the gap seen in s.
+        """
+        self.c, gap = _grading(others)
+        self.m = max(self.m, _grid_size(gap, self.tail)[0])
+        sgn = -1.0 if self.hole else 1.0
+        s_grid = 2 * np.pi * np.arange(self.m) / self.m
+        self.S, self.dS = _mobius_grid(self.c, sgn, s_grid)[:2]
+
+
+#: Grading strengths tried (|c| of the Moebius map); 0 = uniform. Above 0.999 the angle of
+#: the grid would come within ~0.1 rad of wrapping (see :func:`_mobius_grid`).
+GRADING_RHO = (0.0, 0.5, 0.8, 0.9, 0.95, 0.98, 0.99, 0.995, 0.998, 0.999)
+
+
+def _wrap(x: FloatArray) -> FloatArray:
+    return np.asarray((x + np.pi) % (2 * np.pi) - np.pi)
+
+
+def _mobius_grid(
+    c: complex, sgn: float, s: FloatArray
+) -> tuple[ComplexArray, ComplexArray, FloatArray, FloatArray]:
+    """Grid graded by the disk automorphism phi(z) = (z + c)/(1 + conj(c) z).
+
+    Returns z(s) = phi(e^{i sgn s}), dz/ds, the angle theta(s) = sgn arg z(s) (continuous,
+    theta(s) - s periodic) and theta'(s) = |phi'(e^{i sgn s})| = (1 - |c|^2)/|1 + conj(c) e|^2:
+    points are denser by (1 + |c|)/(1 - |c|) towards c/|c| (Henrici, Vol. 1, sec. 5.3: the
+    automorphisms of the disk map the circle onto itself).
+    """
+    e = np.exp(1j * sgn * s)
+    den = 1.0 + np.conj(c) * e
+    z = (e + c) / den
+    dphi = (1.0 - abs(c) ** 2) / den**2
+    theta = s + _wrap(sgn * np.angle(z) - s)
+    return np.asarray(z), np.asarray(dphi * 1j * sgn * e), theta, np.asarray(np.abs(dphi))
+
+
+def _mobius_param(c: complex, sgn: float, u: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """The grid parameter s of the circle point at angle u (inverse of :func:`_mobius_grid`)
+    and ds/du = |phi^-1'(e^{i sgn u})|."""
+    if c == 0:
+        return u, np.ones_like(u)
+    e = np.exp(1j * sgn * u)
+    den = 1.0 - np.conj(c) * e
+    zeta = (e - c) / den
+    s = u + _wrap(sgn * np.angle(zeta) - u)
+    return s, np.asarray((1.0 - abs(c) ** 2) / np.abs(den) ** 2)
+
+
+def _grading(others: ComplexArray) -> tuple[complex, float]:
+    """Moebius grading of a grid on the unit circle and the gap it leaves to ``others``.
+
+    The other boundaries at relative distance delta limit the Fourier decay of the curve; in
+    the graded parameter s they are seen through phi^-1, which preserves the circle. Of the
+    strengths :data:`GRADING_RHO` towards the nearest other point, the one whose smallest gap
+    in s is largest wins (0 when nothing is close: the uniform grid).
+    """
+    if others.size == 0:
+        return 0j, 1.0
+    dist = np.abs(np.abs(others) - 1.0)
+    k = int(np.argmin(dist))
+    if dist[k] > 0.05:  # nothing close: uniform (the grid is small anyway)
+        return 0j, float(dist[k])
+    direction = others[k] / abs(others[k])
+    best = (0j, float(dist[k]))
+    for rho in GRADING_RHO[1:]:
+        c = rho * direction
+        zeta = (others - c) / (1.0 - np.conj(c) * others)
+        gap = float(np.min(np.abs(np.abs(zeta) - 1.0)))
+        if gap > best[1]:
+            best = (complex(c), gap)
+    return best
+
+
+def _local_grid_size(
+    S: ComplexArray, dS: ComplexArray, others: ComplexArray, tail: float
+) -> tuple[int, bool]:
+    """Grid size for which every other point keeps the distance the tail needs from the curve.
+
+    A uniform grid with spacing h resolves an analytic curve to the Fourier ``tail`` while the
+    nearest singularity keeps d/h >= ln(1/tail)/pi away (that is m = 2 ln(1/tail)/delta on a
+    circle, delta = d/r); checked point by point with the local spacing |dS| 2pi/m of the
+    nearest grid point, so it holds for graded grids too.
+    """
+    m = S.size
+    if others.size == 0:
+        return m, False
+    tree = cKDTree(np.column_stack([S.real, S.imag]))
+    d, i = tree.query(np.column_stack([others.real, others.imag]))
+    h = np.abs(dS[i]) * 2 * np.pi / m
+    ratio = float(np.min(d / np.maximum(h, 1e-300)))
+    need_ratio = np.log(1 / tail) / np.pi
+    if ratio >= need_ratio:
+        return m, False
+    want = int(2 ** np.ceil(np.log2(m * need_ratio / max(ratio, 1e-12))))
+    return min(want, SMOOTH_MAX), want > SMOOTH_MAX
+
+
+def _grid_size(gap: float, tail: float) -> tuple[int, bool]:
+    """Uniform grid size resolving an analytic curve whose nearest singularity is at relative
+    distance ``gap`` to a relative Fourier ``tail``: modes decay like (1 + gap)^-j, so
+    m = 2 ln(1/tail) / ln(1 + gap) (power of 2, capped at
+    :data:`SMOOTH_MAX`); the flag says the cap was hit (the grid is then under-resolved and
+    its Fourier tail is reported as ``resolution_error``)."""
+    if not np.isfinite(gap):
+        raise ConvergenceError("a boundary image became non-finite (NaN or inf)")
+    need = 2 * np.log(1 / tail) / np.log1p(max(gap, 1e-6))
+    m = int(2 ** np.ceil(np.log2(max(need, SMOOTH_START))))
+    return min(m, SMOOTH_MAX), m > SMOOTH_MAX
+
+
+def _upsample(samples: ComplexArray, m: int) -> ComplexArray:
+    """Values of the trigonometric interpolant of uniform periodic samples on m points."""
+    n = samples.size
+    c = np.fft.fft(samples)
+    pad = np.zeros(m, np.complex128)
+    h = n // 2
+    pad[:h] = c[:h]
+    pad[m - (n - h) :] = c[h:]
+    if n % 2 == 0:  # split the Nyquist mode symmetrically
+        pad[h] = 0.5 * c[h]
+        pad[m - h] = 0.5 * c[h]
+    return np.asarray(np.fft.ifft(pad) * (m / n))
+
+
+def _curves(bnds: list[_Boundary], skip: int) -> ComplexArray:
+    """One set of points per boundary but ``skip`` (smooth grid if any, else passive nodes)."""
+    pts = _others(bnds, skip)
+    return np.concatenate(pts) if pts else np.zeros(0, np.complex128)
+
+
+def _others(bnds: list[_Boundary], skip: int) -> list[ComplexArray]:
+    """What the maps move: the smooth grid of a boundary, or its passive nodes before it has
+    one (first sweep). Passive nodes on a smooth curve follow from their parameter ``u``."""
+    return [b.S if b.S is not None else b.P for j, b in enumerate(bnds) if j != skip]
+
+
+def _apply(cm: CurveMap, bnds: list[_Boundary], skip: int, pts: ComplexArray) -> ComplexArray:
+    """Apply a curve map to every boundary but ``skip`` (passive and smooth) and to points."""
+    z = np.concatenate([*_others(bnds, skip), pts])
+    fz, dfz = cm.evaluate(z, derivative=True)
+    assert dfz is not None
+    off = 0
+    for j, b in enumerate(bnds):
+        if j == skip:
+            continue
+        if b.S is not None:
+            assert b.dS is not None
+            s = b.S.size
+            b.S, b.dS = fz[off : off + s], b.dS * dfz[off : off + s]
+        else:
+            s = b.P.size
+            b.P, b.dP = fz[off : off + s], b.dP * dfz[off : off + s]
+        off += s
+    return np.asarray(np.concatenate([fz[off:], dfz[off:]]))
+
+
+def koebe_iteration(
+    meshes: list[BoundaryMesh],
+    hole_points: list[complex],
+    anchor: complex,
+    tol: float,
+    max_sweeps: int = MAX_SWEEPS,
+    progress: Callable[[int, float], None] | None = None,
+    gmres_tol: float = GMRES_RTOL,
+) -> CircleDomainResult:
+    """Run the iteration on graded meshes (outer counter-clockwise, holes clockwise).
+
+    Parameters
+    ----------
+    meshes
+        ``meshes[0]`` the outer boundary (ccw), ``meshes[1:]`` the holes (cw).
+    hole_points
+        A point inside each hole (initial ``c_j``).
+    anchor
+        The point sent to 0.
+    tol
+        Stop when the remaining error, extrapolated from the change of the boundary images
+        (away from vertices) and its observed contraction, is below ``tol``.
+    gmres_tol
+        Relative residual of every GNK solve (:func:`confnav.conformal.gnk.gmres_rtol`).
+    """
+    t0 = time.perf_counter()
+    bnds = [
+        _Boundary(
+            P=m.eta.copy(),
+            dP=m.deta.copy(),
+            mask=m.interior_mask(),
+            hole=j > 0,
+            tail=max(SMOOTH_TAIL, SMOOTH_PER_TOL * tol),
+        )
+        for j, m in enumerate(meshes)
+    ]
+    M = len(meshes) - 1
+    c = np.array(hole_points, dtype=np.complex128)
+    a = complex(anchor)
+    D = 1.0 + 0j
+    history: list[float] = []
+    gm_its = 0
+    sweeps = 0
+    for sweep in range(1, max_sweeps + 1):
+        sweeps = sweep
+        u_old = [None if b.u is None else b.u.copy() for b in bnds]
+        c_old = c.copy()
+        for k in range(1, M + 1):
+            b = bnds[k]
+            curve = b.P if b.S is None else b.S
+            if abs(_winding(curve, c[k - 1])) < 0.5:
+                raise ConvergenceError(
+                    f"Koebe iteration lost track of obstacle {k - 1} in sweep {sweep} "
+                    "(its tracked point left the boundary image)"
+                )
+            F = _own_map(b, c[k - 1], f"obstacle {k - 1}", meshes[k], _curves(bnds, k), gmres_tol)
+            gm_its += F.gmres_iterations
+            others = np.concatenate([[a], np.delete(c, k - 1)])
+            out = _apply(F, bnds, k, others)
+            _regrid(b, _curves(bnds, k), f"obstacle {k - 1}", sweep)
+            img, dimg = out[: others.size], out[others.size :]
+            a, D = complex(img[0]), D * complex(dimg[0])
+            c = np.insert(img[1:], k - 1, 0.0)
+        f0 = _own_map(bnds[0], a, "the outer boundary", meshes[0], _curves(bnds, 0), gmres_tol)
+        gm_its += f0.gmres_iterations
+        out = _apply(f0, bnds, 0, c)
+        _regrid(bnds[0], _curves(bnds, 0), "the outer boundary", sweep)
+        c, D, a = out[: c.size], D * f0.scale, 0j
+        # change of the boundary correspondence (arc length moved on each circle, away from the
+        # vertices) and of the centres
+        radii = np.array([1.0] + [_radius(bnds[j], c[j - 1]) for j in range(1, M + 1)])
+        change = max(
+            (float(np.max(np.abs(b.u[b.mask] - uo[b.mask]))) * r if uo is not None else 1.0)
+            for b, uo, r in zip(bnds, u_old, radii, strict=True)
+            if b.u is not None
+        )
+        if M:
+            change = max(change, float(np.max(np.abs(c - c_old))))
+        history.append(change)
+        if progress is not None:
+            progress(sweep, change)
+        if not np.isfinite(change):
+            raise ConvergenceError(f"Koebe iteration produced non-finite values in sweep {sweep}")
+        radii = radii[1:]
+        if M and radii.min() < CROWDING_RADIUS:
+            j = int(np.argmin(radii))
+            raise CrowdingError(
+                f"obstacle {j}'s circle has radius {radii[j]:.1e}: too small to resolve in double "
+                "precision (crowding: a long, narrow passage leads to it)"
+            )
+        remaining, converged = _remaining_error(history)
+        if converged and remaining <= tol:
+            break
+        if len(history) > STALL_SWEEPS and change >= min(history[-STALL_SWEEPS - 1 : -1]):
+            converged = False  # no progress: rounding floor or a true stall -- reported
+            break
+    else:
+        converged = False  # sweep limit: the extrapolated remaining error is reported
+    iteration_error = remaining if converged and remaining <= tol else _stalled_error(history)
+    rot = complex(np.exp(-1j * np.angle(D)))
+    passive = [b.passive() for b in bnds]
+    W = [p[0] * rot for p in passive]
+    dW = [p[1] * rot for p in passive]
+    c = c * rot
+    radii = np.array([_radius(bnds[j], c[j - 1] / rot) for j in range(1, M + 1)])
+    circ = float(np.max(np.abs(np.abs(W[0]) - 1.0)))
+    for j in range(1, M + 1):
+        circ = max(circ, float(np.max(np.abs(np.abs(W[j] - c[j - 1]) - radii[j - 1]))))
+    return CircleDomainResult(
+        W=W,
+        dW=dW,
+        centers=c,
+        radii=radii,
+        derivative_at_anchor=float(abs(D)),
+        sweeps=sweeps,
+        history=history,
+        circularity=circ,
+        gmres_iterations=gm_its,
+        smooth_nodes=[b.m for b in bnds],
+        wall_time=time.perf_counter() - t0,
+        iteration_error=iteration_error,
+        converged=bool(converged and iteration_error <= tol),
+        resolution_error=max(b.capped_tail for b in bnds),
+    )
+
+
+def _remaining_error(history: list[float]) -> tuple[float, bool]:
+    """Error left after the last sweep, from the observed linear contraction.
+
+    With changes h_n shrinking by rho per sweep the iterate is h_n rho / (1 - rho) from the
+    limit (geometric tail; Aitken's delta^2 estimate). rho is the larger of the last two
+    observed ratios (the safe side; one after two sweeps); a single sweep gives no estimate.
+    """
+    if len(history) < 2:
+        return float("inf"), False
+    h = history
+    rho = max(h[i] / max(h[i - 1], 1e-300) for i in range(max(1, len(h) - 2), len(h)))
+    if rho >= RHO_MAX:
+        return float("inf"), False
+    return h[-1] * rho / (1 - rho), True
+
+
+def _stalled_error(history: list[float]) -> float:
+    """Error bound of an iteration stopped before its tolerance was met.
+
+    While the change still contracts (sweep limit reached) the geometric tail applies; once it
+    stalls, the iterates wander within the last changes and the limit is known no better than
+    the largest of them, extrapolated with the slowest contraction accepted (RHO_MAX is not:
+    a stall at the rounding floor is taken at face value, ``max(last changes)``)."""
+    remaining, ok = _remaining_error(history)
+    if ok:
+        return max(remaining, history[-1])
+    return max(history[-STALL_SWEEPS - 1 :])
+
+
+def _own_map(
+    b: _Boundary,
+    alpha: complex,
+    name: str,
+    mesh: BoundaryMesh,
+    others: ComplexArray,
+    rtol: float,
+) -> CurveMap:
+    """``b.own_map`` with failures reported against the boundary and its sharpest corner."""
+    try:
+        return b.own_map(alpha, others, rtol)
+    except ConvergenceError as exc:
+        v = mesh.eta[mesh.tau == 0]
+        turn = np.angle((np.roll(v, -1) - v) / (v - np.roll(v, 1)))
+        sharpest = float(np.degrees(np.min(np.pi - np.abs(turn))))
+        raise ConvergenceError(
+            f"{name}: the boundary integral equation did not converge ({exc}); its sharpest "
+            f"corner is {sharpest:.1f} degrees -- needle-like corners make the equation "
+            "nearly singular: blunt them or use more nodes"
+        ) from exc
+
+
+def _regrid(b: _Boundary, others: ComplexArray, name: str, sweep: int) -> None:
+    """``b.regrid`` after its map, with non-finite results reported against the boundary."""
+    if not (np.all(np.isfinite(others)) and np.all(np.isfinite(b.P))):
+        raise ConvergenceError(
+            f"the map of {name} in sweep {sweep} produced non-finite boundary images"
+        )
+    b.regrid(others)
+
+
+def _radius(b: _Boundary, center: complex) -> float:
+    """Mean distance of the smooth grid from the centre (weighted uniform in angle)."""
+    if b.S is None:
+        return float(np.mean(np.abs(b.P - center)))
+    s = 2 * np.pi * np.arange(b.S.size) / b.S.size
+    w = _mobius_grid(b.c, -1.0 if b.hole else 1.0, s)[3]
+    return float(np.sum(np.abs(b.S - center) * w) / np.sum(w))
+
+
+__all__ = ["CROWDING_RADIUS", "CircleDomainResult", "koebe_iteration"]

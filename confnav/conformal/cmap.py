@@ -1,0 +1,569 @@
+"""The solved conformal navigation transformation: T, T', T^-1 and lossless serialisation.
+
+The map is stored as its boundary correspondence: for every boundary node ``eta_k`` (outer
+counter-clockwise, holes clockwise, on the graded mesh) its image ``W_k = T(eta_k)`` and the
+t-derivatives ``eta'_k`` and ``W'_k = T'(eta_k) eta'_k``. Evaluation is the barycentric Cauchy
+formula over all boundary components (weights ``2pi/n_j``), accurate up to the boundary:
+
+    T(z)   = N/D,  N = sum w W eta'/(eta - z),  D = sum w eta'/(eta - z),
+    T'(z)  = (N'D - N D')/D^2  (the derivative of the barycentric formula),
+    T^-1(w) = sum w eta W'/(W - w)  / sum w W'/(W - w)        (roles of eta and W swapped).
+
+References
+----------
+.. [1] DESIGN.md sec. 2, "Cauchy evaluation (barycentric form)".
+.. [2] A. P. Austin, P. Kravanja, L. N. Trefethen, "Numerical algorithms based on analytic
+   function values at roots of unity", SIAM J. Numer. Anal. 52 (2014) 1795-1821, sec. 4.
+"""
+
+from __future__ import annotations
+
+import base64
+import hashlib
+import json
+from dataclasses import asdict, dataclass, field, replace
+from typing import Any
+
+import numpy as np
+import shapely
+from numpy.typing import ArrayLike
+
+from confnav.conformal.cauchy import FMM_THRESHOLD, cauchy_sums, cauchy_sums2
+from confnav.conformal.expansion import LocalExpansions
+from confnav.errors import MapMismatchError, SerializationError
+from confnav.geometry import ComplexArray, FloatArray, Workspace, distance_to_boundary
+
+FORMAT = "confnav.map"
+#: Points this close to the boundary (relative to the workspace size) count as on it.
+BOUNDARY_RTOL = 1e-12
+#: Version 2 added ``workspace_hash`` and the full error budget of the diagnostics (iteration
+#: error, boundary residual). Version 1 maps are refused: their error estimate could not see an
+#: iteration stopped early (issue 8), so loading them would pass on an unverified accuracy.
+FORMAT_VERSION = 2
+#: Where the boundary residual is checked besides the midpoints between nodes: fractions of
+#: every side, graded geometrically towards both of its corners (and the side's midpoint).
+CORNER_FRACTIONS = (0.5, 0.1, 1e-2, 1e-3, 1e-4)
+#: The residual is certified down to this distance from every corner, relative to the shorter
+#: side at the corner (1e-4: 50 um on a 0.5 m side). Closer to a corner of an obstacle (a
+#: re-entrant corner of the free space) the node images carry rounding of ~1e-9 and T was
+#: measured 2e-9 (at 1e-6) to 1e-6 (at 1e-11) off its circle on the seed's workspace -- far
+#: inside any robot's clearance, but not within a tight tol, so it is not claimed.
+CORNER_ZONE = 1e-4
+#: Batches at least this large build the local expansions (confnav/conformal/expansion.py) of any
+#: map.
+EXPANSION_MIN_POINTS = 20_000
+#: Up to this many boundary nodes a single point is evaluated directly (as fast, measured).
+EXPANSION_SINGLE_NODES = 2_000
+
+
+@dataclass
+class SolveDiagnostics:
+    """How the map was obtained and how accurate it is believed to be.
+
+    ``error_estimate`` is the largest of every error source, each measured independently:
+
+    * ``discretisation_error``: extrapolated change of the centres and radii between mesh
+      levels (:mod:`confnav.conformal.solver`);
+    * ``iteration_error``: the Koebe iteration's remaining error, extrapolated from its
+      observed contraction (``iteration_converged`` is False if it stalled or hit its limit);
+    * ``boundary_residual``: the largest distance of T(z) from its circle over points *between*
+      the nodes on every side (midpoints and points graded towards every corner), an
+      a-posteriori check of the map actually returned (:meth:`ConformalMap.boundary_residual`);
+    * ``resolution_error``: the Fourier tail of any smooth grid held at its size cap.
+
+    ``tol_met`` is true only if all of them are within ``tol`` and no size cap was hit
+    (``caps`` lists any that were).
+    """
+
+    tol: float
+    error_estimate: float
+    tol_met: bool
+    sweeps: int
+    history: list[float]
+    nodes: list[int]
+    nodes_per_side: int
+    circularity: float
+    gmres_iterations: int
+    wall_time: float
+    discretisation_error: float
+    iteration_error: float
+    iteration_converged: bool
+    boundary_residual: float
+    resolution_error: float
+    caps: list[str] = field(default_factory=list)
+    refinements: list[dict[str, float]] = field(default_factory=list)
+
+    def _budget(self, *extra: float) -> tuple[float, bool]:
+        """(error_estimate, tol_met) from every error source (see the class docstring)."""
+        est = max(
+            self.discretisation_error,
+            self.iteration_error,
+            self.boundary_residual,
+            self.resolution_error,
+            *extra,
+        )
+        ok = bool(est <= self.tol and self.iteration_converged and not self.caps)
+        return est, ok
+
+    def with_residual(self, residual: float) -> SolveDiagnostics:
+        """These diagnostics for the same solution evaluated from other nodes (its residual)."""
+        d = replace(self, boundary_residual=residual)
+        d.error_estimate, d.tol_met = d._budget()
+        return d
+
+    def with_deviation(self, deviation: float) -> SolveDiagnostics:
+        """Fold a measured deviation from the full map (coarsened evaluation) into the budget."""
+        d = replace(self)
+        d.error_estimate, d.tol_met = d._budget(self.error_estimate, deviation)
+        return d
+
+    def table(self) -> str:
+        rows = [
+            ("requested tolerance", f"{self.tol:.1e}"),
+            ("estimated error (all sources)", f"{self.error_estimate:.1e}"),
+            ("tolerance met", "yes" if self.tol_met else "NO"),
+            ("  discretisation (mesh levels)", f"{self.discretisation_error:.1e}"),
+            (
+                "  Koebe iteration (extrapolated)",
+                f"{self.iteration_error:.1e}"
+                + ("" if self.iteration_converged else "  NOT CONVERGED (stalled or sweep limit)"),
+            ),
+            ("  boundary residual (between nodes)", f"{self.boundary_residual:.1e}"),
+            ("  smooth-grid resolution at cap", f"{self.resolution_error:.1e}"),
+            ("size caps hit", "; ".join(self.caps) if self.caps else "none"),
+            ("Koebe sweeps (final solve)", str(self.sweeps)),
+            ("last sweep change", f"{self.history[-1]:.1e}" if self.history else "-"),
+            ("boundary circularity residual", f"{self.circularity:.1e}"),
+            ("nodes per side", str(self.nodes_per_side)),
+            ("nodes per boundary", ", ".join(str(n) for n in self.nodes)),
+            ("GMRES iterations (total)", str(self.gmres_iterations)),
+            ("wall time", f"{self.wall_time:.2f} s"),
+        ]
+        w = max(len(r[0]) for r in rows)
+        return "\n".join(f"{a:<{w}}  {b}" for a, b in rows)
+
+
+def _pack(z: np.ndarray) -> dict[str, str]:
+    arr = np.ascontiguousarray(z)
+    dtype = "<c16" if arr.dtype.kind == "c" else "<f8"
+    return {"dtype": dtype, "data": base64.b64encode(arr.astype(dtype).tobytes()).decode()}
+
+
+def _unpack(d: Any, name: str) -> np.ndarray:
+    try:
+        dtype = np.dtype(d["dtype"])
+        if dtype.str not in ("<c16", "<f8"):
+            raise ValueError(f"unsupported dtype {dtype}")
+        arr = np.frombuffer(base64.b64decode(d["data"], validate=True), dtype=dtype)
+    except (KeyError, TypeError, ValueError) as exc:
+        raise SerializationError(f"map field {name!r} is not a packed array: {exc}") from exc
+    if not np.all(np.isfinite(arr)):
+        raise SerializationError(f"map field {name!r} contains NaN or inf")
+    return arr.astype(np.complex128 if dtype.kind == "c" else np.float64)
+
+
+class ConformalMap:
+    """The conformal map T of a workspace's free space onto a circle domain.
+
+    The outer boundary goes to the unit circle, obstacle j to the circle
+    ``|w - centers[j]| = radii[j]``; ``T(anchor) = 0`` and ``T'(anchor) > 0``.
+    All evaluation methods are vectorized over complex arrays of any shape; points outside the
+    closed free space (resp. the closed circle domain) give NaN.
+    """
+
+    def __init__(
+        self,
+        workspace: Workspace,
+        eta: list[ComplexArray],
+        deta: list[ComplexArray],
+        W: list[ComplexArray],
+        dW: list[ComplexArray],
+        centers: ComplexArray,
+        radii: FloatArray,
+        diagnostics: SolveDiagnostics,
+    ) -> None:
+        self.workspace = workspace
+        self.anchor = workspace.anchor
+        self.centers = np.asarray(centers, dtype=np.complex128)
+        self.radii = np.asarray(radii, dtype=np.float64)
+        self.diagnostics = diagnostics
+        self._parts = (eta, deta, W, dW)
+        wts = np.concatenate([np.full(e.size, 2 * np.pi / e.size) for e in eta])
+        self._eta, self._W = np.concatenate(eta), np.concatenate(W)
+        # charges of the barycentric sums (weights folded in)
+        self._q_deta = wts * np.concatenate(deta)
+        self._q_W = self._q_deta * self._W
+        self._q_dW = wts * np.concatenate(dW)
+        self._Q_fwd = np.column_stack([self._q_W, self._q_deta])
+        # The inverse sums run over the images W; nodes next to a corner that the map
+        # compresses coincide there in floating point and are merged into one source.
+        _, first = np.unique(self._W, return_index=True)
+        keep = np.zeros(self._W.size, bool)
+        keep[first] = True
+        self._inv_W, self._inv_eta = self._W[keep], self._eta[keep]
+        self._inv_q_dW = self._q_dW[keep]
+        self._inv_q_etadW = self._inv_q_dW * self._inv_eta
+        self._revision: str | None = None
+        self._expansion: LocalExpansions | None = None
+        self._fast = False  # build the expansions on first use (set by for_navigation)
+
+    # ------------------------------------------------------------------ evaluation
+    @property
+    def n_obstacles(self) -> int:
+        return int(self.centers.size)
+
+    @staticmethod
+    def _bary(
+        nodes: ComplexArray, z: ComplexArray, charges: list[ComplexArray]
+    ) -> list[ComplexArray]:
+        """sum_k q_k/(nodes_k - z) for each charge vector."""
+        return [-c for c in cauchy_sums(nodes, charges, z)]
+
+    def _forward(
+        self, z: ArrayLike, derivative: bool, check: bool
+    ) -> tuple[ComplexArray, ComplexArray | None]:
+        zz = np.asarray(z, dtype=np.complex128)
+        shape = zz.shape
+        flat = zz.ravel()
+        w = np.full(flat.size, np.nan + 0j)
+        dw = np.full(flat.size, np.nan + 0j) if derivative else None
+        ok = np.isfinite(flat)
+        if check:
+            inside = np.asarray(
+                shapely.intersects_xy(self.workspace.polygon, flat.real, flat.imag), dtype=bool
+            )
+            near = ok & ~inside  # boundary points rounded to just outside still count
+            if near.any():
+                d = distance_to_boundary(self.workspace, flat[near])
+                inside[near] = d <= BOUNDARY_RTOL * self.workspace.diameter
+            ok &= inside
+        idx = np.flatnonzero(ok)
+        if idx.size:
+            pts = flat[idx]
+            ex = self._expansions(pts.size)
+            if (
+                ex is not None
+            ):  # O(1) per point away from the walls (confnav/conformal/expansion.py)
+                far, S, dS = ex.sums(pts)
+                (Nf, Df), (dNf, dDf) = S[far].T, dS[far].T
+                w[idx[far]] = Nf / Df
+                if dw is not None:
+                    dw[idx[far]] = (dNf * Df - Nf * dDf) / Df**2
+                idx, pts = idx[~far], pts[~far]  # near a wall: the direct formula below
+                if not idx.size:
+                    return w.reshape(shape), (dw.reshape(shape) if dw is not None else None)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                # N = sum q_W/(eta - z), D = sum q_eta/(eta - z), T = N/D and
+                # T' = (N'D - N D')/D^2 with N' = sum q_W/(eta - z)^2 (likewise D'): the exact
+                # derivative of the barycentric formula. It needs no W' and beats the Cauchy
+                # integral of W' near the boundary (measured against finite differences: 8e-9
+                # vs 1.2e-7 relative at clearance 0.002), where W' is least accurate.
+                if pts.size == 1:  # one robot: 1-D dots, no kernel matrix (4x faster)
+                    r = 1.0 / (self._eta - pts[0])
+                    N, D = np.dot(self._q_W, r), np.dot(self._q_deta, r)
+                    if derivative:
+                        r *= r
+                        dN, dD = np.dot(self._q_W, r), np.dot(self._q_deta, r)
+                elif pts.size * self._eta.size <= FMM_THRESHOLD:
+                    R = np.subtract.outer(self._eta, pts)
+                    np.reciprocal(R, out=R)
+                    # einsum's own loop for a few points: a threaded BLAS gemv can stall for
+                    # milliseconds on a busy machine (measured), a single robot's step cannot
+                    few = pts.size <= 4
+                    N, D = np.einsum("nk,np->kp", self._Q_fwd, R) if few else self._Q_fwd.T @ R
+                    if derivative:
+                        np.multiply(R, R, out=R)
+                        dN, dD = (
+                            np.einsum("nk,np->kp", self._Q_fwd, R) if few else self._Q_fwd.T @ R
+                        )
+                else:
+                    first, second = cauchy_sums2(
+                        self._eta, [self._q_W, self._q_deta], pts, derivative
+                    )
+                    N, D = -first[0], -first[1]
+                    if derivative:
+                        dN, dD = second
+                w[idx] = N / D
+                if dw is not None:
+                    dw[idx] = (dN * D - N * dD) / D**2
+            self._fix_nodes(pts, idx, w, dw)
+        return w.reshape(shape), (dw.reshape(shape) if dw is not None else None)
+
+    def _expansions(self, n_points: int) -> LocalExpansions | None:
+        """The local-expansion evaluator if built, or worth building for ``n_points``.
+
+        Built on first use by maps from :meth:`for_navigation` (evaluated again and again), or
+        for a batch of at least :data:`EXPANSION_MIN_POINTS` (whose direct cost already
+        exceeds the build's); once built it serves every evaluation of two or more points (T and
+        T' within 1e-12 of the exact sums, see tests/test_expansion.py).
+        """
+        if self._expansion is None and (self._fast or n_points >= EXPANSION_MIN_POINTS):
+            self._expansion = LocalExpansions(self._eta, self._Q_fwd, region=self.workspace.polygon)
+        # one point on a small map: the direct 1-D dots cost less than the look-up's numpy
+        # overhead (the build happens anyway, e.g. in a Controller's constructor)
+        small = n_points == 1 and self.n_nodes <= EXPANSION_SINGLE_NODES
+        return None if small else self._expansion
+
+    def _fix_nodes(
+        self, pts: ComplexArray, idx: np.ndarray, w: ComplexArray, dw: ComplexArray | None
+    ) -> None:
+        """Points that coincide with a boundary node take the node's value (0/0 otherwise)."""
+        bad = ~np.isfinite(w[idx])
+        if not bad.any():
+            return
+        for j in np.flatnonzero(bad):  # rare: exact hits of nodes only
+            k = int(np.argmin(np.abs(self._eta - pts[j])))
+            w[idx[j]] = self._W[k]
+            if dw is not None:
+                dk = self._q_deta[k]
+                dw[idx[j]] = self._q_dW[k] / dk if dk != 0 else np.nan
+
+    def T(self, z: ArrayLike, check: bool = True) -> ComplexArray:
+        """T(z). With ``check=False`` the free-space test is skipped (caller guarantees it)."""
+        return self._forward(z, False, check)[0]
+
+    def dT(self, z: ArrayLike, check: bool = True) -> ComplexArray:
+        """The complex derivative T'(z)."""
+        d = self._forward(z, True, check)[1]
+        assert d is not None
+        return d
+
+    def T_and_dT(self, z: ArrayLike, check: bool = True) -> tuple[ComplexArray, ComplexArray]:
+        """T(z) and T'(z) from one pass over the boundary nodes."""
+        w, d = self._forward(z, True, check)
+        assert d is not None
+        return w, d
+
+    def in_circle_domain(self, w: ArrayLike) -> np.ndarray:
+        """True for points of the closed circle domain."""
+        ww = np.asarray(w, dtype=np.complex128)
+        ok = np.isfinite(ww) & (np.abs(ww) <= 1.0 + 1e-12)
+        for c, r in zip(self.centers, self.radii, strict=True):
+            ok &= np.abs(ww - c) >= r - 1e-12
+        return np.asarray(ok)
+
+    def inverse(self, w: ArrayLike, check: bool = True) -> ComplexArray:
+        """T^-1(w) for points of the circle domain."""
+        ww = np.asarray(w, dtype=np.complex128)
+        shape = ww.shape
+        flat = ww.ravel()
+        out = np.full(flat.size, np.nan + 0j)
+        ok = self.in_circle_domain(flat) if check else np.isfinite(flat)
+        idx = np.flatnonzero(ok)
+        if idx.size:
+            pts = flat[idx]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                num, den = self._bary(self._inv_W, pts, [self._inv_q_etadW, self._inv_q_dW])
+                out[idx] = num / den
+            bad = ~np.isfinite(out[idx])
+            for j in np.flatnonzero(bad):
+                out[idx[j]] = self._inv_eta[int(np.argmin(np.abs(self._inv_W - pts[j])))]
+        return out.reshape(shape)
+
+    # ------------------------------------------------------------------ fast evaluation
+    def coarsened(self, stride: int) -> ConformalMap:
+        """The same map evaluated from every ``stride``-th boundary node.
+
+        The nodes are equispaced in the mesh parameter t, so every stride-th node is again a
+        trapezoidal rule on the same parametrisation (boundaries whose node count ``stride``
+        does not divide keep all their nodes). The solve needs its node density at the
+        corners; evaluation away from them needs far fewer, and its cost is linear in the nodes.
+        """
+        eta, deta, W, dW = self._parts
+        pick = [slice(None, None, stride if e.size % stride == 0 else 1) for e in eta]
+        coarse = ConformalMap(
+            self.workspace,
+            [e[s] for e, s in zip(eta, pick, strict=True)],
+            [d[s] for d, s in zip(deta, pick, strict=True)],
+            [w[s] for w, s in zip(W, pick, strict=True)],
+            [d[s] for d, s in zip(dW, pick, strict=True)],
+            self.centers,
+            self.radii,
+            self.diagnostics,
+        )
+        coarse._revision = self.revision  # the same solution, evaluated from fewer nodes
+        # its own a-posteriori check: fewer nodes are least accurate right at the walls
+        coarse.diagnostics = self.diagnostics.with_residual(coarse.boundary_residual())
+        return coarse
+
+    def for_navigation(
+        self, accuracy: float = 1e-7, strides: tuple[int, ...] = (8, 4, 2), seed: int = 0
+    ) -> ConformalMap:
+        """The cheapest coarsened map whose T and T' stay within ``accuracy`` of this one.
+
+        Checked (T absolute, T' relative) at up to 400 random free-space points, preferring
+        those at least 1% of the workspace size from the boundary but taking the ones with the
+        most clearance where the domain is narrower than that, and at the walls themselves
+        through the coarsened map's own :meth:`boundary_residual` (it must be within
+        ``accuracy`` too). The result carries its own diagnostics (its residual, and the
+        deviation measured here folded into its error estimate); returns ``self`` if no
+        coarsening qualifies.
+        The result evaluates through local expansions (built on first use, ~0.5 s).
+        """
+        z = self._check_points(seed)
+        w, dw = self.T_and_dT(z, check=False)
+        for s in strides:
+            c = self.coarsened(s)
+            wc, dwc = c.T_and_dT(z, check=False)
+            dev = (
+                max(float(np.max(np.abs(wc - w))), float(np.max(np.abs(dwc - dw) / np.abs(dw))))
+                if z.size
+                else 0.0
+            )
+            if dev <= accuracy and c.diagnostics.boundary_residual <= accuracy:
+                c.diagnostics = c.diagnostics.with_deviation(dev)
+                c._fast = True
+                return c
+        self._fast = True
+        return self
+
+    def _check_points(self, seed: int, count: int = 400) -> ComplexArray:
+        """Random free-space points, those farther than 1% of the workspace size from the
+        boundary first, then (narrow domains) the ones with the largest clearance."""
+        ws = self.workspace
+        x0, y0, x1, y1 = ws.bounds
+        rng = np.random.default_rng(seed)
+        z = rng.uniform(x0, x1, 10 * count) + 1j * rng.uniform(y0, y1, 10 * count)
+        d = ws.clearance(z)
+        inside = d > 0
+        z, d = z[inside], d[inside]
+        far = d > 0.01 * ws.diameter
+        if int(far.sum()) >= count:
+            return np.asarray(z[far][:count])
+        return np.asarray(z[np.argsort(-d)][:count])
+
+    def boundary_residual(self) -> float:
+        """Largest distance of T(z) from its circle over boundary points between the nodes.
+
+        An a-posteriori check of the map as evaluated (independent of the solver's own
+        estimates): the midpoint between every two consecutive nodes (on the polygon, since
+        consecutive nodes share a side) and, on every side, the points at the fractions
+        :data:`CORNER_FRACTIONS` from each of its corners -- all but within
+        :data:`CORNER_ZONE` of a corner. T maps the outer polygon onto
+        ``|w| = 1`` and obstacle j onto ``|w - c_j| = r_j`` (DESIGN.md sec. 2).
+        """
+        eta = self._parts[0]
+        targets, owner = [], []
+        frac = np.array(CORNER_FRACTIONS)
+        frac = np.concatenate([frac, 1.0 - frac[1:]])
+        for j, (e, v) in enumerate(zip(eta, self.workspace.boundaries, strict=True)):
+            mid = 0.5 * (e + np.roll(e, -1))
+            lens = np.abs(np.roll(v, -1) - v)
+            at = np.minimum(lens, np.roll(lens, 1))  # shorter side at each vertex
+            rel = np.min(np.abs(mid[:, None] - v[None, :]) / at[None, :], axis=1)
+            mid = mid[rel >= CORNER_ZONE]
+            side = (v[:, None] + np.outer(np.roll(v, -1) - v, frac)).ravel()
+            pts = np.concatenate([mid, side])
+            targets.append(pts)
+            owner.append(np.full(pts.size, j))
+        z = np.concatenate(targets)
+        which = np.concatenate(owner)
+        w = self.T(z, check=False)
+        c = np.concatenate([[0j], self.centers])[which]
+        r = np.concatenate([[1.0], self.radii])[which]
+        res = np.abs(np.abs(w - c) - r)
+        return float(np.max(res)) if np.all(np.isfinite(res)) else float("inf")
+
+    @property
+    def n_nodes(self) -> int:
+        """Boundary nodes the map is evaluated from (its cost per point is linear in this)."""
+        return int(self._eta.size)
+
+    # ------------------------------------------------------------------ serialisation
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-able, lossless: arrays are base64 little-endian float64/complex128."""
+        eta, deta, W, dW = self._parts
+        return {
+            "format": FORMAT,
+            "version": FORMAT_VERSION,
+            "workspace": self.workspace.to_dict(),
+            "workspace_hash": self.workspace_hash,
+            "centers": _pack(self.centers),
+            "radii": _pack(self.radii),
+            "boundaries": [
+                {"eta": _pack(e), "deta": _pack(d), "W": _pack(w), "dW": _pack(dw)}
+                for e, d, w, dw in zip(eta, deta, W, dW, strict=True)
+            ],
+            "diagnostics": asdict(self.diagnostics),
+        }
+
+    @classmethod
+    def from_dict(cls, d: Any) -> ConformalMap:
+        if not isinstance(d, dict) or d.get("format") != FORMAT:
+            raise SerializationError(f"not a confnav map (expected format {FORMAT!r})")
+        if d.get("version") == 1:
+            raise SerializationError(
+                "map format version 1 is no longer accepted: its error estimate could not see "
+                "an iteration stopped early and it carries no workspace hash; re-solve the "
+                "workspace (confnav solve WS.json --out MAP.json)"
+            )
+        if d.get("version") != FORMAT_VERSION:
+            raise SerializationError(
+                f"map format version {d.get('version')!r} is not supported "
+                f"(this confnav reads version {FORMAT_VERSION})"
+            )
+        try:
+            ws = Workspace.from_dict(d["workspace"])
+            if d["workspace_hash"] != ws.content_hash:
+                raise SerializationError(
+                    "map's workspace_hash does not match the workspace stored with it "
+                    "(the file was altered or written by an incompatible program)"
+                )
+            bnd = d["boundaries"]
+            parts = [[_unpack(b[k], k) for b in bnd] for k in ("eta", "deta", "W", "dW")]
+            centers = _unpack(d["centers"], "centers")
+            radii = _unpack(d["radii"], "radii")
+            diag = SolveDiagnostics(**d["diagnostics"])
+        except (KeyError, TypeError) as exc:
+            raise SerializationError(f"map is missing or has a malformed field: {exc}") from exc
+        if len(bnd) != ws.n_obstacles + 1 or centers.size != ws.n_obstacles:
+            raise SerializationError("map boundaries do not match its workspace")
+        for e, de, w, dw in zip(*parts, strict=True):
+            if not (e.size == de.size == w.size == dw.size):
+                raise SerializationError("map boundary arrays have inconsistent sizes")
+        return cls(ws, parts[0], parts[1], parts[2], parts[3], centers, radii, diag)
+
+    def to_json(self) -> str:
+        return json.dumps(self.to_dict())
+
+    @classmethod
+    def from_json(cls, text: str | bytes) -> ConformalMap:
+        try:
+            d = json.loads(text)
+        except json.JSONDecodeError as exc:
+            raise SerializationError(f"map is not valid JSON: {exc}") from exc
+        return cls.from_dict(d)
+
+    @property
+    def workspace_hash(self) -> str:
+        """:attr:`Workspace.content_hash` of the workspace this map was solved for."""
+        return self.workspace.content_hash
+
+    def check_workspace(self, workspace: Workspace) -> None:
+        """Raise :class:`MapMismatchError` unless this map was solved for ``workspace``."""
+        if workspace.content_hash != self.workspace_hash:
+            raise MapMismatchError(
+                f"the map was solved for workspace {self.workspace_hash[:12]} "
+                f"({self.n_obstacles} obstacles), not for the one in use "
+                f"{workspace.content_hash[:12]} ({workspace.n_obstacles} obstacles): "
+                "solve this workspace or load its own map"
+            )
+
+    @property
+    def revision(self) -> str:
+        """sha256 of the workspace and coefficients (not of the diagnostics)."""
+        if self._revision is None:
+            h = hashlib.sha256(self.workspace.content_hash.encode())
+            for arr in (*self._parts[2], *self._parts[3], self.centers, self.radii):
+                h.update(np.ascontiguousarray(arr).tobytes())
+            self._revision = h.hexdigest()
+        return self._revision
+
+    def __repr__(self) -> str:
+        return (
+            f"ConformalMap(obstacles={self.n_obstacles}, anchor={self.anchor:.6g}, "
+            f"error_estimate={self.diagnostics.error_estimate:.1e})"
+        )
+
+
+__all__ = ["ConformalMap", "SolveDiagnostics"]

@@ -1,0 +1,175 @@
+"""Disk maps of one closed curve from the GNK equation, and their Cauchy-formula evaluation.
+
+Interior map (bounded domain inside ``eta`` onto ``|w| < 1``, ``f(alpha) = 0``,
+``f'(alpha) > 0``): ``A = eta - alpha``, ``gamma = -log|eta - alpha|``; then
+
+    f(eta) = (eta - alpha)/|eta - alpha| e^{i mu},      f'(alpha) = e^{-h},
+    df/dt  = i (Im(eta'/(eta - alpha)) + mu') f.
+
+Exterior map (unbounded domain outside a clockwise ``eta`` onto ``|w| > 1``, ``F(inf) = inf``,
+``F'(inf) > 0``, ``alpha`` inside the curve): ``A = 1``, ``gamma = log|eta - alpha|``,
+``Phi = gamma + h + i mu``; then
+
+    F(eta) = (eta - alpha)/|eta - alpha| e^{-i mu + i Im Phi_inf},
+    F'(inf) = e^{h - Re Phi_inf},   Phi_inf = (1/2pi i) oint_ccw Phi/(zeta - alpha) dzeta.
+
+Off the curve the maps are evaluated by the barycentric Cauchy formula, which stays accurate up
+to the boundary (the discretisation error of numerator and denominator cancels):
+
+    f(z) = sum f_k eta'_k/(eta_k - z) / sum eta'_k/(eta_k - z),
+    f'(z) = sum (df/dt)_k/(eta_k - z) / sum eta'_k/(eta_k - z);
+
+outside a hole it is applied to the bounded function ``g = F/(z - alpha)``, with
+``g(z) = [g_inf + (1/2pi i) sum w g eta'/(eta - z)] / [1 + (1/2pi i) sum w eta'/(eta - z)]``.
+
+References
+----------
+.. [1] M. M. S. Nasser, "Numerical conformal mapping via a boundary integral equation with the
+   generalized Neumann kernel", SIAM J. Sci. Comput. 31 (2009) 1695-1715, secs. 4-5.
+.. [2] J.-P. Berrut, L. N. Trefethen, "Barycentric Lagrange interpolation", SIAM Rev. 46
+   (2004); A. P. Austin, P. Kravanja, L. N. Trefethen, SIAM J. Numer. Anal. 52 (2014) 1795-1821
+   (barycentric Cauchy formula near the boundary).
+.. [3] DESIGN.md sec. 2 (formulas checked against two independent implementations).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from confnav.conformal.cauchy import cauchy_sums
+from confnav.conformal.gnk import (
+    GMRES_RTOL,
+    solve_gnk,
+    spectral_derivative,
+    spectral_derivative_complex,
+)
+from confnav.geometry import ComplexArray
+
+
+@dataclass(frozen=True)
+class CurveMap:
+    """A disk map of one curve: boundary values plus what is needed to evaluate it elsewhere.
+
+    Attributes
+    ----------
+    eta, deta
+        The curve and its t-derivative at the nodes.
+    f, df
+        The map's boundary values and their t-derivatives (``|f| = 1``).
+    alpha
+        Interior map: the point sent to 0. Exterior map: a point inside the curve.
+    exterior
+        True for the exterior map of a hole.
+    scale
+        ``f'(alpha)`` (interior) or ``F'(inf)`` (exterior); real and positive.
+    gmres_iterations
+        Iterations of the GNK solve (diagnostic).
+    """
+
+    eta: ComplexArray
+    deta: ComplexArray
+    f: ComplexArray
+    df: ComplexArray
+    alpha: complex
+    exterior: bool
+    scale: float
+    gmres_iterations: int
+
+    def evaluate(
+        self, z: ComplexArray, derivative: bool = True
+    ) -> tuple[ComplexArray, ComplexArray | None]:
+        """The map and its derivative at points z inside its domain (off the curve)."""
+        z = np.asarray(z, dtype=np.complex128).ravel()
+        if self.exterior:
+            return self._evaluate_exterior(z, derivative)
+        return self._evaluate_interior(z, derivative)
+
+    def _sums(self, z: ComplexArray, charges: list[ComplexArray]) -> list[ComplexArray]:
+        """sum_k q_k/(eta_k - z) for each charge vector q."""
+        return [-c for c in cauchy_sums(self.eta, charges, z)]
+
+    def _evaluate_interior(
+        self, z: ComplexArray, derivative: bool
+    ) -> tuple[ComplexArray, ComplexArray | None]:
+        charges = [self.f * self.deta, self.deta] + ([self.df] if derivative else [])
+        sums = self._sums(z, charges)
+        w = sums[0] / sums[1]
+        dw = sums[2] / sums[1] if derivative else None
+        return w, dw
+
+    def _evaluate_exterior(
+        self, z: ComplexArray, derivative: bool
+    ) -> tuple[ComplexArray, ComplexArray | None]:
+        a = self.alpha
+        g = self.f / (self.eta - a)
+        # dg/dt as the spectral derivative of the samples of g: its weighted sum is exactly 0,
+        # as it must be for g'(z) = O(1/z^2) at infinity. (A dg assembled from the boundary
+        # formula is inexact at the corners, and F' = g + (z - a) g' then carries that error
+        # undiminished to every distance.)
+        dg = spectral_derivative_complex(g)
+        w2pi = 2 * np.pi / self.eta.size / (2j * np.pi)
+        charges = [g * self.deta, self.deta] + ([dg] if derivative else [])
+        sums = self._sums(z, charges)
+        den = 1.0 + w2pi * sums[1]
+        gz = (self.scale + w2pi * sums[0]) / den  # g(inf) = F'(inf)
+        Fz = (z - a) * gz
+        if not derivative:
+            return Fz, None
+        dgz = (w2pi * sums[2]) / den
+        return Fz, gz + (z - a) * dgz
+
+
+def interior_map(
+    eta: ComplexArray, deta: ComplexArray, alpha: complex, rtol: float = GMRES_RTOL
+) -> CurveMap:
+    """Map the inside of a counter-clockwise curve onto the unit disk (DESIGN.md sec. 2).
+
+    ``rtol``: relative GMRES residual of the GNK solve
+    (:func:`confnav.conformal.gnk.gmres_rtol`)."""
+    A = eta - alpha
+    gamma = -np.log(np.abs(A))
+    sol = solve_gnk(eta, deta, A, gamma, rtol)
+    theta_dot = (deta / A).imag + spectral_derivative(sol.mu)
+    f = A / np.abs(A) * np.exp(1j * sol.mu)
+    return CurveMap(
+        eta=eta,
+        deta=deta,
+        f=f,
+        df=1j * theta_dot * f,
+        alpha=complex(alpha),
+        exterior=False,
+        scale=float(np.exp(-sol.h)),
+        gmres_iterations=sol.iterations,
+    )
+
+
+def exterior_map(
+    eta: ComplexArray, deta: ComplexArray, alpha: complex, rtol: float = GMRES_RTOL
+) -> CurveMap:
+    """Map the outside of a clockwise curve onto |w| > 1 with F'(inf) > 0 (DESIGN.md sec. 2).
+
+    ``rtol``: relative GMRES residual of the GNK solve
+    (:func:`confnav.conformal.gnk.gmres_rtol`)."""
+    A = np.ones_like(eta)
+    gamma = np.log(np.abs(eta - alpha))
+    sol = solve_gnk(eta, deta, A, gamma, rtol)
+    phi = gamma + sol.h + 1j * sol.mu
+    # Phi_inf = (1/2pi i) oint_ccw Phi/(zeta - alpha) dzeta; eta runs clockwise -> minus sign.
+    phi_inf = -(2 * np.pi / eta.size) / (2j * np.pi) * np.sum(phi * deta / (eta - alpha))
+    theta_dot = (deta / (eta - alpha)).imag - spectral_derivative(sol.mu)
+    f = (eta - alpha) / np.abs(eta - alpha) * np.exp(-1j * sol.mu + 1j * phi_inf.imag)
+    return CurveMap(
+        eta=eta,
+        deta=deta,
+        f=f,
+        df=1j * theta_dot * f,
+        alpha=complex(alpha),
+        exterior=True,
+        scale=float(np.exp(sol.h - phi_inf.real)),
+        gmres_iterations=sol.iterations,
+    )
+
+
+__all__ = ["CurveMap", "exterior_map", "interior_map"]

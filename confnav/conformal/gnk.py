@@ -1,0 +1,216 @@
+"""The generalized Neumann kernel (GNK) boundary integral equation on one closed curve.
+
+For a curve ``eta(t)``, a complex function ``A`` on it and a real ``gamma``, there are a unique
+real function ``mu`` and a real constant ``h`` such that ``A f = gamma + h + i mu`` are the
+boundary values of a function ``f`` analytic in the domain; they solve
+
+    (I - N) mu = -M gamma,        h = [M mu - (I - N) gamma] / 2,
+
+with the kernels (``s, t`` parameters on the curve)
+
+    N(s, t) = (1/pi) Im( A(s) eta'(t) / (A(t) (eta(t) - eta(s))) ),
+    M(s, t) = (1/pi) Re( A(s) eta'(t) / (A(t) (eta(t) - eta(s))) ).
+
+Discretisation: Nystrom with the trapezoidal rule (weight 2pi/n) on the graded mesh. The
+singularities are removed with ``N 1 = -1`` and ``M 1 = 0``:
+
+    [(I - N) x]_i = 2 x_i - sum_{k != i} N_ik (x_k - x_i),
+    [M x]_i       = sum_{k != i} M_ik (x_k - x_i) + (2/n) x'(t_i),
+
+where ``x'`` is the spectral (FFT) derivative. The system is solved by GMRES; a matrix-vector
+product is one Cauchy sum (direct or FMM, see :mod:`confnav.conformal.cauchy`), so a solve costs
+O(n^2) dense or O(n) with the FMM. (The seed's eqs. (integral equation) and (c) swap the known
+and unknown functions -- DESIGN.md sec. 6 errata; this module follows DESIGN.md sec. 2.)
+
+References
+----------
+.. [1] R. Wegmann, M. M. S. Nasser, "The Riemann-Hilbert problem and the generalized Neumann
+   kernel on multiply connected regions", J. Comput. Appl. Math. 214 (2008) 36-57, Thm. 5.
+.. [2] M. M. S. Nasser, "Fast solution of boundary integral equations with the generalized
+   Neumann kernel", ETNA 44 (2015) 189-229, secs. 2-4 (Nystrom, singularity removal, FMM).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.sparse.linalg import LinearOperator, gmres
+
+from confnav.conformal.cauchy import HAVE_FMM, cauchy_self
+from confnav.errors import ConvergenceError
+from confnav.geometry import ComplexArray, FloatArray
+
+#: Default relative GMRES residual (for a map tolerance of 1e-11 and below); callers tie it to
+#: their tolerance with :func:`gmres_rtol`.
+GMRES_RTOL = 1e-14
+#: GMRES residual per unit of the requested map tolerance. The GNK operator I - N is a
+#: second-kind operator with a bounded inverse (Wegmann & Nasser 2008, Thm. 5), so the error
+#: of mu is of the order of the residual; 1e-3 keeps it far below the tolerance.
+GMRES_PER_TOL = 1e-3
+#: A GMRES run that stops at its iteration limit is accepted only if its true residual is
+#: within this factor of the residual asked for (never at a fixed threshold).
+GMRES_ACCEPT = 10.0
+GMRES_RESTART = 80
+GMRES_MAXITER = 20
+
+
+def spectral_derivative(x: FloatArray) -> FloatArray:
+    """d x / d t for samples of a smooth 2pi-periodic function at t_i = 2pi i/n (FFT)."""
+    n = x.size
+    k = np.fft.rfftfreq(n, d=1.0 / n)
+    xh = np.fft.rfft(x) * 1j * k
+    if n % 2 == 0:
+        xh[-1] = 0.0  # the Nyquist mode has no derivative in a real expansion
+    return np.fft.irfft(xh, n)
+
+
+def spectral_derivative_complex(x: ComplexArray) -> ComplexArray:
+    """d x / d t for complex samples of a smooth 2pi-periodic function (FFT)."""
+    return spectral_derivative(x.real) + 1j * spectral_derivative(x.imag)
+
+
+@dataclass(frozen=True)
+class GNKSolution:
+    """Solution of one GNK equation: ``mu`` at the nodes, ``h``, and diagnostics."""
+
+    mu: FloatArray
+    h: float
+    h_spread: float  # max - min of the pointwise h: a residual check (0 in exact arithmetic)
+    iterations: int
+
+
+#: Up to this many nodes the GNK matrix is built densely (O(n^2) memory, fast BLAS matvecs);
+#: above it every matrix-vector product is an FMM Cauchy sum (O(n)).
+DENSE_MAX_NODES = 3200
+
+#: A node whose quadrature weight |eta'| 2pi/n is below this fraction of the curve's size lies
+#: within rounding of its neighbours (graded nodes next to a corner, and their images under maps
+#: that compress the corner); it carries no information as a source and is dropped as one.
+DEAD_NODE_RTOL = 1e-15
+
+
+def alive_nodes(eta: ComplexArray, deta: ComplexArray) -> np.ndarray:
+    """Nodes whose quadrature weight is above rounding (see :data:`DEAD_NODE_RTOL`)."""
+    size = float(np.max(np.abs(eta - eta.mean())))
+    return np.asarray(np.abs(deta) * (2 * np.pi / eta.size) > DEAD_NODE_RTOL * size)
+
+
+class _Operator:
+    """Discrete GNK operators for one curve: S(x) = sum_{k!=i} K_ik (x_k - x_i) etc."""
+
+    def __init__(self, eta: ComplexArray, deta: ComplexArray, A: ComplexArray) -> None:
+        self.n = n = eta.size
+        self.eta, self.A = eta, A
+        self.alive = alive_nodes(eta, deta)
+        self.q0 = np.where(self.alive, deta / A, 0.0)
+        self.dense = not (HAVE_FMM and n > DENSE_MAX_NODES)
+        if self.dense:
+            # K_ik = (2/n) A_i q0_k / (eta_k - eta_i), built in place (in-place reciprocal and
+            # products: 3-5x faster than a complex division over n^2 entries, measured)
+            K = np.subtract.outer(eta, eta)  # eta_i - eta_k
+            np.fill_diagonal(K, np.inf)
+            K[K == 0] = np.inf  # coincident image nodes (both dead): no mutual term
+            np.reciprocal(K, out=K)
+            K *= (-2.0 / n) * A[:, None]
+            K *= self.q0[None, :]
+            self.Kr = K.real.copy()
+            self.Ki = K.imag.copy()
+            self.rowr = self.Kr.sum(axis=1)
+            self.rowi = self.Ki.sum(axis=1)
+        else:
+            self.c0 = self._cauchy(self.q0)
+
+    def _cauchy(self, q: ComplexArray) -> ComplexArray:
+        """sum over alive k != i of q_k/(eta_i - eta_k), at every node i (FMM)."""
+        a = self.alive
+        out = np.empty(self.n, np.complex128)
+        out[a] = cauchy_self(self.eta[a], q[a])
+        if not a.all():
+            # The few dead nodes directly: one may coincide with a live node in floating point
+            # (node images merged next to a corner), and that pair has no mutual term.
+            d = np.subtract.outer(self.eta[~a], self.eta[a])
+            d[d == 0] = np.inf
+            out[~a] = (q[a][None, :] / d).sum(axis=1)
+        return out
+
+    def S(self, x: FloatArray) -> ComplexArray:
+        """sum_{k != i} K_ik (x_k - x_i), complex (Re -> M part, Im -> N part)."""
+        if self.dense:
+            return np.asarray((self.Kr @ x - self.rowr * x) + 1j * (self.Ki @ x - self.rowi * x))
+        cx = self._cauchy(self.q0 * x.astype(np.complex128))
+        return np.asarray(-(2.0 / self.n) * self.A * (cx - x * self.c0))
+
+    def I_minus_N(self, x: FloatArray) -> FloatArray:
+        if self.dense:
+            return np.asarray(2 * x - (self.Ki @ x - self.rowi * x))
+        return np.asarray(2 * x - self.S(x).imag)
+
+    def M(self, x: FloatArray) -> FloatArray:
+        mx = self.Kr @ x - self.rowr * x if self.dense else self.S(x).real
+        return np.asarray(mx + (2.0 / self.n) * spectral_derivative(x))
+
+
+def gmres_rtol(tol: float) -> float:
+    """Relative GMRES residual for a map tolerance ``tol``: ``GMRES_PER_TOL * tol``, not below
+    :data:`GMRES_RTOL` (rounding) nor above 1e-8."""
+    return float(min(max(GMRES_PER_TOL * tol, GMRES_RTOL), 1e-8))
+
+
+def solve_gnk(
+    eta: ComplexArray,
+    deta: ComplexArray,
+    A: ComplexArray,
+    gamma: FloatArray,
+    rtol: float = GMRES_RTOL,
+) -> GNKSolution:
+    """Solve ``(I - N) mu = -M gamma`` and return ``mu`` and ``h`` (see module docstring).
+
+    ``rtol`` is the relative GMRES residual asked for (see :func:`gmres_rtol`); a run stopped at
+    its iteration limit is accepted only within :data:`GMRES_ACCEPT` of it.
+    """
+    op = _Operator(eta, deta, A)
+    n = eta.size
+    rhs = -op.M(gamma)
+    lin = LinearOperator((n, n), matvec=op.I_minus_N, dtype=np.float64)
+    count = [0]
+
+    def _cb(_: object) -> None:
+        count[0] += 1
+
+    mu, info = gmres(
+        lin,
+        rhs,
+        rtol=rtol,
+        atol=0.0,
+        restart=GMRES_RESTART,
+        maxiter=GMRES_MAXITER,
+        callback=_cb,
+        callback_type="pr_norm",
+    )
+    if info > 0:
+        res = float(np.linalg.norm(op.I_minus_N(mu) - rhs)) / max(
+            float(np.linalg.norm(rhs)), 1e-300
+        )
+        if res > GMRES_ACCEPT * rtol:
+            raise ConvergenceError(
+                f"GMRES did not converge for the GNK equation (n={n}, residual {res:.2e} > "
+                f"{GMRES_ACCEPT * rtol:.1e})"
+            )
+    hpt = 0.5 * (op.M(mu) - op.I_minus_N(gamma))
+    return GNKSolution(
+        mu=np.asarray(mu),
+        h=float(np.mean(hpt)),
+        h_spread=float(np.ptp(hpt)),
+        iterations=count[0],
+    )
+
+
+__all__ = [
+    "GNKSolution",
+    "alive_nodes",
+    "gmres_rtol",
+    "solve_gnk",
+    "spectral_derivative",
+    "spectral_derivative_complex",
+]

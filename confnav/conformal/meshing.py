@@ -1,0 +1,157 @@
+"""Mesh planning: nodes per polygon side from the corners, the gaps and a tolerance.
+
+Two error sources decide how many graded-mesh nodes a panel needs:
+
+* **corners.** At a corner with free-space angle ``a pi`` the map behaves like ``r^(1/a)``; on
+  Kress's graded mesh that is ``tau^(p/a)`` and the trapezoidal rule converges like
+  ``n^-(p/a + 1)`` [1]. Panels ending at a polygon corner get ``level^(e_ref/e)`` nodes, where
+  ``e = p/a + 1`` of the polygon's worst corner; ``level`` is the refinement knob of
+  :func:`confnav.conformal.solver.solve`.
+* **proximity.** The Cauchy sums across a gap of width d between a panel and another boundary
+  (or the anchor, or a non-adjacent side of the same polygon) converge like ``e^(-2 pi d/h)``
+  for mesh spacing h [2], so ``h <= 2 pi d / ln(10/tol)``; the mid-side spacing of Kress's
+  sigma mesh is ``2 len / n``. (Splitting long sides into shorter panels near close features
+  was tried and measured worse: the grading at the split points wastes nodes, and on the
+  default workspace 48 nodes on an unsplit outer side beat ~60 on split panels by 70x in the
+  centres.)
+
+References
+----------
+.. [1] R. Kress, Numer. Math. 58 (1990) 145-161 (graded meshes, convergence order).
+.. [2] J. Helsing, R. Ojala, "On the evaluation of layer potentials close to their sources",
+   J. Comput. Phys. 227 (2008) 2899-2921 (near-singular quadrature error ~ e^(-2 pi d/h)).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import shapely
+
+from confnav.conformal.boundary import GRADING_P
+from confnav.errors import GapError
+from confnav.geometry import ComplexArray, Workspace
+
+#: Free-space corner angle (units of pi) taken as the reference for ``level``.
+REF_ANGLE = 1.75
+#: Kress's grading narrows the strip of analyticity of the integrands (sigma has complex poles
+#: near the middle of each side), so the e^(-2 pi d/h) rate is reached only for about half
+#: the spacing: measured on the 4x2 rectangle, factor 1 leaves 3e-10 error at tol 1e-12,
+#: factor 2 gives 1.3e-12 (the exact f'(0) of DESIGN.md sec. 4).
+GRADING_STRIP = 2.0
+#: Level at which the proximity rule is applied as derived (it scales like a straight corner).
+LEVEL_BASE = 80
+#: Every boundary's node total is a multiple of this, so that every 2nd/4th/8th node is again
+#: an equispaced trapezoidal rule on the same parametrisation (fast evaluation of the map).
+NODE_MULTIPLE = 8
+#: Fewest nodes on any panel.
+MIN_NODES = 12
+#: Most nodes a side may get from the proximity rule; a gap needing more raises GapError
+#: (a silently capped mesh would under-resolve the gap at every level alike, invisible to the
+#: level-difference estimate).
+MAX_NODES_PER_PANEL = 4000
+
+
+@dataclass(frozen=True)
+class PanelPlan:
+    """Sides of one boundary: its vertices and the graded-mesh node count of each side."""
+
+    vertices: ComplexArray
+    nodes: np.ndarray
+
+    @property
+    def total(self) -> int:
+        return int(self.nodes.sum())
+
+
+def corner_exponent(polygon: ComplexArray, hole: bool, p: int = GRADING_P) -> float:
+    """Convergence exponent ``p/a + 1`` of the polygon's worst corner seen from the free space."""
+    e_in = polygon - np.roll(polygon, 1)
+    e_out = np.roll(polygon, -1) - polygon
+    interior = np.pi - np.angle(e_out / e_in)  # interior angle of the (ccw) polygon
+    a = (2 * np.pi - interior) / np.pi if hole else interior / np.pi
+    return p / max(float(a.max()), 0.75) + 1.0
+
+
+def _lines(a: ComplexArray, b: ComplexArray) -> np.ndarray:
+    xy = np.stack([np.column_stack([a.real, a.imag]), np.column_stack([b.real, b.imag])], axis=1)
+    return np.asarray(shapely.linestrings(xy))
+
+
+def _proximity_nodes(length: np.ndarray, d: np.ndarray, tol: float) -> np.ndarray:
+    """Nodes for mesh spacing 2 len/n <= 2 pi d / (GRADING_STRIP ln(10/tol))."""
+    n = np.ceil(GRADING_STRIP * 2 * length * np.log(10 / tol) / (2 * np.pi * np.maximum(d, 1e-12)))
+    return np.asarray(n)
+
+
+def _feature_distance(
+    z: ComplexArray, features: list[shapely.Geometry]
+) -> tuple[np.ndarray, np.ndarray]:
+    """Distance of each side to the nearest feature and which one it is (index into
+    ``features``, or -1 for a non-adjacent side of the same polygon)."""
+    L = z.size
+    segs = _lines(z, np.roll(z, -1))
+    D = np.stack([np.asarray(shapely.distance(segs, f), dtype=float) for f in features], axis=1)
+    which = np.argmin(D, axis=1)
+    d = D[np.arange(L), which]
+    if L > 3:  # non-adjacent sides of the same polygon (the arms of a U, a spiral)
+        dd = shapely.distance(segs[:, None], segs[None, :])
+        k = np.arange(L)
+        gap = (k[:, None] - k[None, :]) % L
+        dd = np.where((gap <= 1) | (gap >= L - 1), np.inf, dd)
+        own = dd.min(axis=1)
+        which = np.where(own < d, -1, which)
+        d = np.minimum(d, own)
+    return d, which
+
+
+def _name(j: int) -> str:
+    return "the outer boundary" if j == 0 else f"obstacle {j - 1}"
+
+
+def plan_boundaries(ws: Workspace, level: int, tol: float) -> list[PanelPlan]:
+    """Panels and nodes for every boundary (outer first) at one refinement level.
+
+    Raises
+    ------
+    GapError
+        A side is so close to another boundary (or to the anchor, or to another side of its
+        own polygon) that resolving the gap at this level and ``tol`` needs more than
+        :data:`MAX_NODES_PER_PANEL` nodes on it; the message names both and the gap.
+    """
+    e_ref = GRADING_P / REF_ANGLE + 1.0
+    # The proximity requirement refines with the level too (like a straight corner, exponent
+    # p + 1), so that every error source shrinks as the level grows.
+    scale = (level / LEVEL_BASE) ** (e_ref / (GRADING_P + 1.0))
+    polys = ws.boundaries
+    rings = [shapely.LinearRing(np.column_stack([z.real, z.imag])) for z in polys]
+    anchor = shapely.Point(ws.anchor.real, ws.anchor.imag)
+    plans = []
+    for j, z in enumerate(polys):
+        idx = [i for i in range(len(rings)) if i != j]
+        n_corner = max(MIN_NODES, int(np.ceil(level ** (e_ref / corner_exponent(z, j > 0)))))
+        d, which = _feature_distance(z, [anchor, *(rings[i] for i in idx)])
+        n_prox = np.ceil(scale * _proximity_nodes(np.abs(np.roll(z, -1) - z), d, tol))
+        over = np.flatnonzero(n_prox > MAX_NODES_PER_PANEL)
+        if over.size:
+            k = int(over[np.argmin(d[over])])
+            w = int(which[k])
+            other = (
+                f"side {k} and another side of {_name(j)}"
+                if w < 0
+                else ("the anchor" if w == 0 else _name(idx[w - 1]))
+            )
+            raise GapError(
+                f"{_name(j)} (side {k}) and {other} are {d[k]:.3g} apart: resolving that gap "
+                f"to tol {tol:.0e} needs {int(n_prox[k])} nodes on the side, more than the "
+                f"{MAX_NODES_PER_PANEL} the mesh allows (widen the gap, merge the two, or "
+                "ask for a looser tol)"
+            )
+        n = np.maximum(n_corner, n_prox).astype(np.intp)
+        n[0] += (-int(n.sum())) % NODE_MULTIPLE  # totals divisible: see ConformalMap.coarsened
+        plans.append(PanelPlan(vertices=z, nodes=n))
+    return plans
+
+
+__all__ = ["PanelPlan", "corner_exponent", "plan_boundaries"]

@@ -1,0 +1,419 @@
+"""Feedback law of the seed paper's Theorem 2 for kinematic robots ``x' = u``, with a speed law.
+
+The Theorem 2 field is ``f(x) = -conj(T'(x)) grad phi(T(x))`` (complex form of
+``-J_T^T grad phi``, DESIGN.md section 3): the negative workspace gradient of the Lyapunov
+function ``V = phi o T``, whose image in the circle domain is ``w' = -|T'|^2 grad phi``.
+Two speed laws drive the robot along it (:data:`confnav.navigation.defaults.SPEED_LAWS`):
+
+``"normalized"`` (default)
+    ``u = f / |f| * v(x)`` with ``v = min(v_max, gain |x - x_d|)``, optionally times
+    ``clip(clearance / slow_distance, 0.2, 1)`` near walls.  ``|f| = |T'| |grad phi|`` is
+    exponentially small in pockets, behind obstacles and far from the goal (3e-11 m/s
+    measured with the goal in a charging alcove); the speed of this law does not depend on it.
+``"theorem2"``
+    the plain law ``u = gain f``, scaled down to ``v_max`` keeping its direction.
+
+**Why the paths and the guarantees are the same.**  Both laws are ``u = s(x) f(x)`` with a
+scalar ``s > 0`` wherever ``f != 0`` (``s = v/|f|`` resp. ``gain * min(1, v_max/|gain f|)``).
+On the set where ``f != 0`` (the free space minus the critical points of V) the solutions of
+``x' = s f`` are those of ``x' = f`` under the time change ``dtau/dt = s(x(t)) > 0``, so both
+fields have the same integral curves, traversed in the same direction [1]_ (time changes of
+flows; e.g. Chicone, *Ordinary Differential Equations with Applications*, Prop. 1.14).  Every
+property of Theorem 2 that is a property of the curves carries over: the free space is
+positively invariant (no collision), and every curve not on the stable manifold of a saddle
+(a set of measure zero) ends at the goal (almost-global convergence; Koditschek-Rimon
+1990 [2]_, Prop. 2.4, and DESIGN.md section 3).  ``dV/dt = s <grad V, f> = -s |f|^2 < 0``
+off the critical points.  Convergence in *finite-looking* time is what changes: with
+``v >= min(v_max, gain d)`` the robot reaches the goal disk of radius ``goal_tol`` after at
+most ``L / v_max + log(v_max / (gain goal_tol)) / gain`` seconds along a path of length L.
+Where ``f = 0`` (the goal and the M saddles) the direction is undefined and ``u = 0``.
+
+The law depends on the map only through :class:`ConformalLike` (``T_and_dT``, ``centers``,
+``radii``), so exact maps can stand in for the solver in tests.  A new goal reuses the map
+(:meth:`Controller.with_goal`) and, for the harmonic function, the map's factorization.
+The speed law itself is :func:`speed_law`, the ONE implementation that the controller
+service, ``confnav simulate``, ``confnav demo`` and ``replay --check`` all run.
+
+References
+----------
+.. [1] C. Chicone, Ordinary Differential Equations with Applications, 2nd ed., Springer
+   (2006), section 1.3 (reparametrization of time).
+.. [2] D. E. Koditschek and E. Rimon, "Robot navigation functions on manifolds with
+   boundary", Advances in Applied Mathematics 11 (1990) 412-442.
+"""
+
+from __future__ import annotations
+
+import enum
+import threading
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, Literal, Protocol
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from confnav.errors import MapMismatchError, NavigationError, fmt_point
+from confnav.navigation import defaults
+from confnav.navigation.factory import make_navfn
+from confnav.navigation.navfn import CircleDomain, NavigationFunction
+
+if TYPE_CHECKING:
+    from confnav.geometry import Workspace
+    from confnav.navigation.critical import CriticalPoints
+
+__all__ = ["ConformalLike", "ControlOutput", "Controller", "Status", "speed_law"]
+
+CArray = NDArray[np.complex128]
+FArray = NDArray[np.float64]
+
+#: Lowest factor of the optional slow-down near walls (keeps the speed positive: same paths).
+SLOW_FLOOR = 0.2
+
+
+class ConformalLike(Protocol):
+    """What the control law needs from a conformal map (``confnav.ConformalMap`` has it).
+
+    ``T_and_dT(z)`` returns ``(T(z), T'(z))`` for a complex array of any shape, NaN outside
+    the closed free space; ``centers``/``radii`` describe the circle domain.
+    """
+
+    @property
+    def centers(self) -> Any: ...
+
+    @property
+    def radii(self) -> Any: ...
+
+    def T_and_dT(self, z: Any) -> tuple[Any, Any]: ...
+
+
+class Status(enum.IntEnum):
+    """Per-robot status of the control law."""
+
+    MOVING = 0
+    ARRIVED = 1  # within goal_tol of the goal (u = 0)
+    STALLED = 2  # within stall_radius of a critical point of phi other than the goal
+    ERROR = 3  # NaN pose or pose outside the free space (u = 0)
+
+
+@dataclass(frozen=True)
+class ControlOutput:
+    """Result of one control step for a batch of robots (arrays of the pose's shape).
+
+    u: commanded velocity (complex, m/s); status: :class:`Status` codes (int8);
+    phi: ``V = phi(T(x))``; w: ``T(x)``; saturated: True where the speed is ``v_max``.
+    """
+
+    u: CArray
+    status: NDArray[np.int8]
+    phi: FArray
+    w: CArray
+    saturated: NDArray[np.bool_]
+
+
+def speed_law(
+    field: CArray,
+    dist: FArray,
+    *,
+    law: str = defaults.SPEED_LAW,
+    gain: float = defaults.GAIN,
+    v_max: float = defaults.V_MAX,
+    slow: FArray | None = None,
+) -> tuple[CArray, NDArray[np.bool_]]:
+    """The command ``u = s f`` (``s > 0``) from the Theorem 2 field ``f`` (module docstring).
+
+    ``dist``: distance to the goal (m); ``slow``: optional factor in ``[SLOW_FLOOR, 1]``
+    (normalized law only).  Where ``f`` is 0 (goal, critical points) ``u = 0``; NaN stays
+    NaN.  Returns ``(u, saturated)``.
+    """
+    f = np.asarray(field, dtype=np.complex128)
+    size = np.abs(f)
+    if law == "theorem2":
+        u = gain * f
+        s = gain * size
+        sat = s > v_max
+        scale = np.where(sat, v_max / np.where(sat, s, 1.0), 1.0)
+        return np.asarray(u * scale, dtype=np.complex128), np.asarray(sat)
+    if law != "normalized":
+        raise NavigationError(f"unknown speed law {law!r}; choose from {defaults.SPEED_LAWS}")
+    v = np.minimum(v_max, gain * np.asarray(dist, dtype=np.float64))
+    sat = gain * np.asarray(dist) >= v_max
+    if slow is not None:
+        v = v * slow
+    # unit direction; |f| = 0 (direction undefined) gives u = 0, never NaN
+    with np.errstate(invalid="ignore", divide="ignore"):
+        unit = np.where(size > 0, f / np.where(size > 0, size, 1.0), np.where(size == 0, 0j, f))
+    return np.asarray(unit * v, dtype=np.complex128), np.asarray(sat & (size > 0))
+
+
+def _workspace_contains(cmap: ConformalLike, z: complex) -> bool | None:
+    ws = getattr(cmap, "workspace", None)
+    if ws is None or not hasattr(ws, "contains"):
+        return None
+    return bool(np.asarray(ws.contains(np.asarray(z))))
+
+
+class Controller:
+    """The navigation law for one goal on one conformal map.
+
+    Parameters
+    ----------
+    cmap : ConformalLike, e.g. a ``confnav.ConformalMap``.
+    goal : complex (or (x, y)), in the free space.
+    navfn : ``"harmonic"`` (default: tuning-free) or ``"kr"``; or a ready
+        :class:`NavigationFunction` on the map's circle domain with goal ``T(goal)``.  A
+        harmonic fit that does not converge falls back to ``"kr"`` with automatic k;
+        ``fallback`` then says why (never silent).
+    k : for ``"kr"``: a number (the seed uses 6) or ``"auto"`` (default, checked k).
+    speed_law : ``"normalized"`` (default) or ``"theorem2"`` (module docstring).
+    gain : 1/s for the normalized law (``v = min(v_max, gain |x - x_d|)``), K for theorem2.
+    v_max : speed limit (m/s, > 0, may be ``inf`` for theorem2 only).
+    goal_tol : distance to the goal (m) counted as arrived.
+    slow_distance : normalized law: clearance (m) below which the speed is scaled by
+        ``clip(clearance / slow_distance, 0.2, 1)`` (0 = off; needs ``cmap.workspace``).
+    stall_radius : distance (m) to a critical point of phi other than the goal (found by
+        :meth:`critical_points`) within which a robot is reported STALLED; default goal_tol.
+
+    All defaults come from :mod:`confnav.navigation.defaults` (equal to the ``Goal`` message's).
+    ``x``
+    may be any point the robot steers, e.g. a point ahead of a unicycle's axle.
+    workspace : the workspace in use; if given, a map whose ``workspace_hash`` differs from
+        its ``content_hash`` is refused with :class:`~confnav.errors.MapMismatchError`.
+    """
+
+    def __init__(
+        self,
+        cmap: ConformalLike,
+        goal: complex | tuple[float, float] | ArrayLike,
+        *,
+        navfn: Literal["kr", "harmonic"] | str | NavigationFunction = defaults.NAVFN,
+        k: float | Literal["auto"] = "auto",
+        speed_law: str = defaults.SPEED_LAW,
+        gain: float = defaults.GAIN,
+        v_max: float = defaults.V_MAX,
+        goal_tol: float = defaults.GOAL_TOL,
+        slow_distance: float = defaults.SLOW_DISTANCE,
+        stall_radius: float | None = None,
+        workspace: Workspace | None = None,
+    ) -> None:
+        bound = getattr(cmap, "workspace_hash", None)
+        if workspace is not None and bound != workspace.content_hash:  # issue 8
+            raise MapMismatchError(
+                f"the map was solved for workspace {str(bound)[:12]}, not for the one in use "
+                f"{workspace.content_hash[:12]}"
+            )
+        self.cmap = cmap
+        self.goal = _as_point(goal, "goal")
+        if speed_law not in defaults.SPEED_LAWS:
+            raise NavigationError(
+                f"unknown speed law {speed_law!r}; choose from {defaults.SPEED_LAWS}"
+            )
+        if not float(gain) > 0 or not np.isfinite(gain):
+            raise NavigationError(f"gain must be positive and finite, got {gain!r}")
+        if not float(v_max) > 0 or (speed_law == "normalized" and not np.isfinite(v_max)):
+            raise NavigationError(f"v_max must be positive (finite for {speed_law}), got {v_max!r}")
+        if not float(goal_tol) > 0:
+            raise NavigationError(f"goal_tol must be positive, got {goal_tol!r}")
+        if not float(slow_distance) >= 0:
+            raise NavigationError(f"slow_distance must be >= 0, got {slow_distance!r}")
+        self.speed_law = speed_law
+        self.gain = float(gain)
+        self.v_max = float(v_max)
+        self.goal_tol = float(goal_tol)
+        self.slow_distance = float(slow_distance)
+        self.stall_radius = self.goal_tol if stall_radius is None else float(stall_radius)
+        self._clearance = None
+        if self.slow_distance > 0:
+            ws = getattr(cmap, "workspace", None)
+            if ws is None or not hasattr(ws, "clearance"):
+                raise NavigationError("slow_distance needs a map with a workspace (clearance)")
+            self._clearance = ws.clearance
+        if _workspace_contains(cmap, self.goal) is False:
+            raise NavigationError(f"goal {fmt_point(self.goal)} is not in the free space")
+        wd = complex(np.asarray(cmap.T_and_dT(np.asarray(self.goal))[0]))
+        if not np.isfinite(wd):
+            raise NavigationError(
+                f"goal {fmt_point(self.goal)} is not in the free space (T is NaN)"
+            )
+        self.fallback = ""
+        if isinstance(navfn, NavigationFunction):
+            self.domain = navfn.domain
+            if abs(navfn.goal - wd) > 1e-9:
+                raise NavigationError("navigation function goal differs from T(goal)")
+            self.navfn = navfn
+        else:
+            self.domain = CircleDomain.of(cmap)
+            try:
+                self.navfn = make_navfn(navfn, self.domain, wd, k=k, samples=_samples(cmap))
+            except NavigationError as exc:
+                if navfn != "harmonic" or "did not converge" not in str(exc):
+                    raise
+                self.navfn = make_navfn("kr", self.domain, wd, k="auto")
+                self.fallback = (
+                    f"harmonic fit failed ({exc}); using Koditschek-Rimon "
+                    f"k={self.navfn.k:g}"  # type: ignore[attr-defined]
+                )
+        self.goal_w = wd
+        self._critical: CriticalPoints | None = None
+        self._critical_lock = threading.Lock()
+
+    def _params(self) -> dict[str, Any]:
+        return {
+            "speed_law": self.speed_law,
+            "gain": self.gain,
+            "v_max": self.v_max,
+            "goal_tol": self.goal_tol,
+            "slow_distance": self.slow_distance,
+            "stall_radius": self.stall_radius,
+        }
+
+    def with_goal(self, goal: complex | tuple[float, float] | ArrayLike) -> Controller:
+        """A controller for a new goal on the same map (no new solve); same parameters."""
+        z = _as_point(goal, "goal")
+        wd = complex(np.asarray(self.cmap.T_and_dT(np.asarray(z))[0]))
+        if not np.isfinite(wd) or _workspace_contains(self.cmap, z) is False:
+            raise NavigationError(f"goal {fmt_point(z)} is not in the free space")
+        return Controller(self.cmap, z, navfn=self.navfn.with_goal(wd), **self._params())
+
+    def _command(self, z: CArray, dw: CArray, g: CArray) -> tuple[CArray, NDArray[np.bool_]]:
+        slow = None
+        if self._clearance is not None:
+            c = np.asarray(self._clearance(z), dtype=np.float64)
+            slow = np.clip(c / self.slow_distance, SLOW_FLOOR, 1.0)
+        return speed_law(
+            -np.conj(dw) * g,
+            np.abs(z - self.goal),
+            law=self.speed_law,
+            gain=self.gain,
+            v_max=self.v_max,
+            slow=slow,
+        )
+
+    def velocity(self, z: ArrayLike) -> CArray:
+        """The command ``u`` only (hot path; NaN outside the free space)."""
+        z = np.asarray(z, dtype=np.complex128)
+        w, dw = self.cmap.T_and_dT(z)
+        g = self.navfn.gradient(w)
+        return self._command(z, np.asarray(dw), g)[0]
+
+    def __call__(self, z: ArrayLike) -> ControlOutput:
+        """Command and status for a batch of robot positions (complex array, any shape)."""
+        z = np.asarray(z, dtype=np.complex128)
+        bad = ~np.isfinite(z)
+        w, dw = self.cmap.T_and_dT(np.where(bad, self.goal, z))
+        w = np.asarray(w, dtype=np.complex128)
+        dw = np.asarray(dw, dtype=np.complex128)
+        bad |= ~np.isfinite(w) | ~np.isfinite(dw)
+        w = np.where(bad, self.goal_w, w)
+        dw = np.where(bad, 1.0, dw)
+        phi, g = self.navfn.value_and_gradient(w)
+        u, sat = self._command(np.where(bad, self.goal, z), dw, g)
+        arrived = ~bad & (np.abs(z - self.goal) <= self.goal_tol)
+        stalled = ~bad & ~arrived & self._near_critical(w, dw)
+        status = np.full(z.shape, Status.MOVING, dtype=np.int8)
+        status[stalled] = Status.STALLED
+        status[arrived] = Status.ARRIVED
+        status[bad] = Status.ERROR
+        u = np.where(arrived | bad, 0j, u)
+        return ControlOutput(
+            u=u,
+            status=status,
+            phi=np.where(bad, np.nan, phi),
+            w=np.where(bad, np.nan + 0j, w),
+            saturated=sat & ~arrived & ~bad,
+        )
+
+    def critical_points(self) -> CriticalPoints:
+        """Critical points of the navigation function (computed once, cached; thread-safe).
+
+        One minimum and M saddles expected; ``.ok`` False means e.g. k too small for this
+        geometry, or a search that missed points where phi is flat to rounding.
+        """
+        with self._critical_lock:
+            if self._critical is None:
+                from confnav.navigation.critical import find_critical_points
+
+                self._critical = find_critical_points(self.navfn)
+            return self._critical
+
+    check = critical_points
+
+    def _stall_points(self) -> CArray:
+        cp = self._critical  # never computed here: __call__ must not block on the search
+        if cp is None:
+            return np.zeros(0, dtype=np.complex128)
+        return np.concatenate([cp.saddles, cp.spurious_minima, cp.maxima, cp.degenerate])
+
+    def _near_critical(self, w: CArray, dw: CArray) -> NDArray[np.bool_]:
+        """Within ``stall_radius`` (workspace metres, via ``|dw| ~ |T'|``) of a critical point
+        other than the goal; only once :meth:`critical_points` has been computed."""
+        pts = self._stall_points()
+        if pts.size == 0:
+            return np.zeros(w.shape, dtype=bool)
+        d = np.min(np.abs(w[..., None] - pts), axis=-1)
+        return np.asarray(d <= self.stall_radius * np.abs(dw))
+
+    def near_critical(self, z: ArrayLike) -> NDArray[np.bool_]:
+        """True within ``stall_radius`` of a critical point other than the goal (computes the
+        critical points on first use)."""
+        self.critical_points()
+        z = np.asarray(z, dtype=np.complex128)
+        w, dw = self.cmap.T_and_dT(z)
+        w, dw = np.asarray(w, dtype=np.complex128), np.asarray(dw, dtype=np.complex128)
+        return np.asarray(self._near_critical(w, dw) & np.isfinite(w), dtype=bool)
+
+    def circle_domain_position(self, z: ArrayLike) -> tuple[CArray, FArray]:
+        """``(T(z), scale)``: the image in the circle domain and its local length scale
+        ``min(clearance in the circle domain, |T(z) - T(goal)|)`` (for progress checks)."""
+        w = np.asarray(self.cmap.T_and_dT(np.asarray(z, dtype=np.complex128))[0])
+        scale = np.minimum(self.domain.clearance(w), np.abs(w - self.goal_w))
+        return w.astype(np.complex128), np.asarray(scale, dtype=np.float64)
+
+    def lyapunov(self, z: ArrayLike) -> FArray:
+        """``V(x) = phi(T(x))`` (NaN outside the free space)."""
+        w = np.asarray(self.cmap.T_and_dT(z)[0], dtype=np.complex128)
+        return self.navfn.value(w)
+
+    def __repr__(self) -> str:
+        return (
+            f"Controller(goal={self.goal:.6g}, navfn={self.navfn!r}, "
+            f"speed_law={self.speed_law}, gain={self.gain:g}, v_max={self.v_max:g}, "
+            f"goal_tol={self.goal_tol:g})"
+        )
+
+
+#: Free-space points (per map) where the harmonic fit must be accurate relative to |G|.
+N_SAMPLES = 256
+SAMPLE_MARGIN = 0.05  # m from the walls, like the benchmark's random starts
+
+
+def _samples(cmap: ConformalLike) -> CArray | None:
+    """Images ``T(x)`` of free-space points at ``SAMPLE_MARGIN`` from the walls (None without
+    a workspace); fixed seed, so every controller of a map asks the same accuracy."""
+    ws = getattr(cmap, "workspace", None)
+    if ws is None or not hasattr(ws, "bounds"):
+        return None
+    from confnav.scenes.scenarios import random_starts
+
+    try:
+        z = random_starts(ws, N_SAMPLES, seed=0, margin=SAMPLE_MARGIN)
+    except NavigationError:
+        return None
+    w = np.asarray(cmap.T_and_dT(z)[0], dtype=np.complex128)
+    return w[np.isfinite(w)]
+
+
+def _as_point(p: complex | tuple[float, float] | ArrayLike, what: str) -> complex:
+    """A finite complex point from a complex number or an (x, y) pair."""
+    a = np.asarray(p)
+    try:
+        if a.shape == (2,) and not np.iscomplexobj(a):
+            z = complex(float(a[0]), float(a[1]))
+        elif a.shape == ():
+            z = complex(a.item())
+        else:
+            raise TypeError
+    except (TypeError, ValueError):
+        raise NavigationError(f"{what} must be a complex number or an (x, y) pair") from None
+    if not np.isfinite(z):
+        raise NavigationError(f"{what} {z} is not finite")
+    return z

@@ -1,0 +1,105 @@
+"""Pictures of a solved map: the workspace and its circle domain side by side.
+
+A polar grid of the circle domain (circles |w| = rho and rays arg w = theta) and its preimage
+in the workspace show at a glance that the map is conformal (the grid stays orthogonal) and
+that every boundary goes to its circle.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+
+import matplotlib.pyplot as plt
+import numpy as np
+from matplotlib.axes import Axes
+from matplotlib.figure import Figure
+
+from confnav.conformal.cmap import ConformalMap
+from confnav.geometry import ComplexArray
+
+
+def _closed(z: ComplexArray) -> ComplexArray:
+    return np.concatenate([z, z[:1]])
+
+
+def draw_workspace(ax: Axes, m: ConformalMap) -> None:
+    """Outer polygon and filled obstacles."""
+    ws = m.workspace
+    o = _closed(ws.outer)
+    ax.plot(o.real, o.imag, "k-", lw=1.5)
+    for j, p in enumerate(ws.obstacles):
+        q = _closed(p)
+        ax.fill(q.real, q.imag, color="0.55", zorder=3)
+        c = p.mean()
+        ax.annotate(
+            str(j), (c.real, c.imag), ha="center", va="center", color="w", zorder=4, fontsize=8
+        )
+    ax.plot(ws.anchor.real, ws.anchor.imag, "r+", ms=10, zorder=5)
+    ax.set_aspect("equal")
+
+
+def draw_circle_domain(ax: Axes, m: ConformalMap) -> None:
+    """Unit circle and the obstacle disks."""
+    t = np.linspace(0, 2 * np.pi, 400)
+    ax.plot(np.cos(t), np.sin(t), "k-", lw=1.5)
+    for j, (c, r) in enumerate(zip(m.centers, m.radii, strict=True)):
+        ax.fill(c.real + r * np.cos(t), c.imag + r * np.sin(t), color="0.55", zorder=3)
+        ax.annotate(
+            str(j), (c.real, c.imag), ha="center", va="center", color="w", zorder=4, fontsize=8
+        )
+    ax.plot(0, 0, "r+", ms=10, zorder=5)
+    ax.set_aspect("equal")
+
+
+def polar_grid(
+    m: ConformalMap, n_rho: int = 12, n_theta: int = 24, samples: int = 600
+) -> list[ComplexArray]:
+    """Curves of a polar grid in the circle domain, NaN where they cross an obstacle disk."""
+    curves = []
+    t = np.linspace(0, 2 * np.pi, samples)
+    for rho in np.linspace(0, 1, n_rho + 1)[1:-1]:
+        curves.append(rho * np.exp(1j * t))
+    s = np.linspace(0, 1, samples)
+    for th in np.linspace(0, 2 * np.pi, n_theta, endpoint=False):
+        curves.append(s * np.exp(1j * th))
+    out = []
+    for w in curves:
+        w = w.astype(np.complex128)
+        w[~m.in_circle_domain(w)] = np.nan
+        out.append(w)
+    return out
+
+
+def map_figure(m: ConformalMap, title: str = "") -> Figure:
+    """Workspace with the preimage of a polar grid | circle domain with the grid."""
+    fig, (ax0, ax1) = plt.subplots(1, 2, figsize=(12, 6))
+    grid = polar_grid(m)
+    for w in grid:
+        z = m.inverse(w)
+        ax0.plot(z.real, z.imag, "-", color="tab:blue", lw=0.6)
+        ax1.plot(w.real, w.imag, "-", color="tab:blue", lw=0.6)
+    draw_workspace(ax0, m)
+    draw_circle_domain(ax1, m)
+    ax0.set_title("workspace: preimage of the polar grid")
+    ax1.set_title("circle domain T(workspace)")
+    d = m.diagnostics
+    fig.suptitle(
+        (title + "\n" if title else "")
+        + f"estimated error {d.error_estimate:.1e} (tol {d.tol:.0e}), {sum(d.nodes)} nodes, "
+        f"{d.sweeps} sweeps, {d.wall_time:.2f} s"
+    )
+    fig.tight_layout()
+    return fig
+
+
+def save_map_figure(m: ConformalMap, path: str | Path, title: str = "") -> None:
+    fig = map_figure(m, title)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+__all__ = ["draw_circle_domain", "draw_workspace", "map_figure", "polar_grid", "save_map_figure"]
