@@ -439,6 +439,7 @@ def koebe_iteration(
             gm_its += F.gmres_iterations
             others = np.concatenate([[a], np.delete(c, k - 1)])
             out = _apply(F, bnds, k, others)
+            _check_images(_curves(bnds, k), out[: others.size], True, f"obstacle {k - 1}", sweep)
             _regrid(b, _curves(bnds, k), f"obstacle {k - 1}", sweep)
             img, dimg = out[: others.size], out[others.size :]
             a, D = complex(img[0]), D * complex(dimg[0])
@@ -446,6 +447,7 @@ def koebe_iteration(
         f0 = _own_map(bnds[0], a, "the outer boundary", meshes[0], _curves(bnds, 0), gmres_tol)
         gm_its += f0.gmres_iterations
         out = _apply(f0, bnds, 0, c)
+        _check_images(_curves(bnds, 0), out[: c.size], False, "the outer boundary", sweep)
         _regrid(bnds[0], _curves(bnds, 0), "the outer boundary", sweep)
         c, D, a = out[: c.size], D * f0.scale, 0j
         # change of the boundary correspondence (arc length moved on each circle, away from the
@@ -555,6 +557,27 @@ def _own_map(
             f"corner is {sharpest:.1f} degrees -- needle-like corners make the equation "
             "nearly singular: blunt them or use more nodes"
         ) from exc
+
+
+def _check_images(
+    curves: ComplexArray, points: ComplexArray, hole: bool, name: str, sweep: int
+) -> None:
+    """A disk map must send the rest of the domain into its image: outside the unit circle for
+    a hole's exterior map, inside it for the outer boundary's interior map.
+
+    A discrete map that does not is meaningless (seen when the GNK operator of a polygon with a
+    needle-like tip has a spurious eigenvalue near 0, see confnav.conformal.meshing): it is
+    reported here rather than left to break the next sweep.
+    """
+    w = np.abs(np.concatenate([curves, points]))
+    bad = w <= 1.0 if hole else w >= 1.0
+    if np.any(bad) or not np.all(np.isfinite(w)):
+        worst = float(np.min(w) if hole else np.max(w))
+        raise ConvergenceError(
+            f"the map of {name} in sweep {sweep} sent other parts of the domain "
+            f"{'inside' if hole else 'outside'} the unit circle (|w| = {worst:.3g}): its "
+            "discretisation is unstable (sharp corners need more nodes)"
+        )
 
 
 def _regrid(b: _Boundary, others: ComplexArray, name: str, sweep: int) -> None:

@@ -47,6 +47,10 @@ LEVEL_BASE = 80
 NODE_MULTIPLE = 8
 #: Fewest nodes on any panel.
 MIN_NODES = 12
+#: Sides at a corner of angle theta (see module docstring) get at least this times
+#: ``p / sin(theta)`` nodes.
+SHARP_NODES_FACTOR = 2.0
+
 #: Most nodes a side may get from the proximity rule; a gap needing more raises GapError
 #: (a silently capped mesh would under-resolve the gap at every level alike, invisible to the
 #: level-difference estimate).
@@ -72,6 +76,20 @@ def corner_exponent(polygon: ComplexArray, hole: bool, p: int = GRADING_P) -> fl
     interior = np.pi - np.angle(e_out / e_in)  # interior angle of the (ccw) polygon
     a = (2 * np.pi - interior) / np.pi if hole else interior / np.pi
     return p / max(float(a.max()), 0.75) + 1.0
+
+
+def sharp_corner_nodes(polygon: ComplexArray, p: int = GRADING_P) -> np.ndarray:
+    """Fewest nodes on each side so that the tips of sharp corners stay stable (module docstring).
+
+    ``theta`` is the angle between the two sides at a vertex, the smaller of interior and
+    exterior; each side takes the larger requirement of its two end vertices.
+    """
+    e_in = polygon - np.roll(polygon, 1)
+    e_out = np.roll(polygon, -1) - polygon
+    interior = np.abs(np.pi - np.abs(np.angle(e_out / e_in)))  # in [0, pi]: smaller angle
+    need = np.ceil(SHARP_NODES_FACTOR * p / np.maximum(np.sin(interior), 1e-3))
+    need = np.where(interior < np.pi / 2, need, 0)  # right and obtuse corners: no requirement
+    return np.maximum(need, np.roll(need, -1)).astype(np.intp)  # side k: vertices k and k+1
 
 
 def _lines(a: ComplexArray, b: ComplexArray) -> np.ndarray:
@@ -148,10 +166,10 @@ def plan_boundaries(ws: Workspace, level: int, tol: float) -> list[PanelPlan]:
                 f"{MAX_NODES_PER_PANEL} the mesh allows (widen the gap, merge the two, or "
                 "ask for a looser tol)"
             )
-        n = np.maximum(n_corner, n_prox).astype(np.intp)
+        n = np.maximum(np.maximum(n_corner, n_prox), sharp_corner_nodes(z)).astype(np.intp)
         n[0] += (-int(n.sum())) % NODE_MULTIPLE  # totals divisible: see ConformalMap.coarsened
         plans.append(PanelPlan(vertices=z, nodes=n))
     return plans
 
 
-__all__ = ["PanelPlan", "corner_exponent", "plan_boundaries"]
+__all__ = ["PanelPlan", "corner_exponent", "plan_boundaries", "sharp_corner_nodes"]
