@@ -136,17 +136,32 @@ def _trig_eval(samples: FloatArray, x: FloatArray) -> tuple[FloatArray, FloatArr
     return val, der
 
 
+#: Points per block of :func:`_trig_eval_complex` (bounds its temporary to ~70 MB at m = 8192).
+TRIG_BLOCK = 512
+
+
 def _trig_eval_complex(samples: ComplexArray, x: FloatArray) -> ComplexArray:
-    """Trigonometric interpolant of uniform periodic complex samples at x."""
+    """Trigonometric interpolant of uniform periodic complex samples at x.
+
+    Modes -m/2..m/2 (Nyquist split symmetrically); e^{ikx} by a running product from
+    e^{-i(m/2)x} (as in :func:`_trig_eval`: a multiplication per entry instead of an exp,
+    measured 5x faster), in blocks of :data:`TRIG_BLOCK` points.
+    """
     m = samples.size
-    c = np.fft.fft(samples) / m
-    k = np.fft.fftfreq(m, 1.0 / m)
-    if m % 2 == 0:  # split the Nyquist mode symmetrically
-        c = np.r_[c, 0.5 * c[m // 2]]
-        c[m // 2] *= 0.5
-        k = np.r_[k, m // 2]
-    E = np.exp(1j * np.outer(x, k))
-    return np.asarray(E @ c)
+    c = np.fft.fftshift(np.fft.fft(samples) / m)  # modes -m/2 .. m/2 - 1 (m even) or ±(m-1)/2
+    kmin = -(m // 2)
+    if m % 2 == 0:  # split the Nyquist mode symmetrically: -m/2 and +m/2 each get half
+        c = np.r_[c, 0.5 * c[0]]
+        c[0] *= 0.5
+    out = np.empty(x.size, np.complex128)
+    for s in range(0, x.size, TRIG_BLOCK):
+        xs = x[s : s + TRIG_BLOCK]
+        E = np.empty((xs.size, c.size), np.complex128)
+        E[:, 0] = np.exp(1j * kmin * xs)
+        E[:, 1:] = np.exp(1j * xs)[:, None]
+        np.cumprod(E, axis=1, out=E)
+        out[s : s + TRIG_BLOCK] = E @ c
+    return out
 
 
 def _tail(samples: ComplexArray) -> float:
