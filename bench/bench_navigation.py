@@ -38,8 +38,8 @@ from typing import Any  # noqa: E402
 import numpy as np  # noqa: E402
 
 import confnav  # noqa: E402
-from confnav import defaults  # noqa: E402
 from confnav.geometry import Workspace  # noqa: E402
+from confnav.navigation import defaults  # noqa: E402
 from confnav.navigation.control import Controller  # noqa: E402
 from confnav.navigation.messages import NAV_ACCURACY  # noqa: E402
 from confnav.navigation.shortest_path import ShortestPaths  # noqa: E402
