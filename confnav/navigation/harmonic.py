@@ -4,9 +4,9 @@
 ``h = log|zeta - w_d|`` on every boundary circle, so ``G = 0`` on the boundary.  ``G`` is
 split into an exact part and a fitted series:
 
-    G = G_0 - sum_{j near} I_j - S,
+    G = G_0 + sum_i s_i L(w; p_i) - S,
     G_0(w) = log|(w - w_d) / (1 - conj(w_d) w)|              (Green's function of the disk),
-    I_j(w) = log|(w - p_j) / (1 - conj(p_j) w)|,  p_j = c_j + r_j^2 / conj(w_d - c_j),
+    L(w; p) = log|(w - p) / (1 - conj(p) w)|                 (image pair, 0 on |w| = 1),
     S(w)   = sum_j [ b_j L_j(w) + Re sum_n (B_jn u_j^n - conj(B_jn) v_j^n) ],
     L_j = log|(w - c_j) / (1 - conj(c_j) w)|,  u_j = r_j / (w - c_j),
     v_j = conj(u_j(1 / conj(w))) = r_j w / (1 - conj(c_j) w).
@@ -25,13 +25,18 @@ hole's series converges at the rate of the limit points of the reflections in th
 its neighbours (<= 0.52 on every scene here: 1e-13 with 32-48 terms) and the columns, scaled
 to unit norm, give a least-squares matrix of condition 4-20.
 
-``G_0`` and ``I_j`` vanish on the outer circle too; ``I_j`` is the image charge of the pole
-in a circle the goal is near (exact for one circle): it takes the near-singular part of the
-data.  When the goal lies in a pocket (its image close to a circle), ``G`` is tiny (1e-11
-measured with the goal in a charging alcove) over most of the domain; ``G_0`` is evaluated
-without cancellation (``1 - |M(w)|^2 = (1-|w|^2)(1-|w_d|^2)/|1 - conj(w_d) w|^2``) and the
-data of ``S`` is as small as ``G`` there, so the fit's *relative* accuracy carries over to
-``G``, its gradient and ``1 - phi``.
+``G_0`` and the image pairs vanish on the outer circle too.  The images take the
+near-singular part of the data: a point charge ``sigma`` at ``x`` (first the pole, +1, and its
+reflection ``1/conj(w_d)``, -1) within ``NEAR r_j`` of hole j gets the charge ``-sigma`` at its
+reflection ``x* = c_j + r_j^2 / conj(x - c_j)`` in circle j (on the circle ``|w - x| =
+|w - x*| |x - c_j| / r_j``, so the pair cancels up to a constant, which the series carries),
+paired with ``+sigma`` at ``1/conj(x*)``; the new charges are reflected in turn, up to
+``IMAGE_DEPTH`` levels (the method of images truncated where the charges are far from every
+other circle [3]_).  When the goal lies in a pocket (its image close to a circle), ``G`` is
+tiny (1e-11 measured with the goal in a charging alcove) over most of the domain; ``G_0`` is
+evaluated without cancellation (``1 - |M(w)|^2 = (1-|w|^2)(1-|w_d|^2)/|1 - conj(w_d) w|^2``)
+and the data of ``S`` is as small as ``G`` there, so the fit's *relative* accuracy carries
+over to ``G``, its gradient and ``1 - phi``.
 
 **Cost bounded per map.**  The least-squares matrix depends on the circle domain only, not on
 the goal (the boundary data is linear in it, DESIGN.md section 3): :class:`GreenBasis` builds
@@ -45,7 +50,7 @@ Koditschek-Rimon with automatic k and says so).
 ``phi_H = exp(2 G)`` is 1 on every boundary circle, has a single minimum (at w_d) and exactly
 M saddles, and needs no tuning.  Its gradient is evaluated without the pole:
 ``grad phi_H = 2 e^{-2h} ((w - w_d) conj((1 - |w_d|^2)/(1 - conj(w_d) w)) - |w - w_d|^2
-grad H)`` with ``H = S + sum I_j`` (``grad G_0`` in closed form, no cancellation).
+grad H)`` with ``H = S - sum_i s_i L(w; p_i)`` (``grad G_0`` in closed form, no cancellation).
 
 References
 ----------
@@ -64,7 +69,7 @@ import threading
 import time
 from collections import OrderedDict
 from dataclasses import dataclass
-from typing import ClassVar
+from typing import ClassVar, NamedTuple
 
 import numpy as np
 import scipy.linalg
@@ -88,12 +93,20 @@ DEFAULT_MAX_TERMS = 128
 #: Memory one factorization may take (Q, R and the check matrix); caps the terms per circle
 #: for many obstacles (issue 9: <= 1 GB with 20 obstacles).
 MEMORY_BUDGET = 768 << 20
-#: The pole gets an image charge in circle j when ``|w_d - c_j| < NEAR * r_j``.
+#: Work one factorization may take (QR flops; ~5 s on one core of this machine): caps the
+#: terms per circle for many obstacles (64 with 20 obstacles; issue 9: <= 10 s per map).
+FLOP_BUDGET = 6e10
+#: A charge gets an image in circle j when it is within ``NEAR * r_j`` of ``c_j``.
 NEAR = 3.0
-#: Accuracy of G needed where robots drive, relative to the smallest |G| at the sample points
-#: (the fit's error in G is at most its boundary residual: maximum principle).
+#: Levels of images of images (a goal in a gap between two close circles: the images
+#: converge to the pair's limit points; the series takes the rest).
+IMAGE_DEPTH = 6
+#: At most this many image pairs per goal.
+IMAGE_LIMIT = 128
+#: Accuracy of G needed where robots drive, relative to |G| at each sample point (bound of
+#: the error by the residuals and harmonic measures: :meth:`GreenBasis.fit`).
 REL_TOL = 1e-3
-#: Below this boundary error the fit is rounding (data of size 1, double precision).
+#: Absolute error of G accepted at a sample on top of that (rounding of data of size 1).
 FLOOR = 1e-15
 #: Bases kept per process (LRU over circle domains), so new goals on a map reuse its factors.
 CACHE_SIZE = 4
@@ -141,6 +154,20 @@ class _Level:
         else:  # no holes: S = 0
             self.qt, self.r = np.zeros((0, a.shape[0])), np.zeros((0, 0))
         self.check = _design(domain, self.zeta_check, n)
+        self._measures: tuple[bytes, FArray] | None = None
+
+    def measures(self, domain: CircleDomain, samples: CArray) -> FArray:
+        """(S, M) harmonic measures of the hole circles at ``samples`` (the harmonic
+        functions 1 on circle j and 0 on the other circles, fitted with this basis); cached
+        for the last ``samples`` (a controller passes the same points for every goal)."""
+        key = samples.tobytes()
+        if self._measures is None or self._measures[0] != key:
+            m = domain.n_obstacles
+            ind = np.kron(np.eye(m), np.ones((self.p, 1)))  # (rows, M): 1 on circle j
+            coef = scipy.linalg.solve_triangular(self.r, self.qt @ ind, check_finite=False)
+            om = np.abs(_design(domain, samples, self.n) @ (coef / self.scale[:, None]))
+            self._measures = (key, np.asarray(om, dtype=np.float64))
+        return self._measures[1]
 
     def solve(self, rhs: FArray) -> FArray:
         """Least-squares coefficients for boundary data ``rhs`` (``R^-1 Q^T rhs``)."""
@@ -167,7 +194,12 @@ class GreenBasis:
     ) -> None:
         self.domain = domain
         self.tol = float(tol)
-        fits = [n for n in TERM_LADDER if _level_bytes(domain.n_obstacles, n) <= MEMORY_BUDGET]
+        m = domain.n_obstacles
+        fits = [
+            n
+            for n in TERM_LADDER
+            if _level_bytes(m, n) <= MEMORY_BUDGET and _level_flops(m, n) <= FLOP_BUDGET
+        ]
         self.max_terms = min(int(max_terms), max(fits or [TERM_LADDER[0]]))
         self._levels: dict[int, _Level] = {}
         # index in TERM_LADDER of the smallest level worth trying; advanced only by a converged
@@ -225,18 +257,22 @@ class GreenBasis:
 
     def fit(
         self, pole: complex, samples: CArray | None = None
-    ) -> tuple[FArray, CArray, GreenDiagnostics]:
-        """(series coefficients, image points, diagnostics) for a pole; raises
+    ) -> tuple[FArray, _Images, GreenDiagnostics]:
+        """(series coefficients, image pairs, diagnostics) for a pole; raises
         :class:`NavigationError` if ``max_terms`` terms do not reach the tolerance.
 
-        The boundary residual must be below ``tol`` and below ``REL_TOL * min |G|`` over
-        ``samples`` (circle-domain points where robots drive): by the maximum principle the
-        error of ``G`` anywhere is at most the boundary residual, so where the goal sits in a
-        pocket and ``G`` is 1e-11 over the room the fit must be that much finer (or fail).
+        The boundary residual must be below ``tol``, and the error of ``G`` at ``samples``
+        (circle-domain points where robots drive) below ``REL_TOL |G|`` there.  The error is
+        harmonic with boundary values at most ``rho_j`` (the residual) on circle j, so at a
+        point s it is at most ``sum_j omega_j(s) rho_j`` with ``omega_j`` the harmonic measure
+        of circle j (maximum principle; ``omega_j`` fitted once per map and samples,
+        :meth:`_Level.measures`).  Where the goal sits in a pocket or behind a door and ``G``
+        is 1e-12 in the far room, this asks the circles of the far room for a residual that
+        much finer, not the circles next to the goal (their error reaches the far room damped
+        by the same harmonic measure that makes ``G`` small there).
         """
-        c, r = self.domain.centers, self.domain.radii
-        near = np.flatnonzero(np.abs(pole - c) < NEAR * r)
-        images = c[near] + r[near] ** 2 / np.conj(pole - c[near])
+        images, holes = _image_charges(self.domain, pole)
+        m = self.domain.n_obstacles
         history: list[tuple[int, float]] = []
         spent = 0.0
         ladder = [n for n in TERM_LADDER if n <= self.max_terms] or [TERM_LADDER[0]]
@@ -246,13 +282,16 @@ class GreenBasis:
                 lv, dt = self._level(ladder[i])
                 spent += dt
                 coef = lv.solve(_data(lv.zeta, pole, images))
-                data_c = _data(lv.zeta_check, pole, images)
-                res = float(np.max(np.abs(lv.check @ coef - data_c), initial=0.0))
+                dev = np.abs(lv.check @ coef - _data(lv.zeta_check, pole, images))
+                rho = dev.reshape(m, lv.p).max(axis=1) if m else np.zeros(0)  # per circle
+                res = float(np.max(rho, initial=0.0))
                 thr = self.tol
-                if samples is not None and samples.size:
+                if samples is not None and samples.size and res > 0:
                     g = _data(samples, pole, images) - _design(self.domain, samples, lv.n) @ coef
-                    gmin = float(np.min(np.abs(g[np.isfinite(g)]), initial=np.inf))
-                    thr = max(min(thr, REL_TOL * gmin), FLOOR)
+                    fin = np.isfinite(g)
+                    spread = lv.measures(self.domain, samples)[fin] @ (rho / res)  # in [0, ~1]
+                    allowed = (REL_TOL * np.abs(g[fin]) + FLOOR) / np.maximum(spread, 1e-300)
+                    thr = min(thr, float(np.min(allowed, initial=np.inf)))
                 history.append((lv.n, res))
                 ok = res <= thr
                 if ok or i + 1 >= len(ladder):
@@ -264,9 +303,7 @@ class GreenBasis:
                 i = min(i, len(ladder) - 1)
             if ok:  # later goals start here (never after a failure: see _start in __init__)
                 self._start = max(self._start, i)
-        diag = GreenDiagnostics(
-            lv.n, lv.p, res, self.tol, ok, tuple(history), thr, tuple(int(j) for j in near), spent
-        )
+        diag = GreenDiagnostics(lv.n, lv.p, res, self.tol, ok, tuple(history), thr, holes, spent)
         if not ok:
             raise NavigationError(
                 f"Green's function series did not converge: boundary error {res:.2e} "
@@ -274,6 +311,12 @@ class GreenBasis:
                 "each other or to the goal?)"
             )
         return coef, images, diag
+
+
+def _level_flops(m: int, n: int) -> float:
+    """Floating-point operations of the QR factorization of a :class:`_Level`."""
+    cols = m * (2 * n + 1)
+    return 2.0 * m * (3 * n + 16) * cols * cols
 
 
 def _level_bytes(m: int, n: int) -> int:
@@ -337,20 +380,58 @@ def _disk_green(z: CArray, pole: complex) -> FArray:
         return np.asarray(0.5 * np.log1p(-one_minus / (q * q.conjugate()).real), dtype=np.float64)
 
 
-def _image_terms(z: CArray, images: CArray) -> FArray:
-    """``sum_j I_j(z) = sum_j log|(z - p_j)/(1 - conj(p_j) z)|``."""
-    if images.size == 0:
-        return np.zeros(z.shape)
-    zz = z[:, None]
-    return np.asarray(
-        np.log(np.abs((zz - images) / (1.0 - np.conj(images) * zz))).sum(axis=1),
-        dtype=np.float64,
-    )
+class _Images(NamedTuple):
+    """Image pairs ``sum_i s_i L(w; p_i)`` of one pole (module docstring)."""
+
+    points: CArray
+    signs: FArray
+
+    def value(self, z: CArray) -> FArray:
+        if self.points.size == 0:
+            return np.zeros(z.shape)
+        zz = z[:, None]
+        p = self.points
+        return np.asarray(np.log(np.abs((zz - p) / (1.0 - np.conj(p) * zz))) @ self.signs)
+
+    def gradient(self, z: CArray) -> CArray:
+        """grad L(w; p) = 1/conj(w - p) + p/conj(1 - conj(p) w)."""
+        if self.points.size == 0:
+            return np.zeros(z.shape, dtype=np.complex128)
+        zz = z[:, None]
+        p = self.points
+        return np.asarray((1.0 / np.conj(zz - p) + p / np.conj(1.0 - np.conj(p) * zz)) @ self.signs)
 
 
-def _data(z: CArray, pole: complex, images: CArray) -> FArray:
-    """Boundary data of ``S``: ``G_0 - sum_j I_j`` (0 on the outer circle)."""
-    return np.asarray(_disk_green(z, pole) - _image_terms(z, images), dtype=np.float64)
+def _image_charges(domain: CircleDomain, pole: complex) -> tuple[_Images, tuple[int, ...]]:
+    """The image pairs of the pole and the holes they lie in (module docstring)."""
+    c, r = domain.centers, domain.radii
+    pts: list[complex] = []
+    sgn: list[float] = []
+    front: list[tuple[complex, float]] = [(pole, 1.0)]
+    if pole != 0:
+        front.append((1.0 / np.conj(pole), -1.0))
+    holes: set[int] = set()
+    for _ in range(IMAGE_DEPTH):
+        new: list[tuple[complex, float]] = []
+        for x, sig in front:
+            d = np.abs(x - c)
+            for j in np.flatnonzero((d < NEAR * r) & (d > r)):
+                xs = complex(c[j] + r[j] ** 2 / np.conj(x - c[j]))
+                pts.append(xs)
+                sgn.append(-sig)
+                holes.add(int(j))
+                new += [(xs, -sig), (1.0 / np.conj(xs), sig)]
+        front = new
+        if not front or len(pts) >= IMAGE_LIMIT:
+            break
+    k = min(len(pts), IMAGE_LIMIT)
+    im = _Images(np.asarray(pts[:k], dtype=np.complex128), np.asarray(sgn[:k]))
+    return im, tuple(sorted(holes))
+
+
+def _data(z: CArray, pole: complex, images: _Images) -> FArray:
+    """Boundary data of ``S``: ``G_0 + sum_i s_i L(z; p_i)`` (0 on the outer circle)."""
+    return np.asarray(_disk_green(z, pole) + images.value(z), dtype=np.float64)
 
 
 class GreenFunction:
@@ -406,8 +487,8 @@ class GreenFunction:
         self._cd[:, :-1] = k * cx
 
     def parts(self, w: ArrayLike) -> tuple[FArray, FArray, CArray]:
-        """``(G, h, grad H)`` at ``w`` (same shape), ``H = S + sum_j I_j``, complex gradient
-        ``dH/dw1 + i dH/dw2``; ``h = log|1 - conj(w_d) w| + H``."""
+        """``(G, h, grad H)`` at ``w`` (same shape), ``H = S - sum_i s_i L(w; p_i)``, complex
+        gradient ``dH/dw1 + i dH/dw2``; ``h = log|1 - conj(w_d) w| + H``."""
         w = np.asarray(w, dtype=np.complex128)
         flat = w.ravel()
         with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
@@ -442,14 +523,9 @@ class GreenFunction:
             s = f.real + np.log(np.abs(d / q)) @ self._b
             c = self.domain.centers
             grad_h = np.conj(fp) + (1.0 / np.conj(d) + c / np.conj(q)) @ self._b
-        im = self._images
-        if im.size:
-            zz = z[:, None]
-            s = s + _image_terms(z, im)
-            # grad log|z - p| - grad log|1 - conj(p) z| = 1/conj(z - p) + p/conj(1 - conj(p) z)
-            grad_h = grad_h + (1.0 / np.conj(zz - im) + im / np.conj(1.0 - np.conj(im) * zz)).sum(
-                axis=1
-            )
+        # H = S - sum_i s_i L(w; p_i)
+        s = s - self._images.value(z)
+        grad_h = grad_h - self._images.gradient(z)
         g = _disk_green(z, self.pole) - s
         h = np.log(np.abs(1.0 - np.conj(self.pole) * z)) + s
         return g, h, grad_h
