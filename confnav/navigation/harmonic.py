@@ -96,6 +96,14 @@ MEMORY_BUDGET = 768 << 20
 #: Work one factorization may take (QR flops; ~5 s on one core of this machine): caps the
 #: terms per circle for many obstacles (64 with 20 obstacles; issue 9: <= 10 s per map).
 FLOP_BUDGET = 6e10
+#: A pair of circles whose limit point in hole j lies farther than ``LIMIT_RATE r_j`` from
+#: ``c_j`` (the hole's own series would converge at that rate per term) gets a multipole
+#: centre of its own at the limit point.
+LIMIT_RATE = 0.6
+#: Columns of the pivoted QR kept: diagonal of R above RCOND times its largest entry.
+RCOND = 1e-14
+#: Reflections iterated to find a limit point (converges like the square of the pair's rate).
+LIMIT_ITER = 400
 #: A charge gets an image in circle j when it is within ``NEAR * r_j`` of ``c_j``.
 NEAR = 3.0
 #: Levels of images of images (a goal in a gap between two close circles: the images
@@ -106,6 +114,9 @@ IMAGE_LIMIT = 128
 #: Accuracy of G needed where robots drive, relative to |G| at each sample point (bound of
 #: the error by the residuals and harmonic measures: :meth:`GreenBasis.fit`).
 REL_TOL = 1e-3
+#: A residual this small is rounding (data of size 1 through a QR solve): climbing the
+#: ladder further only costs factorizations (measured floor 3e-15..1e-13).
+ROUNDING = 1e-13
 #: Absolute error of G accepted at a sample on top of that (rounding of data of size 1).
 FLOOR = 1e-15
 #: Bases kept per process (LRU over circle domains), so new goals on a map reuse its factors.
@@ -139,42 +150,54 @@ class _Level:
     circles (the outer circle needs no rows: every basis function vanishes there) and the
     check matrix on the points halfway between the collocation points."""
 
-    def __init__(self, domain: CircleDomain, n: int) -> None:
+    def __init__(self, cen: _Centres, n: int) -> None:
         self.n = n
         self.p = 3 * n + 16
-        self.zeta = _boundary_points(domain, self.p, 0.0)
-        self.zeta_check = _boundary_points(domain, self.p, 0.5)
-        a = _design(domain, self.zeta, n)
+        self.cen = cen
+        self.zeta = _boundary_points(cen, self.p, 0.0)
+        self.zeta_check = _boundary_points(cen, self.p, 0.5)
+        self.hole_of_row = np.repeat(cen.hole, self.p)  # rows grouped by centre
+        a = _design(cen, self.zeta, n)
         self.scale = np.linalg.norm(a, axis=0)
         self.scale[self.scale == 0] = 1.0
         a /= self.scale
         if a.size:
-            q, self.r = scipy.linalg.qr(a, mode="economic", overwrite_a=True, check_finite=False)
-            self.qt = np.ascontiguousarray(q.T)
+            # pivoted QR, truncated where the columns are dependent to rounding (the
+            # limit-point series overlap the holes' own series): a basic solution with
+            # moderate coefficients instead of an ill-conditioned triangular solve
+            q, r, piv = scipy.linalg.qr(
+                a, mode="economic", pivoting=True, overwrite_a=True, check_finite=False
+            )
+            d = np.abs(np.diag(r))
+            k = int(np.count_nonzero(d > RCOND * d[0]))
+            self.r, self.qt, self.piv = r[:k, :k], np.ascontiguousarray(q[:, :k].T), piv[:k]
         else:  # no holes: S = 0
             self.qt, self.r = np.zeros((0, a.shape[0])), np.zeros((0, 0))
-        self.check = _design(domain, self.zeta_check, n)
+            self.piv = np.zeros(0, dtype=np.intp)
+        self.cols = a.shape[1]
+        self.check = _design(cen, self.zeta_check, n)
         self._measures: tuple[bytes, FArray] | None = None
 
-    def measures(self, domain: CircleDomain, samples: CArray) -> FArray:
+    def measures(self, samples: CArray) -> FArray:
         """(S, M) harmonic measures of the hole circles at ``samples`` (the harmonic
         functions 1 on circle j and 0 on the other circles, fitted with this basis); cached
         for the last ``samples`` (a controller passes the same points for every goal)."""
         key = samples.tobytes()
         if self._measures is None or self._measures[0] != key:
-            m = domain.n_obstacles
-            ind = np.kron(np.eye(m), np.ones((self.p, 1)))  # (rows, M): 1 on circle j
-            coef = scipy.linalg.solve_triangular(self.r, self.qt @ ind, check_finite=False)
-            om = np.abs(_design(domain, samples, self.n) @ (coef / self.scale[:, None]))
+            m = self.cen.m
+            ind = (self.hole_of_row[:, None] == np.arange(m)).astype(float)  # 1 on circle j
+            om = np.abs(_design(self.cen, samples, self.n) @ self.solve(ind))
             self._measures = (key, np.asarray(om, dtype=np.float64))
         return self._measures[1]
 
     def solve(self, rhs: FArray) -> FArray:
         """Least-squares coefficients for boundary data ``rhs`` (``R^-1 Q^T rhs``)."""
-        if not self.r.size:
-            return np.zeros(0)
-        coef = scipy.linalg.solve_triangular(self.r, self.qt @ rhs, check_finite=False)
-        return np.asarray(coef / self.scale, dtype=np.float64)
+        coef = np.zeros((self.cols, *rhs.shape[1:]))
+        if self.r.size:
+            coef[self.piv] = scipy.linalg.solve_triangular(
+                self.r, self.qt @ rhs, check_finite=False
+            )
+        return np.asarray((coef.T / self.scale).T, dtype=np.float64)
 
     @property
     def nbytes(self) -> int:
@@ -194,11 +217,12 @@ class GreenBasis:
     ) -> None:
         self.domain = domain
         self.tol = float(tol)
-        m = domain.n_obstacles
+        self.centres = _Centres.of(domain)
+        k = self.centres.c.size
         fits = [
             n
             for n in TERM_LADDER
-            if _level_bytes(m, n) <= MEMORY_BUDGET and _level_flops(m, n) <= FLOP_BUDGET
+            if _level_bytes(k, n) <= MEMORY_BUDGET and _level_flops(k, n) <= FLOP_BUDGET
         ]
         self.max_terms = min(int(max_terms), max(fits or [TERM_LADDER[0]]))
         self._levels: dict[int, _Level] = {}
@@ -251,7 +275,7 @@ class GreenBasis:
             return lv, 0.0
         self._levels = {}  # only one factorization in memory at a time
         t0 = time.perf_counter()
-        lv = _Level(self.domain, n)
+        lv = _Level(self.centres, n)
         self._levels = {n: lv}
         return lv, time.perf_counter() - t0
 
@@ -283,19 +307,22 @@ class GreenBasis:
                 spent += dt
                 coef = lv.solve(_data(lv.zeta, pole, images))
                 dev = np.abs(lv.check @ coef - _data(lv.zeta_check, pole, images))
-                rho = dev.reshape(m, lv.p).max(axis=1) if m else np.zeros(0)  # per circle
+                rho = np.zeros(m)  # per hole circle
+                np.maximum.at(rho, lv.hole_of_row, dev)
                 res = float(np.max(rho, initial=0.0))
                 thr = self.tol
                 if samples is not None and samples.size and res > 0:
-                    g = _data(samples, pole, images) - _design(self.domain, samples, lv.n) @ coef
+                    g = _data(samples, pole, images) - _design(lv.cen, samples, lv.n) @ coef
                     fin = np.isfinite(g)
-                    spread = lv.measures(self.domain, samples)[fin] @ (rho / res)  # in [0, ~1]
+                    spread = lv.measures(samples)[fin] @ (rho / res)  # in [0, ~1]
                     allowed = (REL_TOL * np.abs(g[fin]) + FLOOR) / np.maximum(spread, 1e-300)
                     thr = min(thr, float(np.min(allowed, initial=np.inf)))
                 history.append((lv.n, res))
                 ok = res <= thr
                 if ok or i + 1 >= len(ladder):
                     break
+                if res <= ROUNDING:
+                    break  # the residual is rounding already: more terms cannot lower it
                 need = _extrapolate(history, thr)
                 if need > 3.0 * ladder[-1]:
                     break  # the geometric rate says max_terms will not do: give up now
@@ -314,13 +341,13 @@ class GreenBasis:
 
 
 def _level_flops(m: int, n: int) -> float:
-    """Floating-point operations of the QR factorization of a :class:`_Level`."""
+    """Floating-point operations of the QR factorization of a :class:`_Level` (m centres)."""
     cols = m * (2 * n + 1)
     return 2.0 * m * (3 * n + 16) * cols * cols
 
 
 def _level_bytes(m: int, n: int) -> int:
-    """Bytes of a :class:`_Level` with ``n`` terms per circle and ``m`` holes."""
+    """Bytes of a :class:`_Level` with ``n`` terms per centre and ``m`` centres."""
     cols = m * (2 * n + 1)
     rows = m * (3 * n + 16)
     return 8 * (2 * rows * cols + cols * cols)
@@ -339,26 +366,74 @@ def _extrapolate(history: list[tuple[int, float]], thr: float) -> float:
     return float(1.1 * (n + np.log(thr / res) / per_term) + 2)
 
 
-def _boundary_points(domain: CircleDomain, p: int, offset: float) -> CArray:
-    """``p`` equispaced points on every hole circle (none on the outer circle)."""
+@dataclass(frozen=True)
+class _Centres:
+    """Multipole centres of the basis: the M holes (c_j, r_j), then the limit points of the
+    pairs of circles that nearly touch (module docstring), each with the distance ``delta``
+    to its hole's circle as radius and the index of its hole."""
+
+    c: CArray
+    r: FArray
+    hole: NDArray[np.intp]
+    m: int
+
+    @classmethod
+    def of(cls, domain: CircleDomain) -> _Centres:
+        c, r = domain.centers, domain.radii
+        m = c.size
+        # the limit point in hole j of the pair (j, k) (k = m: the outer circle) is the fixed
+        # point of the composition of the two reflections, reached by iterating them
+        j, k = (a.ravel() for a in np.meshgrid(np.arange(m), np.arange(m + 1), indexing="ij"))
+        keep = j != k
+        j, k = j[keep], k[keep]
+        cj, rj = c[j], r[j]
+        outer = k == m
+        ck = np.where(outer, 0, c[np.minimum(k, m - 1)]) if m else np.zeros(0, complex)
+        rk = np.where(outer, 1.0, r[np.minimum(k, m - 1)]) if m else np.zeros(0)
+        z = cj.copy()
+        with np.errstate(divide="ignore", invalid="ignore"):
+            for _ in range(LIMIT_ITER):
+                z = ck + rk**2 / np.conj(z - ck)  # in circle k (the unit circle: 1/conj(z))
+                z = cj + rj**2 / np.conj(z - cj)  # back in circle j
+        rate = np.abs(z - cj) / rj
+        near = np.isfinite(z) & (rate > LIMIT_RATE) & (rate < 1)
+        return cls(
+            np.concatenate([c, z[near]]),
+            np.concatenate([r, (rj * (1 - rate))[near]]),
+            np.concatenate([np.arange(m), j[near]]).astype(np.intp),
+            m,
+        )
+
+
+def _boundary_points(cen: _Centres, p: int, offset: float) -> CArray:
+    """``p`` points per centre on its hole's circle (none on the outer circle): equispaced
+    for a hole; for a limit point at distance ``delta`` inside circle (c, r), the image of
+    equispaced points under the disk automorphism ``(e + a)/(1 + conj(a) e)``, ``|a| = (r -
+    delta)/(r + delta)`` towards it, which packs them ``r/delta`` times denser next to it
+    (where its terms ``(delta/(w - lambda))^k`` live)."""
     e = np.exp(2j * np.pi * (np.arange(p) + offset) / p)
-    return np.asarray((domain.centers[:, None] + domain.radii[:, None] * e).ravel())
+    hc, hr = cen.c[cen.hole], cen.r[cen.hole]
+    t = np.where(np.arange(cen.c.size) < cen.m, 0.0, (hr - cen.r) / (hr + cen.r))
+    with np.errstate(invalid="ignore"):
+        a = t * np.exp(1j * np.angle(cen.c - hc))
+    mob = (e[None, :] + a[:, None]) / (1.0 + np.conj(a)[:, None] * e[None, :])
+    return np.asarray((hc[:, None] + hr[:, None] * mob).ravel())
 
 
-def _variables(domain: CircleDomain, z: CArray) -> tuple[CArray, CArray, CArray, CArray]:
-    """``(u, v, w - c, 1 - conj(c) w)``, each (P, M): ``u_j = r_j / (w - c_j)`` and its
+def _variables(cen: _Centres, z: CArray) -> tuple[CArray, CArray, CArray, CArray]:
+    """``(u, v, w - c, 1 - conj(c) w)``, each (P, K): ``u_j = r_j / (w - c_j)`` and its
     reflection in the unit circle ``v_j = r_j w / (1 - conj(c_j) w)`` (module docstring)."""
     zz = z[:, None]
-    d = zz - domain.centers
-    q = 1.0 - np.conj(domain.centers) * zz
-    return domain.radii / d, domain.radii * zz / q, d, q
+    d = zz - cen.c
+    q = 1.0 - np.conj(cen.c) * zz
+    return cen.r / d, cen.r * zz / q, d, q
 
 
-def _design(domain: CircleDomain, z: CArray, n: int) -> FArray:
+def _design(cen: _Centres, z: CArray, n: int) -> FArray:
     """Real design matrix of ``S``, columns in the order of :meth:`GreenFunction._unpack`:
     ``L_j`` (M), ``Re(u_j^k - v_j^k)`` (M n), ``Im(u_j^k + v_j^k)`` (M n); with
     ``B = a - i b`` these are the columns of ``a`` and ``b`` in ``Re(B u^k - conj(B) v^k)``."""
-    u, v, d, q = _variables(domain, z)
+    u, v, d, q = _variables(cen, z)
     k = np.arange(1, n + 1)
     un = u[:, :, None] ** k  # (P, M, n)
     vn = v[:, :, None] ** k
@@ -473,7 +548,8 @@ class GreenFunction:
         self._unpack(coef, self._n)
 
     def _unpack(self, coef: FArray, n: int) -> None:
-        m = self.domain.n_obstacles
+        self._cen = self.basis.centres
+        m = self._cen.c.size
         self._b = coef[:m]
         # a Re(X) + b Im(X) == Re((a - i b) X): B_jk = a_jk - i b_jk
         big_b = coef[m : m + m * n].reshape(m, n) - 1j * coef[m + m * n :].reshape(m, n)
@@ -509,19 +585,19 @@ class GreenFunction:
         # grad log|(w - c)/(1 - conj(c) w)| = 1/conj(w - c) + c/conj(1 - conj(c) w).
         s = np.zeros(z.shape)
         grad_h = np.zeros(z.shape, dtype=np.complex128)
-        if self.domain.n_obstacles:
-            u, v, d, q = _variables(self.domain, z)
+        if self._cen.c.size:
+            u, v, d, q = _variables(self._cen, z)
             x = np.concatenate([u, v], axis=1)  # (P, 2M)
             xpow = np.empty((*x.shape, self._n + 1), dtype=np.complex128)
             xpow[:, :, 0] = 1.0
             xpow[:, :, 1:] = x[:, :, None]
             np.cumprod(xpow, axis=2, out=xpow)
-            r = self.domain.radii
+            r = self._cen.r
             dxdw = np.concatenate([-(u * u) / r, r / (q * q)], axis=1)
             f = np.einsum("pjk,jk->p", xpow, self._cf)
             fp = np.einsum("pjk,jk,pj->p", xpow, self._cd, dxdw)
             s = f.real + np.log(np.abs(d / q)) @ self._b
-            c = self.domain.centers
+            c = self._cen.c
             grad_h = np.conj(fp) + (1.0 / np.conj(d) + c / np.conj(q)) @ self._b
         # H = S - sum_i s_i L(w; p_i)
         s = s - self._images.value(z)
