@@ -46,8 +46,9 @@ from __future__ import annotations
 
 import enum
 import logging
+import queue
 import threading
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import Future
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, ClassVar, Literal, Protocol
 
@@ -263,9 +264,11 @@ class Controller:
         self._search: Future[CriticalPoints] | None = None
         self._search_lock = threading.Lock()
 
-    #: One background worker for every controller's critical-point search (a burst of new
-    #: goals queues up instead of taking every core); created on first use.
-    _searcher: ClassVar[ThreadPoolExecutor | None] = None
+    #: One background daemon worker for every controller's critical-point search (a burst of
+    #: new goals queues up instead of taking every core, and an exiting process never waits
+    #: for a search); started on first use.
+    _searches: ClassVar[queue.SimpleQueue[Controller]] = queue.SimpleQueue()
+    _searcher: ClassVar[threading.Thread | None] = None
     _searcher_lock: ClassVar[threading.Lock] = threading.Lock()
 
     def _params(self) -> dict[str, Any]:
@@ -360,20 +363,29 @@ class Controller:
         """
         with self._search_lock:
             if self._search is None:
+                self._search = Future()
                 with Controller._searcher_lock:
                     if Controller._searcher is None:
-                        Controller._searcher = ThreadPoolExecutor(
-                            1, thread_name_prefix="critical-points"
+                        Controller._searcher = threading.Thread(
+                            target=Controller._search_loop, name="critical-points", daemon=True
                         )
-                    self._search = Controller._searcher.submit(self._search_job)
+                        Controller._searcher.start()
+                Controller._searches.put(self)
             return self._search
 
-    def _search_job(self) -> CriticalPoints:
-        try:
-            return self.critical_points()
-        except Exception:
-            log.exception("critical-point search failed for %r", self)
-            raise
+    @staticmethod
+    def _search_loop() -> None:
+        while True:
+            ctl = Controller._searches.get()
+            fut = ctl._search
+            assert fut is not None
+            if not fut.set_running_or_notify_cancel():
+                continue
+            try:
+                fut.set_result(ctl.critical_points())
+            except Exception as exc:  # reported through the future, never kills the worker
+                log.warning("critical-point search failed for %r: %s", ctl, exc)
+                fut.set_exception(exc)
 
     def _stall_points(self) -> CArray:
         cp = self._critical  # never computed here: __call__ must not block on the search

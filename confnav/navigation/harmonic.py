@@ -252,8 +252,8 @@ class GreenBasis:
             return b
 
     def precompute(self, goals: ArrayLike | None = None) -> GreenBasis:
-        """Factor the levels the given goals (default: the domain's centre 0 and a point
-        between each circle and its neighbour) need; later goals then cost one solve."""
+        """Factor the levels the given goals (default: the anchor's image 0) need; later
+        goals then cost one solve (or a finer level, factored once, if they need it)."""
         pts = np.atleast_1d(np.asarray(0j if goals is None else goals, dtype=np.complex128))
         for p in pts.ravel():
             if bool(self.domain.contains(p)):
