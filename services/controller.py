@@ -373,6 +373,9 @@ class ControllerService(Service):
                 return None, f"{type(exc).__name__}: {exc}"
             self.count("controllers_built")
             self._ctrl_cache[key] = ctrl
+            search = getattr(getattr(ctrl, "controller", ctrl), "search_critical_points", None)
+            if search is not None:  # in the background: STALLED near a saddle once they land
+                search()
             return ctrl, ""
 
     def _fetch_loop(self) -> None:

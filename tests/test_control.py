@@ -147,6 +147,17 @@ def test_status_codes() -> None:
     assert out.u.shape == z.shape and ctl(0.5 + 0j).u.shape == ()
 
 
+def test_background_search_makes_the_saddle_stall_without_blocking() -> None:
+    ctl = Controller(MOB, 0.1j, navfn="kr", k=6, goal_tol=1e-3)
+    saddle_ws = MOB.inverse(find_critical_points(ctl.navfn).saddles[0])
+    fut = ctl.search_critical_points()
+    assert ctl.search_critical_points() is fut  # once per controller
+    cp = fut.result(timeout=60)
+    assert cp.ok and cp.saddles.size == SEED.n_obstacles
+    assert ctl(saddle_ws).status == Status.STALLED
+    assert ctl(0.5 + 0j).status == Status.MOVING
+
+
 def test_new_goal_reuses_the_map() -> None:
     m = MobiusMap(SEED, 0.2 - 0.1j)
     ctl = Controller(m, 0.1j, navfn="harmonic")

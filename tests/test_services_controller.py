@@ -540,3 +540,33 @@ def test_deleted_workspace_stops_its_robots(mem_net: InMemoryNetwork) -> None:
         assert cl.answer("r1").linear == (0.0, 0.0)
     finally:
         ctl.stop()
+
+
+def test_stall_at_a_saddle_is_reported_without_asking_for_the_critical_points(
+    mem_net: InMemoryNetwork,
+) -> None:
+    # Nobody calls critical_points(): the service starts the search in the background when it
+    # builds the controller, and reports "stalled" at the saddle once the points have landed.
+    ctl, _tr, cl = setup(mem_net)
+    try:
+        g = cl.goal("r1")
+        wait_for(lambda: ctl.robot_state("r1") is not None and ctl.counters["maps_installed"])
+        ref = Controller(IdentityMap([complex(*c) for c in CENTERS], RADII), complex(*g.goal))
+        (saddle,) = ref.critical_points().saddles  # one hole: one saddle, behind it
+        assert abs(saddle.imag) < 1e-9 and 0.55 < saddle.real < 1.0  # mirror symmetry
+
+        def stalled() -> bool:
+            cl.pose("r1", saddle.real + 0.005, saddle.imag)
+            time.sleep(0.05)
+            s = cl.last_status("r1")
+            return s is not None and "stalled" in s.message
+
+        wait_for(stalled, timeout=30)
+        assert cl.last_status("r1").state == "navigating"
+        # away from the saddle: moving, no stall
+        cl.pose("r1", 0.2, 0.5)
+        cmd = wait_for(lambda: cl.answer("r1"))
+        assert same(complex(*cmd.linear), expected_u(g, 0.2 + 0.5j))
+        wait_for(lambda: "stalled" not in cl.last_status("r1").message)
+    finally:
+        ctl.stop()

@@ -45,9 +45,12 @@ References
 from __future__ import annotations
 
 import enum
+import logging
+import queue
 import threading
+from concurrent.futures import Future
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Literal, Protocol
+from typing import TYPE_CHECKING, Any, ClassVar, Literal, Protocol
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -60,6 +63,8 @@ from confnav.navigation.navfn import CircleDomain, NavigationFunction
 if TYPE_CHECKING:
     from confnav.geometry import Workspace
     from confnav.navigation.critical import CriticalPoints
+
+log = logging.getLogger(__name__)
 
 __all__ = ["ConformalLike", "ControlOutput", "Controller", "Status", "speed_law"]
 
@@ -171,7 +176,8 @@ class Controller:
     slow_distance : normalized law: clearance (m) below which the speed is scaled by
         ``clip(clearance / slow_distance, 0.2, 1)`` (0 = off; needs ``cmap.workspace``).
     stall_radius : distance (m) to a critical point of phi other than the goal (found by
-        :meth:`critical_points`) within which a robot is reported STALLED; default goal_tol.
+        :meth:`critical_points`, or in the background by :meth:`search_critical_points`)
+        within which a robot is reported STALLED; default goal_tol.
 
     All defaults come from :mod:`confnav.navigation.defaults` (equal to the ``Goal`` message's).
     ``x``
@@ -255,6 +261,15 @@ class Controller:
         self.goal_w = wd
         self._critical: CriticalPoints | None = None
         self._critical_lock = threading.Lock()
+        self._search: Future[CriticalPoints] | None = None
+        self._search_lock = threading.Lock()
+
+    #: One background daemon worker for every controller's critical-point search (a burst of
+    #: new goals queues up instead of taking every core, and an exiting process never waits
+    #: for a search); started on first use.
+    _searches: ClassVar[queue.SimpleQueue[Controller]] = queue.SimpleQueue()
+    _searcher: ClassVar[threading.Thread | None] = None
+    _searcher_lock: ClassVar[threading.Lock] = threading.Lock()
 
     def _params(self) -> dict[str, Any]:
         return {
@@ -336,6 +351,41 @@ class Controller:
             return self._critical
 
     check = critical_points
+
+    def search_critical_points(self) -> Future[CriticalPoints]:
+        """Start :meth:`critical_points` in the background (once per controller) and return
+        its future.
+
+        ``__call__`` never waits for the search: it reports STALLED near a critical point as
+        soon as the points have landed (a few seconds for 20 obstacles), MOVING before.  Long
+        running hosts (the controller service) call this when they build a controller, so
+        stall detection works without anyone asking for the points first.
+        """
+        with self._search_lock:
+            if self._search is None:
+                self._search = Future()
+                with Controller._searcher_lock:
+                    if Controller._searcher is None:
+                        Controller._searcher = threading.Thread(
+                            target=Controller._search_loop, name="critical-points", daemon=True
+                        )
+                        Controller._searcher.start()
+                Controller._searches.put(self)
+            return self._search
+
+    @staticmethod
+    def _search_loop() -> None:
+        while True:
+            ctl = Controller._searches.get()
+            fut = ctl._search
+            assert fut is not None
+            if not fut.set_running_or_notify_cancel():
+                continue
+            try:
+                fut.set_result(ctl.critical_points())
+            except Exception as exc:  # reported through the future, never kills the worker
+                log.warning("critical-point search failed for %r: %s", ctl, exc)
+                fut.set_exception(exc)
 
     def _stall_points(self) -> CArray:
         cp = self._critical  # never computed here: __call__ must not block on the search

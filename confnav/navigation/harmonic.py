@@ -2,44 +2,65 @@
 
 ``G(w) = log|w - w_d| - h(w)`` with ``h`` harmonic in the circle domain and
 ``h = log|zeta - w_d|`` on every boundary circle, so ``G = 0`` on the boundary.  ``G`` is
-split into an exact part and a fitted series (logarithmic conjugation / Laurent expansion in
-each hole [1]_ [2]_):
+split into an exact part and a fitted series:
 
-    G = G_0 - sum_{j near} I_j - S,
+    G = G_0 + sum_i s_i L(w; p_i) - S,
     G_0(w) = log|(w - w_d) / (1 - conj(w_d) w)|              (Green's function of the disk),
-    I_j(w) = log|(w - p_j) / (1 - conj(p_j) w)|,  p_j = c_j + r_j^2 / conj(w_d - c_j),
-    S(w)   = a_0 + Re sum_n a_n w^n + sum_j [ b_j log|w - c_j| + Re sum_n b_jn (r_j/(w-c_j))^n ].
+    L(w; p) = log|(w - p) / (1 - conj(p) w)|                 (image pair, 0 on |w| = 1),
+    S(w)   = sum_j [ b_j L_j(w) + Re sum_n (B_jn u_j^n - conj(B_jn) v_j^n) ],
+    L_j = log|(w - c_j) / (1 - conj(c_j) w)|,  u_j = r_j / (w - c_j),
+    v_j = conj(u_j(1 / conj(w))) = r_j w / (1 - conj(c_j) w).
 
-``G_0`` and ``I_j`` vanish on the outer circle (so ``S`` does too); ``I_j`` is the image charge
-of the pole in a circle the goal is near (exact for one circle): it takes the near-singular
-part of the data.  ``S`` is fitted by least squares to ``G_0 - sum I_j`` on equispaced
-collocation points of every circle.  Why this split: when the goal lies in a pocket (its image
-close to a circle), ``G`` is tiny (1e-11 measured with the goal in a charging alcove) over
-most of the domain; ``G_0`` is evaluated without cancellation
-(``1 - |M(w)|^2 = (1-|w|^2)(1-|w_d|^2)/|1 - conj(w_d) w|^2``) and the data of ``S`` is as
-small as ``G`` there, so the fit's *relative* accuracy carries over to ``G``, its gradient
-and ``1 - phi``.  (With the boundary data ``log|zeta - w_d|`` of size 1, as before, the fit
-error 1e-10 swamped ``G`` and a robot followed it into a wall.)
+Every term vanishes identically on the outer circle (``|w| = 1`` gives ``v_j = conj(u_j)``):
+each hole's multipole series comes with its reflection in the unit circle, the first level of
+the method of images / Schottky group of the circle domain [3]_ [4]_.  ``S`` is complete for
+harmonic functions vanishing on ``|w| = 1`` (logarithmic conjugation [1]_: ``H = sum_j (b_j
+log|w - c_j| + Re F_j) + Re F_0`` with ``F_j`` analytic outside hole j; the outer condition
+forces ``F_0 = -sum_j F_j^*`` with ``F_j^*(w) = conj(F_j(1/conj(w)))``), and it is fitted by
+least squares on the hole circles only.  Why the reflected terms: a small hole close to the
+outer circle puts a singularity of a plain Taylor series in ``w`` just outside ``|w| = 1``
+(convergence rate 0.97-0.9997 per term measured on mixed 20, the door and the warehouse,
+which never reached 1e-10 with 128 terms); with the reflections taken out exactly, each
+hole's series converges at the rate of the limit points of the reflections in that hole and
+its neighbours (<= 0.52 on every scene here: 1e-13 with 32-48 terms) and the columns, scaled
+to unit norm, give a least-squares matrix of condition 4-20.
+
+``G_0`` and the image pairs vanish on the outer circle too.  The images take the
+near-singular part of the data: a point charge ``sigma`` at ``x`` (first the pole, +1, and its
+reflection ``1/conj(w_d)``, -1) within ``NEAR r_j`` of hole j gets the charge ``-sigma`` at its
+reflection ``x* = c_j + r_j^2 / conj(x - c_j)`` in circle j (on the circle ``|w - x| =
+|w - x*| |x - c_j| / r_j``, so the pair cancels up to a constant, which the series carries),
+paired with ``+sigma`` at ``1/conj(x*)``; the new charges are reflected in turn, up to
+``IMAGE_DEPTH`` levels (the method of images truncated where the charges are far from every
+other circle [3]_).  When the goal lies in a pocket (its image close to a circle), ``G`` is
+tiny (1e-11 measured with the goal in a charging alcove) over most of the domain; ``G_0`` is
+evaluated without cancellation (``1 - |M(w)|^2 = (1-|w|^2)(1-|w_d|^2)/|1 - conj(w_d) w|^2``)
+and the data of ``S`` is as small as ``G`` there, so the fit's *relative* accuracy carries
+over to ``G``, its gradient and ``1 - phi``.
 
 **Cost bounded per map.**  The least-squares matrix depends on the circle domain only, not on
 the goal (the boundary data is linear in it, DESIGN.md section 3): :class:`GreenBasis` builds
-it once per map, scales its columns, and stores its pseudo-inverse from a QR factorization;
-a new goal is then one matrix-vector product plus a residual check on points between the
-collocation points.  The number of terms per circle grows on a ladder (a finer basis is
-factored only when a goal needs it, and kept for the next goals); a fit that misses ``tol``
-with ``max_terms`` raises :class:`NavigationError` (the controller then falls back to
+it once per map, scales its columns and stores a QR factorization; a new goal is then one
+``Q^T b`` and a triangular solve plus a residual check on points between the collocation
+points.  The number of terms per circle grows on a ladder (a finer basis is factored only
+when a goal needs it, and kept for the next goals); a fit that misses ``tol`` with
+``max_terms`` raises :class:`NavigationError` (the controller then falls back to
 Koditschek-Rimon with automatic k and says so).
 
 ``phi_H = exp(2 G)`` is 1 on every boundary circle, has a single minimum (at w_d) and exactly
 M saddles, and needs no tuning.  Its gradient is evaluated without the pole:
 ``grad phi_H = 2 e^{-2h} ((w - w_d) conj((1 - |w_d|^2)/(1 - conj(w_d) w)) - |w - w_d|^2
-grad H)`` with ``H = S + sum I_j`` (``grad G_0`` in closed form, no cancellation).
+grad H)`` with ``H = S - sum_i s_i L(w; p_i)`` (``grad G_0`` in closed form, no cancellation).
 
 References
 ----------
 .. [1] S. Axler, "Harmonic functions from a complex analysis viewpoint", Amer. Math. Monthly
    93 (1986) 246-258 (logarithmic conjugation theorem).
 .. [2] L. N. Trefethen, "Series solution of Laplace problems", ANZIAM J. 60 (2018) 1-26.
+.. [3] D. Crowdy, "The Schottky-Klein prime function on the Schottky double of planar
+   domains", Comput. Methods Funct. Theory 10 (2010) 501-517 (reflections in the circles).
+.. [4] D. Crowdy and J. Marshall, "Green's functions for Laplace's equation in multiply
+   connected domains", IMA J. Appl. Math. 72 (2007) 278-301.
 """
 
 from __future__ import annotations
@@ -48,7 +69,7 @@ import threading
 import time
 from collections import OrderedDict
 from dataclasses import dataclass
-from typing import ClassVar
+from typing import ClassVar, NamedTuple
 
 import numpy as np
 import scipy.linalg
@@ -64,19 +85,39 @@ FArray = NDArray[np.float64]
 
 _CHUNK = 4096
 #: Terms per circle tried in turn (a goal that needs more moves the map's basis up the ladder).
-TERM_LADDER: tuple[int, ...] = (12, 24, 36, 48, 64, 96, 128, 160, 192, 256)
-#: Default cap of the terms per circle: bounds the per-map cost (normal equations of size
-#: ~2 n (M + 1)); a goal that needs more gets the Koditschek-Rimon fallback of the controller.
+TERM_LADDER: tuple[int, ...] = (16, 24, 32, 48, 64, 96, 128, 192, 256)
+#: Default cap of the terms per circle: bounds the per-map cost (a QR factorization with
+#: M (2 n + 1) columns); a goal that needs more gets the Koditschek-Rimon fallback of the
+#: controller.
 DEFAULT_MAX_TERMS = 128
-#: Memory one factorization may take (design, check and Cholesky matrices); caps the terms
-#: per circle for many obstacles (issue 9: <= 1 GB with 20 obstacles).
+#: Memory one factorization may take (Q, R and the check matrix); caps the terms per circle
+#: for many obstacles (issue 9: <= 1 GB with 20 obstacles).
 MEMORY_BUDGET = 768 << 20
-#: The pole gets an image charge in circle j when ``|w_d - c_j| < NEAR * r_j``.
+#: Work one factorization may take (QR flops; ~5 s on one core of this machine): caps the
+#: terms per circle for many obstacles (64 with 20 obstacles; issue 9: <= 10 s per map).
+FLOP_BUDGET = 6e10
+#: A pair of circles whose limit point in hole j lies farther than ``LIMIT_RATE r_j`` from
+#: ``c_j`` (the hole's own series would converge at that rate per term) gets a multipole
+#: centre of its own at the limit point.
+LIMIT_RATE = 0.6
+#: Columns of the pivoted QR kept: diagonal of R above RCOND times its largest entry.
+RCOND = 1e-14
+#: Reflections iterated to find a limit point (converges like the square of the pair's rate).
+LIMIT_ITER = 400
+#: A charge gets an image in circle j when it is within ``NEAR * r_j`` of ``c_j``.
 NEAR = 3.0
-#: Accuracy of G needed where robots drive, relative to the smallest |G| at the sample points
-#: (the fit's error in G is at most its boundary residual: maximum principle).
+#: Levels of images of images (a goal in a gap between two close circles: the images
+#: converge to the pair's limit points; the series takes the rest).
+IMAGE_DEPTH = 6
+#: At most this many image pairs per goal.
+IMAGE_LIMIT = 128
+#: Accuracy of G needed where robots drive, relative to |G| at each sample point (bound of
+#: the error by the residuals and harmonic measures: :meth:`GreenBasis.fit`).
 REL_TOL = 1e-3
-#: Below this boundary error the fit is rounding (data of size 1, double precision).
+#: A residual this small is rounding (data of size 1 through a QR solve): climbing the
+#: ladder further only costs factorizations (measured floor 3e-15..1e-13).
+ROUNDING = 1e-13
+#: Absolute error of G accepted at a sample on top of that (rounding of data of size 1).
 FLOOR = 1e-15
 #: Bases kept per process (LRU over circle domains), so new goals on a map reuse its factors.
 CACHE_SIZE = 4
@@ -105,32 +146,62 @@ class GreenDiagnostics:
 
 
 class _Level:
-    """One rung of the ladder: the scaled design matrix, the Cholesky factor of its normal
-    equations (the basis is well conditioned: each family is orthogonal on its own circle and
-    the near-singular parts are taken out by the exact terms) and the check matrix."""
+    """One rung of the ladder: the QR factors of the column-scaled design matrix on the hole
+    circles (the outer circle needs no rows: every basis function vanishes there) and the
+    check matrix on the points halfway between the collocation points."""
 
-    def __init__(self, domain: CircleDomain, n: int) -> None:
+    def __init__(self, cen: _Centres, n: int) -> None:
         self.n = n
         self.p = 3 * n + 16
-        self.zeta = _boundary_points(domain, self.p, 0.0)
-        self.zeta_check = _boundary_points(domain, self.p, 0.5)
-        a = _design(domain, self.zeta, n)
+        self.cen = cen
+        self.zeta = _boundary_points(cen, self.p, 0.0)
+        self.zeta_check = _boundary_points(cen, self.p, 0.5)
+        self.hole_of_row = np.repeat(cen.hole, self.p)  # rows grouped by centre
+        a = _design(cen, self.zeta, n)
         self.scale = np.linalg.norm(a, axis=0)
         self.scale[self.scale == 0] = 1.0
         a /= self.scale
-        self.at = np.ascontiguousarray(a.T)
-        gram = self.at @ a
-        self.chol = scipy.linalg.cho_factor(gram, check_finite=False)
-        self.check = _design(domain, self.zeta_check, n)
+        if a.size:
+            # pivoted QR, truncated where the columns are dependent to rounding (the
+            # limit-point series overlap the holes' own series): a basic solution with
+            # moderate coefficients instead of an ill-conditioned triangular solve
+            q, r, piv = scipy.linalg.qr(
+                a, mode="economic", pivoting=True, overwrite_a=True, check_finite=False
+            )
+            d = np.abs(np.diag(r))
+            k = int(np.count_nonzero(d > RCOND * d[0]))
+            self.r, self.qt, self.piv = r[:k, :k], np.ascontiguousarray(q[:, :k].T), piv[:k]
+        else:  # no holes: S = 0
+            self.qt, self.r = np.zeros((0, a.shape[0])), np.zeros((0, 0))
+            self.piv = np.zeros(0, dtype=np.intp)
+        self.cols = a.shape[1]
+        self.check = _design(cen, self.zeta_check, n)
+        self._measures: tuple[bytes, FArray] | None = None
+
+    def measures(self, samples: CArray) -> FArray:
+        """(S, M) harmonic measures of the hole circles at ``samples`` (the harmonic
+        functions 1 on circle j and 0 on the other circles, fitted with this basis); cached
+        for the last ``samples`` (a controller passes the same points for every goal)."""
+        key = samples.tobytes()
+        if self._measures is None or self._measures[0] != key:
+            m = self.cen.m
+            ind = (self.hole_of_row[:, None] == np.arange(m)).astype(float)  # 1 on circle j
+            om = np.abs(_design(self.cen, samples, self.n) @ self.solve(ind))
+            self._measures = (key, np.asarray(om, dtype=np.float64))
+        return self._measures[1]
 
     def solve(self, rhs: FArray) -> FArray:
-        """Least-squares coefficients for boundary data ``rhs`` (one back-substitution)."""
-        coef = scipy.linalg.cho_solve(self.chol, self.at @ rhs, check_finite=False)
-        return np.asarray(coef / self.scale, dtype=np.float64)
+        """Least-squares coefficients for boundary data ``rhs`` (``R^-1 Q^T rhs``)."""
+        coef = np.zeros((self.cols, *rhs.shape[1:]))
+        if self.r.size:
+            coef[self.piv] = scipy.linalg.solve_triangular(
+                self.r, self.qt @ rhs, check_finite=False
+            )
+        return np.asarray((coef.T / self.scale).T, dtype=np.float64)
 
     @property
     def nbytes(self) -> int:
-        return int(self.at.nbytes + self.chol[0].nbytes + self.check.nbytes)
+        return int(self.qt.nbytes + self.r.nbytes + self.check.nbytes)
 
 
 class GreenBasis:
@@ -146,7 +217,13 @@ class GreenBasis:
     ) -> None:
         self.domain = domain
         self.tol = float(tol)
-        fits = [n for n in TERM_LADDER if _level_bytes(domain.n_obstacles, n) <= MEMORY_BUDGET]
+        self.centres = _Centres.of(domain)
+        k = self.centres.c.size
+        fits = [
+            n
+            for n in TERM_LADDER
+            if _level_bytes(k, n) <= MEMORY_BUDGET and _level_flops(k, n) <= FLOP_BUDGET
+        ]
         self.max_terms = min(int(max_terms), max(fits or [TERM_LADDER[0]]))
         self._levels: dict[int, _Level] = {}
         # index in TERM_LADDER of the smallest level worth trying; advanced only by a converged
@@ -175,8 +252,8 @@ class GreenBasis:
             return b
 
     def precompute(self, goals: ArrayLike | None = None) -> GreenBasis:
-        """Factor the levels the given goals (default: the domain's centre 0 and a point
-        between each circle and its neighbour) need; later goals then cost one solve."""
+        """Factor the levels the given goals (default: the anchor's image 0) need; later
+        goals then cost one solve (or a finer level, factored once, if they need it)."""
         pts = np.atleast_1d(np.asarray(0j if goals is None else goals, dtype=np.complex128))
         for p in pts.ravel():
             if bool(self.domain.contains(p)):
@@ -198,24 +275,28 @@ class GreenBasis:
             return lv, 0.0
         self._levels = {}  # only one factorization in memory at a time
         t0 = time.perf_counter()
-        lv = _Level(self.domain, n)
+        lv = _Level(self.centres, n)
         self._levels = {n: lv}
         return lv, time.perf_counter() - t0
 
     def fit(
         self, pole: complex, samples: CArray | None = None
-    ) -> tuple[FArray, CArray, GreenDiagnostics]:
-        """(series coefficients, image points, diagnostics) for a pole; raises
+    ) -> tuple[FArray, _Images, GreenDiagnostics]:
+        """(series coefficients, image pairs, diagnostics) for a pole; raises
         :class:`NavigationError` if ``max_terms`` terms do not reach the tolerance.
 
-        The boundary residual must be below ``tol`` and below ``REL_TOL * min |G|`` over
-        ``samples`` (circle-domain points where robots drive): by the maximum principle the
-        error of ``G`` anywhere is at most the boundary residual, so where the goal sits in a
-        pocket and ``G`` is 1e-11 over the room the fit must be that much finer (or fail).
+        The boundary residual must be below ``tol``, and the error of ``G`` at ``samples``
+        (circle-domain points where robots drive) below ``REL_TOL |G|`` there.  The error is
+        harmonic with boundary values at most ``rho_j`` (the residual) on circle j, so at a
+        point s it is at most ``sum_j omega_j(s) rho_j`` with ``omega_j`` the harmonic measure
+        of circle j (maximum principle; ``omega_j`` fitted once per map and samples,
+        :meth:`_Level.measures`).  Where the goal sits in a pocket or behind a door and ``G``
+        is 1e-12 in the far room, this asks the circles of the far room for a residual that
+        much finer, not the circles next to the goal (their error reaches the far room damped
+        by the same harmonic measure that makes ``G`` small there).
         """
-        c, r = self.domain.centers, self.domain.radii
-        near = np.flatnonzero(np.abs(pole - c) < NEAR * r)
-        images = c[near] + r[near] ** 2 / np.conj(pole - c[near])
+        images, holes = _image_charges(self.domain, pole)
+        m = self.domain.n_obstacles
         history: list[tuple[int, float]] = []
         spent = 0.0
         ladder = [n for n in TERM_LADDER if n <= self.max_terms] or [TERM_LADDER[0]]
@@ -225,17 +306,23 @@ class GreenBasis:
                 lv, dt = self._level(ladder[i])
                 spent += dt
                 coef = lv.solve(_data(lv.zeta, pole, images))
-                data_c = _data(lv.zeta_check, pole, images)
-                res = float(np.max(np.abs(lv.check @ coef - data_c), initial=0.0))
+                dev = np.abs(lv.check @ coef - _data(lv.zeta_check, pole, images))
+                rho = np.zeros(m)  # per hole circle
+                np.maximum.at(rho, lv.hole_of_row, dev)
+                res = float(np.max(rho, initial=0.0))
                 thr = self.tol
-                if samples is not None and samples.size:
-                    g = _data(samples, pole, images) - _design(self.domain, samples, lv.n) @ coef
-                    gmin = float(np.min(np.abs(g[np.isfinite(g)]), initial=np.inf))
-                    thr = max(min(thr, REL_TOL * gmin), FLOOR)
+                if samples is not None and samples.size and res > 0:
+                    g = _data(samples, pole, images) - _design(lv.cen, samples, lv.n) @ coef
+                    fin = np.isfinite(g)
+                    spread = lv.measures(samples)[fin] @ (rho / res)  # in [0, ~1]
+                    allowed = (REL_TOL * np.abs(g[fin]) + FLOOR) / np.maximum(spread, 1e-300)
+                    thr = min(thr, float(np.min(allowed, initial=np.inf)))
                 history.append((lv.n, res))
                 ok = res <= thr
                 if ok or i + 1 >= len(ladder):
                     break
+                if res <= ROUNDING:
+                    break  # the residual is rounding already: more terms cannot lower it
                 need = _extrapolate(history, thr)
                 if need > 3.0 * ladder[-1]:
                     break  # the geometric rate says max_terms will not do: give up now
@@ -243,9 +330,7 @@ class GreenBasis:
                 i = min(i, len(ladder) - 1)
             if ok:  # later goals start here (never after a failure: see _start in __init__)
                 self._start = max(self._start, i)
-        diag = GreenDiagnostics(
-            lv.n, lv.p, res, self.tol, ok, tuple(history), thr, tuple(int(j) for j in near), spent
-        )
+        diag = GreenDiagnostics(lv.n, lv.p, res, self.tol, ok, tuple(history), thr, holes, spent)
         if not ok:
             raise NavigationError(
                 f"Green's function series did not converge: boundary error {res:.2e} "
@@ -255,10 +340,16 @@ class GreenBasis:
         return coef, images, diag
 
 
+def _level_flops(m: int, n: int) -> float:
+    """Floating-point operations of the QR factorization of a :class:`_Level` (m centres)."""
+    cols = m * (2 * n + 1)
+    return 2.0 * m * (3 * n + 16) * cols * cols
+
+
 def _level_bytes(m: int, n: int) -> int:
-    """Bytes of a :class:`_Level` with ``n`` terms per circle and ``m`` holes."""
-    cols = 1 + 2 * n * (m + 1) + m
-    rows = (m + 1) * (3 * n + 16)
+    """Bytes of a :class:`_Level` with ``n`` terms per centre and ``m`` centres."""
+    cols = m * (2 * n + 1)
+    rows = m * (3 * n + 16)
     return 8 * (2 * rows * cols + cols * cols)
 
 
@@ -275,24 +366,84 @@ def _extrapolate(history: list[tuple[int, float]], thr: float) -> float:
     return float(1.1 * (n + np.log(thr / res) / per_term) + 2)
 
 
-def _boundary_points(domain: CircleDomain, p: int, offset: float) -> CArray:
+@dataclass(frozen=True)
+class _Centres:
+    """Multipole centres of the basis: the M holes (c_j, r_j), then the limit points of the
+    pairs of circles that nearly touch (module docstring), each with the distance ``delta``
+    to its hole's circle as radius and the index of its hole."""
+
+    c: CArray
+    r: FArray
+    hole: NDArray[np.intp]
+    m: int
+
+    @classmethod
+    def of(cls, domain: CircleDomain) -> _Centres:
+        c, r = domain.centers, domain.radii
+        m = c.size
+        # the limit point in hole j of the pair (j, k) (k = m: the outer circle) is the fixed
+        # point of the composition of the two reflections, reached by iterating them
+        j, k = (a.ravel() for a in np.meshgrid(np.arange(m), np.arange(m + 1), indexing="ij"))
+        keep = j != k
+        j, k = j[keep], k[keep]
+        cj, rj = c[j], r[j]
+        outer = k == m
+        ck = np.where(outer, 0, c[np.minimum(k, m - 1)]) if m else np.zeros(0, complex)
+        rk = np.where(outer, 1.0, r[np.minimum(k, m - 1)]) if m else np.zeros(0)
+        z = cj.copy()
+        with np.errstate(divide="ignore", invalid="ignore"):
+            for _ in range(LIMIT_ITER):
+                z = ck + rk**2 / np.conj(z - ck)  # in circle k (the unit circle: 1/conj(z))
+                z = cj + rj**2 / np.conj(z - cj)  # back in circle j
+        rate = np.abs(z - cj) / rj
+        near = np.isfinite(z) & (rate > LIMIT_RATE) & (rate < 1)
+        return cls(
+            np.concatenate([c, z[near]]),
+            np.concatenate([r, (rj * (1 - rate))[near]]),
+            np.concatenate([np.arange(m), j[near]]).astype(np.intp),
+            m,
+        )
+
+
+def _boundary_points(cen: _Centres, p: int, offset: float) -> CArray:
+    """``p`` points per centre on its hole's circle (none on the outer circle): equispaced
+    for a hole; for a limit point at distance ``delta`` inside circle (c, r), the image of
+    equispaced points under the disk automorphism ``(e + a)/(1 + conj(a) e)``, ``|a| = (r -
+    delta)/(r + delta)`` towards it, which packs them ``r/delta`` times denser next to it
+    (where its terms ``(delta/(w - lambda))^k`` live)."""
     e = np.exp(2j * np.pi * (np.arange(p) + offset) / p)
-    parts = [e] + [cj + rj * e for cj, rj in zip(domain.centers, domain.radii, strict=True)]
-    return np.concatenate(parts)
+    hc, hr = cen.c[cen.hole], cen.r[cen.hole]
+    t = np.where(np.arange(cen.c.size) < cen.m, 0.0, (hr - cen.r) / (hr + cen.r))
+    with np.errstate(invalid="ignore"):
+        a = t * np.exp(1j * np.angle(cen.c - hc))
+    mob = (e[None, :] + a[:, None]) / (1.0 + np.conj(a)[:, None] * e[None, :])
+    return np.asarray((hc[:, None] + hr[:, None] * mob).ravel())
 
 
-def _design(domain: CircleDomain, z: CArray, n: int) -> FArray:
-    """Real design matrix of ``S``, columns in the order of :meth:`GreenFunction._unpack`."""
-    c, r = domain.centers, domain.radii
-    cols: list[FArray] = [np.ones(z.shape)]
-    wp = z[:, None] ** np.arange(1, n + 1)
-    cols += [wp.real, wp.imag]
-    if c.size:
-        d = z[:, None] - c  # (P, M)
-        cols.append(np.log(np.abs(d)))
-        u = (r / d)[:, :, None] ** np.arange(1, n + 1)  # (P, M, n)
-        cols += [u.real.reshape(z.size, -1), u.imag.reshape(z.size, -1)]
-    return np.column_stack([x[:, None] if x.ndim == 1 else x for x in cols])
+def _variables(cen: _Centres, z: CArray) -> tuple[CArray, CArray, CArray, CArray]:
+    """``(u, v, w - c, 1 - conj(c) w)``, each (P, K): ``u_j = r_j / (w - c_j)`` and its
+    reflection in the unit circle ``v_j = r_j w / (1 - conj(c_j) w)`` (module docstring)."""
+    zz = z[:, None]
+    d = zz - cen.c
+    q = 1.0 - np.conj(cen.c) * zz
+    return cen.r / d, cen.r * zz / q, d, q
+
+
+def _design(cen: _Centres, z: CArray, n: int) -> FArray:
+    """Real design matrix of ``S``, columns in the order of :meth:`GreenFunction._unpack`:
+    ``L_j`` (M), ``Re(u_j^k - v_j^k)`` (M n), ``Im(u_j^k + v_j^k)`` (M n); with
+    ``B = a - i b`` these are the columns of ``a`` and ``b`` in ``Re(B u^k - conj(B) v^k)``."""
+    u, v, d, q = _variables(cen, z)
+    k = np.arange(1, n + 1)
+    un = u[:, :, None] ** k  # (P, M, n)
+    vn = v[:, :, None] ** k
+    return np.column_stack(
+        [
+            np.log(np.abs(d / q)),
+            (un - vn).real.reshape(z.size, u.shape[1] * n),
+            (un + vn).imag.reshape(z.size, u.shape[1] * n),
+        ]
+    )
 
 
 def _disk_green(z: CArray, pole: complex) -> FArray:
@@ -304,21 +455,58 @@ def _disk_green(z: CArray, pole: complex) -> FArray:
         return np.asarray(0.5 * np.log1p(-one_minus / (q * q.conjugate()).real), dtype=np.float64)
 
 
-def _image_terms(z: CArray, images: CArray) -> FArray:
-    """``sum_j I_j(z) = sum_j log|(z - p_j)/(1 - conj(p_j) z)|``."""
-    if images.size == 0:
-        return np.zeros(z.shape)
-    zz = z[:, None]
-    return np.asarray(
-        np.log(np.abs((zz - images) / (1.0 - np.conj(images) * zz))).sum(axis=1),
-        dtype=np.float64,
-    )
+class _Images(NamedTuple):
+    """Image pairs ``sum_i s_i L(w; p_i)`` of one pole (module docstring)."""
+
+    points: CArray
+    signs: FArray
+
+    def value(self, z: CArray) -> FArray:
+        if self.points.size == 0:
+            return np.zeros(z.shape)
+        zz = z[:, None]
+        p = self.points
+        return np.asarray(np.log(np.abs((zz - p) / (1.0 - np.conj(p) * zz))) @ self.signs)
+
+    def gradient(self, z: CArray) -> CArray:
+        """grad L(w; p) = 1/conj(w - p) + p/conj(1 - conj(p) w)."""
+        if self.points.size == 0:
+            return np.zeros(z.shape, dtype=np.complex128)
+        zz = z[:, None]
+        p = self.points
+        return np.asarray((1.0 / np.conj(zz - p) + p / np.conj(1.0 - np.conj(p) * zz)) @ self.signs)
 
 
-def _data(z: CArray, pole: complex, images: CArray) -> FArray:
-    """Boundary data of ``S``: ``G_0 - sum_j I_j`` (0 on the outer circle: set exactly)."""
-    d = _disk_green(z, pole) - _image_terms(z, images)
-    return np.asarray(np.where(np.abs(z) == 1.0, 0.0, d), dtype=np.float64)
+def _image_charges(domain: CircleDomain, pole: complex) -> tuple[_Images, tuple[int, ...]]:
+    """The image pairs of the pole and the holes they lie in (module docstring)."""
+    c, r = domain.centers, domain.radii
+    pts: list[complex] = []
+    sgn: list[float] = []
+    front: list[tuple[complex, float]] = [(pole, 1.0)]
+    if pole != 0:
+        front.append((1.0 / np.conj(pole), -1.0))
+    holes: set[int] = set()
+    for _ in range(IMAGE_DEPTH):
+        new: list[tuple[complex, float]] = []
+        for x, sig in front:
+            d = np.abs(x - c)
+            for j in np.flatnonzero((d < NEAR * r) & (d > r)):
+                xs = complex(c[j] + r[j] ** 2 / np.conj(x - c[j]))
+                pts.append(xs)
+                sgn.append(-sig)
+                holes.add(int(j))
+                new += [(xs, -sig), (1.0 / np.conj(xs), sig)]
+        front = new
+        if not front or len(pts) >= IMAGE_LIMIT:
+            break
+    k = min(len(pts), IMAGE_LIMIT)
+    im = _Images(np.asarray(pts[:k], dtype=np.complex128), np.asarray(sgn[:k]))
+    return im, tuple(sorted(holes))
+
+
+def _data(z: CArray, pole: complex, images: _Images) -> FArray:
+    """Boundary data of ``S``: ``G_0 + sum_i s_i L(z; p_i)`` (0 on the outer circle)."""
+    return np.asarray(_disk_green(z, pole) + images.value(z), dtype=np.float64)
 
 
 class GreenFunction:
@@ -360,29 +548,23 @@ class GreenFunction:
         self._unpack(coef, self._n)
 
     def _unpack(self, coef: FArray, n: int) -> None:
-        m = self.domain.n_obstacles
-        i = 0
-        self._a0 = float(coef[i])
-        i += 1
-        # Re(p w^n) + Im(...) q  ==  Re((p - i q) w^n)
-        a = coef[i : i + n] - 1j * coef[i + n : i + 2 * n]
-        i += 2 * n
-        self._b = coef[i : i + m]
-        i += m
-        bre = coef[i : i + m * n].reshape(m, n)
-        bim = coef[i + m * n : i + 2 * m * n].reshape(m, n)
-        bl = bre - 1j * bim  # (M, n)
-        nn = np.arange(1, n + 1)
-        coefs = np.concatenate([a[None, :], bl], axis=0)  # (M+1, n)
-        cm = np.zeros((m + 1, n + 1, 2 * (m + 1)), dtype=np.complex128)
-        for j in range(m + 1):
-            cm[j, 1:, j] = coefs[j]  # F: powers 1..n
-            cm[j, :-1, m + 1 + j] = nn * coefs[j]  # sum n B u^(n-1): powers 0..n-1
-        self._coef_matrix = cm.reshape((m + 1) * (n + 1), 2 * (m + 1))
+        self._cen = self.basis.centres
+        m = self._cen.c.size
+        self._b = coef[:m]
+        # a Re(X) + b Im(X) == Re((a - i b) X): B_jk = a_jk - i b_jk
+        big_b = coef[m : m + m * n].reshape(m, n) - 1j * coef[m + m * n :].reshape(m, n)
+        k = np.arange(1, n + 1)
+        # F = sum_k (B u^k - conj(B) v^k); per variable X in (u_1..u_M, v_1..v_M): the
+        # coefficients of X^0..X^n in F and in dF/dX
+        cx = np.concatenate([big_b, -np.conj(big_b)], axis=0)  # (2M, n)
+        self._cf = np.zeros((2 * m, n + 1), dtype=np.complex128)
+        self._cf[:, 1:] = cx
+        self._cd = np.zeros((2 * m, n + 1), dtype=np.complex128)
+        self._cd[:, :-1] = k * cx
 
     def parts(self, w: ArrayLike) -> tuple[FArray, FArray, CArray]:
-        """``(G, h, grad H)`` at ``w`` (same shape), ``H = S + sum_j I_j``, complex gradient
-        ``dH/dw1 + i dH/dw2``; ``h = log|1 - conj(w_d) w| + H``."""
+        """``(G, h, grad H)`` at ``w`` (same shape), ``H = S - sum_i s_i L(w; p_i)``, complex
+        gradient ``dH/dw1 + i dH/dw2``; ``h = log|1 - conj(w_d) w| + H``."""
         w = np.asarray(w, dtype=np.complex128)
         flat = w.ravel()
         with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
@@ -398,30 +580,28 @@ class GreenFunction:
         return self.parts(w)[1]
 
     def _eval(self, z: CArray) -> tuple[FArray, FArray, CArray]:
-        # Variables u_0 = w (outer circle), u_j = r_j / (w - c_j); F = sum_j sum_n B_jn u_j^n,
-        # F' = sum_j u_j'(w) sum_n n B_jn u_j^(n-1) with u_0' = 1, u_j' = -u_j^2 / r_j.
-        # For S = Re F + ... with F analytic, grad S = conj(F'); grad log|w - q| = 1/conj(w - q).
-        m1 = self.domain.n_obstacles + 1
-        d = z[:, None] - self.domain.centers  # (P, M)
-        u = np.concatenate([z[:, None], self.domain.radii / d], axis=1)  # (P, M+1)
-        upow = np.empty((z.size, m1, self._n + 1), dtype=np.complex128)
-        upow[:, :, 0] = 1.0
-        upow[:, :, 1:] = u[:, :, None]
-        np.cumprod(upow, axis=2, out=upow)
-        res = upow.reshape(z.size, -1) @ self._coef_matrix  # (P, 2(M+1))
-        dudw = np.concatenate([np.ones((z.size, 1)), -(u[:, 1:] ** 2) / self.domain.radii], axis=1)
-        f = res[:, :m1].sum(axis=1)
-        fp = (res[:, m1:] * dudw).sum(axis=1)
-        s = self._a0 + f.real + np.log(np.abs(d)) @ self._b
-        grad_h = np.conj(fp) + (1.0 / np.conj(d)) @ self._b
-        im = self._images
-        if im.size:
-            zz = z[:, None]
-            s = s + _image_terms(z, im)
-            # grad log|z - p| - grad log|1 - conj(p) z| = 1/conj(z - p) + p/conj(1 - conj(p) z)
-            grad_h = grad_h + (1.0 / np.conj(zz - im) + im / np.conj(1.0 - np.conj(im) * zz)).sum(
-                axis=1
-            )
+        # F = sum_j sum_k (B_jk u_j^k - conj(B_jk) v_j^k); S = Re F + sum_j b_j L_j;
+        # u' = -u^2 / r, v' = r / (1 - conj(c) w)^2; for S = Re F, grad S = conj(F');
+        # grad log|(w - c)/(1 - conj(c) w)| = 1/conj(w - c) + c/conj(1 - conj(c) w).
+        s = np.zeros(z.shape)
+        grad_h = np.zeros(z.shape, dtype=np.complex128)
+        if self._cen.c.size:
+            u, v, d, q = _variables(self._cen, z)
+            x = np.concatenate([u, v], axis=1)  # (P, 2M)
+            xpow = np.empty((*x.shape, self._n + 1), dtype=np.complex128)
+            xpow[:, :, 0] = 1.0
+            xpow[:, :, 1:] = x[:, :, None]
+            np.cumprod(xpow, axis=2, out=xpow)
+            r = self._cen.r
+            dxdw = np.concatenate([-(u * u) / r, r / (q * q)], axis=1)
+            f = np.einsum("pjk,jk->p", xpow, self._cf)
+            fp = np.einsum("pjk,jk,pj->p", xpow, self._cd, dxdw)
+            s = f.real + np.log(np.abs(d / q)) @ self._b
+            c = self._cen.c
+            grad_h = np.conj(fp) + (1.0 / np.conj(d) + c / np.conj(q)) @ self._b
+        # H = S - sum_i s_i L(w; p_i)
+        s = s - self._images.value(z)
+        grad_h = grad_h - self._images.gradient(z)
         g = _disk_green(z, self.pole) - s
         h = np.log(np.abs(1.0 - np.conj(self.pole) * z)) + s
         return g, h, grad_h
