@@ -3,7 +3,7 @@
 Serves Foxglove's WebSocket protocol (``foxglove.websocket.v1``) through the official
 ``foxglove-sdk``: open Foxglove, "Open connection", ``ws://HOST:PORT`` (default
 ``ws://127.0.0.1:8765``). The scene is the one the recordings carry, built by the same
-:class:`confnav.recording.scene.SceneBuilder` from the same messages: per workspace
+:class:`confnav.recording.scene_builder.SceneBuilder` from the same messages: per workspace
 ``{prefix}/viz/{ws}/scene`` (polygons, robots, trails, goals; frame ``workspace``) and
 ``{prefix}/viz/{ws}/circle_domain``; the robots' and workspaces' status messages are passed
 through unchanged on their own keys (``{prefix}/robot/{r}/status``, ``{prefix}/ws/{ws}/status``,
@@ -23,20 +23,19 @@ import threading
 import time
 from typing import Any
 
-from confnav.schemas import model_for_key_parts, schema_bytes, schema_name
+from confnav.schemas import DecodeError, decode, model_for_key_parts, schema_bytes, schema_name
 from confnav.services.bus import Bus
-from confnav.services.keys import Keys
+from confnav.services.keys import KeyError_, Keys
 from confnav.services.runtime import Service, add_zenoh_args, run_until_signal
 
+from confnav.errors import ConfnavError
 from confnav.recording.scene import (
     MESSAGE_ENCODING,
     SCENE_SCHEMA_NAME,
     SCHEMA_ENCODING,
-    SceneBuilder,
-    SceneMessage,
-    parse_key,
     scene_update_schema_text,
 )
+from confnav.recording.scene_builder import SceneBuilder, SceneMessage
 
 log = logging.getLogger(__name__)
 
@@ -109,31 +108,33 @@ class FoxgloveLiveService(Service):
 
     # input --------------------------------------------------------------------------------
     def _on_message(self, key: str, payload: bytes) -> None:
-        parsed = parse_key(key, self.keys.prefix)
-        if parsed is None:
-            return
-        group, _, kind = parsed
         try:
-            message = json.loads(payload)
-        except ValueError:
-            self.count("rejected")
+            parsed = self.keys.parse(key)
+        except KeyError_:
             return
-        if not isinstance(message, dict):
+        model = model_for_key_parts(parsed.group, parsed.kind)
+        if model is None:
+            return
+        try:
+            message = decode(model, payload)
+        except DecodeError as exc:
             self.count("rejected")
+            log.warning("rejected %s: %s", key, exc)
             return
         now = time.time_ns()
         with self._lock:
-            model = model_for_key_parts(group, kind) if kind in STATUS_KINDS else None
-            if model is not None:
+            if parsed.kind in STATUS_KINDS:
                 ch = self._channel(key, schema_name(model), schema_bytes(model))
                 ch.log(payload.decode("utf-8", "replace"), log_time=now)
                 self.count("status")
                 return
             try:
-                self._send(self._builder.observe(key, message, now))
-            except Exception:  # a bad message never stops the live view
+                scenes = self._builder.observe(message, now)
+            except (ConfnavError, ValueError) as exc:  # a map that does not load
                 self.count("errors")
-                log.exception("scene update failed for %s", key)
+                log.warning("map on %s not drawn: %s", key, exc)
+                scenes = self._builder.flush(now)
+            self._send(scenes)
 
     def _periodic(self) -> None:
         self._fetch_maps()

@@ -106,7 +106,7 @@ class Recorder(Service):
         w.add_metadata(L.METADATA_NAME, L.metadata_record(self.keys.prefix, self.config))
         self._writer = w
         if self._foxglove:
-            from confnav.recording.scene import FoxgloveSceneWriter
+            from confnav.recording.scene_writer import FoxgloveSceneWriter
 
             self._viz = FoxgloveSceneWriter(w, self.keys.prefix)
         self._stream.flush()

@@ -24,7 +24,8 @@ from conftest import confnav_cmd, subprocess_env
 from mcap.writer import Writer
 
 from confnav.recording import layout as L
-from confnav.recording.inspect import Recording, RecordingError, inspect_recording
+from confnav.recording.inspect import inspect_recording
+from confnav.recording.reader import Recording, RecordingError
 
 T0 = 1_700_000_000_000_000_000
 OUTER = [(-1.0, -1.0), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0)]
@@ -239,7 +240,7 @@ GOLDEN = sorted((Path(__file__).resolve().parent / "data").glob("golden_*.mcap")
 def test_plot_adds_the_circle_domain_when_the_map_is_recorded(
     recording: Path, tmp_path: Path
 ) -> None:
-    from confnav.recording.inspect import plot_recording
+    from confnav.plot.recording import plot_recording
 
     rep = inspect_recording(GOLDEN[0])
     assert all(r.arrived for r in rep.robots.values()) and len(rep.robots) == 2

@@ -180,7 +180,8 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
 
 def cmd_inspect(args: argparse.Namespace) -> int:
-    from confnav.recording.inspect import inspect_recording, plot_recording, report_json
+    from confnav.plot.recording import plot_recording
+    from confnav.recording.inspect import inspect_recording, report_json
 
     report = inspect_recording(args.file)
     print(report_json(report) if args.json else report.format())
@@ -205,7 +206,7 @@ def cmd_recover(args: argparse.Namespace) -> int:
 
 
 def cmd_viz(args: argparse.Namespace) -> int:
-    from confnav.recording.inspect import add_scene_channels
+    from confnav.recording.scene_writer import add_scene_channels
 
     _exists_guard(args.output, args.force)
     if not args.period >= 0:
@@ -216,6 +217,8 @@ def cmd_viz(args: argparse.Namespace) -> int:
         f"{report.output}: {report.messages_copied} messages copied, scene messages: "
         f"{scenes or 'none (no workspace definition or transform recorded)'}"
     )
+    if report.errors:
+        print(f"messages not drawn (see the log): {dict(report.errors)}")
     return 0
 
 
