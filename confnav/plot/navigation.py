@@ -17,10 +17,10 @@ from matplotlib.figure import Figure
 from numpy.typing import NDArray
 
 from confnav.navigation.control import Controller
+from confnav.types import CArray
 
 __all__ = ["navigation_figure", "plot_circle_domain", "plot_workspace", "save_navigation_figure"]
 
-CArray = NDArray[np.complex128]
 _COLORS = ("tab:red", "tab:blue", "tab:green", "tab:orange", "tab:purple", "tab:brown")
 
 
