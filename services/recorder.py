@@ -29,7 +29,7 @@ from confnav.services.keys import KeyError_, Keys
 from confnav.services.runtime import Service, add_zenoh_args, run_until_signal
 from mcap.writer import CompressionType, Writer
 
-from confnav.cli.app import output_path
+from confnav.argtypes import output_path
 from confnav.recording import layout as L
 
 log = logging.getLogger(__name__)

@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from confnav.cli.app import output_path, positive_int
+from confnav.argtypes import output_path, positive_int
 from confnav.cli.simulate import _point, _points
 
 

@@ -12,7 +12,7 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-from confnav.cli.app import output_path
+from confnav.argtypes import output_path
 from confnav.cli.simulate import _point
 
 

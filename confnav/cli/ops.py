@@ -19,7 +19,8 @@ from typing import Any, get_args
 
 from pydantic import ValidationError
 
-from confnav.cli.app import HelpFormatter, positive_float
+from confnav.argtypes import positive_float
+from confnav.cli.app import HelpFormatter
 from confnav.errors import ConfnavError
 from confnav.navigation import defaults
 from confnav.schemas import (

@@ -12,7 +12,7 @@ import logging
 import sys
 from typing import Any
 
-from confnav.cli.app import output_path
+from confnav.argtypes import output_path
 from confnav.errors import ConfnavError
 
 logger = logging.getLogger(__name__)

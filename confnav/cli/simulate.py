@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from confnav.cli.app import output_path, positive_float, positive_int
+from confnav.argtypes import output_path, positive_float, positive_int
 from confnav.errors import NavigationError
 
 log = logging.getLogger(__name__)

@@ -12,7 +12,7 @@ import sys
 import warnings
 from pathlib import Path
 
-from confnav.cli.app import output_path
+from confnav.argtypes import output_path
 from confnav.conformal.cmap import ConformalMap
 from confnav.conformal.solver import AccuracyWarning, solve
 from confnav.geometry import Workspace
