@@ -17,6 +17,7 @@ from matplotlib.figure import Figure
 from numpy.typing import NDArray
 
 from confnav.navigation.control import Controller
+from confnav.plot.style import save
 from confnav.types import CArray
 
 __all__ = ["navigation_figure", "plot_circle_domain", "plot_workspace", "save_navigation_figure"]
@@ -135,7 +136,4 @@ def save_navigation_figure(
 ) -> Path:
     """Write :func:`navigation_figure` to ``path`` (PNG/PDF/SVG by extension)."""
     fig = navigation_figure(ctl, paths, title, outcomes=kw.get("outcomes", ()))
-    out = Path(path)
-    fig.savefig(out, dpi=kw.get("dpi", 120))
-    plt.close(fig)
-    return out
+    return save(fig, path, dpi=kw.get("dpi", 120))
