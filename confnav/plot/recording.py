@@ -9,11 +9,20 @@ import os
 from pathlib import Path
 from typing import Any
 
+from confnav.plot.style import save
 from confnav.recording.inspect import InspectReport
 from confnav.recording.scene import robot_color
 from confnav.schemas import TransformSolution
 
 logger = logging.getLogger(__name__)
+
+MARKERS: dict[str, dict[str, Any]] = {
+    "start": {"marker": "o", "color": "0.4", "ms": 6},
+    "goal": {"marker": "*", "color": "green", "ms": 12, "mec": "black"},
+    "closest approach to an obstacle": {"marker": "x", "color": "0.4", "ms": 8, "mew": 2},
+    "collision": {"marker": "X", "color": "red", "ms": 10, "mec": "black"},
+}
+"""Legend entries of the markers (drawn in each robot's colour on the trajectories)."""
 
 
 def _decimate(points: list[tuple[float, float]], n: int) -> list[tuple[float, float]]:
@@ -70,8 +79,9 @@ def plot_recording(report: InspectReport, out: str | os.PathLike[str]) -> Path:
                 mapped[ws_id] = found
     cols = 2 if mapped else 1
     fig, axes = plt.subplots(
-        len(ws_ids), cols, figsize=(6.5 * cols, 6.5 * len(ws_ids)), squeeze=False
-    )
+        len(ws_ids), cols, figsize=(6.5 * cols, 6.5 * len(ws_ids)), squeeze=False,
+        layout="constrained",
+    )  # fmt: skip
     colors = {rid: robot_color(i) for i, rid in enumerate(sorted(report.robots))}
     for row, ws_id in enumerate(ws_ids):
         ax = axes[row][0]
@@ -94,12 +104,15 @@ def plot_recording(report: InspectReport, out: str | os.PathLike[str]) -> Path:
                 ax.plot(*r.min_clearance_at, "x", color=color, ms=9, mew=2)
             if r.collision_at is not None:
                 ax.plot(*r.collision_at, "X", color="red", ms=12, mec="black")
+        for label, style in MARKERS.items():  # what the markers mean, once each
+            ax.plot([], [], ls="none", label=label, **style)
         ax.set_aspect("equal")
+        ax.set_xlabel("x [m]")
+        ax.set_ylabel("y [m]")
         ax.autoscale_view()
         title = f"workspace {ws_id}" if ws_id else "recorded trajectories"
         ax.set_title(f"{report.path.name}: {title}", fontsize=10)
-        if report.robots:
-            ax.legend(loc="upper right", fontsize=8)
+        ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8, borderaxespad=0)
         if cols == 2:
             cax = axes[row][1]
             if ws_id in mapped:
@@ -114,14 +127,12 @@ def plot_recording(report: InspectReport, out: str | os.PathLike[str]) -> Path:
                 cax.set_xlim(-1.05, 1.05)
                 cax.set_ylim(-1.05, 1.05)
                 cax.set_title(f"circle domain of {ws_id}: images T(z)", fontsize=10)
+                cax.set_xlabel("Re w (dimensionless)")
+                cax.set_ylabel("Im w")
             else:
                 cax.set_axis_off()
             cax.set_aspect("equal")
-    fig.tight_layout()
-    path = Path(out)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save(fig, out, dpi=110)
 
 
 __all__ = ["plot_recording"]
