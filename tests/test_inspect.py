@@ -240,14 +240,21 @@ GOLDEN = sorted((Path(__file__).resolve().parent / "data").glob("golden_*.mcap")
 def test_plot_adds_the_circle_domain_when_the_map_is_recorded(
     recording: Path, tmp_path: Path
 ) -> None:
-    from confnav.plot.recording import plot_recording
+    from confnav.plot.recording import plot_recording, recording_figure
 
     rep = inspect_recording(GOLDEN[0])
     assert all(r.arrived for r in rep.robots.values()) and len(rep.robots) == 2
     assert all(r.min_clearance is not None and r.min_clearance > 0 for r in rep.robots.values())
-    w2, h2 = _png_size(plot_recording(rep, tmp_path / "golden.png"))
-    w1, h1 = _png_size(plot_recording(inspect_recording(recording), tmp_path / "plain.png"))
-    assert h1 == h2 and w2 == 2 * w1  # workspace and circle-domain panels
+    assert _png_size(plot_recording(rep, tmp_path / "golden.png"))[0] > 0
+    with_map = recording_figure(rep)
+    plain = recording_figure(inspect_recording(recording))
+    assert len(plain.axes) == 1 and len(with_map.axes) == 2  # + the circle-domain panel
+    for fig in (with_map, plain):  # units on every axis, a legend explaining the markers
+        assert fig.axes[0].get_xlabel() == "x [m]" and fig.axes[0].get_ylabel() == "y [m]"
+        legend = fig.axes[0].get_legend()
+        assert legend is not None
+        assert {"start", "goal", "collision"} <= {t.get_text() for t in legend.get_texts()}
+    assert with_map.axes[1].get_xlabel().startswith("Re w")
 
 
 def test_counts_without_a_statistics_record(tmp_path: Path) -> None:

@@ -9,6 +9,8 @@ import os
 from pathlib import Path
 from typing import Any
 
+from matplotlib.figure import Figure
+
 from confnav.plot.style import save
 from confnav.recording.inspect import InspectReport
 from confnav.recording.scene import robot_color
@@ -54,9 +56,14 @@ def _circle_domain_images(
 
 
 def plot_recording(report: InspectReport, out: str | os.PathLike[str]) -> Path:
-    """Draw every workspace with the recorded trajectories, starts, goals and the closest
-    approach to an obstacle and, when its map is recorded, the circle domain with the images
-    of the trajectories; write a PNG to ``out``."""
+    """Write :func:`recording_figure` of ``report`` to ``out`` (PNG)."""
+    return save(recording_figure(report), out, dpi=110)
+
+
+def recording_figure(report: InspectReport) -> Figure:
+    """Every workspace with the recorded trajectories, starts, goals and the closest approach
+    to an obstacle and, when its map is recorded, the circle domain with the images of the
+    trajectories (one row per workspace)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -132,7 +139,7 @@ def plot_recording(report: InspectReport, out: str | os.PathLike[str]) -> Path:
             else:
                 cax.set_axis_off()
             cax.set_aspect("equal")
-    return save(fig, out, dpi=110)
+    return fig
 
 
-__all__ = ["plot_recording"]
+__all__ = ["plot_recording", "recording_figure"]
