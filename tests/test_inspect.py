@@ -271,3 +271,17 @@ def test_counts_without_a_statistics_record(tmp_path: Path) -> None:
     rep = inspect_recording(p)
     assert rep.message_count == 7 and [c.count for c in rep.channels] == [7]
     assert math.isclose(rep.duration_s, 0.006) and rep.robots["r1"].poses == 7
+
+
+@pytest.mark.skipif(not GOLDEN, reason="no golden recording in tests/data")
+def test_times_have_one_labelled_origin() -> None:
+    """Every time is seconds after the first recorded message, and the report says so; the
+    arrival is also given after the robot's goal (the origin ``confnav demo`` uses)."""
+    rep = inspect_recording(GOLDEN[0])
+    text = rep.format()
+    assert "t = 0 at the first recorded message" in text
+    assert rep.to_dict()["time_origin"].startswith("first recorded message")
+    for r in rep.robots.values():
+        assert r.goal_time_s is not None and r.arrival_time_s is not None
+        assert 0.0 <= r.goal_time_s < r.arrival_time_s <= rep.duration_s
+        assert f"{r.arrival_time_s - r.goal_time_s:.3f} s after its goal" in text

@@ -53,6 +53,7 @@ class RobotSummary:
     path_length: float = 0.0
     arrived: bool = False
     arrival_time_s: float | None = None
+    goal_time_s: float | None = None  # when the (last) goal was recorded
     arrival_source: str = ""
     final_state: str | None = None
     final_reason: str | None = None
@@ -90,6 +91,8 @@ class InspectReport:
             "prefix": self.prefix,
             "messages": self.message_count,
             "duration_s": self.duration_s,
+            "time_origin": "first recorded message (start_ns)",
+            "start_ns": self.start_ns,
             "channels": [
                 {
                     "topic": c.topic,
@@ -108,6 +111,7 @@ class InspectReport:
                     "goal": r.goal,
                     "arrived": r.arrived,
                     "arrival_time_s": r.arrival_time_s,
+                    "goal_time_s": r.goal_time_s,
                     "final_state": r.final_state,
                     "path_length": r.path_length,
                     "min_clearance": r.min_clearance,
@@ -126,6 +130,7 @@ class InspectReport:
             f"prefix:    {self.prefix}",
             f"messages:  {self.message_count}",
             f"duration:  {self.duration_s:.3f} s",
+            "times:     t = 0 at the first recorded message",
         ]
         meta = self.metadata.get(METADATA_NAME)
         if meta:
@@ -162,8 +167,13 @@ class InspectReport:
                 out.append(f"  start {_fmt_pt(r.start)} -> end {_fmt_pt(r.end)}")
             if r.goal is not None:
                 out.append(f"  goal {_fmt_pt(r.goal)}")
-            if r.arrived:
-                out.append(f"  arrived at t = {r.arrival_time_s:.3f} s ({r.arrival_source})")
+            if r.arrived and r.arrival_time_s is not None:
+                after = (
+                    f", {r.arrival_time_s - r.goal_time_s:.3f} s after its goal"
+                    if r.goal_time_s is not None and r.goal_time_s <= r.arrival_time_s
+                    else ""
+                )
+                out.append(f"  arrived at t = {r.arrival_time_s:.3f} s{after} ({r.arrival_source})")
             else:
                 state = f" (last state {r.final_state}/{r.final_reason})" if r.final_state else ""
                 out.append(f"  did not arrive{state}")
@@ -243,6 +253,7 @@ def inspect_recording(path: str | os.PathLike[str]) -> InspectReport:
                 r.goal = (model.goal[0], model.goal[1])
                 r.tolerance = model.tolerance
                 r.ws_id = model.ws_id
+                r.goal_time_s = (msg.log_time_ns - first_ns) / NS_PER_S
             elif isinstance(model, VelocityCommand):
                 robot(model.robot_id).commands += 1
             elif isinstance(model, CollisionEvent):
