@@ -26,11 +26,19 @@ def label_point(polygon: CArray) -> complex:
 
 
 def label_polygons(ax: Axes, polygons: Sequence[CArray]) -> None:
-    """Number each obstacle polygon ``0, 1, ...`` at a point inside it."""
-    for j, p in enumerate(polygons):
-        c = label_point(np.asarray(p, dtype=np.complex128))
-        ax.annotate(str(j), (c.real, c.imag), ha="center", va="center", color="w", zorder=6,
-                    fontsize=8, fontweight="bold")  # fmt: skip
+    """Number each obstacle polygon ``0, 1, ...`` at a point inside it; a speck (a quarter of
+    the median obstacle size or less) gets a black number beside it instead."""
+    pts = [np.asarray(p, dtype=np.complex128) for p in polygons]
+    sizes = [float(np.ptp(p.real) + np.ptp(p.imag)) for p in pts]
+    small = 0.25 * float(np.median(sizes)) if sizes else 0.0
+    for j, (p, size) in enumerate(zip(pts, sizes, strict=True)):
+        c = label_point(p)
+        if size > small:
+            ax.annotate(str(j), (c.real, c.imag), ha="center", va="center", color="w",
+                        zorder=6, fontsize=8, fontweight="bold")  # fmt: skip
+        else:
+            ax.annotate(str(j), (c.real, c.imag), xytext=(6, 6), textcoords="offset points",
+                        fontsize=8, fontweight="bold", zorder=6)  # fmt: skip
 
 
 def label_circles(ax: Axes, centers: Sequence[complex], radii: Sequence[float]) -> None:
