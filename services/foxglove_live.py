@@ -162,7 +162,7 @@ def add_parser(sub: Any) -> None:
         "foxglove", help="serve the live scene to the Foxglove app (WebSocket)"
     )
     p.add_argument("--host", default="127.0.0.1", help="bind address (default %(default)s)")
-    p.add_argument("--port", type=int, default=DEFAULT_PORT, help="(default %(default)s)")
+    p.add_argument("--port", type=int, default=DEFAULT_PORT, help="WebSocket port")
     p.add_argument("--full-period", type=float, default=1.0, help="s between full scenes")
     add_zenoh_args(p)
     p.set_defaults(func=main)

@@ -317,7 +317,7 @@ def add_parser(sub: Any) -> None:
     p.add_argument("--sim-id", default="sim")
     p.add_argument("--robot", action="append", default=[], metavar="ID=WS:X,Y")
     p.add_argument("--workspace", action="append", default=[], metavar="ID=PATH")
-    p.add_argument("--rate", type=float, default=50.0, help="steps per sim second")
+    p.add_argument("--rate", type=float, default=50.0, help="simulated steps per second, Hz")
     p.add_argument("--time-scale", type=float, default=1.0, help=">1: faster than real time")
     p.add_argument("--cmd-timeout", type=float, default=0.25, help="s without command -> stop")
     p.set_defaults(func=main)

@@ -78,7 +78,10 @@ def register(subparsers: Any) -> None:
         "--atol", type=float, default=DEFAULT_ATOL, help="absolute tolerance, m/s (%(default)g)"
     )
     chk.add_argument(
-        "--rtol", type=float, default=DEFAULT_RTOL, help="relative tolerance (%(default)g)"
+        "--rtol",
+        type=float,
+        default=DEFAULT_RTOL,
+        help="relative tolerance, dimensionless (%(default)g)",
     )
     chk.add_argument(
         "--set",
