@@ -23,7 +23,6 @@ from typing import Any, Protocol
 
 import zenoh
 
-
 log = logging.getLogger(__name__)
 
 Handler = Callable[[str, bytes], None]
