@@ -31,7 +31,9 @@ from numpy.typing import ArrayLike
 from confnav.conformal.cauchy import FMM_THRESHOLD, cauchy_sums, cauchy_sums2
 from confnav.conformal.expansion import LocalExpansions
 from confnav.errors import MapMismatchError, SerializationError
-from confnav.geometry import ComplexArray, FloatArray, Workspace, distance_to_boundary
+from confnav.geometry import Workspace, distance_to_boundary
+from confnav.types import CArray as ComplexArray
+from confnav.types import FArray as FloatArray
 
 FORMAT = "confnav.map"
 #: Points this close to the boundary (relative to the workspace size) count as on it.

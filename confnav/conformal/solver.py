@@ -38,7 +38,8 @@ from confnav.conformal.cmap import ConformalMap, SolveReport
 from confnav.conformal.gnk import gmres_rtol
 from confnav.conformal.meshing import plan_boundaries
 from confnav.errors import ConvergenceError, GapError, SolverError
-from confnav.geometry import ComplexArray, Workspace, interior_point
+from confnav.geometry import Workspace, interior_point
+from confnav.types import CArray as ComplexArray
 
 log = logging.getLogger(__name__)
 

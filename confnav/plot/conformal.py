@@ -19,8 +19,8 @@ from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 
 from confnav.conformal.cmap import ConformalMap
-from confnav.geometry import ComplexArray
 from confnav.plot.style import OBSTACLE_FILL, label_circles, label_polygons, save
+from confnav.types import CArray as ComplexArray
 
 
 def _closed(z: ComplexArray) -> ComplexArray:

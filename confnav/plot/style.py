@@ -3,7 +3,8 @@ markers, and saving without clipped labels."""
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import os
+from collections.abc import Iterable, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -41,7 +42,7 @@ def label_polygons(ax: Axes, polygons: Sequence[CArray]) -> None:
                         fontsize=8, fontweight="bold", zorder=6)  # fmt: skip
 
 
-def label_circles(ax: Axes, centers: Sequence[complex], radii: Sequence[float]) -> None:
+def label_circles(ax: Axes, centers: Iterable[complex], radii: Iterable[float]) -> None:
     """Number each obstacle disk; a small disk gets its number outside, towards the centre of
     the unit disk, with a leader line, fanned out where disks crowd, so it stays readable."""
     placed: list[complex] = []
@@ -61,7 +62,7 @@ def label_circles(ax: Axes, centers: Sequence[complex], radii: Sequence[float]) 
                     arrowprops={"arrowstyle": "-", "lw": 0.6, "color": "k"})  # fmt: skip
 
 
-def save(fig: Figure, path: str | Path, dpi: int = 120) -> Path:
+def save(fig: Figure, path: str | os.PathLike[str], dpi: int = 120) -> Path:
     """Write ``fig`` (format by extension) with nothing clipped (tight bounding box)."""
     import matplotlib.pyplot as plt
 
