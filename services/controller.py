@@ -663,6 +663,9 @@ class ControllerService(Service):
         skey = (state, reason, r.ctrl_revision, message)
         if skey == r.status_key and now - r.status_t < self.status_period:
             return
+        if skey[:2] != r.status_key[:2]:  # a new state or reason: worth a line in the log
+            log.info("robot %r: %s (%s)%s", r.robot_id, state, reason,
+                     f": {message}" if message else "")  # fmt: skip
         r.status_key, r.status_t = skey, now
         dist = None
         if r.position is not None and r.goal is not None:

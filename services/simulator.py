@@ -40,6 +40,7 @@ from confnav.services.keys import KeyError_, Keys, validate_id
 from confnav.services.runtime import Service, add_zenoh_args, run_until_signal
 from confnav.services.transform import load_definition, parse_sources, workspace_of
 
+from confnav.errors import fmt_point
 from confnav.navigation.unicycle import step_exact
 
 log = logging.getLogger(__name__)
@@ -108,7 +109,7 @@ class SimulatorService(Service):
         validate_id(ws_id, "workspace id")
         with self._lock:
             self._robots[rid] = SimRobot(rid, ws_id, z, theta, z, theta, radius=radius, drive=drive)
-        log.info("robot %r spawned at %s on %r", rid, z, ws_id)
+        log.info("robot %r spawned at %s on %r", rid, fmt_point(z), ws_id)
 
     def _start(self) -> None:
         for ws_id, src in self._sources.items():
