@@ -23,9 +23,9 @@ import threading
 import time
 from typing import Any
 
-from confnav.schemas import DecodeError, decode, model_for_key_parts, schema_bytes, schema_name
+from confnav.schemas import DecodeError, schema_bytes, schema_name
 from confnav.services.bus import Bus
-from confnav.services.keys import KeyError_, Keys
+from confnav.services.keys import Keys
 from confnav.services.runtime import Service, add_zenoh_args, run_until_signal
 
 from confnav.errors import ConfnavError
@@ -35,7 +35,7 @@ from confnav.recording.scene import (
     SCHEMA_ENCODING,
     scene_update_schema_text,
 )
-from confnav.recording.scene_builder import SceneBuilder, SceneMessage
+from confnav.recording.scene_builder import SceneBuilder, SceneMessage, decode_on_key
 
 log = logging.getLogger(__name__)
 
@@ -109,21 +109,17 @@ class FoxgloveLiveService(Service):
     # input --------------------------------------------------------------------------------
     def _on_message(self, key: str, payload: bytes) -> None:
         try:
-            parsed = self.keys.parse(key)
-        except KeyError_:
-            return
-        model = model_for_key_parts(parsed.group, parsed.kind)
-        if model is None:
-            return
-        try:
-            message = decode(model, payload)
+            message = decode_on_key(self.keys, key, payload)
         except DecodeError as exc:
             self.count("rejected")
             log.warning("rejected %s: %s", key, exc)
             return
+        if message is None:
+            return
         now = time.time_ns()
         with self._lock:
-            if parsed.kind in STATUS_KINDS:
+            if key.rsplit("/", 1)[-1] in STATUS_KINDS:
+                model = type(message)
                 ch = self._channel(key, schema_name(model), schema_bytes(model))
                 ch.log(payload.decode("utf-8", "replace"), log_time=now)
                 self.count("status")

@@ -22,7 +22,17 @@ from confnav.recording.scene import (
     scene_topic,
     workspace_scene,
 )
-from confnav.schemas import Goal, Message, Pose, RobotStatus, TransformSolution, WorkspaceDefinition
+from confnav.schemas import (
+    Goal,
+    Message,
+    Pose,
+    RobotStatus,
+    TransformSolution,
+    WorkspaceDefinition,
+    decode,
+    model_for_key_parts,
+)
+from confnav.services.keys import KeyError_, Keys
 
 DEFAULT_PERIOD_NS = 100_000_000  # robots and goals: at most every 0.1 s of log time
 DEFAULT_FULL_PERIOD_NS = 1_000_000_000  # polygons, circles and trails: every 1 s
@@ -36,6 +46,18 @@ class MapLike(Protocol):
     """What the builder needs of a conformal map: ``T`` on an array of complex points."""
 
     def T(self, z: Any) -> Any: ...
+
+
+def decode_on_key(keys: Keys, key: str, data: bytes) -> Message | None:
+    """The message on ``key`` decoded with that key's schema; None if ``key`` carries no
+    confnav message (outside the layout, e.g. a scene topic). Raises
+    :class:`confnav.schemas.DecodeError` for a payload that is not a valid message."""
+    try:
+        parsed = keys.parse(key)
+    except KeyError_:
+        return None
+    model = model_for_key_parts(parsed.group, parsed.kind)
+    return None if model is None else decode(model, data)
 
 
 def load_scene_map(solution: TransformSolution) -> MapLike:

@@ -35,9 +35,10 @@ from confnav.recording.scene_builder import (
     MapLike,
     SceneBuilder,
     SceneMessage,
+    decode_on_key,
 )
-from confnav.schemas import DecodeError, Message, TransformSolution, decode, model_for_key_parts
-from confnav.services.keys import KeyError_, Keys
+from confnav.schemas import DecodeError, Message, TransformSolution
+from confnav.services.keys import Keys
 
 logger = logging.getLogger(__name__)
 
@@ -117,18 +118,12 @@ class FoxgloveSceneWriter:
         """Observe one recorded message (raw JSON bytes on key ``topic``), write scenes due."""
         self._last_ns = max(self._last_ns, int(log_time_ns))
         try:
-            parsed = self.keys.parse(topic)
-        except KeyError_:
-            return  # not a confnav key (e.g. a scene topic): nothing to draw
-        model = model_for_key_parts(parsed.group, parsed.kind)
-        if model is None:
-            return
-        try:
-            message = decode(model, data)
+            message = decode_on_key(self.keys, topic, data)
         except DecodeError as exc:
             self._error(topic, exc.reason, exc)
             return
-        self.observe(topic, message, log_time_ns)
+        if message is not None:  # None: not a confnav message key, nothing to draw
+            self.observe(topic, message, log_time_ns)
 
     def observe(self, topic: str, message: Message, log_time_ns: int) -> None:
         """Observe one decoded message and write the scenes due."""
