@@ -171,9 +171,25 @@ def run(name: str, quick: bool, out: Path | None, extra: list[str], nice: int) -
     return 0
 
 
+CODE_PATHS = ("confnav", "services", "schemas")
+"""What every benchmark measures; with its own script, a change here makes results stale."""
+
+
+def freshness(name: str, recorded: str, commit: str) -> str:
+    """ "" if the results were made at HEAD or nothing they measure changed since, else
+    " (stale: N files changed)" / " (stale: commit unknown)"."""
+    if commit.startswith(recorded):
+        return ""
+    if not _git("rev-parse", "--verify", "--quiet", f"{recorded}^{{commit}}"):
+        return " (stale: commit unknown)"
+    paths = [f"bench/{BENCHMARKS[name].script}", *CODE_PATHS]
+    changed = _git("diff", "--name-only", recorded, commit, "--", *paths).splitlines()
+    return f" (stale: {len(changed)} files changed)" if changed else " (current)"
+
+
 def list_benchmarks() -> None:
     commit, _ = head()
-    print(f"{'name':<12} {'results':<28} {'made at':<22} {'date':<26} about")
+    print(f"{'name':<12} {'results':<28} {'made at':<40} {'date':<26} about")
     for name, b in BENCHMARKS.items():
         path = RESULTS / b.results
         made, date = "-", "-"
@@ -183,14 +199,12 @@ def list_benchmarks() -> None:
             except ValueError:
                 doc = None
             c = recorded_commit(doc)
-            made = (
-                "unrecorded" if c is None else c[:12] + ("" if commit.startswith(c) else " (stale)")
-            )
+            made = "unrecorded" if c is None else c[:12] + freshness(name, c, commit)
             prov = doc.get("provenance") if isinstance(doc, dict) else None
             date = str((prov or doc or {}).get("date", "-")) if isinstance(doc, dict) else "-"
         else:
             made = "missing"
-        print(f"{name:<12} {b.results:<28} {made:<22} {date:<26} {b.about}")
+        print(f"{name:<12} {b.results:<28} {made:<40} {date:<26} {b.about}")
 
 
 def main(argv: list[str] | None = None) -> int:

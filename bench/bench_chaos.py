@@ -445,7 +445,7 @@ def run_fuzz(n: int, queries: int, work: Path) -> dict[str, Any]:
         launcher.shutdown()
         shutil.rmtree(sockdir, ignore_errors=True)
     # the recorder holds every delivered fuzz message, per topic
-    from confnav.recording.inspect import Recording
+    from confnav.recording.reader import Recording
 
     got_topics: Counter[str] = Counter()
     files = sorted(p for p in out.glob("chaos*.mcap") if ".recovered" not in p.name)

@@ -6,7 +6,7 @@ pulled back through ``T`` to drive robots.
 """
 
 from confnav.atlas import Atlas, AtlasNavigator, solve_atlas, solve_auto
-from confnav.conformal.cmap import ConformalMap, SolveDiagnostics
+from confnav.conformal.cmap import ConformalMap, SolveReport
 from confnav.conformal.solver import AccuracyWarning, solve
 from confnav.errors import (
     ConfnavError,
@@ -45,7 +45,7 @@ __all__ = [
     "MapMismatchError",
     "NavigationError",
     "SerializationError",
-    "SolveDiagnostics",
+    "SolveReport",
     "SolverError",
     "UnicycleController",
     "UnreachableGoalError",

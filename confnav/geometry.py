@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -24,9 +23,9 @@ from shapely.geometry import LinearRing, Polygon
 from shapely.validation import explain_validity
 
 from confnav.errors import WorkspaceError
-
-ComplexArray = NDArray[np.complex128]
-FloatArray = NDArray[np.float64]
+from confnav.types import CArray as ComplexArray
+from confnav.types import FArray as FloatArray
+from confnav.types import as_point
 
 #: Relative size (to the workspace diameter) under which two vertices count as repeated and a
 #: turn counts as a spike (collinear back-tracking).
@@ -172,7 +171,7 @@ class Workspace:
             a = _max_clearance_point(free)
             object.__setattr__(self, "anchor_given", False)
         else:
-            a = _as_point(anchor, "anchor")
+            a = as_point(anchor, "anchor", WorkspaceError)
             if not self.contains(a):
                 raise WorkspaceError(
                     f"anchor ({a.real:g}, {a.imag:g}) is not in the free space "
@@ -341,20 +340,6 @@ class Workspace:
 
     def __hash__(self) -> int:
         return hash(self.content_hash)
-
-
-def _as_point(p: complex | Sequence[float], name: str) -> complex:
-    if isinstance(p, complex | float | int) and not isinstance(p, bool):
-        z = complex(p)
-    else:
-        try:
-            x, y = (float(v) for v in p)  # type: ignore[union-attr]
-        except (TypeError, ValueError) as exc:
-            raise WorkspaceError(f"{name} must be a point [x, y]") from exc
-        z = complex(x, y)
-    if not (math.isfinite(z.real) and math.isfinite(z.imag)):
-        raise WorkspaceError(f"{name} must be finite")
-    return z
 
 
 def _zero_signs(x: Any) -> Any:

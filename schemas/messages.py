@@ -25,9 +25,14 @@ MAX_VERTICES = 4096
 MAX_OBSTACLES = 256
 MAX_ROBOTS_PER_CONFIG = 1024
 
+MAX_ID_LENGTH = 64
+ID_PATTERN = r"^[^*$#?/\s@][^*$#?/\s]*$"
+"""The id rule (also :func:`confnav.services.keys.validate_id`): a Zenoh key chunk with no
+``* $ # ? /``, no whitespace, not starting with ``@`` (verbatim chunks)."""
+
 Id = Annotated[
     str,
-    StringConstraints(min_length=1, max_length=64, pattern=r"^[^*$#?/\s@][^*$#?/\s]*$"),
+    StringConstraints(min_length=1, max_length=MAX_ID_LENGTH, pattern=ID_PATTERN),
 ]
 """A key chunk: no ``* $ # ? /``, no whitespace, not starting with ``@``."""
 

@@ -6,8 +6,6 @@ import json
 from pathlib import Path
 from typing import Any, TypeVar
 
-from pydantic import ValidationError
-
 from confnav.schemas.messages import (
     CollisionEvent,
     Goal,
@@ -24,6 +22,7 @@ from confnav.schemas.messages import (
     WorkspaceDefinition,
     WorkspaceDelete,
 )
+from pydantic import ValidationError
 
 M = TypeVar("M", bound=Message)
 

@@ -23,8 +23,6 @@ from typing import Any, Protocol
 
 import zenoh
 
-from confnav.services.shard import chunk_matches
-
 log = logging.getLogger(__name__)
 
 Handler = Callable[[str, bytes], None]
@@ -434,23 +432,10 @@ class ZenohBus(_Subscriptions):
 # in memory
 # ------------------------------------------------------------------------------------------
 def key_matches(expr: str, key: str) -> bool:
-    """Whether concrete ``key`` matches ``expr`` (``*`` one chunk, ``**`` any number, ``$*``
-    any run of characters within a chunk)."""
-    e = expr.split("/")
-    k = key.split("/")
-
-    def rec(i: int, j: int) -> bool:
-        if i == len(e):
-            return j == len(k)
-        if e[i] == "**":
-            return any(rec(i + 1, jj) for jj in range(j, len(k) + 1))
-        if j == len(k):
-            return False
-        if e[i] == "*" or e[i] == k[j] or ("$*" in e[i] and chunk_matches(e[i], k[j])):
-            return rec(i + 1, j + 1)
-        return False
-
-    return rec(0, 0)
+    """Whether concrete ``key`` matches the key expression ``expr``: Zenoh's own rule
+    (:meth:`zenoh.KeyExpr.intersects`; ``*`` one chunk, ``**`` any number, ``$*`` any run of
+    characters within a chunk), so the in-memory bus routes exactly as a Zenoh session."""
+    return bool(zenoh.KeyExpr.autocanonize(expr).intersects(zenoh.KeyExpr(key)))
 
 
 @dataclass

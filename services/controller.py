@@ -666,6 +666,9 @@ class ControllerService(Service):
         skey = (state, reason, r.ctrl_revision, message)
         if skey == r.status_key and now - r.status_t < self.status_period:
             return
+        if skey[:2] != r.status_key[:2]:  # a new state or reason: worth a line in the log
+            log.info("robot %r: %s (%s)%s", r.robot_id, state, reason,
+                     f": {message}" if message else "")  # fmt: skip
         r.status_key, r.status_t = skey, now
         dist = None
         if r.position is not None and r.goal is not None:
@@ -740,7 +743,7 @@ def add_parser(sub: Any) -> None:
         "--linger-ms",
         type=float,
         default=0.0,
-        help="wait this long for more poses before a control step (larger batches, less CPU)",
+        help="ms to wait for more poses before a control step (larger batches, less CPU)",
     )
     p.add_argument(
         "--margin",
@@ -749,7 +752,7 @@ def add_parser(sub: Any) -> None:
         help="m: on a definition change, robots this close to the new geometry stop until "
         "its map is installed (default %(default)s)",
     )
-    p.add_argument("--max-gain", type=float, default=1000.0, help="largest goal gain accepted")
+    p.add_argument("--max-gain", type=float, default=1000.0, help="largest goal gain, 1/s")
     p.add_argument("--max-speed", type=float, default=2.0, help="largest goal v_max, m/s")
     p.add_argument(
         "--idle-ttl", type=float, default=60.0, help="s without pose or goal: robot forgotten"

@@ -169,6 +169,7 @@ def plot_demo(tracks: dict[str, Track], path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from confnav.plot.style import save
     from confnav.scenes.workspaces import default_workspace
 
     ws = default_workspace()
@@ -204,9 +205,7 @@ def plot_demo(tracks: dict[str, Track], path: Path) -> None:
     ax.set_ylabel("y [m]")
     ax.set_title(f"confnav demo: default workspace, {len(tracks)} robots")
     ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8, frameon=False)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    save(fig, path)
 
 
 def summary(tracks: dict[str, Track]) -> tuple[str, bool]:
@@ -345,6 +344,8 @@ def run_demo(
         table, ok = summary(tracks)
     print()
     print(table)
+    print("arrived (s): seconds after the goals were sent (`confnav inspect` counts from the")
+    print("first recorded message and also gives the time after each robot's goal)")
     print()
     recordings = sorted(
         set(out.glob("demo*.mcap")) - old_recordings, key=lambda p: p.stat().st_mtime

@@ -3,7 +3,7 @@
 Serves Foxglove's WebSocket protocol (``foxglove.websocket.v1``) through the official
 ``foxglove-sdk``: open Foxglove, "Open connection", ``ws://HOST:PORT`` (default
 ``ws://127.0.0.1:8765``). The scene is the one the recordings carry, built by the same
-:class:`confnav.recording.scene.SceneBuilder` from the same messages: per workspace
+:class:`confnav.recording.scene_builder.SceneBuilder` from the same messages: per workspace
 ``{prefix}/viz/{ws}/scene`` (polygons, robots, trails, goals; frame ``workspace``) and
 ``{prefix}/viz/{ws}/circle_domain``; the robots' and workspaces' status messages are passed
 through unchanged on their own keys (``{prefix}/robot/{r}/status``, ``{prefix}/ws/{ws}/status``,
@@ -23,20 +23,19 @@ import threading
 import time
 from typing import Any
 
-from confnav.schemas import model_for_key_parts, schema_bytes, schema_name
+from confnav.schemas import DecodeError, schema_bytes, schema_name
 from confnav.services.bus import Bus
 from confnav.services.keys import Keys
 from confnav.services.runtime import Service, add_zenoh_args, run_until_signal
 
+from confnav.errors import ConfnavError
 from confnav.recording.scene import (
     MESSAGE_ENCODING,
     SCENE_SCHEMA_NAME,
     SCHEMA_ENCODING,
-    SceneBuilder,
-    SceneMessage,
-    parse_key,
     scene_update_schema_text,
 )
+from confnav.recording.scene_builder import SceneBuilder, SceneMessage, decode_on_key
 
 log = logging.getLogger(__name__)
 
@@ -109,31 +108,29 @@ class FoxgloveLiveService(Service):
 
     # input --------------------------------------------------------------------------------
     def _on_message(self, key: str, payload: bytes) -> None:
-        parsed = parse_key(key, self.keys.prefix)
-        if parsed is None:
-            return
-        group, _, kind = parsed
         try:
-            message = json.loads(payload)
-        except ValueError:
+            message = decode_on_key(self.keys, key, payload)
+        except DecodeError as exc:
             self.count("rejected")
+            log.warning("rejected %s: %s", key, exc)
             return
-        if not isinstance(message, dict):
-            self.count("rejected")
+        if message is None:
             return
         now = time.time_ns()
         with self._lock:
-            model = model_for_key_parts(group, kind) if kind in STATUS_KINDS else None
-            if model is not None:
+            if key.rsplit("/", 1)[-1] in STATUS_KINDS:
+                model = type(message)
                 ch = self._channel(key, schema_name(model), schema_bytes(model))
                 ch.log(payload.decode("utf-8", "replace"), log_time=now)
                 self.count("status")
                 return
             try:
-                self._send(self._builder.observe(key, message, now))
-            except Exception:  # a bad message never stops the live view
+                scenes = self._builder.observe(message, now)
+            except (ConfnavError, ValueError) as exc:  # a map that does not load
                 self.count("errors")
-                log.exception("scene update failed for %s", key)
+                log.warning("map on %s not drawn: %s", key, exc)
+                scenes = self._builder.flush(now)
+            self._send(scenes)
 
     def _periodic(self) -> None:
         self._fetch_maps()
@@ -161,7 +158,7 @@ def add_parser(sub: Any) -> None:
         "foxglove", help="serve the live scene to the Foxglove app (WebSocket)"
     )
     p.add_argument("--host", default="127.0.0.1", help="bind address (default %(default)s)")
-    p.add_argument("--port", type=int, default=DEFAULT_PORT, help="(default %(default)s)")
+    p.add_argument("--port", type=int, default=DEFAULT_PORT, help="WebSocket port")
     p.add_argument("--full-period", type=float, default=1.0, help="s between full scenes")
     add_zenoh_args(p)
     p.set_defaults(func=main)

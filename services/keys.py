@@ -25,9 +25,10 @@ import re
 from dataclasses import dataclass
 from typing import Final
 
+from confnav.schemas.messages import ID_PATTERN, MAX_ID_LENGTH
+
 DEFAULT_PREFIX: Final = "confnav"
-MAX_ID_LENGTH: Final = 64
-_ID_FORBIDDEN = re.compile(r"[*$#?/\s]")
+_ID_RE = re.compile(ID_PATTERN)
 
 WS_KINDS: Final = ("definition", "delete", "transform", "status")
 ROBOT_KINDS: Final = ("goal", "cancel", "pose", "cmd_vel", "status", "collision")
@@ -44,10 +45,10 @@ def validate_id(value: str, what: str = "id") -> str:
         raise KeyError_(f"{what} must be a non-empty string")
     if len(value) > MAX_ID_LENGTH:
         raise KeyError_(f"{what} {value[:20]!r}... longer than {MAX_ID_LENGTH} characters")
-    if _ID_FORBIDDEN.search(value):
+    if _ID_RE.match(value) is None:  # the schemas' rule; say which part is broken
+        if value.startswith("@"):
+            raise KeyError_(f"{what} {value!r} starts with '@'")
         raise KeyError_(f"{what} {value!r} contains one of '*$#?/' or whitespace")
-    if value.startswith("@"):
-        raise KeyError_(f"{what} {value!r} starts with '@'")
     return value
 
 

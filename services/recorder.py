@@ -29,7 +29,7 @@ from confnav.services.keys import KeyError_, Keys
 from confnav.services.runtime import Service, add_zenoh_args, run_until_signal
 from mcap.writer import CompressionType, Writer
 
-from confnav.cli.app import output_path
+from confnav.argtypes import output_path
 from confnav.recording import layout as L
 
 log = logging.getLogger(__name__)
@@ -106,7 +106,7 @@ class Recorder(Service):
         w.add_metadata(L.METADATA_NAME, L.metadata_record(self.keys.prefix, self.config))
         self._writer = w
         if self._foxglove:
-            from confnav.recording.scene import FoxgloveSceneWriter
+            from confnav.recording.scene_writer import FoxgloveSceneWriter
 
             self._viz = FoxgloveSceneWriter(w, self.keys.prefix)
         self._stream.flush()

@@ -32,7 +32,7 @@ import zenoh
 from confnav.services.bus import key_matches
 
 from confnav.errors import ConfnavError
-from confnav.recording.inspect import Recording, RecordingError
+from confnav.recording.reader import Recording, RecordingError
 from confnav.recording.scene import is_viz_topic
 
 logger = logging.getLogger(__name__)

@@ -8,7 +8,6 @@ import logging
 from typing import Any
 
 import zenoh
-
 from confnav.services.bus import zenoh_config
 from confnav.services.keys import DEFAULT_PREFIX, Keys
 from confnav.services.runtime import stop_on_signals

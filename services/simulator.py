@@ -40,6 +40,7 @@ from confnav.services.keys import KeyError_, Keys, validate_id
 from confnav.services.runtime import Service, add_zenoh_args, run_until_signal
 from confnav.services.transform import load_definition, parse_sources, workspace_of
 
+from confnav.errors import fmt_point
 from confnav.navigation.unicycle import step_exact
 
 log = logging.getLogger(__name__)
@@ -108,7 +109,7 @@ class SimulatorService(Service):
         validate_id(ws_id, "workspace id")
         with self._lock:
             self._robots[rid] = SimRobot(rid, ws_id, z, theta, z, theta, radius=radius, drive=drive)
-        log.info("robot %r spawned at %s on %r", rid, z, ws_id)
+        log.info("robot %r spawned at %s on %r", rid, fmt_point(z), ws_id)
 
     def _start(self) -> None:
         for ws_id, src in self._sources.items():
@@ -317,7 +318,7 @@ def add_parser(sub: Any) -> None:
     p.add_argument("--sim-id", default="sim")
     p.add_argument("--robot", action="append", default=[], metavar="ID=WS:X,Y")
     p.add_argument("--workspace", action="append", default=[], metavar="ID=PATH")
-    p.add_argument("--rate", type=float, default=50.0, help="steps per sim second")
+    p.add_argument("--rate", type=float, default=50.0, help="simulated steps per second, Hz")
     p.add_argument("--time-scale", type=float, default=1.0, help=">1: faster than real time")
     p.add_argument("--cmd-timeout", type=float, default=0.25, help="s without command -> stop")
     p.set_defaults(func=main)

@@ -338,6 +338,7 @@ class TransformService(Service):
             self._finish(ws_id, h, result, None)
             return True
         self._publish_status(ws_id, "solving", h, old_rev, "")
+        log.info("workspace %r: solving (%d obstacles)", ws_id, len(defn.obstacles))
         self._solve(ws_id, h, defn)
         return True
 

@@ -56,3 +56,19 @@ def test_stamp_records_commit_date_and_load(tmp_path: Path) -> None:
     assert recorded_commit(doc) == commit != "old"
     assert recorded_commit({"code": {"commit": "abc"}}) == "abc"
     assert recorded_commit({"rows": []}) is None
+
+
+def test_results_are_stale_only_when_what_they_measure_changed() -> None:
+    """A result made at an older commit is current if neither its script nor the package
+    changed since, stale (with the count of changed files) otherwise."""
+    import subprocess
+
+    import bench.__main__ as bm
+
+    head = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True,
+                          cwd=bm.ROOT, check=True).stdout.strip()  # fmt: skip
+    assert bm.freshness("core", head, head) == ""
+    assert bm.freshness("core", "0" * 40, head) == " (stale: commit unknown)"
+    root = subprocess.run(["git", "rev-list", "--max-parents=0", "HEAD"], capture_output=True,
+                          text=True, cwd=bm.ROOT, check=True).stdout.split()[0]  # fmt: skip
+    assert bm.freshness("core", root, head).startswith(" (stale: ")

@@ -8,9 +8,8 @@ from collections.abc import Callable
 from typing import Any
 
 import pytest
-from conftest import wait_for
-
 from confnav.services.bus import InMemoryNetwork, QueryError, key_matches
+from conftest import wait_for
 
 
 @pytest.mark.parametrize(

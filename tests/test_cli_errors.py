@@ -3,6 +3,7 @@ any long computation (output paths are checked at parse time)."""
 
 from __future__ import annotations
 
+import re
 import subprocess
 import time
 from pathlib import Path
@@ -60,6 +61,8 @@ def test_output_in_missing_directory_fails_at_parse_time(make_args, tmp_path: Pa
         (("--random", "2", "--gain", "-1"), "argument --gain: '-1' must be a finite number > 0"),
         (("--random", "2", "--v-max", "nan"), "argument --v-max: 'nan' must be a finite"),
         (("--random", "2", "--tol", "0"), "argument --tol: '0' must be a finite number > 0"),
+        (("--random", "2", "--tolerance", "0"), "argument --tolerance: '0' must be a finite"),
+        (("--random", "2", "--unicycle", "0.1", "--omega-max", "0"), "--omega-max: '0' must be"),
     ],
 )
 def test_bad_numbers_fail_before_solving(
@@ -139,3 +142,34 @@ def test_every_command_has_an_example_and_shows_defaults() -> None:
             ):
                 shown = p.formatter_class(prog=p.prog)._get_help_string(action) or ""
                 assert "%(default)" in shown or "default" in shown, (path, action.dest)
+
+
+UNIT = re.compile(r"(\b(m|s|m/s|rad/s|1/s|Hz|seconds|dimensionless|cells?|K|ms)\b|0\.\.1|>1:)")
+
+
+def _numeric_options() -> list[tuple[str, str, str]]:
+    """(command, option, help) of every visible option taking a number."""
+    import argparse
+
+    out: list[tuple[str, str, str]] = []
+
+    def walk(parser: argparse.ArgumentParser, path: str) -> None:
+        for a in parser._actions:
+            if isinstance(a, argparse._SubParsersAction):
+                for name, child in a.choices.items():
+                    walk(child, f"{path} {name}".strip())
+            elif (
+                a.option_strings
+                and a.help != argparse.SUPPRESS
+                and getattr(a.type, "__name__", "") in ("float", "positive_float", "_k")
+            ):
+                out.append((path, a.option_strings[-1], a.help or ""))
+
+    walk(build_parser(), "")
+    return out
+
+
+def test_every_numeric_option_says_its_unit() -> None:
+    """Help of each option taking a real number names its unit (or says it has none)."""
+    missing = [(c, o, h) for c, o, h in _numeric_options() if not UNIT.search(h)]
+    assert not missing, missing

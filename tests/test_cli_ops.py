@@ -12,11 +12,11 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+from confnav.services.bus import ZenohBus, zenoh_config
+from confnav.services.launcher import LaunchConfig, Launcher, ServiceSpec
 from conftest import confnav_cmd, subprocess_env, wait_for
 
 from confnav.geometry import Workspace
-from confnav.services.bus import ZenohBus, zenoh_config
-from confnav.services.launcher import LaunchConfig, Launcher, ServiceSpec
 
 ROOM = Workspace(
     [(-1, -1), (1, -1), (1, 1), (-1, 1)],

@@ -11,10 +11,10 @@ import tempfile
 from pathlib import Path
 
 import pytest
+from confnav.services.launcher import LaunchConfig, Launcher, ServiceSpec
 from conftest import subprocess_env
 
 from confnav.geometry import Workspace
-from confnav.services.launcher import LaunchConfig, Launcher, ServiceSpec
 
 SCRIPT = Path(__file__).resolve().parents[1] / "examples" / "external_robot.py"
 # a 5 x 4 m room with a 1.2 x 1.2 m cabinet between the start and the goal

@@ -13,12 +13,24 @@ from typing import Any
 
 import jsonschema
 import pytest
-from confnav.schemas import Goal, Pose, WorkspaceDefinition, encode
+from confnav.schemas import (
+    Goal,
+    Message,
+    Pose,
+    SolveDiagnostics,
+    TransformSolution,
+    WorkspaceDefinition,
+    decode,
+    encode,
+    model_for_key_parts,
+)
+from confnav.services.keys import Keys
 from mcap.reader import make_reader
 from mcap.writer import Writer
 
 from confnav.recording import scene as fx
-from confnav.recording.inspect import add_scene_channels
+from confnav.recording import scene_builder as sb
+from confnav.recording.scene_writer import FoxgloveSceneWriter, add_scene_channels
 
 REPO = Path(__file__).resolve().parents[1]
 DATA = Path(__file__).resolve().parent / "data"
@@ -127,6 +139,37 @@ def _read_all(path: Path) -> tuple[Any, list[tuple[str, str, bytes, int]]]:
     return summary, msgs
 
 
+def _decoded(topic: str, data: bytes) -> Message:
+    """The message on a recorded key, decoded with that key's schema."""
+    parsed = Keys().parse(topic)
+    model = model_for_key_parts(parsed.group, parsed.kind)
+    assert model is not None
+    return decode(model, data)
+
+
+def _solution(center: tuple[float, float], radius: float) -> TransformSolution:
+    """A transform of workspace w1 with one circle (coefficients unused: maps are stand-ins)."""
+    return TransformSolution(
+        ws_id="w1",
+        revision="rev1",
+        definition_hash="d1",
+        workspace_hash="h1",
+        stamp_ns=1,
+        anchor=(0.0, 0.0),
+        centers=[center],
+        radii=[radius],
+        diagnostics=SolveDiagnostics(
+            sweeps=1,
+            error_estimate=0.0,
+            wall_time=0.0,
+            tol=1e-10,
+            boundary_residual=0.0,
+            tol_met=True,
+        ),
+        coefficients={},
+    )
+
+
 def _stream() -> list[tuple[str, bytes, int]]:
     t0 = 1_700_000_000_000_000_000
     d = WorkspaceDefinition(
@@ -146,10 +189,10 @@ def _stream() -> list[tuple[str, bytes, int]]:
 
 
 def test_builder_throttles_and_tracks_trails(validator: Any) -> None:
-    builder = fx.SceneBuilder(period_ns=100_000_000)
+    builder = sb.SceneBuilder(period_ns=100_000_000)
     emitted = []
     for topic, data, t in _stream():
-        emitted += builder.observe(topic, json.loads(data), t)
+        emitted += builder.observe(_decoded(topic, data), t)
     # definition and goal at t0 (both force a scene), then one every 100 ms: 100..700 ms
     times = [m.log_time_ns - 1_700_000_000_000_000_000 for m in emitted]
     assert times[:2] == [0, 0] and times[2:] == [100_000_000 * k for k in range(1, 8)]
@@ -171,11 +214,10 @@ def test_builder_maps_robots_into_the_circle_domain(validator: Any) -> None:
         def T(self, z: Any) -> Any:
             return z / 2
 
-    builder = fx.SceneBuilder(period_ns=0, map_loader=lambda payload: Halve())
+    builder = sb.SceneBuilder(period_ns=0, map_loader=lambda solution: Halve())
     for topic, data, t in _stream()[:5]:
-        builder.observe(topic, json.loads(data), t)
-    transform = {"ws_id": "w1", "centers": [[0.15, 0.15]], "radii": [0.05]}
-    msgs = builder.observe("confnav/ws/w1/transform", transform, 1_700_000_000_100_000_000)
+        builder.observe(_decoded(topic, data), t)
+    msgs = builder.observe(_solution((0.15, 0.15), 0.05), 1_700_000_000_100_000_000)
     cd = next(m for m in msgs if m.topic == "confnav/viz/w1/circle_domain").message
     validator.validate(cd)
     robot = next(e for e in cd["entities"] if e["id"] == "robot/r1")
@@ -189,12 +231,15 @@ def test_scene_writer_hook_writes_schema_and_valid_messages(tmp_path: Path, vali
     with open(path, "wb") as f:
         w = Writer(f)
         w.start()
-        hook = fx.FoxgloveSceneWriter(w, period_ns=50_000_000)
+        hook = FoxgloveSceneWriter(w, period_ns=50_000_000)
         for topic, data, t in _stream():
             hook.on_message(topic, data, t)
         hook.on_message("confnav/robot/r1/pose", b"{not json", 1_700_000_001_000_000_000)
+        hook.on_message("confnav/robot/r1/pose", b'{"robot_id": "r1", "x": 1}', 1_700_000_001_0)
         hook.close()
         w.finish()
+    # malformed messages are counted by reason, not silently skipped
+    assert hook.errors == {"invalid_json": 1, "invalid_input": 1}
     summary, msgs = _read_all(path)
     assert summary is not None
     (schema,) = summary.schemas.values()
@@ -208,6 +253,31 @@ def test_scene_writer_hook_writes_schema_and_valid_messages(tmp_path: Path, vali
     # definition + goal (forced), then the first pose >= 50 ms after the last scene (poses
     # every 20 ms: 60, 120, ..., 780 ms: 13), then the final one
     assert n == 2 + 13 + 1
+
+
+def test_a_map_that_does_not_load_is_counted_and_its_circles_still_drawn(
+    tmp_path: Path, validator: Any
+) -> None:
+    """The default loader refuses coefficients that are not a map: the hook counts the error
+    (reason ``map``) and the circle domain still shows the solution's circles."""
+    path = tmp_path / "badmap.mcap"
+    with open(path, "wb") as f:
+        w = Writer(f)
+        w.start()
+        hook = FoxgloveSceneWriter(w, period_ns=0)
+        for topic, data, t in _stream()[:3]:
+            hook.on_message(topic, data, t)
+        hook.on_message("confnav/ws/w1/transform", encode(_solution((0.1, 0.2), 0.05)), 2)
+        hook.close()
+        w.finish()
+    assert hook.errors == {"map": 1}
+    _, msgs = _read_all(path)
+    cd = [json.loads(d) for _n, topic, d, _t in msgs if topic == "confnav/viz/w1/circle_domain"]
+    assert cd, "no circle-domain scene"
+    validator.validate(cd[-1])
+    (circle,) = cd[-1]["entities"][0]["lines"][1:]
+    xs = [p["x"] for p in circle["points"]]
+    assert math.isclose((max(xs) + min(xs)) / 2, 0.1, abs_tol=1e-3)
 
 
 def test_recorder_hook_and_viz_command_on_a_real_run(tmp_path: Path, validator: Any) -> None:
@@ -249,19 +319,17 @@ def test_builder_cost_is_bounded_on_long_runs(validator: Any) -> None:
             calls.append(len(z))
             return z / 2
 
-    builder = fx.SceneBuilder(map_loader=lambda payload: Counting(), trail_points=64)
-    stream = _stream()[:2]
-    transform = {"ws_id": "w1", "centers": [[0.5, 0.5]], "radii": [0.1]}
-    for topic, data, t in stream:
-        builder.observe(topic, json.loads(data), t)
-    builder.observe("confnav/ws/w1/transform", transform, 1_700_000_000_000_000_000)
+    builder = sb.SceneBuilder(map_loader=lambda solution: Counting(), trail_points=64)
+    for topic, data, t in _stream()[:2]:
+        builder.observe(_decoded(topic, data), t)
+    builder.observe(_solution((0.5, 0.5), 0.1), 1_700_000_000_000_000_000)
     n, light, full = 20_000, 0, 0
     for i in range(n):  # a spiral, 5 ms apart: 100 s
         t = 1_700_000_000_000_000_000 + 5_000_000 * (i + 1)
         r = 0.9 * (1 - i / n)
         x, y = r * math.cos(i / 300), r * math.sin(i / 300)
         pose = Pose(robot_id="r1", stamp_ns=t, seq=i, x=x, y=y)
-        for m in builder.observe("confnav/robot/r1/pose", json.loads(encode(pose)), t):
+        for m in builder.observe(pose, t):
             ids = {e["id"] for e in m.message["entities"]}
             if "trail/r1" in ids:
                 full += 1
@@ -270,7 +338,7 @@ def test_builder_cost_is_bounded_on_long_runs(validator: Any) -> None:
             else:
                 light += 1
                 assert ids == {"robot/r1"}  # light: robots only
-    assert max(calls) <= fx.MAP_BATCH
+    assert max(calls) <= sb.MAP_BATCH
     assert sum(calls) <= n + 4 * (light + full)  # each pose at most once + robot/goal images
     assert full == 2 * 100 and light == 2 * 900  # two scenes; full every 1 s, light every 0.1 s
     for m in builder.flush(1_700_000_000_000_000_000 + 5_000_000 * (n + 1)):

@@ -24,7 +24,8 @@ from conftest import confnav_cmd, subprocess_env
 from mcap.writer import Writer
 
 from confnav.recording import layout as L
-from confnav.recording.inspect import Recording, RecordingError, inspect_recording
+from confnav.recording.inspect import inspect_recording
+from confnav.recording.reader import Recording, RecordingError
 
 T0 = 1_700_000_000_000_000_000
 OUTER = [(-1.0, -1.0), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0)]
@@ -239,14 +240,21 @@ GOLDEN = sorted((Path(__file__).resolve().parent / "data").glob("golden_*.mcap")
 def test_plot_adds_the_circle_domain_when_the_map_is_recorded(
     recording: Path, tmp_path: Path
 ) -> None:
-    from confnav.recording.inspect import plot_recording
+    from confnav.plot.recording import plot_recording, recording_figure
 
     rep = inspect_recording(GOLDEN[0])
     assert all(r.arrived for r in rep.robots.values()) and len(rep.robots) == 2
     assert all(r.min_clearance is not None and r.min_clearance > 0 for r in rep.robots.values())
-    w2, h2 = _png_size(plot_recording(rep, tmp_path / "golden.png"))
-    w1, h1 = _png_size(plot_recording(inspect_recording(recording), tmp_path / "plain.png"))
-    assert h1 == h2 and w2 == 2 * w1  # workspace and circle-domain panels
+    assert _png_size(plot_recording(rep, tmp_path / "golden.png"))[0] > 0
+    with_map = recording_figure(rep)
+    plain = recording_figure(inspect_recording(recording))
+    assert len(plain.axes) == 1 and len(with_map.axes) == 2  # + the circle-domain panel
+    for fig in (with_map, plain):  # units on every axis, a legend explaining the markers
+        assert fig.axes[0].get_xlabel() == "x [m]" and fig.axes[0].get_ylabel() == "y [m]"
+        legend = fig.axes[0].get_legend()
+        assert legend is not None
+        assert {"start", "goal", "collision"} <= {t.get_text() for t in legend.get_texts()}
+    assert with_map.axes[1].get_xlabel().startswith("Re w")
 
 
 def test_counts_without_a_statistics_record(tmp_path: Path) -> None:
@@ -263,3 +271,17 @@ def test_counts_without_a_statistics_record(tmp_path: Path) -> None:
     rep = inspect_recording(p)
     assert rep.message_count == 7 and [c.count for c in rep.channels] == [7]
     assert math.isclose(rep.duration_s, 0.006) and rep.robots["r1"].poses == 7
+
+
+@pytest.mark.skipif(not GOLDEN, reason="no golden recording in tests/data")
+def test_times_have_one_labelled_origin() -> None:
+    """Every time is seconds after the first recorded message, and the report says so; the
+    arrival is also given after the robot's goal (the origin ``confnav demo`` uses)."""
+    rep = inspect_recording(GOLDEN[0])
+    text = rep.format()
+    assert "t = 0 at the first recorded message" in text
+    assert rep.to_dict()["time_origin"].startswith("first recorded message")
+    for r in rep.robots.values():
+        assert r.goal_time_s is not None and r.arrival_time_s is not None
+        assert 0.0 <= r.goal_time_s < r.arrival_time_s <= rep.duration_s
+        assert f"{r.arrival_time_s - r.goal_time_s:.3f} s after its goal" in text

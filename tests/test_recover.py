@@ -19,7 +19,7 @@ from mcap.reader import make_reader
 from mcap.records import Channel, Message
 from mcap.writer import Writer
 
-from confnav.recording.inspect import Recording, RecordingError
+from confnav.recording.reader import Recording, RecordingError
 from confnav.recording.recover import RecoverError, has_footer, recover, scan
 
 

@@ -23,7 +23,7 @@ from conftest import confnav_cmd, subprocess_env, wait_for
 from mcap.writer import Writer
 
 from confnav.recording import layout as L
-from confnav.recording.inspect import Recording
+from confnav.recording.reader import Recording
 from confnav.recording.scene import is_viz_topic
 
 DATA = Path(__file__).resolve().parent / "data"

@@ -16,7 +16,7 @@ from mcap.writer import Writer
 
 from confnav.navigation import messages as navigation
 from confnav.recording import layout as L
-from confnav.recording.inspect import RecordingError
+from confnav.recording.reader import RecordingError
 from confnav.recording.replay_check import (
     CheckError,
     check_recording,

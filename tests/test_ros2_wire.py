@@ -15,7 +15,6 @@ import struct
 import numpy as np
 import pytest
 import xxhash
-
 from confnav.services.ros2 import codec, wire
 
 TWIST_HASH = "RIHS01_9c45bf16fe0983d80e3cfe750d6835843d265a9a6c46bd2e609fcddde6fb8d2a"

@@ -21,7 +21,7 @@ from confnav.services.simulator import SimulatorService
 from confnav.services.transform import TransformService
 from conftest import REPO, fake_solve, identity_loader, wait_for
 
-from confnav.recording.inspect import Recording
+from confnav.recording.reader import Recording
 
 K = Keys()
 

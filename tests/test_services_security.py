@@ -19,14 +19,13 @@ from typing import Any
 
 import pytest
 import zenoh
+from confnav.schemas import Pose, VelocityCommand, encode
+from confnav.services.bus import zenoh_config
 from conftest import REPO, wait_for
 from cryptography import x509
 from cryptography.hazmat.primitives import hashes, serialization
 from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import NameOID
-
-from confnav.schemas import Pose, VelocityCommand, encode
-from confnav.services.bus import zenoh_config
 
 SAMPLE = REPO / "deploy" / "multi-machine"
 

@@ -8,8 +8,6 @@ from collections.abc import Callable
 from typing import Any
 
 import pytest
-from conftest import square_definition, wait_for
-
 from confnav.schemas import (
     CollisionEvent,
     Pose,
@@ -22,6 +20,7 @@ from confnav.schemas import (
 from confnav.services.bus import InMemoryNetwork
 from confnav.services.keys import Keys
 from confnav.services.simulator import SimulatorService
+from conftest import square_definition, wait_for
 
 K = Keys()
 

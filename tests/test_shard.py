@@ -11,13 +11,12 @@ from typing import Any
 
 import pytest
 import zenoh
-from conftest import identity_loader, wait_for
-from test_services_controller import Client, FakeTransform, solution
-
 from confnav.services.bus import InMemoryNetwork, key_matches
 from confnav.services.controller import ControllerService, main
 from confnav.services.keys import KeyError_, Keys
 from confnav.services.shard import MAX_ID_SUBSCRIPTIONS, RobotSelector, chunk_matches
+from conftest import identity_loader, wait_for
+from test_services_controller import Client, FakeTransform, solution
 
 K = Keys()
 IDS = ["a", "a1", "ab7", "b7", "b17", "b170", "x-7", "r1", "r10", "ba"]

@@ -29,10 +29,9 @@ from confnav.atlas.decompose import _polygons, inscribed
 from confnav.errors import NavigationError, fmt_point
 from confnav.navigation.control import Controller
 from confnav.navigation.sim import ARRIVED, COLLIDED, ERROR, STALLED, TIMEOUT, Outcomes, simulate
+from confnav.types import CArray
 
 __all__ = ["AtlasNavigator", "AtlasRun", "CellPlan", "Overlap", "overlaps", "plan"]
-
-CArray = NDArray[np.complex128]
 
 
 @dataclass(frozen=True)

@@ -9,36 +9,11 @@ from __future__ import annotations
 import argparse
 import importlib
 import logging
-import os
 import sys
 from collections.abc import Sequence
-from pathlib import Path
 
 from confnav import __version__
 from confnav.errors import ConfnavError
-
-
-def positive_float(text: str) -> float:
-    """An argparse ``type=``: a finite number > 0 (gains, speeds, tolerances, times)."""
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-    if not (0.0 < value < float("inf")):
-        raise argparse.ArgumentTypeError(f"{text!r} must be a finite number > 0")
-    return value
-
-
-def positive_int(text: str) -> int:
-    """An argparse ``type=``: an integer >= 1 (counts)."""
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"{text!r} must be at least 1")
-    return value
-
 
 SUBCOMMAND_MODULES: tuple[str, ...] = (
     "confnav.cli.solve",
@@ -53,19 +28,6 @@ SUBCOMMAND_MODULES: tuple[str, ...] = (
 
 class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
     """Every option's help shows its default; the epilog (examples) keeps its line breaks."""
-
-
-def output_path(text: str) -> Path:
-    """An argparse ``type=`` for files a command writes: the directory must exist, checked at
-    parse time so a mistake costs one line, not the whole computation."""
-    parent = os.path.dirname(os.path.abspath(text))
-    if not os.path.isdir(parent):
-        raise argparse.ArgumentTypeError(f"cannot write {text!r}: no directory {parent!r}")
-    if os.path.isdir(text):
-        raise argparse.ArgumentTypeError(f"cannot write {text!r}: it is a directory")
-    if not os.access(parent, os.W_OK):
-        raise argparse.ArgumentTypeError(f"cannot write {text!r}: {parent!r} is not writable")
-    return Path(text)
 
 
 EXAMPLES: dict[str, str] = {

@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from confnav.cli.app import output_path, positive_int
+from confnav.argtypes import output_path, positive_int
 from confnav.cli.simulate import _point, _points
 
 
@@ -35,11 +35,16 @@ def register(subparsers: Any) -> None:
     g.add_argument("--starts", type=_points, help='starts "X,Y;X,Y;..." (one argument)')
     g.add_argument("--random", type=positive_int, metavar="N", help="N random starts in free space")
     p.add_argument("--seed", type=int, default=0, help="seed for --random")
-    p.add_argument("--tol", type=float, default=1e-8, help="accuracy of each chart's circle domain")
+    p.add_argument(
+        "--tol",
+        type=float,
+        default=1e-8,
+        help="accuracy of each chart's circle domain (dimensionless)",
+    )
     p.add_argument("--workers", type=int, default=2, help="solver processes")
     p.add_argument("--tile", type=float, help="initial tile side, m (default 6 x inradius)")
-    p.add_argument("--margin", type=float, help="local-goal depth in overlaps")
-    p.add_argument("--hysteresis", type=float, help="switching depth (default margin/2)")
+    p.add_argument("--margin", type=float, help="local-goal depth in overlaps, m")
+    p.add_argument("--hysteresis", type=float, help="switching depth, m (default margin/2)")
     p.add_argument("--speed", type=float, default=1.0, help="commanded speed, m/s")
     p.add_argument("--json", type=output_path, help="write cells, plan and runs here")
     p.set_defaults(func=run_atlas)

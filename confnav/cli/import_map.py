@@ -12,7 +12,7 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-from confnav.cli.app import output_path
+from confnav.argtypes import output_path
 from confnav.cli.simulate import _point
 
 
@@ -96,6 +96,7 @@ def _plot(map_path: Path, res: Any, out: Path) -> None:
     import numpy as np
 
     from confnav.maps.occupancy import load_occupancy, read_map_yaml
+    from confnav.plot.style import label_polygons, save
 
     meta = read_map_yaml(map_path)
     free = load_occupancy(meta)
@@ -113,12 +114,19 @@ def _plot(map_path: Path, res: Any, out: Path) -> None:
     ws = res.workspace
     for k, b in enumerate(ws.boundaries):
         z = np.concatenate([b, b[:1]])
-        ax.plot(z.real, z.imag, "r-" if k == 0 else "b-", lw=1.0)
-    ax.plot([ws.anchor.real], [ws.anchor.imag], "g+", ms=10)
+        ax.plot(z.real, z.imag, "r-" if k == 0 else "b-", lw=1.0,
+                label=("outer boundary" if k == 0 else "obstacle") if k < 2 else None)  # fmt: skip
+    label_polygons(ax, ws.obstacles)
+    ax.plot([ws.anchor.real], [ws.anchor.imag], "g+", ms=12, mew=2, ls="none", label="anchor")
+    ax.plot([], [], "s", color="0.35", ls="none", label="occupied / unknown cells")
     ax.set_aspect("equal")
+    ax.set_xlabel("x [m] (map frame)")
+    ax.set_ylabel("y [m]")
     ax.set_title(
-        f"{map_path.name}: {ws.n_obstacles} obstacles, "
-        f"Hausdorff {res.report.hausdorff_cells:.2f} cell"
+        f"{map_path.name}: {ws.n_obstacles} obstacles, one-sided simplification error "
+        f"(Hausdorff) {res.report.hausdorff_cells:.2f} cell = "
+        f"{res.report.hausdorff_cells * meta.resolution:.3g} m",
+        fontsize=10,
     )
-    fig.savefig(out, dpi=120, bbox_inches="tight")
-    plt.close(fig)
+    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8, frameon=False)
+    save(fig, out)

@@ -19,7 +19,8 @@ from typing import Any, get_args
 
 from pydantic import ValidationError
 
-from confnav.cli.app import HelpFormatter, positive_float
+from confnav.argtypes import positive_float
+from confnav.cli.app import HelpFormatter
 from confnav.errors import ConfnavError
 from confnav.navigation import defaults
 from confnav.schemas import (
@@ -322,7 +323,12 @@ def register(subparsers: Any) -> None:
     g.add_argument(
         "--navfn", default=defaults.NAVFN, choices=get_args(NavFnName), help="navigation function"
     )
-    g.add_argument("--k", type=float, default=None, help="navigation-function exponent (auto)")
+    g.add_argument(
+        "--k",
+        type=float,
+        default=None,
+        help="navigation-function exponent, dimensionless (default: auto)",
+    )
     g.add_argument("--gain", type=positive_float, default=defaults.GAIN, help="control gain, 1/s")
     g.add_argument("--v-max", type=positive_float, default=defaults.V_MAX, help="speed limit, m/s")
     g.add_argument("--vmax", dest="v_max", type=positive_float, help=argparse.SUPPRESS)

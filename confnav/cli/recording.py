@@ -12,7 +12,7 @@ import logging
 import sys
 from typing import Any
 
-from confnav.cli.app import output_path
+from confnav.argtypes import output_path
 from confnav.errors import ConfnavError
 
 logger = logging.getLogger(__name__)
@@ -78,7 +78,10 @@ def register(subparsers: Any) -> None:
         "--atol", type=float, default=DEFAULT_ATOL, help="absolute tolerance, m/s (%(default)g)"
     )
     chk.add_argument(
-        "--rtol", type=float, default=DEFAULT_RTOL, help="relative tolerance (%(default)g)"
+        "--rtol",
+        type=float,
+        default=DEFAULT_RTOL,
+        help="relative tolerance, dimensionless (%(default)g)",
     )
     chk.add_argument(
         "--set",
@@ -180,7 +183,8 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
 
 def cmd_inspect(args: argparse.Namespace) -> int:
-    from confnav.recording.inspect import inspect_recording, plot_recording, report_json
+    from confnav.plot.recording import plot_recording
+    from confnav.recording.inspect import inspect_recording, report_json
 
     report = inspect_recording(args.file)
     print(report_json(report) if args.json else report.format())
@@ -205,7 +209,7 @@ def cmd_recover(args: argparse.Namespace) -> int:
 
 
 def cmd_viz(args: argparse.Namespace) -> int:
-    from confnav.recording.inspect import add_scene_channels
+    from confnav.recording.scene_writer import add_scene_channels
 
     _exists_guard(args.output, args.force)
     if not args.period >= 0:
@@ -216,6 +220,8 @@ def cmd_viz(args: argparse.Namespace) -> int:
         f"{report.output}: {report.messages_copied} messages copied, scene messages: "
         f"{scenes or 'none (no workspace definition or transform recorded)'}"
     )
+    if report.errors:
+        print(f"messages not drawn (see the log): {dict(report.errors)}")
     return 0
 
 

@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from confnav.cli.app import output_path, positive_float, positive_int
+from confnav.argtypes import output_path, positive_float, positive_int
 from confnav.errors import NavigationError
 
 log = logging.getLogger(__name__)
@@ -70,8 +70,15 @@ def register(subparsers: Any) -> None:
     p.add_argument("--seed", type=int, default=0, help="seed for --random")
     p.add_argument("--map", type=Path, help="a solved map (JSON) instead of solving")
     p.add_argument("--robot-radius", type=float, default=0.0, help="disk robot radius (m)")
-    p.add_argument("--unicycle", type=float, metavar="D", help="differential drive, look-ahead D")
-    p.add_argument("--omega-max", type=positive_float, default=2.0, help="unicycle yaw-rate limit")
+    p.add_argument(
+        "--unicycle",
+        type=float,
+        metavar="D",
+        help="differential drive with look-ahead distance D, m",
+    )
+    p.add_argument(
+        "--omega-max", type=positive_float, default=2.0, help="unicycle yaw-rate limit, rad/s"
+    )
     _law_options(p)
     p.add_argument("--t-max", type=positive_float, default=1e4, help="time limit per robot (s)")
     p.add_argument(
@@ -95,7 +102,7 @@ def register(subparsers: Any) -> None:
     f.add_argument("--goal", type=_point, help="goal X,Y")
     f.add_argument("--starts", type=_points, help='starts "X,Y;X,Y;..."')
     f.add_argument("--k", type=_k, default=6.0, help="k for KR (default 6, the seed's)")
-    f.add_argument("--gain", type=float, default=1.0)
+    f.add_argument("--gain", type=positive_float, default=1.0, help="control gain, 1/s")
     f.add_argument("--out", type=Path, default=Path("."), help="output directory")
     f.set_defaults(func=run_figures)
 
@@ -110,7 +117,10 @@ def _law_options(p: argparse.ArgumentParser) -> None:
         help="navigation function (default %(default)s: tuning-free)",
     )
     p.add_argument(
-        "--k", type=_k, default="auto", help="k of KR: a number (seed: 6) or auto (default)"
+        "--k",
+        type=_k,
+        default="auto",
+        help="k of KR, dimensionless: a number (seed: 6) or auto (default)",
     )
     p.add_argument(
         "--speed-law",
@@ -133,11 +143,13 @@ def _law_options(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--vmax", dest="v_max", type=positive_float, help=argparse.SUPPRESS)  # old name
     p.add_argument(
-        "--tol",
+        "--tolerance",
         type=positive_float,
         default=defaults.GOAL_TOL,
-        help="goal tolerance, m (default %(default)s)",
+        help="arrival radius around the goal, m (default %(default)s)",
     )
+    # old name (--tol means the map's accuracy in solve and atlas)
+    p.add_argument("--tol", dest="tolerance", type=positive_float, help=argparse.SUPPRESS)
 
 
 def _load_map(args: argparse.Namespace, ws: Any) -> Any:
@@ -181,7 +193,7 @@ def run_simulate(args: argparse.Namespace) -> int:
         speed_law=args.speed_law,
         gain=args.gain,
         v_max=args.v_max,
-        goal_tol=args.tol,
+        goal_tol=args.tolerance,
     )
     if ctl.fallback:
         print(f"note: {ctl.fallback}", file=sys.stderr)

@@ -12,7 +12,7 @@ import sys
 import warnings
 from pathlib import Path
 
-from confnav.cli.app import output_path
+from confnav.argtypes import output_path
 from confnav.conformal.cmap import ConformalMap
 from confnav.conformal.solver import AccuracyWarning, solve
 from confnav.geometry import Workspace
@@ -31,7 +31,7 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
         "--tol",
         type=float,
         default=1e-10,
-        help="target accuracy of the circle domain (default 1e-10)",
+        help="accuracy of the circle domain (centres, radii; dimensionless; default 1e-10)",
     )
     p.add_argument("--plot", type=output_path, help="write a picture of the map (PNG)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress output")

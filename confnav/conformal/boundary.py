@@ -25,7 +25,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from confnav.geometry import ComplexArray, FloatArray
+from confnav.types import CArray as ComplexArray
+from confnav.types import FArray as FloatArray
 
 #: Grading exponent. DESIGN.md sec. 2 recommends p = 5 because p >= 6 puts nodes within 1e-16
 #: of the vertices. Here such nodes are dropped as quadrature sources (their weight is below

@@ -16,9 +16,8 @@ References
 from __future__ import annotations
 
 import numpy as np
-from numpy.typing import NDArray
 
-ComplexArray = NDArray[np.complex128]
+from confnav.types import CArray as ComplexArray
 
 #: Above this many source-target interactions the FMM is used.
 FMM_THRESHOLD = 2_000_000

@@ -67,7 +67,8 @@ from confnav.conformal.boundary import BoundaryMesh
 from confnav.conformal.diskmap import CurveMap, exterior_map, interior_map
 from confnav.conformal.gnk import GMRES_RTOL
 from confnav.errors import ConvergenceError, CrowdingError
-from confnav.geometry import ComplexArray, FloatArray
+from confnav.types import CArray as ComplexArray
+from confnav.types import FArray as FloatArray
 
 #: Circles smaller than this (relative to the unit disk) cannot be resolved in double precision:
 #: the image nodes of such a boundary crowd together below rounding (DESIGN.md sec. 6).

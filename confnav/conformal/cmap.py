@@ -31,7 +31,9 @@ from numpy.typing import ArrayLike
 from confnav.conformal.cauchy import FMM_THRESHOLD, cauchy_sums, cauchy_sums2
 from confnav.conformal.expansion import LocalExpansions
 from confnav.errors import MapMismatchError, SerializationError
-from confnav.geometry import ComplexArray, FloatArray, Workspace, distance_to_boundary
+from confnav.geometry import Workspace, distance_to_boundary
+from confnav.types import CArray as ComplexArray
+from confnav.types import FArray as FloatArray
 
 FORMAT = "confnav.map"
 #: Points this close to the boundary (relative to the workspace size) count as on it.
@@ -57,7 +59,7 @@ EXPANSION_SINGLE_NODES = 2_000
 
 
 @dataclass
-class SolveDiagnostics:
+class SolveReport:
     """How the map was obtained and how accurate it is believed to be.
 
     ``error_estimate`` is the largest of every error source, each measured independently:
@@ -105,13 +107,13 @@ class SolveDiagnostics:
         ok = bool(est <= self.tol and self.iteration_converged and not self.caps)
         return est, ok
 
-    def with_residual(self, residual: float) -> SolveDiagnostics:
+    def with_residual(self, residual: float) -> SolveReport:
         """These diagnostics for the same solution evaluated from other nodes (its residual)."""
         d = replace(self, boundary_residual=residual)
         d.error_estimate, d.tol_met = d._budget()
         return d
 
-    def with_deviation(self, deviation: float) -> SolveDiagnostics:
+    def with_deviation(self, deviation: float) -> SolveReport:
         """Fold a measured deviation from the full map (coarsened evaluation) into the budget."""
         d = replace(self)
         d.error_estimate, d.tol_met = d._budget(self.error_estimate, deviation)
@@ -180,7 +182,7 @@ class ConformalMap:
         dW: list[ComplexArray],
         centers: ComplexArray,
         radii: FloatArray,
-        diagnostics: SolveDiagnostics,
+        diagnostics: SolveReport,
     ) -> None:
         self.workspace = workspace
         self.anchor = workspace.anchor
@@ -513,7 +515,7 @@ class ConformalMap:
             parts = [[_unpack(b[k], k) for b in bnd] for k in ("eta", "deta", "W", "dW")]
             centers = _unpack(d["centers"], "centers")
             radii = _unpack(d["radii"], "radii")
-            diag = SolveDiagnostics(**d["diagnostics"])
+            diag = SolveReport(**d["diagnostics"])
         except (KeyError, TypeError) as exc:
             raise SerializationError(f"map is missing or has a malformed field: {exc}") from exc
         if len(bnd) != ws.n_obstacles + 1 or centers.size != ws.n_obstacles:
@@ -566,4 +568,4 @@ class ConformalMap:
         )
 
 
-__all__ = ["ConformalMap", "SolveDiagnostics"]
+__all__ = ["ConformalMap", "SolveReport"]

@@ -45,7 +45,7 @@ from confnav.conformal.gnk import (
     spectral_derivative,
     spectral_derivative_complex,
 )
-from confnav.geometry import ComplexArray
+from confnav.types import CArray as ComplexArray
 
 
 @dataclass(frozen=True)

@@ -51,13 +51,12 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 import shapely
-from numpy.typing import NDArray
 from scipy.special import comb
 
-ComplexArray = NDArray[np.complex128]
-FloatArray = NDArray[np.float64]
-IntArray = NDArray[np.int64]
-BoolArray = NDArray[np.bool_]
+from confnav.types import BArray as BoolArray
+from confnav.types import CArray as ComplexArray
+from confnav.types import FArray as FloatArray
+from confnav.types import IArray as IntArray
 
 #: Default polynomial degree of the local expansions.
 DEFAULT_DEGREE = 48

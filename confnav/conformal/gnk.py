@@ -39,7 +39,8 @@ from scipy.sparse.linalg import LinearOperator, gmres
 
 from confnav.conformal.cauchy import HAVE_FMM, cauchy_self
 from confnav.errors import ConvergenceError
-from confnav.geometry import ComplexArray, FloatArray
+from confnav.types import CArray as ComplexArray
+from confnav.types import FArray as FloatArray
 
 #: Default relative GMRES residual (for a map tolerance of 1e-11 and below); callers tie it to
 #: their tolerance with :func:`gmres_rtol`.

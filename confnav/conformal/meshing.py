@@ -31,7 +31,8 @@ import shapely
 
 from confnav.conformal.boundary import GRADING_P
 from confnav.errors import GapError
-from confnav.geometry import ComplexArray, Workspace
+from confnav.geometry import Workspace
+from confnav.types import CArray as ComplexArray
 
 #: Free-space corner angle (units of pi) taken as the reference for ``level``.
 REF_ANGLE = 1.75

@@ -34,11 +34,12 @@ import numpy as np
 
 from confnav.conformal.boundary import graded_polygon
 from confnav.conformal.circledomain import CircleDomainResult, koebe_iteration
-from confnav.conformal.cmap import ConformalMap, SolveDiagnostics
+from confnav.conformal.cmap import ConformalMap, SolveReport
 from confnav.conformal.gnk import gmres_rtol
 from confnav.conformal.meshing import plan_boundaries
 from confnav.errors import ConvergenceError, GapError, SolverError
-from confnav.geometry import ComplexArray, Workspace, interior_point
+from confnav.geometry import Workspace, interior_point
+from confnav.types import CArray as ComplexArray
 
 log = logging.getLogger(__name__)
 
@@ -103,7 +104,7 @@ def _make_map(
 ) -> ConformalMap:
     """The map of one solved level with its full error budget (residual computed here)."""
     res, eta, deta, ns, disc = level
-    diag = SolveDiagnostics(
+    diag = SolveReport(
         tol=tol,
         error_estimate=float("inf"),
         tol_met=False,

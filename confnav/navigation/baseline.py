@@ -15,14 +15,13 @@ References
 from __future__ import annotations
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 
 from confnav.errors import NavigationError, fmt_point
 from confnav.geometry import Workspace
+from confnav.types import CArray
 
 __all__ = ["PotentialField"]
-
-CArray = NDArray[np.complex128]
 
 
 class PotentialField:

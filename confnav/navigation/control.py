@@ -59,6 +59,7 @@ from confnav.errors import MapMismatchError, NavigationError, fmt_point
 from confnav.navigation import defaults
 from confnav.navigation.factory import make_navfn
 from confnav.navigation.navfn import CircleDomain, NavigationFunction
+from confnav.types import CArray, FArray, as_point
 
 if TYPE_CHECKING:
     from confnav.geometry import Workspace
@@ -68,8 +69,6 @@ log = logging.getLogger(__name__)
 
 __all__ = ["ConformalLike", "ControlOutput", "Controller", "Status", "speed_law"]
 
-CArray = NDArray[np.complex128]
-FArray = NDArray[np.float64]
 
 #: Lowest factor of the optional slow-down near walls (keeps the speed positive: same paths).
 SLOW_FLOOR = 0.2
@@ -208,7 +207,7 @@ class Controller:
                 f"{workspace.content_hash[:12]}"
             )
         self.cmap = cmap
-        self.goal = _as_point(goal, "goal")
+        self.goal = as_point(goal, "goal", NavigationError)
         if speed_law not in defaults.SPEED_LAWS:
             raise NavigationError(
                 f"unknown speed law {speed_law!r}; choose from {defaults.SPEED_LAWS}"
@@ -283,7 +282,7 @@ class Controller:
 
     def with_goal(self, goal: complex | tuple[float, float] | ArrayLike) -> Controller:
         """A controller for a new goal on the same map (no new solve); same parameters."""
-        z = _as_point(goal, "goal")
+        z = as_point(goal, "goal", NavigationError)
         wd = complex(np.asarray(self.cmap.T_and_dT(np.asarray(z))[0]))
         if not np.isfinite(wd) or _workspace_contains(self.cmap, z) is False:
             raise NavigationError(f"goal {fmt_point(z)} is not in the free space")
@@ -450,20 +449,3 @@ def _samples(cmap: ConformalLike) -> CArray | None:
         return None
     w = np.asarray(cmap.T_and_dT(z)[0], dtype=np.complex128)
     return w[np.isfinite(w)]
-
-
-def _as_point(p: complex | tuple[float, float] | ArrayLike, what: str) -> complex:
-    """A finite complex point from a complex number or an (x, y) pair."""
-    a = np.asarray(p)
-    try:
-        if a.shape == (2,) and not np.iscomplexobj(a):
-            z = complex(float(a[0]), float(a[1]))
-        elif a.shape == ():
-            z = complex(a.item())
-        else:
-            raise TypeError
-    except (TypeError, ValueError):
-        raise NavigationError(f"{what} must be a complex number or an (x, y) pair") from None
-    if not np.isfinite(z):
-        raise NavigationError(f"{what} {z} is not finite")
-    return z

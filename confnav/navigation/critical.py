@@ -28,10 +28,10 @@ from numpy.typing import NDArray
 
 from confnav.errors import NavigationError
 from confnav.navigation.navfn import CircleDomain, KoditschekRimon, NavigationFunction
+from confnav.types import CArray
 
 __all__ = ["K_LADDER", "AutoK", "CriticalPoints", "choose_k", "find_critical_points"]
 
-CArray = NDArray[np.complex128]
 
 #: k values tried, in order, by :func:`choose_k` (the seed's k = 6 first).
 K_LADDER: tuple[float, ...] = (6, 8, 10, 12, 16, 20, 24, 32, 40, 48, 64, 80, 100)

@@ -73,15 +73,14 @@ from typing import ClassVar, NamedTuple
 
 import numpy as np
 import scipy.linalg
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 
 from confnav.errors import NavigationError
 from confnav.navigation.navfn import CircleDomain, NavigationFunction
+from confnav.types import CArray, FArray
 
 __all__ = ["GreenBasis", "GreenDiagnostics", "GreenFunction", "HarmonicNavigation"]
 
-CArray = NDArray[np.complex128]
-FArray = NDArray[np.float64]
 
 _CHUNK = 4096
 #: Terms per circle tried in turn (a goal that needs more moves the map's basis up the ladder).

@@ -30,6 +30,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from confnav.errors import NavigationError, fmt_point
+from confnav.types import CArray, FArray
 
 __all__ = [
     "NAVFN_NAMES",
@@ -39,8 +40,6 @@ __all__ = [
     "NavigationFunction",
 ]
 
-CArray = NDArray[np.complex128]
-FArray = NDArray[np.float64]
 
 NAVFN_NAMES: tuple[str, ...] = ("kr", "harmonic")
 MAX_K: float = 200.0

@@ -22,11 +22,9 @@ from scipy.sparse.csgraph import dijkstra
 
 from confnav.errors import NavigationError, fmt_point
 from confnav.geometry import Workspace
+from confnav.types import CArray, FArray
 
 __all__ = ["ShortestPaths", "bend_vertices"]
-
-CArray = NDArray[np.complex128]
-FArray = NDArray[np.float64]
 
 
 def bend_vertices(ws: Workspace) -> CArray:

@@ -29,11 +29,10 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from confnav.errors import NavigationError, fmt_point
+from confnav.types import CArray, FArray
 
 __all__ = ["RunResult", "SimulationResult", "VelocityField", "simulate"]
 
-CArray = NDArray[np.complex128]
-FArray = NDArray[np.float64]
 Clearance = Callable[[CArray], Any]
 
 STATUS_NAMES: tuple[str, ...] = ("arrived", "collided", "stalled", "timeout", "error")

@@ -39,6 +39,7 @@ from numpy.typing import ArrayLike, NDArray
 from confnav.errors import NavigationError
 from confnav.navigation.control import Controller, Status
 from confnav.navigation.sim import SimulationResult, _chord_check, simulate
+from confnav.types import CArray, FArray
 
 __all__ = [
     "UnicycleController",
@@ -51,8 +52,6 @@ __all__ = [
     "twist_from_velocity",
 ]
 
-CArray = NDArray[np.complex128]
-FArray = NDArray[np.float64]
 ARRIVED, COLLIDED, STALLED, TIMEOUT, ERROR = range(5)
 
 

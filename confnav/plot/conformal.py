@@ -19,7 +19,8 @@ from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 
 from confnav.conformal.cmap import ConformalMap
-from confnav.geometry import ComplexArray
+from confnav.plot.style import OBSTACLE_FILL, label_circles, label_polygons, save
+from confnav.types import CArray as ComplexArray
 
 
 def _closed(z: ComplexArray) -> ComplexArray:
@@ -31,28 +32,28 @@ def draw_workspace(ax: Axes, m: ConformalMap) -> None:
     ws = m.workspace
     o = _closed(ws.outer)
     ax.plot(o.real, o.imag, "k-", lw=1.5)
-    for j, p in enumerate(ws.obstacles):
+    for p in ws.obstacles:
         q = _closed(p)
-        ax.fill(q.real, q.imag, color="0.55", zorder=3)
-        c = p.mean()
-        ax.annotate(
-            str(j), (c.real, c.imag), ha="center", va="center", color="w", zorder=4, fontsize=8
-        )
-    ax.plot(ws.anchor.real, ws.anchor.imag, "r+", ms=10, zorder=5)
+        ax.fill(q.real, q.imag, color=OBSTACLE_FILL, zorder=3)
+    label_polygons(ax, ws.obstacles)
+    ax.plot(ws.anchor.real, ws.anchor.imag, "r+", ms=12, mew=2, zorder=5, ls="none",
+            label="anchor a (T(a) = 0, the centre of the circle domain)")  # fmt: skip
     ax.set_aspect("equal")
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
 
 
 def draw_circle_domain(ax: Axes, m: ConformalMap) -> None:
     """Unit circle and the obstacle disks."""
     t = np.linspace(0, 2 * np.pi, 400)
     ax.plot(np.cos(t), np.sin(t), "k-", lw=1.5)
-    for j, (c, r) in enumerate(zip(m.centers, m.radii, strict=True)):
-        ax.fill(c.real + r * np.cos(t), c.imag + r * np.sin(t), color="0.55", zorder=3)
-        ax.annotate(
-            str(j), (c.real, c.imag), ha="center", va="center", color="w", zorder=4, fontsize=8
-        )
-    ax.plot(0, 0, "r+", ms=10, zorder=5)
+    for c, r in zip(m.centers, m.radii, strict=True):
+        ax.fill(c.real + r * np.cos(t), c.imag + r * np.sin(t), color=OBSTACLE_FILL, zorder=3)
+    label_circles(ax, m.centers, m.radii)
+    ax.plot(0, 0, "r+", ms=12, mew=2, zorder=5, ls="none")
     ax.set_aspect("equal")
+    ax.set_xlabel("Re w (dimensionless)")
+    ax.set_ylabel("Im w")
 
 
 def polar_grid(
@@ -76,7 +77,7 @@ def polar_grid(
 
 def map_figure(m: ConformalMap, title: str = "") -> Figure:
     """Workspace with the preimage of a polar grid | circle domain with the grid."""
-    fig, (ax0, ax1) = plt.subplots(1, 2, figsize=(12, 6))
+    fig, (ax0, ax1) = plt.subplots(1, 2, figsize=(12, 6), layout="constrained")
     grid = polar_grid(m)
     for w in grid:
         z = m.inverse(w)
@@ -84,22 +85,22 @@ def map_figure(m: ConformalMap, title: str = "") -> Figure:
         ax1.plot(w.real, w.imag, "-", color="tab:blue", lw=0.6)
     draw_workspace(ax0, m)
     draw_circle_domain(ax1, m)
-    ax0.set_title("workspace: preimage of the polar grid")
-    ax1.set_title("circle domain T(workspace)")
+    ax0.set_title("workspace: preimage of the polar grid\n(obstacles numbered as their circles)")
+    ax1.set_title("circle domain T(workspace): polar grid")
+    fig.legend(
+        *ax0.get_legend_handles_labels(), loc="outside lower center", fontsize=9, frameon=False
+    )
     d = m.diagnostics
     fig.suptitle(
         (title + "\n" if title else "")
         + f"estimated error {d.error_estimate:.1e} (tol {d.tol:.0e}), {sum(d.nodes)} nodes, "
         f"{d.sweeps} sweeps, {d.wall_time:.2f} s"
     )
-    fig.tight_layout()
     return fig
 
 
 def save_map_figure(m: ConformalMap, path: str | Path, title: str = "") -> None:
-    fig = map_figure(m, title)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    save(map_figure(m, title), path)
 
 
 __all__ = ["draw_circle_domain", "draw_workspace", "map_figure", "polar_grid", "save_map_figure"]

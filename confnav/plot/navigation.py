@@ -17,10 +17,11 @@ from matplotlib.figure import Figure
 from numpy.typing import NDArray
 
 from confnav.navigation.control import Controller
+from confnav.plot.style import SMALL_CIRCLE, label_circles, label_polygons, save
+from confnav.types import CArray
 
 __all__ = ["navigation_figure", "plot_circle_domain", "plot_workspace", "save_navigation_figure"]
 
-CArray = NDArray[np.complex128]
 _COLORS = ("tab:red", "tab:blue", "tab:green", "tab:orange", "tab:purple", "tab:brown")
 
 
@@ -69,6 +70,7 @@ def plot_workspace(
             ax.plot(q.real, q.imag, "k-", lw=1.2)
         else:
             ax.fill(q.real, q.imag, color="0.55", ec="k", lw=1.0)
+    label_polygons(ax, ws.obstacles)
     _trajectories(ax, paths, outcomes)
     ax.plot(ctl.goal.real, ctl.goal.imag, "k*", ms=12, mfc="gold", ls="none", label="goal")
     ax.set_aspect("equal")
@@ -82,24 +84,52 @@ def plot_circle_domain(
     ax: Axes, ctl: Controller, paths: Sequence[CArray] = (), n_grid: int = 260
 ) -> None:
     """Level sets of phi in the circle domain, the circles and the mapped trajectories."""
-    t = np.linspace(-1, 1, n_grid)
-    w = t[None, :] + 1j * t[:, None]
-    v = np.full(w.shape, np.nan)
-    inside = ctl.domain.contains(w)
-    v[inside] = ctl.navfn.value(w[inside])
-    ax.contour(t, t, v, levels=_levels(v), linewidths=0.6, cmap="viridis")
-    e = np.exp(2j * np.pi * np.linspace(0, 1, 361))
-    ax.plot(e.real, e.imag, "k-", lw=1.2)
-    for c, r in zip(ctl.domain.centers, ctl.domain.radii, strict=True):
-        q = c + r * e
-        ax.fill(q.real, q.imag, color="0.55", ec="k", lw=1.0)
     mapped = [np.asarray(ctl.cmap.T_and_dT(p)[0]) for p in paths]
-    _trajectories(ax, mapped)
-    ax.plot(ctl.goal_w.real, ctl.goal_w.imag, "k*", ms=12, mfc="gold")
+    _draw_domain(ax, ctl, mapped, -1.0 - 1.0j, 2.0, n_grid)
+    label_circles(ax, list(ctl.domain.centers), list(ctl.domain.radii))
+    radii = np.asarray(ctl.domain.radii, dtype=float)
+    small = np.flatnonzero(radii < SMALL_CIRCLE)
+    if small.size:  # crowded disks (radii down to 1e-4): magnify them in an inset
+        c = np.asarray(ctl.domain.centers)[small]
+        lo = complex(c.real.min(), c.imag.min())
+        hi = complex(c.real.max(), c.imag.max())
+        side = max(hi.real - lo.real, hi.imag - lo.imag, 20 * float(radii[small].max()), 0.01)
+        side *= 1.6
+        mid = (lo + hi) / 2
+        inset = ax.inset_axes((0.03, 0.03, 0.36, 0.36))
+        _draw_domain(inset, ctl, mapped, mid - side / 2 * (1 + 1j), side, n_grid // 2)
+        inset.set_xticks([])
+        inset.set_yticks([])
+        inset.set_title(f"x{2 / side:.0f}", fontsize=7, pad=2)
+        ax.indicate_inset_zoom(inset, edgecolor="0.3")
     ax.set_aspect("equal")
     ax.set_xlabel("Re w (dimensionless)")
     ax.set_ylabel("Im w")
     ax.set_title(f"circle domain: level sets of {ctl.navfn.name} phi(w)")
+
+
+def _draw_domain(
+    ax: Axes, ctl: Controller, mapped: Sequence[CArray], corner: complex, side: float, n: int
+) -> None:
+    """Level sets of phi, the circles, the mapped paths and the goal in the square window
+    ``[corner, corner + side (1 + i)]`` of the circle domain."""
+    x = corner.real + side * np.linspace(0, 1, n)
+    y = corner.imag + side * np.linspace(0, 1, n)
+    w = x[None, :] + 1j * y[:, None]
+    v = np.full(w.shape, np.nan)
+    inside = ctl.domain.contains(w)
+    v[inside] = ctl.navfn.value(w[inside])
+    ax.contour(x, y, v, levels=_levels(v), linewidths=0.6, cmap="viridis")
+    e = np.exp(2j * np.pi * np.linspace(0, 1, 721))
+    ax.plot(e.real, e.imag, "k-", lw=1.2)
+    for c, r in zip(ctl.domain.centers, ctl.domain.radii, strict=True):
+        q = c + r * e
+        ax.fill(q.real, q.imag, color="0.55", ec="k", lw=0.8)
+    _trajectories(ax, mapped)
+    ax.plot(ctl.goal_w.real, ctl.goal_w.imag, "k*", ms=12, mfc="gold")
+    ax.set_xlim(x[0], x[-1])
+    ax.set_ylim(y[0], y[-1])
+    ax.set_aspect("equal")
 
 
 def _trajectories(ax: Axes, paths: Sequence[CArray], outcomes: Sequence[str] = ()) -> None:
@@ -135,7 +165,4 @@ def save_navigation_figure(
 ) -> Path:
     """Write :func:`navigation_figure` to ``path`` (PNG/PDF/SVG by extension)."""
     fig = navigation_figure(ctl, paths, title, outcomes=kw.get("outcomes", ()))
-    out = Path(path)
-    fig.savefig(out, dpi=kw.get("dpi", 120))
-    plt.close(fig)
-    return out
+    return save(fig, path, dpi=kw.get("dpi", 120))

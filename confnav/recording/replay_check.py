@@ -35,7 +35,7 @@ from typing import Any
 
 from confnav.errors import ConfnavError
 from confnav.navigation import messages as navigation
-from confnav.recording.inspect import Recording, RecordingError, decode_message
+from confnav.recording.reader import Recording, RecordingError, decode_message
 from confnav.schemas import (
     Goal,
     Pose,

@@ -20,11 +20,11 @@ from dataclasses import dataclass
 
 import numpy as np
 import shapely
-from numpy.typing import NDArray
 
 from confnav.errors import NavigationError
 from confnav.geometry import Workspace
 from confnav.scenes.workspaces import DEFAULT_GOAL, default_workspace, mixed_obstacles, star
+from confnav.types import CArray
 
 __all__ = [
     "Scenario",
@@ -39,8 +39,6 @@ __all__ = [
     "random_starts",
     "spiral_corridor",
 ]
-
-CArray = NDArray[np.complex128]
 
 
 @dataclass(frozen=True)

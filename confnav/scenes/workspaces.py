@@ -8,7 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from confnav.geometry import ComplexArray, Workspace
+from confnav.geometry import Workspace
+from confnav.types import CArray as ComplexArray
 
 #: The seed's goal (also the default workspace's anchor).
 DEFAULT_GOAL: complex = 0j

@@ -15,9 +15,8 @@ from functools import cache
 from typing import Any, Final, Literal
 
 import numpy as np
-from rosbags.typesys import Stores, get_typestore
-
 from confnav.services.ros2.wire import Ros2Error
+from rosbags.typesys import Stores, get_typestore
 
 TWIST: Final = "geometry_msgs/msg/Twist"
 TWIST_STAMPED: Final = "geometry_msgs/msg/TwistStamped"
