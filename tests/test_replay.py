@@ -331,15 +331,21 @@ def test_recorded_inputs_drive_a_live_controller_to_the_recorded_commands(
         kinds = {k.rsplit("/", 1)[-1] for k in report.published}
         assert kinds == {"definition", "transform", "goal", "pose"}
         poses = sum(n for k, n in report.published.items() if k.endswith("/pose"))
-        # Under CPU load the controller answers only each robot's newest waiting pose
-        # (superseded ones get no command, by design), so wait for the share checked below.
-        wait_for(lambda: len(live) >= 0.95 * poses, timeout=30)
+        # Every pose is accounted for: answered with a command, or superseded by a newer pose
+        # of its robot that was already waiting (by design: the latest pose wins when the
+        # controller is behind, e.g. on a loaded machine). How many are superseded depends on
+        # CPU load, so the count of answers is not a correctness criterion; their values are.
+        c = ctl.counters
+        wait_for(lambda: c["commands"] + c["poses_superseded"] >= poses, timeout=30)
         time.sleep(0.5)
     finally:
         ctl.stop()
     with lock:
         answered = {k: c for k, c in live.items() if c.map_revision is not None and k[1] >= 0}
     common = set(answered) & set(recorded)
-    assert len(common) >= 0.9 * len(recorded)  # all but the first poses before the map
+    assert c["poses"] == poses, c
+    # answered poses are those not superseded (minus the first ones, before the map)
+    assert len(common) >= 0.9 * (len(recorded) - c["poses_superseded"]), (len(common), c)
+    assert len(common) >= 0.5 * len(recorded), (len(common), c)
     for key in common:
         assert abs(complex(*answered[key].linear) - recorded[key]) <= 1e-9, key

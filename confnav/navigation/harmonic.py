@@ -77,7 +77,7 @@ from numpy.typing import ArrayLike
 
 from confnav.errors import NavigationError
 from confnav.navigation.navfn import CircleDomain, NavigationFunction
-from confnav.types import CArray, FArray
+from confnav.types import CArray, FArray, IArray
 
 __all__ = ["GreenBasis", "GreenDiagnostics", "GreenFunction", "HarmonicNavigation"]
 
@@ -373,7 +373,7 @@ class _Centres:
 
     c: CArray
     r: FArray
-    hole: NDArray[np.intp]
+    hole: IArray
     m: int
 
     @classmethod
