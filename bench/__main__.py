@@ -46,6 +46,12 @@ BENCHMARKS: dict[str, Bench] = {
         quick=("--limit", "60"),
     ),
     "eval": Bench("bench_eval.py", "eval.json", "map evaluation and control-step costs"),
+    "scale": Bench(
+        "bench_scale.py",
+        "scale.json",
+        "solver cost at scale: obstacles 10..100, fast vs dense sums",
+        quick=("--obstacles", "5", "10"),
+    ),
     "navigation": Bench(
         "bench_navigation.py",
         "navigation.json",

@@ -222,7 +222,7 @@ class ConformalMap:
         return [-c for c in cauchy_sums(nodes, charges, z)]
 
     def _forward(
-        self, z: ArrayLike, derivative: bool, check: bool
+        self, z: ArrayLike, derivative: bool, check: bool, expand: bool = True
     ) -> tuple[ComplexArray, ComplexArray | None]:
         zz = np.asarray(z, dtype=np.complex128)
         shape = zz.shape
@@ -242,7 +242,7 @@ class ConformalMap:
         idx = np.flatnonzero(ok)
         if idx.size:
             pts = flat[idx]
-            ex = self._expansions(pts.size)
+            ex = self._expansions(pts.size) if expand else None
             if (
                 ex is not None
             ):  # O(1) per point away from the walls (confnav/conformal/expansion.py)
@@ -460,7 +460,9 @@ class ConformalMap:
             owner.append(np.full(pts.size, j))
         z = np.concatenate(targets)
         which = np.concatenate(owner)
-        w = self.T(z, check=False)
+        # points on the walls: no expansion covers them, so none is built for them (a build
+        # for a map of 50 obstacles costs more than the direct/FMM sums at these points)
+        w = self._forward(z, False, False, expand=False)[0]
         c = np.concatenate([[0j], self.centers])[which]
         r = np.concatenate([[1.0], self.radii])[which]
         res = np.abs(np.abs(w - c) - r)
