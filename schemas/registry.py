@@ -9,6 +9,7 @@ from typing import Any, TypeVar
 from pydantic import ValidationError
 
 from confnav.schemas.messages import (
+    AtlasIndex,
     CollisionEvent,
     Goal,
     GoalCancel,
@@ -41,6 +42,7 @@ MESSAGE_MODELS: tuple[type[Message], ...] = (
     SpawnRequest,
     SimControl,
     ServiceHealth,
+    AtlasIndex,
 )
 MODELS_BY_TYPE: dict[str, type[Message]] = {m.TYPE: m for m in MESSAGE_MODELS}
 
@@ -50,6 +52,7 @@ MODEL_BY_KEY_KIND: dict[tuple[str, str], type[Message]] = {
     ("ws", "delete"): WorkspaceDelete,
     ("ws", "transform"): TransformSolution,
     ("ws", "status"): TransformStatus,
+    ("ws", "atlas"): AtlasIndex,
     ("robot", "goal"): Goal,
     ("robot", "cancel"): GoalCancel,
     ("robot", "pose"): Pose,
@@ -66,6 +69,7 @@ DEFAULT_MAX_BYTES = 64 * 1024
 MAX_BYTES: dict[type[Message], int] = {
     WorkspaceDefinition: 2 * 1024 * 1024,
     TransformSolution: 64 * 1024 * 1024,
+    AtlasIndex: 16 * 1024 * 1024,
 }
 
 
