@@ -12,7 +12,7 @@ from confnav.schemas import AtlasIndex, TransformSolution, decode
 from confnav.services.bus import Bus
 from confnav.services.keys import Keys
 
-from confnav.atlas.wire import AtlasMap, atlas_from_index
+from confnav.atlas.wire import AtlasMap, atlas_map_of
 from confnav.errors import ConfnavError
 from confnav.navigation.messages import load_map
 
@@ -43,7 +43,7 @@ def fetch_atlas(
 ) -> AtlasMap:
     """Every chart of ``ws_id``'s atlas, loaded for control (raises AtlasFetchError)."""
     index = index if index is not None else fetch_index(bus, keys, ws_id, timeout)
-    maps = []
+    maps = {}
     for cell in index.cells:
         sol = decode(
             TransformSolution, _query_one(bus, keys.ws(cell.chart_ws_id, "transform"), timeout)
@@ -53,6 +53,5 @@ def fetch_atlas(
                 f"chart {cell.chart_ws_id!r}: revision {sol.revision[:12]} is not the index's "
                 f"{cell.chart_revision[:12]} (re-solved meanwhile)"
             )
-        maps.append(load_map(sol))
-    atlas = atlas_from_index(index, maps)  # the navigation maps serve as the charts
-    return AtlasMap(ws_id, index.revision, index.definition_hash, atlas, nav_maps=maps)
+        maps[sol.revision] = load_map(sol)
+    return atlas_map_of(index, maps)

@@ -35,6 +35,7 @@ from confnav.atlas import plan
 from confnav.atlas.scenes import corridor
 from confnav.atlas.wire import ATLAS_MARKER, atlas_from_index, chart_ws_id
 from confnav.conformal.cmap import ConformalMap
+from confnav.recording.replay_check import check_recording
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
@@ -157,6 +158,10 @@ def test_corridor_atlas_through_the_services(tmp_path: Path) -> None:
                     if not seq or seq[-1] != cmd.chart:
                         seq.append(cmd.chart)
     assert n_index >= 1
+    # replay --check recomputes every command, switching included, from the recording alone
+    report = check_recording(mcap_path)
+    assert report.ok and report.checked > 50, report.format()
+    assert set(report.per_robot) >= set(STARTS)
     assert chart_topics == {k.ws(c.chart_ws_id, "transform") for c in index.cells}
     for rid in STARTS:
         charts_used = seen[rid]

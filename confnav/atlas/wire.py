@@ -12,7 +12,7 @@ at every pose.  ``replay --check`` rebuilds the same objects from a recording.
 from __future__ import annotations
 
 import hashlib
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -33,6 +33,7 @@ __all__ = [
     "AtlasController",
     "AtlasMap",
     "atlas_from_index",
+    "atlas_map_of",
     "atlas_revision",
     "chart_ws_id",
     "index_fields",
@@ -134,6 +135,17 @@ def atlas_from_index(index: Any, charts: Sequence[Any]) -> Atlas:
         int(dec_d["max_obstacles"]),
     )
     return Atlas(dec, tuple(charts), float(index.tol), (), index.wall_time, 1)
+
+
+def atlas_map_of(index: Any, maps: Mapping[str, Any]) -> AtlasMap:
+    """The :class:`AtlasMap` of an ``AtlasIndex`` whose charts' navigation maps are in ``maps``
+    (by revision): what the controller installs and ``replay --check`` rebuilds."""
+    missing = [c.chart_ws_id for c in index.cells if c.chart_revision not in maps]
+    if missing:
+        raise NavigationError(f"atlas {index.ws_id!r}: charts {missing[:5]} missing")
+    charts = [maps[c.chart_revision] for c in index.cells]
+    atlas = atlas_from_index(index, charts)  # the navigation maps serve as the charts
+    return AtlasMap(index.ws_id, index.revision, index.definition_hash, atlas, nav_maps=charts)
 
 
 @dataclass
