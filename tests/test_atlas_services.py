@@ -8,6 +8,7 @@ strictly decreasing rank (no chattering)."""
 
 from __future__ import annotations
 
+import json
 import shutil
 import tempfile
 import threading
@@ -35,7 +36,9 @@ from confnav.atlas import plan
 from confnav.atlas.scenes import corridor
 from confnav.atlas.wire import ATLAS_MARKER, atlas_from_index, chart_ws_id
 from confnav.conformal.cmap import ConformalMap
+from confnav.recording.inspect import add_scene_channels, inspect_recording
 from confnav.recording.replay_check import check_recording
+from confnav.recording.scene import scene_topic
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
@@ -162,6 +165,26 @@ def test_corridor_atlas_through_the_services(tmp_path: Path) -> None:
     report = check_recording(mcap_path)
     assert report.ok and report.checked > 50, report.format()
     assert set(report.per_robot) >= set(STARTS)
+    # inspect: the atlas and each robot's charts; the Foxglove scene: cells and active chart
+    summary = inspect_recording(mcap_path)
+    assert summary.atlases["corr"].revision == index.revision
+    assert "solved as an atlas of" in summary.format()
+    for rid in STARTS:
+        assert summary.robots[rid].charts == seen[rid] and summary.robots[rid].arrived
+    viz = mcap_path.with_name("atlas_viz.mcap")
+    add_scene_channels(mcap_path, viz)
+    entities: dict[str, dict[str, object]] = {}
+    with open(viz, "rb") as f:
+        for _schema, channel, message in make_reader(f).iter_messages():
+            if channel.topic == scene_topic("corr"):
+                for e in json.loads(message.data)["entities"]:
+                    entities[e["id"]] = e
+    assert len(entities["atlas/cells"]["lines"]) == len(index.cells)  # type: ignore[arg-type]
+    for rid in STARTS:  # the last active chart shown is the robot's last chart
+        assert entities[f"chart/{rid}"]["metadata"] == [  # type: ignore[comparison-overlap]
+            {"key": "robot", "value": rid},
+            {"key": "chart", "value": str(seen[rid][-1])},
+        ]
     assert chart_topics == {k.ws(c.chart_ws_id, "transform") for c in index.cells}
     for rid in STARTS:
         charts_used = seen[rid]

@@ -37,6 +37,7 @@ from confnav.recording.layout import METADATA_NAME, RAW_MESSAGE_ENCODING
 from confnav.recording.recover import MCAP_MAGIC, has_footer
 from confnav.schemas import (
     MODELS_BY_TYPE,
+    AtlasIndex,
     CollisionEvent,
     DecodeError,
     Goal,
@@ -244,6 +245,7 @@ class RobotSummary:
     collision_time_s: float | None = None
     collision_at: tuple[float, float] | None = None
     trajectory: list[tuple[float, float]] = field(default_factory=list)
+    charts: list[int] = field(default_factory=list)  # active charts in order (atlas only)
 
 
 @dataclass
@@ -262,6 +264,7 @@ class InspectReport:
     robots: dict[str, RobotSummary]
     unknown_schemas: list[str]
     invalid_messages: int
+    atlases: dict[str, AtlasIndex] = field(default_factory=dict)
 
     @property
     def duration_s(self) -> float:
@@ -283,6 +286,10 @@ class InspectReport:
                 for c in self.channels
             ],
             "workspaces": sorted(self.workspaces),
+            "atlases": {
+                w: {"revision": a.revision, "cells": len(a.cells)}
+                for w, a in sorted(self.atlases.items())
+            },
             "robots": {
                 rid: {
                     "ws_id": r.ws_id,
@@ -295,6 +302,7 @@ class InspectReport:
                     "path_length": r.path_length,
                     "min_clearance": r.min_clearance,
                     "collision_time_s": r.collision_time_s,
+                    "charts": r.charts,
                 }
                 for rid, r in sorted(self.robots.items())
             },
@@ -330,8 +338,11 @@ class InspectReport:
             out.append(f"invalid payloads recorded: {self.invalid_messages}")
         for ws_id, wd in sorted(self.workspaces.items()):
             tr = self.transforms.get(ws_id)
+            atlas = self.atlases.get(ws_id)
             solved = (
-                f"solved (revision {tr.revision[:12]}, {len(tr.radii)} circles)"
+                f"solved as an atlas of {len(atlas.cells)} charts (revision {atlas.revision[:12]})"
+                if atlas
+                else f"solved (revision {tr.revision[:12]}, {len(tr.radii)} circles)"
                 if tr
                 else "no transform recorded"
             )
@@ -345,6 +356,9 @@ class InspectReport:
                 out.append(f"  start {_fmt_pt(r.start)} -> end {_fmt_pt(r.end)}")
             if r.goal is not None:
                 out.append(f"  goal {_fmt_pt(r.goal)}")
+            if r.charts:
+                path = " -> ".join(map(str, r.charts))
+                out.append(f"  charts {path} ({len(r.charts) - 1} switches)")
             if r.arrived:
                 out.append(f"  arrived at t = {r.arrival_time_s:.3f} s ({r.arrival_source})")
             else:
@@ -389,6 +403,7 @@ def inspect_recording(path: str | os.PathLike[str]) -> InspectReport:
         )
         workspaces: dict[str, WorkspaceDefinition] = {}
         transforms: dict[str, TransformSolution] = {}
+        atlases: dict[str, AtlasIndex] = {}
         robots: dict[str, RobotSummary] = {}
         status_arrival: dict[str, int] = {}
         pose_times: dict[str, list[int]] = defaultdict(list)
@@ -426,8 +441,13 @@ def inspect_recording(path: str | os.PathLike[str]) -> InspectReport:
                 r.goal = (model.goal[0], model.goal[1])
                 r.tolerance = model.tolerance
                 r.ws_id = model.ws_id
+            elif isinstance(model, AtlasIndex):
+                atlases[model.ws_id] = model
             elif isinstance(model, VelocityCommand):
-                robot(model.robot_id).commands += 1
+                r = robot(model.robot_id)
+                r.commands += 1
+                if model.chart is not None and (not r.charts or r.charts[-1] != model.chart):
+                    r.charts.append(model.chart)
             elif isinstance(model, CollisionEvent):
                 r = robot(model.robot_id)
                 if r.collision_at is None:
@@ -475,6 +495,7 @@ def inspect_recording(path: str | os.PathLike[str]) -> InspectReport:
             robots=robots,
             unknown_schemas=unknown,
             invalid_messages=invalid,
+            atlases=atlases,
         )
 
 

@@ -61,6 +61,7 @@ Color = tuple[float, float, float, float]
 OUTER_COLOR: Color = (0.1, 0.1, 0.1, 1.0)
 OBSTACLE_COLOR: Color = (0.75, 0.2, 0.1, 1.0)
 GOAL_COLOR: Color = (0.1, 0.7, 0.2, 1.0)
+CELL_COLOR: Color = (0.3, 0.4, 0.9, 0.35)  # atlas cells (issue 15)
 ROBOT_COLORS: tuple[Color, ...] = (
     (0.12, 0.47, 0.71, 1.0),
     (1.0, 0.5, 0.05, 1.0),
@@ -479,6 +480,7 @@ class _Robot:
     trail_step: float = 0.0  # current minimum distance between trail points
     trail_w: list[Point] = field(default_factory=list)  # images of trail[: len(trail_w)]
     trail_w_map: int = 0  # id() of the map trail_w was computed with
+    chart: int | None = None  # active chart on an atlas (from cmd_vel)
 
 
 @dataclass
@@ -600,6 +602,7 @@ class SceneBuilder:
         self.trail_resolution = float(trail_resolution)
         self._ws: dict[str, _Ws] = {}
         self._robots: dict[str, _Robot] = {}
+        self._cells: dict[str, list[list[Point]]] = {}  # atlas ws -> cell outlines
 
     def _robot(self, rid: str) -> _Robot:
         if rid not in self._robots:
@@ -624,7 +627,13 @@ class SceneBuilder:
             if old is not None:  # same workspace id re-defined: keep the map until re-solved
                 self._ws[ident].cmap, self._ws[ident].centers = old.cmap, old.centers
                 self._ws[ident].radii = old.radii
+        elif kind == "ws" and leaf == "atlas":
+            return self._observe_atlas(ident, payload, log_time_ns)
         elif kind == "ws" and leaf == "transform":
+            from confnav.atlas.wire import is_chart_ws_id
+
+            if is_chart_ws_id(ident):  # a chart: drawn as its atlas's cell
+                return []
             ws = self._ws.get(ident)
             cmap = self._load_map(payload)
             if ws is None:
@@ -652,11 +661,58 @@ class SceneBuilder:
                 robot.goal = extract_goal(payload)
                 for ws in self._ws.values():
                     ws.dirty = True
+            elif leaf == "cmd_vel" and isinstance(payload.get("chart"), int):
+                robot.chart = int(payload["chart"])
+                return []
             else:
                 return []
         else:
             return []
         return self._due(log_time_ns, force=False)
+
+    def _observe_atlas(
+        self, ident: str, payload: Mapping[str, Any], log_time_ns: int
+    ) -> list[SceneMessage]:
+        """An ``AtlasIndex``: the cells' outlines (and the workspace, if not defined yet)."""
+        cells = payload.get("cells")
+        if not isinstance(cells, list):
+            return []
+        self._cells[ident] = [_polygon(c.get("outer")) for c in cells if isinstance(c, Mapping)]
+        if ident not in self._ws:
+            dec = payload.get("decomposition")
+            found = extract_workspace(dec) if isinstance(dec, Mapping) else None
+            if found is None:
+                return []
+            self._ws[ident] = _Ws(outer=found[0], obstacles=found[1])
+        self._ws[ident].dirty = True
+        return self._due(log_time_ns, force=False)
+
+    def _atlas_entities(
+        self, ws_id: str, robots: Mapping[str, _Robot], now_ns: int, full: bool
+    ) -> list[dict[str, Any]]:
+        """The cells (full updates) and each robot's active cell, in the robot's colour."""
+        cells = self._cells.get(ws_id)
+        if not cells:
+            return []
+        out = []
+        if full:
+            lines = [line_primitive(c, CELL_COLOR, loop=True, thickness=1.0) for c in cells if c]
+            out.append(scene_entity("atlas/cells", WORKSPACE_FRAME, now_ns, lines=lines))
+        for i, rid in enumerate(sorted(robots)):
+            chart = robots[rid].chart
+            if chart is None or not 0 <= chart < len(cells) or not cells[chart]:
+                continue
+            line = line_primitive(cells[chart], robot_color(i), loop=True, thickness=3.0)
+            out.append(
+                scene_entity(
+                    f"chart/{rid}",
+                    WORKSPACE_FRAME,
+                    now_ns,
+                    lines=[line],
+                    metadata={"robot": rid, "chart": str(chart)},
+                )
+            )
+        return out
 
     def _extend_trail(self, robot: _Robot) -> None:
         p = robot.position
@@ -725,6 +781,7 @@ class SceneBuilder:
         ws_msg = workspace_scene(ws.outer, ws.obstacles, now_ns, views, ws=ws_id)
         if not full:
             ws_msg["entities"] = ws_msg["entities"][1:]
+        ws_msg["entities"] += self._atlas_entities(ws_id, robots, now_ns, full)
         out = [SceneMessage(scene_topic(ws_id, self.prefix), ws_msg, now_ns)]
         if ws.radii:
             w_views = {rid: self._map_view(ws.cmap, r, full) for rid, r in sorted(robots.items())}
