@@ -37,7 +37,6 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from confnav.atlas.wire import ATLAS_MARKER, AtlasMap, is_chart_ws_id
 from confnav.schemas import (
     AtlasIndex,
     DecodeError,
@@ -58,6 +57,7 @@ from confnav.services.runtime import Service, add_zenoh_args, run_until_signal
 from confnav.services.shard import RobotSelector, robot_key_exprs, serialized
 from confnav.services.transform import definition_hash, workspace_of
 
+from confnav.atlas.wire import ATLAS_MARKER, AtlasMap, is_chart_ws_id
 from confnav.navigation import messages as navigation
 
 log = logging.getLogger(__name__)

@@ -8,6 +8,7 @@ strictly decreasing rank (no chattering)."""
 
 from __future__ import annotations
 
+import itertools
 import json
 import shutil
 import tempfile
@@ -190,5 +191,5 @@ def test_corridor_atlas_through_the_services(tmp_path: Path) -> None:
         charts_used = seen[rid]
         assert len(charts_used) >= 3, charts_used  # it switched charts down the corridor
         # no chattering: every switch goes to a cell of strictly lower rank
-        assert all(rank[b] < rank[a] for a, b in zip(charts_used, charts_used[1:])), charts_used
+        assert all(rank[b] < rank[a] for a, b in itertools.pairwise(charts_used)), charts_used
         assert rank[charts_used[-1]] == min(rank[c] for c in charts_used)

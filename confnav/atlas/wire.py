@@ -117,9 +117,10 @@ def atlas_from_index(index: Any, charts: Sequence[Any]) -> Atlas:
     cells = []
     for c, m in zip(index.cells, charts, strict=True):
         cws = Workspace([tuple(p) for p in c.outer], [[tuple(p) for p in o] for o in c.obstacles])
-        if m.workspace.content_hash != Workspace(
-            cws.outer, cws.obstacles, anchor=m.workspace.anchor
-        ).content_hash:
+        if (
+            m.workspace.content_hash
+            != Workspace(cws.outer, cws.obstacles, anchor=m.workspace.anchor).content_hash
+        ):
             raise NavigationError(f"atlas {index.ws_id!r}: chart {c.index} is not its cell's map")
         poly = Polygon(c.outer, [list(o) for o in c.obstacles])
         cut: BaseGeometry = MultiLineString([list(line) for line in c.cut])
