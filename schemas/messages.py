@@ -325,7 +325,8 @@ class ServiceHealth(Message):
 
 
 class AtlasCell(Message):
-    """One cell of an atlas: its free space (``outer`` with ``obstacles`` as holes), the cut
+    """One cell of an atlas: its free space exactly (``outer`` with ``obstacles`` as holes; the
+    chart's workspace is this polygon without collinear vertices), the cut
     edges (polylines of the boundary that are no walls), its core tile ``(x0, y0, x1, y1)``,
     and the chart: the ``TransformSolution`` of workspace ``chart_ws_id`` (``{ws}~c{i}``)."""
 

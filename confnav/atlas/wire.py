@@ -70,6 +70,11 @@ def _lines(g: BaseGeometry) -> list[list[tuple[float, float]]]:
     ]
 
 
+def _ring(coords: Any) -> list[tuple[float, float]]:
+    """A shapely ring's vertices without the closing one (exactly, not simplified)."""
+    return [(float(x), float(y)) for x, y in list(coords)[:-1]]
+
+
 def index_fields(atlas: Atlas) -> dict[str, Any]:
     """The JSON-able description of an atlas's cells and decomposition (no charts): the
     fields of :class:`confnav.schemas.AtlasIndex` but the ids, revisions and stamp."""
@@ -77,12 +82,11 @@ def index_fields(atlas: Atlas) -> dict[str, Any]:
     times = {r.cell: r.wall_time for r in atlas.records if not r.error}
     cells = []
     for c in dec.cells:
-        d = c.workspace.to_dict()
         cells.append(
             {
                 "index": c.index,
-                "outer": [tuple(p) for p in d["outer"]],
-                "obstacles": [[tuple(p) for p in o] for o in d["obstacles"]],
+                "outer": _ring(c.polygon.exterior.coords),
+                "obstacles": [_ring(h.coords) for h in c.polygon.interiors],
                 "cut": _lines(c.cut),
                 "tile": tuple(float(v) for v in c.tile),
                 "solve_time": float(times.get(c.index, 0.0)),
@@ -107,7 +111,7 @@ def index_fields(atlas: Atlas) -> dict[str, Any]:
 
 def atlas_from_index(index: Any, charts: Sequence[Any]) -> Atlas:
     """Rebuild an :class:`Atlas` from an ``AtlasIndex`` message and its charts' maps (cell
-    order).  Cell polygons are the charts' workspaces, cut edges as published."""
+    order).  Cell polygons and cut edges exactly as published (the plan is then the same)."""
     if len(charts) != len(index.cells):
         raise NavigationError(
             f"atlas {index.ws_id!r}: {len(charts)} charts for {len(index.cells)} cells"
@@ -116,13 +120,10 @@ def atlas_from_index(index: Any, charts: Sequence[Any]) -> Atlas:
     ws = Workspace.from_dict(dec_d.pop("workspace"))
     cells = []
     for c, m in zip(index.cells, charts, strict=True):
-        cws = Workspace([tuple(p) for p in c.outer], [[tuple(p) for p in o] for o in c.obstacles])
-        if (
-            m.workspace.content_hash
-            != Workspace(cws.outer, cws.obstacles, anchor=m.workspace.anchor).content_hash
-        ):
-            raise NavigationError(f"atlas {index.ws_id!r}: chart {c.index} is not its cell's map")
         poly = Polygon(c.outer, [list(o) for o in c.obstacles])
+        # the chart's workspace is the cell polygon without collinear vertices
+        if poly.symmetric_difference(m.workspace.polygon).area > 1e-9 * poly.area:
+            raise NavigationError(f"atlas {index.ws_id!r}: chart {c.index} is not its cell's map")
         cut: BaseGeometry = MultiLineString([list(line) for line in c.cut])
         cells.append(Cell(c.index, poly, m.workspace, cut, tuple(c.tile), elongation(poly)))
     dec = Decomposition(
