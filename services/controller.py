@@ -4,7 +4,9 @@ Subscribes ``{prefix}/robot/*/goal``, ``.../cancel``, ``.../pose``, ``{prefix}/w
 ``{prefix}/ws/*/definition`` and the liveliness of ``{prefix}/alive/transform/*``; fetches
 missing maps with a query on ``{prefix}/ws/{ws}/transform``; publishes ``cmd_vel`` and
 ``status`` per robot. A re-solved map is loaded and the robots' controllers rebuilt off the
-pose path, then swapped in atomically.
+pose path, then swapped in atomically. A workspace solved as an atlas (``{prefix}/ws/{ws}/atlas``)
+is fetched by ``services/atlas_client.py`` and each of its robots gets its own chart-switching
+controller (docs/ATLAS.md section 5).
 
 A workspace definition that differs from the one the installed map was solved from makes
 that map outdated: until a map of the new definition is installed, every robot of the
