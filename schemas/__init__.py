@@ -2,6 +2,8 @@
 
 from confnav.schemas.messages import (
     SCHEMA_VERSION,
+    AtlasCell,
+    AtlasIndex,
     CollisionEvent,
     Goal,
     GoalCancel,
@@ -36,6 +38,8 @@ __all__ = [
     "MESSAGE_MODELS",
     "MODELS_BY_TYPE",
     "SCHEMA_VERSION",
+    "AtlasCell",
+    "AtlasIndex",
     "CollisionEvent",
     "DecodeError",
     "Goal",

@@ -227,6 +227,8 @@ class VelocityCommand(Message):
     pose_stamp_ns: TimeNs = 0
     map_revision: str | None = None
     frame: Literal["world", "body"] = "world"
+    chart: Annotated[int, Field(ge=0)] | None = None
+    """Active chart (cell index) of a robot driven on an atlas (None: a single map)."""
 
 
 RobotState = Literal["idle", "navigating", "arrived", "stopped"]
@@ -264,6 +266,8 @@ class RobotStatus(Message):
     map_revision: str | None = None
     position: Point | None = None
     distance_to_goal: Finite | None = None
+    chart: Annotated[int, Field(ge=0)] | None = None
+    """Active chart (cell index) of a robot driven on an atlas (None: a single map)."""
 
 
 class CollisionEvent(Message):
@@ -323,3 +327,46 @@ class ServiceHealth(Message):
     uptime_s: Annotated[float, Field(ge=0.0)]
     counters: dict[str, int] = {}
     detail: Annotated[str, Field(max_length=4096)] = ""
+
+
+class AtlasCell(Message):
+    """One cell of an atlas: its free space exactly (``outer`` with ``obstacles`` as holes; the
+    chart's workspace is this polygon without collinear vertices), the cut
+    edges (polylines of the boundary that are no walls), its core tile ``(x0, y0, x1, y1)``,
+    and the chart: the ``TransformSolution`` of workspace ``chart_ws_id`` (``{ws}~c{i}``)."""
+
+    TYPE: ClassVar[str] = "confnav.AtlasCell"
+    type: Literal["confnav.AtlasCell"] = "confnav.AtlasCell"
+    schema_version: Literal[1] = 1
+    index: Annotated[int, Field(ge=0)]
+    chart_ws_id: Id
+    chart_revision: Annotated[str, Field(min_length=1, max_length=128)]
+    outer: Polygon
+    obstacles: Annotated[list[Polygon], Field(max_length=MAX_OBSTACLES)] = []
+    cut: list[Annotated[list[Point], Field(min_length=2, max_length=MAX_VERTICES)]] = []
+    tile: tuple[Finite, Finite, Finite, Finite]
+    solve_time: Annotated[float, Field(ge=0.0)] = 0.0
+
+
+class AtlasIndex(Message):
+    """A workspace solved as an atlas of charts, on ``{prefix}/ws/{ws}/atlas`` (put on change
+    + queryable); each cell's chart is a ``TransformSolution`` on
+    ``{prefix}/ws/{ws}~c{i}/transform``.  ``margin`` is the decomposition's overlap depth
+    (local goals lie at least that deep in the next cell); ``revision`` changes with any chart;
+    ``decomposition`` the whole workspace and the parameters that made the cells;
+    ``wall_time``/``cpu_time`` the elapsed and summed per-chart solve times.
+    """
+
+    TYPE: ClassVar[str] = "confnav.AtlasIndex"
+    type: Literal["confnav.AtlasIndex"] = "confnav.AtlasIndex"
+    schema_version: Literal[1] = 1
+    ws_id: Id
+    revision: Annotated[str, Field(min_length=1, max_length=128)]
+    definition_hash: Annotated[str, Field(min_length=1, max_length=128)]
+    stamp_ns: TimeNs
+    margin: Positive
+    tol: Positive
+    cells: Annotated[list[AtlasCell], Field(min_length=1, max_length=4096)]
+    decomposition: dict[str, JsonValue]
+    wall_time: Annotated[float, Field(ge=0.0)] = 0.0
+    cpu_time: Annotated[float, Field(ge=0.0)] = 0.0

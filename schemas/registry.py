@@ -7,6 +7,7 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 from confnav.schemas.messages import (
+    AtlasIndex,
     CollisionEvent,
     Goal,
     GoalCancel,
@@ -40,6 +41,7 @@ MESSAGE_MODELS: tuple[type[Message], ...] = (
     SpawnRequest,
     SimControl,
     ServiceHealth,
+    AtlasIndex,
 )
 MODELS_BY_TYPE: dict[str, type[Message]] = {m.TYPE: m for m in MESSAGE_MODELS}
 
@@ -49,6 +51,7 @@ MODEL_BY_KEY_KIND: dict[tuple[str, str], type[Message]] = {
     ("ws", "delete"): WorkspaceDelete,
     ("ws", "transform"): TransformSolution,
     ("ws", "status"): TransformStatus,
+    ("ws", "atlas"): AtlasIndex,
     ("robot", "goal"): Goal,
     ("robot", "cancel"): GoalCancel,
     ("robot", "pose"): Pose,
@@ -65,6 +68,7 @@ DEFAULT_MAX_BYTES = 64 * 1024
 MAX_BYTES: dict[type[Message], int] = {
     WorkspaceDefinition: 2 * 1024 * 1024,
     TransformSolution: 64 * 1024 * 1024,
+    AtlasIndex: 16 * 1024 * 1024,
 }
 
 

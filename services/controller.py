@@ -4,7 +4,9 @@ Subscribes ``{prefix}/robot/*/goal``, ``.../cancel``, ``.../pose``, ``{prefix}/w
 ``{prefix}/ws/*/definition`` and the liveliness of ``{prefix}/alive/transform/*``; fetches
 missing maps with a query on ``{prefix}/ws/{ws}/transform``; publishes ``cmd_vel`` and
 ``status`` per robot. A re-solved map is loaded and the robots' controllers rebuilt off the
-pose path, then swapped in atomically.
+pose path, then swapped in atomically. A workspace solved as an atlas (``{prefix}/ws/{ws}/atlas``)
+is fetched by ``services/atlas_client.py`` and each of its robots gets its own chart-switching
+controller (docs/ATLAS.md section 5).
 
 A workspace definition that differs from the one the installed map was solved from makes
 that map outdated: until a map of the new definition is installed, every robot of the
@@ -38,6 +40,7 @@ from typing import Any
 
 import numpy as np
 from confnav.schemas import (
+    AtlasIndex,
     DecodeError,
     Goal,
     GoalCancel,
@@ -49,12 +52,14 @@ from confnav.schemas import (
     decode,
     encode,
 )
+from confnav.services.atlas_client import fetch_atlas
 from confnav.services.bus import Bus
 from confnav.services.keys import KeyError_, Keys
 from confnav.services.runtime import Service, add_zenoh_args, run_until_signal
 from confnav.services.shard import RobotSelector, robot_key_exprs, serialized
 from confnav.services.transform import definition_hash, workspace_of
 
+from confnav.atlas.wire import ATLAS_MARKER, AtlasMap, is_chart_ws_id
 from confnav.navigation import messages as navigation
 
 log = logging.getLogger(__name__)
@@ -165,6 +170,7 @@ class ControllerService(Service):
         self._handles.append(self.bus.subscribe(k.any_ws("transform"), self._on_transform))
         self._handles.append(self.bus.subscribe(k.any_ws("definition"), self._on_definition))
         self._handles.append(self.bus.subscribe(k.any_ws("delete"), self._on_ws_delete))
+        self._handles.append(self.bus.subscribe(k.any_ws("atlas"), self._on_atlas))
         # this process's robots only (scale-out: services/shard.py, docs/SERVICES.md)
         exprs = robot_key_exprs(k, "goal", self.only)
         on_goals = serialized(self._on_goals) if len(exprs) > 1 else self._on_goals
@@ -249,16 +255,19 @@ class ControllerService(Service):
         if sol.ws_id != ws_id:
             self.count("rejected")
             return
+        if is_chart_ws_id(ws_id):  # a chart of an atlas: installed with its atlas
+            return
         self._install(sol)
 
-    def _install(self, sol: TransformSolution) -> None:
-        """Load a solution and rebuild the controllers of its robots, then swap (hot)."""
+    def _install(self, sol: TransformSolution | AtlasMap) -> None:
+        """Load a solution (or take a fetched atlas) and rebuild the controllers of its
+        robots, then swap (hot)."""
         ws_id = sol.ws_id
         cur = self._maps.get(ws_id)
         if cur is not None and cur.revision == sol.revision:
             return
         try:
-            cmap = self._load_map(sol)
+            cmap = sol if isinstance(sol, AtlasMap) else self._load_map(sol)
         except Exception as exc:
             self.count("map_load_errors")
             self._map_errors[ws_id] = f"cannot load map: {exc}"
@@ -362,6 +371,8 @@ class ControllerService(Service):
 
     def _build(self, m: _Map, goal: Goal) -> tuple[navigation.ControllerLike | None, str]:
         key = (m.revision, *navigation.goal_key(goal))
+        if getattr(m.cmap, "per_robot", False):  # an atlas: the controller holds the chart
+            key = (*key, goal.robot_id)
         with self._build_lock:
             ctrl = self._ctrl_cache.get(key)
             if ctrl is not None:
@@ -406,6 +417,9 @@ class ControllerService(Service):
         for rep in replies:
             if not rep.ok or rep.payload is None:
                 self._map_errors[ws_id] = rep.error or "error"
+                if (rep.error or "").startswith(ATLAS_MARKER):  # solved as an atlas
+                    self._fetch_atlas(ws_id)
+                    return
                 continue
             try:
                 sol = decode(TransformSolution, rep.payload)
@@ -414,6 +428,28 @@ class ControllerService(Service):
                 continue
             self._install(sol)
             return
+
+    def _fetch_atlas(self, ws_id: str, index: AtlasIndex | None = None) -> None:
+        """Fetch and install the atlas of ``ws_id`` (services/atlas_client.py)."""
+        try:
+            self._install(fetch_atlas(self.bus, self.keys, ws_id, index))
+        except Exception as exc:
+            self._map_errors[ws_id] = f"cannot fetch atlas: {exc}"
+            log.warning("workspace %r: cannot fetch atlas: %s", ws_id, exc)
+
+    def _on_atlas(self, key: str, payload: bytes) -> None:
+        """A (re)solved atlas: fetched and installed off the subscriber thread."""
+        try:
+            index = decode(AtlasIndex, payload)
+            if index.ws_id != self.keys.parse(key).ident:
+                raise DecodeError("invalid_input", f"atlas on {key} names {index.ws_id!r}")
+        except (KeyError_, DecodeError) as exc:
+            self.count("rejected")
+            log.warning("rejected atlas on %s: %s", key, exc)
+            return
+        cur = self._maps.get(index.ws_id)
+        if cur is None or cur.revision != index.revision:
+            self.spawn(lambda: self._fetch_atlas(index.ws_id, index), "atlas-fetch")
 
     # goals -------------------------------------------------------------------------------
     def _robot(self, rid: str) -> _Robot | None:
@@ -655,6 +691,7 @@ class ControllerService(Service):
             pose_seq=pose.seq if pose is not None else -1,
             pose_stamp_ns=pose.stamp_ns if pose is not None else 0,
             map_revision=r.ctrl_revision,
+            chart=getattr(r.ctrl, "active_chart", None),
         )
         key = self._cmd_keys.get(r.robot_id)
         if key is None:
@@ -663,7 +700,8 @@ class ControllerService(Service):
         self.count("commands")
 
     def _status(self, r: _Robot, state: str, reason: str, message: str, now: float) -> None:
-        skey = (state, reason, r.ctrl_revision, message)
+        chart = getattr(r.ctrl, "active_chart", None)
+        skey = (state, reason, r.ctrl_revision, message + f"|{chart}")
         if skey == r.status_key and now - r.status_t < self.status_period:
             return
         if skey[:2] != r.status_key[:2]:  # a new state or reason: worth a line in the log
@@ -684,6 +722,7 @@ class ControllerService(Service):
             map_revision=r.ctrl_revision,
             position=r.position,
             distance_to_goal=dist,
+            chart=chart,
         )
         self._emit(self.keys.robot(r.robot_id, "status"), encode(status))
 

@@ -5,6 +5,8 @@ Every key starts with a configurable prefix (default ``confnav``)::
     {prefix}/ws/{ws}/definition        WorkspaceDefinition (put; transform service subscribes)
     {prefix}/ws/{ws}/transform         TransformSolution (put on change + queryable)
     {prefix}/ws/{ws}/status            TransformStatus (solving / solved / failed)
+    {prefix}/ws/{ws}/atlas             AtlasIndex (put on change + queryable; charts on
+                                       {prefix}/ws/{ws}~c{i}/transform)
     {prefix}/robot/{r}/goal            Goal
     {prefix}/robot/{r}/pose            Pose
     {prefix}/robot/{r}/cmd_vel         VelocityCommand
@@ -30,7 +32,7 @@ from confnav.schemas.messages import ID_PATTERN, MAX_ID_LENGTH
 DEFAULT_PREFIX: Final = "confnav"
 _ID_RE = re.compile(ID_PATTERN)
 
-WS_KINDS: Final = ("definition", "delete", "transform", "status")
+WS_KINDS: Final = ("definition", "delete", "transform", "status", "atlas")
 ROBOT_KINDS: Final = ("goal", "cancel", "pose", "cmd_vel", "status", "collision")
 SIM_KINDS: Final = ("spawn", "control")
 

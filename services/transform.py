@@ -49,6 +49,7 @@ from confnav.schemas import (
     decode,
     encode,
 )
+from confnav.services.atlas_transform import AtlasStore, finish_atlas
 from confnav.services.bus import Bus, QueryError
 from confnav.services.keys import KeyError_, Keys
 from confnav.services.runtime import Service, add_zenoh_args, run_until_signal
@@ -117,11 +118,17 @@ def _xy(z: complex) -> tuple[float, float]:
 
 
 def solve_definition(defn_json: str) -> dict[str, Any]:
-    """Solve one workspace (runs in a worker process): the map's coefficients and summary."""
-    from confnav.conformal.solver import solve
+    """Solve one workspace (runs in a worker process): the map's coefficients and summary;
+    a workspace too crowded for one map is solved as an atlas (``{"atlas": ..., "charts":
+    [...]}``, :func:`confnav.services.atlas_transform.solve_or_atlas`)."""
+    from confnav.services.atlas_transform import solve_or_atlas
 
     defn = WorkspaceDefinition.model_validate_json(defn_json)
-    cmap = solve(workspace_of(defn), tol=defn.tol)
+    return solve_or_atlas(workspace_of(defn), defn.tol)
+
+
+def solution_result(cmap: Any, tol: float) -> dict[str, Any]:
+    """The solve result dict of one map (what :class:`TransformSolution` is built from)."""
     diag = cmap.diagnostics
     nodes = getattr(diag, "nodes", None) or getattr(diag, "nodes_per_boundary", None) or []
     return {
@@ -133,7 +140,7 @@ def solve_definition(defn_json: str) -> dict[str, Any]:
             "sweeps": int(getattr(diag, "sweeps", 0)),
             "error_estimate": float(getattr(diag, "error_estimate", 0.0)),
             "wall_time": float(getattr(diag, "wall_time", 0.0)),
-            "tol": float(getattr(diag, "tol", defn.tol)),
+            "tol": float(getattr(diag, "tol", tol)),
             "nodes": [int(n) for n in nodes],
             "boundary_residual": float(diag.boundary_residual),
             "tol_met": bool(diag.tol_met),
@@ -212,6 +219,7 @@ class TransformService(Service):
         self._abandoned: set[cf.Future[dict[str, Any]]] = set()  # timed out: result ignored
         self._cache_dir = Path(cache_dir) if cache_dir else None
         self.solved = threading.Event()  # set each time a solution is published (tests)
+        self.atlases = AtlasStore()  # workspaces solved as atlases (index + charts)
 
     # lifecycle -------------------------------------------------------------------------
     def _new_pool(self) -> cf.Executor:
@@ -232,6 +240,7 @@ class TransformService(Service):
         )
         self._handles.append(self.bus.subscribe(self.keys.any_ws("delete"), self._on_delete))
         self._handles.append(self.bus.queryable(self.keys.any_ws("transform"), self._on_query))
+        self._handles.append(self.bus.queryable(self.keys.any_ws("atlas"), self._on_query))
         defs: dict[str, WorkspaceDefinition] = {}
         for ws_id, source in self.sources.items():
             try:
@@ -304,6 +313,7 @@ class TransformService(Service):
             return
         with self._lock:
             st = self._ws.pop(ws_id, None)
+        self.atlases.forget(ws_id)
         path = self._definition_path(ws_id)
         if path is not None:
             path.unlink(missing_ok=True)
@@ -448,6 +458,11 @@ class TransformService(Service):
     def _finish(self, ws_id: str, h: str, result: dict[str, Any] | None, error: str | None) -> None:
         if self.stopped:
             return
+        if error is None and result is not None and "atlas" in result:
+            error = finish_atlas(self, ws_id, h, result)  # publishes index and charts
+            if error is None:
+                return
+            result = None
         msg: TransformSolution | None = None
         if error is None and result is not None:
             try:
@@ -474,6 +489,7 @@ class TransformService(Service):
             if msg is None:
                 st.state, st.error = "failed", error or ""
             else:
+                self.atlases.forget(ws_id)  # solved as one map (again)
                 if st.solution is None or st.revision != msg.revision:
                     data = encode(msg)
                     st.solution = data
@@ -527,6 +543,12 @@ class TransformService(Service):
                 self.count("bad_queries")
                 raise QueryError(f"bad key {keyexpr[:80]!r}: {exc}") from None
             parsed = None
+        if parsed is not None:
+            hit = self.atlases.answer(keyexpr, parsed.ident, parsed.kind)
+            if hit is not None:
+                return hit
+        elif keyexpr.endswith("/atlas"):
+            return self.atlases.answer_wildcard(keyexpr)
         if parsed is not None and parsed.ident not in self._ws:
             err = self._derive(parsed.ident)  # a footprint workspace {ws}~r{R} of a known one
             if err:

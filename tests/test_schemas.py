@@ -51,6 +51,25 @@ SAMPLES: list[S.Message] = [
     S.SpawnRequest(robot_id="r2", ws_id="w1", position=(0.3, 0.3)),
     S.SimControl(action="reset", robot_id="r2"),
     S.ServiceHealth(service="transform", zid="abc", stamp_ns=8, state="ok", uptime_s=1.0),
+    S.AtlasIndex(
+        ws_id="w1",
+        revision="r2",
+        definition_hash="h",
+        stamp_ns=9,
+        margin=0.1,
+        tol=1e-8,
+        cells=[
+            S.AtlasCell(
+                index=0,
+                chart_ws_id="w1~c0",
+                chart_revision="c0",
+                outer=[(0, 0), (1, 0), (1, 1), (0, 1)],
+                cut=[[(1, 0), (1, 1)]],
+                tile=(0, 0, 1, 1),
+            )
+        ],
+        decomposition={"tile": 1.0},
+    ),
 ]
 
 

@@ -15,6 +15,7 @@ References
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -157,6 +158,8 @@ class AtlasNavigator:
         Theorem 2 field times ``speed``, slowing linearly within ``floor_radius`` of a goal
         (the controller's normalized speed law, ``v = min(speed, speed |x - x_d| /
         floor_radius)``; a positive rescaling keeps the integral curves).
+    nav_maps, links : the charts' ``for_navigation()`` maps and :func:`overlaps`, when the
+        caller already has them (one per atlas, shared by every goal); computed otherwise.
     controller_kw : further :class:`confnav.Controller` keywords (``navfn``, ``goal_tol``).
     """
 
@@ -168,6 +171,8 @@ class AtlasNavigator:
         hysteresis: float | None = None,
         speed: float = 1.0,
         floor_radius: float | None = None,
+        nav_maps: Sequence[Any] | None = None,
+        links: list[Overlap] | None = None,
         **controller_kw: Any,
     ) -> None:
         self.atlas = atlas
@@ -176,13 +181,15 @@ class AtlasNavigator:
         self.hysteresis = float(hysteresis) if hysteresis is not None else margin / 2
         if not 0 < self.hysteresis < margin:
             raise NavigationError(f"hysteresis must be in (0, margin={margin:g})")
-        self.plan = plan(atlas, goal)
+        self.plan = plan(atlas, goal, links)
         self.goal = self.plan.goal
         self.speed = float(speed)
         self.floor_radius = float(floor_radius) if floor_radius is not None else margin
         self.controller_kw = controller_kw
         self._controllers: dict[int, Controller] = {}
-        self._nav_maps = [m.for_navigation() for m in atlas.charts]
+        self._nav_maps = (
+            list(nav_maps) if nav_maps is not None else [m.for_navigation() for m in atlas.charts]
+        )
         tree = shapely.STRtree([c.polygon for c in self.cells])
         a, b = tree.query([c.polygon for c in self.cells], predicate="intersects")
         rank = self.plan.rank

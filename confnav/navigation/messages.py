@@ -88,6 +88,8 @@ def make_controller(cmap: Any, goal: Goal) -> ControllerLike:
     from confnav.maps.footprint import UnreachableGoalError
     from confnav.navigation.control import Controller
 
+    if getattr(cmap, "is_atlas", False):  # confnav.atlas.wire.AtlasMap: per-robot switching
+        return cmap.controller(goal)  # type: ignore[no-any-return]
     try:
         ctrl = Controller(
             cmap,

@@ -26,6 +26,7 @@ from confnav.recording.reader import NS_PER_S, ChannelInfo, Recording, decode_me
 from confnav.recording.scene import SCENE_SCHEMA_NAME
 from confnav.schemas import (
     MODELS_BY_TYPE,
+    AtlasIndex,
     CollisionEvent,
     Goal,
     Pose,
@@ -62,6 +63,7 @@ class RobotSummary:
     collision_time_s: float | None = None
     collision_at: tuple[float, float] | None = None
     trajectory: list[tuple[float, float]] = field(default_factory=list)
+    charts: list[int] = field(default_factory=list)  # active charts in order (atlas only)
 
 
 @dataclass
@@ -80,6 +82,7 @@ class InspectReport:
     robots: dict[str, RobotSummary]
     unknown_schemas: list[str]
     invalid_messages: int
+    atlases: dict[str, AtlasIndex] = field(default_factory=dict)
 
     @property
     def duration_s(self) -> float:
@@ -103,6 +106,10 @@ class InspectReport:
                 for c in self.channels
             ],
             "workspaces": sorted(self.workspaces),
+            "atlases": {
+                w: {"revision": a.revision, "cells": len(a.cells)}
+                for w, a in sorted(self.atlases.items())
+            },
             "robots": {
                 rid: {
                     "ws_id": r.ws_id,
@@ -116,6 +123,7 @@ class InspectReport:
                     "path_length": r.path_length,
                     "min_clearance": r.min_clearance,
                     "collision_time_s": r.collision_time_s,
+                    "charts": r.charts,
                 }
                 for rid, r in sorted(self.robots.items())
             },
@@ -152,8 +160,11 @@ class InspectReport:
             out.append(f"invalid payloads recorded: {self.invalid_messages}")
         for ws_id, wd in sorted(self.workspaces.items()):
             tr = self.transforms.get(ws_id)
+            atlas = self.atlases.get(ws_id)
             solved = (
-                f"solved (revision {tr.revision[:12]}, {len(tr.radii)} circles)"
+                f"solved as an atlas of {len(atlas.cells)} charts (revision {atlas.revision[:12]})"
+                if atlas
+                else f"solved (revision {tr.revision[:12]}, {len(tr.radii)} circles)"
                 if tr
                 else "no transform recorded"
             )
@@ -167,6 +178,9 @@ class InspectReport:
                 out.append(f"  start {_fmt_pt(r.start)} -> end {_fmt_pt(r.end)}")
             if r.goal is not None:
                 out.append(f"  goal {_fmt_pt(r.goal)}")
+            if r.charts:
+                path = " -> ".join(map(str, r.charts))
+                out.append(f"  charts {path} ({len(r.charts) - 1} switches)")
             if r.arrived and r.arrival_time_s is not None:
                 after = (
                     f", {r.arrival_time_s - r.goal_time_s:.3f} s after its goal"
@@ -216,6 +230,7 @@ def inspect_recording(path: str | os.PathLike[str]) -> InspectReport:
         )
         workspaces: dict[str, WorkspaceDefinition] = {}
         transforms: dict[str, TransformSolution] = {}
+        atlases: dict[str, AtlasIndex] = {}
         robots: dict[str, RobotSummary] = {}
         status_arrival: dict[str, int] = {}
         pose_times: dict[str, list[int]] = defaultdict(list)
@@ -254,8 +269,13 @@ def inspect_recording(path: str | os.PathLike[str]) -> InspectReport:
                 r.tolerance = model.tolerance
                 r.ws_id = model.ws_id
                 r.goal_time_s = (msg.log_time_ns - first_ns) / NS_PER_S
+            elif isinstance(model, AtlasIndex):
+                atlases[model.ws_id] = model
             elif isinstance(model, VelocityCommand):
-                robot(model.robot_id).commands += 1
+                r = robot(model.robot_id)
+                r.commands += 1
+                if model.chart is not None and (not r.charts or r.charts[-1] != model.chart):
+                    r.charts.append(model.chart)
             elif isinstance(model, CollisionEvent):
                 r = robot(model.robot_id)
                 if r.collision_at is None:
@@ -303,6 +323,7 @@ def inspect_recording(path: str | os.PathLike[str]) -> InspectReport:
             robots=robots,
             unknown_schemas=unknown,
             invalid_messages=invalid,
+            atlases=atlases,
         )
 
 

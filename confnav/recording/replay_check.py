@@ -33,10 +33,12 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
+from confnav.atlas.wire import atlas_map_of
 from confnav.errors import ConfnavError
 from confnav.navigation import messages as navigation
 from confnav.recording.reader import Recording, RecordingError, decode_message
 from confnav.schemas import (
+    AtlasIndex,
     Goal,
     Pose,
     RobotStatus,
@@ -202,6 +204,14 @@ class _Controllers:
                     f"loaded by this version: {type(exc).__name__}: {exc}"
                 ) from exc
 
+    def add_atlas(self, index: AtlasIndex) -> None:
+        """An atlas from its recorded index and charts (confnav.atlas.wire.atlas_map_of)."""
+        if index.revision not in self.maps:
+            try:
+                self.maps[index.revision] = atlas_map_of(index, self.maps)
+            except ConfnavError as exc:  # its commands count as "map revision not recorded"
+                logger.warning("%s", exc)
+
     def get(self, goal: Goal, revision: str) -> navigation.ControllerLike | None:
         key = (goal.model_dump_json(), revision)
         if key in self._ctrls:
@@ -257,6 +267,8 @@ def check_recording(
             model = decode_message(msg)
             if isinstance(model, TransformSolution):
                 ctrls.add_solution(model)
+            elif isinstance(model, AtlasIndex):  # after its charts (published first)
+                ctrls.add_atlas(model)
             elif isinstance(model, Goal):
                 goals[model.robot_id] = _apply(model, overrides)
             elif isinstance(model, Pose):

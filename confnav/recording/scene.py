@@ -46,6 +46,7 @@ Color = tuple[float, float, float, float]
 OUTER_COLOR: Color = (0.1, 0.1, 0.1, 1.0)
 OBSTACLE_COLOR: Color = (0.75, 0.2, 0.1, 1.0)
 GOAL_COLOR: Color = (0.1, 0.7, 0.2, 1.0)
+CELL_COLOR: Color = (0.3, 0.4, 0.9, 0.35)  # atlas cells (issue 15)
 ROBOT_COLORS: tuple[Color, ...] = (
     (0.12, 0.47, 0.71, 1.0),
     (1.0, 0.5, 0.05, 1.0),

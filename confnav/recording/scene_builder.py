@@ -16,18 +16,25 @@ from dataclasses import dataclass, field
 from typing import Any, NamedTuple, Protocol
 
 from confnav.recording.scene import (
+    CELL_COLOR,
+    WORKSPACE_FRAME,
     RobotView,
     circle_domain_scene,
     circle_domain_topic,
+    line_primitive,
+    robot_color,
+    scene_entity,
     scene_topic,
     workspace_scene,
 )
 from confnav.schemas import (
+    AtlasIndex,
     Goal,
     Message,
     Pose,
     RobotStatus,
     TransformSolution,
+    VelocityCommand,
     WorkspaceDefinition,
     decode,
     model_for_key_parts,
@@ -95,6 +102,7 @@ class _Robot:
     trail_step: float = 0.0  # current minimum distance between trail points
     trail_w: list[Point] = field(default_factory=list)  # images of trail[: len(trail_w)]
     trail_w_map: int = 0  # id() of the map trail_w was computed with
+    chart: int | None = None  # active chart on an atlas (from cmd_vel)
 
 
 @dataclass
@@ -178,6 +186,7 @@ class SceneBuilder:
         self.trail_resolution = float(trail_resolution)
         self._ws: dict[str, _Ws] = {}
         self._robots: dict[str, _Robot] = {}
+        self._cells: dict[str, list[list[Point]]] = {}  # atlas ws -> cell outlines
 
     def _robot(self, rid: str) -> _Robot:
         if rid not in self._robots:
@@ -195,7 +204,13 @@ class SceneBuilder:
             ws = self._ws[message.ws_id] = _Ws(outer=message.outer, obstacles=message.obstacles)
             if old is not None:  # same workspace id re-defined: keep the map until re-solved
                 ws.cmap, ws.centers, ws.radii = old.cmap, old.centers, old.radii
+        elif isinstance(message, AtlasIndex):
+            self._on_atlas(message)
         elif isinstance(message, TransformSolution):
+            from confnav.atlas.wire import is_chart_ws_id
+
+            if is_chart_ws_id(message.ws_id):  # a chart: drawn as its atlas's cell
+                return []
             self._on_transform(message)
         elif isinstance(message, Goal):
             robot = self._robot(message.robot_id)
@@ -208,6 +223,9 @@ class SceneBuilder:
             self._extend_trail(robot)
         elif isinstance(message, RobotStatus) and message.ws_id is not None:
             self._robot(message.robot_id).ws = message.ws_id
+        elif isinstance(message, VelocityCommand) and message.chart is not None:
+            self._robot(message.robot_id).chart = message.chart
+            return []
         else:
             return []
         return self._due(log_time_ns, force=False)
@@ -231,6 +249,46 @@ class SceneBuilder:
         ws.dirty = True
         if ws.cmap is None:
             ws.cmap = self._load_map(solution)  # raises on a bad map: circles still drawn
+
+    def _on_atlas(self, index: AtlasIndex) -> None:
+        """The cells' outlines (and the whole workspace, if not defined yet)."""
+        self._cells[index.ws_id] = [list(c.outer) for c in index.cells]
+        if index.ws_id not in self._ws:
+            from confnav.geometry import Workspace
+
+            ws = Workspace.from_dict(index.decomposition["workspace"])
+            self._ws[index.ws_id] = _Ws(
+                outer=[(z.real, z.imag) for z in ws.outer],
+                obstacles=[[(z.real, z.imag) for z in ob] for ob in ws.obstacles],
+            )
+        self._ws[index.ws_id].dirty = True
+
+    def _atlas_entities(
+        self, ws_id: str, robots: dict[str, _Robot], now_ns: int, full: bool
+    ) -> list[dict[str, Any]]:
+        """The cells (full updates) and each robot's active cell, in the robot's colour."""
+        cells = self._cells.get(ws_id)
+        if not cells:
+            return []
+        out = []
+        if full:
+            lines = [line_primitive(c, CELL_COLOR, loop=True, thickness=1.0) for c in cells if c]
+            out.append(scene_entity("atlas/cells", WORKSPACE_FRAME, now_ns, lines=lines))
+        for i, rid in enumerate(sorted(robots)):
+            chart = robots[rid].chart
+            if chart is None or not 0 <= chart < len(cells):
+                continue
+            line = line_primitive(cells[chart], robot_color(i), loop=True, thickness=3.0)
+            out.append(
+                scene_entity(
+                    f"chart/{rid}",
+                    WORKSPACE_FRAME,
+                    now_ns,
+                    lines=[line],
+                    metadata={"robot": rid, "chart": str(chart)},
+                )
+            )
+        return out
 
     def _extend_trail(self, robot: _Robot) -> None:
         p = robot.position
@@ -299,6 +357,7 @@ class SceneBuilder:
         ws_msg = workspace_scene(ws.outer, ws.obstacles, now_ns, views, ws=ws_id)
         if not full:
             ws_msg["entities"] = ws_msg["entities"][1:]
+        ws_msg["entities"] += self._atlas_entities(ws_id, robots, now_ns, full)
         out = [SceneMessage(scene_topic(ws_id, self.prefix), ws_msg, now_ns)]
         if ws.radii:
             w_views = {rid: self._map_view(ws.cmap, r, full) for rid, r in sorted(robots.items())}

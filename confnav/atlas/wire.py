@@ -1,0 +1,240 @@
+"""Atlases on the wire: the index of cells (:class:`confnav.schemas.AtlasIndex`) and the
+per-robot switching controller the controller service runs on an atlas.
+
+Pure (no Zenoh, no I/O): the transform service turns a solved :class:`Atlas` into an index
+(:func:`index_fields`) and one ``TransformSolution`` per chart; the controller service
+rebuilds the atlas from them (:func:`atlas_from_index`) and drives each robot with an
+:class:`AtlasController`, which keeps that robot's active chart and applies the switching
+rule of :class:`confnav.atlas.compose.AtlasNavigator` (hysteresis, strictly decreasing rank)
+at every pose.  ``replay --check`` rebuilds the same objects from a recording.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike
+from shapely.geometry import LineString, MultiLineString, Polygon
+from shapely.geometry.base import BaseGeometry
+
+from confnav.atlas.charts import Atlas
+from confnav.atlas.compose import AtlasNavigator, Overlap, overlaps
+from confnav.atlas.decompose import Cell, Decomposition, elongation
+from confnav.errors import NavigationError
+from confnav.geometry import Workspace
+from confnav.navigation.control import ControlOutput, Status
+
+__all__ = [
+    "ATLAS_MARKER",
+    "AtlasController",
+    "AtlasMap",
+    "atlas_from_index",
+    "atlas_map_of",
+    "atlas_revision",
+    "chart_ws_id",
+    "index_fields",
+    "is_chart_ws_id",
+]
+
+#: Start of the error a transform query answers for a workspace solved as an atlas.
+ATLAS_MARKER = "atlas:"
+
+
+def chart_ws_id(ws_id: str, index: int) -> str:
+    """The workspace id under which chart ``index`` of atlas ``ws_id`` is published."""
+    return f"{ws_id}~c{index}"
+
+
+def is_chart_ws_id(ws_id: str) -> bool:
+    """True for an id of the form :func:`chart_ws_id` makes (``{ws}~c{i}``)."""
+    head, sep, tail = ws_id.rpartition("~c")
+    return bool(sep and head and tail.isdigit())
+
+
+def atlas_revision(chart_revisions: Sequence[str]) -> str:
+    """Revision of an atlas: a hash of its charts' revisions in cell order."""
+    return hashlib.sha256("|".join(chart_revisions).encode()).hexdigest()
+
+
+def _lines(g: BaseGeometry) -> list[list[tuple[float, float]]]:
+    """The polylines of a (multi)line geometry, as lists of points."""
+    parts = getattr(g, "geoms", [g])
+    return [
+        [(float(x), float(y)) for x, y in p.coords]
+        for p in parts
+        if isinstance(p, LineString) and not p.is_empty and len(p.coords) >= 2
+    ]
+
+
+def _ring(coords: Any) -> list[tuple[float, float]]:
+    """A shapely ring's vertices without the closing one (exactly, not simplified)."""
+    return [(float(x), float(y)) for x, y in list(coords)[:-1]]
+
+
+def index_fields(atlas: Atlas) -> dict[str, Any]:
+    """The JSON-able description of an atlas's cells and decomposition (no charts): the
+    fields of :class:`confnav.schemas.AtlasIndex` but the ids, revisions and stamp."""
+    dec = atlas.decomposition
+    times = {r.cell: r.wall_time for r in atlas.records if not r.error}
+    cells = []
+    for c in dec.cells:
+        cells.append(
+            {
+                "index": c.index,
+                "outer": _ring(c.polygon.exterior.coords),
+                "obstacles": [_ring(h.coords) for h in c.polygon.interiors],
+                "cut": _lines(c.cut),
+                "tile": tuple(float(v) for v in c.tile),
+                "solve_time": float(times.get(c.index, 0.0)),
+            }
+        )
+    return {
+        "margin": float(dec.margin),
+        "tol": float(atlas.tol),
+        "cells": cells,
+        "wall_time": float(atlas.wall_time),
+        "cpu_time": float(atlas.cpu_time),
+        "decomposition": {
+            "workspace": dec.workspace.to_dict(),
+            "tile": dec.tile,
+            "overlap": dec.overlap,
+            "max_ratio": dec.max_ratio,
+            "max_ratio_holes": dec.max_ratio_holes,
+            "max_obstacles": dec.max_obstacles,
+        },
+    }
+
+
+def atlas_from_index(index: Any, charts: Sequence[Any]) -> Atlas:
+    """Rebuild an :class:`Atlas` from an ``AtlasIndex`` message and its charts' maps (cell
+    order).  Cell polygons and cut edges exactly as published (the plan is then the same)."""
+    if len(charts) != len(index.cells):
+        raise NavigationError(
+            f"atlas {index.ws_id!r}: {len(charts)} charts for {len(index.cells)} cells"
+        )
+    dec_d = dict(index.decomposition)
+    ws = Workspace.from_dict(dec_d.pop("workspace"))
+    cells = []
+    for c, m in zip(index.cells, charts, strict=True):
+        poly = Polygon(c.outer, [list(o) for o in c.obstacles])
+        # the chart's workspace is the cell polygon without collinear vertices
+        if poly.symmetric_difference(m.workspace.polygon).area > 1e-9 * poly.area:
+            raise NavigationError(f"atlas {index.ws_id!r}: chart {c.index} is not its cell's map")
+        cut: BaseGeometry = MultiLineString([list(line) for line in c.cut])
+        cells.append(Cell(c.index, poly, m.workspace, cut, tuple(c.tile), elongation(poly)))
+    dec = Decomposition(
+        ws,
+        tuple(cells),
+        float(dec_d["tile"]),
+        float(dec_d["overlap"]),
+        float(index.margin),
+        float(dec_d["max_ratio"]),
+        float(dec_d["max_ratio_holes"]),
+        int(dec_d["max_obstacles"]),
+    )
+    return Atlas(dec, tuple(charts), float(index.tol), (), index.wall_time, 1)
+
+
+def atlas_map_of(index: Any, maps: Mapping[str, Any]) -> AtlasMap:
+    """The :class:`AtlasMap` of an ``AtlasIndex`` whose charts' navigation maps are in ``maps``
+    (by revision): what the controller installs and ``replay --check`` rebuilds."""
+    missing = [c.chart_ws_id for c in index.cells if c.chart_revision not in maps]
+    if missing:
+        raise NavigationError(f"atlas {index.ws_id!r}: charts {missing[:5]} missing")
+    charts = [maps[c.chart_revision] for c in index.cells]
+    atlas = atlas_from_index(index, charts)  # the navigation maps serve as the charts
+    return AtlasMap(index.ws_id, index.revision, index.definition_hash, atlas, nav_maps=charts)
+
+
+@dataclass
+class AtlasMap:
+    """What the controller service installs for a workspace solved as an atlas: the atlas,
+    its charts' navigation maps and cell overlaps (shared by every goal), and the revision.
+
+    ``per_robot``: every robot gets its own controller (it holds the robot's active chart).
+    """
+
+    ws_id: str
+    revision: str
+    definition_hash: str
+    atlas: Atlas
+    nav_maps: list[Any] = field(default_factory=list)
+    links: list[Overlap] = field(default_factory=list)
+    is_atlas: bool = True
+    per_robot: bool = True
+
+    def __post_init__(self) -> None:
+        if not self.nav_maps:
+            self.nav_maps = [m.for_navigation() for m in self.atlas.charts]
+        if not self.links:
+            self.links = overlaps(self.atlas)
+
+    def controller(self, goal: Any) -> AtlasController:
+        """The switching controller of one robot for a ``Goal`` message."""
+        if getattr(goal, "drive", "holonomic") != "holonomic":
+            raise NavigationError("atlas workspaces drive holonomic robots only")
+        nav = AtlasNavigator(
+            self.atlas,
+            complex(goal.goal[0], goal.goal[1]),
+            speed=float(goal.v_max),
+            nav_maps=self.nav_maps,
+            links=self.links,
+            navfn=goal.navfn,
+            goal_tol=float(goal.tolerance),
+        )
+        return AtlasController(nav)
+
+
+class AtlasController:
+    """One robot's hybrid law on an atlas: the active chart's Theorem 2 law, switched by
+    :meth:`AtlasNavigator.switch` (hysteresis) and at local goals (to the next cell).
+
+    Called with the robot's position (a one-element array; a longer array is taken as the
+    same robot's successive positions).  ``active_chart`` is the chart of the last call;
+    ``history`` the sequence of active charts.
+    """
+
+    def __init__(self, nav: AtlasNavigator) -> None:
+        self.nav = nav
+        self.active_chart: int | None = None
+        self.history: list[int] = []
+        self.fallback = ""
+
+    def _set(self, i: int) -> None:
+        self.active_chart = i
+        if not self.history or self.history[-1] != i:
+            self.history.append(i)
+
+    def _one(self, z: complex) -> tuple[complex, int]:
+        nav = self.nav
+        pt = np.array([z])
+        if not np.isfinite(z):
+            return 0j, int(Status.ERROR)
+        a = self.active_chart
+        if a is None or not nav.cells[a].depth(pt)[0] > 0:
+            a = int(nav.initial_cells(pt)[0])  # first pose, or left the cell: re-enter
+            if a < 0:
+                return 0j, int(Status.ERROR)
+        a = int(nav.switch(pt, np.array([a], dtype=np.int64))[0])
+        self._set(a)
+        out = nav.controller(a)(pt)
+        code = int(out.status[0])
+        if code == Status.ARRIVED and nav.plan.next[a] >= 0:  # local goal: next cell
+            a = int(nav.plan.next[a])
+            self._set(a)
+            out = nav.controller(a)(pt)
+            code = int(out.status[0])
+        return complex(out.u[0]), code
+
+    def __call__(self, z: ArrayLike) -> ControlOutput:
+        zz = np.atleast_1d(np.asarray(z, dtype=np.complex128))
+        res = [self._one(complex(v)) for v in zz.ravel()]
+        u = np.array([r[0] for r in res], dtype=np.complex128).reshape(zz.shape)
+        st = np.array([r[1] for r in res], dtype=np.int8).reshape(zz.shape)
+        nan = np.full(zz.shape, np.nan)
+        sat = np.zeros(zz.shape, dtype=bool)
+        return ControlOutput(u=u, status=st, phi=nan, w=nan + 0j, saturated=sat)

@@ -1,0 +1,57 @@
+"""The controller service's side of atlases (issue 15 item 3): fetch an atlas over Zenoh.
+
+:func:`fetch_atlas` queries ``{prefix}/ws/{ws}/atlas`` (the ``AtlasIndex``), then each chart's
+``TransformSolution`` on ``{prefix}/ws/{ws}~c{i}/transform`` (checking that it is the revision
+the index names), loads the charts with :func:`confnav.navigation.messages.load_map` and
+returns the :class:`confnav.atlas.wire.AtlasMap` the controller installs like a map.
+"""
+
+from __future__ import annotations
+
+from confnav.schemas import AtlasIndex, TransformSolution, decode
+from confnav.services.bus import Bus
+from confnav.services.keys import Keys
+
+from confnav.atlas.wire import AtlasMap, atlas_map_of
+from confnav.errors import ConfnavError
+from confnav.navigation.messages import load_map
+
+
+class AtlasFetchError(ConfnavError):
+    """An atlas that could not be fetched (no answer, an error reply, a stale chart)."""
+
+
+def _query_one(bus: Bus, key: str, timeout: float) -> bytes:
+    replies = bus.query(key, timeout=timeout)
+    errors = [r.error or "error" for r in replies if not r.ok or r.payload is None]
+    for r in replies:
+        if r.ok and r.payload is not None:
+            return bytes(r.payload)
+    raise AtlasFetchError(f"{key}: " + ("; ".join(errors) or "no transform service answered"))
+
+
+def fetch_index(bus: Bus, keys: Keys, ws_id: str, timeout: float = 2.0) -> AtlasIndex:
+    """The ``AtlasIndex`` of ``ws_id`` (raises AtlasFetchError)."""
+    index = decode(AtlasIndex, _query_one(bus, keys.ws(ws_id, "atlas"), timeout))
+    if index.ws_id != ws_id:
+        raise AtlasFetchError(f"atlas index for {ws_id!r} names {index.ws_id!r}")
+    return index
+
+
+def fetch_atlas(
+    bus: Bus, keys: Keys, ws_id: str, index: AtlasIndex | None = None, timeout: float = 5.0
+) -> AtlasMap:
+    """Every chart of ``ws_id``'s atlas, loaded for control (raises AtlasFetchError)."""
+    index = index if index is not None else fetch_index(bus, keys, ws_id, timeout)
+    maps = {}
+    for cell in index.cells:
+        sol = decode(
+            TransformSolution, _query_one(bus, keys.ws(cell.chart_ws_id, "transform"), timeout)
+        )
+        if sol.revision != cell.chart_revision:
+            raise AtlasFetchError(
+                f"chart {cell.chart_ws_id!r}: revision {sol.revision[:12]} is not the index's "
+                f"{cell.chart_revision[:12]} (re-solved meanwhile)"
+            )
+        maps[sol.revision] = load_map(sol)
+    return atlas_map_of(index, maps)

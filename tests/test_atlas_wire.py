@@ -1,0 +1,139 @@
+"""Atlases on the wire (issue 15 item 3), without processes: the index and chart messages of a
+solved atlas rebuild the same atlas (the same plan, exactly); the per-robot switching
+controller the controller service runs follows the composition's rule, drives a robot to the
+goal without a collision, and is deterministic (what ``replay --check`` relies on); the
+transform service's atlas store answers queries as documented."""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+from confnav.schemas import AtlasIndex, Goal, TransformSolution, decode, encode
+from confnav.services.atlas_transform import AtlasStore, messages_of
+from confnav.services.bus import QueryError
+from confnav.services.transform import solution_result
+from test_atlas import GOAL, TOL, pillar_corridor
+
+from confnav.atlas import Atlas, AtlasNavigator, plan, solve_atlas
+from confnav.atlas.wire import (
+    ATLAS_MARKER,
+    AtlasMap,
+    atlas_map_of,
+    chart_ws_id,
+    index_fields,
+    is_chart_ws_id,
+)
+from confnav.conformal.cmap import ConformalMap
+from confnav.navigation.control import Status
+from confnav.navigation.messages import commands, make_controller
+
+
+@pytest.fixture(scope="module")
+def atlas() -> Atlas:
+    return solve_atlas(pillar_corridor(), TOL, workers=2)
+
+
+@pytest.fixture(scope="module")
+def wire(atlas: Atlas) -> tuple[AtlasIndex, list[TransformSolution]]:
+    result = {
+        "atlas": index_fields(atlas),
+        "charts": [solution_result(m, TOL) for m in atlas.charts],
+    }
+    index, charts = messages_of("pc", "h" * 64, result)
+    # through bytes, as on the bus and in a recording
+    return decode(AtlasIndex, encode(index)), [decode(TransformSolution, encode(c)) for c in charts]
+
+
+def rebuilt(wire: tuple[AtlasIndex, list[TransformSolution]]) -> AtlasMap:
+    index, charts = wire
+    maps = {c.revision: ConformalMap.from_dict(c.coefficients) for c in charts}
+    return atlas_map_of(index, maps)
+
+
+def test_chart_ids() -> None:
+    assert chart_ws_id("floor", 7) == "floor~c7" and is_chart_ws_id("floor~c7")
+    assert not is_chart_ws_id("floor") and not is_chart_ws_id("floor~r0.3")
+    assert not is_chart_ws_id("~c3") and not is_chart_ws_id("floor~cx")
+
+
+def test_the_wire_rebuilds_the_same_atlas_and_plan(
+    atlas: Atlas, wire: tuple[AtlasIndex, list[TransformSolution]]
+) -> None:
+    index, charts = wire
+    assert [c.chart_ws_id for c in index.cells] == [
+        chart_ws_id("pc", i) for i in range(len(charts))
+    ]
+    am = rebuilt(wire)
+    for a, b in zip(atlas.decomposition.cells, am.atlas.decomposition.cells, strict=True):
+        assert a.polygon.symmetric_difference(b.polygon).area <= 1e-12
+        assert a.cut.hausdorff_distance(b.cut) <= 1e-12
+        assert a.workspace.content_hash == b.workspace.content_hash
+    p0, p1 = plan(atlas, GOAL), plan(am.atlas, GOAL)
+    assert np.array_equal(p0.rank, p1.rank) and np.array_equal(p0.next, p1.next)
+    assert np.array_equal(p0.local_goal, p1.local_goal)
+    # a chart of another cell is refused
+    swapped = index.cells[0].model_copy(update={"chart_revision": index.cells[1].chart_revision})
+    bad = index.model_copy(update={"cells": [swapped, *index.cells[1:]]})
+    maps = {c.revision: ConformalMap.from_dict(c.coefficients) for c in charts}
+    with pytest.raises(Exception, match="not its cell's map"):
+        atlas_map_of(bad, maps)
+    with pytest.raises(Exception, match="missing"):
+        atlas_map_of(index, {})
+
+
+def drive(ctrl: object, z: complex, dt: float = 0.02, steps: int = 3000) -> list[complex]:
+    path = [z]
+    for _ in range(steps):
+        u, code = commands(ctrl, np.array([z]))  # type: ignore[arg-type]
+        if code[0] == Status.ARRIVED:
+            break
+        assert code[0] == Status.MOVING
+        z = z + dt * complex(u[0])
+        path.append(z)
+    return path
+
+
+def test_the_switching_controller_drives_a_robot_down_the_order(
+    wire: tuple[AtlasIndex, list[TransformSolution]],
+) -> None:
+    am = rebuilt(wire)
+    g = Goal(robot_id="r", ws_id="pc", goal=(GOAL.real, GOAL.imag), v_max=1.0, tolerance=0.02)
+    ctrl = make_controller(am, g)
+    nav = AtlasNavigator(am.atlas, GOAL, nav_maps=am.nav_maps, links=am.links)
+    path = drive(ctrl, 0.3 + 0.4j)
+    assert abs(path[-1] - GOAL) <= 0.02 + 0.02  # arrived (one step of slack)
+    ws = am.atlas.workspace
+    assert float(np.min(ws.clearance(np.array(path)))) > 0  # no collision
+    hist = ctrl.history  # type: ignore[attr-defined]
+    assert len(hist) >= 3
+    assert all(nav.plan.rank[b] < nav.plan.rank[a] for a, b in itertools.pairwise(hist))
+    # deterministic: a fresh controller fed the same poses commands the same, bit for bit
+    again = make_controller(am, g)
+    u1, _ = commands(ctrl.__class__(ctrl.nav), np.array(path[:400]))  # type: ignore[attr-defined]
+    u2, _ = commands(again, np.array(path[:400]))
+    assert np.array_equal(u1, u2)
+    with pytest.raises(Exception, match="holonomic"):
+        make_controller(am, g.model_copy(update={"drive": "unicycle"}))
+
+
+def test_the_atlas_store_answers_queries(wire: tuple[AtlasIndex, list[TransformSolution]]) -> None:
+    index, charts = wire
+    store = AtlasStore()
+    assert store.answer("p/ws/pc/transform", "pc", "transform") is None  # not an atlas
+    with pytest.raises(QueryError, match="not solved as an atlas"):
+        store.answer("p/ws/pc/atlas", "pc", "atlas")
+    store.put("pc", encode(index), {c.ws_id: encode(c) for c in charts})
+    assert store.answer("p/ws/pc/atlas", "pc", "atlas") == [("p/ws/pc/atlas", encode(index))]
+    cid = charts[2].ws_id
+    assert store.answer(f"p/ws/{cid}/transform", cid, "transform") == [
+        (f"p/ws/{cid}/transform", encode(charts[2]))
+    ]
+    with pytest.raises(QueryError, match=f"^{ATLAS_MARKER}"):
+        store.answer("p/ws/pc/transform", "pc", "transform")
+    assert [k for k, _ in store.answer_wildcard("p/ws/*/atlas")] == ["p/ws/pc/atlas"]
+    store.forget("pc")
+    assert store.answer(f"p/ws/{cid}/transform", cid, "transform") is None
+    with pytest.raises(QueryError):
+        store.answer_wildcard("p/ws/*/atlas")
