@@ -37,9 +37,10 @@ from confnav.atlas import plan
 from confnav.atlas.scenes import corridor
 from confnav.atlas.wire import ATLAS_MARKER, atlas_from_index, chart_ws_id
 from confnav.conformal.cmap import ConformalMap
-from confnav.recording.inspect import add_scene_channels, inspect_recording
+from confnav.recording.inspect import inspect_recording
 from confnav.recording.replay_check import check_recording
 from confnav.recording.scene import scene_topic
+from confnav.recording.scene_writer import add_scene_channels
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
