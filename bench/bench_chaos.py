@@ -677,7 +677,9 @@ def free_points(n: int, seed: int = 1) -> list[complex]:
     return pts
 
 
-def run_soak(minutes: float, n_robots: int, work: Path, rate: float) -> dict[str, Any]:
+def run_soak(
+    minutes: float, n_robots: int, work: Path, rate: float, keep: bool = False
+) -> dict[str, Any]:
     from confnav.scenes.workspaces import DEFAULT_GOAL
 
     starts = {f"s{i}": z for i, z in enumerate(free_points(n_robots))}
@@ -724,7 +726,10 @@ def run_soak(minutes: float, n_robots: int, work: Path, rate: float) -> dict[str
                 print(f"  soak {row}", flush=True)
             time.sleep(0.2)
         with robots.lock:
-            collisions = len(robots.collisions)
+            events = [
+                c.model_dump(include={"robot_id", "stamp_ns", "position", "clearance"})
+                for c in robots.collisions
+            ]
         restarts = launcher.restarts
     finally:
         launcher.shutdown()
@@ -734,7 +739,8 @@ def run_soak(minutes: float, n_robots: int, work: Path, rate: float) -> dict[str
     for label in [k for k in samples[0] if k not in ("t_s", "load")]:
         first, last = warm[0][label], warm[-1][label]
         growth[label] = (last - first) / first if first else None
-    shutil.rmtree(out, ignore_errors=True)  # a large recording
+    if not (keep or events):  # a large recording: kept only to investigate
+        shutil.rmtree(out, ignore_errors=True)
     return {
         "minutes": minutes,
         "robots": n_robots,
@@ -742,7 +748,9 @@ def run_soak(minutes: float, n_robots: int, work: Path, rate: float) -> dict[str
         "samples": samples,
         "rss_growth_after_warmup": growth,
         "resets": resets,
-        "collisions": collisions,
+        "collisions": len(events),
+        "collision_events": events,
+        "recording": str(out) if out.exists() else None,
         "restarts": restarts,
     }
 
@@ -782,6 +790,7 @@ def main() -> int:
         except ValueError:
             pass
     targets: list[tuple[str, str, bool]] = []
+    keep_work = args.keep
     try:
         if "fuzz" in args.modes:
             print(
@@ -799,11 +808,12 @@ def main() -> int:
             results["kill"] = kl
         if "soak" in args.modes:
             print(f"soak: {args.robots} robots for {args.minutes} min", flush=True)
-            sk = run_soak(args.minutes, args.robots, work, args.soak_rate)
+            sk = run_soak(args.minutes, args.robots, work, args.soak_rate, args.keep)
+            keep_work = sk["recording"] is not None
             sk["load_end"] = loadavg()
             results["soak"] = sk
     finally:
-        if not args.keep:
+        if not keep_work:
             shutil.rmtree(work, ignore_errors=True)
 
     if "fuzz" in results:
