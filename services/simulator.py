@@ -53,8 +53,6 @@ from confnav.navigation.unicycle import step_exact
 
 log = logging.getLogger(__name__)
 
-POSE_MEMORY = 4096  # poses remembered per robot to date the pose a command answers
-
 
 @dataclass
 class SimRobot:
@@ -68,8 +66,9 @@ class SimRobot:
     cmd_t: float = -1e18  # monotonic time of the last command
     cmd_pose_seq: int = -1  # the pose the held command answers (-1: none given)
     seq: int = 0
-    # sim time of the latest published poses, seq - len(pose_t) ... seq - 1 (cleared on reset)
-    pose_t: deque[float] = field(default_factory=lambda: deque(maxlen=POSE_MEMORY))
+    # sim time of the latest published poses, seq - len(pose_t) ... seq - 1 (cleared on reset;
+    # as many as are younger than max_cmd_age: older ones cannot date an applicable command)
+    pose_t: deque[float] = field(default_factory=deque)
     collided: bool = False
     sim_time: float = 0.0
     radius: float = 0.0  # body disk (m): collisions and clearances are the body's
@@ -122,8 +121,19 @@ class SimulatorService(Service):
     ) -> None:
         validate_id(rid, "robot id")
         validate_id(ws_id, "workspace id")
+        memory = math.ceil(self.max_cmd_age * self.rate_hz) + 2
         with self._lock:
-            self._robots[rid] = SimRobot(rid, ws_id, z, theta, z, theta, radius=radius, drive=drive)
+            self._robots[rid] = SimRobot(
+                rid,
+                ws_id,
+                z,
+                theta,
+                z,
+                theta,
+                radius=radius,
+                drive=drive,
+                pose_t=deque(maxlen=memory),
+            )
         log.info("robot %r spawned at %s on %r", rid, z, ws_id)
 
     def _start(self) -> None:
