@@ -13,8 +13,11 @@ of router, transform, controller, simulator and recorder, ``--repeats`` times (d
 robots are sent back to their starts (``SimControl reset``), and once they move the victim is
 killed with SIGKILL (the launcher restarts it). Targets: 0 collisions; every robot arrives after
 every kill; every recording file is complete (has its footer) or ``confnav recover`` restores
-it; robots stop within one watchdog period of losing the controller (the simulator's
-``cmd_timeout``, plus one simulation step), measured from the kill to the last pose that moved.
+it; robots stop within one watchdog period of losing the controller, measured from the kill to
+the stamp of the last pose that moved. The budget, by design: the simulator applies a command
+at most ``max_cmd_age`` sim seconds after the pose it answers (published before the kill), and
+at most ``cmd_timeout`` wall seconds after it arrived, so the robot stops within
+``min(cmd_timeout, max_cmd_age / time_scale)`` plus one simulation step.
 
 ``soak``: ``--robots`` robots (default 100) driving to the goal and sent back when they
 arrive, for ``--minutes``; the resident memory (VmRSS) of every process is sampled every 10 s;
@@ -316,6 +319,10 @@ def wait(pred: Callable[[], Any], timeout: float, what: str, period: float = 0.1
     raise TimeoutError(what)
 
 
+CMD_TIMEOUT_S = 0.25  # simulator: wall s without a command -> stop
+MAX_CMD_AGE_S = 0.25  # simulator: sim s after the pose a command answers -> stop
+
+
 def system_config(
     sock: str,
     out: Path,
@@ -324,10 +331,13 @@ def system_config(
     time_scale: float,
     rate: float,
     recorder: bool = True,
+    cmd_timeout: float = CMD_TIMEOUT_S,
+    max_cmd_age: float = MAX_CMD_AGE_S,
 ) -> LaunchConfig:
     """Router + recorder, transform, controller, simulator on the default workspace."""
     sim_args = ["--workspace", "default=builtin:default", "--time-scale", str(time_scale)]
-    sim_args += ["--rate", str(rate)]
+    sim_args += ["--rate", str(rate), "--cmd-timeout", str(cmd_timeout)]
+    sim_args += ["--max-cmd-age", str(max_cmd_age)]
     for rid, z in robots.items():
         sim_args += ["--robot", f"{rid}=default:{z.real!r},{z.imag!r}"]
     services = [
@@ -470,7 +480,8 @@ class Robots:
 
     def __init__(self, bus: Bus, ids: list[str]) -> None:
         self.lock = threading.Lock()
-        self.poses: dict[str, list[tuple[float, complex]]] = {r: [] for r in ids}
+        # receive time (monotonic), position, publication time (the simulator's stamp_ns)
+        self.poses: dict[str, list[tuple[float, complex, int]]] = {r: [] for r in ids}
         self.arrived_at: dict[str, float] = {}
         self.collisions: list[CollisionEvent] = []
         bus.subscribe(K.any_robot("pose"), self._pose)
@@ -484,7 +495,7 @@ class Robots:
             return
         with self.lock:
             if p.robot_id in self.poses:
-                self.poses[p.robot_id].append((time.monotonic(), complex(p.x, p.y)))
+                self.poses[p.robot_id].append((time.monotonic(), complex(p.x, p.y), p.stamp_ns))
 
     def _status(self, key: str, payload: bytes) -> None:
         try:
@@ -510,19 +521,21 @@ class Robots:
     def started_over(self, rid: str, t_reset: float, start: complex) -> bool:
         """Whether, after ``t_reset``, the robot was back at ``start`` and then moved away."""
         with self.lock:
-            seq = [z for t, z in self.poses[rid] if t >= t_reset]
+            seq = [z for t, z, _s in self.poses[rid] if t >= t_reset]
         back = next((i for i, z in enumerate(seq) if abs(z - start) < 0.05), None)
         return back is not None and any(abs(z - start) > 0.15 for z in seq[back:])
 
-    def stop_time(self, rid: str, t_from: float, t_to: float) -> float | None:
-        """Receive time of the last pose in [t_from, t_to] that differs from the one before
-        (None: it never moved there); the robot stands still after it."""
+    def stop_time(self, rid: str, from_ns: int, to_ns: int) -> int | None:
+        """Publication time (the simulator's stamp, ns) of the last pose stamped in
+        [from_ns, to_ns] that differs from the one before (None: it never moved there); the
+        robot stands still after it. Stamps, not receive times: what the plant did, not how
+        late this process heard of it."""
         with self.lock:
-            seq = [(t, z) for t, z in self.poses[rid] if t_from - 0.5 <= t <= t_to]
+            seq = [(s, z) for _t, z, s in self.poses[rid] if from_ns - 500_000_000 <= s <= to_ns]
         last = None
-        for (_t0, z0), (t1, z1) in itertools.pairwise(seq):
-            if abs(z1 - z0) > 1e-12 and t1 >= t_from:
-                last = t1
+        for (_s0, z0), (s1, z1) in itertools.pairwise(seq):
+            if abs(z1 - z0) > 1e-12 and s1 >= from_ns:
+                last = s1
         return last
 
 
@@ -546,7 +559,13 @@ def _kill_victim(
     sockdir = Path(tempfile.mkdtemp(prefix="cnk", dir="/tmp"))
     launcher = Launcher(
         system_config(
-            f"unixsock-stream/{sockdir}/r.sock", out, work / "cache", starts, time_scale, rate
+            f"unixsock-stream/{sockdir}/r.sock",
+            out,
+            work / "cache",
+            starts,
+            time_scale,
+            rate,
+            cmd_timeout=cmd_timeout,
         )
     )
     stop_goals = threading.Event()
@@ -591,15 +610,15 @@ def _kill_victim(
             wait(started_over, 120, "robots back at their starts and moving")
             proc = launcher.router if victim == "router" else launcher.procs[victim]
             assert proc is not None
-            t_kill = time.monotonic()
+            t_kill, t_kill_ns = time.monotonic(), time.time_ns()
             os.kill(proc.popen.pid, signal.SIGKILL)
             row: dict[str, Any] = {"victim": victim, "repeat": rep}
             if victim == "controller":
                 time.sleep(max(1.0, 3 * cmd_timeout))
                 lat = []
                 for r in starts:
-                    t_stop = robots.stop_time(r, t_kill, time.monotonic())
-                    lat.append(0.0 if t_stop is None else t_stop - t_kill)
+                    t_stop = robots.stop_time(r, t_kill_ns, time.time_ns())
+                    lat.append(0.0 if t_stop is None else (t_stop - t_kill_ns) / 1e9)
                 row["stop_latency_s"] = max(lat)
                 stops.extend(lat)
             with robots.lock:
@@ -650,6 +669,7 @@ def run_kill(
     return {
         "time_scale": time_scale,
         "cmd_timeout_s": cmd_timeout,
+        "max_cmd_age_s": MAX_CMD_AGE_S,
         "sim_step_s": 1.0 / rate / time_scale,
         "runs": runs,
         "stop_latency_s": {
@@ -677,7 +697,9 @@ def free_points(n: int, seed: int = 1) -> list[complex]:
     return pts
 
 
-def run_soak(minutes: float, n_robots: int, work: Path, rate: float) -> dict[str, Any]:
+def run_soak(
+    minutes: float, n_robots: int, work: Path, rate: float, keep: bool = False
+) -> dict[str, Any]:
     from confnav.scenes.workspaces import DEFAULT_GOAL
 
     starts = {f"s{i}": z for i, z in enumerate(free_points(n_robots))}
@@ -724,7 +746,10 @@ def run_soak(minutes: float, n_robots: int, work: Path, rate: float) -> dict[str
                 print(f"  soak {row}", flush=True)
             time.sleep(0.2)
         with robots.lock:
-            collisions = len(robots.collisions)
+            events = [
+                c.model_dump(include={"robot_id", "stamp_ns", "position", "clearance"})
+                for c in robots.collisions
+            ]
         restarts = launcher.restarts
     finally:
         launcher.shutdown()
@@ -734,7 +759,8 @@ def run_soak(minutes: float, n_robots: int, work: Path, rate: float) -> dict[str
     for label in [k for k in samples[0] if k not in ("t_s", "load")]:
         first, last = warm[0][label], warm[-1][label]
         growth[label] = (last - first) / first if first else None
-    shutil.rmtree(out, ignore_errors=True)  # a large recording
+    if not (keep or events):  # a large recording: kept only to investigate
+        shutil.rmtree(out, ignore_errors=True)
     return {
         "minutes": minutes,
         "robots": n_robots,
@@ -742,7 +768,9 @@ def run_soak(minutes: float, n_robots: int, work: Path, rate: float) -> dict[str
         "samples": samples,
         "rss_growth_after_warmup": growth,
         "resets": resets,
-        "collisions": collisions,
+        "collisions": len(events),
+        "collision_events": events,
+        "recording": str(out) if out.exists() else None,
         "restarts": restarts,
     }
 
@@ -782,6 +810,7 @@ def main() -> int:
         except ValueError:
             pass
     targets: list[tuple[str, str, bool]] = []
+    keep_work = args.keep
     try:
         if "fuzz" in args.modes:
             print(
@@ -794,16 +823,17 @@ def main() -> int:
         if "kill" in args.modes:
             victims = args.victims.split(",")
             print(f"kill: {victims} x {args.repeats}", flush=True)
-            kl = run_kill(victims, args.repeats, work, args.time_scale, 0.25)
+            kl = run_kill(victims, args.repeats, work, args.time_scale, CMD_TIMEOUT_S)
             kl["load_end"] = loadavg()
             results["kill"] = kl
         if "soak" in args.modes:
             print(f"soak: {args.robots} robots for {args.minutes} min", flush=True)
-            sk = run_soak(args.minutes, args.robots, work, args.soak_rate)
+            sk = run_soak(args.minutes, args.robots, work, args.soak_rate, args.keep)
+            keep_work = sk["recording"] is not None
             sk["load_end"] = loadavg()
             results["soak"] = sk
     finally:
-        if not args.keep:
+        if not keep_work:
             shutil.rmtree(work, ignore_errors=True)
 
     if "fuzz" in results:
@@ -856,7 +886,8 @@ def main() -> int:
             for rows in kl["recordings"].values()
             for row in rows
         )
-        limit = kl["cmd_timeout_s"] + kl["sim_step_s"]
+        hold = min(kl["cmd_timeout_s"], kl.get("max_cmd_age_s", 1e9) / kl["time_scale"])
+        limit = hold + kl["sim_step_s"]
         sl = kl["stop_latency_s"]
         print(f"\nkill -9 ({len(runs)} kills):")
         by: dict[str, list[dict[str, Any]]] = defaultdict(list)
@@ -882,7 +913,7 @@ def main() -> int:
         if sl["max"] is not None:
             targets.append(
                 (
-                    f"kill: robots stop <= cmd_timeout + 1 step ({limit * 1e3:.0f} ms) "
+                    f"kill: robots stop <= command hold + 1 step ({limit * 1e3:.0f} ms) "
                     "after losing the controller",
                     f"max {sl['max'] * 1e3:.0f} ms, p50 {sl['p50'] * 1e3:.0f} ms (n={sl['n']})",
                     sl["max"] <= limit,

@@ -4,13 +4,21 @@ arcs); a robot with a radius collides as a disk and reports its body's clearance
 
 Robots come from the config or from ``SpawnRequest`` on ``{prefix}/sim/{sim}/spawn``. Every
 tick (``rate_hz``, sim time step ``1/rate_hz``; ``time_scale`` > 1 runs faster than real time)
-each robot moves by ``u * dt`` with its last command (zero once no command came for
-``cmd_timeout`` wall seconds), a timestamped ``Pose`` is published on
+each robot moves by ``u * dt`` with its last command, a timestamped ``Pose`` is published on
 ``{prefix}/robot/{r}/pose``, and leaving the free space (``Workspace.clearance`` <= 0, the
 core's exact polygon distance) is reported once as a ``CollisionEvent``; a collided robot stays
 where it hit. ``SimControl`` on ``{prefix}/sim/{sim}/control`` pauses, resumes, resets (back to
 the spawn pose) or removes robots. Workspaces for the collision check come from files or from
 ``{prefix}/ws/*/definition``.
+
+A command is applied only while it is current, so that a lagging controller cannot drive a
+robot on where it was long ago: it stops (zero) once no command came for ``cmd_timeout`` wall
+seconds, and a command that answers a pose (``pose_seq`` >= 0) is applied only until
+``max_cmd_age`` sim seconds after that pose; a command answering a pose older than that, one
+from before a reset (the robot was moved), or one that was never published is not applied.
+Commands go through a bounded latest-per-robot queue (a backlog of stale commands is
+skipped, counted as ``commands_superseded``). The budget: the plant moves at most
+``max_cmd_age * |u|`` on a command away from the pose it was computed for.
 """
 
 from __future__ import annotations
@@ -20,7 +28,8 @@ import logging
 import math
 import threading
 import time
-from dataclasses import dataclass
+from collections import deque
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -56,7 +65,11 @@ class SimRobot:
     start_theta: float = 0.0
     u: complex = 0j
     cmd_t: float = -1e18  # monotonic time of the last command
+    cmd_pose_seq: int = -1  # the pose the held command answers (-1: none given)
     seq: int = 0
+    # sim time of the latest published poses, seq - len(pose_t) ... seq - 1 (cleared on reset;
+    # as many as are younger than max_cmd_age: older ones cannot date an applicable command)
+    pose_t: deque[float] = field(default_factory=deque)
     collided: bool = False
     sim_time: float = 0.0
     radius: float = 0.0  # body disk (m): collisions and clearances are the body's
@@ -80,12 +93,14 @@ class SimulatorService(Service):
         time_scale: float = 1.0,
         cmd_timeout: float = 0.25,
         health_period: float = 1.0,
+        max_cmd_age: float = 0.25,
     ) -> None:
         super().__init__(bus, keys, health_period)
         self.sim_id = validate_id(sim_id, "simulator id")
         self.rate_hz = rate_hz
         self.time_scale = time_scale
         self.cmd_timeout = cmd_timeout
+        self.max_cmd_age = max_cmd_age
         self.paused = False
         self._lock = threading.Lock()
         self._robots: dict[str, SimRobot] = {}
@@ -107,8 +122,19 @@ class SimulatorService(Service):
     ) -> None:
         validate_id(rid, "robot id")
         validate_id(ws_id, "workspace id")
+        memory = math.ceil(self.max_cmd_age * self.rate_hz) + 2
         with self._lock:
-            self._robots[rid] = SimRobot(rid, ws_id, z, theta, z, theta, radius=radius, drive=drive)
+            self._robots[rid] = SimRobot(
+                rid,
+                ws_id,
+                z,
+                theta,
+                z,
+                theta,
+                radius=radius,
+                drive=drive,
+                pose_t=deque(maxlen=memory),
+            )
         log.info("robot %r spawned at %s on %r", rid, fmt_point(z), ws_id)
 
     def _start(self) -> None:
@@ -119,7 +145,9 @@ class SimulatorService(Service):
                 log.error("cannot load workspace %r from %s: %s", ws_id, src, exc)
         k = self.keys
         self._handles.append(self.bus.subscribe(k.any_ws("definition"), self._on_definition))
-        self._handles.append(self.bus.subscribe(k.any_robot("cmd_vel"), self._on_cmd))
+        self._handles.append(
+            self.bus.subscribe_latest(k.any_robot("cmd_vel"), self._on_cmds, self._cmds_dropped)
+        )
         self._handles.append(self.bus.subscribe(k.sim(self.sim_id, "spawn"), self._on_spawn))
         self._handles.append(self.bus.subscribe(k.sim(self.sim_id, "control"), self._on_control))
         self.spawn(self._loop, "loop")
@@ -147,10 +175,35 @@ class SimulatorService(Service):
         with self._lock:
             self._workspaces[ws_id] = ws
 
+    def _on_cmds(self, items: list[tuple[str, bytes]]) -> None:
+        for key, payload in items:
+            self._on_cmd(key, payload)
+
+    def _cmds_dropped(self, n: int) -> None:
+        self.count("commands_received", n)
+        self.count("commands_superseded", n)
+
+    def pose_age(self, r: SimRobot, pose_seq: int) -> float | None:
+        """Sim seconds since the pose ``pose_seq`` of ``r`` (None: not a pose published since
+        the last reset and within memory, or not published yet). Call under the lock."""
+        i = pose_seq - (r.seq - len(r.pose_t))
+        if not 0 <= i < len(r.pose_t):
+            return None
+        return r.sim_time - r.pose_t[i]
+
+    def _current(self, r: SimRobot, now: float) -> bool:
+        """Whether the held command of ``r`` may still be applied (see the module docstring)."""
+        if now - r.cmd_t > self.cmd_timeout:
+            return False
+        if r.cmd_pose_seq < 0:
+            return True
+        age = self.pose_age(r, r.cmd_pose_seq)
+        return age is not None and age <= self.max_cmd_age
+
     def _on_cmd(self, key: str, payload: bytes) -> None:
         """A command counts only on a robot's exact key and naming that robot: a put on
         ``{prefix}/robot/*/cmd_vel`` (which reaches this subscriber too) or with another
-        robot's id is rejected."""
+        robot's id is rejected; so is one answering a pose that is not current (stale)."""
         self.count("commands_received")
         try:
             rid = self.keys.parse(key).ident  # a wildcard chunk is not an id: rejected
@@ -170,9 +223,15 @@ class SimulatorService(Service):
             if cmd.frame == "world" and r.drive == "unicycle" and u != 0j:
                 self.count("rejected")  # a differential drive cannot move sideways
                 return
+            if cmd.pose_seq >= 0:
+                age = self.pose_age(r, cmd.pose_seq)
+                if age is None or age > self.max_cmd_age or cmd.pose_seq < r.cmd_pose_seq:
+                    self.count("commands_stale")  # old, from before a reset, or reordered
+                    return
             r.u = u if cmd.frame == "world" else 0j
             r.twist = (cmd.linear[0], cmd.angular) if cmd.frame == "body" else None
             r.cmd_t = time.monotonic()
+            r.cmd_pose_seq = cmd.pose_seq
         self.count("commands")
 
     def _on_spawn(self, key: str, payload: bytes) -> None:
@@ -210,67 +269,81 @@ class SimulatorService(Service):
                 for r in targets:
                     r.z, r.theta, r.u, r.collided = r.start, r.start_theta, 0j, False
                     r.twist = None
-                    r.cmd_t = -1e18
+                    r.cmd_t, r.cmd_pose_seq = -1e18, -1
+                    r.pose_t.clear()  # commands answering earlier poses are not applied
             elif ctl.action == "remove":
                 for r in targets:
                     self._robots.pop(r.robot_id, None)
         log.info("simulator %s: %s %s", self.sim_id, ctl.action, ctl.robot_id or "all")
 
     # integration -------------------------------------------------------------------------
+    def _integrate(self, robots: list[SimRobot], dt: float, now: float) -> list[CollisionEvent]:
+        """Move the robots by their current commands; the new collisions. Under the lock."""
+        hits: list[CollisionEvent] = []
+        by_ws: dict[str, list[SimRobot]] = {}
+        for r in robots:
+            if r.collided:
+                continue
+            fresh = self._current(r, now)
+            u = r.u if fresh else 0j
+            if fresh and r.twist is not None:  # body-frame twist: exact arc (unicycle)
+                z1, th1 = step_exact(r.z, r.theta, r.twist[0], r.twist[1], dt)
+                r.z, r.theta = complex(z1), float(th1)
+            elif u != 0j:
+                r.z += u * dt
+                r.theta = math.atan2(u.imag, u.real)
+            r.sim_time += dt
+            by_ws.setdefault(r.ws_id, []).append(r)
+        for ws_id, group in by_ws.items():
+            ws = self._workspaces.get(ws_id)
+            if ws is None:
+                continue
+            clear = np.asarray(ws.clearance(np.array([r.z for r in group])), dtype=float)
+            clear -= np.array([r.radius for r in group])  # the body's clearance
+            for r, c in zip(group, clear, strict=True):
+                if not c > 0.0:  # also NaN
+                    r.collided = True
+                    hits.append(
+                        CollisionEvent(
+                            robot_id=r.robot_id,
+                            ws_id=ws_id,
+                            stamp_ns=time.time_ns(),
+                            position=(r.z.real, r.z.imag),
+                            clearance=float(c) if math.isfinite(c) else -1.0,
+                        )
+                    )
+        return hits
+
     def step(self, dt: float) -> None:
-        """Advance every robot by ``dt`` sim seconds and publish the poses."""
+        """Advance every robot by ``dt`` sim seconds and publish the poses (robot state is
+        changed under the lock: a command is judged against the poses actually published)."""
         now = time.monotonic()
+        hits: list[CollisionEvent] = []
+        out: list[tuple[str, Pose]] = []
         with self._lock:
             robots = list(self._robots.values())
-            workspaces = dict(self._workspaces)
-            paused = self.paused
-        hits: list[CollisionEvent] = []
-        if not paused:
-            by_ws: dict[str, list[SimRobot]] = {}
+            if not self.paused:
+                hits = self._integrate(robots, dt, now)
+            stamp = time.time_ns()
             for r in robots:
-                if r.collided:
-                    continue
-                fresh = now - r.cmd_t <= self.cmd_timeout
-                u = r.u if fresh else 0j
-                if fresh and r.twist is not None:  # body-frame twist: exact arc (unicycle)
-                    z1, th1 = step_exact(r.z, r.theta, r.twist[0], r.twist[1], dt)
-                    r.z, r.theta = complex(z1), float(th1)
-                elif u != 0j:
-                    r.z += u * dt
-                    r.theta = math.atan2(u.imag, u.real)
-                r.sim_time += dt
-                by_ws.setdefault(r.ws_id, []).append(r)
-            for ws_id, group in by_ws.items():
-                ws = workspaces.get(ws_id)
-                if ws is None:
-                    continue
-                clear = np.asarray(ws.clearance(np.array([r.z for r in group])), dtype=float)
-                clear -= np.array([r.radius for r in group])  # the body's clearance
-                for r, c in zip(group, clear, strict=True):
-                    if not c > 0.0:  # also NaN
-                        r.collided = True
-                        hits.append(
-                            CollisionEvent(
-                                robot_id=r.robot_id,
-                                ws_id=ws_id,
-                                stamp_ns=time.time_ns(),
-                                position=(r.z.real, r.z.imag),
-                                clearance=float(c) if math.isfinite(c) else -1.0,
-                            )
-                        )
-        stamp = time.time_ns()
-        for r in robots:
-            pose = Pose(
-                robot_id=r.robot_id,
-                stamp_ns=stamp,
-                seq=r.seq,
-                x=r.z.real,
-                y=r.z.imag,
-                theta=r.theta,
-            )
-            r.seq += 1
-            self.bus.publish(self.keys.robot(r.robot_id, "pose"), encode(pose))
-        self.count("poses", len(robots))
+                out.append(
+                    (
+                        r.robot_id,
+                        Pose(
+                            robot_id=r.robot_id,
+                            stamp_ns=stamp,
+                            seq=r.seq,
+                            x=r.z.real,
+                            y=r.z.imag,
+                            theta=r.theta,
+                        ),
+                    )
+                )
+                r.seq += 1
+                r.pose_t.append(r.sim_time)
+        for rid, pose in out:
+            self.bus.publish(self.keys.robot(rid, "pose"), encode(pose))
+        self.count("poses", len(out))
         for ev in hits:
             log.warning("robot %r collided at %s", ev.robot_id, ev.position)
             self.collisions.append(ev)
@@ -321,6 +394,12 @@ def add_parser(sub: Any) -> None:
     p.add_argument("--rate", type=float, default=50.0, help="simulated steps per second, Hz")
     p.add_argument("--time-scale", type=float, default=1.0, help=">1: faster than real time")
     p.add_argument("--cmd-timeout", type=float, default=0.25, help="s without command -> stop")
+    p.add_argument(
+        "--max-cmd-age",
+        type=float,
+        default=0.25,
+        help="sim s after the pose a command answers -> stop",
+    )
     p.set_defaults(func=main)
 
 
@@ -337,6 +416,7 @@ def main(args: argparse.Namespace) -> int:
             rate_hz=args.rate,
             time_scale=args.time_scale,
             cmd_timeout=args.cmd_timeout,
+            max_cmd_age=args.max_cmd_age,
         ),
         args,
     )

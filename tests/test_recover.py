@@ -217,6 +217,12 @@ def test_sigkilled_recorder_file_is_recovered(
         thread = threading.Thread(target=publish_r2)
         thread.start()
         time.sleep(1.0)
+        # enough of the stream is older than the loss bound (on a loaded machine the thread
+        # publishes fewer than its nominal 500 per second): the kill comes after > 100 of them
+        wait_for(
+            lambda: sum(1 for t, _d in list(stream) if t < time.monotonic() - 0.5) > 100,
+            timeout=30,
+        )
         t_kill = time.monotonic()
         proc.send_signal(signal.SIGKILL)
         proc.wait(timeout=10)

@@ -7,7 +7,7 @@ import importlib.util
 import subprocess
 import threading
 import time
-from collections import defaultdict
+from collections import Counter, defaultdict
 from pathlib import Path
 from types import ModuleType
 from typing import Any
@@ -203,6 +203,14 @@ def _round_trip(source: Path, again: Path, zenoh_router: str, make_bus: Any) -> 
     """``confnav replay --max`` (a real process) into a live recorder on Zenoh; the new
     recording has the same channels, counts and byte-identical payloads in the same order."""
     rec = Recorder(make_bus(), Keys(), again, {}, foxglove=True, health_period=0)
+    seen: Counter[str] = Counter()  # a second subscriber: a loss on the bus or a stalled recorder
+    lock = threading.Lock()
+
+    def on(key: str, _payload: bytes) -> None:
+        with lock:
+            seen[key] += 1
+
+    make_bus().subscribe("confnav/**", on)
     rec.start()
     try:
         res = subprocess.run(
@@ -224,9 +232,20 @@ def _round_trip(source: Path, again: Path, zenoh_router: str, make_bus: Any) -> 
             env=subprocess_env(),
         )
         assert res.returncode == 0, res.stderr
+        # every replayed key had its subscriber before the first put (else the replay's
+        # report says which keys had none: a late subscription, not a lost message)
+        assert "no subscriber for" not in res.stdout, res.stdout
         original = _per_channel(source)
         total = sum(len(v) for v in original.values())
-        wait_for(lambda: rec.recorded >= total, timeout=20)
+        try:
+            wait_for(lambda: rec.recorded >= total, timeout=20)
+        except AssertionError:  # say what is missing, to tell a stall from a loss
+            with lock:
+                missing = {t: len(v) - seen[t] for t, v in original.items() if seen[t] < len(v)}
+            raise AssertionError(
+                f"recorded {rec.recorded} of {total} within 20 s; not received by a second "
+                f"subscriber either: {missing}; replay said:\n{res.stdout}{res.stderr}"
+            ) from None
     finally:
         rec.stop()
     assert _per_channel(again) == original

@@ -3,6 +3,7 @@ pause/reset/spawn, bad inputs; in memory and over real Zenoh."""
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
 from typing import Any
@@ -114,7 +115,8 @@ def test_pause_reset_spawn_remove(mem_net: InMemoryNetwork) -> None:
             client.publish(key, b'{"schema_version":9}')
         client.publish(K.robot("r1", "cmd_vel"), b'{"robot_id":"r1","stamp_ns":1,"linear":[NaN,0]}')
         client.publish(K.robot("r1", "cmd_vel"), b"x" * 200_000)
-        wait_for(lambda: sim.counters["rejected"] == 8)
+        # commands wait in a latest-per-robot queue: a bad one is rejected or superseded
+        wait_for(lambda: sim.counters["rejected"] + sim.counters["commands_superseded"] == 8)
         sim.step(0.1)
         assert sim.positions()["r1"] == 0
     finally:
@@ -164,5 +166,99 @@ def test_commands_only_on_the_exact_key_with_the_robots_id(make_bus: Callable[[]
         wait_for(lambda: sim.counters["commands"] == 1, timeout=10)
         sim.step(0.1)
         assert sim.positions()["r1"] == pytest.approx(0.1)
+    finally:
+        sim.stop()
+
+
+def _lagging_run(make_bus: Callable[[], Any], lag: int, steps: int) -> SimulatorService:
+    """Over real Zenoh, stepped by hand (dt 0.02 s): a controller that drives r1 from 0 to
+    the goal x = 0.15, 0.05 m from the obstacle face x = 0.2, with the proportional law
+    ``u = min(0.5, 20 |g - z|)`` towards g (no overshoot with fresh poses: ``20 dt < 1``), but
+    answers pose k with the command computed on pose ``k - lag`` (a controller lagging behind
+    its input, as under overload), each command stamped with the pose it was computed on and
+    arriving fresh. Returns the simulator after ``steps`` steps (stopped)."""
+    sim = SimulatorService(make_bus(), K, robots=[("r1", "sq", 0.0, 0.0)], cmd_timeout=5.0)
+    sim._stop.set()  # stepped by hand
+    ctl = make_bus()
+    poses: list[Pose] = []
+    ctl.subscribe(K.robot("r1", "pose"), lambda k, p: poses.append(decode(Pose, p)))
+    sim.start()
+    try:
+        ctl.publish(K.ws("sq", "definition"), encode(square_definition("sq", [(0.2, -0.025)])))
+        wait_for(lambda: sim.health_detail()[0] == "ok", timeout=10)
+        for k in range(steps):
+            sim.step(0.02)
+            wait_for(lambda n=k: len(poses) > n, timeout=10)
+            p = poses[max(0, k - lag)]
+            e = 0.15 - p.x
+            u = math.copysign(min(0.5, 20 * abs(e)), e)
+            before = sim.counters["commands"] + sim.counters["commands_stale"]
+            ctl.publish(
+                K.robot("r1", "cmd_vel"),
+                encode(
+                    VelocityCommand(
+                        robot_id="r1",
+                        stamp_ns=time.time_ns(),
+                        linear=(u, 0.0),
+                        pose_seq=p.seq,
+                        pose_stamp_ns=p.stamp_ns,
+                    )
+                ),
+            )
+            wait_for(
+                lambda b=before: sim.counters["commands"] + sim.counters["commands_stale"] > b,
+                timeout=10,
+            )
+    finally:
+        sim.stop()
+    return sim
+
+
+@pytest.mark.timeout(120)
+def test_commands_on_outdated_poses_are_not_applied(make_bus: Callable[[], Any]) -> None:
+    """The mechanism of the collisions of the overloaded soak: commands arriving on time but
+    computed on poses long gone drove robots on where they had been. Lagging 20 steps
+    (0.4 s, beyond ``max_cmd_age`` = 0.25 s), the loop overshoots the goal by up to 0.2 m and
+    hits the obstacle unless such commands are refused (the robot then stays put: 0 m on a
+    command older than its budget); lagging 2 steps (0.04 s) it reaches the goal."""
+    sim = _lagging_run(make_bus, lag=20, steps=60)
+    assert sim.collisions == []
+    assert sim.counters["commands_stale"] >= 40
+    assert 0.0 <= sim.positions()["r1"].real < 0.15
+    sim = _lagging_run(make_bus, lag=2, steps=60)
+    assert sim.collisions == [] and sim.counters["commands_stale"] == 0
+    assert sim.positions()["r1"] == pytest.approx(0.15, abs=1e-3)
+
+
+def test_commands_from_before_a_reset_are_not_applied(mem_net: InMemoryNetwork) -> None:
+    """A command answering a pose from before a reset (the robot was moved back to its
+    start) is not applied there; one answering a pose after the reset is."""
+    sim = make(mem_net, cmd_timeout=10.0)
+    client = mem_net.bus("client")
+    sim._stop.set()
+    sim.start()
+
+    def answer(seq: int, vx: float) -> None:
+        n = sim.counters["commands_received"]
+        client.publish(
+            K.robot("r1", "cmd_vel"),
+            encode(VelocityCommand(robot_id="r1", stamp_ns=1, linear=(vx, 0.0), pose_seq=seq)),
+        )
+        wait_for(lambda: sim.counters["commands_received"] > n)
+
+    try:
+        sim.step(0.02)  # pose 0
+        answer(0, 1.0)
+        sim.step(0.02)  # pose 1 at x = 0.02
+        client.publish(K.sim("sim", "control"), encode(SimControl(action="reset", robot_id="r1")))
+        wait_for(lambda: sim.positions()["r1"] == 0)
+        answer(1, 1.0)  # computed on pose 1, before the reset
+        answer(2, 1.0)  # pose 2 is not published yet
+        assert sim.counters["commands_stale"] == 2
+        sim.step(0.02)  # pose 2, at the start
+        assert sim.positions()["r1"] == 0
+        answer(2, 1.0)
+        sim.step(0.02)
+        assert sim.positions()["r1"] == pytest.approx(0.02)
     finally:
         sim.stop()
