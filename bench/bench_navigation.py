@@ -6,7 +6,7 @@
 Scenarios: the default workspace, the L-room, mixed 10 and mixed 20, two cups, rooms written
 like real ones (goal inside a U-shaped shelf's cup, at the end of a wall alcove, behind a 0.8 m
 door in a wall, an office with desks, counter, pillar and partition;
-:mod:`confnav.scenes.scenarios`) and the shared scenes (/work/shared/scenes, goal from scenes.json).
+:mod:`confnav.scenes.scenarios`) and the realistic scenes of bench/scenes (goal from scenes.json).
 Each scenario: ``--starts`` uniform random starts (0.05 m from walls), every robot driven by
 ``Controller(cmap, goal)`` or ``Controller(cmap, goal, navfn="kr")`` with nothing else set,
 on the map the controller service uses (``for_navigation`` at its accuracy).
@@ -58,7 +58,7 @@ from confnav.scenes.scenarios import (  # noqa: E402
 )
 
 RESULTS = Path(__file__).resolve().parent / "results" / "navigation_defaults.json"
-SCENES = Path("/work/shared/scenes")
+SCENES = Path(__file__).resolve().parent / "scenes"
 TARGET_SUCCESS = 0.999
 TARGET_TIME_RATIO = 1.5
 TARGET_PRECOMPUTE_S = 10.0
