@@ -29,7 +29,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import zenoh
-from confnav.services.bus import key_matches
+from confnav.services.bus import flush, key_matches
 
 from confnav.errors import ConfnavError
 from confnav.recording.reader import Recording, RecordingError
@@ -237,6 +237,7 @@ def replay(
                     if on_message is not None:
                         on_message(key, msg.log_time_ns)
                 report.wall_time_s = time.monotonic() - t_start
+                flush(session)  # closing right after the last put could drop the queued tail
             finally:
                 for pub in publishers.values():
                     pub.undeclare()  # type: ignore[no-untyped-call]
