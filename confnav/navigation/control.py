@@ -122,13 +122,35 @@ def speed_law(
     gain: float = defaults.GAIN,
     v_max: float = defaults.V_MAX,
     slow: FArray | None = None,
+    v_cap: FArray | None = None,
 ) -> tuple[CArray, NDArray[np.bool_]]:
     """The command ``u = s f`` (``s > 0``) from the Theorem 2 field ``f`` (module docstring).
 
     ``dist``: distance to the goal (m); ``slow``: optional factor in ``[SLOW_FLOOR, 1]``
-    (normalized law only).  Where ``f`` is 0 (goal, critical points) ``u = 0``; NaN stays
-    NaN.  Returns ``(u, saturated)``.
+    (normalized law only); ``v_cap``: optional per-point speed limit (m/s, >= 0, either
+    law: ``u`` is scaled down to it keeping its direction).  Where ``f`` is 0 (goal,
+    critical points) ``u = 0``; NaN stays NaN.  Returns ``(u, saturated)``.
     """
+    u, sat = _speed_law(field, dist, law=law, gain=gain, v_max=v_max, slow=slow)
+    if v_cap is None:
+        return u, sat
+    cap = np.asarray(v_cap, dtype=np.float64)
+    speed = np.abs(u)
+    capped = speed > cap
+    scale = np.where(capped, cap / np.where(capped, speed, 1.0), 1.0)
+    return np.asarray(u * scale, dtype=np.complex128), np.asarray(sat & ~capped)
+
+
+def _speed_law(
+    field: CArray,
+    dist: FArray,
+    *,
+    law: str,
+    gain: float,
+    v_max: float,
+    slow: FArray | None,
+) -> tuple[CArray, NDArray[np.bool_]]:
+    """:func:`speed_law` without the per-point cap."""
     f = np.asarray(field, dtype=np.complex128)
     size = np.abs(f)
     if law == "theorem2":
@@ -174,6 +196,11 @@ class Controller:
     goal_tol : distance to the goal (m) counted as arrived.
     slow_distance : normalized law: clearance (m) below which the speed is scaled by
         ``clip(clearance / slow_distance, 0.2, 1)`` (0 = off; needs ``cmap.workspace``).
+    hold_time : s a robot may keep applying a command after the pose it answers (the
+        simulator's ``max_cmd_age``): the speed is capped at ``HOLD_FRACTION * clearance /
+        hold_time``, so the held command stays inside the free space (module docstring).
+        None: :data:`~confnav.navigation.defaults.HOLD_TIME` when the map has a workspace
+        (clearance), off otherwise; 0: off.
     stall_radius : distance (m) to a critical point of phi other than the goal (found by
         :meth:`critical_points`, or in the background by :meth:`search_critical_points`)
         within which a robot is reported STALLED; default goal_tol.
@@ -199,6 +226,7 @@ class Controller:
         slow_distance: float = defaults.SLOW_DISTANCE,
         stall_radius: float | None = None,
         workspace: Workspace | None = None,
+        hold_time: float | None = None,
     ) -> None:
         bound = getattr(cmap, "workspace_hash", None)
         if workspace is not None and bound != workspace.content_hash:  # issue 8
@@ -226,12 +254,16 @@ class Controller:
         self.goal_tol = float(goal_tol)
         self.slow_distance = float(slow_distance)
         self.stall_radius = self.goal_tol if stall_radius is None else float(stall_radius)
-        self._clearance = None
-        if self.slow_distance > 0:
-            ws = getattr(cmap, "workspace", None)
-            if ws is None or not hasattr(ws, "clearance"):
-                raise NavigationError("slow_distance needs a map with a workspace (clearance)")
-            self._clearance = ws.clearance
+        ws = getattr(cmap, "workspace", None)
+        self._clearance = getattr(ws, "clearance", None)
+        if hold_time is None:
+            hold_time = defaults.HOLD_TIME if self._clearance is not None else 0.0
+        if not (float(hold_time) >= 0 and np.isfinite(hold_time)):
+            raise NavigationError(f"hold_time must be >= 0 and finite, got {hold_time!r}")
+        self.hold_time = float(hold_time)
+        for name, on in (("slow_distance", self.slow_distance), ("hold_time", self.hold_time)):
+            if on > 0 and self._clearance is None:
+                raise NavigationError(f"{name} needs a map with a workspace (clearance)")
         if _workspace_contains(cmap, self.goal) is False:
             raise NavigationError(f"goal {fmt_point(self.goal)} is not in the free space")
         wd = complex(np.asarray(cmap.T_and_dT(np.asarray(self.goal))[0]))
@@ -278,6 +310,7 @@ class Controller:
             "goal_tol": self.goal_tol,
             "slow_distance": self.slow_distance,
             "stall_radius": self.stall_radius,
+            "hold_time": self.hold_time,
         }
 
     def with_goal(self, goal: complex | tuple[float, float] | ArrayLike) -> Controller:
@@ -289,10 +322,13 @@ class Controller:
         return Controller(self.cmap, z, navfn=self.navfn.with_goal(wd), **self._params())
 
     def _command(self, z: CArray, dw: CArray, g: CArray) -> tuple[CArray, NDArray[np.bool_]]:
-        slow = None
-        if self._clearance is not None:
+        slow = v_cap = None
+        if self._clearance is not None and (self.slow_distance > 0 or self.hold_time > 0):
             c = np.asarray(self._clearance(z), dtype=np.float64)
-            slow = np.clip(c / self.slow_distance, SLOW_FLOOR, 1.0)
+            if self.slow_distance > 0:
+                slow = np.clip(c / self.slow_distance, SLOW_FLOOR, 1.0)
+            if self.hold_time > 0:  # a command held hold_time s moves <= HOLD_FRACTION * c
+                v_cap = defaults.HOLD_FRACTION * np.maximum(c, 0.0) / self.hold_time
         return speed_law(
             -np.conj(dw) * g,
             np.abs(z - self.goal),
@@ -300,6 +336,7 @@ class Controller:
             gain=self.gain,
             v_max=self.v_max,
             slow=slow,
+            v_cap=v_cap,
         )
 
     def velocity(self, z: ArrayLike) -> CArray:
@@ -312,11 +349,20 @@ class Controller:
     def __call__(self, z: ArrayLike) -> ControlOutput:
         """Command and status for a batch of robot positions (complex array, any shape)."""
         z = np.asarray(z, dtype=np.complex128)
-        bad = ~np.isfinite(z)
-        w, dw = self.cmap.T_and_dT(np.where(bad, self.goal, z))
+        w, dw = self.cmap.T_and_dT(np.where(np.isfinite(z), z, self.goal))
+        return self.from_map_values(z, w, dw)
+
+    def from_map_values(self, z: ArrayLike, w: ArrayLike, dw: ArrayLike) -> ControlOutput:
+        """:meth:`__call__` from precomputed ``(w, dw) = cmap.T_and_dT(z)`` (same shapes).
+
+        The map does not depend on the goal, so a host with many robots on one map (each with
+        its own goal and controller) evaluates ``T`` and ``T'`` once for all of them and hands
+        each controller its robots' values: the result is exactly ``self(z)`` for those values.
+        """
+        z = np.asarray(z, dtype=np.complex128)
         w = np.asarray(w, dtype=np.complex128)
         dw = np.asarray(dw, dtype=np.complex128)
-        bad |= ~np.isfinite(w) | ~np.isfinite(dw)
+        bad = ~np.isfinite(z) | ~np.isfinite(w) | ~np.isfinite(dw)
         w = np.where(bad, self.goal_w, w)
         dw = np.where(bad, 1.0, dw)
         phi, g = self.navfn.value_and_gradient(w)
