@@ -28,6 +28,14 @@ off the critical points.  Convergence in *finite-looking* time is what changes: 
 most ``L / v_max + log(v_max / (gain goal_tol)) / gain`` seconds along a path of length L.
 Where ``f = 0`` (the goal and the M saddles) the direction is undefined and ``u = 0``.
 
+**Held commands.**  A robot applies a command until ``hold_time`` after the pose it answers
+(the simulator's ``max_cmd_age``, :data:`~confnav.navigation.defaults.HOLD_TIME`), i.e. up to
+``|u| hold_time`` away from that pose.  Both laws cap the speed at
+``HOLD_FRACTION * c(x) / hold_time`` with ``c`` the clearance of the map's workspace (shrunk by
+the footprint): the held command ends inside the disk of radius ``c`` about ``x``, which lies in
+the free space.  The cap is one more factor ``s > 0`` off the walls: same curves as above;
+the time bound holds where it does not bind (``c >= v_max hold_time / HOLD_FRACTION``).
+
 The law depends on the map only through :class:`ConformalLike` (``T_and_dT``, ``centers``,
 ``radii``), so exact maps can stand in for the solver in tests.  A new goal reuses the map
 (:meth:`Controller.with_goal`) and, for the harmonic function, the map's factorization.
