@@ -646,8 +646,8 @@ class ControllerService(Service):
         """``(u, codes)`` (or the error) of each controller group of a pose block, in order.
 
         The map does not depend on the goal: the groups of world-frame controllers on one map
-        (robots with their own goals) get ``T`` and ``T'`` from one evaluation for all their
-        poses and each group's law from ``Controller.from_map_values``; the others one
+        (robots with their own goals) get ``T``, ``T'`` and the clearance from one evaluation
+        for all their poses and each group's law from ``Controller.from_map_values``; the others one
         control-law call per group (:func:`navigation.commands`).
         """
         zs = [np.array([complex(p.x, p.y) for _, p in members]) for _, members in groups]
@@ -661,7 +661,10 @@ class ControllerService(Service):
             if len(idx) < 2:  # one goal on this map: the plain call below
                 continue
             try:
-                w, dw = laws[idx[0]].cmap.T_and_dT(np.concatenate([zs[i] for i in idx]))
+                zall = np.concatenate([zs[i] for i in idx])
+                w, dw = laws[idx[0]].cmap.T_and_dT(zall)
+                use = [i for i in idx if getattr(laws[i], "uses_clearance", False)]
+                c = laws[use[0]].clearance(zall) if use else None
             except Exception as exc:
                 for i in idx:
                     out[i] = exc
@@ -670,7 +673,8 @@ class ControllerService(Service):
             for i in idx:
                 n = zs[i].size
                 try:
-                    o = laws[i].from_map_values(zs[i], w[s : s + n], dw[s : s + n])
+                    ci = None if c is None else c[s : s + n]
+                    o = laws[i].from_map_values(zs[i], w[s : s + n], dw[s : s + n], ci)
                     out[i] = (np.asarray(o.u, dtype=complex), np.asarray(o.status, dtype=int))
                 except Exception as exc:
                     out[i] = exc

@@ -329,10 +329,23 @@ class Controller:
             raise NavigationError(f"goal {fmt_point(z)} is not in the free space")
         return Controller(self.cmap, z, navfn=self.navfn.with_goal(wd), **self._params())
 
-    def _command(self, z: CArray, dw: CArray, g: CArray) -> tuple[CArray, NDArray[np.bool_]]:
+    @property
+    def uses_clearance(self) -> bool:
+        """Whether the law needs the workspace clearance (wall slow-down or hold cap)."""
+        return self._clearance is not None and (self.slow_distance > 0 or self.hold_time > 0)
+
+    def clearance(self, z: ArrayLike) -> FArray:
+        """Clearance of ``z`` in the map's workspace (what :meth:`from_map_values` takes)."""
+        if self._clearance is None:
+            raise NavigationError("the map has no workspace (clearance)")
+        return np.asarray(self._clearance(np.asarray(z, dtype=np.complex128)), dtype=np.float64)
+
+    def _command(
+        self, z: CArray, dw: CArray, g: CArray, clearance: FArray | None = None
+    ) -> tuple[CArray, NDArray[np.bool_]]:
         slow = v_cap = None
-        if self._clearance is not None and (self.slow_distance > 0 or self.hold_time > 0):
-            c = np.asarray(self._clearance(z), dtype=np.float64)
+        if self.uses_clearance:
+            c = self.clearance(z) if clearance is None else clearance
             if self.slow_distance > 0:
                 slow = np.clip(c / self.slow_distance, SLOW_FLOOR, 1.0)
             if self.hold_time > 0:  # a command held hold_time s moves <= HOLD_FRACTION * c
@@ -360,12 +373,16 @@ class Controller:
         w, dw = self.cmap.T_and_dT(np.where(np.isfinite(z), z, self.goal))
         return self.from_map_values(z, w, dw)
 
-    def from_map_values(self, z: ArrayLike, w: ArrayLike, dw: ArrayLike) -> ControlOutput:
-        """:meth:`__call__` from precomputed ``(w, dw) = cmap.T_and_dT(z)`` (same shapes).
+    def from_map_values(
+        self, z: ArrayLike, w: ArrayLike, dw: ArrayLike, clearance: ArrayLike | None = None
+    ) -> ControlOutput:
+        """:meth:`__call__` from precomputed ``(w, dw) = cmap.T_and_dT(z)`` (same shapes) and,
+        optionally, ``clearance = self.clearance(z)``.
 
         The map does not depend on the goal, so a host with many robots on one map (each with
-        its own goal and controller) evaluates ``T`` and ``T'`` once for all of them and hands
-        each controller its robots' values: the result is exactly ``self(z)`` for those values.
+        its own goal and controller) evaluates ``T``, ``T'`` and the clearance once for all of
+        them and hands each controller its robots' values: the result is exactly ``self(z)``
+        for those values.
         """
         z = np.asarray(z, dtype=np.complex128)
         w = np.asarray(w, dtype=np.complex128)
@@ -374,7 +391,12 @@ class Controller:
         w = np.where(bad, self.goal_w, w)
         dw = np.where(bad, 1.0, dw)
         phi, g = self.navfn.value_and_gradient(w)
-        u, sat = self._command(np.where(bad, self.goal, z), dw, g)
+        c = None
+        if clearance is not None and self.uses_clearance:
+            c = np.asarray(clearance, dtype=np.float64)
+            if bad.any():  # the bad poses are evaluated at the goal (then set to u = 0)
+                c = np.where(bad, self.clearance(self.goal), c)
+        u, sat = self._command(np.where(bad, self.goal, z), dw, g, c)
         arrived = ~bad & (np.abs(z - self.goal) <= self.goal_tol)
         stalled = ~bad & ~arrived & self._near_critical(w, dw)
         status = np.full(z.shape, Status.MOVING, dtype=np.int8)
