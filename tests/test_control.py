@@ -326,8 +326,11 @@ def test_map_values_entry_point_is_the_controller() -> None:
     for i, ctl in enumerate(ctls):
         sl = slice(40 * i, 40 * (i + 1))
         a, b = ctl.from_map_values(z[sl], w[sl], dw[sl]), ctl(z[sl])
+        c = ctl.from_map_values(z[sl], w[sl], dw[sl], ctls[0].clearance(z[sl]))  # shared
+        assert ctl.uses_clearance  # the hold cap is on: the shared clearance is used
         for f in ("u", "status", "phi", "w", "saturated"):
             assert np.array_equal(getattr(a, f), getattr(b, f), equal_nan=f != "saturated"), f
+            assert np.array_equal(getattr(c, f), getattr(b, f), equal_nan=f != "saturated"), f
     assert ctls[0](z[:8]).status[3] == Status.ERROR and ctls[0](z[:8]).status[7] == Status.ARRIVED
 
 

@@ -647,9 +647,7 @@ def test_robots_with_their_own_goals_share_one_map_evaluation(mem_net: InMemoryN
     cl = Client(mem_net.bus("client"))
     try:
         rids = [f"r{i}" for i in range(16)]
-        goals = {
-            r: cl.goal(r, xy=(-0.6 + 0.04 * i, 0.3 * np.sin(i))) for i, r in enumerate(rids)
-        }
+        goals = {r: cl.goal(r, xy=(-0.6 + 0.04 * i, 0.3 * np.sin(i))) for i, r in enumerate(rids)}
         wait_for(lambda: ctl.counters["controllers_built"] == 16)
         wait_for(lambda: all(ctl.robot_state(r) is not None for r in rids))
         m = ctl._maps["cd"].cmap
