@@ -625,22 +625,69 @@ class ControllerService(Service):
                 ctrl = r.ctrl
             assert ctrl is not None
             groups.setdefault(id(ctrl), (ctrl, []))[1].append((r, pose))
-        for ctrl, members in groups.values():
-            z = np.array([complex(p.x, p.y) for _, p in members])
-            th = np.array([p.theta for _, p in members])
-            try:
-                u, codes = navigation.commands(ctrl, z, th)
-            except Exception as exc:
+        members_of = list(groups.values())
+        for (ctrl, members), res in zip(members_of, self._control(members_of), strict=True):
+            if isinstance(res, Exception):
                 self.count("navigation_errors")
                 for r, pose in members:
                     with r.lock:
                         self._stop_robot(
-                            r, "navigation_error", f"{type(exc).__name__}: {exc}", now, pose
+                            r, "navigation_error", f"{type(res).__name__}: {res}", now, pose
                         )
                 continue
+            u, codes = res
             for (r, pose), ui, code in zip(members, u.tolist(), codes.tolist(), strict=True):
                 with r.lock:
                     self._act(r, pose, navigation.decide(ctrl, complex(ui), int(code)), now)
+
+    def _control(
+        self, groups: list[tuple[navigation.ControllerLike, list[tuple[_Robot, Pose]]]]
+    ) -> list[tuple[np.ndarray, np.ndarray] | Exception]:
+        """``(u, codes)`` (or the error) of each controller group of a pose block, in order.
+
+        The map does not depend on the goal: the groups of world-frame controllers on one map
+        (robots with their own goals) get ``T``, ``T'`` and the clearance from one evaluation
+        for all their poses and each group's law from ``Controller.from_map_values``; the others one
+        control-law call per group (:func:`navigation.commands`).
+        """
+        zs = [np.array([complex(p.x, p.y) for _, p in members]) for _, members in groups]
+        out: list[tuple[np.ndarray, np.ndarray] | Exception | None] = [None] * len(groups)
+        laws: list[Any] = [ctrl for ctrl, _ in groups]
+        by_map: dict[int, list[int]] = {}
+        for i, law in enumerate(laws):
+            if hasattr(law, "from_map_values") and hasattr(law, "cmap"):
+                by_map.setdefault(id(law.cmap), []).append(i)
+        for idx in by_map.values():
+            if len(idx) < 2:  # one goal on this map: the plain call below
+                continue
+            try:
+                zall = np.concatenate([zs[i] for i in idx])
+                w, dw = laws[idx[0]].cmap.T_and_dT(zall)
+                use = [i for i in idx if getattr(laws[i], "uses_clearance", False)]
+                c = laws[use[0]].clearance(zall) if use else None
+            except Exception as exc:
+                for i in idx:
+                    out[i] = exc
+                continue
+            s = 0
+            for i in idx:
+                n = zs[i].size
+                try:
+                    ci = None if c is None else c[s : s + n]
+                    o = laws[i].from_map_values(zs[i], w[s : s + n], dw[s : s + n], ci)
+                    out[i] = (np.asarray(o.u, dtype=complex), np.asarray(o.status, dtype=int))
+                except Exception as exc:
+                    out[i] = exc
+                s += n
+        for i, (ctrl, members) in enumerate(groups):
+            if out[i] is not None:
+                continue
+            th = np.array([p.theta for _, p in members])
+            try:
+                out[i] = navigation.commands(ctrl, zs[i], th)
+            except Exception as exc:
+                out[i] = exc
+        return [o for o in out if o is not None]
 
     def _act(self, r: _Robot, pose: Pose, d: navigation.Decision, now: float) -> None:
         """Publish what :func:`navigation.decide` made of the control law's output."""

@@ -50,6 +50,7 @@ from confnav.services.runtime import Service, add_zenoh_args, run_until_signal
 from confnav.services.transform import load_definition, parse_sources, workspace_of
 
 from confnav.errors import fmt_point
+from confnav.navigation import defaults
 from confnav.navigation.unicycle import step_exact
 
 log = logging.getLogger(__name__)
@@ -93,7 +94,7 @@ class SimulatorService(Service):
         time_scale: float = 1.0,
         cmd_timeout: float = 0.25,
         health_period: float = 1.0,
-        max_cmd_age: float = 0.25,
+        max_cmd_age: float = defaults.HOLD_TIME,
     ) -> None:
         super().__init__(bus, keys, health_period)
         self.sim_id = validate_id(sim_id, "simulator id")
@@ -397,7 +398,7 @@ def add_parser(sub: Any) -> None:
     p.add_argument(
         "--max-cmd-age",
         type=float,
-        default=0.25,
+        default=defaults.HOLD_TIME,
         help="sim s after the pose a command answers -> stop",
     )
     p.set_defaults(func=main)

@@ -86,7 +86,9 @@ def interior_points(dom: CircleDomain, n: int, margin: float, seed: int = 0) -> 
 
 @pytest.mark.parametrize("navfn", ["kr", "harmonic"])
 def test_law_is_minus_gradient_of_pulled_back_lyapunov(navfn: str) -> None:
-    ctl = Controller(MOB, 0.1j, navfn=navfn, k=6, speed_law="theorem2", gain=2.5, v_max=np.inf)
+    ctl = Controller(
+        MOB, 0.1j, navfn=navfn, k=6, speed_law="theorem2", gain=2.5, v_max=np.inf, hold_time=0
+    )  # the bare law (no cap for held commands)
     z = interior_points(SEED, 200, 1e-3)
     u = ctl.velocity(z)
     v = ctl.lyapunov
@@ -96,7 +98,9 @@ def test_law_is_minus_gradient_of_pulled_back_lyapunov(navfn: str) -> None:
 
 
 def test_identity_map_gives_the_plain_gradient() -> None:
-    ctl = Controller(IdentityMap(SEED), 0.2j, navfn="kr", k=6, speed_law="theorem2", v_max=np.inf)
+    ctl = Controller(
+        IdentityMap(SEED), 0.2j, navfn="kr", k=6, speed_law="theorem2", v_max=np.inf, hold_time=0
+    )
     z = interior_points(SEED, 50, 1e-3)
     assert_allclose(ctl.velocity(z), -ctl.navfn.gradient(z), rtol=1e-14)
 
@@ -193,7 +197,8 @@ def test_normalized_law_has_the_theorem2_paths_and_the_speed_profile() -> None:
     plain = Controller(
         MOB, 0.1j, navfn="harmonic", speed_law="theorem2", v_max=np.inf, goal_tol=1e-3
     )
-    norm = Controller(MOB, 0.1j, navfn=plain.navfn, gain=2.0, v_max=0.4, goal_tol=1e-3)
+    # the speed profile of the bare normalized law (the hold cap is tested on its own below)
+    norm = Controller(MOB, 0.1j, navfn=plain.navfn, gain=2.0, v_max=0.4, goal_tol=1e-3, hold_time=0)
     z = interior_points(SEED, 300, 1e-3, seed=7)
     u0, u1 = plain.velocity(z), norm.velocity(z)
     # same direction, speed min(v_max, gain |x - x_d|) whatever |grad phi| is
@@ -243,3 +248,131 @@ def test_goal_message_defaults_are_the_library_defaults() -> None:
         assert getattr(goal, field) == ctl_defaults[param] == value, field
     assert goal.k is None and ctl_defaults["k"] == "auto"  # None on the wire means auto
     assert (defaults.SPEED_LAW, defaults.V_MAX, defaults.GAIN) == ("normalized", 0.5, 1.0)
+
+
+def _segment_misses_circle(a: np.ndarray, b: np.ndarray, c: complex, r: float) -> np.ndarray:
+    """Exact: the closed segment [a, b] stays farther than r from c (closest point formula)."""
+    d = b - a
+    t = np.clip(((c - a) * np.conj(d)).real / np.maximum(np.abs(d) ** 2, 1e-300), 0.0, 1.0)
+    return np.asarray(np.abs(a + t * d - c) > r)
+
+
+@pytest.mark.parametrize("law", ["normalized", "theorem2"])
+def test_held_command_never_leaves_the_free_space(law: str) -> None:
+    """A command held for the whole hold time moves the robot along the segment
+    [z, z + u hold_time]: from poses 1e-6..0.05 from every wall, that segment stays inside
+    the circle domain (exact distance of a segment to each circle), using at most
+    HOLD_FRACTION of the clearance; far from the walls the speed is that of the bare law."""
+    hold = defaults.HOLD_TIME
+    assert hold == 0.25  # the simulator's max_cmd_age (services/simulator.py reads it too)
+    gain = 50.0 if law == "theorem2" else 1.0
+    ctl = Controller(MOB, 0.1j, navfn="harmonic", speed_law=law, gain=gain, v_max=0.5)
+    bare = Controller(MOB, 0.1j, navfn=ctl.navfn, speed_law=law, gain=gain, v_max=0.5, hold_time=0)
+    assert ctl.hold_time == hold and bare.hold_time == 0
+    rng = np.random.default_rng(3)
+    walls = [(0j, 1.0), *zip(SEED.centers, SEED.radii, strict=True)]
+    z = []
+    for c, r in walls:  # poses just off each wall, on the free side
+        th = rng.uniform(0, 2 * np.pi, 200)
+        gap = 10 ** rng.uniform(-6, np.log10(0.05), 200)
+        z.append(c + (r - gap if c == 0 and r == 1.0 else r + gap) * np.exp(1j * th))
+    zz = np.concatenate(z)
+    zz = zz[SEED.clearance(zz) > 0]
+    u = ctl(zz).u
+    end = zz + u * hold
+    clear = SEED.clearance(zz)
+    assert np.all(np.abs(u) * hold <= defaults.HOLD_FRACTION * clear * (1 + 1e-12))
+    assert np.all(np.abs(end) < 1.0)  # the unit disk is convex: both ends inside suffice
+    for c, r in zip(SEED.centers, SEED.radii, strict=True):
+        assert np.all(_segment_misses_circle(zz, end, c, r))
+    # the bare law's held command could reach the wall (in the worst direction, straight at
+    # it) from many of these poses; the capped one from none, whatever its direction
+    assert np.mean(np.abs(bare(zz).u) * hold > clear) > 0.5
+    # same direction everywhere (a positive rescaling: same paths)
+    moving = np.abs(u) > 0
+    assert_allclose(np.angle(u[moving] / bare(zz).u[moving]), 0, atol=1e-12)
+    # far from the walls (clearance >= v_max hold / HOLD_FRACTION) nothing changes, bitwise
+    far = interior_points(SEED, 100, 0.5 * hold / defaults.HOLD_FRACTION, seed=5)
+    assert far.size > 40
+    out, out0 = ctl(far), bare(far)
+    assert np.array_equal(out.u, out0.u) and np.array_equal(out.saturated, out0.saturated)
+
+
+def test_hold_time_needs_a_workspace_and_is_checked() -> None:
+    class NoWorkspace:
+        centers, radii = SEED.centers, SEED.radii
+
+        def T_and_dT(self, z: Any) -> tuple[np.ndarray, np.ndarray]:
+            return IdentityMap(SEED).T_and_dT(z)
+
+    assert Controller(NoWorkspace(), 0.2j, navfn="kr", k=6).hold_time == 0  # default: off
+    with pytest.raises(NavigationError, match="hold_time needs a map with a workspace"):
+        Controller(NoWorkspace(), 0.2j, navfn="kr", k=6, hold_time=0.25)
+    for bad in (-0.1, np.inf, np.nan):
+        with pytest.raises(NavigationError, match="hold_time"):
+            Controller(MOB, 0.1j, navfn="kr", k=6, hold_time=bad)
+
+
+def test_map_values_entry_point_is_the_controller() -> None:
+    """``from_map_values`` with one evaluation of T for robots of several goals gives each
+    controller's own commands and statuses, bitwise (the T values are the same)."""
+    base = Controller(MOB, 0.1j, navfn="harmonic", goal_tol=1e-3)
+    ctls = [base.with_goal(g) for g in (0.1j, -0.3 + 0.6j, 0.5 - 0.5j, 0.3 + 0.0j)]
+    z = np.concatenate([interior_points(SEED, 40, 1e-4, seed=s) for s in range(4)])
+    z[3] = np.nan  # a bad pose: ERROR with u = 0 on both paths
+    z[7] = ctls[0].goal  # arrived
+    with np.errstate(invalid="ignore"):  # the exact map at the NaN pose
+        w, dw = MOB.T_and_dT(z)
+    for i, ctl in enumerate(ctls):
+        sl = slice(40 * i, 40 * (i + 1))
+        a, b = ctl.from_map_values(z[sl], w[sl], dw[sl]), ctl(z[sl])
+        c = ctl.from_map_values(z[sl], w[sl], dw[sl], ctls[0].clearance(z[sl]))  # shared
+        assert ctl.uses_clearance  # the hold cap is on: the shared clearance is used
+        for f in ("u", "status", "phi", "w", "saturated"):
+            assert np.array_equal(getattr(a, f), getattr(b, f), equal_nan=f != "saturated"), f
+            assert np.array_equal(getattr(c, f), getattr(b, f), equal_nan=f != "saturated"), f
+    assert ctls[0](z[:8]).status[3] == Status.ERROR and ctls[0](z[:8]).status[7] == Status.ARRIVED
+
+
+@pytest.fixture(scope="module")
+def room_map() -> Any:
+    """A real solved map: a 2 x 1 m room with a square pillar (corners, straight walls)."""
+    import confnav
+    from confnav.geometry import Workspace
+
+    ws = Workspace(
+        [(0, 0), (2, 0), (2, 1), (0, 1)], [[(0.8, 0.3), (1.2, 0.3), (1.2, 0.7), (0.8, 0.7)]]
+    )
+    return confnav.solve(ws, tol=1e-8).for_navigation()
+
+
+def test_held_command_stays_in_a_polygonal_room(room_map: Any) -> None:
+    """The solver's map of a room: from poses 1e-6..0.05 m from the walls (and in every
+    corner) the segment a held command travels lies in the free polygon (shapely's exact
+    predicate), and the cap binds there; T' of a real map makes no difference to the bound."""
+    import shapely
+
+    ws = room_map.workspace
+    ctl = Controller(room_map, 1.8 + 0.5j)
+    rng = np.random.default_rng(1)
+    z = rng.uniform(0, 2, 20000) + 1j * rng.uniform(0, 1, 20000)
+    corners = np.concatenate(ws.boundaries)
+    gap = 10 ** rng.uniform(-6, -1.3, (corners.size, 40))
+    near = corners[:, None] + gap * np.exp(2j * np.pi * rng.uniform(0, 1, (corners.size, 40)))
+    z = np.concatenate([z, near.ravel()])
+    c = ws.clearance(z)
+    z, c = z[(c > 0) & (c < 0.05)], c[(c > 0) & (c < 0.05)]
+    assert z.size > 500
+    out = ctl(z)
+    # u is NaN (the service stops the robot) within ~1e-5 m of a room corner, where T rounds
+    # to just outside the unit disk and phi is NaN: not moving, so not checked here
+    moving = (out.status == Status.MOVING) & np.isfinite(out.u)
+    assert moving.mean() > 0.95
+    z, c, u = z[moving], c[moving], out.u[moving]
+    assert np.all(np.abs(u) * ctl.hold_time <= defaults.HOLD_FRACTION * c * (1 + 1e-12))
+    end = z + u * ctl.hold_time
+    segs = shapely.linestrings(
+        np.stack([np.stack([z.real, z.imag], -1), np.stack([end.real, end.imag], -1)], 1)
+    )
+    assert np.all(shapely.contains(ws.polygon, segs))
+    assert not out.saturated[moving].any()  # within 0.05 m the cap (2 c <= 0.1 m/s) binds

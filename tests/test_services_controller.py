@@ -570,3 +570,102 @@ def test_stall_at_a_saddle_is_reported_without_asking_for_the_critical_points(
         wait_for(lambda: "stalled" not in cl.last_status("r1").message)
     finally:
         ctl.stop()
+
+
+class WalledIdentityMap(IdentityMap):
+    """The identity map with its workspace (the circle domain: exact clearance), as a solved
+    map has, so the controller's cap for held commands is on; counts map evaluations."""
+
+    def __init__(self, centers: list[complex], radii: list[float]) -> None:
+        super().__init__(centers, radii)
+        from confnav.navigation.navfn import CircleDomain
+
+        self.workspace = CircleDomain(self.centers, self.radii)
+        self.sizes: list[int] = []
+
+    def T_and_dT(self, z: Any) -> tuple[np.ndarray, np.ndarray]:
+        self.sizes.append(np.asarray(z).size)
+        return super().T_and_dT(z)
+
+
+def walled_loader(sol: Any) -> WalledIdentityMap:
+    c = sol.coefficients
+    return WalledIdentityMap([complex(x, y) for x, y in c["centers"]], list(c["radii"]))
+
+
+def _library_u(m: Any, goal: Goal, z: complex) -> complex:
+    law = Controller(m, complex(*goal.goal), gain=goal.gain, v_max=goal.v_max)
+    return complex(np.asarray(law(np.asarray(z)).u).item())
+
+
+def test_held_command_keeps_the_robot_off_the_wall(mem_net: InMemoryNetwork) -> None:
+    """Through the service: a robot 1 cm from the disk obstacle gets a command that, held for
+    the simulator's whole max_cmd_age, moves it at most half that (the end point is exactly
+    outside the disk); a robot far from the walls gets the uncapped speed min(v_max, d)."""
+    from confnav.navigation import defaults
+
+    tr = FakeTransform(mem_net.bus("tr"))
+    tr.solutions["cd"] = solution()
+    ctl = ControllerService(mem_net.bus("ctl"), K, map_loader=walled_loader, health_period=0.2)
+    ctl.start()
+    cl = Client(mem_net.bus("client"))
+    try:
+        goals = {r: cl.goal(r) for r in ("near", "far")}
+        wait_for(lambda: ctl.counters["goals"] == 2 and ctl.counters["maps_installed"])
+        wait_for(lambda: all(ctl.robot_state(r) is not None for r in goals))
+        c, rad = complex(*CENTERS[0]), RADII[0]
+        z_near, z_far = c + (rad + 0.01) * 1j, -0.2 + 0.3j
+        cl.pose("near", z_near.real, z_near.imag)
+        u_near = complex(*wait_for(lambda: cl.answer("near")).linear)
+        cl.pose("far", z_far.real, z_far.imag)
+        u_far = complex(*wait_for(lambda: cl.answer("far")).linear)
+        hold = defaults.HOLD_TIME
+        assert 0 < abs(u_near) * hold <= defaults.HOLD_FRACTION * 0.01 * (1 + 1e-12)
+        # the whole held segment [z, z + u hold] stays outside the disk and inside |z| < 1
+        t = np.linspace(0.0, 1.0, 1001)
+        path = z_near + u_near * hold * t
+        assert np.all(np.abs(path - c) > rad) and np.all(np.abs(path) < 1)
+        m = walled_loader(solution())
+        assert same(u_near, _library_u(m, goals["near"], z_near))
+        # far (clearance 0.52 m: cap 2.1 m/s) the speed is the normalized law's min(v_max, d)
+        assert abs(abs(u_far) - min(0.5, abs(z_far - (-0.5 + 0j)))) <= 1e-12
+        assert same(u_far, _library_u(m, goals["far"], z_far))
+    finally:
+        ctl.stop()
+
+
+def test_robots_with_their_own_goals_share_one_map_evaluation(mem_net: InMemoryNetwork) -> None:
+    """Sixteen robots, sixteen goals, one map: a block of their poses evaluates T and T' once
+    for all of them, and every command equals the robot's own controller's (bitwise here:
+    the identity map's values do not depend on the batch)."""
+    tr = FakeTransform(mem_net.bus("tr"))
+    tr.solutions["cd"] = solution()
+    ctl = ControllerService(
+        mem_net.bus("ctl"), K, map_loader=walled_loader, health_period=0.2, linger=0.2
+    )
+    ctl.start()
+    cl = Client(mem_net.bus("client"))
+    try:
+        rids = [f"r{i}" for i in range(16)]
+        goals = {r: cl.goal(r, xy=(-0.6 + 0.04 * i, 0.3 * np.sin(i))) for i, r in enumerate(rids)}
+        wait_for(lambda: ctl.counters["controllers_built"] == 16)
+        wait_for(lambda: all(ctl.robot_state(r) is not None for r in rids))
+        m = ctl._maps["cd"].cmap
+        m.sizes.clear()
+        poses = {r: complex(0.1 * np.cos(i), 0.6 * np.sin(i)) for i, r in enumerate(rids)}
+        for r, z in poses.items():
+            cl.pose(r, z.real, z.imag)
+
+        def answered(r: str) -> VelocityCommand | None:
+            c = [x for x in cl.cmds if x.robot_id == r and x.pose_seq > 0]
+            return c[-1] if c else None
+
+        wait_for(lambda: all(answered(r) for r in rids))
+        assert sum(m.sizes) == 16 and len(m.sizes) < 16  # evaluated together, once each
+        ref = walled_loader(solution())
+        for r in rids:
+            got = complex(*answered(r).linear)
+            want = _library_u(ref, goals[r], poses[r])
+            assert abs(got - want) <= 1e-15 * abs(want) and abs(want) > 0
+    finally:
+        ctl.stop()

@@ -28,6 +28,14 @@ off the critical points.  Convergence in *finite-looking* time is what changes: 
 most ``L / v_max + log(v_max / (gain goal_tol)) / gain`` seconds along a path of length L.
 Where ``f = 0`` (the goal and the M saddles) the direction is undefined and ``u = 0``.
 
+**Held commands.**  A robot applies a command until ``hold_time`` after the pose it answers
+(the simulator's ``max_cmd_age``, :data:`~confnav.navigation.defaults.HOLD_TIME`), i.e. up to
+``|u| hold_time`` away from that pose.  Both laws cap the speed at
+``HOLD_FRACTION * c(x) / hold_time`` with ``c`` the clearance of the map's workspace (shrunk by
+the footprint): the held command ends inside the disk of radius ``c`` about ``x``, which lies in
+the free space.  The cap is one more factor ``s > 0`` off the walls: same curves as above;
+the time bound holds where it does not bind (``c >= v_max hold_time / HOLD_FRACTION``).
+
 The law depends on the map only through :class:`ConformalLike` (``T_and_dT``, ``centers``,
 ``radii``), so exact maps can stand in for the solver in tests.  A new goal reuses the map
 (:meth:`Controller.with_goal`) and, for the harmonic function, the map's factorization.
@@ -122,13 +130,35 @@ def speed_law(
     gain: float = defaults.GAIN,
     v_max: float = defaults.V_MAX,
     slow: FArray | None = None,
+    v_cap: FArray | None = None,
 ) -> tuple[CArray, NDArray[np.bool_]]:
     """The command ``u = s f`` (``s > 0``) from the Theorem 2 field ``f`` (module docstring).
 
     ``dist``: distance to the goal (m); ``slow``: optional factor in ``[SLOW_FLOOR, 1]``
-    (normalized law only).  Where ``f`` is 0 (goal, critical points) ``u = 0``; NaN stays
-    NaN.  Returns ``(u, saturated)``.
+    (normalized law only); ``v_cap``: optional per-point speed limit (m/s, >= 0, either
+    law: ``u`` is scaled down to it keeping its direction).  Where ``f`` is 0 (goal,
+    critical points) ``u = 0``; NaN stays NaN.  Returns ``(u, saturated)``.
     """
+    u, sat = _speed_law(field, dist, law=law, gain=gain, v_max=v_max, slow=slow)
+    if v_cap is None:
+        return u, sat
+    cap = np.asarray(v_cap, dtype=np.float64)
+    speed = np.abs(u)
+    capped = speed > cap
+    scale = np.where(capped, cap / np.where(capped, speed, 1.0), 1.0)
+    return np.asarray(u * scale, dtype=np.complex128), np.asarray(sat & ~capped)
+
+
+def _speed_law(
+    field: CArray,
+    dist: FArray,
+    *,
+    law: str,
+    gain: float,
+    v_max: float,
+    slow: FArray | None,
+) -> tuple[CArray, NDArray[np.bool_]]:
+    """:func:`speed_law` without the per-point cap."""
     f = np.asarray(field, dtype=np.complex128)
     size = np.abs(f)
     if law == "theorem2":
@@ -174,6 +204,11 @@ class Controller:
     goal_tol : distance to the goal (m) counted as arrived.
     slow_distance : normalized law: clearance (m) below which the speed is scaled by
         ``clip(clearance / slow_distance, 0.2, 1)`` (0 = off; needs ``cmap.workspace``).
+    hold_time : s a robot may keep applying a command after the pose it answers (the
+        simulator's ``max_cmd_age``): the speed is capped at ``HOLD_FRACTION * clearance /
+        hold_time``, so the held command stays inside the free space (module docstring).
+        None: :data:`~confnav.navigation.defaults.HOLD_TIME` when the map has a workspace
+        (clearance), off otherwise; 0: off.
     stall_radius : distance (m) to a critical point of phi other than the goal (found by
         :meth:`critical_points`, or in the background by :meth:`search_critical_points`)
         within which a robot is reported STALLED; default goal_tol.
@@ -199,6 +234,7 @@ class Controller:
         slow_distance: float = defaults.SLOW_DISTANCE,
         stall_radius: float | None = None,
         workspace: Workspace | None = None,
+        hold_time: float | None = None,
     ) -> None:
         bound = getattr(cmap, "workspace_hash", None)
         if workspace is not None and bound != workspace.content_hash:  # issue 8
@@ -226,12 +262,16 @@ class Controller:
         self.goal_tol = float(goal_tol)
         self.slow_distance = float(slow_distance)
         self.stall_radius = self.goal_tol if stall_radius is None else float(stall_radius)
-        self._clearance = None
-        if self.slow_distance > 0:
-            ws = getattr(cmap, "workspace", None)
-            if ws is None or not hasattr(ws, "clearance"):
-                raise NavigationError("slow_distance needs a map with a workspace (clearance)")
-            self._clearance = ws.clearance
+        ws = getattr(cmap, "workspace", None)
+        self._clearance = getattr(ws, "clearance", None)
+        if hold_time is None:
+            hold_time = defaults.HOLD_TIME if self._clearance is not None else 0.0
+        if not (float(hold_time) >= 0 and np.isfinite(hold_time)):
+            raise NavigationError(f"hold_time must be >= 0 and finite, got {hold_time!r}")
+        self.hold_time = float(hold_time)
+        for name, on in (("slow_distance", self.slow_distance), ("hold_time", self.hold_time)):
+            if on > 0 and self._clearance is None:
+                raise NavigationError(f"{name} needs a map with a workspace (clearance)")
         if _workspace_contains(cmap, self.goal) is False:
             raise NavigationError(f"goal {fmt_point(self.goal)} is not in the free space")
         wd = complex(np.asarray(cmap.T_and_dT(np.asarray(self.goal))[0]))
@@ -278,6 +318,7 @@ class Controller:
             "goal_tol": self.goal_tol,
             "slow_distance": self.slow_distance,
             "stall_radius": self.stall_radius,
+            "hold_time": self.hold_time,
         }
 
     def with_goal(self, goal: complex | tuple[float, float] | ArrayLike) -> Controller:
@@ -288,11 +329,27 @@ class Controller:
             raise NavigationError(f"goal {fmt_point(z)} is not in the free space")
         return Controller(self.cmap, z, navfn=self.navfn.with_goal(wd), **self._params())
 
-    def _command(self, z: CArray, dw: CArray, g: CArray) -> tuple[CArray, NDArray[np.bool_]]:
-        slow = None
-        if self._clearance is not None:
-            c = np.asarray(self._clearance(z), dtype=np.float64)
-            slow = np.clip(c / self.slow_distance, SLOW_FLOOR, 1.0)
+    @property
+    def uses_clearance(self) -> bool:
+        """Whether the law needs the workspace clearance (wall slow-down or hold cap)."""
+        return self._clearance is not None and (self.slow_distance > 0 or self.hold_time > 0)
+
+    def clearance(self, z: ArrayLike) -> FArray:
+        """Clearance of ``z`` in the map's workspace (what :meth:`from_map_values` takes)."""
+        if self._clearance is None:
+            raise NavigationError("the map has no workspace (clearance)")
+        return np.asarray(self._clearance(np.asarray(z, dtype=np.complex128)), dtype=np.float64)
+
+    def _command(
+        self, z: CArray, dw: CArray, g: CArray, clearance: FArray | None = None
+    ) -> tuple[CArray, NDArray[np.bool_]]:
+        slow = v_cap = None
+        if self.uses_clearance:
+            c = self.clearance(z) if clearance is None else clearance
+            if self.slow_distance > 0:
+                slow = np.clip(c / self.slow_distance, SLOW_FLOOR, 1.0)
+            if self.hold_time > 0:  # a command held hold_time s moves <= HOLD_FRACTION * c
+                v_cap = defaults.HOLD_FRACTION * np.maximum(c, 0.0) / self.hold_time
         return speed_law(
             -np.conj(dw) * g,
             np.abs(z - self.goal),
@@ -300,6 +357,7 @@ class Controller:
             gain=self.gain,
             v_max=self.v_max,
             slow=slow,
+            v_cap=v_cap,
         )
 
     def velocity(self, z: ArrayLike) -> CArray:
@@ -312,15 +370,33 @@ class Controller:
     def __call__(self, z: ArrayLike) -> ControlOutput:
         """Command and status for a batch of robot positions (complex array, any shape)."""
         z = np.asarray(z, dtype=np.complex128)
-        bad = ~np.isfinite(z)
-        w, dw = self.cmap.T_and_dT(np.where(bad, self.goal, z))
+        w, dw = self.cmap.T_and_dT(np.where(np.isfinite(z), z, self.goal))
+        return self.from_map_values(z, w, dw)
+
+    def from_map_values(
+        self, z: ArrayLike, w: ArrayLike, dw: ArrayLike, clearance: ArrayLike | None = None
+    ) -> ControlOutput:
+        """:meth:`__call__` from precomputed ``(w, dw) = cmap.T_and_dT(z)`` (same shapes) and,
+        optionally, ``clearance = self.clearance(z)``.
+
+        The map does not depend on the goal, so a host with many robots on one map (each with
+        its own goal and controller) evaluates ``T``, ``T'`` and the clearance once for all of
+        them and hands each controller its robots' values: the result is exactly ``self(z)``
+        for those values.
+        """
+        z = np.asarray(z, dtype=np.complex128)
         w = np.asarray(w, dtype=np.complex128)
         dw = np.asarray(dw, dtype=np.complex128)
-        bad |= ~np.isfinite(w) | ~np.isfinite(dw)
+        bad = ~np.isfinite(z) | ~np.isfinite(w) | ~np.isfinite(dw)
         w = np.where(bad, self.goal_w, w)
         dw = np.where(bad, 1.0, dw)
         phi, g = self.navfn.value_and_gradient(w)
-        u, sat = self._command(np.where(bad, self.goal, z), dw, g)
+        c = None
+        if clearance is not None and self.uses_clearance:
+            c = np.asarray(clearance, dtype=np.float64)
+            if bad.any():  # the bad poses are evaluated at the goal (then set to u = 0)
+                c = np.where(bad, self.clearance(self.goal), c)
+        u, sat = self._command(np.where(bad, self.goal, z), dw, g, c)
         arrived = ~bad & (np.abs(z - self.goal) <= self.goal_tol)
         stalled = ~bad & ~arrived & self._near_critical(w, dw)
         status = np.full(z.shape, Status.MOVING, dtype=np.int8)

@@ -26,3 +26,9 @@ V_MAX: Final = 0.5
 GOAL_TOL: Final = 0.02
 #: Clearance (m) below which the normalized law slows down in proportion (0: off).
 SLOW_DISTANCE: Final = 0.0
+#: How long (s) a robot may keep applying one command after the pose it answers: the
+#: simulator's ``max_cmd_age`` (docs/SERVICES.md). The law caps the speed so that a command
+#: held this long moves the robot at most ``HOLD_FRACTION`` of its clearance (0: off).
+HOLD_TIME: Final = 0.25
+#: Fraction of the clearance a held command may use up (< 1 leaves the rest as margin).
+HOLD_FRACTION: Final = 0.5
