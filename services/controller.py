@@ -275,27 +275,35 @@ class ControllerService(Service):
             return
         new = _Map(sol.revision, cmap, sol.definition_hash)
         with self._lock:
-            robots = [r for r in self._robots.values() if r.goal and r.goal.ws_id == ws_id]
-        built = {r.robot_id: self._build(new, r.goal) for r in robots if r.goal}
+            goals = {
+                r.robot_id: r.goal
+                for r in self._robots.values()
+                if r.goal and r.goal.ws_id == ws_id
+            }
+        built = {rid: self._build(new, g) for rid, g in goals.items() if g}
         with self._build_lock:
             live = {m.revision for w, m in self._maps.items() if w != ws_id} | {new.revision}
             self._ctrl_cache = {k: c for k, c in self._ctrl_cache.items() if k[0] in live}
+        late: list[_Robot] = []  # goals that changed or came while the map was being built
         with self._lock:
             self._maps[ws_id] = new
             self._map_errors.pop(ws_id, None)
             pending = self._pending.get(ws_id)
             if pending is not None and pending.definition_hash == sol.definition_hash:
                 del self._pending[ws_id]  # the map of the current geometry: robots go on
-            for r in robots:
-                ctrl, err = built[r.robot_id]
+            for r in self._robots.values():
                 with r.lock:
                     if r.goal is None or r.goal.ws_id != ws_id:
                         continue
+                    if r.goal is not goals.get(r.robot_id):
+                        late.append(r)
+                        continue
+                    ctrl, err = built[r.robot_id]
                     r.ctrl, r.ctrl_revision, r.ctrl_error = ctrl, new.revision, err
+        for r in late:
+            self._adopt(r, ws_id, new)
         self.count("maps_installed")
-        log.info(
-            "workspace %r: map %s installed (%d robots)", ws_id, sol.revision[:12], len(robots)
-        )
+        log.info("workspace %r: map %s installed (%d robots)", ws_id, sol.revision[:12], len(goals))
         self.swapped.set()
 
     # definition changes -----------------------------------------------------------------
@@ -512,9 +520,28 @@ class ControllerService(Service):
             r.stale_reported = False
             r.status_key = ("", "", None, "")
             r.goal_t = r.seen_t = time.monotonic()
-        if m is None:
+        current = self._maps.get(goal.ws_id)
+        if current is not None and current is not m:  # a map landed while this goal was set
+            self._adopt(r, goal.ws_id, current)
+        elif m is None:
             self._wake_fetch.set()
         log.info("robot %r: goal %s on %r", rid, goal.goal, goal.ws_id)
+
+    def _adopt(self, r: _Robot, ws_id: str, m: _Map) -> None:
+        """Give ``r`` the controller of workspace ``ws_id``'s map ``m`` for its current goal,
+        unless it has one of ``m`` already or its goal moved elsewhere meanwhile.
+
+        A goal and a map installation race: the installation builds for the goals it saw, the
+        goal handler for the map it saw; whichever comes second catches the robot the first
+        one missed (a lost race left a robot without a controller until the next map)."""
+        with r.lock:
+            goal = r.goal
+            if goal is None or goal.ws_id != ws_id or r.ctrl_revision == m.revision:
+                return
+        ctrl, err = self._build(m, goal)
+        with r.lock:
+            if r.goal is goal and r.ctrl_revision != m.revision:
+                r.ctrl, r.ctrl_revision, r.ctrl_error = ctrl, m.revision, err
 
     def _reject_goal(self, rid: str, message: str) -> None:
         """A malformed goal: the robot's goal is cleared (zero command) and the sender told."""

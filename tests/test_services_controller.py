@@ -669,3 +669,39 @@ def test_robots_with_their_own_goals_share_one_map_evaluation(mem_net: InMemoryN
             assert abs(got - want) <= 1e-15 * abs(want) and abs(want) > 0
     finally:
         ctl.stop()
+
+
+def test_a_goal_arriving_while_its_map_is_installed_gets_a_controller(
+    mem_net: InMemoryNetwork,
+) -> None:
+    """A goal handled while the map of its workspace is being installed (after the
+    installation took its snapshot of the goals, before the map was visible) gets a controller
+    of that map: a lost race used to leave the robot without one until the next map."""
+    import threading
+
+    from confnav.navigation.messages import make_controller
+
+    entered, release = threading.Event(), threading.Event()
+
+    def slow_factory(cmap: Any, goal: Goal) -> Any:
+        if goal.robot_id == "r1":  # the installation is building r1's controller
+            entered.set()
+            assert release.wait(10)
+        return make_controller(cmap, goal)
+
+    ctl, tr, cl = setup(mem_net, controller_factory=slow_factory)
+    try:
+        cl.goal("r1")
+        assert entered.wait(10)
+        cl.goal("r2", xy=(-0.5, 0.2))
+        wait_for(lambda: "r2" in ctl._robots and ctl._robots["r2"].goal is not None)
+        assert ctl.counters["maps_installed"] == 0  # the map is not installed yet
+        release.set()
+        wait_for(lambda: ctl.counters["maps_installed"] == 1)
+        wait_for(lambda: ctl._robots["r2"].ctrl is not None)
+        cl.pose("r2", 0.0, 0.5)
+        cmd = wait_for(lambda: cl.answer("r2"))
+        assert cmd.map_revision == "rev1" and abs(complex(*cmd.linear)) > 0
+    finally:
+        release.set()
+        ctl.stop()
