@@ -689,7 +689,7 @@ def test_a_goal_arriving_while_its_map_is_installed_gets_a_controller(
             assert release.wait(10)
         return make_controller(cmap, goal)
 
-    ctl, tr, cl = setup(mem_net, controller_factory=slow_factory)
+    ctl, _tr, cl = setup(mem_net, controller_factory=slow_factory)
     try:
         cl.goal("r1")
         assert entered.wait(10)
