@@ -80,3 +80,33 @@ def test_thin_mirror_symmetric_triangles(tip_degrees: float) -> None:
     assert d.tol_met and d.boundary_residual <= 1e-6
     assert abs(cm.centers[0].real) <= max(d.error_estimate, 1e-14)
     assert 0 < cm.radii[0] < 0.2
+
+
+def test_nodes_merged_by_rounding_are_one_source() -> None:
+    """Live nodes closer than MERGED_NODE_ULPS ulps of the previous live node (cyclically) are
+    dropped as sources, one node of each merged group stays."""
+    eta = np.exp(1j * np.linspace(0, 2 * np.pi, 12, endpoint=False)) * 3.0
+    eta[5] = eta[4] + 1e-16  # merged with its predecessor
+    eta[11] = eta[0]  # merged across the start of the curve
+    deta = 1j * eta
+    alive = gnk.alive_nodes(eta, deta)
+    assert alive.sum() == 10 and alive[4] and not alive[5]
+    assert alive[0] != alive[11]
+    distinct = eta.copy()
+    distinct[5] = eta[4] + 1e-12  # 1e-12 apart: far above rounding, both stay
+    distinct[11] = eta[11] * np.exp(0.3j)
+    assert gnk.alive_nodes(distinct, 1j * distinct).all()
+
+
+def test_inflated_default_workspace_solves_at_384_nodes_per_side() -> None:
+    """The default workspace shrunk by a robot radius of 0.08 (``confnav demo``'s unicycle):
+    at 384 nodes per side graded nodes on the two sides of a corner of obstacle 3 merge in
+    floating point under its exterior map's inversion. That level ran GMRES on NaN to its
+    iteration limit (50 s) and failed, leaving the map 1.1e-10 short of tol 1e-10."""
+    ws = confnav.inflate(confnav.default_workspace(), 0.08)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", confnav.AccuracyWarning)
+        cmap = confnav.solve(ws, tol=1e-10, nodes_per_side=384)
+    rep = cmap.diagnostics
+    assert rep.nodes_per_side == 384 and rep.tol_met
+    assert rep.boundary_residual <= 1e-10 and rep.error_estimate <= 1e-10

@@ -91,10 +91,26 @@ DENSE_MAX_NODES = 3200
 DEAD_NODE_RTOL = 1e-15
 
 
+#: Two live nodes closer than this many units in the last place of the coordinates are one
+#: point in floating point: 1/(eta_k - eta_i) has a rounding error above 1/16 there. Graded nodes
+#: on the two sides of a corner reach this at 384 nodes per side (p = 7: both within 1e-14 of the
+#: vertex), and an inversion (exterior maps) can merge them exactly: the Cauchy sum was then
+#: inf, GMRES ran to its iteration limit on NaN (50 s) and the level failed.
+MERGED_NODE_ULPS = 16.0
+
+
 def alive_nodes(eta: ComplexArray, deta: ComplexArray) -> np.ndarray:
-    """Nodes whose quadrature weight is above rounding (see :data:`DEAD_NODE_RTOL`)."""
+    """Nodes that are sources: quadrature weight above rounding (:data:`DEAD_NODE_RTOL`) and
+    not within rounding of the previous such node along the curve (:data:`MERGED_NODE_ULPS`;
+    one node of a merged group stays; the others carry a weight below 1e-12 of the curve's)."""
     size = float(np.max(np.abs(eta - eta.mean())))
-    return np.asarray(np.abs(deta) * (2 * np.pi / eta.size) > DEAD_NODE_RTOL * size)
+    alive = np.abs(deta) * (2 * np.pi / eta.size) > DEAD_NODE_RTOL * size
+    idx = np.flatnonzero(alive)
+    if idx.size > 1:
+        ulp = np.finfo(np.float64).eps * float(np.max(np.abs(eta)))
+        gap = np.abs(eta[idx] - eta[np.roll(idx, 1)])  # to the previous one, cyclically
+        alive[idx[gap <= MERGED_NODE_ULPS * ulp]] = False
+    return np.asarray(alive)
 
 
 class _Operator:
@@ -179,6 +195,10 @@ def solve_gnk(
     def _cb(_: object) -> None:
         count[0] += 1
 
+    if not np.all(np.isfinite(rhs)):
+        raise ConvergenceError(
+            f"the GNK right-hand side is not finite (n={n}): coincident or non-finite nodes"
+        )
     mu, info = gmres(
         lin,
         rhs,
@@ -193,7 +213,7 @@ def solve_gnk(
         res = float(np.linalg.norm(op.I_minus_N(mu) - rhs)) / max(
             float(np.linalg.norm(rhs)), 1e-300
         )
-        if res > GMRES_ACCEPT * rtol:
+        if not res <= GMRES_ACCEPT * rtol:  # NaN is not accepted either
             raise ConvergenceError(
                 f"GMRES did not converge for the GNK equation (n={n}, residual {res:.2e} > "
                 f"{GMRES_ACCEPT * rtol:.1e})"
