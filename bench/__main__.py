@@ -22,6 +22,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from bench.provenance import git
+
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
 RESULTS = HERE / "results"
@@ -80,18 +82,9 @@ BENCHMARKS: dict[str, Bench] = {
 }
 
 
-def _git(*args: str) -> str:
-    try:
-        return subprocess.run(
-            ["git", *args], cwd=ROOT, capture_output=True, text=True, check=True
-        ).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return ""
-
-
 def head() -> tuple[str, bool]:
     """(commit of HEAD, whether tracked files differ from it)."""
-    return _git("rev-parse", "HEAD"), bool(_git("status", "--porcelain", "--untracked-files=no"))
+    return git("rev-parse", "HEAD"), bool(git("status", "--porcelain", "--untracked-files=no"))
 
 
 def recorded_commit(doc: Any) -> str | None:
@@ -186,10 +179,10 @@ def freshness(name: str, recorded: str, commit: str) -> str:
     " (stale: N files changed)" / " (stale: commit unknown)"."""
     if commit.startswith(recorded):
         return ""
-    if not _git("rev-parse", "--verify", "--quiet", f"{recorded}^{{commit}}"):
+    if not git("rev-parse", "--verify", "--quiet", f"{recorded}^{{commit}}"):
         return " (stale: commit unknown)"
     paths = [f"bench/{BENCHMARKS[name].script}", *CODE_PATHS]
-    changed = _git("diff", "--name-only", recorded, commit, "--", *paths).splitlines()
+    changed = git("diff", "--name-only", recorded, commit, "--", *paths).splitlines()
     return f" (stale: {len(changed)} files changed)" if changed else " (current)"
 
 

@@ -25,13 +25,13 @@ for _v in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
 import argparse  # noqa: E402
 import json  # noqa: E402
 import platform  # noqa: E402
-import subprocess  # noqa: E402
 import time  # noqa: E402
 from collections.abc import Callable  # noqa: E402
 from pathlib import Path  # noqa: E402
 from typing import Any  # noqa: E402
 
 import numpy as np  # noqa: E402
+from provenance import commit, loadavg  # noqa: E402  (script mode: bench/ on sys.path)
 
 from confnav.atlas import AtlasNavigator, needs_atlas, solve_atlas  # noqa: E402
 from confnav.atlas.scenes import office, spiral, warehouse  # noqa: E402
@@ -47,27 +47,6 @@ SCENARIOS: dict[str, Callable[[], Scenario]] = {
     "spiral30": lambda: spiral(30),
 }
 TARGETS = {"success": 0.999, "collisions": 0, "median_ratio": 1.3, "solve_s": 60.0}
-
-
-def loadavg() -> str:
-    try:
-        return Path("/proc/loadavg").read_text().strip()
-    except OSError:
-        return "n/a"
-
-
-def commit() -> str:
-    try:
-        out = subprocess.run(
-            ["git", "rev-parse", "--short", "HEAD"],
-            capture_output=True,
-            text=True,
-            check=True,
-            cwd=Path(__file__).parent,
-        )
-        return out.stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
 
 
 def bench(

@@ -26,7 +26,6 @@ for _v in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
 
 import argparse  # noqa: E402
 import json  # noqa: E402
-import subprocess  # noqa: E402
 import time  # noqa: E402
 import tracemalloc  # noqa: E402
 import warnings  # noqa: E402
@@ -36,6 +35,7 @@ from pathlib import Path  # noqa: E402
 from typing import Any  # noqa: E402
 
 import numpy as np  # noqa: E402
+from provenance import git, loadavg  # noqa: E402  (script mode: bench/ on sys.path)
 
 import confnav  # noqa: E402
 from confnav.geometry import Workspace  # noqa: E402
@@ -213,22 +213,6 @@ def harmonic_cost(cache: Path | None, n_goals: int = 20) -> dict[str, Any]:
     }
 
 
-def _git(*a: str) -> str:
-    try:
-        return subprocess.run(
-            ["git", *a], capture_output=True, text=True, check=True, cwd=Path(__file__).parent
-        ).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
-
-
-def _load() -> str:
-    try:
-        return Path("/proc/loadavg").read_text().strip()
-    except OSError:
-        return "unknown"
-
-
 def _met(ok: bool) -> str:
     return "met" if ok else "missed"
 
@@ -266,9 +250,9 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=RESULTS)
     args = ap.parse_args()
     started = datetime.now(UTC).isoformat(timespec="seconds")
-    commit = _git("rev-parse", "HEAD")  # the code that runs (read before any checkout/merge)
-    dirty = bool(_git("status", "--porcelain", "--untracked-files=no"))
-    load0 = _load()
+    commit = git("rev-parse", "HEAD")  # the code that runs (read before any checkout/merge)
+    dirty = bool(git("status", "--porcelain", "--untracked-files=no"))
+    load0 = loadavg()
     t0 = time.perf_counter()
     cases = [s for s in scenarios() if not args.only or any(o in s.name for o in args.only)]
     with ProcessPoolExecutor(max_workers=args.jobs) as pool:
@@ -279,7 +263,7 @@ def main() -> None:
         rows = []
         for sc, f in zip(cases, futs, strict=True):
             rows.append(f.result())
-            print(f"# {sc.name}: {rows[-1]['wall_s']:.0f} s  (load {_load()})", flush=True)
+            print(f"# {sc.name}: {rows[-1]['wall_s']:.0f} s  (load {loadavg()})", flush=True)
     cost = None if args.no_cost else harmonic_cost(args.map_cache)
     targets: dict[str, str] = {}
     for r in rows:
@@ -316,7 +300,7 @@ def main() -> None:
         "started": started,
         "finished": datetime.now(UTC).isoformat(timespec="seconds"),
         "load_before": load0,
-        "load_after": _load(),
+        "load_after": loadavg(),
         "note": "timings under the load shown (shared machine), not idle figures",
         "cpu_count": os.cpu_count(),
         "starts_per_scenario": args.starts,

@@ -25,31 +25,18 @@ import datetime as dt
 import json
 import multiprocessing as mp
 import os
-import subprocess
 import sys
 import time
 import warnings
 from pathlib import Path
 from typing import Any
 
+from provenance import commit  # script mode: bench/ is on sys.path
+
 RESULTS = Path(__file__).resolve().parent / "results" / "scale.json"
 TARGET_DEFAULT_S = 0.5
 TARGET_SPEEDUP = 20.0
 TARGET_OBSTACLES = (50, 1e-8, 10.0)  # (n, tol, seconds)
-
-
-def commit() -> str:
-    try:
-        out = subprocess.run(
-            ["git", "rev-parse", "HEAD"],
-            cwd=Path(__file__).resolve().parent,
-            capture_output=True,
-            text=True,
-            timeout=10,
-        )
-        return out.stdout.strip()
-    except (OSError, subprocess.SubprocessError):
-        return ""
 
 
 def _dense() -> None:

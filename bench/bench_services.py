@@ -42,6 +42,7 @@ from confnav.schemas.messages import NavFnName
 from confnav.services.bus import ZenohBus, zenoh_config
 from confnav.services.keys import Keys
 from confnav.services.launcher import SINGLE_THREAD_BLAS
+from provenance import commit  # script mode: bench/ is on sys.path
 
 HERE = Path(__file__).resolve().parent
 K = Keys()
@@ -462,15 +463,6 @@ def row_target(r: dict[str, Any]) -> str:
         return ""
     ok = r["p99_ms"] <= 5.0 and r["lost"] == 0 and r["superseded"] == 0
     return "met" if ok else "MISSED"
-
-
-def commit() -> str:
-    try:
-        return subprocess.run(
-            ["git", "rev-parse", "HEAD"], cwd=HERE, capture_output=True, text=True, timeout=10
-        ).stdout.strip()
-    except (OSError, subprocess.SubprocessError):
-        return "unknown"
 
 
 def main() -> int:
