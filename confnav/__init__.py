@@ -17,6 +17,7 @@ from confnav.errors import (
     NavigationError,
     SerializationError,
     SolverError,
+    UnresolvedCrowdingError,
     WorkspaceError,
 )
 from confnav.geometry import Workspace
@@ -49,6 +50,7 @@ __all__ = [
     "SolverError",
     "UnicycleController",
     "UnreachableGoalError",
+    "UnresolvedCrowdingError",
     "Workspace",
     "WorkspaceError",
     "__version__",

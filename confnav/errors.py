@@ -27,6 +27,12 @@ class ConvergenceError(SolverError):
     """An iteration (GMRES or the Koebe-type sweeps) did not converge."""
 
 
+class UnresolvedCrowdingError(ConvergenceError, CrowdingError):
+    """A disk map could not resolve a crowded region: whole boundaries land in a thin band
+    next to the unit circle (a region reached through a narrow passage). Finer meshes rarely
+    help; an atlas (``confnav atlas``, or the transform service, automatically) does."""
+
+
 class NavigationError(ConfnavError, ValueError):
     """A navigation request is invalid (goal outside free space, bad parameter, ...)."""
 

@@ -9,6 +9,7 @@ confnav.conformal.meshing (sharp-corner node rule) and circledomain._check_image
 from __future__ import annotations
 
 import warnings
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -110,3 +111,17 @@ def test_inflated_default_workspace_solves_at_384_nodes_per_side() -> None:
     rep = cmap.diagnostics
     assert rep.nodes_per_side == 384 and rep.tol_met
     assert rep.boundary_residual <= 1e-10 and rep.error_estimate <= 1e-10
+
+
+def test_a_crowded_room_behind_a_narrow_door_is_a_crowding_error() -> None:
+    """Two rooms joined by a 0.8 m door, shrunk by a 0.3 m footprint: the door becomes a
+    0.2 x 0.75 m channel and the far room, obstacle included, is crowded to within 4e-6 of the
+    circle. Every level failed alike with a message blaming sharp corners (40 s for six
+    levels); now the second alike level ends it with a CrowdingError that says what to do."""
+    door = Path(__file__).resolve().parents[1] / "bench" / "scenes" / "door.json"
+    ws = confnav.inflate(confnav.Workspace.load(door), 0.3, keep=complex(11.2, 4.3))
+    levels: list[str] = []
+    with pytest.raises(confnav.CrowdingError, match=r"narrow passage.*atlas") as err:
+        confnav.solve(ws, progress=lambda m: levels.append(m) if "nodes per side at" in m else 0)
+    assert isinstance(err.value, confnav.UnresolvedCrowdingError)
+    assert len(levels) == 2

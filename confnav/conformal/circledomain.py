@@ -67,7 +67,7 @@ from confnav.conformal.boundary import BoundaryMesh
 from confnav.conformal.diskmap import CurveMap, exterior_map, interior_map
 from confnav.conformal.gnk import GMRES_RTOL
 from confnav.conformal.triginterp import trig_eval, upsample
-from confnav.errors import ConvergenceError, CrowdingError
+from confnav.errors import ConvergenceError, CrowdingError, UnresolvedCrowdingError
 from confnav.types import CArray as ComplexArray
 from confnav.types import FArray as FloatArray
 
@@ -521,6 +521,14 @@ def _own_map(
         ) from exc
 
 
+#: Points of other boundaries on the wrong side of a disk map's circle, all within this band
+#: of it, are a crowded region the mesh cannot resolve (measured on a door 0.2 m wide and 0.75
+#: m long after shrinking by a robot's footprint: a whole obstacle of the far room at
+#: |w| - 1 = 4.25e-6 at 80 and 256 nodes per side alike), not an unstable discretisation
+#: (a needle tip's spurious eigenvalue sends points far across: |w| 0.28 for 5.85).
+CROWDED_BAND = 1e-3
+
+
 def _check_images(
     curves: ComplexArray, points: ComplexArray, hole: bool, name: str, sweep: int
 ) -> None:
@@ -533,6 +541,15 @@ def _check_images(
     """
     w = np.abs(np.concatenate([curves, points]))
     bad = w <= 1.0 if hole else w >= 1.0
+    band = float(np.max(np.abs(w[bad] - 1.0))) if np.any(bad) else np.inf
+    if np.all(np.isfinite(w)) and band < CROWDED_BAND:
+        raise UnresolvedCrowdingError(
+            f"the map of {name} in sweep {sweep} sent {int(np.sum(bad))} points of other "
+            f"boundaries just {'inside' if hole else 'outside'} the unit circle (all within "
+            f"{band:.1e} of it): a region reached through a narrow passage is crowded into a "
+            "tiny arc this mesh cannot resolve; solve the workspace as an atlas (confnav "
+            "atlas; the transform service does so automatically)"
+        )
     if np.any(bad) or not np.all(np.isfinite(w)):
         worst = float(np.min(w) if hole else np.max(w))
         raise ConvergenceError(

@@ -37,7 +37,7 @@ from confnav.conformal.circledomain import CircleDomainResult, koebe_iteration
 from confnav.conformal.cmap import ConformalMap, SolveReport
 from confnav.conformal.gnk import gmres_rtol
 from confnav.conformal.meshing import plan_boundaries
-from confnav.errors import ConvergenceError, GapError, SolverError
+from confnav.errors import ConvergenceError, GapError, SolverError, UnresolvedCrowdingError
 from confnav.geometry import Workspace, interior_point
 from confnav.types import CArray as ComplexArray
 
@@ -192,6 +192,10 @@ def solve(
             log.warning("refinement to level %d stopped (%s); keeping level %d", ns, exc, best[3])
             break
         except ConvergenceError as exc:
+            if isinstance(exc, UnresolvedCrowdingError) and isinstance(
+                failed, UnresolvedCrowdingError
+            ):
+                raise  # two levels alike: refining does not resolve crowding
             if best is None:
                 # no usable pair of levels yet: a coarse level whose discretisation is unstable
                 # (e.g. a needle-like tip, see confnav.conformal.meshing) is skipped, not fatal
