@@ -138,7 +138,9 @@ def _gradient_conditioning(nf: NavigationFunction, w: np.ndarray) -> np.ndarray:
             beta, dbeta = obstacle_function(nf.domain, w)
             big_d = g**nf.k + beta
             root = np.abs(big_d) ** (-1.0 / nf.k)
-            return np.asarray(root / np.abs(big_d) * (2 * np.abs(beta * e) + g / nf.k * np.abs(dbeta)))
+            return np.asarray(
+                root / np.abs(big_d) * (2 * np.abs(beta * e) + g / nf.k * np.abs(dbeta))
+            )
         assert isinstance(nf, HarmonicNavigation)
         _, h, grad_h = nf.green.parts(w)
         q = 1.0 - np.conj(nf.goal) * w

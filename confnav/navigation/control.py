@@ -427,8 +427,9 @@ class Controller:
         )
 
     def _clearance1(self, z: complex) -> float:
-        """:meth:`clearance` of one point."""
-        return float(self.clearance(z))
+        """:meth:`clearance` of one point (the workspace's scalar path if it has one)."""
+        one = getattr(getattr(self.cmap, "workspace", None), "clearance1", None)
+        return float(one(z)) if one is not None else float(self.clearance(z))
 
     def _command1(
         self, z: complex, dw: complex, g: complex, c: float | None
