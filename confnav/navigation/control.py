@@ -490,8 +490,8 @@ class Controller:
             c1 = None
             if clearance is not None:
                 c1 = float(np.asarray(clearance, dtype=np.float64).reshape(-1)[0])
-            one = (complex(a.reshape(-1)[0]) for a in (z, w, dw))
-            return self._step1(*one, c1, z.shape)
+            z1, w1, dw1 = (complex(a.reshape(-1)[0]) for a in (z, w, dw))
+            return self._step1(z1, w1, dw1, c1, z.shape)
         bad = ~np.isfinite(z) | ~np.isfinite(w) | ~np.isfinite(dw)
         w = np.where(bad, self.goal_w, w)
         dw = np.where(bad, 1.0, dw)
