@@ -217,6 +217,19 @@ class Workspace:
         inside = self.contains(zz)
         return np.where(inside, d, -d)
 
+    def clearance1(self, z: complex) -> float:
+        """:meth:`clearance` of one point (a Python float; the one-robot control step): the
+        same arithmetic on the segments as :func:`distance_to_boundary`, in fewer numpy calls."""
+        seg = self.__dict__.get("_seg1")
+        if seg is None:  # (a, d, conj(d), |d|^2) of every side, as _distance_to_segments
+            a, b = self._segments  # type: ignore[attr-defined]
+            seg = (a, b - a, np.conj(b - a), np.abs(b - a) ** 2)
+            object.__setattr__(self, "_seg1", seg)
+        a, d, cd, dd = seg
+        t = np.minimum(np.maximum(((z - a) * cd).real / dd, 0.0), 1.0)
+        dist = float(np.abs(z - (a + t * d)).min())
+        return dist if shapely.contains_xy(self.polygon, z.real, z.imag) else -dist
+
     # ------------------------------------------------------------------ serialisation
     def to_dict(self) -> dict[str, Any]:
         """JSON-able form: ``{"outer": [[x, y], ...], "obstacles": [...], "anchor": [x, y]}``."""

@@ -45,6 +45,7 @@ References
 
 from __future__ import annotations
 
+import cmath
 import time
 from dataclasses import dataclass
 
@@ -203,7 +204,6 @@ class LocalExpansions:
         b = np.concatenate(coefs) if coefs else np.zeros((0, p + 1, nsum), np.complex128)
         # columns [0, c): beta_m of the sums; [c, 2c): (m+1) beta_(m+1) / R of the derivatives,
         # so that S = sum beta_m zeta^m and S' = sum gamma_m zeta^m with zeta = (z - c)/R
-        self._exponents = np.arange(p + 1)
         self._coef = np.zeros((b.shape[0], p + 1, 2 * nsum), np.complex128)
         self._coef[:, :, :nsum] = b
         self._coef[:, :-1, nsum:] = (
@@ -289,17 +289,33 @@ class LocalExpansions:
         return covered, out[:, : self._nsum], out[:, self._nsum :]
 
     def _sums1(self, z: complex) -> tuple[BoolArray, ComplexArray, ComplexArray]:
-        """:meth:`sums` of a single point (same arithmetic, Python scalars for the look-up)."""
+        """:meth:`sums` of a single point, from :meth:`sums1`."""
         out = np.full((1, 2 * self._nsum), np.nan + 0j)
-        rel = (z - self._origin) / self._h_fine
-        x, y = rel.real, rel.imag
-        lf = -1
-        if 0 <= x < self._n_fine and 0 <= y < self._n_fine:
-            lf = int(self._table[int(y), int(x)])
-        if lf >= 0:
-            zeta = (z - complex(self._centres[lf])) / float(self._radii[lf])
-            out[0] = np.power(zeta, self._exponents) @ self._coef[lf]
-        return np.array([lf >= 0]), out[:, : self._nsum], out[:, self._nsum :]
+        s = self.sums1(z)
+        if s is not None:
+            out[0] = s
+        return np.array([s is not None]), out[:, : self._nsum], out[:, self._nsum :]
+
+    def sums1(self, z: complex) -> ComplexArray | None:
+        """The sums and their derivatives at one point as one (2c,) array (sums first), None
+        where no expansion covers it.  Bitwise the row of :meth:`sums` for the same point: the
+        same leaf, ``zeta`` in numpy scalars, powers by cumprod, the same dot; Python scalars
+        for the look-up (no per-array overhead: the one-robot control step)."""
+        if not cmath.isfinite(z):
+            return None
+        rel = (np.complex128(z) - self._origin) / self._h_fine  # as leaf_of, bitwise
+        x, y = float(rel.real), float(rel.imag)
+        if not (0 <= x < self._n_fine and 0 <= y < self._n_fine):
+            return None
+        lf = int(self._table[int(y), int(x)])
+        if lf < 0:
+            return None
+        zeta = (np.complex128(z) - self._centres[lf]) / self._radii[lf]
+        V = np.empty(self.degree + 1, np.complex128)
+        V[0] = 1.0
+        V[1:] = zeta
+        np.cumprod(V, out=V)
+        return np.asarray(V @ self._coef[lf])
 
     def error_bound(self) -> tuple[float, float]:
         """Largest truncation bound of any leaf: (sums, derivatives), absolute."""

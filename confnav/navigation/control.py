@@ -52,6 +52,7 @@ References
 
 from __future__ import annotations
 
+import cmath
 import enum
 import logging
 import queue
@@ -370,8 +371,106 @@ class Controller:
     def __call__(self, z: ArrayLike) -> ControlOutput:
         """Command and status for a batch of robot positions (complex array, any shape)."""
         z = np.asarray(z, dtype=np.complex128)
+        if z.size == 1:  # one robot: the scalar path (_step1)
+            z1 = complex(z.reshape(-1)[0])
+            w1, dw1 = self._map1(z1 if cmath.isfinite(z1) else self.goal)
+            return self._step1(z1, w1, dw1, None, z.shape)
         w, dw = self.cmap.T_and_dT(np.where(np.isfinite(z), z, self.goal))
         return self.from_map_values(z, w, dw)
+
+    def _map1(self, z: complex) -> tuple[complex, complex]:
+        """``T(z), T'(z)`` of one point (the map's scalar path if it has one)."""
+        one = getattr(self.cmap, "T_and_dT1", None)
+        if one is not None:
+            w, dw = one(z)
+        else:
+            w, dw = self.cmap.T_and_dT(np.asarray(z))
+        return complex(w), complex(dw)
+
+    def _step1(
+        self, z: complex, w: complex, dw: complex, clearance: float | None, shape: tuple[int, ...]
+    ) -> ControlOutput:
+        """:meth:`from_map_values` of one robot in Python scalars (arrays of ``shape`` out).
+
+        Statement for statement the batch path: the same formulas in the same order, so the
+        results agree with a batch to rounding (tests/test_single_robot_path.py: 1e-14
+        relative); a single robot's step costs tens of microseconds instead of the ~60 numpy
+        calls on 1-element arrays of the batch path.
+        """
+        bad = not (cmath.isfinite(z) and cmath.isfinite(w) and cmath.isfinite(dw))
+        if bad:  # evaluated at the goal, then u = 0 (as the batch path)
+            z_eval, w, dw = self.goal, self.goal_w, 1 + 0j
+        else:
+            z_eval = z
+        phi, g = self.navfn.value_and_gradient1(w)
+        c = None
+        if self.uses_clearance:
+            c = self._clearance1(z_eval) if clearance is None or bad else float(clearance)
+        u, sat = self._command1(z_eval, dw, g, c)
+        arrived = not bad and abs(z - self.goal) <= self.goal_tol
+        if bad:
+            status = Status.ERROR
+        elif arrived:
+            status = Status.ARRIVED
+        elif self._near_critical1(w, dw):
+            status = Status.STALLED
+        else:
+            status = Status.MOVING
+        if arrived or bad:
+            u = 0j
+        return ControlOutput(
+            u=np.full(shape, u, dtype=np.complex128),
+            status=np.full(shape, status, dtype=np.int8),
+            phi=np.full(shape, np.nan if bad else phi, dtype=np.float64),
+            w=np.full(shape, complex(np.nan, 0.0) if bad else w, dtype=np.complex128),
+            saturated=np.full(shape, sat and not arrived and not bad, dtype=bool),
+        )
+
+    def _clearance1(self, z: complex) -> float:
+        """:meth:`clearance` of one point (the workspace's scalar path if it has one)."""
+        one = getattr(getattr(self.cmap, "workspace", None), "clearance1", None)
+        return float(one(z)) if one is not None else float(self.clearance(z))
+
+    def _command1(
+        self, z: complex, dw: complex, g: complex, c: float | None
+    ) -> tuple[complex, bool]:
+        """:meth:`_command` and :func:`speed_law` of one point (same formulas, scalars)."""
+        f = -dw.conjugate() * g
+        size = abs(f)
+        if self.speed_law == "theorem2":
+            u = self.gain * f
+            s = self.gain * size
+            sat = s > self.v_max
+            if sat:
+                u = u * (self.v_max / s)
+        else:
+            dist = abs(z - self.goal)
+            v = min(self.v_max, self.gain * dist)
+            sat = self.gain * dist >= self.v_max
+            if c is not None and self.slow_distance > 0:
+                v = v * min(max(c / self.slow_distance, SLOW_FLOOR), 1.0)
+            # unit direction; |f| = 0 gives u = 0; NaN stays NaN (as _speed_law)
+            if size > 0:
+                scl = 1.0 / size  # numpy's complex / real: times the reciprocal
+                unit = complex(f.real * scl, f.imag * scl)
+            else:
+                unit = 0j if size == 0 else f
+            u = unit * v
+            sat = sat and size > 0
+        if c is not None and self.hold_time > 0:
+            cap = defaults.HOLD_FRACTION * max(c, 0.0) / self.hold_time
+            speed = abs(u)
+            if speed > cap:
+                u = u * (cap / speed)
+                sat = False
+        return u, bool(sat)
+
+    def _near_critical1(self, w: complex, dw: complex) -> bool:
+        """:meth:`_near_critical` of one point."""
+        pts = self._stall_points()
+        if pts.size == 0:
+            return False
+        return bool(np.min(np.abs(w - pts)) <= self.stall_radius * abs(dw))
 
     def from_map_values(
         self, z: ArrayLike, w: ArrayLike, dw: ArrayLike, clearance: ArrayLike | None = None
@@ -387,6 +486,12 @@ class Controller:
         z = np.asarray(z, dtype=np.complex128)
         w = np.asarray(w, dtype=np.complex128)
         dw = np.asarray(dw, dtype=np.complex128)
+        if z.size == 1 and w.size == 1 and dw.size == 1:  # one robot: the scalar path
+            c1 = None
+            if clearance is not None:
+                c1 = float(np.asarray(clearance, dtype=np.float64).reshape(-1)[0])
+            z1, w1, dw1 = (complex(a.reshape(-1)[0]) for a in (z, w, dw))
+            return self._step1(z1, w1, dw1, c1, z.shape)
         bad = ~np.isfinite(z) | ~np.isfinite(w) | ~np.isfinite(dw)
         w = np.where(bad, self.goal_w, w)
         dw = np.where(bad, 1.0, dw)

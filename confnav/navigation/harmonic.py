@@ -65,6 +65,7 @@ References
 
 from __future__ import annotations
 
+import math
 import threading
 import time
 from collections import OrderedDict
@@ -574,6 +575,13 @@ class GreenFunction:
                 g, h, gh = (np.concatenate([q[k] for q in parts]) for k in range(3))
         return g.reshape(w.shape), h.reshape(w.shape), gh.reshape(w.shape)
 
+    def parts1(self, z: complex) -> tuple[float, float, complex]:
+        """:meth:`parts` of one point as Python scalars: :meth:`_eval` on a 1-point array
+        (the series sums of a batch, bitwise), without :meth:`parts`' reshaping and chunking."""
+        with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+            g, h, gh = self._eval(np.array([complex(z)]))
+        return float(g[0]), float(h[0]), complex(gh[0])
+
     def h(self, w: ArrayLike) -> FArray:
         """``h = log|w - w_d| - G`` (harmonic, ``log|zeta - w_d|`` on the boundary)."""
         return self.parts(w)[1]
@@ -582,8 +590,8 @@ class GreenFunction:
         # F = sum_j sum_k (B_jk u_j^k - conj(B_jk) v_j^k); S = Re F + sum_j b_j L_j;
         # u' = -u^2 / r, v' = r / (1 - conj(c) w)^2; for S = Re F, grad S = conj(F');
         # grad log|(w - c)/(1 - conj(c) w)| = 1/conj(w - c) + c/conj(1 - conj(c) w).
-        s = np.zeros(z.shape)
-        grad_h = np.zeros(z.shape, dtype=np.complex128)
+        s: FArray | float = 0.0
+        grad_h: CArray | complex = 0j
         if self._cen.c.size:
             u, v, d, q = _variables(self._cen, z)
             x = np.concatenate([u, v], axis=1)  # (P, 2M)
@@ -598,12 +606,22 @@ class GreenFunction:
             s = f.real + np.log(np.abs(d / q)) @ self._b
             c = self._cen.c
             grad_h = np.conj(fp) + (1.0 / np.conj(d) + c / np.conj(q)) @ self._b
-        # H = S - sum_i s_i L(w; p_i)
-        s = s - self._images.value(z)
-        grad_h = grad_h - self._images.gradient(z)
+        if self._images.points.size:  # H = S - sum_i s_i L(w; p_i)
+            s = s - self._images.value(z)
+            grad_h = grad_h - self._images.gradient(z)
         g = _disk_green(z, self.pole) - s
         h = np.log(np.abs(1.0 - np.conj(self.pole) * z)) + s
+        if not isinstance(grad_h, np.ndarray):  # no holes and no images: H = 0
+            grad_h = np.zeros(z.shape, dtype=np.complex128)
         return g, h, grad_h
+
+
+def _exp(x: float) -> float:
+    """``e^x`` in Python floats, inf on overflow (as numpy with ``over="ignore"``)."""
+    try:
+        return math.exp(x)
+    except OverflowError:
+        return math.inf
 
 
 class HarmonicNavigation(NavigationFunction):
@@ -647,6 +665,20 @@ class HarmonicNavigation(NavigationFunction):
         if np.any(outside):
             phi = np.where(outside, np.nan, phi)
             grad = np.where(outside, np.nan + 0j, grad)
+        return phi, grad
+
+    def value_and_gradient1(self, w: complex) -> tuple[float, complex]:
+        big_g, h, grad_h = self.green.parts1(w)
+        if not self.domain.clearance1(w) >= 0:  # outside the closed domain
+            return np.nan, complex(np.nan, 0.0)
+        wd = self.goal
+        e = w - wd
+        g = (e * e.conjugate()).real
+        if g == 0:
+            return 0.0, 0j  # at the goal (the batch formula gives exactly 0 there)
+        phi = _exp(2.0 * big_g)
+        q = 1.0 - wd.conjugate() * w
+        grad = 2.0 * _exp(-2.0 * h) * (e * ((1.0 - abs(wd) ** 2) / q).conjugate() - g * grad_h)
         return phi, grad
 
     def with_goal(self, goal: complex) -> HarmonicNavigation:

@@ -106,6 +106,13 @@ class CircleDomain:
             d = np.minimum(d, dj.min(axis=-1))
         return np.asarray(d, dtype=np.float64)
 
+    def clearance1(self, w: complex) -> float:
+        """:meth:`clearance` of one point (a Python float)."""
+        d = 1.0 - abs(w)
+        if self.centers.size:
+            d = min(d, float(np.min(np.abs(w - self.centers) - self.radii)))
+        return d
+
     def contains(self, w: ArrayLike) -> NDArray[np.bool_]:
         """True strictly inside the circle domain (NaN gives False)."""
         return np.asarray(self.clearance(w) > 0)
@@ -137,6 +144,12 @@ class NavigationFunction(ABC):
     @abstractmethod
     def with_goal(self, goal: complex) -> NavigationFunction:
         """The same kind of navigation function with another goal (same domain)."""
+
+    def value_and_gradient1(self, w: complex) -> tuple[float, complex]:
+        """:meth:`value_and_gradient` of one point as Python scalars (the one-robot control
+        step); implementations override it with scalar arithmetic (same formulas)."""
+        phi, g = self.value_and_gradient(np.asarray(w, dtype=np.complex128))
+        return float(phi), complex(g)
 
     def value(self, w: ArrayLike) -> FArray:
         return self.value_and_gradient(w)[0]
@@ -183,6 +196,28 @@ def obstacle_function(domain: CircleDomain, w: CArray) -> tuple[FArray, CArray]:
     return beta, dbeta
 
 
+def obstacle_function1(
+    centers: list[complex], radii2: list[float], w: complex
+) -> tuple[float, complex]:
+    """:func:`obstacle_function` of one point (``radii2``: the squared radii), Python scalars;
+    the same prefix/suffix products in the same order (a loop over the M obstacles)."""
+    b = [1.0 - (w * w.conjugate()).real]
+    db = [-2.0 * w]
+    for c, r2 in zip(centers, radii2, strict=True):
+        d = w - c
+        b.append((d * d.conjugate()).real - r2)
+        db.append(2.0 * d)
+    n = len(b)
+    pre = [1.0] * n
+    for i in range(1, n):
+        pre[i] = pre[i - 1] * b[i - 1]
+    suf = [1.0] * n
+    for i in range(n - 2, -1, -1):
+        suf[i] = suf[i + 1] * b[i + 1]
+    dbeta = sum((db[i] * (pre[i] * suf[i]) for i in range(n)), 0j)
+    return pre[-1] * b[-1], dbeta
+
+
 class KoditschekRimon(NavigationFunction):
     """Koditschek-Rimon navigation function ``phi_k`` on a circle domain [1]_.
 
@@ -206,6 +241,17 @@ class KoditschekRimon(NavigationFunction):
         if not np.isfinite(kf) or kf < 1.0 or kf > MAX_K:
             raise NavigationError(f"k must be a number in [1, {MAX_K:g}], got {k!r}")
         self.k = kf
+        self._circles1 = (domain.centers.tolist(), (domain.radii**2).tolist())
+
+    def value_and_gradient1(self, w: complex) -> tuple[float, complex]:
+        e = w - self.goal
+        g = (e * e.conjugate()).real
+        beta, dbeta = obstacle_function1(*self._circles1, w)
+        if not beta >= 0:  # outside the closed domain (as value_and_gradient)
+            return np.nan, complex(np.nan, 0.0)
+        big_d = g**self.k + beta
+        root = abs(big_d) ** (-1.0 / self.k)
+        return g * root, (root / big_d) * (beta * 2.0 * e - (g / self.k) * dbeta)
 
     def value_and_gradient(self, w: ArrayLike) -> tuple[FArray, CArray]:
         w = np.asarray(w, dtype=np.complex128)
