@@ -57,6 +57,7 @@ from confnav.recording.inspect import inspect_recording
 from confnav.recording.replay_check import check_recording
 
 SCENE = corridor(12.0)  # L/w = 12: one map of it crowds (test_atlas_services.py)
+ROOM = corridor(3.0, 1.5)  # 4.5 x 1.5 m: one map (a unicycle there checks single-map replay)
 RADIUS, LOOKAHEAD = 0.1, 0.1  # the free space is shrunk by 0.2 m: 11.6 x 0.6 m, L/w = 19
 GOAL = (SCENE.goal.real, SCENE.goal.imag)
 
@@ -125,8 +126,10 @@ def test_a_unicycle_drives_down_the_atlas_of_its_shrunk_corridor(shrunk_atlas: A
 @pytest.mark.slow
 @pytest.mark.timeout(300)
 def test_a_unicycle_on_an_atlas_through_the_services(tmp_path: Path) -> None:
-    ws_file = tmp_path / "corr.json"
+    ws_file, room_file = tmp_path / "corr.json", tmp_path / "room.json"
     SCENE.workspace.save(ws_file)
+    ROOM.workspace.save(room_file)
+    spaces = ["--workspace", f"corr={ws_file}", "--workspace", f"room={room_file}"]
     sockdir = tempfile.mkdtemp(prefix="cnu", dir="/tmp")
     sock = f"unixsock-stream/{sockdir}/router.sock"
     mcap_path = tmp_path / "uni.mcap"
@@ -134,9 +137,9 @@ def test_a_unicycle_on_an_atlas_through_the_services(tmp_path: Path) -> None:
         listen=[sock],
         services=[
             ServiceSpec("recorder", ["--out", str(mcap_path)]),
-            ServiceSpec("transform", ["--workspace", f"corr={ws_file}"]),
+            ServiceSpec("transform", spaces),
             ServiceSpec("controller", []),
-            ServiceSpec("simulator", ["--workspace", f"corr={ws_file}", "--time-scale", "2"]),
+            ServiceSpec("simulator", [*spaces, "--time-scale", "2"]),
         ],
         startup_timeout=60,
         log_dir=str(tmp_path / "logs"),
@@ -146,7 +149,7 @@ def test_a_unicycle_on_an_atlas_through_the_services(tmp_path: Path) -> None:
     monitor = threading.Thread(target=launcher.monitor, args=(stop,), daemon=True)
     bus = None
     lock = threading.Lock()
-    status: list[RobotStatus] = []
+    status: dict[str, list[RobotStatus]] = {"u1": [], "u2": []}
     collisions: list[CollisionEvent] = []
     rid = "u1"
     shrunk = derived_ws_id("corr", RADIUS + LOOKAHEAD)
@@ -158,13 +161,14 @@ def test_a_unicycle_on_an_atlas_through_the_services(tmp_path: Path) -> None:
 
         def on_status(key: str, payload: bytes) -> None:
             with lock:
-                status.append(decode(RobotStatus, payload))
+                s = decode(RobotStatus, payload)
+                status[s.robot_id].append(s)
 
         def on_collision(key: str, payload: bytes) -> None:
             with lock:
                 collisions.append(decode(CollisionEvent, payload))
 
-        bus.subscribe(k.robot(rid, "status"), on_status)
+        bus.subscribe(k.any_robot("status"), on_status)
         bus.subscribe(k.any_robot("collision"), on_collision)
         # the axle where a point robot could not start (0.15 m from the end wall), turned
         # 0.5 rad off the corridor's axis: its look-ahead point at (0.24, 0.50)
@@ -174,15 +178,25 @@ def test_a_unicycle_on_an_atlas_through_the_services(tmp_path: Path) -> None:
         )  # fmt: skip
         bus.publish(k.sim("sim", "spawn"), encode(spawn))
         bus.publish(k.robot(rid, "goal"), encode(unicycle_goal(rid)))
+        other = SpawnRequest(
+            robot_id="u2", ws_id="room", position=(0.5, 0.4), theta=2.0,
+            robot_radius=RADIUS, drive="unicycle",
+        )  # fmt: skip
+        bus.publish(k.sim("sim", "spawn"), encode(other))
+        room_goal = unicycle_goal("u2", "room").model_copy(
+            update={"goal": (ROOM.goal.real, ROOM.goal.imag)}
+        )
+        bus.publish(k.robot("u2", "goal"), encode(room_goal))
 
         def arrived() -> bool:
             with lock:
-                return bool(status) and status[-1].state == "arrived"
+                return all(st and st[-1].state == "arrived" for st in status.values())
 
         wait_for(arrived, timeout=200, interval=0.2)
         with lock:
             assert collisions == []
-            assert {s.ws_id for s in status} == {shrunk}
+            assert {s.ws_id for s in status[rid]} == {shrunk}
+            assert {s.chart for s in status["u2"]} == {None}  # one map, no atlas
         bus.close()
         bus = None
         codes = launcher.shutdown()
@@ -233,9 +247,11 @@ def test_a_unicycle_on_an_atlas_through_the_services(tmp_path: Path) -> None:
     # the body (radius RADIUS around the axle) never touched a wall
     body = np.asarray(SCENE.workspace.clearance(np.array(poses)), dtype=float) - RADIUS
     assert len(poses) > 100 and float(body.min()) > 0, float(body.min())
-    # replay --check recomputes every body-frame twist, switching included
+    # replay --check recomputes every body-frame twist, switching included (and those of
+    # the unicycle on a single map)
     report = check_recording(mcap_path)
     assert report.ok and report.per_robot[rid] > 100, report.format()
+    assert report.per_robot["u2"] > 50, report.format()
     assert not report.skipped.get("body-frame twist (unicycle)")
     summary = inspect_recording(mcap_path)
     assert summary.atlases[shrunk].revision == index.revision
