@@ -14,6 +14,7 @@ body clear of the walls, and ``replay --check`` recomputes its commands from the
 from __future__ import annotations
 
 import itertools
+import json
 import shutil
 import tempfile
 import threading
@@ -256,3 +257,35 @@ def test_a_unicycle_on_an_atlas_through_the_services(tmp_path: Path) -> None:
     summary = inspect_recording(mcap_path)
     assert summary.atlases[shrunk].revision == index.revision
     assert summary.robots[rid].charts == seq and summary.robots[rid].arrived
+
+
+def test_the_atlas_command_drives_unicycles_with_a_radius(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from confnav.cli.app import main
+
+    sc = corridor(8)
+    ws_path, out = tmp_path / "corridor.json", tmp_path / "runs.json"
+    sc.workspace.save(ws_path)
+    argv = [
+        "atlas", str(ws_path), f"--goal={sc.goal.real},{sc.goal.imag}",
+        "--starts=0.5,0.5;3,0.4", "--tol=1e-6", "--workers=1", "--json", str(out),
+        "--robot-radius=0.1", "--unicycle=0.1",
+    ]  # fmt: skip
+    code = main(argv)
+    text = capsys.readouterr().out
+    assert code == 0, text
+    assert "2 arrived; collisions 0" in text and "(the body's)" in text
+    clearance = float(text.split("min clearance ")[1].split()[0])
+    assert 0 < clearance <= 0.3 + 1e-9  # the body's: at most the half-width minus the radius
+    doc = json.loads(out.read_text())
+    # the cells are those of the corridor shrunk by 0.2 m: none reaches within 0.2 of a wall
+    outer = [np.array(c["workspace"]["outer"]) for c in doc["cells"]]
+    assert min(float(o[:, 1].min()) for o in outer) >= 0.2 - 1e-9
+    assert max(float(o[:, 1].max()) for o in outer) <= 0.8 + 1e-9
+    ranks = [c["rank"] for c in doc["cells"]]
+    for r in doc["runs"]:
+        assert r["status"] == "arrived" and len(r["cells"]) >= 2
+        assert all(ranks[a] > ranks[b] for a, b in itertools.pairwise(r["cells"]))
+    assert main([*argv[:-2], "--robot-radius=-1"]) == 1
+    assert "--robot-radius" in capsys.readouterr().err
