@@ -26,7 +26,9 @@ from confnav.atlas.compose import AtlasNavigator, Overlap, overlaps
 from confnav.atlas.decompose import Cell, Decomposition, elongation
 from confnav.errors import NavigationError
 from confnav.geometry import Workspace
+from confnav.navigation import defaults
 from confnav.navigation.control import ControlOutput, Status
+from confnav.navigation.unicycle import UnicycleController
 
 __all__ = [
     "ATLAS_MARKER",
@@ -173,10 +175,20 @@ class AtlasMap:
         if not self.links:
             self.links = overlaps(self.atlas)
 
-    def controller(self, goal: Any) -> AtlasController:
-        """The switching controller of one robot for a ``Goal`` message."""
-        if getattr(goal, "drive", "holonomic") != "holonomic":
-            raise NavigationError("atlas workspaces drive holonomic robots only")
+    def controller(self, goal: Any) -> AtlasController | UnicycleController:
+        """The switching controller of one robot for a ``Goal`` message.
+
+        A unicycle (``drive == "unicycle"``) gets the look-ahead law
+        (:class:`confnav.navigation.unicycle.UnicycleController`) around its own
+        :class:`AtlasController`: the look-ahead point is what is navigated and switched, so
+        the atlas must be that of the free space shrunk by radius + look-ahead (the controller
+        service and ``replay --check`` install the map of ``map_ws_id(goal)``, ``{ws}~r{R}``).
+        """
+        drive = getattr(goal, "drive", "holonomic")
+        if drive not in ("holonomic", "unicycle"):
+            raise NavigationError(
+                f"atlas workspaces drive holonomic or unicycle robots, not {drive!r}"
+            )
         nav = AtlasNavigator(
             self.atlas,
             complex(goal.goal[0], goal.goal[1]),
@@ -186,7 +198,15 @@ class AtlasMap:
             navfn=goal.navfn,
             goal_tol=float(goal.tolerance),
         )
-        return AtlasController(nav)
+        ctrl = AtlasController(nav)
+        if drive == "unicycle":
+            return UnicycleController(
+                ctrl,
+                float(goal.lookahead),
+                v_max=float(goal.v_max),
+                omega_max=float(goal.omega_max),
+            )
+        return ctrl
 
 
 class AtlasController:
@@ -195,11 +215,17 @@ class AtlasController:
 
     Called with the robot's position (a one-element array; a longer array is taken as the
     same robot's successive positions).  ``active_chart`` is the chart of the last call;
-    ``history`` the sequence of active charts.
+    ``history`` the sequence of active charts.  ``goal``, ``goal_tol`` and ``v_max`` are those
+    of the whole run (the final goal, not a chart's local goal): what
+    :class:`confnav.navigation.unicycle.UnicycleController` and the simulators read.
     """
 
     def __init__(self, nav: AtlasNavigator) -> None:
         self.nav = nav
+        self.goal: complex = nav.goal
+        # what the goal cell's chart controller is built with (AtlasNavigator.controller)
+        self.goal_tol = float(nav.controller_kw.get("goal_tol", defaults.GOAL_TOL))
+        self.v_max = nav.speed
         self.active_chart: int | None = None
         self.history: list[int] = []
         self.fallback = ""

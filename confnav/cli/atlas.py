@@ -1,24 +1,38 @@
 """``confnav atlas``: solve a workspace as an atlas of charts and navigate by composition.
 
 ``confnav atlas WS.json --goal=X,Y (--starts="X,Y;X,Y" | --random N --seed S) [--tol 1e-8]
-[--workers 2] [--tile T] [--margin M] [--hysteresis H] [--speed V] [--json OUT.json]``
+[--workers 2] [--tile T] [--margin M] [--hysteresis H] [--speed V]
+[--robot-radius R] [--unicycle D [--omega-max W]] [--json OUT.json]``
 
 Prints the cells (tile, obstacles, nodes, solve time) and the runs' summary: success,
 collisions, chart switches, path length over the shortest path.  Exit 0 only if every robot
 arrived without collision.
+
+A robot of radius R (a unicycle: R + its look-ahead D) navigates in the free space shrunk by
+it, so the atlas is solved for that shrunk workspace (as the services do for ``{ws}~r{R}``).
+Disk robots run :meth:`AtlasNavigator.run` (the centre in the shrunk space: the body's
+clearance is at least the one reported); unicycles each get their own switching controller
+(:class:`confnav.atlas.wire.AtlasController`, what the controller service runs) under the
+look-ahead law, moved by the exact unicycle integrator
+(:func:`confnav.navigation.unicycle.simulate_unicycle`) with random headings from ``--seed``,
+collisions and clearances those of the body in the original workspace.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from confnav.argtypes import output_path, positive_int
+from confnav.argtypes import output_path, positive_float, positive_int
 from confnav.cli.simulate import _point, _points
+
+if TYPE_CHECKING:
+    from confnav.atlas import AtlasNavigator, AtlasRun
 
 
 def register(subparsers: Any) -> None:
@@ -46,20 +60,35 @@ def register(subparsers: Any) -> None:
     p.add_argument("--margin", type=float, help="local-goal depth in overlaps, m")
     p.add_argument("--hysteresis", type=float, help="switching depth, m (default margin/2)")
     p.add_argument("--speed", type=float, default=1.0, help="commanded speed, m/s")
+    p.add_argument("--robot-radius", type=float, default=0.0, help="disk robot radius, m")
+    p.add_argument(
+        "--unicycle", type=positive_float, metavar="D",
+        help="differential drive with look-ahead distance D, m",
+    )  # fmt: skip
+    p.add_argument(
+        "--omega-max", type=positive_float, default=2.0, help="unicycle yaw-rate limit, rad/s"
+    )
     p.add_argument("--json", type=output_path, help="write cells, plan and runs here")
     p.set_defaults(func=run_atlas)
 
 
 def run_atlas(args: argparse.Namespace) -> int:
     from confnav.atlas import AtlasNavigator, solve_atlas
+    from confnav.errors import NavigationError
     from confnav.geometry import Workspace
+    from confnav.maps.footprint import inflate
     from confnav.navigation.shortest_path import ShortestPaths
     from confnav.navigation.sim import STATUS_NAMES
     from confnav.scenes.scenarios import random_starts
 
     ws = Workspace.load(args.workspace)
+    if not (np.isfinite(args.robot_radius) and args.robot_radius >= 0):
+        raise NavigationError(f"--robot-radius must be >= 0, got {args.robot_radius!r}")
+    body = args.robot_radius + (args.unicycle or 0.0)  # the footprint shrinks the free space
+    named = {f"start {k}": z for k, z in enumerate(args.starts or [])}
+    nav_ws = inflate(ws, body, keep=args.goal, require=named) if body else ws
     kw = {k: getattr(args, k) for k in ("tile", "margin") if getattr(args, k) is not None}
-    atlas = solve_atlas(ws, args.tol, workers=args.workers, **kw)
+    atlas = solve_atlas(nav_ws, args.tol, workers=args.workers, **kw)
     print(
         f"atlas: {len(atlas.charts)} cells, solved in {atlas.wall_time:.2f} s "
         f"(charts {atlas.cpu_time:.2f} s, speed-up x{atlas.speedup:.2f})"
@@ -70,6 +99,14 @@ def run_atlas(args: argparse.Namespace) -> int:
         n_obs = atlas.decomposition.cells[r.cell].workspace.n_obstacles
         print(f"{r.cell:>4} {n_obs:>4} {r.n_nodes:>6} {r.wall_time:>7.2f} {r.error_estimate:>8.1e}")
     nav = AtlasNavigator(atlas, args.goal, hysteresis=args.hysteresis, speed=args.speed)
+    cut_off = np.flatnonzero(~np.isfinite(nav.plan.rank))
+    if cut_off.size:  # robots starting there stop at once (status "error")
+        print(
+            f"note: cells {cut_off.tolist()} do not reach the goal's through overlaps "
+            f"{atlas.decomposition.margin:.3g} m deep (the margin): a passage narrower than "
+            "twice it; a smaller --margin may connect them",
+            file=sys.stderr,
+        )
     doc: dict[str, Any] = {
         "cells": [
             {"tile": c.tile, "workspace": c.workspace.to_dict(), "rank": float(nav.plan.rank[i])}
@@ -81,20 +118,28 @@ def run_atlas(args: argparse.Namespace) -> int:
     starts = (
         np.asarray(args.starts, dtype=np.complex128)
         if args.starts
-        else random_starts(ws, args.random, seed=args.seed)
+        else random_starts(nav_ws, args.random, seed=args.seed, margin=0.05 + (args.unicycle or 0))
         if args.random
         else None
     )
     code = 0
     if starts is not None:
-        run = nav.run(starts)
-        short = ShortestPaths(ws, nav.goal).lengths(starts)
+        run = nav.run(starts) if args.unicycle is None else run_unicycles(nav, ws, starts, args)
+        short = ShortestPaths(nav_ws, nav.goal).lengths(starts)
         ratio = run.path_length / short
         ok = run.success
         med = float(np.median(ratio[ok])) if ok.any() else float("nan")
         print(
             f"{starts.size} robots: {run.message}; collisions {int(run.collided.sum())}; "
-            f"switches <= {int(run.switches.max())}; median path x{med:.3f} of shortest"
+            f"switches <= {int(run.switches.max())}; median path x{med:.3f} of shortest; "
+            f"min clearance {float(run.min_clearance.min()):.3g} m"
+            + (
+                ""
+                if not body
+                else " (the body's)"
+                if args.unicycle
+                else " (of the centre in the shrunk space: the body's is at least this)"
+            )
         )
         doc["runs"] = [
             {
@@ -112,3 +157,49 @@ def run_atlas(args: argparse.Namespace) -> int:
     if args.json:
         args.json.write_text(json.dumps(doc, indent=1))
     return code
+
+
+def run_unicycles(
+    nav: AtlasNavigator, ws: Any, starts: np.ndarray, args: argparse.Namespace
+) -> AtlasRun:
+    """Unicycles from ``starts`` (random headings from ``--seed``), one switching controller
+    each (it holds the robot's active chart), as an :class:`AtlasRun`: collisions and
+    clearances those of the body of ``--robot-radius`` in the original workspace ``ws``."""
+    import time
+
+    from confnav.atlas import AtlasRun
+    from confnav.atlas.wire import AtlasController
+    from confnav.navigation.unicycle import UnicycleController, simulate_unicycle
+
+    t0 = time.perf_counter()
+    heads = np.random.default_rng(args.seed).uniform(-np.pi, np.pi, starts.size)
+    t_max = 20 * nav.atlas.workspace.diameter / nav.speed  # as AtlasNavigator.run
+    ctrls = [AtlasController(nav) for _ in range(starts.size)]
+    runs = [
+        simulate_unicycle(
+            UnicycleController(c, args.unicycle, v_max=nav.speed, omega_max=args.omega_max),
+            [z],
+            [h],
+            clearance=ws.clearance,
+            radius=args.robot_radius,
+            t_max=t_max,
+        )
+        for c, z, h in zip(ctrls, starts, heads, strict=True)
+    ]
+
+    def cat(name: str) -> Any:
+        return np.concatenate([getattr(r, name) for r in runs])
+
+    return AtlasRun(
+        starts=starts,
+        success=cat("success"),
+        collided=cat("collided"),
+        status=cat("status"),
+        path_length=cat("path_length"),
+        time=cat("time"),
+        min_clearance=cat("min_clearance"),
+        final=cat("final"),
+        switches=np.array([max(len(c.history) - 1, 0) for c in ctrls], dtype=np.int64),
+        cells=tuple(tuple(c.history) for c in ctrls),
+        wall_time=time.perf_counter() - t0,
+    )

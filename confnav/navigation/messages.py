@@ -189,7 +189,8 @@ def commands(
     return np.concatenate(us), np.concatenate(codes)
 
 
-def command(ctrl: ControllerLike, x: float, y: float) -> tuple[complex, int]:
-    """(u, status) for one robot at (x, y)."""
-    out = ctrl(np.asarray(complex(x, y)))
-    return complex(np.asarray(out.u).item()), int(np.asarray(out.status).item())
+def command(ctrl: ControllerLike, x: float, y: float, theta: float = 0.0) -> tuple[complex, int]:
+    """(u, status) for one robot at (x, y) heading ``theta`` (read by body-frame controllers
+    only: :func:`commands`, as the controller service calls them)."""
+    u, codes = commands(ctrl, np.array([complex(x, y)]), np.array([float(theta)]))
+    return complex(u[0]), int(codes[0])

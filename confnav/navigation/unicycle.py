@@ -31,13 +31,13 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from confnav.errors import NavigationError
-from confnav.navigation.control import Controller, Status
+from confnav.navigation.control import Controller, ControlOutput, Status
 from confnav.navigation.sim import SimulationResult, _chord_check, simulate
 from confnav.types import CArray, FArray
 
@@ -89,6 +89,16 @@ def step_exact(
     return np.asarray(z, dtype=np.complex128) + chord, th + 2 * half
 
 
+class PointLaw(Protocol):
+    """What drives the look-ahead point: :class:`confnav.navigation.control.Controller` or an
+    atlas's per-robot :class:`confnav.atlas.wire.AtlasController`."""
+
+    goal: complex
+    goal_tol: float
+
+    def __call__(self, z: ArrayLike) -> ControlOutput: ...
+
+
 @dataclass(frozen=True)
 class UnicycleOutput:
     """One control step: ``u`` the body twist ``v + i omega`` (real part linear.x, m/s;
@@ -106,9 +116,10 @@ class UnicycleController:
 
     Parameters
     ----------
-    controller : the point law (:class:`confnav.navigation.control.Controller`) on the map of the
-    free
-        space shrunk by ``r + d`` (body radius plus look-ahead); its goal is the goal of ``p``.
+    controller : the point law (:class:`PointLaw`: a
+        :class:`confnav.navigation.control.Controller` or an atlas's
+        :class:`confnav.atlas.wire.AtlasController`) on the map of the free space shrunk by
+        ``r + d`` (body radius plus look-ahead); its goal is the goal of ``p``.
     d : look-ahead distance (> 0, workspace units).
     v_max, omega_max : limits on ``|v|`` (m/s) and ``|omega|`` (rad/s), > 0.
     """
@@ -117,7 +128,7 @@ class UnicycleController:
 
     def __init__(
         self,
-        controller: Controller,
+        controller: PointLaw,
         d: float,
         *,
         v_max: float = np.inf,
@@ -133,6 +144,11 @@ class UnicycleController:
         self.omega_max = float(omega_max)
         self.goal = controller.goal
         self.goal_tol = controller.goal_tol
+
+    @property
+    def active_chart(self) -> int | None:
+        """The point law's active chart on an atlas (None on a single map)."""
+        return getattr(self.controller, "active_chart", None)
 
     def __call__(self, z: ArrayLike, theta: ArrayLike | None = None) -> UnicycleOutput:
         """Body twists and statuses for axle positions ``z`` and headings ``theta``."""

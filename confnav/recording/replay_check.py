@@ -8,7 +8,8 @@ that pose, the goal in force at the command's log time and the map it names
 (``map_revision``), and compared with the recorded one.
 
 Tolerance: a command matches when ``|u_recorded - u_recomputed| <= atol + rtol * |u_recorded|``
-(complex velocities, m/s) with defaults ``atol = 1e-9`` m/s and ``rtol = 1e-9``: the same code
+(complex velocities, m/s; a unicycle's body-frame twist as ``v + i omega``, recomputed from
+the pose's heading) with defaults ``atol = 1e-9`` m/s and ``rtol = 1e-9``: the same code
 on the same map coefficients and the same (JSON round-tripped, exact) inputs is expected to
 agree to rounding; any change of gains, navigation function or code shows up far above it.
 
@@ -136,13 +137,16 @@ class CheckReport:
         return "\n".join(lines)
 
 
-def decide(ctrl: navigation.ControllerLike | None, x: float, y: float) -> tuple[complex, str]:
+def decide(
+    ctrl: navigation.ControllerLike | None, x: float, y: float, theta: float = 0.0
+) -> tuple[complex, str]:
     """The command the live controller publishes for a pose: zero without a controller, else
     what :func:`confnav.navigation.messages.decide` (the controller service's own decision)
-    makes of the control law's output from :func:`confnav.navigation.messages.command`."""
+    makes of the control law's output from :func:`confnav.navigation.messages.command`
+    (a unicycle's body twist ``v + i omega`` from the pose's heading)."""
     if ctrl is None:
         return 0j, "no controller"
-    u, code = navigation.command(ctrl, x, y)
+    u, code = navigation.command(ctrl, x, y, theta)
     d = navigation.decide(ctrl, u, code)
     return d.u, d.message or d.reason
 
@@ -299,12 +303,10 @@ def _check_one(
     dead_since: Mapping[str, int],
 ) -> None:
     rid = cmd.robot_id
-    recorded = complex(cmd.linear[0], cmd.linear[1])
+    body = cmd.frame == "body"  # a unicycle's twist: u = v + i omega
+    recorded = complex(cmd.linear[0], cmd.angular if body else cmd.linear[1])
     if cmd.pose_seq < 0:
         report.skipped["watchdog stop (no pose)"] += 1
-        return
-    if cmd.frame == "body":
-        report.skipped["body-frame twist (unicycle)"] += 1
         return
     pose = poses.get(rid, OrderedDict()).get((cmd.pose_seq, cmd.pose_stamp_ns))
     if pose is None:
@@ -323,7 +325,7 @@ def _check_one(
         report.skipped["map revision not recorded"] += 1
         return
     else:
-        expected, why = decide(ctrls.get(goal, cmd.map_revision), pose.x, pose.y)
+        expected, why = decide(ctrls.get(goal, cmd.map_revision), pose.x, pose.y, pose.theta)
     report.checked += 1
     report.per_robot[rid] += 1
     err = abs(recorded - expected) if cmath.isfinite(expected) else math.inf
