@@ -963,10 +963,11 @@ def main() -> int:
         )
         print(f"\nsoak ({sk['robots']} robots, {sk['minutes']} min, resets {sk['resets']}):")
         if "recording_segments" in sk:
+            split = sk["recorder_split_duration_s"]
             print(
                 f"  recording: {sk['recording_segments']} segment(s), "
                 f"{sk['recording_bytes'] / 1e6:.0f} MB, recorder --split-duration "
-                f"{sk['recorder_split_duration_s'] or 'default'}"
+                f"{'default' if split is None else split}"
             )
         for label, g in sk["rss_growth_after_warmup"].items():
             print(f"  {label:<11} RSS growth {g * 100:+.1f} %")
