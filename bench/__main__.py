@@ -56,7 +56,7 @@ BENCHMARKS: dict[str, Bench] = {
     ),
     "navigation": Bench(
         "bench_navigation.py",
-        "navigation.json",
+        "navigation_defaults.json",
         "success / path ratio with the library defaults on realistic scenes",
         quick=("--starts", "20", "--only", "default", "--no-cost"),
     ),

@@ -190,3 +190,19 @@ def test_simulate_refuses_a_map_of_another_workspace(
     )
     assert code != 0
     assert "not for the one in use" in capsys.readouterr().err
+
+
+def test_the_worst_boundary_point_is_named_on_its_boundary() -> None:
+    """The residual's largest point lies on the boundary it is attributed to, and an unusable
+    map's error names it (a user can look there)."""
+    c = _solve(triangles(), 1e-9).coarsened(8)
+    z, res, owner = c.boundary_residuals()
+    assert float(np.max(res)) == c.boundary_residual()
+    p, name = c.worst_boundary_point()
+    j = int(owner[int(np.argmax(res))])
+    assert p == z[int(np.argmax(res))]
+    assert name == ("the outer boundary" if j == 0 else f"obstacle {j - 1}")
+    poly = c.workspace.boundaries[j]
+    edges = np.roll(poly, -1) - poly
+    t = np.clip(((p - poly) * np.conj(edges)).real / np.abs(edges) ** 2, 0, 1)
+    assert np.min(np.abs(poly + t * edges - p)) < 1e-12 * c.workspace.diameter

@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 import shapely
-from numpy.typing import ArrayLike
+from numpy.typing import ArrayLike, NDArray
 
 from confnav.conformal.cauchy import FMM_THRESHOLD, cauchy_sums, cauchy_sums2
 from confnav.conformal.expansion import LocalExpansions
@@ -435,7 +435,21 @@ class ConformalMap:
         return np.asarray(z[np.argsort(-d)][:count])
 
     def boundary_residual(self) -> float:
-        """Largest distance of T(z) from its circle over boundary points between the nodes.
+        """Largest distance of T(z) from its circle over boundary points between the nodes
+        (:meth:`boundary_residuals`; inf if some is not finite)."""
+        res = self.boundary_residuals()[1]
+        return float(np.max(res)) if np.all(np.isfinite(res)) else float("inf")
+
+    def worst_boundary_point(self) -> tuple[complex, str]:
+        """Where the boundary residual is largest: the point and the boundary's name."""
+        z, res, owner = self.boundary_residuals()
+        i = int(np.argmax(np.where(np.isfinite(res), res, np.inf)))
+        j = int(owner[i])
+        return complex(z[i]), "the outer boundary" if j == 0 else f"obstacle {j - 1}"
+
+    def boundary_residuals(self) -> tuple[ComplexArray, FloatArray, NDArray[np.int_]]:
+        """Boundary points between the nodes, the distance of T there from its circle, and the
+        boundary of each (0 outer, j + 1 obstacle j).
 
         An a-posteriori check of the map as evaluated (independent of the solver's own
         estimates): the midpoint between every two consecutive nodes (on the polygon, since
@@ -465,8 +479,7 @@ class ConformalMap:
         w = self._forward(z, False, False, expand=False)[0]
         c = np.concatenate([[0j], self.centers])[which]
         r = np.concatenate([[1.0], self.radii])[which]
-        res = np.abs(np.abs(w - c) - r)
-        return float(np.max(res)) if np.all(np.isfinite(res)) else float("inf")
+        return z, np.abs(np.abs(w - c) - r), which
 
     @property
     def n_nodes(self) -> int:

@@ -37,7 +37,13 @@ from confnav.conformal.circledomain import CircleDomainResult, koebe_iteration
 from confnav.conformal.cmap import ConformalMap, SolveReport
 from confnav.conformal.gnk import gmres_rtol
 from confnav.conformal.meshing import plan_boundaries
-from confnav.errors import ConvergenceError, GapError, SolverError, UnresolvedCrowdingError
+from confnav.errors import (
+    ConvergenceError,
+    GapError,
+    SolverError,
+    UnresolvedCrowdingError,
+    fmt_point,
+)
 from confnav.geometry import Workspace, interior_point
 from confnav.types import CArray as ComplexArray
 
@@ -240,11 +246,15 @@ def solve(
         cmap = _make_map(workspace, best, tol, caps, refinements, t0)
     diag = cmap.diagnostics
     if diag.error_estimate > UNUSABLE_ERROR:
+        where = ""
+        if diag.boundary_residual >= diag.error_estimate:  # name the place: a user can see it
+            z, name = cmap.worst_boundary_point()
+            where = f"; largest on {name} at {fmt_point(z)}"
         raise SolverError(
             f"the map's estimated error {diag.error_estimate:.1e} is too large to navigate "
             f"with (even at {diag.nodes_per_side} nodes per side; discretisation "
             f"{diag.discretisation_error:.1e}, iteration {diag.iteration_error:.1e}, "
-            f"boundary residual {diag.boundary_residual:.1e})"
+            f"boundary residual {diag.boundary_residual:.1e}{where})"
         )
     if not diag.tol_met:
         why = [
