@@ -22,6 +22,8 @@ at most ``cmd_timeout`` wall seconds after it arrived, so the robot stops within
 ``soak``: ``--robots`` robots (default 100) driving to the goal and sent back when they
 arrive, for ``--minutes``; the resident memory (VmRSS) of every process is sampled every 10 s;
 target: growth <= 10 % from the end of the first minute (warm-up) to the end.
+``--soak-split-duration S`` passes ``--split-duration S`` to the recorder (rotation: a short
+S checks that the recorder's memory stops growing with the file length).
 
 Writes ``bench/results/chaos.json`` (commit, date, load) and prints a table. The shared 2-core
 machine is loaded: timings are not idle figures.
@@ -333,8 +335,10 @@ def system_config(
     recorder: bool = True,
     cmd_timeout: float = CMD_TIMEOUT_S,
     max_cmd_age: float = MAX_CMD_AGE_S,
+    recorder_args: tuple[str, ...] = (),
 ) -> LaunchConfig:
-    """Router + recorder, transform, controller, simulator on the default workspace."""
+    """Router + recorder (with ``recorder_args``), transform, controller, simulator on the
+    default workspace."""
     sim_args = ["--workspace", "default=builtin:default", "--time-scale", str(time_scale)]
     sim_args += ["--rate", str(rate), "--cmd-timeout", str(cmd_timeout)]
     sim_args += ["--max-cmd-age", str(max_cmd_age)]
@@ -348,7 +352,8 @@ def system_config(
         ServiceSpec("simulator", sim_args),
     ]
     if recorder:
-        services.insert(0, ServiceSpec("recorder", ["--out", str(out / "chaos.mcap")]))
+        rec_args = ["--out", str(out / "chaos.mcap"), *recorder_args]
+        services.insert(0, ServiceSpec("recorder", rec_args))
     return LaunchConfig(
         listen=[sock], services=services, max_restarts=20, log_dir=str(out / "logs")
     )
@@ -698,7 +703,12 @@ def free_points(n: int, seed: int = 1) -> list[complex]:
 
 
 def run_soak(
-    minutes: float, n_robots: int, work: Path, rate: float, keep: bool = False
+    minutes: float,
+    n_robots: int,
+    work: Path,
+    rate: float,
+    keep: bool = False,
+    split_duration: float | None = None,
 ) -> dict[str, Any]:
     from confnav.scenes.workspaces import DEFAULT_GOAL
 
@@ -706,8 +716,17 @@ def run_soak(
     out = work / "soak"
     out.mkdir(parents=True, exist_ok=True)
     sockdir = Path(tempfile.mkdtemp(prefix="cns", dir="/tmp"))
+    rec_args = () if split_duration is None else ("--split-duration", str(split_duration))
     launcher = Launcher(
-        system_config(f"unixsock-stream/{sockdir}/r.sock", out, work / "cache", starts, 1.0, rate)
+        system_config(
+            f"unixsock-stream/{sockdir}/r.sock",
+            out,
+            work / "cache",
+            starts,
+            1.0,
+            rate,
+            recorder_args=rec_args,
+        )
     )
     samples: list[dict[str, Any]] = []
     resets = 0
@@ -759,6 +778,8 @@ def run_soak(
     for label in [k for k in samples[0] if k not in ("t_s", "load")]:
         first, last = warm[0][label], warm[-1][label]
         growth[label] = (last - first) / first if first else None
+    segments = sorted(out.glob("chaos*.mcap"))
+    recording_bytes = sum(p.stat().st_size for p in segments)
     if not (keep or events):  # a large recording: kept only to investigate
         shutil.rmtree(out, ignore_errors=True)
     return {
@@ -771,6 +792,9 @@ def run_soak(
         "collisions": len(events),
         "collision_events": events,
         "recording": str(out) if out.exists() else None,
+        "recorder_split_duration_s": split_duration,
+        "recording_segments": len(segments),
+        "recording_bytes": recording_bytes,
         "restarts": restarts,
     }
 
@@ -791,6 +815,12 @@ def main() -> int:
     ap.add_argument("--minutes", type=float, default=30.0, help="soak duration")
     ap.add_argument("--robots", type=int, default=100, help="soak robots")
     ap.add_argument("--soak-rate", type=float, default=20.0, help="soak simulator rate, Hz")
+    ap.add_argument(
+        "--soak-split-duration",
+        type=float,
+        default=None,
+        help="recorder --split-duration in the soak, s (default: the recorder's)",
+    )
     ap.add_argument("--out", default=str(HERE / "results" / "chaos.json"))
     ap.add_argument("--keep", action="store_true", help="keep the work directory")
     args = ap.parse_args()
@@ -828,7 +858,14 @@ def main() -> int:
             results["kill"] = kl
         if "soak" in args.modes:
             print(f"soak: {args.robots} robots for {args.minutes} min", flush=True)
-            sk = run_soak(args.minutes, args.robots, work, args.soak_rate, args.keep)
+            sk = run_soak(
+                args.minutes,
+                args.robots,
+                work,
+                args.soak_rate,
+                args.keep,
+                split_duration=args.soak_split_duration,
+            )
             keep_work = sk["recording"] is not None
             sk["load_end"] = loadavg()
             results["soak"] = sk
@@ -925,6 +962,13 @@ def main() -> int:
             (g for g in sk["rss_growth_after_warmup"].values() if g is not None), default=0.0
         )
         print(f"\nsoak ({sk['robots']} robots, {sk['minutes']} min, resets {sk['resets']}):")
+        if "recording_segments" in sk:
+            split = sk["recorder_split_duration_s"]
+            print(
+                f"  recording: {sk['recording_segments']} segment(s), "
+                f"{sk['recording_bytes'] / 1e6:.0f} MB, recorder --split-duration "
+                f"{'default' if split is None else split}"
+            )
         for label, g in sk["rss_growth_after_warmup"].items():
             print(f"  {label:<11} RSS growth {g * 100:+.1f} %")
         targets.append(

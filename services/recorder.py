@@ -11,6 +11,17 @@ itself if it does not exist yet, else the first free ``STEM.N.SUFFIX`` (``demo.m
 ``demo.1.mcap`` -> ``demo.2.mcap``...), created exclusively, so a restart (after a crash, by
 the launcher) is visible as a new file next to the footer-less one ``confnav recover`` mends.
 
+Rotation: once the open segment holds ``split_size`` bytes or spans ``split_duration`` seconds
+(checked at every flush; 0 turns either off), the writer is finished (summary and indexes
+written, its memory freed: the mcap writer keeps one index entry per chunk until then) and the
+next segment is created beside the first, ``STEM.partK.SUFFIX`` (K = 001, 002...; after a
+restart ``demo.1.mcap`` -> ``demo.1.part001.mcap``), so both a restart and a split show in the
+names. Every segment is a complete MCAP file: schemas, the metadata record (with the segment
+number and the first segment's name) and the latched state (:mod:`confnav.recording.latch`:
+latest definitions, transforms, atlas indexes, statuses, goals) re-written at its start on
+channels marked ``confnav.latched``, so any segment alone replays, inspects and checks. The
+switch happens under the writer lock: each message is in exactly one segment.
+
 Payloads that are not valid messages are recorded too, on a raw channel with the same topic:
 every message that reached the recorder is in the file.
 """
@@ -19,9 +30,11 @@ from __future__ import annotations
 
 import argparse
 import logging
+import math
 import threading
+import time
 from pathlib import Path
-from typing import IO, Any
+from typing import IO, Any, Final
 
 from confnav.schemas import DecodeError, Message, decode, model_for_key_parts
 from confnav.services.bus import Bus
@@ -31,6 +44,7 @@ from mcap.writer import CompressionType, IndexType, Writer
 
 from confnav.argtypes import output_path
 from confnav.recording import layout as L
+from confnav.recording.latch import LatchedState
 
 log = logging.getLogger(__name__)
 
@@ -43,6 +57,14 @@ MAX_RAW_BYTES = 64 * 1024 * 1024
 #: a reader skip chunks (readers scan the chunk instead; the format makes them optional).
 INDEX_TYPES = IndexType.ALL & ~IndexType.MESSAGE
 
+#: Default rotation limits. 1 h bounds what the writer holds until a segment is finished (one
+#: chunk index a flush: with 100 robots about 5 a second, a few MB an hour) and keeps segments
+#: a size that copies, uploads and opens in Foxglove comfortably; 512 MB caps a busy system's
+#: segment (100 robots at 20 Hz record about 0.6 GB an hour compressed: 124 MB in the 12 min
+#: soak of bench/bench_chaos.py).
+SPLIT_SIZE_MB: Final = 512.0
+SPLIT_DURATION_S: Final = 3600.0
+
 
 def free_path(path: str | Path) -> Path:
     """``path`` if nothing exists there, else the first ``STEM.N.SUFFIX`` (N = 1, 2...) free."""
@@ -53,6 +75,16 @@ def free_path(path: str | Path) -> Path:
         n += 1
         cand = p.with_name(f"{p.stem}.{n}{p.suffix}")
     return cand
+
+
+def segment_path(first: str | Path, k: int) -> Path:
+    """Name of segment ``k`` >= 1 of the recording whose first segment is ``first``:
+    ``STEM.partK.SUFFIX``, K zero-padded to 3 digits (``demo.1.mcap``, k=2 ->
+    ``demo.1.part002.mcap``)."""
+    if k < 1:
+        raise ValueError("segment numbers after the first start at 1")
+    p = Path(first)
+    return p.with_name(f"{p.stem}.part{k:03d}{p.suffix}")
 
 
 def open_new(path: str | Path) -> tuple[Path, IO[bytes]]:
@@ -67,9 +99,22 @@ def open_new(path: str | Path) -> tuple[Path, IO[bytes]]:
             continue
 
 
+def open_segment(first: Path, k: int) -> tuple[int, Path, IO[bytes]]:
+    """Create segment ``k`` of ``first`` exclusively, or the next number free (a file left
+    there is never overwritten); return its number, path and binary stream."""
+    while True:
+        cand = segment_path(first, k)
+        try:
+            return k, cand, open(cand, "xb")
+        except FileExistsError:
+            k += 1
+
+
 class Recorder(Service):
     """See the module docstring. ``config`` goes into the ``confnav`` metadata record;
-    ``requested_path`` is ``path`` as given, ``path`` the file actually written (after start)."""
+    ``requested_path`` is ``path`` as given, ``path`` the segment being written (after start),
+    ``segments`` every file written so far. ``split_size`` (bytes) and ``split_duration`` (s)
+    are the rotation limits, 0 = off."""
 
     name = "recorder"
 
@@ -83,28 +128,55 @@ class Recorder(Service):
         flush_interval: float = L.FLUSH_INTERVAL_S,
         chunk_size: int = L.CHUNK_SIZE,
         health_period: float = 1.0,
+        split_size: int = int(SPLIT_SIZE_MB * 1e6),
+        split_duration: float = SPLIT_DURATION_S,
     ) -> None:
         super().__init__(bus, keys, health_period)
+        if split_size < 0 or not split_duration >= 0:
+            raise ValueError("split_size and split_duration must be >= 0 (0 = off)")
         self.requested_path = Path(path)
         self.path = Path(path)
+        self.segments: list[Path] = []
         self.config = dict(config or {})
         self.flush_interval = flush_interval
         self.chunk_size = chunk_size
+        self.split_size = split_size
+        self.split_duration = split_duration
         self._foxglove = foxglove
         self._wlock = threading.Lock()
         self._stream: IO[bytes] | None = None
         self._writer: Writer | None = None
         self._viz: Any = None
         self._schemas: dict[type[Message], int] = {}
-        self._channels: dict[tuple[str, bool], int] = {}
+        self._channels: dict[tuple[str, str], int] = {}
+        self._latched = LatchedState()
+        self._segment = 0
+        self._segment_start = 0.0  # monotonic s
+        self._segment_messages = 0
         self._dirty = False
         self._finished = False
         self.recorded = 0
 
     def _start(self) -> None:
-        self.path, self._stream = open_new(self.requested_path)
+        with self._wlock:
+            self._open_segment()
         if self.path != self.requested_path:
             log.warning("%s exists: recording to %s", self.requested_path, self.path)
+        self._handles.append(self.bus.subscribe(self.keys.all(), self._on_message))
+        self.spawn(self._flush_loop, "flush")
+        log.info("recording %s to %s", self.keys.all(), self.path)
+
+    # segments --------------------------------------------------------------------------
+    def _open_segment(self) -> None:
+        """Create the next segment (the first: ``--out`` or a free ``STEM.N``), start its
+        writer and re-write the latched state at its start. Under ``_wlock``."""
+        if not self.segments:
+            self.path, self._stream = open_new(self.requested_path)
+        else:
+            self._segment, self.path, self._stream = open_segment(
+                self.segments[0], self._segment + 1
+            )
+        self.segments.append(self.path)
         w = Writer(
             self._stream,
             chunk_size=self.chunk_size,
@@ -115,23 +187,78 @@ class Recorder(Service):
             profile=L.PROFILE,
             library=f"confnav-recorder {L.metadata_record('', {})['confnav_version']}",
         )
-        w.add_metadata(L.METADATA_NAME, L.metadata_record(self.keys.prefix, self.config))
+        md = L.metadata_record(self.keys.prefix, self.config)
+        md.update(segment=str(self._segment), first_segment=self.segments[0].name)
+        w.add_metadata(L.METADATA_NAME, md)
         self._writer = w
+        self._schemas.clear()
+        self._channels.clear()
+        self._segment_start = time.monotonic()
+        self._segment_messages = 0
         if self._foxglove:
             from confnav.recording.scene_writer import FoxgloveSceneWriter
 
             self._viz = FoxgloveSceneWriter(w, self.keys.prefix)
+        start_ns = L.log_time_ns()
+        for e in self._latched.entries():
+            w.add_message(
+                channel_id=self._channel(e.key, e.model, "latched"),
+                log_time=start_ns,
+                data=e.data,
+                publish_time=e.publish_time_ns,
+            )
+            if self._viz is not None:
+                self._viz.on_message(e.key, e.data, start_ns)
+        w.flush()  # type: ignore[no-untyped-call]
         self._stream.flush()
-        self._handles.append(self.bus.subscribe(self.keys.all(), self._on_message))
-        self.spawn(self._flush_loop, "flush")
-        log.info("recording %s to %s", self.keys.all(), self.path)
+
+    def _finish_segment(self) -> None:
+        """Finish the open segment (final scenes, summary, footer) and close it. Under
+        ``_wlock``."""
+        if self._writer is not None and not self._finished:
+            if self._viz is not None:
+                self._viz.close()
+                self._viz = None
+            self._writer.finish()  # type: ignore[no-untyped-call]
+            self._finished = True
+        self._writer = None
+        if self._stream is not None:
+            self._stream.close()
+            self._stream = None
+
+    def _split_due(self) -> bool:
+        """The open segment has messages and reached ``split_size`` or ``split_duration``.
+        Under ``_wlock``."""
+        if self._stream is None or self._finished or self._segment_messages == 0:
+            return False
+        if self.split_size and self._stream.tell() >= self.split_size:
+            return True
+        age = time.monotonic() - self._segment_start
+        return bool(self.split_duration) and age >= self.split_duration
+
+    def split(self, only_if_due: bool = False) -> Path | None:
+        """Finish the open segment and continue in a new one; return the new one's path.
+        With ``only_if_due``, only when a rotation limit is reached (else None)."""
+        with self._wlock:
+            if only_if_due and not self._split_due():
+                return None
+            if self._writer is None or self._finished:
+                raise RuntimeError("the recorder is not recording")
+            old = self.path
+            self._finish_segment()
+            self._finished = False
+            self._open_segment()
+        self.count("splits")
+        log.info("segment %s finished, recording to %s", old, self.path)
+        return self.path
 
     # writing ---------------------------------------------------------------------------
-    def _channel(self, key: str, model: type[Message] | None) -> int:
+    def _channel(self, key: str, model: type[Message] | None, role: str = "valid") -> int:
+        """Channel of ``key`` in the open segment: ``role`` ``valid`` (the model's schema),
+        ``latched`` (the same, marked as re-written state) or ``raw`` (``model`` None)."""
         w = self._writer
         assert w is not None
-        valid = model is not None
-        cid = self._channels.get((key, valid))
+        cid = self._channels.get((key, role))
         if cid is not None:
             return cid
         if model is not None:
@@ -141,7 +268,10 @@ class Recorder(Service):
                     name=L.schema_name(model), encoding=L.SCHEMA_ENCODING, data=L.schema_data(model)
                 )
                 self._schemas[model] = sid
-            cid = w.register_channel(topic=key, message_encoding=L.MESSAGE_ENCODING, schema_id=sid)
+            meta = dict(L.LATCHED_CHANNEL_METADATA) if role == "latched" else {}
+            cid = w.register_channel(
+                topic=key, message_encoding=L.MESSAGE_ENCODING, schema_id=sid, metadata=meta
+            )
         else:
             cid = w.register_channel(
                 topic=key,
@@ -149,13 +279,13 @@ class Recorder(Service):
                 schema_id=0,
                 metadata=dict(L.INVALID_CHANNEL_METADATA),
             )
-        self._channels[(key, valid)] = cid
+        self._channels[(key, role)] = cid
         return cid
 
     def _on_message(self, key: str, payload: bytes) -> None:
-        log_time = L.log_time_ns()
         msg: Message | None = None
         model: type[Message] | None = None
+        parsed = None
         try:
             parsed = self.keys.parse(key)
             model = model_for_key_parts(parsed.group, parsed.kind)
@@ -171,17 +301,26 @@ class Recorder(Service):
             if self._writer is None or self._finished:
                 self.count("dropped_after_finish")
                 return
-            cid = self._channel(key, model)
+            # receive time taken under the lock: log times follow the file order, and a
+            # segment's latched copies (stamped with its start) precede all its messages
+            log_time = L.log_time_ns()
+            publish_time = L.publish_time_ns(msg, log_time)
             self._writer.add_message(
-                channel_id=cid,
+                channel_id=self._channel(key, model, "valid" if model else "raw"),
                 log_time=log_time,
                 data=payload,
-                publish_time=L.publish_time_ns(msg, log_time),
+                publish_time=publish_time,
             )
             self.recorded += 1
+            self._segment_messages += 1
             self._dirty = True
-            if self._viz is not None and msg is not None:
-                self._viz.on_message(key, payload, log_time)
+            if msg is not None and model is not None and parsed is not None:
+                self._latched.observe(
+                    key, parsed.group, parsed.ident, parsed.kind, model, payload,
+                    log_time, publish_time,
+                )  # fmt: skip
+                if self._viz is not None:
+                    self._viz.on_message(key, payload, log_time)
         self.count("recorded")
 
     def flush(self) -> None:
@@ -199,6 +338,7 @@ class Recorder(Service):
         while not self._stop.wait(self.flush_interval):
             try:
                 self.flush()
+                self.split(only_if_due=True)
             except Exception:
                 log.exception("flush failed")
 
@@ -206,15 +346,23 @@ class Recorder(Service):
         """Stop receiving, write what is queued, finish the file (summary, index)."""
         super().stop()  # closes the subscription after its queue is drained
         with self._wlock:
-            if self._writer is not None and not self._finished:
-                if self._viz is not None:
-                    self._viz.close()
-                self._writer.finish()  # type: ignore[no-untyped-call]
-                self._finished = True
-            if self._stream is not None:
-                self._stream.close()
-                self._stream = None
-        log.info("recording finished: %d messages in %s", self.recorded, self.path)
+            self._finish_segment()
+        log.info(
+            "recording finished: %d messages in %s",
+            self.recorded,
+            ", ".join(str(p) for p in self.segments) or self.path,
+        )
+
+
+def non_negative_float(text: str) -> float:
+    """An argparse ``type=`` for a finite number >= 0."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not (value >= 0 and math.isfinite(value)):
+        raise argparse.ArgumentTypeError(f"{text!r} must be a finite number >= 0")
+    return value
 
 
 def add_parser(sub: Any) -> None:
@@ -225,6 +373,20 @@ def add_parser(sub: Any) -> None:
         type=output_path,
         default="confnav.mcap",
         help="MCAP file to write; if it exists, the first free OUT-STEM.N.mcap instead",
+    )
+    p.add_argument(
+        "--split-size",
+        type=non_negative_float,
+        default=SPLIT_SIZE_MB,
+        metavar="MB",
+        help="start a new segment OUT-STEM.partK.mcap once this many MB are written (0 = off)",
+    )
+    p.add_argument(
+        "--split-duration",
+        type=non_negative_float,
+        default=SPLIT_DURATION_S,
+        metavar="S",
+        help="start a new segment after this many seconds (0 = off)",
     )
     p.add_argument("--foxglove", action="store_true", help="add Foxglove scene channels")
     p.add_argument(
@@ -243,6 +405,8 @@ def main(args: argparse.Namespace) -> int:
             config,
             foxglove=args.foxglove,
             flush_interval=args.flush_interval,
+            split_size=int(args.split_size * 1e6),
+            split_duration=args.split_duration,
         ),
         args,
     )

@@ -14,6 +14,12 @@ Conventions (keep exactly; readers depend on them):
   ``{"confnav.invalid": "true"}``;
 - ``log_time`` = recorder receive time, ``publish_time`` = the message's ``stamp_ns`` if it has
   a positive one, else ``log_time``; both integer nanoseconds since the Unix epoch;
+- a recording may be split into segments (recorder ``--split-size`` / ``--split-duration``):
+  each is a complete MCAP file that starts with the latched state (latest workspace
+  definitions, transforms, atlas indexes, statuses, goals: :mod:`confnav.recording.latch`)
+  re-written at the segment's start time, on channels with the same topic and schema and
+  channel metadata :data:`LATCHED_CHANNEL_METADATA` (``{"confnav.latched": "true"}``):
+  copies, to be skipped when counting or joining the messages of several segments;
 - one metadata record named :data:`METADATA_NAME` (``"confnav"``) with the versions of
   confnav / zenoh / mcap, the key prefix and the JSON config of the recording; workspace
   definitions are recorded as their normal channel messages;
@@ -36,6 +42,7 @@ MESSAGE_ENCODING: Final = "json"
 SCHEMA_ENCODING: Final = "jsonschema"
 RAW_MESSAGE_ENCODING: Final = "x-confnav-raw"
 INVALID_CHANNEL_METADATA: Final = {"confnav.invalid": "true"}
+LATCHED_CHANNEL_METADATA: Final = {"confnav.latched": "true"}
 METADATA_NAME: Final = "confnav"
 CHUNK_SIZE: Final = 256 * 1024
 FLUSH_INTERVAL_S: Final = 0.5
