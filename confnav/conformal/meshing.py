@@ -29,7 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 import shapely
 
-from confnav.conformal.boundary import GRADING_P
+from confnav.conformal.boundary import GRADING_P, kress_sigma
 from confnav.errors import GapError
 from confnav.geometry import Workspace
 from confnav.types import CArray as ComplexArray
@@ -56,6 +56,9 @@ SHARP_NODES_FACTOR = 2.0
 #: (a silently capped mesh would under-resolve the gap at every level alike, invisible to the
 #: level-difference estimate).
 MAX_NODES_PER_PANEL = 4000
+#: Samples per side at which the proximity rule is checked (uniform in the mesh parameter tau,
+#: so they follow the node density: the rule's ratio h/d is smooth in tau).
+PROXIMITY_SAMPLES = 128
 
 
 @dataclass(frozen=True)
@@ -98,29 +101,60 @@ def _lines(a: ComplexArray, b: ComplexArray) -> np.ndarray:
     return np.asarray(shapely.linestrings(xy))
 
 
-def _proximity_nodes(length: np.ndarray, d: np.ndarray, tol: float) -> np.ndarray:
-    """Nodes for mesh spacing 2 len/n <= 2 pi d / (GRADING_STRIP ln(10/tol))."""
-    n = np.ceil(GRADING_STRIP * 2 * length * np.log(10 / tol) / (2 * np.pi * np.maximum(d, 1e-12)))
-    return np.asarray(n)
+def _sample_taus() -> tuple[np.ndarray, np.ndarray]:
+    """Sample positions tau in (0, 2pi) along a side and the Kress mesh's sigma'(tau) there."""
+    tau = 2 * np.pi * (np.arange(PROXIMITY_SAMPLES) + 0.5) / PROXIMITY_SAMPLES
+    sig, dsig = kress_sigma(tau)
+    return sig / (2 * np.pi), dsig
+
+
+def _proximity_nodes(length: np.ndarray, dsig: np.ndarray, d: np.ndarray, tol: float) -> np.ndarray:
+    """Nodes per side so that the local spacing meets the proximity rule at every sample.
+
+    Side k with n_k nodes has local spacing ``h = len_k sigma'(tau) / n_k`` at ``tau``
+    (boundary module: d eta/d tau = edge sigma'/(2pi), tau step 2pi/n_k). The trapezoidal rule
+    for a target at distance d from the boundary point x errs like ``e^(-2 pi d / h(x))``,
+    h(x) the local spacing at x (the target's preimage lies ~ d/|eta'| off the real t axis:
+    Barnett, SIAM J. Sci. Comput. 36 (2014) A427, sec. 3, eq. (3.4)-(3.6); Helsing & Ojala
+    2008, sec. 3, [2]), so ``h(x) <= 2 pi d(x) / (GRADING_STRIP ln(10/tol))`` at every
+    sample x of the side, ``d(x)`` its distance to the nearest feature. Because sigma' vanishes
+    to order p - 1 at the side's ends, a close approach at a corner (two squares facing each
+    other: the sides meeting the facing one) needs few nodes, while a gap along the whole side
+    (the facing sides, the two faces of a thin wall) is resolved all along.
+    ``length`` (L,), ``dsig`` (M,), ``d`` (L, M).
+    """
+    ratio = length[:, None] * dsig[None, :] / np.maximum(d, 1e-12)
+    return np.asarray(np.ceil(GRADING_STRIP * np.log(10 / tol) / (2 * np.pi) * ratio.max(axis=1)))
+
+
+def _segment_distance(z: ComplexArray, a: ComplexArray, b: ComplexArray) -> np.ndarray:
+    """Distance of points ``z`` (..., 1) to segments ``[a, b]`` (broadcast), complex algebra."""
+    e = b - a
+    t = np.clip(((z - a) * np.conj(e)).real / np.maximum(np.abs(e) ** 2, 1e-300), 0.0, 1.0)
+    return np.asarray(np.abs(z - a - t * e))
 
 
 def _feature_distance(
-    z: ComplexArray, features: list[shapely.Geometry]
+    z: ComplexArray, features: list[shapely.Geometry], frac: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Distance of each side to the nearest feature and which one it is (index into
-    ``features``, or -1 for a non-adjacent side of the same polygon)."""
+    """Distance of the sample points of each side to the nearest feature, (L, M), and which
+    feature is nearest to each side (index into ``features``, or -1 for a non-adjacent side
+    of the same polygon: the arms of a U, the two faces of a thin wall)."""
     L = z.size
-    segs = _lines(z, np.roll(z, -1))
-    D = np.stack([np.asarray(shapely.distance(segs, f), dtype=float) for f in features], axis=1)
-    which = np.argmin(D, axis=1)
-    d = D[np.arange(L), which]
-    if L > 3:  # non-adjacent sides of the same polygon (the arms of a U, a spiral)
-        dd = shapely.distance(segs[:, None], segs[None, :])
+    edge = np.roll(z, -1) - z
+    x = z[:, None] + edge[:, None] * frac[None, :]  # (L, M) sample points
+    pts = shapely.points(x.real.ravel(), x.imag.ravel())
+    D = np.stack([np.asarray(shapely.distance(pts, f), dtype=float) for f in features], axis=1)
+    D = D.reshape(L, frac.size, len(features))
+    which = np.argmin(D.min(axis=1), axis=1)
+    d = D.min(axis=2)
+    if L > 3:  # self-proximity: distance of side k's samples to the sides k+2 .. k-2
         k = np.arange(L)
-        gap = (k[:, None] - k[None, :]) % L
-        dd = np.where((gap <= 1) | (gap >= L - 1), np.inf, dd)
-        own = dd.min(axis=1)
-        which = np.where(own < d, -1, which)
+        others = (k[:, None] + np.arange(2, L - 1)[None, :]) % L  # (L, L-3)
+        own = _segment_distance(
+            x[:, :, None], z[others][:, None, :], np.roll(z, -1)[others][:, None, :]
+        ).min(axis=2)
+        which = np.where(own.min(axis=1) < d.min(axis=1), -1, which)
         d = np.minimum(d, own)
     return d, which
 
@@ -146,15 +180,16 @@ def plan_boundaries(ws: Workspace, level: int, tol: float) -> list[PanelPlan]:
     polys = ws.boundaries
     rings = [shapely.LinearRing(np.column_stack([z.real, z.imag])) for z in polys]
     anchor = shapely.Point(ws.anchor.real, ws.anchor.imag)
+    frac, dsig = _sample_taus()
     plans = []
     for j, z in enumerate(polys):
         idx = [i for i in range(len(rings)) if i != j]
         n_corner = max(MIN_NODES, int(np.ceil(level ** (e_ref / corner_exponent(z, j > 0)))))
-        d, which = _feature_distance(z, [anchor, *(rings[i] for i in idx)])
-        n_prox = np.ceil(scale * _proximity_nodes(np.abs(np.roll(z, -1) - z), d, tol))
+        d, which = _feature_distance(z, [anchor, *(rings[i] for i in idx)], frac)
+        n_prox = np.ceil(scale * _proximity_nodes(np.abs(np.roll(z, -1) - z), dsig, d, tol))
         over = np.flatnonzero(n_prox > MAX_NODES_PER_PANEL)
         if over.size:
-            k = int(over[np.argmin(d[over])])
+            k = int(over[np.argmin(d[over].min(axis=1))])
             w = int(which[k])
             other = (
                 f"side {k} and another side of {_name(j)}"
@@ -162,7 +197,7 @@ def plan_boundaries(ws: Workspace, level: int, tol: float) -> list[PanelPlan]:
                 else ("the anchor" if w == 0 else _name(idx[w - 1]))
             )
             raise GapError(
-                f"{_name(j)} (side {k}) and {other} are {d[k]:.3g} apart: resolving that gap "
+                f"{_name(j)} (side {k}) and {other} are {d[k].min():.3g} apart: resolving that gap "
                 f"to tol {tol:.0e} needs {int(n_prox[k])} nodes on the side, more than the "
                 f"{MAX_NODES_PER_PANEL} the mesh allows (widen the gap, merge the two, or "
                 "ask for a looser tol)"
