@@ -8,9 +8,15 @@ Two error sources decide how many graded-mesh nodes a panel needs:
   ``e = p/a + 1`` of the polygon's worst corner; ``level`` is the refinement knob of
   :func:`confnav.conformal.solver.solve`.
 * **proximity.** The Cauchy sums across a gap of width d between a panel and another boundary
-  (or the anchor, or a non-adjacent side of the same polygon) converge like ``e^(-2 pi d/h)``
-  for mesh spacing h [2], so ``h <= 2 pi d / ln(10/tol)``; the mid-side spacing of Kress's
-  sigma mesh is ``2 len / n``. (Splitting long sides into shorter panels near close features
+  (or the anchor, or a non-adjacent side of the same polygon: the two faces of a thin wall)
+  converge like ``e^(-2 pi d/h)`` for local mesh spacing h [2, 3], so
+  ``h(x) <= 2 pi d(x) / ln(10/tol)`` is required at every point x of a side, with d(x) the
+  distance of x to the nearest such feature and h(x) = len sigma'(tau) / n the local spacing
+  of Kress's sigma mesh (checked at :data:`PROXIMITY_SAMPLES` points per side). Kress's
+  grading already makes the spacing small towards the corners, so a close approach at a
+  corner (two squares facing each other: the sides meeting the facing ones) costs few nodes,
+  while a gap along a whole side (the facing sides, a thin wall's faces) is resolved all
+  along. (Splitting long sides into shorter panels near close features
   was tried and measured worse: the grading at the split points wastes nodes, and on the
   default workspace 48 nodes on an unsplit outer side beat ~60 on split panels by 70x in the
   centres.)
@@ -20,6 +26,10 @@ References
 .. [1] R. Kress, Numer. Math. 58 (1990) 145-161 (graded meshes, convergence order).
 .. [2] J. Helsing, R. Ojala, "On the evaluation of layer potentials close to their sources",
    J. Comput. Phys. 227 (2008) 2899-2921 (near-singular quadrature error ~ e^(-2 pi d/h)).
+.. [3] A. H. Barnett, "Evaluation of layer potentials close to the boundary for Laplace and
+   Helmholtz problems on analytic planar domains", SIAM J. Sci. Comput. 36 (2014) A427-A451,
+   its error analysis of the periodic trapezoid rule (error ~ e^(-n Im t*) for a target whose
+   complexified parameter is t*).
 """
 
 from __future__ import annotations
@@ -114,9 +124,10 @@ def _proximity_nodes(length: np.ndarray, dsig: np.ndarray, d: np.ndarray, tol: f
     Side k with n_k nodes has local spacing ``h = len_k sigma'(tau) / n_k`` at ``tau``
     (boundary module: d eta/d tau = edge sigma'/(2pi), tau step 2pi/n_k). The trapezoidal rule
     for a target at distance d from the boundary point x errs like ``e^(-2 pi d / h(x))``,
-    h(x) the local spacing at x (the target's preimage lies ~ d/|eta'| off the real t axis:
-    Barnett, SIAM J. Sci. Comput. 36 (2014) A427, sec. 3, eq. (3.4)-(3.6); Helsing & Ojala
-    2008, sec. 3, [2]), so ``h(x) <= 2 pi d(x) / (GRADING_STRIP ln(10/tol))`` at every
+    h(x) the local spacing at x: the periodic trapezoid rule's error decays like
+    ``e^(-n Im t*)``, t* the complex preimage of the target under the parametrisation, which
+    lies ~ d/|eta'(t)| off the real axis [3] (and [2] for the e^(-2 pi d/h) form), so
+    ``h(x) <= 2 pi d(x) / (GRADING_STRIP ln(10/tol))`` at every
     sample x of the side, ``d(x)`` its distance to the nearest feature. Because sigma' vanishes
     to order p - 1 at the side's ends, a close approach at a corner (two squares facing each
     other: the sides meeting the facing one) needs few nodes, while a gap along the whole side
