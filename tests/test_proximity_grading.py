@@ -107,3 +107,11 @@ def test_thin_wall_map_passes_the_boundary_residual() -> None:
     m = _solve(Workspace(ROOM, [WALL], anchor=[1.0, 1.0]), tol)
     assert m.diagnostics.tol_met
     assert m.diagnostics.boundary_residual <= tol
+
+
+def test_a_close_approach_narrower_than_the_samples_is_not_missed() -> None:
+    """A corner 0.03 from the middle of a 4 m wall: narrower than the reach of the rule's
+    samples along the wall (~6 cm), the wall still gets the spacing the gap needs."""
+    tri = [[-0.3, -1.0], [0.0, -1.97], [0.3, -1.0]]
+    worst, _, _ = _max_spacing_ratio(Workspace(ROOM, [tri], anchor=[0, 1.0]), 1e-6)
+    assert worst <= 1.05, worst

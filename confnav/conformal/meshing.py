@@ -134,7 +134,9 @@ def _proximity_nodes(length: np.ndarray, dsig: np.ndarray, d: np.ndarray, tol: f
     (the facing sides, the two faces of a thin wall) is resolved all along.
     ``length`` (L,), ``dsig`` (M,), ``d`` (L, M).
     """
-    ratio = length[:, None] * dsig[None, :] / np.maximum(d, 1e-12)
+    # sigma' over a sample's cell: the larger of its own and its neighbours' values
+    cell = np.maximum(dsig, np.maximum(np.roll(dsig, 1), np.roll(dsig, -1)))
+    ratio = length[:, None] * cell[None, :] / np.maximum(d, 1e-12)
     return np.asarray(np.ceil(GRADING_STRIP * np.log(10 / tol) / (2 * np.pi) * ratio.max(axis=1)))
 
 
@@ -148,26 +150,50 @@ def _segment_distance(z: ComplexArray, a: ComplexArray, b: ComplexArray) -> np.n
 def _feature_distance(
     z: ComplexArray, features: list[shapely.Geometry], frac: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Distance of the sample points of each side to the nearest feature, (L, M), and which
-    feature is nearest to each side (index into ``features``, or -1 for a non-adjacent side
-    of the same polygon: the arms of a U, the two faces of a thin wall)."""
+    """Lower bound of the distance to the nearest feature over the cell of each sample of each
+    side, (L, M), and which feature is nearest to each side (index into ``features``, or -1 for
+    a non-adjacent side of the same polygon: the arms of a U, the two faces of a thin wall).
+
+    The distance is 1-Lipschitz along the side, so over the part of the side nearer to sample i
+    than to its neighbours it is at least ``d_i - r_i`` (r_i that part's reach from the
+    sample), and never below the side's exact distance to the features: a close approach
+    narrower than the sample spacing is not missed (it falls back to the side's minimum).
+    """
     L = z.size
     edge = np.roll(z, -1) - z
     x = z[:, None] + edge[:, None] * frac[None, :]  # (L, M) sample points
     pts = shapely.points(x.real.ravel(), x.imag.ravel())
+    segs = _lines(z, np.roll(z, -1))
     D = np.stack([np.asarray(shapely.distance(pts, f), dtype=float) for f in features], axis=1)
     D = D.reshape(L, frac.size, len(features))
-    which = np.argmin(D.min(axis=1), axis=1)
+    Dside = np.stack([np.asarray(shapely.distance(segs, f), dtype=float) for f in features], 1)
+    which = np.argmin(Dside, axis=1)
     d = D.min(axis=2)
+    side_min = Dside.min(axis=1)
     if L > 3:  # self-proximity: distance of side k's samples to the sides k+2 .. k-2
         k = np.arange(L)
         others = (k[:, None] + np.arange(2, L - 1)[None, :]) % L  # (L, L-3)
-        own = _segment_distance(
-            x[:, :, None], z[others][:, None, :], np.roll(z, -1)[others][:, None, :]
-        ).min(axis=2)
-        which = np.where(own.min(axis=1) < d.min(axis=1), -1, which)
+        a, b = z[others], np.roll(z, -1)[others]
+        own = _segment_distance(x[:, :, None], a[:, None, :], b[:, None, :]).min(axis=2)
+        # non-adjacent sides of a simple polygon do not cross: their distance is attained at
+        # an endpoint of one of them
+        own_side = np.minimum(
+            np.minimum(
+                _segment_distance(z[:, None], a, b),
+                _segment_distance(z[others], z[:, None], z[(k + 1) % L][:, None]),
+            ),
+            np.minimum(
+                _segment_distance(np.roll(z, -1)[:, None], a, b),
+                _segment_distance(b, z[:, None], z[(k + 1) % L][:, None]),
+            ),
+        ).min(axis=1)
+        which = np.where(own_side < side_min, -1, which)
         d = np.minimum(d, own)
-    return d, which
+        side_min = np.minimum(side_min, own_side)
+    cells = np.concatenate([[0.0], 0.5 * (frac[1:] + frac[:-1]), [1.0]])
+    reach = np.maximum(frac - cells[:-1], cells[1:] - frac)  # (M,), fraction of the side
+    d_low = np.maximum(d - np.abs(edge)[:, None] * reach[None, :], side_min[:, None])
+    return d_low, which
 
 
 def _name(j: int) -> str:
