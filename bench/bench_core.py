@@ -649,6 +649,10 @@ def _run_case(name: str, tol: float, out: Any) -> None:
         tol_met=d.tol_met,
         sweeps=d.sweeps,
         nodes=sum(d.nodes),
+        nodes_per_boundary=list(d.nodes),
+        # per mesh level: time, difference, estimate, and the boundary residual where checked
+        # (a residual above tol is what forces a further level)
+        refinements=[{k: float(v) for k, v in r.items()} for r in d.refinements],
         radii=[float(r) for r in m.radii],
     )
     if name == "ring":

@@ -8,9 +8,15 @@ Two error sources decide how many graded-mesh nodes a panel needs:
   ``e = p/a + 1`` of the polygon's worst corner; ``level`` is the refinement knob of
   :func:`confnav.conformal.solver.solve`.
 * **proximity.** The Cauchy sums across a gap of width d between a panel and another boundary
-  (or the anchor, or a non-adjacent side of the same polygon) converge like ``e^(-2 pi d/h)``
-  for mesh spacing h [2], so ``h <= 2 pi d / ln(10/tol)``; the mid-side spacing of Kress's
-  sigma mesh is ``2 len / n``. (Splitting long sides into shorter panels near close features
+  (or the anchor, or a non-adjacent side of the same polygon: the two faces of a thin wall)
+  converge like ``e^(-2 pi d/h)`` for local mesh spacing h [2, 3], so
+  ``h(x) <= 2 pi d(x) / ln(10/tol)`` is required at every point x of a side, with d(x) the
+  distance of x to the nearest such feature and h(x) = len sigma'(tau) / n the local spacing
+  of Kress's sigma mesh (checked at :data:`PROXIMITY_SAMPLES` points per side). Kress's
+  grading already makes the spacing small towards the corners, so a close approach at a
+  corner (two squares facing each other: the sides meeting the facing ones) costs few nodes,
+  while a gap along a whole side (the facing sides, a thin wall's faces) is resolved all
+  along. (Splitting long sides into shorter panels near close features
   was tried and measured worse: the grading at the split points wastes nodes, and on the
   default workspace 48 nodes on an unsplit outer side beat ~60 on split panels by 70x in the
   centres.)
@@ -20,6 +26,10 @@ References
 .. [1] R. Kress, Numer. Math. 58 (1990) 145-161 (graded meshes, convergence order).
 .. [2] J. Helsing, R. Ojala, "On the evaluation of layer potentials close to their sources",
    J. Comput. Phys. 227 (2008) 2899-2921 (near-singular quadrature error ~ e^(-2 pi d/h)).
+.. [3] A. H. Barnett, "Evaluation of layer potentials close to the boundary for Laplace and
+   Helmholtz problems on analytic planar domains", SIAM J. Sci. Comput. 36 (2014) A427-A451,
+   its error analysis of the periodic trapezoid rule (error ~ e^(-n Im t*) for a target whose
+   complexified parameter is t*).
 """
 
 from __future__ import annotations
@@ -29,7 +39,7 @@ from dataclasses import dataclass
 import numpy as np
 import shapely
 
-from confnav.conformal.boundary import GRADING_P
+from confnav.conformal.boundary import GRADING_P, kress_sigma
 from confnav.errors import GapError
 from confnav.geometry import Workspace
 from confnav.types import CArray as ComplexArray
@@ -56,6 +66,9 @@ SHARP_NODES_FACTOR = 2.0
 #: (a silently capped mesh would under-resolve the gap at every level alike, invisible to the
 #: level-difference estimate).
 MAX_NODES_PER_PANEL = 4000
+#: Samples per side at which the proximity rule is checked (uniform in the mesh parameter tau,
+#: so they follow the node density: the rule's ratio h/d is smooth in tau).
+PROXIMITY_SAMPLES = 128
 
 
 @dataclass(frozen=True)
@@ -98,31 +111,89 @@ def _lines(a: ComplexArray, b: ComplexArray) -> np.ndarray:
     return np.asarray(shapely.linestrings(xy))
 
 
-def _proximity_nodes(length: np.ndarray, d: np.ndarray, tol: float) -> np.ndarray:
-    """Nodes for mesh spacing 2 len/n <= 2 pi d / (GRADING_STRIP ln(10/tol))."""
-    n = np.ceil(GRADING_STRIP * 2 * length * np.log(10 / tol) / (2 * np.pi * np.maximum(d, 1e-12)))
-    return np.asarray(n)
+def _sample_taus() -> tuple[np.ndarray, np.ndarray]:
+    """Sample positions tau in (0, 2pi) along a side and the Kress mesh's sigma'(tau) there."""
+    tau = 2 * np.pi * (np.arange(PROXIMITY_SAMPLES) + 0.5) / PROXIMITY_SAMPLES
+    sig, dsig = kress_sigma(tau)
+    return sig / (2 * np.pi), dsig
+
+
+def _proximity_nodes(length: np.ndarray, dsig: np.ndarray, d: np.ndarray, tol: float) -> np.ndarray:
+    """Nodes per side so that the local spacing meets the proximity rule at every sample.
+
+    Side k with n_k nodes has local spacing ``h = len_k sigma'(tau) / n_k`` at ``tau``
+    (boundary module: d eta/d tau = edge sigma'/(2pi), tau step 2pi/n_k). The trapezoidal rule
+    for a target at distance d from the boundary point x errs like ``e^(-2 pi d / h(x))``,
+    h(x) the local spacing at x: the periodic trapezoid rule's error decays like
+    ``e^(-n Im t*)``, t* the complex preimage of the target under the parametrisation, which
+    lies ~ d/|eta'(t)| off the real axis [3] (and [2] for the e^(-2 pi d/h) form), so
+    ``h(x) <= 2 pi d(x) / (GRADING_STRIP ln(10/tol))`` at every
+    sample x of the side, ``d(x)`` its distance to the nearest feature. Because sigma' vanishes
+    to order p - 1 at the side's ends, a close approach at a corner (two squares facing each
+    other: the sides meeting the facing one) needs few nodes, while a gap along the whole side
+    (the facing sides, the two faces of a thin wall) is resolved all along.
+    ``length`` (L,), ``dsig`` (M,), ``d`` (L, M).
+    """
+    # sigma' over a sample's cell: the larger of its own and its neighbours' values
+    cell = np.maximum(dsig, np.maximum(np.roll(dsig, 1), np.roll(dsig, -1)))
+    ratio = length[:, None] * cell[None, :] / np.maximum(d, 1e-12)
+    return np.asarray(np.ceil(GRADING_STRIP * np.log(10 / tol) / (2 * np.pi) * ratio.max(axis=1)))
+
+
+def _segment_distance(z: ComplexArray, a: ComplexArray, b: ComplexArray) -> np.ndarray:
+    """Distance of points ``z`` (..., 1) to segments ``[a, b]`` (broadcast), complex algebra."""
+    e = b - a
+    t = np.clip(((z - a) * np.conj(e)).real / np.maximum(np.abs(e) ** 2, 1e-300), 0.0, 1.0)
+    return np.asarray(np.abs(z - a - t * e))
 
 
 def _feature_distance(
-    z: ComplexArray, features: list[shapely.Geometry]
+    z: ComplexArray, features: list[shapely.Geometry], frac: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Distance of each side to the nearest feature and which one it is (index into
-    ``features``, or -1 for a non-adjacent side of the same polygon)."""
+    """Lower bound of the distance to the nearest feature over the cell of each sample of each
+    side, (L, M), and which feature is nearest to each side (index into ``features``, or -1 for
+    a non-adjacent side of the same polygon: the arms of a U, the two faces of a thin wall).
+
+    The distance is 1-Lipschitz along the side, so over the part of the side nearer to sample i
+    than to its neighbours it is at least ``d_i - r_i`` (r_i that part's reach from the
+    sample), and never below the side's exact distance to the features: a close approach
+    narrower than the sample spacing is not missed (it falls back to the side's minimum).
+    """
     L = z.size
+    edge = np.roll(z, -1) - z
+    x = z[:, None] + edge[:, None] * frac[None, :]  # (L, M) sample points
+    pts = shapely.points(x.real.ravel(), x.imag.ravel())
     segs = _lines(z, np.roll(z, -1))
-    D = np.stack([np.asarray(shapely.distance(segs, f), dtype=float) for f in features], axis=1)
-    which = np.argmin(D, axis=1)
-    d = D[np.arange(L), which]
-    if L > 3:  # non-adjacent sides of the same polygon (the arms of a U, a spiral)
-        dd = shapely.distance(segs[:, None], segs[None, :])
+    D = np.stack([np.asarray(shapely.distance(pts, f), dtype=float) for f in features], axis=1)
+    D = D.reshape(L, frac.size, len(features))
+    Dside = np.stack([np.asarray(shapely.distance(segs, f), dtype=float) for f in features], 1)
+    which = np.argmin(Dside, axis=1)
+    d = D.min(axis=2)
+    side_min = Dside.min(axis=1)
+    if L > 3:  # self-proximity: distance of side k's samples to the sides k+2 .. k-2
         k = np.arange(L)
-        gap = (k[:, None] - k[None, :]) % L
-        dd = np.where((gap <= 1) | (gap >= L - 1), np.inf, dd)
-        own = dd.min(axis=1)
-        which = np.where(own < d, -1, which)
+        others = (k[:, None] + np.arange(2, L - 1)[None, :]) % L  # (L, L-3)
+        a, b = z[others], np.roll(z, -1)[others]
+        own = _segment_distance(x[:, :, None], a[:, None, :], b[:, None, :]).min(axis=2)
+        # non-adjacent sides of a simple polygon do not cross: their distance is attained at
+        # an endpoint of one of them
+        own_side = np.minimum(
+            np.minimum(
+                _segment_distance(z[:, None], a, b),
+                _segment_distance(z[others], z[:, None], z[(k + 1) % L][:, None]),
+            ),
+            np.minimum(
+                _segment_distance(np.roll(z, -1)[:, None], a, b),
+                _segment_distance(b, z[:, None], z[(k + 1) % L][:, None]),
+            ),
+        ).min(axis=1)
+        which = np.where(own_side < side_min, -1, which)
         d = np.minimum(d, own)
-    return d, which
+        side_min = np.minimum(side_min, own_side)
+    cells = np.concatenate([[0.0], 0.5 * (frac[1:] + frac[:-1]), [1.0]])
+    reach = np.maximum(frac - cells[:-1], cells[1:] - frac)  # (M,), fraction of the side
+    d_low = np.maximum(d - np.abs(edge)[:, None] * reach[None, :], side_min[:, None])
+    return d_low, which
 
 
 def _name(j: int) -> str:
@@ -146,15 +217,16 @@ def plan_boundaries(ws: Workspace, level: int, tol: float) -> list[PanelPlan]:
     polys = ws.boundaries
     rings = [shapely.LinearRing(np.column_stack([z.real, z.imag])) for z in polys]
     anchor = shapely.Point(ws.anchor.real, ws.anchor.imag)
+    frac, dsig = _sample_taus()
     plans = []
     for j, z in enumerate(polys):
         idx = [i for i in range(len(rings)) if i != j]
         n_corner = max(MIN_NODES, int(np.ceil(level ** (e_ref / corner_exponent(z, j > 0)))))
-        d, which = _feature_distance(z, [anchor, *(rings[i] for i in idx)])
-        n_prox = np.ceil(scale * _proximity_nodes(np.abs(np.roll(z, -1) - z), d, tol))
+        d, which = _feature_distance(z, [anchor, *(rings[i] for i in idx)], frac)
+        n_prox = np.ceil(scale * _proximity_nodes(np.abs(np.roll(z, -1) - z), dsig, d, tol))
         over = np.flatnonzero(n_prox > MAX_NODES_PER_PANEL)
         if over.size:
-            k = int(over[np.argmin(d[over])])
+            k = int(over[np.argmin(d[over].min(axis=1))])
             w = int(which[k])
             other = (
                 f"side {k} and another side of {_name(j)}"
@@ -162,7 +234,7 @@ def plan_boundaries(ws: Workspace, level: int, tol: float) -> list[PanelPlan]:
                 else ("the anchor" if w == 0 else _name(idx[w - 1]))
             )
             raise GapError(
-                f"{_name(j)} (side {k}) and {other} are {d[k]:.3g} apart: resolving that gap "
+                f"{_name(j)} (side {k}) and {other} are {d[k].min():.3g} apart: resolving that gap "
                 f"to tol {tol:.0e} needs {int(n_prox[k])} nodes on the side, more than the "
                 f"{MAX_NODES_PER_PANEL} the mesh allows (widen the gap, merge the two, or "
                 "ask for a looser tol)"

@@ -234,6 +234,9 @@ def solve(
             if est <= tol and solved + 1 >= MIN_LEVELS:
                 # the discretisation is fine; the a-posteriori residual must agree, else refine
                 cmap = _make_map(workspace, best, tol, caps, refinements, t0)
+                # kept per level: a residual above tol at a level whose discretisation estimate
+                # is below it says what forced the next (costlier) level
+                refinements[-1]["boundary_residual"] = cmap.diagnostics.boundary_residual
                 if cmap.diagnostics.boundary_residual <= tol:
                     break
         prev, prev_ns = res, ns
