@@ -257,8 +257,8 @@ class LocalExpansions:
     # ------------------------------------------------------------------ evaluation
     def leaf_of(self, z: ComplexArray) -> IntArray:
         """Leaf index of each point (-1 where no expansion covers it)."""
-        rel = (np.asarray(z, dtype=np.complex128) - self._origin) / self._h_fine
-        with np.errstate(invalid="ignore"):
+        with np.errstate(invalid="ignore"):  # non-finite points are simply not inside
+            rel = (np.asarray(z, dtype=np.complex128) - self._origin) / self._h_fine
             inside = (
                 (rel.real >= 0)
                 & (rel.real < self._n_fine)
