@@ -142,13 +142,19 @@ def test_timing_follows_the_recording(
     assert report.unmatched_keys == [] and report.total == len(payloads)
     assert [p for _t, _k, p in got] == payloads  # alive keys are not replayed
     assert {k for _t, k, _p in got} == {"confnav/robot/r1/pose"}
-    span = got[-1][0] - got[0][0]
+    t = np.array([t for t, _k, _p in got])
     if speed is None:
-        assert span < 0.2
+        assert t[-1] - t[0] < 0.2
     else:
-        expected = 0.5 / speed
-        assert expected * 0.9 <= span <= expected + 0.2, span
-        assert report.wall_time_s >= expected * 0.95
+        # Each pose i is due at offset 0.02 i / speed. Compare the arrival times with that
+        # schedule after removing the common delay (median): the bulk must be on time, and a
+        # replay that ignored `speed` would be off by up to 0.25-0.5 s. (Endpoints alone made
+        # this test flaky: one descheduled first or last message on a busy 2-core machine.)
+        due = 0.02 * np.arange(len(t)) / speed
+        err = np.abs(t - due - np.median(t - due))
+        assert np.median(err) < 0.02, err
+        assert np.quantile(err, 0.8) < 0.05, err
+        assert report.wall_time_s >= 0.5 / speed * 0.95
 
 
 def test_prefix_and_include(tmp_path: Path, zenoh_router: str, make_bus: Any) -> None:
@@ -294,9 +300,9 @@ def test_replay_at_recorded_speed_keeps_relative_timing(
 
     a, b = times(run_file), times(again)
     assert len(a) == len(b)
-    rel_a = [t - a[0] for t in a]
-    rel_b = [t - b[0] for t in b]
-    err = np.abs(np.array(rel_a) - np.array(rel_b)) / 1e9  # s
+    lag = (np.array(b) - np.array(a)) / 1e9  # s; a common delay is not a timing error
+    err = np.abs(lag - np.median(lag))  # (relative to the first message, one late first
+    # message shifted every other one: the test failed that way at load 17)
     # The replayer schedules every message at t_start + offset on the monotonic clock, so its
     # errors do not accumulate; what remains is per-message scheduling in the replayer, Zenoh
     # and the recorder thread, where one descheduling on a busy 2-core machine was measured

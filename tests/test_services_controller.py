@@ -450,7 +450,9 @@ def test_cancel_and_idle_ttl_forget_robots(mem_net: InMemoryNetwork) -> None:
         cl.goal("r2")
         wait_for(lambda: _state(cl, "r2") == "stopped")  # stale_pose
         wait_for(lambda: "r2" not in ctl._robots, timeout=3)
-        assert cl.last_status("r2").state == "idle" and "forgotten" in cl.last_status("r2").message
+        # the farewell status is published after the robot is dropped: wait for it
+        wait_for(lambda: cl.last_status("r2").state == "idle")
+        assert "forgotten" in cl.last_status("r2").message
         n = len(cl.status)
         time.sleep(0.6)
         assert len(cl.status) == n  # nothing more about forgotten robots
