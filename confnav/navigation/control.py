@@ -527,9 +527,9 @@ class Controller:
         """
         with self._critical_lock:
             if self._critical is None:
-                from confnav.navigation.critical import find_critical_points
+                from confnav.navigation.critical import search_critical_points
 
-                self._critical = find_critical_points(self.navfn)
+                self._critical = search_critical_points(self.navfn)
             return self._critical
 
     check = critical_points
