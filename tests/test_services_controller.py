@@ -496,6 +496,9 @@ def test_definition_change_stops_robots_near_the_new_geometry(mem_net: InMemoryN
         cl.pose("A", 0.0, 0.5)
         cl.pose("B", 0.0, -0.5)
         wait_for(lambda: _state(cl, "A") == _state(cl, "B") == "navigating")
+        # commands reach this client on another thread than statuses: wait for both answers,
+        # so that the first command to A counted below is the one the definition caused
+        wait_for(lambda: len({c.robot_id for c in cl.cmds if c.pose_seq >= cl.seq - 1}) == 2)
         assert ctl.counters["definitions_changed"] == 0
         new = _definition([*old.obstacles, [(-0.1, 0.6), (0.1, 0.6), (0.0, 0.75)]])
         n_cmds = len(cl.cmds)
