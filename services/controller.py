@@ -34,6 +34,7 @@ import queue
 import sys
 import threading
 import time
+from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -69,6 +70,9 @@ log = logging.getLogger(__name__)
 POSE_BLOCK = 32
 """Most poses per control step: one vectorized block, whose commands go out before the next
 block is computed (pipelining)."""
+CTRL_CACHE_SIZE = 4096
+"""Most controllers kept for reuse (a new goal with the parameters of a cached one costs no
+harmonic solve); robots hold the ones they use, so eviction only forgets old goals."""
 MAX_BACKLOG = 100_000
 """Most robots with a pose waiting. Of several waiting poses of one robot only the newest is
 answered (the older ones are superseded: counted, never commanded), so an overloaded
@@ -159,7 +163,9 @@ class ControllerService(Service):
         self._wake_fetch = threading.Event()
         # (map revision, goal key) -> controller: robots with the same goal share one (the
         # navigation function is built once, and their poses are evaluated in one call)
-        self._ctrl_cache: dict[tuple[object, ...], navigation.ControllerLike] = {}
+        # controllers by (map revision, goal and law parameters): robots with one goal share
+        # one; least recently used first, at most CTRL_CACHE_SIZE (goals change all the time)
+        self._ctrl_cache: OrderedDict[tuple[object, ...], navigation.ControllerLike] = OrderedDict()
         self._build_lock = threading.Lock()
         self._rids: dict[str, str] = {}  # pose key -> robot id
         self._cmd_keys: dict[str, str] = {}  # robot id -> cmd_vel key
@@ -285,7 +291,9 @@ class ControllerService(Service):
         built = {rid: self._build(new, g) for rid, g in goals.items() if g}
         with self._build_lock:
             live = {m.revision for w, m in self._maps.items() if w != ws_id} | {new.revision}
-            self._ctrl_cache = {k: c for k, c in self._ctrl_cache.items() if k[0] in live}
+            self._ctrl_cache = OrderedDict(
+                (k, c) for k, c in self._ctrl_cache.items() if k[0] in live
+            )
         late: list[_Robot] = []  # goals that changed or came while the map was being built
         with self._lock:
             self._maps[ws_id] = new
@@ -386,6 +394,7 @@ class ControllerService(Service):
         with self._build_lock:
             ctrl = self._ctrl_cache.get(key)
             if ctrl is not None:
+                self._ctrl_cache.move_to_end(key)
                 return ctrl, ""
             try:
                 ctrl = self._make_ctrl(m.cmap, goal)
@@ -394,6 +403,8 @@ class ControllerService(Service):
                 return None, f"{type(exc).__name__}: {exc}"
             self.count("controllers_built")
             self._ctrl_cache[key] = ctrl
+            while len(self._ctrl_cache) > CTRL_CACHE_SIZE:  # robots keep what they use
+                self._ctrl_cache.popitem(last=False)
             search = getattr(getattr(ctrl, "controller", ctrl), "search_critical_points", None)
             if search is not None:  # in the background: STALLED near a saddle once they land
                 search()
@@ -702,6 +713,7 @@ class ControllerService(Service):
                 try:  # every goal's law in one vectorized pass (navigation.fleet)
                     fleet = [laws[i] for i in idx for _ in range(zs[i].size)]
                     o = fleet_step(fleet, zall, w, dw, c)
+                    self.count("fleet_steps")
                 except Exception:  # a bug there must not stop the fleet: one by one below
                     log.exception("fleet step failed; evaluating each goal on its own")
                 else:

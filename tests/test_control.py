@@ -5,6 +5,7 @@ not stalled), goal changes, bad input, defaults shared with the Goal message."""
 from __future__ import annotations
 
 import inspect
+from concurrent.futures import CancelledError
 from typing import Any
 
 import numpy as np
@@ -160,6 +161,20 @@ def test_background_search_makes_the_saddle_stall_without_blocking() -> None:
     assert cp.ok and cp.saddles.size == SEED.n_obstacles
     assert ctl(saddle_ws).status == Status.STALLED
     assert ctl(0.5 + 0j).status == Status.MOVING
+
+
+def test_background_search_skips_controllers_nobody_holds() -> None:
+    """A robot's goal replaced before its search began: the search is cancelled, not run
+    (the worker is busy with the first controller while the second is dropped)."""
+    held = Controller(MOB, 0.1j, navfn="kr", k=6)
+    first = held.search_critical_points()
+    dropped = Controller(MOB, 0.3 - 0.2j, navfn="kr", k=6)
+    fut = dropped.search_critical_points()
+    del dropped
+    assert first.result(timeout=60).ok
+    with pytest.raises(CancelledError):
+        fut.result(timeout=60)
+    assert held.search_critical_points() is first  # a held one keeps its result
 
 
 def test_new_goal_reuses_the_map() -> None:

@@ -22,6 +22,7 @@ from confnav.schemas import (
     decode,
     encode,
 )
+from confnav.services import controller as controller_module
 from confnav.services.bus import InMemoryNetwork, QueryError
 from confnav.services.controller import ControllerService
 from confnav.services.keys import Keys
@@ -722,4 +723,35 @@ def test_a_goal_arriving_while_its_map_is_installed_gets_a_controller(
         assert cmd.map_revision == "rev1" and abs(complex(*cmd.linear)) > 0
     finally:
         release.set()
+        ctl.stop()
+
+
+def test_controller_cache_is_bounded_and_robots_keep_theirs(
+    mem_net: InMemoryNetwork, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Goals that change all the time must not pile up controllers (each holds a harmonic
+    fit): the cache keeps the most recent CTRL_CACHE_SIZE; a robot keeps driving with its own
+    controller after it was evicted, and robots with their own goals on one map are answered
+    in one fleet step, each as its own controller would."""
+    monkeypatch.setattr(controller_module, "CTRL_CACHE_SIZE", 2)
+    ctl, _tr, cl = setup(mem_net, linger=0.2)  # the four poses in one control step
+    try:
+        goals = {"r1": (-0.5, 0.0), "r2": (-0.5, 0.3), "r3": (0.0, -0.6), "r4": (0.5, 0.5)}
+        for rid, xy in goals.items():
+            cl.bus.publish(
+                K.robot(rid, "goal"),
+                encode(Goal(robot_id=rid, ws_id="cd", goal=xy, v_max=0.5, tolerance=0.02)),
+            )
+        wait_for(lambda: ctl.counters["controllers_built"] == 4)
+        assert len(ctl._ctrl_cache) == 2
+        for rid in goals:
+            cl.pose(rid, 0.0, 0.5 if rid != "r4" else -0.5)
+        wait_for(lambda: all(_state(cl, rid) == "navigating" for rid in goals))
+        assert ctl.counters["fleet_steps"] >= 1
+        for rid, xy in goals.items():
+            cmd = wait_for(lambda rid=rid: cl.last_cmd(rid))
+            g = Goal(robot_id=rid, ws_id="cd", goal=xy, v_max=0.5, tolerance=0.02)
+            z = complex(0.0, 0.5 if rid != "r4" else -0.5)
+            assert same(complex(*cmd.linear), expected_u(g, z)), rid
+    finally:
         ctl.stop()

@@ -57,6 +57,8 @@ import enum
 import logging
 import queue
 import threading
+import time
+import weakref
 from concurrent.futures import Future
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, ClassVar, Literal, Protocol
@@ -81,6 +83,9 @@ __all__ = ["ConformalLike", "ControlOutput", "Controller", "Status", "speed_law"
 
 #: Lowest factor of the optional slow-down near walls (keeps the speed positive: same paths).
 SLOW_FLOOR = 0.2
+#: Share of a core the background critical-point searches of a process may take (the worker
+#: sleeps ``(1/SEARCH_DUTY - 1)`` times each search's CPU time, at most 2 s, afterwards).
+SEARCH_DUTY = 0.25
 _NO_POINTS: CArray = np.zeros(0, dtype=np.complex128)
 
 
@@ -309,7 +314,9 @@ class Controller:
     #: One background daemon worker for every controller's critical-point search (a burst of
     #: new goals queues up instead of taking every core, and an exiting process never waits
     #: for a search); started on first use.
-    _searches: ClassVar[queue.SimpleQueue[Controller]] = queue.SimpleQueue()
+    _searches: ClassVar[
+        queue.SimpleQueue[tuple[weakref.ref[Controller], Future[CriticalPoints]]]
+    ] = queue.SimpleQueue()
     _searcher: ClassVar[threading.Thread | None] = None
     _searcher_lock: ClassVar[threading.Lock] = threading.Lock()
 
@@ -541,7 +548,11 @@ class Controller:
         ``__call__`` never waits for the search: it reports STALLED near a critical point as
         soon as the points have landed (a few seconds for 20 obstacles), MOVING before.  Long
         running hosts (the controller service) call this when they build a controller, so
-        stall detection works without anyone asking for the points first.
+        stall detection works without anyone asking for the points first.  The one search
+        worker of the process takes at most :data:`SEARCH_DUTY` of a core (a burst of new goals
+        must not starve the control steps), and skips controllers nobody holds any more (a
+        robot that got a new goal before its old goal's search began): their futures are
+        cancelled.
         """
         with self._search_lock:
             if self._search is None:
@@ -552,22 +563,28 @@ class Controller:
                             target=Controller._search_loop, name="critical-points", daemon=True
                         )
                         Controller._searcher.start()
-                Controller._searches.put(self)
+                Controller._searches.put((weakref.ref(self), self._search))
             return self._search
 
     @staticmethod
     def _search_loop() -> None:
         while True:
-            ctl = Controller._searches.get()
-            fut = ctl._search
-            assert fut is not None
+            ref, fut = Controller._searches.get()
+            ctl = ref()
+            if ctl is None:  # dropped by every holder before its turn: cancelled, not run
+                fut.cancel()
+                continue
             if not fut.set_running_or_notify_cancel():
                 continue
+            t0 = time.process_time()
             try:
                 fut.set_result(ctl.critical_points())
             except Exception as exc:  # reported through the future, never kills the worker
                 log.warning("critical-point search failed for %r: %s", ctl, exc)
                 fut.set_exception(exc)
+            del ctl  # not kept alive by the idle worker
+            busy = time.process_time() - t0  # the process's CPU: includes others' work, so
+            time.sleep(min(busy * (1.0 / SEARCH_DUTY - 1.0), 2.0))  # this errs on the idle side
 
     def _stall_points(self) -> CArray:
         cp = self._critical  # never computed here: __call__ must not block on the search
