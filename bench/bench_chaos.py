@@ -735,6 +735,7 @@ def run_soak(
         assert launcher.bus is not None
         bus = launcher.bus
         robots = Robots(bus, list(starts))
+        health = HealthWatch(bus)
         goal = (DEFAULT_GOAL.real, DEFAULT_GOAL.imag)
         t0 = time.monotonic()
         next_goal = next_sample = 0.0
@@ -761,6 +762,7 @@ def run_soak(
                     procs["router"] = launcher.router.popen.pid
                 row = {"t_s": round(now, 1), "load": loadavg()}
                 row.update({label: rss_kib(pid) for label, pid in procs.items()})
+                row["recorded"] = health.counters().get("recorder", {}).get("recorded", 0)
                 samples.append(row)
                 print(f"  soak {row}", flush=True)
             time.sleep(0.2)
@@ -775,7 +777,7 @@ def run_soak(
         shutil.rmtree(sockdir, ignore_errors=True)
     warm = [s for s in samples if s["t_s"] >= 60.0] or samples
     growth = {}
-    for label in [k for k in samples[0] if k not in ("t_s", "load")]:
+    for label in [k for k in samples[0] if k not in ("t_s", "load", "recorded")]:
         first, last = warm[0][label], warm[-1][label]
         growth[label] = (last - first) / first if first else None
     segments = sorted(out.glob("chaos*.mcap"))

@@ -43,6 +43,7 @@ from confnav.services.runtime import Service, add_zenoh_args, run_until_signal
 from mcap.writer import CompressionType, IndexType, Writer
 
 from confnav.argtypes import output_path
+from confnav.recording import allocator
 from confnav.recording import layout as L
 from confnav.recording.latch import LatchedState
 
@@ -64,6 +65,9 @@ INDEX_TYPES = IndexType.ALL & ~IndexType.MESSAGE
 #: soak of bench/bench_chaos.py).
 SPLIT_SIZE_MB: Final = 512.0
 SPLIT_DURATION_S: Final = 3600.0
+
+#: s between ``malloc_trim`` calls (:mod:`confnav.recording.allocator`; also after a split).
+TRIM_INTERVAL_S: Final = 60.0
 
 
 def free_path(path: str | Path) -> Path:
@@ -249,6 +253,7 @@ class Recorder(Service):
             self._finished = False
             self._open_segment()
         self.count("splits")
+        allocator.trim()  # the finished writer's buffers and indexes
         log.info("segment %s finished, recording to %s", old, self.path)
         return self.path
 
@@ -335,10 +340,14 @@ class Recorder(Service):
         return "ok", f"file {self.path}"
 
     def _flush_loop(self) -> None:
+        next_trim = time.monotonic() + TRIM_INTERVAL_S
         while not self._stop.wait(self.flush_interval):
             try:
                 self.flush()
                 self.split(only_if_due=True)
+                if time.monotonic() >= next_trim:
+                    next_trim = time.monotonic() + TRIM_INTERVAL_S
+                    allocator.trim()
             except Exception:
                 log.exception("flush failed")
 
@@ -396,6 +405,7 @@ def add_parser(sub: Any) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
+    allocator.tune()  # before Zenoh's and our threads exist
     config = {k: v for k, v in vars(args).items() if k != "func"}
     return run_until_signal(
         lambda bus, keys: Recorder(
