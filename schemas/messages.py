@@ -327,6 +327,8 @@ class ServiceHealth(Message):
     uptime_s: Annotated[float, Field(ge=0.0)]
     counters: dict[str, int] = {}
     detail: Annotated[str, Field(max_length=4096)] = ""
+    #: Current values (queue depths, memory), unlike the cumulative ``counters``.
+    gauges: dict[str, int] = {}
 
 
 class AtlasCell(Message):

@@ -117,6 +117,10 @@ class _Dispatcher:
     def put(self, item: Any) -> None:
         self._q.put(item)
 
+    def pending(self) -> int:
+        """Items waiting (approximate: the queue keeps changing)."""
+        return self._q.qsize()
+
     def _run(self) -> None:
         while True:
             item = self._q.get()
@@ -209,10 +213,16 @@ class _LatestDispatcher:
         if threading.current_thread() is not self._thread:
             self._thread.join(timeout)
 
+    def pending(self) -> int:
+        """Keys waiting."""
+        return len(self._waiting)
+
 
 class _Handle:
-    def __init__(self, close: Callable[[], None]) -> None:
+    def __init__(self, close: Callable[[], None], pending: Callable[[], int] | None = None) -> None:
         self._close = close
+        #: Samples received and not yet handled, for a subscription's handle (else 0).
+        self.pending: Callable[[], int] = pending or (lambda: 0)
         self._closed = False
         self._lock = threading.Lock()
 
@@ -362,7 +372,7 @@ class ZenohBus(_Subscriptions):
             sub.undeclare()  # type: ignore[no-untyped-call]
             disp.stop()
 
-        return self._track(_Handle(close))
+        return self._track(_Handle(close, disp.pending))
 
     def query(
         self, selector: str, timeout: float = 2.0, payload: bytes | None = None
@@ -513,7 +523,7 @@ class InMemoryBus(_Subscriptions):
                 self._net.subs.remove(entry)
             disp.stop()
 
-        h = _Handle(close)
+        h = _Handle(close, disp.pending)
         self._handles.append(h)
         return h
 

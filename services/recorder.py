@@ -160,13 +160,17 @@ class Recorder(Service):
         self._dirty = False
         self._finished = False
         self.recorded = 0
+        self._pending: Any = lambda: 0  # the subscription's queue depth
+        self.queued_peak = 0  # deepest queue seen (sampled at every flush)
 
     def _start(self) -> None:
         with self._wlock:
             self._open_segment()
         if self.path != self.requested_path:
             log.warning("%s exists: recording to %s", self.requested_path, self.path)
-        self._handles.append(self.bus.subscribe(self.keys.all(), self._on_message))
+        sub = self.bus.subscribe(self.keys.all(), self._on_message)
+        self._pending = getattr(sub, "pending", self._pending)
+        self._handles.append(sub)
         self.spawn(self._flush_loop, "flush")
         log.info("recording %s to %s", self.keys.all(), self.path)
 
@@ -336,13 +340,25 @@ class Recorder(Service):
             self._writer.flush()  # type: ignore[no-untyped-call]  # closes the chunk, writes
             self._dirty = False
 
+    def queued(self) -> int:
+        """Messages received and not yet written (the recorder falling behind if it grows)."""
+        return int(self._pending())
+
     def health_detail(self) -> tuple[str, str]:
         return "ok", f"file {self.path}"
+
+    def health_gauges(self) -> dict[str, int]:
+        g = {"queued": self.queued(), "queued_peak": self.queued_peak}
+        rss = allocator.rss_kib()
+        if rss is not None:
+            g["rss_kib"] = rss
+        return g
 
     def _flush_loop(self) -> None:
         next_trim = time.monotonic() + TRIM_INTERVAL_S
         while not self._stop.wait(self.flush_interval):
             try:
+                self.queued_peak = max(self.queued_peak, self.queued())
                 self.flush()
                 self.split(only_if_due=True)
                 if time.monotonic() >= next_trim:

@@ -151,6 +151,10 @@ class Service:
         """(state, detail) for the health message; override to report degradation."""
         return "ok", ""
 
+    def health_gauges(self) -> dict[str, int]:
+        """Current values for the health message (queue depths...); override to add some."""
+        return {}
+
     def health(self) -> ServiceHealth:
         state, detail = self.health_detail()
         with self._counter_lock:
@@ -163,6 +167,7 @@ class Service:
             uptime_s=time.monotonic() - self._t0,
             counters=counters,
             detail=detail[:4000],
+            gauges=self.health_gauges(),
         )
 
     def _health_loop(self) -> None:

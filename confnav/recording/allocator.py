@@ -3,13 +3,14 @@
 The recorder allocates and frees a compressed chunk (up to :data:`.layout.CHUNK_SIZE` bytes)
 and a zstd context (about 1 MB) a few times a second, from the Zenoh threads and its own.
 glibc's defaults make that fragment: each thread gets its own arena (up to 8 per core) and the
-mmap threshold adapts upward after the first large free (up to 32 MB), so those buffers land
-in arena heaps whose free holes are not given back. Measured in the 100-robot soak of
-``bench/bench_chaos.py``: resident memory grew 5-11 % in 12-25 min with the defaults, 2.7 %
-in 10 min with ``MALLOC_ARENA_MAX=2``. :func:`tune` caps the arenas and fixes the mmap
-threshold (which also turns its adaptation off: large buffers are mmapped and unmapped on
-free), :func:`trim` gives free heap pages back (``malloc_trim(0)``, glibc >= 2.8 releases free
-pages inside the heap too, not only at its top).
+mmap threshold adapts upward whenever a large mmapped block is freed (up to 32 MB), so later
+blocks of that size come from arena heaps, whose free holes are not given back. Measured in
+the 100-robot soak of ``bench/bench_chaos.py``: resident memory grew 5-11 % in 12-25 min with
+the defaults, 2.7 % in 10 min with ``MALLOC_ARENA_MAX=2``. :func:`tune` caps the arenas and
+fixes the mmap threshold (which turns its adaptation off: a large block the heap cannot serve
+from free space is mmapped, and unmapped when freed); :func:`trim` gives free heap pages back
+(``malloc_trim(0)``; glibc >= 2.8 releases free pages inside the heap too, not only at its
+top).
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ from __future__ import annotations
 import ctypes
 import ctypes.util
 import logging
+import os
 from functools import cache
 from typing import Final
 
@@ -72,3 +74,13 @@ def trim() -> bool:
     """Give free heap memory back to the OS (``malloc_trim(0)``); True if some was (glibc)."""
     libc = _glibc()
     return libc is not None and bool(libc.malloc_trim(0))
+
+
+def rss_kib() -> int | None:
+    """This process's resident memory in KiB (Linux ``/proc/self/statm``), else None."""
+    try:
+        with open("/proc/self/statm") as f:
+            pages = int(f.read().split()[1])
+    except (OSError, ValueError, IndexError):
+        return None
+    return pages * os.sysconf("SC_PAGE_SIZE") // 1024
