@@ -59,10 +59,10 @@ MAX_RAW_BYTES = 64 * 1024 * 1024
 INDEX_TYPES = IndexType.ALL & ~IndexType.MESSAGE
 
 #: Default rotation limits. 1 h bounds what the writer holds until a segment is finished (one
-#: chunk index a flush: with 100 robots about 5 a second, a few MB an hour) and keeps segments
-#: a size that copies, uploads and opens in Foxglove comfortably; 512 MB caps a busy system's
-#: segment (100 robots at 20 Hz record about 0.6 GB an hour compressed: 124 MB in the 12 min
-#: soak of bench/bench_chaos.py).
+#: chunk index, about 450 bytes, a chunk: with 100 robots 2-3 chunks a second, about 4 MB an
+#: hour) and keeps segments a size that copies, uploads and opens in Foxglove comfortably;
+#: 512 MB caps a busy system's segment (100 robots at 20 Hz record about 0.6 GB an hour
+#: compressed: 124 MB in the 12 min soak of bench/bench_chaos.py).
 SPLIT_SIZE_MB: Final = 512.0
 SPLIT_DURATION_S: Final = 3600.0
 

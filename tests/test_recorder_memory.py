@@ -15,6 +15,7 @@ from typing import Any
 
 import pytest
 from confnav.schemas import Pose, ServiceHealth, decode, encode
+from confnav.services.bus import InMemoryNetwork
 from confnav.services.keys import Keys
 from confnav.services.recorder import Recorder
 from conftest import wait_for
@@ -139,3 +140,23 @@ def test_rss_kib_matches_proc_status() -> None:
     status = Path("/proc/self/status").read_text()
     vm = int(next(ln for ln in status.splitlines() if ln.startswith("VmRSS:")).split()[1])
     assert rss is not None and abs(rss - vm) < 2048  # read moments apart: within 2 MiB
+
+
+def test_soak_flush_window_is_one_chunk(mem_net: InMemoryNetwork, tmp_path: Path) -> None:
+    """Half a second (one flush) of the 100-robot soak's traffic, 2200 messages of about 290
+    bytes on 400 channels, is one chunk: chunks are closed by the flush, not by size, so the
+    writer keeps 2 chunk indexes a second, not 8 (the soak's memory growth)."""
+    rec = Recorder(mem_net.bus("rec"), K, tmp_path / "w.mcap", flush_interval=3600)
+    rec.start()
+    keys = [K.robot(f"r{i}", k) for i in range(100) for k in ("pose", "cmd_vel", "status", "goal")]
+    try:
+        for i in range(2200):
+            rec._on_message(keys[i % len(keys)], b"%290d" % i)  # not JSON: raw channels
+        rec.flush()
+    finally:
+        rec.stop()
+    with open(rec.path, "rb") as f:
+        summary = make_reader(f).get_summary()
+    assert summary is not None and summary.statistics is not None
+    assert summary.statistics.message_count == 2200
+    assert len(summary.chunk_indexes) == 1
