@@ -108,7 +108,8 @@ class CircleDomainResult:
     iteration_error: float = 0.0
     #: False if the iteration stopped without meeting its tolerance (stall or sweep limit).
     converged: bool = True
-    #: Relative Fourier tail of smooth grids that needed more than SMOOTH_MAX points (0: none).
+    #: Largest relative Fourier tail of a smooth grid solved on while above its target (at
+    #: SMOOTH_MAX, or laid too small in an early sweep; 0: none).
     resolution_error: float = 0.0
 
 
@@ -154,7 +155,11 @@ class _Boundary:
         if self.S is not None:
             assert self.dS is not None
             m, capped = _local_grid_size(self.S, self.dS, others, self.tail)
-            self.capped_tail = _tail(self.S) if capped or self.S.size >= SMOOTH_MAX else 0.0
+            tail = _tail(self.S)
+            if capped or self.S.size >= SMOOTH_MAX or tail > self.tail:
+                # solved on an under-resolved grid: the aliasing error changes the domain for
+                # good (later sweeps map the changed domain, at every mesh level alike)
+                self.capped_tail = max(self.capped_tail, tail)
             if m > self.S.size:
                 self.S, self.dS = upsample(np.stack([self.S, self.dS]), m)
         if self.S is None:  # first sweep: the polygon, on its graded mesh
