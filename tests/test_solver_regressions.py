@@ -178,3 +178,28 @@ def test_near_touching_shrunk_by_a_diff_drive_footprint_is_circular_between_node
         w = cm.T(z, check=False)
         assert np.max(np.abs(np.abs(w - centres[j]) - radii[j])) <= tol, j
     assert abs(complex(cm.T(ws.anchor))) <= 1e-12
+
+
+def test_an_under_resolved_smooth_grid_is_reported_not_hidden(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The same scene with the outer grid forced back to the old over-optimistic grading (rho
+    0.95, 256 points): the tail of the grid solved on (0.95^128 ~ 1e-3) must reach
+    ``resolution_error``, even though the iteration later doubles the grid to resolution."""
+    from confnav.conformal import circledomain, solver
+
+    scene = Path(__file__).resolve().parents[1] / "bench" / "scenes" / "near_touching.json"
+    ws = confnav.inflate(confnav.Workspace.load(scene), 0.3, keep=5.5 + 3.5j)
+
+    grading = circledomain._grading
+
+    def old_grading(others: np.ndarray) -> tuple[complex, float]:
+        if np.any(np.abs(others) > 1.0):  # a hole's grid (the outer curve is around it)
+            return grading(others)
+        k = int(np.argmin(np.abs(np.abs(others) - 1.0)))
+        return complex(0.95 * others[k] / abs(others[k])), 0.4
+
+    monkeypatch.setattr(circledomain, "_grading", old_grading)
+    res = solver._solve_level(ws, 80, 1e-10, None)[0]
+    assert res.resolution_error >= 1e-4
+    assert max(res.smooth_nodes) >= 1024  # it did refine, too late for the early sweeps
