@@ -34,7 +34,6 @@ import json
 import os
 import platform
 import statistics
-import subprocess
 import sys
 import time
 import warnings
@@ -44,6 +43,7 @@ from typing import Any
 
 import numpy as np
 import scipy
+from provenance import commit, git  # script mode: bench/ is on sys.path
 
 import confnav
 from confnav.conformal.solver import LEVELS, AccuracyWarning, _solve_level
@@ -82,26 +82,13 @@ def load1() -> float:
 
 
 def code_info() -> dict[str, Any]:
-    """Which solver code was measured: commit, uncommitted core files, hash of confnav/*.py."""
+    """Which solver code was measured: commit, uncommitted files, hash of confnav/**/*.py."""
     pkg = Path(confnav.__file__).resolve().parent
     h = hashlib.sha256()
-    for f in sorted(pkg.glob("*.py")):
-        h.update(f.name.encode() + b"\0" + f.read_bytes())
-
-    def git(*cmd: str) -> str:
-        try:
-            return subprocess.run(
-                ["git", *cmd], cwd=pkg, capture_output=True, text=True, timeout=10
-            ).stdout
-        except (OSError, subprocess.SubprocessError):
-            return ""
-
-    dirty = [ln[3:] for ln in git("status", "--porcelain", "--", ".").splitlines()]
-    return {
-        "commit": git("rev-parse", "HEAD").strip(),
-        "dirty_files": dirty,
-        "source_sha256": h.hexdigest(),
-    }
+    for f in sorted(pkg.rglob("*.py")):
+        h.update(str(f.relative_to(pkg)).encode() + b"\0" + f.read_bytes())
+    dirty = git("diff", "--name-only", "HEAD", "--", str(pkg)).splitlines()
+    return {"commit": commit(), "dirty_files": dirty, "source_sha256": h.hexdigest()}
 
 
 def machine_info() -> dict[str, Any]:

@@ -61,6 +61,8 @@ from confnav.services.transform import definition_hash, workspace_of
 
 from confnav.atlas.wire import ATLAS_MARKER, AtlasMap, is_chart_ws_id
 from confnav.navigation import messages as navigation
+from confnav.navigation.control import Controller
+from confnav.navigation.fleet import fleet_step
 
 log = logging.getLogger(__name__)
 
@@ -696,6 +698,19 @@ class ControllerService(Service):
                 for i in idx:
                     out[i] = exc
                 continue
+            if all(isinstance(laws[i], Controller) for i in idx):
+                try:  # every goal's law in one vectorized pass (navigation.fleet)
+                    fleet = [laws[i] for i in idx for _ in range(zs[i].size)]
+                    o = fleet_step(fleet, zall, w, dw, c)
+                except Exception:  # a bug there must not stop the fleet: one by one below
+                    log.exception("fleet step failed; evaluating each goal on its own")
+                else:
+                    s = 0
+                    for i in idx:
+                        n = zs[i].size
+                        out[i] = (np.asarray(o.u[s : s + n]), np.asarray(o.status[s : s + n]))
+                        s += n
+                    continue
             s = 0
             for i in idx:
                 n = zs[i].size

@@ -7,7 +7,7 @@ import pytest
 from numpy.testing import assert_allclose
 
 from confnav.errors import NavigationError
-from confnav.navigation.critical import find_critical_points
+from confnav.navigation.critical import find_critical_points, search_critical_points
 from confnav.navigation.factory import make_navfn
 from confnav.navigation.harmonic import GreenFunction, HarmonicNavigation
 from confnav.navigation.navfn import CircleDomain
@@ -285,3 +285,28 @@ def test_goal_in_a_pocket_next_to_a_hole() -> None:
 def test_non_converged_fit_raises_with_the_reason() -> None:
     with pytest.raises(NavigationError, match="did not converge"):
         GreenFunction(RING, 0.1 + 0.05j, tol=1e-13, max_terms=16)
+
+
+def _same_points(a: np.ndarray, b: np.ndarray) -> bool:
+    return a.size == b.size and bool(np.all(np.min(np.abs(a[:, None] - b), axis=1) < 1e-9))
+
+
+@pytest.mark.slow
+def test_coarse_first_search_finds_what_the_full_search_finds() -> None:
+    """search_critical_points (coarse grid first, accepted only when it finds the one minimum
+    and M saddles theory promises) against find_critical_points on the full grid, on the seed
+    domain, 20 scattered holes and two holes 1e-3 apart (whose saddle hides in the gap)."""
+    c0, r0, r1 = -0.3 + 0.1j, 0.06, 0.12
+    c1 = c0 + (r0 + r1 + 1e-3) * np.exp(0.7j)
+    tight = CircleDomain(np.array([c0, c1, 0.5 - 0.4j]), np.array([r0, r1, 0.1]))
+    cases = [(SEED, 0.3 + 0.5j), (SEED, -0.7 + 0.1j), (_scattered_domain(), 0.3 + 0.5j)]
+    cases += [(tight, 0.2 + 0.3j), (tight, c0 - (r0 + 0.01))]
+    for dom, goal in cases:
+        nf = HarmonicNavigation(dom, goal)
+        fast, full = search_critical_points(nf), find_critical_points(nf)
+        assert fast.ok == full.ok, (fast.message, full.message)
+        assert _same_points(fast.saddles, full.saddles), (fast.saddles, full.saddles)
+        assert _same_points(fast.minima, full.minima)
+    # a function theory says nothing about gets the full grid: the same object's result
+    kr = make_navfn("kr", SEED, 0.3 + 0.5j, k=6)
+    assert search_critical_points(kr).n_candidates == find_critical_points(kr).n_candidates

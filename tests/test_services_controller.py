@@ -109,6 +109,7 @@ class Client:
         Commands and statuses reach this client on two subscriber threads, so the stop command
         may be recorded after the status announcing it (CI saw that once): wait, don't assert.
         """
+
         def stopped() -> VelocityCommand | None:
             c = self.last_cmd(rid)
             return c if c is not None and c.linear == (0.0, 0.0) else None

@@ -81,6 +81,7 @@ __all__ = ["ConformalLike", "ControlOutput", "Controller", "Status", "speed_law"
 
 #: Lowest factor of the optional slow-down near walls (keeps the speed positive: same paths).
 SLOW_FLOOR = 0.2
+_NO_POINTS: CArray = np.zeros(0, dtype=np.complex128)
 
 
 class ConformalLike(Protocol):
@@ -128,8 +129,8 @@ def speed_law(
     dist: FArray,
     *,
     law: str = defaults.SPEED_LAW,
-    gain: float = defaults.GAIN,
-    v_max: float = defaults.V_MAX,
+    gain: float | FArray = defaults.GAIN,
+    v_max: float | FArray = defaults.V_MAX,
     slow: FArray | None = None,
     v_cap: FArray | None = None,
 ) -> tuple[CArray, NDArray[np.bool_]]:
@@ -155,8 +156,8 @@ def _speed_law(
     dist: FArray,
     *,
     law: str,
-    gain: float,
-    v_max: float,
+    gain: float | FArray,
+    v_max: float | FArray,
     slow: FArray | None,
 ) -> tuple[CArray, NDArray[np.bool_]]:
     """:func:`speed_law` without the per-point cap."""
@@ -300,6 +301,7 @@ class Controller:
                 )
         self.goal_w = wd
         self._critical: CriticalPoints | None = None
+        self._stall_cache: tuple[CriticalPoints, CArray] | None = None
         self._critical_lock = threading.Lock()
         self._search: Future[CriticalPoints] | None = None
         self._search_lock = threading.Lock()
@@ -525,9 +527,9 @@ class Controller:
         """
         with self._critical_lock:
             if self._critical is None:
-                from confnav.navigation.critical import find_critical_points
+                from confnav.navigation.critical import search_critical_points
 
-                self._critical = find_critical_points(self.navfn)
+                self._critical = search_critical_points(self.navfn)
             return self._critical
 
     check = critical_points
@@ -570,8 +572,12 @@ class Controller:
     def _stall_points(self) -> CArray:
         cp = self._critical  # never computed here: __call__ must not block on the search
         if cp is None:
-            return np.zeros(0, dtype=np.complex128)
-        return np.concatenate([cp.saddles, cp.spurious_minima, cp.maxima, cp.degenerate])
+            return _NO_POINTS
+        cached = self._stall_cache
+        if cached is None or cached[0] is not cp:  # once per search result (hot path)
+            pts = np.concatenate([cp.saddles, cp.spurious_minima, cp.maxima, cp.degenerate])
+            cached = self._stall_cache = (cp, pts)
+        return cached[1]
 
     def _near_critical(self, w: CArray, dw: CArray) -> NDArray[np.bool_]:
         """Within ``stall_radius`` (workspace metres, via ``|dw| ~ |T'|``) of a critical point

@@ -30,7 +30,15 @@ from confnav.errors import NavigationError
 from confnav.navigation.navfn import CircleDomain, KoditschekRimon, NavigationFunction
 from confnav.types import CArray
 
-__all__ = ["K_LADDER", "AutoK", "CriticalPoints", "choose_k", "find_critical_points"]
+__all__ = [
+    "COARSE_GRID",
+    "K_LADDER",
+    "AutoK",
+    "CriticalPoints",
+    "choose_k",
+    "find_critical_points",
+    "search_critical_points",
+]
 
 
 #: k values tried, in order, by :func:`choose_k` (the seed's k = 6 first).
@@ -193,6 +201,30 @@ def find_critical_points(
         goal=navfn.goal,
         n_candidates=n_cand,
     )
+
+
+#: Coarse sampling of :func:`search_critical_points` (about 11x fewer points than the defaults
+#: of :func:`find_critical_points`).
+COARSE_GRID: dict[str, int] = {"n_theta": 64, "n_layers": 16, "n_grid": 61}
+
+
+def search_critical_points(navfn: NavigationFunction) -> CriticalPoints:
+    """:func:`find_critical_points`, first on a coarse grid where theory says what to find.
+
+    The harmonic navigation function ``exp(2 G)`` has the critical points of the Green's
+    function ``G`` of the (M+1)-connected circle domain: exactly M of them, counted with
+    multiplicity, besides the pole (J. L. Walsh, *The Location of Critical Points of Analytic
+    and Harmonic Functions*, AMS Colloquium Publications 34, 1950, ch. VIII), and no local
+    minimum or maximum (G is harmonic).  So a coarse search that finds one minimum at the goal
+    and M non-degenerate saddles has found all of them; anything else (a saddle missed in a
+    narrow gap, a point classified degenerate) repeats the search on the full grid.  Other
+    functions (Koditschek-Rimon: spurious minima come and go with k) always get the full grid.
+    """
+    if navfn.name == "harmonic":
+        cp = find_critical_points(navfn, **COARSE_GRID)
+        if cp.ok and cp.index_consistent:
+            return cp
+    return find_critical_points(navfn)
 
 
 def choose_k(domain: CircleDomain, goal: complex, ladder: tuple[float, ...] = K_LADDER) -> AutoK:

@@ -69,6 +69,7 @@ import math
 import threading
 import time
 from collections import OrderedDict
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import ClassVar, NamedTuple
 
@@ -616,6 +617,79 @@ class GreenFunction:
         return g, h, grad_h
 
 
+#: Complex entries of one stacked coefficient block (points x 2K x terms): bounds the memory
+#: of :func:`stacked_parts` (about 3 such arrays live at once, 16 bytes each).
+_STACK_ENTRIES = 1 << 20
+
+
+def stacked_parts(greens: Sequence[GreenFunction], z: CArray) -> tuple[FArray, FArray, CArray]:
+    """:meth:`GreenFunction.parts` of ``greens[i]`` at ``z[i]`` (1-D) in one vectorized pass:
+    the greens share one basis (centres), so the powers ``u_j^k, v_j^k`` are the same
+    functions of ``z`` and only the coefficients differ per point; they are stacked, zero
+    padded to the longest series, with each pole's images (padding has weight 0)."""
+    per_point = 2 * greens[0]._cen.c.size * (max(g._n for g in greens) + 1)
+    step = max(1, _STACK_ENTRIES // max(per_point, 1))
+    if z.size <= step:
+        return _stacked_parts(greens, z)
+    parts = [_stacked_parts(greens[i : i + step], z[i : i + step]) for i in range(0, z.size, step)]
+    g, h, gh = (np.concatenate([q[j] for q in parts]) for j in range(3))
+    return g, h, gh
+
+
+def _stacked_parts(greens: Sequence[GreenFunction], z: CArray) -> tuple[FArray, FArray, CArray]:
+    cen = greens[0]._cen
+    p = z.size
+    n = max(g._n for g in greens)
+    k = cen.c.size
+    uniq: dict[int, list[int]] = {}
+    for i, g in enumerate(greens):
+        uniq.setdefault(id(g), []).append(i)
+    n_img = max(g._images.points.size for g in greens)
+    cf = np.zeros((p, 2 * k, n + 1), dtype=np.complex128)
+    cd = np.zeros((p, 2 * k, n + 1), dtype=np.complex128)
+    b = np.zeros((p, k), dtype=np.float64)
+    pole = np.empty(p, dtype=np.complex128)
+    ip = np.zeros((p, n_img), dtype=np.complex128)  # image points, 0 where padded
+    isg = np.zeros((p, n_img), dtype=np.float64)  # their signs, 0 where padded
+    for idx in uniq.values():
+        g = greens[idx[0]]
+        ii = np.asarray(idx, dtype=np.intp)
+        if k:
+            cf[ii, :, : g._n + 1] = g._cf
+            cd[ii, :, : g._n + 1] = g._cd
+            b[ii] = g._b
+        pole[ii] = g.pole
+        m = g._images.points.size
+        ip[ii, :m] = g._images.points
+        isg[ii, :m] = g._images.signs
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+        s = np.zeros(p, dtype=np.float64)
+        grad_h = np.zeros(p, dtype=np.complex128)
+        if k:  # the same sums as GreenFunction._eval, with per-point coefficients
+            u, v, d, q = _variables(cen, z)
+            x = np.concatenate([u, v], axis=1)
+            xpow = np.empty((*x.shape, n + 1), dtype=np.complex128)
+            xpow[:, :, 0] = 1.0
+            xpow[:, :, 1:] = x[:, :, None]
+            np.cumprod(xpow, axis=2, out=xpow)
+            r = cen.r
+            dxdw = np.concatenate([-(u * u) / r, r / (q * q)], axis=1)
+            f = np.einsum("pjk,pjk->p", xpow, cf)
+            fp = np.einsum("pjk,pjk,pj->p", xpow, cd, dxdw)
+            s = f.real + np.einsum("pj,pj->p", np.log(np.abs(d / q)), b)
+            grad_h = np.conj(fp) + np.einsum("pj,pj->p", 1.0 / np.conj(d) + cen.c / np.conj(q), b)
+        if n_img:  # H = S - sum_i s_i L(w; p_i) (as _Images.value/.gradient, padded)
+            zz = z[:, None]
+            used = isg != 0
+            lv = np.where(used, np.log(np.abs((zz - ip) / (1.0 - np.conj(ip) * zz))), 0.0)
+            gv = np.where(used, 1.0 / np.conj(zz - ip) + ip / np.conj(1.0 - np.conj(ip) * zz), 0)
+            s = s - np.einsum("pi,pi->p", lv, isg)
+            grad_h = grad_h - np.einsum("pi,pi->p", gv, isg)
+        big_g = _disk_green(z, pole) - s  # type: ignore[arg-type]
+        h = np.log(np.abs(1.0 - np.conj(pole) * z)) + s
+    return big_g, h, grad_h
+
+
 def _exp(x: float) -> float:
     """``e^x`` in Python floats, inf on overflow (as numpy with ``over="ignore"``)."""
     try:
@@ -680,6 +754,31 @@ class HarmonicNavigation(NavigationFunction):
         q = 1.0 - wd.conjugate() * w
         grad = 2.0 * _exp(-2.0 * h) * (e * ((1.0 - abs(wd) ** 2) / q).conjugate() - g * grad_h)
         return phi, grad
+
+    @classmethod
+    def value_and_gradient_stacked(
+        cls, fns: Sequence[NavigationFunction], w: CArray
+    ) -> tuple[FArray, CArray]:
+        """:meth:`value_and_gradient` with a goal per point, all series in one pass
+        (:func:`stacked_parts`) when they share one basis, i.e. one map."""
+        hs = [f for f in fns if isinstance(f, HarmonicNavigation)]
+        if len(hs) != len(fns) or len({id(f.green._cen) for f in hs}) > 1:
+            return super().value_and_gradient_stacked(fns, w)
+        w = np.asarray(w, dtype=np.complex128)
+        big_g, h, grad_h = stacked_parts([f.green for f in hs], w)
+        wd = np.array([f.goal for f in hs], dtype=np.complex128)
+        e = w - wd
+        g = (e * e.conjugate()).real
+        with np.errstate(over="ignore", invalid="ignore"):
+            phi = np.exp(2.0 * big_g)
+            q = 1.0 - np.conj(wd) * w
+            grad = 2.0 * np.exp(-2.0 * h) * (e * np.conj((1.0 - np.abs(wd) ** 2) / q) - g * grad_h)
+        phi = np.where(g == 0, 0.0, phi)
+        outside = ~(hs[0].domain.clearance(w) >= 0)
+        if np.any(outside):
+            phi = np.where(outside, np.nan, phi)
+            grad = np.where(outside, np.nan + 0j, grad)
+        return np.asarray(phi, dtype=np.float64), np.asarray(grad, dtype=np.complex128)
 
     def with_goal(self, goal: complex) -> HarmonicNavigation:
         return HarmonicNavigation(

@@ -23,6 +23,7 @@ References
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, ClassVar, Protocol
 
@@ -38,6 +39,7 @@ __all__ = [
     "HasCircles",
     "KoditschekRimon",
     "NavigationFunction",
+    "value_and_gradient_stacked",
 ]
 
 
@@ -150,6 +152,20 @@ class NavigationFunction(ABC):
         step); implementations override it with scalar arithmetic (same formulas)."""
         phi, g = self.value_and_gradient(np.asarray(w, dtype=np.complex128))
         return float(phi), complex(g)
+
+    @classmethod
+    def value_and_gradient_stacked(
+        cls, fns: Sequence[NavigationFunction], w: CArray
+    ) -> tuple[FArray, CArray]:
+        """``fns[i].value_and_gradient(w[i])`` for every i (1-D ``w``): many goals on one
+        domain, e.g. a fleet whose robots each have their own goal.  This default calls
+        :meth:`value_and_gradient1` per point; subclasses evaluate all goals in one
+        vectorized pass (:func:`value_and_gradient_stacked` picks the implementation)."""
+        out = [f.value_and_gradient1(complex(x)) for f, x in zip(fns, w.tolist(), strict=True)]
+        return (
+            np.array([o[0] for o in out], dtype=np.float64),
+            np.array([o[1] for o in out], dtype=np.complex128),
+        )
 
     def value(self, w: ArrayLike) -> FArray:
         return self.value_and_gradient(w)[0]
@@ -268,8 +284,54 @@ class KoditschekRimon(NavigationFunction):
             grad = np.where(outside, np.nan + 0j, grad)
         return phi, grad
 
+    @classmethod
+    def value_and_gradient_stacked(
+        cls, fns: Sequence[NavigationFunction], w: CArray
+    ) -> tuple[FArray, CArray]:
+        """:meth:`value_and_gradient` with a goal and k per point (same domain: ``beta`` does
+        not depend on the goal); the same formulas, so equal to rounding."""
+        kr = [f for f in fns if isinstance(f, KoditschekRimon)]
+        if len(kr) != len(fns) or len({id(f.domain) for f in kr}) > 1:
+            return super().value_and_gradient_stacked(fns, w)
+        w = np.asarray(w, dtype=np.complex128)
+        goal = np.array([f.goal for f in kr], dtype=np.complex128)
+        k = np.array([f.k for f in kr], dtype=np.float64)
+        e = w - goal
+        g = (e * e.conjugate()).real
+        beta, dbeta = obstacle_function(kr[0].domain, w)
+        with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+            big_d = g**k + beta
+            root = np.abs(big_d) ** (-1.0 / k)
+            phi = g * root
+            grad = (root / big_d) * (beta * 2.0 * e - (g / k) * dbeta)
+        outside = ~(beta >= 0)
+        if np.any(outside):
+            phi = np.where(outside, np.nan, phi)
+            grad = np.where(outside, np.nan + 0j, grad)
+        return np.asarray(phi, dtype=np.float64), np.asarray(grad, dtype=np.complex128)
+
     def with_goal(self, goal: complex) -> KoditschekRimon:
         return KoditschekRimon(self.domain, goal, self.k)
 
     def __repr__(self) -> str:
         return f"KoditschekRimon(M={self.domain.n_obstacles}, goal={self.goal:.6g}, k={self.k:g})"
+
+
+def value_and_gradient_stacked(
+    fns: Sequence[NavigationFunction], w: ArrayLike
+) -> tuple[FArray, CArray]:
+    """``(phi_i(w_i), grad phi_i(w_i))`` for navigation functions ``fns[i]`` at points
+    ``w[i]`` (1-D): each kind (class) of function evaluated in one vectorized pass by its
+    :meth:`NavigationFunction.value_and_gradient_stacked`."""
+    w = np.asarray(w, dtype=np.complex128).reshape(-1)
+    if len(fns) != w.size:
+        raise ValueError(f"{len(fns)} navigation functions for {w.size} points")
+    phi = np.empty(w.size, dtype=np.float64)
+    grad = np.empty(w.size, dtype=np.complex128)
+    groups: dict[type[NavigationFunction], list[int]] = {}
+    for i, f in enumerate(fns):
+        groups.setdefault(type(f), []).append(i)
+    for cls, idx in groups.items():
+        ii = np.asarray(idx, dtype=np.intp)
+        phi[ii], grad[ii] = cls.value_and_gradient_stacked([fns[i] for i in idx], w[ii])
+    return phi, grad
