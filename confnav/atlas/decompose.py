@@ -336,7 +336,9 @@ def _pieces(
         eroded = comp.difference(comp.boundary.buffer(rho, join_style="mitre", cap_style="square"))
         opened = eroded.buffer(rho, join_style="mitre")
         opened = opened.intersection(comp)  # never outside the component
-        if not cut.is_empty:
+        if cut.is_empty:  # no cut (one tile holds it all): nothing to clean
+            opened = comp
+        else:
             near = cut.buffer(2 * rho, join_style="mitre", cap_style="square")
             thin = comp.difference(opened).difference(near)
             # on a grid far below the walls' tolerance (1e-9 of the size): copies of one edge
