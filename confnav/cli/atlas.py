@@ -56,7 +56,12 @@ def register(subparsers: Any) -> None:
     )
     p.add_argument("--workers", type=int, default=2, help="solver processes")
     p.add_argument("--tile", type=float, help="initial tile side, m (default 6 x inradius)")
-    p.add_argument("--margin", type=float, help="local-goal depth in overlaps, m")
+    p.add_argument(
+        "--margin",
+        type=float,
+        help="local-goal depth in overlaps, m (default: derived from the narrowest passage "
+        "the cells cut through; one it cannot hold is an error naming it)",
+    )
     p.add_argument("--hysteresis", type=float, help="switching depth, m (default margin/2)")
     p.add_argument("--speed", type=float, default=1.0, help="commanded speed, m/s")
     p.add_argument("--robot-radius", type=float, default=0.0, help="disk robot radius, m")
