@@ -77,6 +77,7 @@ def bench(
         "cells": len(atlas.charts),
         "cell_obstacles_max": max(c.workspace.n_obstacles for c in atlas.decomposition.cells),
         "tol": tol,
+        "margin": atlas.decomposition.margin,
         "solve_wall_s": atlas.wall_time,
         "solve_cpu_s": atlas.cpu_time,
         "speedup": atlas.speedup,

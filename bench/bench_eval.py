@@ -11,6 +11,8 @@ the controller service uses (``for_navigation()``) and for the full solver map:
 * their accuracy against the barycentric sums in extended precision;
 * the control step through the public ``confnav.Controller`` API (KR k = 6 and harmonic,
   v_max saturation on, the held-command cap on) on both evaluation paths;
+* 1000 robots each with its own goal: the fleet step of the controller service
+  (confnav/navigation/fleet.py) against one control step per robot;
 * one robot (the scalar path of ``Controller._step1``): one pose, 50 poses in turn, a pose
   next to a wall (barycentric fallback), without the hold cap, and the stages of the step.
 
@@ -45,6 +47,7 @@ import confnav  # noqa: E402
 from confnav.conformal.cauchy import HAVE_FMM, _fmm  # noqa: E402
 from confnav.conformal.cmap import ConformalMap  # noqa: E402
 from confnav.navigation.control import Controller  # noqa: E402
+from confnav.navigation.fleet import fleet_step  # noqa: E402
 from confnav.scenes.scenarios import default_scenario, random_starts  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results" / "eval.json"
@@ -229,6 +232,46 @@ def fmt_table(headers: list[str], rows: list[list[str]]) -> str:
     return "\n".join(out)
 
 
+def fleet_rows(m: ConformalMap, zb: np.ndarray, quick: bool) -> list[dict[str, Any]]:
+    """1000 robots, each with its own goal, on one map: the controller service's path (one
+    ``T_and_dT`` and one clearance for all, then :func:`confnav.navigation.fleet.fleet_step`)
+    against one control step per robot (``Controller.from_map_values`` in turn)."""
+    reps = 3 if quick else 10
+    goals = random_starts(m.workspace, zb.size, seed=17, margin=0.05)
+    rows = []
+    for navfn in ("kr", "harmonic"):
+        base = Controller(m, goals[0], navfn=navfn, k=6, v_max=V_MAX)
+        t0 = time.process_time()
+        ctrls = [base] + [base.with_goal(g) for g in goals[1:]]
+        build = (time.process_time() - t0) / len(ctrls)
+
+        def fleet(ctrls: list[Controller] = ctrls) -> Any:
+            w, dw = m.T_and_dT(zb)
+            return fleet_step(ctrls, zb, w, dw, ctrls[0].clearance(zb))
+
+        def one_by_one(ctrls: list[Controller] = ctrls) -> Any:
+            w, dw = m.T_and_dT(zb)
+            c = ctrls[0].clearance(zb)
+            return [
+                ct.from_map_values(zb[i : i + 1], w[i : i + 1], dw[i : i + 1], c[i : i + 1])
+                for i, ct in enumerate(ctrls)
+            ]
+
+        tf, to = timed(fleet, reps, 3), timed(one_by_one, max(1, reps // 5), 3)
+        rows.append(
+            {
+                "navfn": navfn,
+                "goals": len(ctrls),
+                "controller_build_cpu_ms": 1e3 * build,
+                "fleet_per_robot_us": 1e6 * tf[0] / zb.size,
+                "fleet_per_robot_cpu_us": 1e6 * tf[1] / zb.size,
+                "one_by_one_per_robot_us": 1e6 * to[0] / zb.size,
+                "one_by_one_per_robot_cpu_us": 1e6 * to[1] / zb.size,
+            }
+        )
+    return rows
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true", help="fewer repetitions")
@@ -247,6 +290,7 @@ def main(argv: list[str] | None = None) -> int:
     ev = [evaluation_rows("navigation", nav, zb, args.quick)]
     ev.append(evaluation_rows("full", full, zb, args.quick))
     ctl = control_rows(nav, zb, sc.goal, args.quick)
+    fl = fleet_rows(nav, zb, args.quick)
 
     print(f"load average at start: {load_start} (2 cores, shared; timings are not idle figures)")
     print("\nT and T' per point, default workspace, 1000 robots uniform at clearance >= 0.01:")
@@ -354,7 +398,35 @@ def main(argv: list[str] | None = None) -> int:
             ],
         )
     )
+    print("\n1000 robots with 1000 different goals on the navigation map (us/robot, with T, T'):")
+    print(
+        fmt_table(
+            ["navfn", "fleet step", "(cpu)", "one by one", "(cpu)", "build ms/goal (cpu)"],
+            [
+                [
+                    r["navfn"],
+                    f"{r['fleet_per_robot_us']:.2f}",
+                    f"{r['fleet_per_robot_cpu_us']:.2f}",
+                    f"{r['one_by_one_per_robot_us']:.1f}",
+                    f"{r['one_by_one_per_robot_cpu_us']:.1f}",
+                    f"{r['controller_build_cpu_ms']:.2f}",
+                ]
+                for r in fl
+            ],
+        )
+    )
     targets = []
+    for r in fl:
+        targets.append(
+            {
+                "target": f"{r['navfn']}: batch of 1000, each its own goal, us/robot <= "
+                f"{BATCH_TARGET_US:g} (wall clock)",
+                "measured": r["fleet_per_robot_us"],
+                "cpu_time": r["fleet_per_robot_cpu_us"],
+                "met": r["fleet_per_robot_us"] <= BATCH_TARGET_US,
+                "met_in_cpu_time": r["fleet_per_robot_cpu_us"] <= BATCH_TARGET_US,
+            }
+        )
     for r in ctl:
         if r["evaluation"] != "expansion":
             continue
@@ -409,6 +481,7 @@ def main(argv: list[str] | None = None) -> int:
         "quick": args.quick,
         "evaluation": ev,
         "control": ctl,
+        "fleet": fl,
         "targets": targets,
     }
     args.out.parent.mkdir(parents=True, exist_ok=True)

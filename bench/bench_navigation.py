@@ -38,6 +38,7 @@ import numpy as np  # noqa: E402
 from provenance import git, loadavg  # noqa: E402  (script mode: bench/ on sys.path)
 
 import confnav  # noqa: E402
+from confnav.errors import ConfnavError  # noqa: E402
 from confnav.geometry import Workspace  # noqa: E402
 from confnav.navigation import defaults  # noqa: E402
 from confnav.navigation.control import Controller  # noqa: E402
@@ -91,9 +92,13 @@ def scenarios() -> list[Scenario]:
 def solve_cached(ws: Workspace, cache: Path | None) -> Any:
     """The controller service's map of ``ws`` (cached on disk by the workspace hash)."""
     path = cache / f"{ws.content_hash[:16]}.json" if cache else None
+    cmap = None
     if path is not None and path.exists():
-        cmap = confnav.ConformalMap.from_json(path.read_text())
-    else:
+        try:
+            cmap = confnav.ConformalMap.from_json(path.read_text())
+        except ConfnavError as exc:  # e.g. an older map format: a cache miss, re-solved
+            print(f"map cache {path.name}: {exc}; re-solving", flush=True)
+    if cmap is None:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             cmap = confnav.solve(ws)

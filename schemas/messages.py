@@ -245,6 +245,7 @@ StatusReason = Literal[
     "solve_failed",
     "navigation_error",
     "map_outdated",
+    "unreachable",
 ]
 
 

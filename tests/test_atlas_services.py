@@ -173,6 +173,12 @@ def test_corridor_atlas_through_the_services(tmp_path: Path) -> None:
     assert "solved as an atlas of" in summary.format()
     for rid in STARTS:
         assert summary.robots[rid].charts == seen[rid] and summary.robots[rid].arrived
+        assert summary.robots[rid].atlas == "corr"
+        assert summary.robots[rid].chart == seen[rid][-1]
+    assert summary.cells_used("corr") == sorted({c for rid in STARTS for c in seen[rid]})
+    assert f"atlas corr: {len(index.cells)} cells, used by {', '.join(sorted(STARTS))}" in (
+        summary.format()
+    )
     viz = mcap_path.with_name("atlas_viz.mcap")
     add_scene_channels(mcap_path, viz)
     entities: dict[str, dict[str, object]] = {}

@@ -257,6 +257,16 @@ def test_a_unicycle_on_an_atlas_through_the_services(tmp_path: Path) -> None:
     summary = inspect_recording(mcap_path)
     assert summary.atlases[shrunk].revision == index.revision
     assert summary.robots[rid].charts == seq and summary.robots[rid].arrived
+    # what was used, not the base workspace's map: the shrunk corridor's atlas, the cells the
+    # robot had active and its last chart
+    r = summary.robots[rid]
+    assert (r.map_ws_id, r.atlas, r.chart) == (shrunk, shrunk, seq[-1])
+    assert summary.robots["u2"].atlas is None  # a single map
+    assert summary.cells_used(shrunk) == sorted(set(seq))
+    text = summary.format()
+    n = len(index.cells)
+    assert f"map: atlas {shrunk} ({n} cells, revision {index.revision[:12]}), active chart" in text
+    assert f"atlas {shrunk}: {n} cells, used by {rid}: cells " in text
 
 
 def test_the_atlas_command_drives_unicycles_with_a_radius(

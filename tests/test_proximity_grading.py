@@ -11,13 +11,19 @@ residual of a thin wall.
 from __future__ import annotations
 
 import warnings
+from pathlib import Path
 
 import numpy as np
 import shapely
 
 from confnav import ConformalMap, Workspace, solve
 from confnav.conformal.boundary import graded_polygon
-from confnav.conformal.meshing import GRADING_STRIP, LEVEL_BASE, plan_boundaries
+from confnav.conformal.meshing import (
+    GRADING_STRIP,
+    LEVEL_BASE,
+    MAX_NODES_PER_PANEL,
+    plan_boundaries,
+)
 
 ROOM = [[-2, -2], [2, -2], [2, 2], [-2, 2]]
 #: An L-shaped wall 0.15 thick (the apartment scene's interior walls): the two faces of each
@@ -114,4 +120,22 @@ def test_a_close_approach_narrower_than_the_samples_is_not_missed() -> None:
     samples along the wall (~6 cm), the wall still gets the spacing the gap needs."""
     tri = [[-0.3, -1.0], [0.0, -1.97], [0.3, -1.0]]
     worst, _, _ = _max_spacing_ratio(Workspace(ROOM, [tri], anchor=[0, 1.0]), 1e-6)
+    assert worst <= 1.05, worst
+
+
+def test_a_gap_along_part_of_a_long_wall_gets_its_own_panel() -> None:
+    """near_touching: a 1.2 m table 0.05 from a 6 m wall. One panel per side forced the gap's
+    spacing onto the whole wall (4337 nodes at 256 nodes per side: GapError, the solve stopped
+    at 8.5e-9 for tol 1e-10). The wall is now split around the table (collinear vertices on
+    the wall, exactly), no side exceeds the cap, and the spacing rule holds on every panel."""
+    scene = Path(__file__).resolve().parents[1] / "bench" / "scenes" / "near_touching.json"
+    ws = Workspace.load(scene)
+    outer = plan_boundaries(ws, 256, 1e-10)[0]
+    v = outer.vertices
+    added = v[~np.isin(v, ws.boundaries[0])]
+    assert np.isin(ws.boundaries[0], v).all() and added.size == 2
+    assert np.all(added.imag == 0.0)  # on the wall y = 0
+    assert 3.5 < added.real.min() < 4.0 and 5.2 < added.real.max() < 5.7  # table: 4 .. 5.2
+    assert outer.nodes.max() <= MAX_NODES_PER_PANEL
+    worst, _, _ = _max_spacing_ratio(ws, 1e-10)
     assert worst <= 1.05, worst

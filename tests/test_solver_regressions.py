@@ -125,3 +125,81 @@ def test_a_crowded_room_behind_a_narrow_door_is_a_crowding_error() -> None:
         confnav.solve(ws, progress=lambda m: levels.append(m) if "nodes per side at" in m else 0)
     assert isinstance(err.value, confnav.UnresolvedCrowdingError)
     assert len(levels) == 2
+
+
+def test_a_graded_smooth_grid_resolves_its_own_pole() -> None:
+    """A smooth grid graded by phi(z) = (z + c)/(1 + conj(c) z) is S(s) = phi(e^{is}), whose
+    Fourier coefficients are exactly |c|^j (phi has a pole at -1/conj(c)). The outer
+    boundary's grid laid towards a small circle 0.0135 inside it (near_touching shrunk by 0.3
+    after one sweep) took |c| = 0.95 and 256 points: tail 3.4e-3, far above the 1e-14 it had to
+    reach, and that under-resolved sweep moved the circle domain for good."""
+    from confnav.conformal.circledomain import _Boundary, _tail
+
+    hole = (1.0 - 0.0135 - 0.062) * np.exp(2.3j) + 0.062 * np.exp(
+        1j * np.linspace(0, 2 * np.pi, 400, endpoint=False)
+    )
+    none = np.zeros(1, complex)
+    b = _Boundary(P=none, dP=none, mask=np.ones(1, bool), hole=False)
+    b.tail = 1e-14
+    b.regrid(hole)
+    assert b.S is not None
+    rho = abs(b.c)
+    assert rho ** (b.S.size / 2) <= b.tail  # the exact decay at the Nyquist mode
+    assert _tail(b.S) <= b.tail
+
+
+def test_near_touching_shrunk_by_a_diff_drive_footprint_is_circular_between_nodes() -> None:
+    """near_touching shrunk as ``confnav simulate --robot-radius 0.2 --unicycle 0.1`` shrinks it
+    (0.3: the cabinets and the table merge into the walls, the triangle stays, crowded behind a
+    bend): the map was refused with a boundary residual of 1e-4 on the triangle while the mesh
+    levels agreed to 3e-13 (an under-resolved smooth grid of the outer boundary in the early
+    sweeps, alike at every level). Checked independently of the solver's own residual: T on 64
+    points of every side, between the nodes, must lie on its circle to the requested tol."""
+    scene = Path(__file__).resolve().parents[1] / "bench" / "scenes" / "near_touching.json"
+    starts = [0.4 + 0.4j, 0.4 + 2.5j, 3.5 + 1.5j, 2.5 + 2.6j, 5.6 + 1.5j]
+    ws = confnav.inflate(
+        confnav.Workspace.load(scene),
+        0.2 + 0.1,
+        keep=5.5 + 3.5j,
+        require={f"start {k}": z for k, z in enumerate(starts)},
+    )
+    assert ws.n_obstacles == 1 and len(ws.boundaries[1]) == 3  # the merged scene of the report
+    tol = 1e-10
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", confnav.AccuracyWarning)
+        cm = confnav.solve(ws, tol=tol)
+    d = cm.diagnostics
+    assert d.tol_met and d.boundary_residual <= tol and d.error_estimate <= tol
+    frac = (np.arange(64) + 0.5) / 64
+    centres = np.concatenate([[0j], cm.centers])
+    radii = np.concatenate([[1.0], cm.radii])
+    for j, v in enumerate(ws.boundaries):
+        z = (v[:, None] + np.outer(np.roll(v, -1) - v, frac)).ravel()
+        w = cm.T(z, check=False)
+        assert np.max(np.abs(np.abs(w - centres[j]) - radii[j])) <= tol, j
+    assert abs(complex(cm.T(ws.anchor))) <= 1e-12
+
+
+def test_an_under_resolved_smooth_grid_is_reported_not_hidden(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The same scene with the outer grid forced back to the old over-optimistic grading (rho
+    0.95, 256 points): the tail of the grid solved on (0.95^128 ~ 1e-3) must reach
+    ``resolution_error``, even though the iteration later doubles the grid to resolution."""
+    from confnav.conformal import circledomain, solver
+
+    scene = Path(__file__).resolve().parents[1] / "bench" / "scenes" / "near_touching.json"
+    ws = confnav.inflate(confnav.Workspace.load(scene), 0.3, keep=5.5 + 3.5j)
+
+    grading = circledomain._grading
+
+    def old_grading(others: np.ndarray) -> tuple[complex, float]:
+        if np.any(np.abs(others) > 1.0):  # a hole's grid (the outer curve is around it)
+            return grading(others)
+        k = int(np.argmin(np.abs(np.abs(others) - 1.0)))
+        return complex(0.95 * others[k] / abs(others[k])), 0.4
+
+    monkeypatch.setattr(circledomain, "_grading", old_grading)
+    res = solver._solve_level(ws, 80, 1e-10, None)[0]
+    assert res.resolution_error >= 1e-4
+    assert max(res.smooth_nodes) >= 1024  # it did refine, too late for the early sweeps

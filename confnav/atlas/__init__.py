@@ -9,8 +9,15 @@
 """
 
 from confnav.atlas.charts import Atlas, ChartRecord, needs_atlas, solve_atlas, solve_auto
-from confnav.atlas.compose import AtlasNavigator, AtlasRun, CellPlan, Overlap, overlaps, plan
-from confnav.atlas.decompose import Cell, Decomposition, decompose, elongation
+from confnav.atlas.compose import AtlasNavigator, AtlasRun, CellPlan, overlaps, plan
+from confnav.atlas.decompose import (
+    Cell,
+    Decomposition,
+    Overlap,
+    PassageError,
+    decompose,
+    elongation,
+)
 
 __all__ = [
     "Atlas",
@@ -21,6 +28,7 @@ __all__ = [
     "ChartRecord",
     "Decomposition",
     "Overlap",
+    "PassageError",
     "decompose",
     "elongation",
     "needs_atlas",

@@ -26,7 +26,7 @@ from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import dijkstra
 
 from confnav.atlas.charts import Atlas
-from confnav.atlas.decompose import _polygons, inscribed
+from confnav.atlas.decompose import Overlap, inscribed
 from confnav.errors import NavigationError, fmt_point
 from confnav.navigation.control import Controller
 from confnav.navigation.sim import ARRIVED, COLLIDED, ERROR, STALLED, TIMEOUT, Outcomes, simulate
@@ -34,36 +34,24 @@ from confnav.types import CArray
 
 __all__ = ["AtlasNavigator", "AtlasRun", "CellPlan", "Overlap", "overlaps", "plan"]
 
-
-@dataclass(frozen=True)
-class Overlap:
-    """Two cells' common region: its deepest point ``point`` (pole of inaccessibility of the
-    intersection, walls included) and that depth."""
-
-    a: int
-    b: int
-    point: complex
-    depth: float
+#: The reason of a run that ended otherwise than cut off (indexed by status code).
+_REASONS = (
+    "arrived",
+    "hit an obstacle",
+    "no progress over 20 supervisor windows (a saddle)",
+    "time limit",
+    "velocity undefined (NaN) or step size underflow",
+)
 
 
 def overlaps(atlas: Atlas) -> list[Overlap]:
     """Every pair of cells whose intersection holds a disk of radius ``margin``.
 
-    Thinner overlaps are no edges of the cell graph (a local goal needs that depth).
+    Thinner overlaps are no edges of the cell graph (a local goal needs that depth); the
+    decomposition made sure the others connect every cell (:attr:`Decomposition.passage`).
     """
-    cells = atlas.decomposition.cells
     margin = atlas.decomposition.margin
-    tree = shapely.STRtree([c.polygon for c in cells])
-    a, b = tree.query([c.polygon for c in cells], predicate="intersects")
-    out: list[Overlap] = []
-    for i, j in zip(a.tolist(), b.tolist(), strict=True):
-        if i >= j:
-            continue
-        parts = _polygons(cells[i].polygon.intersection(cells[j].polygon))
-        best = max((inscribed(p) for p in parts), key=lambda t: t[1], default=None)
-        if best is not None and best[1] >= margin:
-            out.append(Overlap(i, j, best[0], best[1]))
-    return out
+    return [o for o in atlas.decomposition.links if o.depth >= margin]
 
 
 @dataclass(frozen=True)
@@ -128,8 +116,10 @@ def plan(atlas: Atlas, goal: complex, links: list[Overlap] | None = None) -> Cel
 @dataclass(frozen=True)
 class AtlasRun(Outcomes):
     """Result of :meth:`AtlasNavigator.run` (per start arrays; status names as in
-    :data:`confnav.navigation.sim.STATUS_NAMES`).  ``switches`` counts chart switches per robot and
-    ``cells`` lists each robot's sequence of active cells."""
+    :data:`confnav.navigation.sim.STATUS_NAMES`).  ``switches`` counts chart switches per robot,
+    ``cells`` lists each robot's sequence of active cells and ``reasons`` says in one line per
+    robot why its run ended (a start in a cell cut off from the goal's: :meth:`AtlasNavigator.
+    cut_off`)."""
 
     starts: CArray
     success: NDArray[np.bool_]
@@ -142,6 +132,7 @@ class AtlasRun(Outcomes):
     switches: NDArray[np.int64]
     cells: tuple[tuple[int, ...], ...]
     wall_time: float
+    reasons: tuple[str, ...] = ()
 
 
 class AtlasNavigator:
@@ -213,6 +204,40 @@ class AtlasNavigator:
             )
         return self._controllers[i]
 
+    def cut_off(self, z: complex) -> str:
+        """Why a robot at ``z`` in the atlas cannot be driven to the goal ("" if it can, or
+        if ``z`` lies in no cell).
+
+        A point whose cells all have an infinite rank lies in a part of the atlas that no
+        overlap at least ``margin`` deep links to the goal's cells (an atlas decomposed with
+        a margin too large for a passage, e.g. rebuilt from an older index:
+        :func:`confnav.atlas.decompose` refuses to make one); the message names the deepest
+        overlap that leads out of that part.
+        """
+        pt = np.array([complex(z)])
+        inside = [i for i, c in enumerate(self.cells) if c.depth(pt)[0] > 0]
+        rank = self.plan.rank
+        if not inside or any(np.isfinite(rank[i]) for i in inside):
+            return ""
+        margin = self.atlas.decomposition.margin
+        msg = (
+            f"cell {inside[0]} is cut off from the goal's cells: no overlap at least the margin "
+            f"{margin:.3g} m deep leads there"
+        )
+        exits = [
+            o
+            for o in self.atlas.decomposition.links
+            if np.isfinite(rank[o.a]) != np.isfinite(rank[o.b])
+        ]
+        if exits:
+            o = max(exits, key=lambda o: o.depth)
+            w = 2 * float(self.atlas.workspace.clearance(np.array([o.point]))[0])
+            msg += (
+                f"; the widest way, at {fmt_point(o.point)} (free space {w:.3g} m wide), "
+                f"holds a disk of radius {o.depth:.3g} m only"
+            )
+        return msg
+
     def initial_cells(self, z: ArrayLike) -> NDArray[np.int64]:
         """For each point, the lowest-ranked reachable cell containing it (-1: none)."""
         z = np.atleast_1d(np.asarray(z, dtype=np.complex128))
@@ -276,6 +301,10 @@ class AtlasNavigator:
         active = self.initial_cells(z)
         status = np.full(n, -1, dtype=np.int8)
         status[active < 0] = ERROR
+        reasons = [
+            (self.cut_off(z[k]) or "in no cell of the atlas") if active[k] < 0 else ""
+            for k in range(n)
+        ]
         length = np.zeros(n)
         t = np.zeros(n)
         minclr = np.asarray(ws.clearance(z), dtype=np.float64)
@@ -336,4 +365,5 @@ class AtlasNavigator:
             switches=switches,
             cells=tuple(tuple(h) for h in history),
             wall_time=_time.perf_counter() - t0,
+            reasons=tuple(r or _REASONS[int(st)] for r, st in zip(reasons, status, strict=True)),
         )

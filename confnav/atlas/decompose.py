@@ -21,6 +21,14 @@ that tile's overlap from its cut edges; cleaning removes nothing of the core exc
 free space itself is thinner than the opening (:func:`Decomposition.uncovered_area` measures
 it; the tests require 0).
 
+The margin (the depth a local goal needs inside an overlap, :mod:`confnav.atlas.compose`) is
+derived from the cells unless given: the cell graph links two cells through an overlap holding
+a disk of radius ``margin``, and an overlap across a passage of width ``w`` holds no disk wider
+than ``w / 2``.  :attr:`Decomposition.passage` is the thinnest overlap the graph cannot do
+without (the bottleneck of a maximum spanning tree of the overlaps by depth); the automatic
+margin is ``min(r / 10, depth / 2)`` of it, and a margin above its depth raises
+:class:`PassageError` naming the passage.
+
 Why tiles rather than medial-axis cuts: tiles need no skeleton (fragile on polygons with
 hundreds of vertices), bound every cell's size, hence its elongation and obstacle count, by
 construction, and give overlaps of a known width (at least ``3 margin`` across a tile edge).
@@ -31,6 +39,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 import shapely
@@ -38,10 +47,49 @@ from shapely.geometry import MultiPolygon, Polygon, box
 from shapely.geometry.base import BaseGeometry
 from shapely.ops import polylabel
 
-from confnav.errors import WorkspaceError
+from confnav.errors import WorkspaceError, fmt_point
 from confnav.geometry import Workspace
 
-__all__ = ["Cell", "Decomposition", "Tile", "decompose", "elongation"]
+__all__ = [
+    "AUTO_MARGIN_FRACTION",
+    "Cell",
+    "Decomposition",
+    "Overlap",
+    "PassageError",
+    "Tile",
+    "decompose",
+    "elongation",
+]
+
+#: The automatic margin is this fraction of the depth of the thinnest overlap the cell graph
+#: needs (:attr:`Decomposition.passage`): local goals then lie twice as deep as required,
+#: slack for the redone decomposition and the inscribed-disk tolerance (1e-3 relative).
+AUTO_MARGIN_FRACTION = 0.5
+
+
+class PassageError(WorkspaceError):
+    """The atlas margin does not fit a passage the decomposition cuts through.
+
+    ``point``: where (the deepest point of the thinnest overlap the cell graph needs, or the
+    middle of the gap between cells that do not overlap at all); ``width``: the free space's
+    width there (twice its clearance); ``depth``: the radius of the largest disk in the
+    overlap (0 for no overlap); ``cells``: the two cells; ``margin``: the margin that failed.
+    """
+
+    def __init__(
+        self,
+        message: str,
+        *,
+        point: complex,
+        width: float,
+        depth: float,
+        cells: tuple[int, int],
+        margin: float,
+    ) -> None:
+        super().__init__(message)
+        self.point, self.width, self.depth = point, width, depth
+        self.cells, self.margin = cells, margin
+
 
 Tile = tuple[float, float, float, float]  # (x0, y0, x1, y1) of the core square
 
@@ -104,8 +152,38 @@ class Cell:
 
 
 @dataclass(frozen=True)
+class Overlap:
+    """Two cells' common region: its deepest point ``point`` (pole of inaccessibility of the
+    intersection, walls included) and that depth."""
+
+    a: int
+    b: int
+    point: complex
+    depth: float
+
+
+def _links(cells: tuple[Cell, ...]) -> tuple[Overlap, ...]:
+    """Every pair of intersecting cells (``a < b``) with its overlap's deepest point."""
+    tree = shapely.STRtree([c.polygon for c in cells])
+    a, b = tree.query([c.polygon for c in cells], predicate="intersects")
+    out: list[Overlap] = []
+    for i, j in zip(a.tolist(), b.tolist(), strict=True):
+        if i >= j:
+            continue
+        parts = _polygons(cells[i].polygon.intersection(cells[j].polygon))
+        best = max((inscribed(p) for p in parts), key=lambda t: t[1], default=None)
+        if best is not None and best[1] > 0:
+            out.append(Overlap(i, j, best[0], best[1]))
+    return tuple(out)
+
+
+@dataclass(frozen=True)
 class Decomposition:
-    """Cells covering a workspace's free space, with the parameters that made them."""
+    """Cells covering a workspace's free space, with the parameters that made them.
+
+    ``margin``: the depth a local goal needs inside an overlap (given, or derived from
+    :attr:`passage`); the cell graph links two cells whose overlap is at least that deep.
+    """
 
     workspace: Workspace
     cells: tuple[Cell, ...]
@@ -121,6 +199,61 @@ class Decomposition:
         """Area of the free space outside every cell (0 up to rounding when covered)."""
         union = shapely.union_all([c.polygon for c in self.cells])
         return float(self.workspace.polygon.difference(union).area)
+
+    @cached_property
+    def links(self) -> tuple[Overlap, ...]:
+        """Every pair of overlapping cells, however thin the overlap (computed once)."""
+        return _links(self.cells)
+
+    @cached_property
+    def passage(self) -> Overlap | None:
+        """The thinnest overlap the cell graph cannot do without (None for a single cell).
+
+        The largest depth ``d`` such that the overlaps at least ``d`` deep connect every
+        cell is the bottleneck of a maximum spanning tree (Kruskal on depths, descending);
+        this is its overlap: the narrowest passage (or cut) every margin must fit.
+
+        Raises
+        ------
+        PassageError
+            if some cells share no overlap with the rest at all (names the gap between them).
+        """
+        n = len(self.cells)
+        parent = list(range(n))
+
+        def root(i: int) -> int:
+            while parent[i] != i:
+                parent[i] = parent[parent[i]]
+                i = parent[i]
+            return i
+
+        groups, last = n, None
+        for o in sorted(self.links, key=lambda o: -o.depth):
+            ra, rb = root(o.a), root(o.b)
+            if ra != rb:
+                parent[ra] = rb
+                groups, last = groups - 1, o
+                if groups == 1:
+                    return last
+        if n <= 1:
+            return None
+        # disconnected: name the gap between the component of cell 0 and the rest
+        first = [i for i in range(n) if root(i) == root(0)]
+        rest = [i for i in range(n) if root(i) != root(0)]
+        a = shapely.union_all([self.cells[i].polygon for i in first])
+        b = shapely.union_all([self.cells[i].polygon for i in rest])
+        line = shapely.shortest_line(a, b)
+        mid = line.interpolate(0.5, normalized=True)
+        z = complex(mid.x, mid.y)
+        w = 2 * float(self.workspace.clearance(np.array([z]))[0])
+        ia = min(first, key=lambda i: self.cells[i].polygon.distance(mid))
+        ib = min(rest, key=lambda i: self.cells[i].polygon.distance(mid))
+        raise PassageError(
+            f"atlas cells {ia} and {ib} do not overlap near {fmt_point(z)}, where the free "
+            f"space is {w:.3g} m wide: cells {sorted(rest)[:8]} are cut off from the rest "
+            f"(tile {self.tile:.3g} m; a smaller --tile may help)",
+            point=z, width=w, depth=0.0, cells=(ia, ib), margin=self.margin,
+        )  # fmt: skip
 
 
 def _cell_workspace(poly: Polygon, scale: float) -> Workspace:
@@ -179,6 +312,7 @@ def _pieces(
     core: Tile,
     overlap: float,
     min_area: float,
+    grid: float,
 ) -> list[Polygon]:
     """Cleaned connected components of (tile enlarged by ``overlap``) intersected with free.
 
@@ -202,10 +336,17 @@ def _pieces(
         eroded = comp.difference(comp.boundary.buffer(rho, join_style="mitre", cap_style="square"))
         opened = eroded.buffer(rho, join_style="mitre")
         opened = opened.intersection(comp)  # never outside the component
-        if not cut.is_empty:
+        if cut.is_empty:  # no cut (one tile holds it all): nothing to clean
+            opened = comp
+        else:
             near = cut.buffer(2 * rho, join_style="mitre", cap_style="square")
             thin = comp.difference(opened).difference(near)
-            opened = opened.union(thin)
+            # on a grid far below the walls' tolerance (1e-9 of the size): copies of one edge
+            # an ulp apart leave a slit in the union (measured: a cell's outer ring running up
+            # a wall face and back, rejected by Workspace as doubling back on itself); the
+            # grid is dropped after (later overlays would round to it: the cells rebuilt from
+            # an index, without it, would give other overlaps)
+            opened = shapely.set_precision(shapely.set_precision(opened.union(thin), grid), 0.0)
         # a piece that does not reach into the core lies in the neighbours' cores, which
         # cover it deeply: drop it (measured: a 4.4 x 18 cm sliver along a corridor wall whose
         # solve missed 1e-6)
@@ -238,8 +379,11 @@ def decompose(
     overlap : enlargement of a tile on each side as a fraction of its side (at least
         ``2 margin``; snapping keeps 3/4 of it): neighbouring cells overlap in a band at
         least ``3 margin`` wide.
-    margin : the depth a local goal needs inside an overlap (robot radius plus goal
-        neighbourhood; default ``r / 10``).  ``overlap`` must exceed it.
+    margin : the depth a local goal needs inside an overlap (the robot is a point here: a
+        robot's radius is taken off the free space before, ``confnav.maps.footprint.inflate``).
+        Default: derived from the passages, ``min(r / 10, AUTO_MARGIN_FRACTION * depth)`` with
+        ``depth`` that of :attr:`Decomposition.passage`, the decomposition redone with it
+        (the band floor ``2 margin`` and the smallest piece ``margin^2 / 2`` depend on it).
     max_ratio, max_ratio_holes, max_obstacles : a tile whose pieces exceed either is split
         into four.  Cells with obstacles get the tighter elongation bound: an obstacle at the
         far end of a cell of elongation q, seen from the anchor in the middle, maps to a
@@ -247,19 +391,69 @@ def decompose(
         harmonic navigation function's series; measured in tests/test_atlas.py's corridor).
     min_tile : smallest tile side (default ``tile / 16``).
     split : core tiles to split regardless (used when a cell's solve failed).
+
+    Raises
+    ------
+    PassageError
+        if the cells do not all connect through overlaps at least ``margin`` deep: a given
+        margin too large for a passage, or a passage too thin for any (names its location,
+        width and cells).
     """
     free = ws.polygon
     r = inscribed(free)[1]
     tile = float(tile) if tile is not None else 6.0 * r
-    margin = float(margin) if margin is not None else 0.1 * r
+    auto = margin is None
+    margin = 0.1 * r if margin is None else float(margin)
     min_tile = float(min_tile) if min_tile is not None else tile / 16
     if not (tile > 0 and margin > 0 and 0 < overlap <= 1 and min_tile > 0):
         raise WorkspaceError(
             f"atlas needs tile > 0, margin > 0 and overlap in (0, 1] "
             f"(tile {tile:g}, overlap {overlap:g}, margin {margin:g})"
         )
-    min_area = 0.5 * margin**2
+    params = _Params(tile, overlap, max_ratio, max_ratio_holes, max_obstacles, min_tile)
     forced = frozenset(split)
+    floor = 1e-3 * 0.1 * r  # below this an automatic margin is a hairline, not a passage
+    for _ in range(4):
+        dec = _decompose(ws, params, margin, forced)
+        thin = dec.passage
+        if thin is None or thin.depth >= margin:
+            return dec
+        if not auto or AUTO_MARGIN_FRACTION * thin.depth < floor:
+            break
+        margin = AUTO_MARGIN_FRACTION * thin.depth
+    assert thin is not None
+    z = thin.point
+    w = 2 * float(ws.clearance(np.array([z]))[0])
+    hint = (
+        f"give a margin below {thin.depth:.3g} m, or none (derived from the passages)"
+        if not auto
+        else "no margin fits it; widen the passage or give a smaller --tile"
+    )
+    raise PassageError(
+        f"atlas margin {margin:.3g} m does not fit the passage at {fmt_point(z)}, {w:.3g} m "
+        f"wide: cells {thin.a} and {thin.b} overlap there only {2 * thin.depth:.3g} m across "
+        f"and a local goal needs a disk of radius margin inside the overlap; {hint}",
+        point=z, width=w, depth=thin.depth, cells=(thin.a, thin.b), margin=margin,
+    )  # fmt: skip
+
+
+@dataclass(frozen=True)
+class _Params:
+    """The decomposition's parameters other than the margin (see :func:`decompose`)."""
+
+    tile: float
+    overlap: float
+    max_ratio: float
+    max_ratio_holes: float
+    max_obstacles: int
+    min_tile: float
+
+
+def _decompose(ws: Workspace, p: _Params, margin: float, forced: frozenset[Tile]) -> Decomposition:
+    """The quadtree of :func:`decompose` for one margin (module docstring, steps 1-4)."""
+    free = ws.polygon
+    tile, overlap, min_tile = p.tile, p.overlap, p.min_tile
+    min_area = 0.5 * margin**2
     scale = ws.diameter
     walls = free.boundary.buffer(1e-9 * scale)
     vertices = np.concatenate([ws.outer, *ws.obstacles])
@@ -278,12 +472,13 @@ def decompose(
     while todo:
         core = todo.pop(0)
         side = core[2] - core[0]
-        pieces = _pieces(free, walls, vertices, core, max(overlap * side, 2 * margin), min_area)
-        ratios = [elongation(p) for p in pieces]
+        band = max(overlap * side, 2 * margin)
+        pieces = _pieces(free, walls, vertices, core, band, min_area, 1e-10 * scale)
+        ratios = [elongation(piece) for piece in pieces]
         bad = any(
-            q > (max_ratio if not p.interiors else max_ratio_holes)
-            or len(p.interiors) > max_obstacles
-            for p, q in zip(pieces, ratios, strict=True)
+            q > (p.max_ratio if not piece.interiors else p.max_ratio_holes)
+            or len(piece.interiors) > p.max_obstacles
+            for piece, q in zip(pieces, ratios, strict=True)
         )
         if (bad or core in forced) and side / 2 >= min_tile - 1e-12:
             cx, cy = (core[0] + core[2]) / 2, (core[1] + core[3]) / 2
@@ -294,11 +489,12 @@ def decompose(
                 (cx, cy, core[2], core[3]),
             ]
             continue
-        polys += [(p, core, q) for p, q in zip(pieces, ratios, strict=True)]
+        polys += [(piece, core, q) for piece, q in zip(pieces, ratios, strict=True)]
     cells: list[Cell] = []
     for poly, core, q in polys:
         cut = poly.boundary.difference(walls)
         cells.append(Cell(len(cells), poly, _cell_workspace(poly, scale), cut, core, q))
     return Decomposition(
-        ws, tuple(cells), tile, overlap, margin, max_ratio, max_ratio_holes, max_obstacles, forced
-    )
+        ws, tuple(cells), tile, overlap, margin, p.max_ratio, p.max_ratio_holes, p.max_obstacles,
+        forced,
+    )  # fmt: skip

@@ -229,6 +229,9 @@ class AtlasController:
         self.active_chart: int | None = None
         self.history: list[int] = []
         self.fallback = ""
+        #: (status reason, message) of the last call's stop when it is no bare ERROR: a
+        #: robot in a cell cut off from the goal's is "unreachable", not outside the space
+        self.stop_reason: tuple[str, str] | None = None
 
     def _set(self, i: int) -> None:
         self.active_chart = i
@@ -238,12 +241,16 @@ class AtlasController:
     def _one(self, z: complex) -> tuple[complex, int]:
         nav = self.nav
         pt = np.array([z])
+        self.stop_reason = None
         if not np.isfinite(z):
             return 0j, int(Status.ERROR)
         a = self.active_chart
         if a is None or not nav.cells[a].depth(pt)[0] > 0:
             a = int(nav.initial_cells(pt)[0])  # first pose, or left the cell: re-enter
             if a < 0:
+                why = nav.cut_off(z)
+                if why:
+                    self.stop_reason = ("unreachable", why)
                 return 0j, int(Status.ERROR)
         a = int(nav.switch(pt, np.array([a], dtype=np.int64))[0])
         self._set(a)

@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -57,7 +56,12 @@ def register(subparsers: Any) -> None:
     )
     p.add_argument("--workers", type=int, default=2, help="solver processes")
     p.add_argument("--tile", type=float, help="initial tile side, m (default 6 x inradius)")
-    p.add_argument("--margin", type=float, help="local-goal depth in overlaps, m")
+    p.add_argument(
+        "--margin",
+        type=float,
+        help="local-goal depth in overlaps, m (default: derived from the narrowest passage "
+        "the cells cut through; one it cannot hold is an error naming it)",
+    )
     p.add_argument("--hysteresis", type=float, help="switching depth, m (default margin/2)")
     p.add_argument("--speed", type=float, default=1.0, help="commanded speed, m/s")
     p.add_argument("--robot-radius", type=float, default=0.0, help="disk robot radius, m")
@@ -74,7 +78,7 @@ def register(subparsers: Any) -> None:
 
 def run_atlas(args: argparse.Namespace) -> int:
     from confnav.atlas import AtlasNavigator, solve_atlas
-    from confnav.errors import NavigationError
+    from confnav.errors import NavigationError, fmt_point
     from confnav.geometry import Workspace
     from confnav.maps.footprint import inflate
     from confnav.navigation.shortest_path import ShortestPaths
@@ -98,15 +102,16 @@ def run_atlas(args: argparse.Namespace) -> int:
     for r in ok_records:
         n_obs = atlas.decomposition.cells[r.cell].workspace.n_obstacles
         print(f"{r.cell:>4} {n_obs:>4} {r.n_nodes:>6} {r.wall_time:>7.2f} {r.error_estimate:>8.1e}")
-    nav = AtlasNavigator(atlas, args.goal, hysteresis=args.hysteresis, speed=args.speed)
-    cut_off = np.flatnonzero(~np.isfinite(nav.plan.rank))
-    if cut_off.size:  # robots starting there stop at once (status "error")
+    dec = atlas.decomposition
+    thin = dec.passage
+    if thin is not None:
+        how = "given" if args.margin is not None else "automatic"
+        w = 2 * float(nav_ws.clearance(np.array([thin.point]))[0])
         print(
-            f"note: cells {cut_off.tolist()} do not reach the goal's through overlaps "
-            f"{atlas.decomposition.margin:.3g} m deep (the margin): a passage narrower than "
-            "twice it; a smaller --margin may connect them",
-            file=sys.stderr,
+            f"margin {dec.margin:.3g} m ({how}); narrowest passage the cells need: "
+            f"{w:.3g} m wide at {fmt_point(thin.point)}"
         )
+    nav = AtlasNavigator(atlas, args.goal, hysteresis=args.hysteresis, speed=args.speed)
     doc: dict[str, Any] = {
         "cells": [
             {"tile": c.tile, "workspace": c.workspace.to_dict(), "rank": float(nav.plan.rank[i])}
@@ -141,16 +146,20 @@ def run_atlas(args: argparse.Namespace) -> int:
                 else " (of the centre in the shrunk space: the body's is at least this)"
             )
         )
+        for k in np.flatnonzero(~run.success)[:10]:
+            print(f"  robot {k} at {fmt_point(starts[k])}: {STATUS_NAMES[run.status[k]]}: "
+                  f"{run.reasons[k]}")  # fmt: skip
         doc["runs"] = [
             {
                 "start": [complex(s).real, complex(s).imag],
                 "status": STATUS_NAMES[int(st)],
+                "reason": why,
                 "path_length": float(pl),
                 "shortest": float(sh),
                 "cells": list(cs),
             }
-            for s, st, pl, sh, cs in zip(
-                starts, run.status, run.path_length, short, run.cells, strict=True
+            for s, st, why, pl, sh, cs in zip(
+                starts, run.status, run.reasons, run.path_length, short, run.cells, strict=True
             )
         ]
         code = 0 if bool(run.success.all()) and not run.collided.any() else 1
@@ -169,6 +178,7 @@ def run_unicycles(
 
     from confnav.atlas import AtlasRun
     from confnav.atlas.wire import AtlasController
+    from confnav.navigation.sim import STATUS_NAMES
     from confnav.navigation.unicycle import UnicycleController, simulate_unicycle
 
     t0 = time.perf_counter()
@@ -190,11 +200,13 @@ def run_unicycles(
     def cat(name: str) -> Any:
         return np.concatenate([getattr(r, name) for r in runs])
 
+    status = cat("status")
+
     return AtlasRun(
         starts=starts,
         success=cat("success"),
         collided=cat("collided"),
-        status=cat("status"),
+        status=status,
         path_length=cat("path_length"),
         time=cat("time"),
         min_clearance=cat("min_clearance"),
@@ -202,4 +214,8 @@ def run_unicycles(
         switches=np.array([max(len(c.history) - 1, 0) for c in ctrls], dtype=np.int64),
         cells=tuple(tuple(c.history) for c in ctrls),
         wall_time=time.perf_counter() - t0,
+        reasons=tuple(
+            c.stop_reason[1] if c.stop_reason else STATUS_NAMES[int(st)]
+            for c, st in zip(ctrls, status, strict=True)
+        ),
     )

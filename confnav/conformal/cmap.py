@@ -72,7 +72,8 @@ class SolveReport:
     * ``boundary_residual``: the largest distance of T(z) from its circle over points *between*
       the nodes on every side (midpoints and points graded towards every corner), an
       a-posteriori check of the map actually returned (:meth:`ConformalMap.boundary_residual`);
-    * ``resolution_error``: the Fourier tail of any smooth grid held at its size cap.
+    * ``resolution_error``: the Fourier tail of any smooth grid solved on above its target
+      (held at its size cap, or laid too small in an early sweep).
 
     ``tol_met`` is true only if all of them are within ``tol`` and no size cap was hit
     (``caps`` lists any that were).
@@ -132,7 +133,7 @@ class SolveReport:
                 + ("" if self.iteration_converged else "  NOT CONVERGED (stalled or sweep limit)"),
             ),
             ("  boundary residual (between nodes)", f"{self.boundary_residual:.1e}"),
-            ("  smooth-grid resolution at cap", f"{self.resolution_error:.1e}"),
+            ("  smooth-grid resolution", f"{self.resolution_error:.1e}"),
             ("size caps hit", "; ".join(self.caps) if self.caps else "none"),
             ("Koebe sweeps (final solve)", str(self.sweeps)),
             ("last sweep change", f"{self.history[-1]:.1e}" if self.history else "-"),

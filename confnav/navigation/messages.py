@@ -155,6 +155,9 @@ def decide(ctrl: ControllerLike, u: complex, code: int) -> Decision:
     navigation-function fallback (``Controller.fallback``) is said in the message.
     """
     if code == ERROR or u != u:  # NaN guard
+        why = getattr(ctrl, "stop_reason", None)  # e.g. an atlas cell cut off from the goal
+        if why:
+            return Decision(0j, "stopped", why[0], why[1])
         return Decision(0j, "stopped", "outside_workspace", "pose outside the mapped free space")
     if code == ARRIVED:
         return Decision(0j, "arrived", "arrived", "")

@@ -150,6 +150,11 @@ class UnicycleController:
         """The point law's active chart on an atlas (None on a single map)."""
         return getattr(self.controller, "active_chart", None)
 
+    @property
+    def stop_reason(self) -> tuple[str, str] | None:
+        """The point law's (reason, message) of a stop other than a bare ERROR, if any."""
+        return getattr(self.controller, "stop_reason", None)
+
     def __call__(self, z: ArrayLike, theta: ArrayLike | None = None) -> UnicycleOutput:
         """Body twists and statuses for axle positions ``z`` and headings ``theta``."""
         if theta is None:

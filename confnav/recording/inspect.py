@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from confnav.errors import ConfnavError
+from confnav.navigation.messages import map_ws_id
 from confnav.recording.layout import METADATA_NAME
 from confnav.recording.reader import NS_PER_S, ChannelInfo, Recording, decode_message
 from confnav.recording.scene import SCENE_SCHEMA_NAME
@@ -64,6 +65,10 @@ class RobotSummary:
     collision_at: tuple[float, float] | None = None
     trajectory: list[tuple[float, float]] = field(default_factory=list)
     charts: list[int] = field(default_factory=list)  # active charts in order (atlas only)
+    map_ws_id: str | None = None  # the workspace whose map drove it ({ws}~r{R} with a radius)
+    map_revision: str | None = None  # of the last command or status that named one
+    atlas: str | None = None  # ws_id of the atlas it was driven on (None: a single map)
+    chart: int | None = None  # its active chart at the end (atlas only)
 
 
 @dataclass
@@ -107,7 +112,12 @@ class InspectReport:
             ],
             "workspaces": sorted(self.workspaces),
             "atlases": {
-                w: {"revision": a.revision, "cells": len(a.cells)}
+                w: {
+                    "revision": a.revision,
+                    "cells": len(a.cells),
+                    "robots": self.atlas_robots(w),
+                    "cells_used": self.cells_used(w),
+                }
                 for w, a in sorted(self.atlases.items())
             },
             "robots": {
@@ -124,12 +134,23 @@ class InspectReport:
                     "min_clearance": r.min_clearance,
                     "collision_time_s": r.collision_time_s,
                     "charts": r.charts,
+                    "map_ws_id": r.map_ws_id,
+                    "atlas": r.atlas,
+                    "active_chart": r.chart,
                 }
                 for rid, r in sorted(self.robots.items())
             },
             "unknown_schemas": self.unknown_schemas,
             "invalid_messages": self.invalid_messages,
         }
+
+    def atlas_robots(self, ws_id: str) -> list[str]:
+        """The robots driven on the atlas ``ws_id``."""
+        return sorted(rid for rid, r in self.robots.items() if r.atlas == ws_id)
+
+    def cells_used(self, ws_id: str) -> list[int]:
+        """The cells of atlas ``ws_id`` that some robot had as its active chart."""
+        return sorted({c for rid in self.atlas_robots(ws_id) for c in self.robots[rid].charts})
 
     def format(self) -> str:
         """Human-readable report."""
@@ -169,6 +190,14 @@ class InspectReport:
                 else "no transform recorded"
             )
             out.append(f"\nworkspace {ws_id}: {len(wd.obstacles)} obstacles, {solved}")
+        for ws_id, atlas in sorted(self.atlases.items()):  # what each atlas was used for
+            robots = self.atlas_robots(ws_id)
+            used = (
+                f"used by {', '.join(robots)}: cells {_ranges(self.cells_used(ws_id))} active"
+                if robots
+                else "used by no robot"
+            )
+            out.append(f"atlas {ws_id}: {len(atlas.cells)} cells, {used}")
         if not self.robots:
             out.append("\nno robots recorded")
         for rid, r in sorted(self.robots.items()):
@@ -178,6 +207,14 @@ class InspectReport:
                 out.append(f"  start {_fmt_pt(r.start)} -> end {_fmt_pt(r.end)}")
             if r.goal is not None:
                 out.append(f"  goal {_fmt_pt(r.goal)}")
+            if r.atlas is not None:
+                a = self.atlases[r.atlas]
+                out.append(
+                    f"  map: atlas {r.atlas} ({len(a.cells)} cells, revision {a.revision[:12]})"
+                    + (f", active chart {r.chart}" if r.chart is not None else "")
+                )
+            elif r.map_ws_id is not None and r.map_ws_id != r.ws_id:
+                out.append(f"  map: {r.map_ws_id}")
             if r.charts:
                 path = " -> ".join(map(str, r.charts))
                 out.append(f"  charts {path} ({len(r.charts) - 1} switches)")
@@ -202,6 +239,18 @@ class InspectReport:
             else:
                 out.append("  minimum clearance: n/a (no workspace definition recorded)")
         return "\n".join(out)
+
+
+def _ranges(xs: list[int]) -> str:
+    """``0-3, 7, 9-10`` for sorted integers."""
+    out: list[str] = []
+    for x in xs:
+        if out and out[-1].rpartition("-")[2] == str(x - 1):
+            head = out[-1].partition("-")[0]
+            out[-1] = f"{head}-{x}"
+        else:
+            out.append(str(x))
+    return ", ".join(out)
 
 
 def _fmt_pt(p: tuple[float, float]) -> str:
@@ -231,6 +280,7 @@ def inspect_recording(path: str | os.PathLike[str]) -> InspectReport:
         workspaces: dict[str, WorkspaceDefinition] = {}
         transforms: dict[str, TransformSolution] = {}
         atlases: dict[str, AtlasIndex] = {}
+        atlas_of_revision: dict[str, str] = {}  # every recorded atlas revision -> its ws_id
         robots: dict[str, RobotSummary] = {}
         status_arrival: dict[str, int] = {}
         pose_times: dict[str, list[int]] = defaultdict(list)
@@ -268,14 +318,18 @@ def inspect_recording(path: str | os.PathLike[str]) -> InspectReport:
                 r.goal = (model.goal[0], model.goal[1])
                 r.tolerance = model.tolerance
                 r.ws_id = model.ws_id
+                r.map_ws_id = map_ws_id(model)
                 r.goal_time_s = (msg.log_time_ns - first_ns) / NS_PER_S
             elif isinstance(model, AtlasIndex):
                 atlases[model.ws_id] = model
+                atlas_of_revision[model.revision] = model.ws_id
             elif isinstance(model, VelocityCommand):
                 r = robot(model.robot_id)
                 r.commands += 1
                 if model.chart is not None and (not r.charts or r.charts[-1] != model.chart):
                     r.charts.append(model.chart)
+                r.chart = model.chart
+                r.map_revision = model.map_revision or r.map_revision
             elif isinstance(model, CollisionEvent):
                 r = robot(model.robot_id)
                 if r.collision_at is None:
@@ -284,6 +338,9 @@ def inspect_recording(path: str | os.PathLike[str]) -> InspectReport:
             elif isinstance(model, RobotStatus):
                 r = robot(model.robot_id)
                 r.final_state, r.final_reason = model.state, model.reason
+                r.map_revision = model.map_revision or r.map_revision
+                if model.chart is not None:
+                    r.chart = model.chart
                 if model.ws_id and r.ws_id is None:
                     r.ws_id = model.ws_id
                 if model.state == "arrived" and model.robot_id not in status_arrival:
@@ -305,6 +362,9 @@ def inspect_recording(path: str | os.PathLike[str]) -> InspectReport:
                         r.arrival_time_s = (t - start) / NS_PER_S
                         r.arrival_source = "pose within goal tolerance"
                         break
+            # the atlas it was driven on: the one its commands name, else its goal's map
+            used = atlas_of_revision.get(r.map_revision or "") or r.map_ws_id
+            r.atlas = used if used in atlases and (r.charts or r.chart is not None) else None
             if r.ws_id is None and len(workspaces) == 1:
                 r.ws_id = next(iter(workspaces))
             wd = workspaces.get(r.ws_id) if r.ws_id else None
