@@ -839,12 +839,16 @@ def main() -> int:
         "machine": f"{os.cpu_count()} cores (shared)",
     }
     prev = Path(args.out)
-    if prev.exists():  # modes run separately accumulate in one file
+    if prev.exists():  # modes run separately at one commit accumulate in one file
         try:
             old = json.loads(prev.read_text())
-            results.update({k: v for k, v in old.items() if k in ("fuzz", "kill", "soak")})
         except ValueError:
-            pass
+            old = {}
+        kept = {k: v for k, v in old.items() if k in ("fuzz", "kill", "soak")}
+        if old.get("commit") == results["commit"]:
+            results.update(kept)
+        elif kept:  # never stamp another commit's figures with this one
+            print(f"{prev.name}: dropping {', '.join(kept)} measured at {old.get('commit')}")
     targets: list[tuple[str, str, bool]] = []
     keep_work = args.keep
     try:
