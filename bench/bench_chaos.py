@@ -614,8 +614,12 @@ def _kill_victim(
                 return all(robots.started_over(r, t, z) for r, z in starts.items())
 
             wait(started_over, 120, "robots back at their starts and moving")
-            proc = launcher.router if victim == "router" else launcher.procs[victim]
-            assert proc is not None
+
+            def victim_up() -> Any:  # restarted after the previous kill (backoff grows)
+                p = launcher.router if victim == "router" else launcher.procs[victim]
+                return p if p is not None and p.popen.poll() is None else None
+
+            proc = wait(victim_up, 120, f"{victim} restarted")
             t_kill, t_kill_ns = time.monotonic(), time.time_ns()
             os.kill(proc.popen.pid, signal.SIGKILL)
             row: dict[str, Any] = {"victim": victim, "repeat": rep}
