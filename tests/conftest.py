@@ -15,14 +15,16 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 import shutil
 import sys
 import tempfile
+import threading
 import time
+from collections import defaultdict
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
-from confnav.schemas import WorkspaceDefinition
+from confnav.schemas import CollisionEvent, RobotStatus, WorkspaceDefinition, decode
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -168,3 +170,28 @@ def subprocess_env() -> dict[str, str]:
     env = dict(os.environ)
     env["PYTHONUNBUFFERED"] = "1"
     return env
+
+
+class RobotWatch:
+    """Every robot's statuses and the collision events seen on a bus (an end-to-end test's
+    observer); ``lock`` guards both (they are appended from subscriber threads)."""
+
+    def __init__(self) -> None:
+        self.lock = threading.Lock()
+        self.status: dict[str, list[RobotStatus]] = defaultdict(list)
+        self.collisions: list[CollisionEvent] = []
+
+    def attach(self, bus: Any, keys: Any) -> None:
+        """Subscribe to ``{prefix}/robot/*/status`` and ``.../collision`` on ``bus``."""
+        bus.subscribe(keys.any_robot("status"), self._on_status)
+        bus.subscribe(keys.any_robot("collision"), self._on_collision)
+
+    def _on_status(self, key: str, payload: bytes) -> None:
+        s = decode(RobotStatus, payload)
+        with self.lock:
+            self.status[s.robot_id].append(s)
+
+    def _on_collision(self, key: str, payload: bytes) -> None:
+        c = decode(CollisionEvent, payload)
+        with self.lock:
+            self.collisions.append(c)

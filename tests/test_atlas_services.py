@@ -20,9 +20,7 @@ import numpy as np
 import pytest
 from confnav.schemas import (
     AtlasIndex,
-    CollisionEvent,
     Goal,
-    RobotStatus,
     TransformSolution,
     VelocityCommand,
     decode,
@@ -30,7 +28,7 @@ from confnav.schemas import (
 )
 from confnav.services.bus import ZenohBus, zenoh_config
 from confnav.services.launcher import LaunchConfig, Launcher, ServiceSpec
-from conftest import wait_for
+from conftest import RobotWatch, wait_for
 from mcap.reader import make_reader
 
 from confnav.atlas import plan
@@ -73,26 +71,14 @@ def test_corridor_atlas_through_the_services(tmp_path: Path) -> None:
     stop = threading.Event()
     monitor = threading.Thread(target=launcher.monitor, args=(stop,), daemon=True)
     bus = None
-    lock = threading.Lock()
-    status: dict[str, list[RobotStatus]] = defaultdict(list)
-    collisions: list[CollisionEvent] = []
+    watch = RobotWatch()
+    lock, status, collisions = watch.lock, watch.status, watch.collisions
     try:
         launcher.start()
         monitor.start()
         bus = ZenohBus(zenoh_config("client", connect=[sock]))
         k = launcher.keys
-
-        def on_status(key: str, payload: bytes) -> None:
-            s = decode(RobotStatus, payload)
-            with lock:
-                status[s.robot_id].append(s)
-
-        def on_collision(key: str, payload: bytes) -> None:
-            with lock:
-                collisions.append(decode(CollisionEvent, payload))
-
-        bus.subscribe(k.any_robot("status"), on_status)
-        bus.subscribe(k.any_robot("collision"), on_collision)
+        watch.attach(bus, k)
 
         # the atlas is served: index, every chart, and the workspace's own transform says so
         replies = wait_for(

@@ -24,10 +24,8 @@ import numpy as np
 import pytest
 from confnav.schemas import (
     AtlasIndex,
-    CollisionEvent,
     Goal,
     Pose,
-    RobotStatus,
     SpawnRequest,
     TransformSolution,
     VelocityCommand,
@@ -38,7 +36,7 @@ from confnav.services.atlas_transform import messages_of
 from confnav.services.bus import ZenohBus, zenoh_config
 from confnav.services.launcher import LaunchConfig, Launcher, ServiceSpec
 from confnav.services.transform import solution_result
-from conftest import wait_for
+from conftest import RobotWatch, wait_for
 from mcap.reader import make_reader
 
 from confnav.atlas import solve_atlas
@@ -149,9 +147,8 @@ def test_a_unicycle_on_an_atlas_through_the_services(tmp_path: Path) -> None:
     stop = threading.Event()
     monitor = threading.Thread(target=launcher.monitor, args=(stop,), daemon=True)
     bus = None
-    lock = threading.Lock()
-    status: dict[str, list[RobotStatus]] = {"u1": [], "u2": []}
-    collisions: list[CollisionEvent] = []
+    watch = RobotWatch()
+    lock, status, collisions = watch.lock, watch.status, watch.collisions
     rid = "u1"
     shrunk = derived_ws_id("corr", RADIUS + LOOKAHEAD)
     try:
@@ -159,18 +156,7 @@ def test_a_unicycle_on_an_atlas_through_the_services(tmp_path: Path) -> None:
         monitor.start()
         bus = ZenohBus(zenoh_config("client", connect=[sock]))
         k = launcher.keys
-
-        def on_status(key: str, payload: bytes) -> None:
-            with lock:
-                s = decode(RobotStatus, payload)
-                status[s.robot_id].append(s)
-
-        def on_collision(key: str, payload: bytes) -> None:
-            with lock:
-                collisions.append(decode(CollisionEvent, payload))
-
-        bus.subscribe(k.any_robot("status"), on_status)
-        bus.subscribe(k.any_robot("collision"), on_collision)
+        watch.attach(bus, k)
         # the axle where a point robot could not start (0.15 m from the end wall), turned
         # 0.5 rad off the corridor's axis: its look-ahead point at (0.24, 0.50)
         spawn = SpawnRequest(
@@ -191,7 +177,7 @@ def test_a_unicycle_on_an_atlas_through_the_services(tmp_path: Path) -> None:
 
         def arrived() -> bool:
             with lock:
-                return all(st and st[-1].state == "arrived" for st in status.values())
+                return all(status[r] and status[r][-1].state == "arrived" for r in ("u1", "u2"))
 
         wait_for(arrived, timeout=200, interval=0.2)
         with lock:
