@@ -29,6 +29,21 @@ ROOT = HERE.parent
 RESULTS = HERE / "results"
 
 
+#: What every benchmark measures unless it says otherwise: with its own script, a change here
+#: makes its results stale.
+CODE_PATHS = ("confnav", "services", "schemas")
+#: The conformal solver and what it reads: the code whose cost and accuracy the solver
+#: benchmarks report (they import ``confnav``, whose ``__init__`` loads navigation and atlas
+#: modules too, but run none of them).
+SOLVER_PATHS = (
+    "confnav/conformal",
+    "confnav/geometry.py",
+    "confnav/errors.py",
+    "confnav/types.py",
+    "confnav/scenes",
+)
+
+
 @dataclass(frozen=True)
 class Bench:
     script: str
@@ -36,16 +51,21 @@ class Bench:
     about: str
     args: tuple[str, ...] = ()
     quick: tuple[str, ...] = ("--quick",)
+    #: Code whose change makes the results stale (besides the script itself).
+    measures: tuple[str, ...] = CODE_PATHS
 
 
 BENCHMARKS: dict[str, Bench] = {
-    "core": Bench("bench_core.py", "core.json", "solver accuracy and cost, scaling"),
+    "core": Bench(
+        "bench_core.py", "core.json", "solver accuracy and cost, scaling", measures=SOLVER_PATHS
+    ),
     "certificate": Bench(
         "bench_core.py",
         "core_certificate.json",
         "near-touching / mirror-symmetric accuracy certificate",
         args=("--certificate",),
         quick=("--limit", "60"),
+        measures=SOLVER_PATHS,
     ),
     "eval": Bench("bench_eval.py", "eval.json", "map evaluation and control-step costs"),
     "scale": Bench(
@@ -53,6 +73,7 @@ BENCHMARKS: dict[str, Bench] = {
         "scale.json",
         "solver cost at scale: obstacles 10..100, fast vs dense sums",
         quick=("--obstacles", "5", "10"),
+        measures=SOLVER_PATHS,
     ),
     "navigation": Bench(
         "bench_navigation.py",
@@ -66,6 +87,7 @@ BENCHMARKS: dict[str, Bench] = {
         "mapimport.json",
         "occupancy-grid import of 400x400 grids",
         quick=("--runs", "1"),
+        measures=("confnav/maps", "confnav/geometry.py", "confnav/errors.py", "confnav/scenes"),
     ),
     "atlas": Bench(
         "bench_atlas.py",
@@ -170,10 +192,6 @@ def run(name: str, quick: bool, out: Path | None, extra: list[str], nice: int) -
     return 0
 
 
-CODE_PATHS = ("confnav", "services", "schemas")
-"""What every benchmark measures; with its own script, a change here makes results stale."""
-
-
 def freshness(name: str, recorded: str, commit: str) -> str:
     """ "" if the results were made at HEAD or nothing they measure changed since, else
     " (stale: N files changed)" / " (stale: commit unknown)"."""
@@ -181,7 +199,7 @@ def freshness(name: str, recorded: str, commit: str) -> str:
         return ""
     if not git("rev-parse", "--verify", "--quiet", f"{recorded}^{{commit}}"):
         return " (stale: commit unknown)"
-    paths = [f"bench/{BENCHMARKS[name].script}", *CODE_PATHS]
+    paths = [f"bench/{BENCHMARKS[name].script}", *BENCHMARKS[name].measures]
     changed = git("diff", "--name-only", recorded, commit, "--", *paths).splitlines()
     return f" (stale: {len(changed)} files changed)" if changed else " (current)"
 

@@ -72,3 +72,24 @@ def test_results_are_stale_only_when_what_they_measure_changed() -> None:
     root = subprocess.run(["git", "rev-list", "--max-parents=0", "HEAD"], capture_output=True,
                           text=True, cwd=bm.ROOT, check=True).stdout.split()[0]  # fmt: skip
     assert bm.freshness("core", root, head).startswith(" (stale: ")
+
+
+def test_solver_results_go_stale_only_with_the_solver(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The solver benchmarks measure the conformal solver: a change elsewhere in the package
+    (navigation, services) leaves their results current, a change in the solver does not."""
+    import bench.__main__ as bm
+
+    changed = ["confnav/navigation/control.py", "services/controller.py"]
+
+    def fake_git(*args: str) -> str:
+        if args[0] == "diff":
+            paths = args[args.index("--") + 1 :]
+            return "\n".join(f for f in changed if any(f.startswith(p) for p in paths))
+        return "x"  # rev-parse --verify: the recorded commit exists
+
+    monkeypatch.setattr(bm, "git", fake_git)
+    for name in ("core", "certificate", "scale"):
+        assert bm.freshness(name, "a" * 40, "b" * 40) == " (current)"
+    assert bm.freshness("services", "a" * 40, "b" * 40) == " (stale: 2 files changed)"
+    changed.append("confnav/conformal/gnk.py")
+    assert bm.freshness("core", "a" * 40, "b" * 40) == " (stale: 1 files changed)"
