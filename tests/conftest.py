@@ -19,6 +19,8 @@ import threading
 import time
 from collections import defaultdict
 from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -195,3 +197,59 @@ class RobotWatch:
         c = decode(CollisionEvent, payload)
         with self.lock:
             self.collisions.append(c)
+
+
+@dataclass
+class LaunchedSystem:
+    """Services started by :func:`launched_system` and a client bus on their router."""
+
+    launcher: Any  # confnav.services.launcher.Launcher
+    bus: Any  # confnav.services.bus.ZenohBus
+
+    @property
+    def keys(self) -> Any:
+        return self.launcher.keys
+
+    def shutdown(self) -> dict[str, int | None]:
+        """Close the test's bus, then stop every service: exit codes by service name (a
+        recorder that exits 0 finished its file). Safe to call again."""
+        self.bus.close()
+        return dict(self.launcher.shutdown())
+
+
+@contextmanager
+def launched_system(
+    services: list[Any], tmp: Path, prefix: str = "cn", startup_timeout: float = 60
+) -> Iterator[LaunchedSystem]:
+    """Real service processes (``ServiceSpec`` list) behind a router on a unix socket, the
+    launcher's restart monitor running, and a client bus connected to it.
+
+    On exit (also on failure) the monitor stops, the bus closes, every service is stopped
+    and the socket directory removed. Logs go to ``tmp/logs``.
+    """
+    from confnav.services.bus import ZenohBus, zenoh_config
+    from confnav.services.launcher import LaunchConfig, Launcher
+
+    sockdir = tempfile.mkdtemp(prefix=prefix, dir="/tmp")  # short: unix socket paths are
+    sock = f"unixsock-stream/{sockdir}/router.sock"  # limited to 108 bytes
+    cfg = LaunchConfig(
+        listen=[sock],
+        services=services,
+        startup_timeout=startup_timeout,
+        log_dir=str(tmp / "logs"),
+    )
+    launcher = Launcher(cfg, verbose=1)
+    stop = threading.Event()
+    monitor = threading.Thread(target=launcher.monitor, args=(stop,), daemon=True)
+    bus = None
+    try:
+        launcher.start()
+        monitor.start()
+        bus = ZenohBus(zenoh_config("client", connect=[sock]))
+        yield LaunchedSystem(launcher, bus)
+    finally:
+        stop.set()
+        if bus is not None:
+            bus.close()
+        launcher.shutdown()
+        shutil.rmtree(sockdir, ignore_errors=True)

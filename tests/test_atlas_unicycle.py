@@ -15,9 +15,6 @@ from __future__ import annotations
 
 import itertools
 import json
-import shutil
-import tempfile
-import threading
 from pathlib import Path
 
 import numpy as np
@@ -33,10 +30,9 @@ from confnav.schemas import (
     encode,
 )
 from confnav.services.atlas_transform import messages_of
-from confnav.services.bus import ZenohBus, zenoh_config
-from confnav.services.launcher import LaunchConfig, Launcher, ServiceSpec
+from confnav.services.launcher import ServiceSpec
 from confnav.services.transform import solution_result
-from conftest import RobotWatch, wait_for
+from conftest import RobotWatch, launched_system, wait_for
 from mcap.reader import make_reader
 
 from confnav.atlas import solve_atlas
@@ -129,33 +125,19 @@ def test_a_unicycle_on_an_atlas_through_the_services(tmp_path: Path) -> None:
     SCENE.workspace.save(ws_file)
     ROOM.workspace.save(room_file)
     spaces = ["--workspace", f"corr={ws_file}", "--workspace", f"room={room_file}"]
-    sockdir = tempfile.mkdtemp(prefix="cnu", dir="/tmp")
-    sock = f"unixsock-stream/{sockdir}/router.sock"
     mcap_path = tmp_path / "uni.mcap"
-    cfg = LaunchConfig(
-        listen=[sock],
-        services=[
-            ServiceSpec("recorder", ["--out", str(mcap_path)]),
-            ServiceSpec("transform", spaces),
-            ServiceSpec("controller", []),
-            ServiceSpec("simulator", [*spaces, "--time-scale", "2"]),
-        ],
-        startup_timeout=60,
-        log_dir=str(tmp_path / "logs"),
-    )
-    launcher = Launcher(cfg, verbose=1)
-    stop = threading.Event()
-    monitor = threading.Thread(target=launcher.monitor, args=(stop,), daemon=True)
-    bus = None
+    services = [
+        ServiceSpec("recorder", ["--out", str(mcap_path)]),
+        ServiceSpec("transform", spaces),
+        ServiceSpec("controller", []),
+        ServiceSpec("simulator", [*spaces, "--time-scale", "2"]),
+    ]
     watch = RobotWatch()
     lock, status, collisions = watch.lock, watch.status, watch.collisions
     rid = "u1"
     shrunk = derived_ws_id("corr", RADIUS + LOOKAHEAD)
-    try:
-        launcher.start()
-        monitor.start()
-        bus = ZenohBus(zenoh_config("client", connect=[sock]))
-        k = launcher.keys
+    with launched_system(services, tmp_path, prefix="cnu") as system:
+        bus, k = system.bus, system.keys
         watch.attach(bus, k)
         # the axle where a point robot could not start (0.15 m from the end wall), turned
         # 0.5 rad off the corridor's axis: its look-ahead point at (0.24, 0.50)
@@ -184,16 +166,8 @@ def test_a_unicycle_on_an_atlas_through_the_services(tmp_path: Path) -> None:
             assert collisions == []
             assert {s.ws_id for s in status[rid]} == {shrunk}
             assert {s.chart for s in status["u2"]} == {None}  # one map, no atlas
-        bus.close()
-        bus = None
-        codes = launcher.shutdown()
+        codes = system.shutdown()
         assert codes.get("recorder") == 0, codes
-    finally:
-        stop.set()
-        if bus is not None:
-            bus.close()
-        launcher.shutdown()
-        shutil.rmtree(sockdir, ignore_errors=True)
 
     index = None
     charts: dict[str, ConformalMap] = {}

@@ -30,10 +30,10 @@ from confnav.schemas import (
     decode,
     encode,
 )
-from confnav.services.bus import ZenohBus, zenoh_config
-from confnav.services.launcher import LaunchConfig, Launcher, ServiceSpec
+from confnav.services.bus import ZenohBus
+from confnav.services.launcher import Launcher, ServiceSpec
 from confnav.services.transform import definition_of
-from conftest import confnav_cmd, subprocess_env, wait_for
+from conftest import confnav_cmd, launched_system, subprocess_env, wait_for
 from mcap.reader import make_reader
 
 from confnav.geometry import Workspace
@@ -88,40 +88,24 @@ class System:
 
 @pytest.fixture(scope="module")
 def system(tmp_path_factory: pytest.TempPathFactory) -> Iterator[System]:
-    import shutil
-    import tempfile
 
     out = tmp_path_factory.mktemp("system")
     room = out / "room.json"
     ROOM.save(room)
-    sockdir = tempfile.mkdtemp(prefix="cni", dir="/tmp")
-    sock = f"unixsock-stream/{sockdir}/router.sock"
     sim_args = ["--workspace", f"room={room}", "--time-scale", "2"]
     for rid, (x, y) in STARTS.items():
         sim_args += ["--robot", f"{rid}=room:{x},{y}"]
-    cfg = LaunchConfig(
-        listen=[sock],
-        services=[
-            ServiceSpec("recorder", ["--out", str(out / "system.mcap")]),
-            ServiceSpec(
-                "transform", ["--workspace", f"room={room}", "--cache-dir", str(out / "cache")]
-            ),
-            ServiceSpec("controller", []),
-            ServiceSpec("simulator", sim_args),
-        ],
-        startup_timeout=60,
-        log_dir=str(out / "logs"),
-    )
-    launcher = Launcher(cfg, verbose=1)
-    stop = threading.Event()
-    monitor = threading.Thread(target=launcher.monitor, args=(stop,), daemon=True)
-    bus = None
-    try:
-        launcher.start()
-        monitor.start()
-        bus = ZenohBus(zenoh_config("client", connect=[sock]))
+    services = [
+        ServiceSpec("recorder", ["--out", str(out / "system.mcap")]),
+        ServiceSpec(
+            "transform", ["--workspace", f"room={room}", "--cache-dir", str(out / "cache")]
+        ),
+        ServiceSpec("controller", []),
+        ServiceSpec("simulator", sim_args),
+    ]
+    with launched_system(services, out, prefix="cni") as launched:
+        bus, k = launched.bus, launched.keys
         obs = Observed()
-        k = launcher.keys
 
         def on(kind: str) -> Any:
             def handler(key: str, payload: bytes) -> None:
@@ -151,15 +135,9 @@ def system(tmp_path_factory: pytest.TempPathFactory) -> Iterator[System]:
             timeout=90,
             interval=0.5,
         )
-        system = System(launcher, bus, obs, out)
+        system = System(launched.launcher, bus, obs, out)
         yield system
         system.stop()
-    finally:
-        stop.set()
-        if bus is not None:
-            bus.close()
-        launcher.shutdown()
-        shutil.rmtree(sockdir, ignore_errors=True)
 
 
 def arrived(obs: Observed, rid: str) -> bool:
