@@ -587,7 +587,7 @@ def print_targets(tg: list[dict[str, Any]]) -> None:
     print("\nTargets")
     for e in tg:
         if e["measured_s"] is None:
-            print(f"  {e['name']}: limit {e['limit_s']:.0f} s: {e['status']}")
+            print(f"  {e['name']}: limit {e['limit_s']:g} s: {e['status']}")
         else:
             print(
                 f"  {e['name']}: {e['measured_s']:.2f} s vs limit {e['limit_s']:g} s -> "
