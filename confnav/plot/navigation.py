@@ -80,6 +80,10 @@ def plot_workspace(
     ax.legend(loc="best", fontsize=8, framealpha=0.8)
 
 
+#: Smallest magnification worth an inset (below it the main view shows the small disks).
+MIN_ZOOM = 3.0
+
+
 def plot_circle_domain(
     ax: Axes, ctl: Controller, paths: Sequence[CArray] = (), n_grid: int = 260
 ) -> None:
@@ -94,14 +98,23 @@ def plot_circle_domain(
         lo = complex(c.real.min(), c.imag.min())
         hi = complex(c.real.max(), c.imag.max())
         side = max(hi.real - lo.real, hi.imag - lo.imag, 20 * float(radii[small].max()), 0.01)
-        side *= 1.6
-        mid = (lo + hi) / 2
-        inset = ax.inset_axes((0.03, 0.03, 0.36, 0.36))
-        _draw_domain(inset, ctl, mapped, mid - side / 2 * (1 + 1j), side, n_grid // 2)
-        inset.set_xticks([])
-        inset.set_yticks([])
-        inset.set_title(f"x{2 / side:.0f}", fontsize=7, pad=2)
-        ax.indicate_inset_zoom(inset, edgecolor="0.3")
+        side = min(side * 1.6, 2.0)
+        if 2.0 / side >= MIN_ZOOM:  # else the main view shows them well enough
+            # the window inside the view [-1, 1]^2 (a zoom box never sticks out of the axes)
+            mid = (lo + hi) / 2
+            half = side / 2
+            mid = complex(
+                min(max(mid.real, -1 + half), 1 - half), min(max(mid.imag, -1 + half), 1 - half)
+            )
+            # the inset in the corner of the axes farthest from the window it magnifies
+            x0 = 0.61 if mid.real < 0 else 0.03
+            y0 = 0.61 if mid.imag < 0 else 0.03
+            inset = ax.inset_axes((x0, y0, 0.36, 0.36))
+            _draw_domain(inset, ctl, mapped, mid - half * (1 + 1j), side, n_grid // 2)
+            inset.set_xticks([])
+            inset.set_yticks([])
+            inset.set_title(f"x{2 / side:.0f}", fontsize=7, pad=2)
+            ax.indicate_inset_zoom(inset, edgecolor="0.3")
     ax.set_aspect("equal")
     ax.set_xlabel("Re w (dimensionless)")
     ax.set_ylabel("Im w")
