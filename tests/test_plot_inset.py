@@ -59,3 +59,24 @@ def test_no_inset_when_the_main_view_shows_the_disks() -> None:
     assert np.all(np.asarray(ctl.domain.radii) < SMALL_CIRCLE)
     assert ax.child_axes == []
     plt.close("all")
+
+
+def test_a_robot_with_a_body_sees_the_real_walls_and_its_shrunk_free_space() -> None:
+    from confnav.maps.footprint import inflate
+    from confnav.plot.navigation import plot_workspace
+
+    room = [(0.0, 0.0), (4.0, 0.0), (4.0, 3.0), (0.0, 3.0)]
+    ws = confnav.Workspace(room, [_square(2.0 + 1.5j, 0.4)])
+    shrunk = inflate(ws, 0.3)
+    ctl = Controller(confnav.solve(shrunk, 1e-6), 0.6 + 0.6j, navfn="kr")
+    _fig, ax = plt.subplots()
+    plot_workspace(ax, ctl, n_grid=40, walls=ws, shrink=0.3)
+    x0, x1 = ax.get_xlim()
+    assert x0 <= 0.0 and x1 >= 4.0  # the real room, not only the shrunk one (0.3 .. 3.7)
+    dashed = [ln for ln in ax.get_lines() if ln.get_linestyle() == "--"]
+    assert len(dashed) == 2  # the shrunk outer boundary and the grown obstacle
+    xs = np.concatenate([ln.get_xdata() for ln in dashed])
+    assert np.isclose(xs.min(), 0.3, atol=1e-6) and np.isclose(xs.max(), 3.7, atol=1e-6)
+    labels = [t.get_text() for t in ax.get_legend().get_texts()]
+    assert any("grown by 0.3 m" in t for t in labels)
+    plt.close("all")
