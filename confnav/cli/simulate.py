@@ -279,6 +279,8 @@ def run_simulate(args: argparse.Namespace) -> int:
             args.plot,
             title=f"{args.workspace}: {100 * res.success_rate:.1f}% of {summary['n']} arrived",
             outcomes=[r["status"] for r in runs],
+            walls=ws if body else None,
+            shrink=body,
         )
     if args.require is not None and res.success_rate < args.require:
         print(
