@@ -457,89 +457,92 @@ def _disk_green(z: CArray, pole: complex) -> FArray:
 
 
 class _OnePoint(NamedTuple):
-    """``(G, h, grad H)`` of :meth:`GreenFunction._eval` at one point: its operations on
-    1-D vectors in its order, in ~35 numpy calls instead of ~60 on (1, K) arrays with their
-    errstate guard (the single-robot control step).
+    """``(G, h, grad H)`` of :meth:`GreenFunction._eval` at one point: its operations in its
+    order on short vectors, in ~35 numpy calls instead of ~60 on (1, K) arrays with their
+    errstate guard and the domain test (the single-robot control step).
 
-    The series variables ``u_j = r_j / (w - c_j)``, ``v_j = r_j w / (1 - conj(c_j) w)``
-    are ``x = (al w + be) / (xga w + xde)`` (one vector for both; the same values as
-    ``_variables``).  Every complex product, quotient and modulus is numpy's as in the batch:
-    numpy's complex multiply may fuse and its modulus is its own hypot, so Python's scalars
-    differ by an ulp, which ``G_0`` magnifies 30-fold where ``|M| << 1``, and the harmonic
-    gradient's cancellation 100-fold (tests/test_single_robot_path.py, test_fleet_step.py).
+    Every denominator is ``ga w + de``, in one (2, T) array: the holes' ``d = w - c_j`` and
+    ``q = 1 - conj(c_j) w`` (the series variables are ``u = r / d``, ``v = r w / q``), the
+    image points' ``w - p_i`` and ``1 - conj(p_i) w``, and ``w`` and the pole's
+    ``1 - conj(w_d) w``; each entry is bitwise the batch's (``1 w + (-c) = w - c``).  Every
+    complex product, quotient and modulus is numpy's as in the batch: numpy's complex
+    multiply may fuse and its modulus is its own hypot, so Python's scalars differ by an ulp,
+    which ``G_0`` magnifies 30-fold where ``|M| << 1``, and the harmonic gradient's
+    cancellation 100-fold (tests/test_single_robot_path.py, test_fleet_step.py).
     """
 
-    xga: CArray  # the 2K series variables: x = (al w + be) / (xga w + xde)
-    xde: CArray
-    al: CArray
+    ga: CArray  # (2, T) with den = ga w + de: rows (d, w - p, w) and (q, 1 - conj(p) w, q_d)
+    de: CArray
+    al: CArray  # (2, K): the series variables (u, v) = (al w + be) / den[:, :K]
     be: CArray
     r: FArray
+    rm: FArray  # radii of the M holes (the first M centres)
     cf: CArray
     cd: CArray
     start: CArray  # (2K, n + 1) of ones
-    c: CArray
+    c: CArray  # centres, then image points (for the gradients of the logarithms)
     b: FArray
-    p: CArray  # image points, conj(p), signs
-    cp: CArray
     sg: FArray
-    wga: CArray  # (w, 1 - conj(w_d) w) = wga w + wde
-    wde: CArray
     pole: complex
 
     @classmethod
     def of(
         cls, cen: _Centres, images: _Images, cf: CArray, cd: CArray, b: FArray, pole: complex
     ) -> _OnePoint:
-        c, r = cen.c, cen.r
+        c, r, p = cen.c, cen.r, images.points
         one, zero = np.ones(c.size, complex), np.zeros(c.size, complex)
+        ones = np.ones(p.size, complex)
         return cls(
-            xga=np.concatenate([one, -np.conj(c)]),
-            xde=np.concatenate([-c, one]),
-            al=np.concatenate([zero, r + 0j]),
-            be=np.concatenate([r + 0j, zero]),
+            ga=np.array([np.r_[one, ones, 1.0], np.r_[-np.conj(c), -np.conj(p), -np.conj(pole)]]),
+            de=np.array([np.r_[-c, -p, 0.0], np.r_[one, ones, 1.0]]),
+            al=np.array([zero, r + 0j]),
+            be=np.array([r + 0j, zero]),
             r=r,
+            rm=r[: cen.m],
             cf=cf,
             cd=cd,
             start=np.ones(cf.shape, dtype=np.complex128),
-            c=c,
+            c=np.r_[c, p],
             b=b,
-            p=images.points,
-            cp=np.conj(images.points),
             sg=images.signs,
-            wga=np.array([1.0, -np.conj(pole)]),
-            wde=np.array([0.0, 1.0 + 0j]),
             pole=pole,
         )
 
-    def parts(self, w: complex) -> tuple[float, float, complex]:
-        """``(G, h, grad H)`` at ``w`` (a point of the closed domain: no zero denominator);
-        the operations of ``_eval`` on 1-D vectors, in its order."""
-        k = self.al.size // 2
-        dq = self.xga * w + self.xde  # d, q
-        x = (self.al * w + self.be) / dq  # u, v
+    def parts(self, w: complex) -> tuple[float, float, complex] | None:
+        """``(G, h, grad H)`` at ``w``; None outside the closed domain (as
+        :meth:`CircleDomain.clearance`: ``1 - |w|`` and ``|w - c_j| - r_j``, numpy's moduli);
+        the operations of ``_eval`` in its order, on the rows of one (2, T) array."""
+        k, m = self.r.size, self.rm.size
+        den = self.ga * w + self.de  # (d, w - p, w), (q, 1 - conj(p) w, 1 - conj(w_d) w)
+        size = np.abs(den[:, -1]).tolist()  # |w|, |1 - conj(w_d) w|
+        clearance = 1.0 - size[0]
+        if m:
+            clearance = min(clearance, float(np.minimum.reduce(np.abs(den[0, :m]) - self.rm)))
+        if not clearance >= 0:  # outside (or NaN)
+            return None
+        x = (self.al * w + self.be) / den[:, :k]  # u, v
         xpow = self.start.copy()
-        xpow[:, 1:] = x[:, None]
+        xpow[:, 1:] = x.reshape(-1, 1)
         xpow.cumprod(axis=1, out=xpow)
-        d, q = dq[:k], dq[k:]
-        u, r = x[:k], self.r
+        u, q, r = x[0], den[1, :k], self.r
         dxdw = np.concatenate([-(u * u) / r, r / (q * q)])
         f = np.einsum("pjk,jk->p", xpow[None], self.cf)
         fp = np.einsum("pjk,jk,pj->p", xpow[None], self.cd, dxdw[None])
-        s = float(f.real[0] + np.log(np.abs(d / q)) @ self.b)
-        gh = complex(np.conj(fp[0]) + (1.0 / np.conj(d) + self.c / np.conj(q)) @ self.b)
-        if self.p.size:  # H = S - sum_i s_i L(w; p_i), as _Images.value and .gradient
-            a = w - self.p
-            bq = 1.0 - self.cp * w
-            s = s - float(np.log(np.abs(a / bq)) @ self.sg)
-            gh = gh - complex((1.0 / np.conj(a) + self.p / np.conj(bq)) @ self.sg)
+        top, bot = den[0, :-1], den[1, :-1]  # (d, w - p), (q, 1 - conj(p) w)
+        logs = np.log(np.abs(top / bot))
+        grads = 1.0 / np.conj(top) + self.c / np.conj(bot)
+        s = float(f.real[0] + logs[:k] @ self.b)
+        gh = complex(np.conj(fp[0]) + grads[:k] @ self.b)
+        if self.sg.size:  # H = S - sum_i s_i L(w; p_i), as _Images.value and .gradient
+            s = s - float(logs[k:] @ self.sg)
+            gh = gh - complex(grads[k:] @ self.sg)
         # G_0 as _disk_green, h = log|1 - conj(w_d) w| + S
-        wq = self.wga * w + self.wde  # w, 1 - conj(w_d) w
-        aw, aq = np.abs(wq).tolist()
-        qq = float((wq[1:] * wq[1:].conjugate()).real[0])
-        ap = abs(self.pole)
+        qd = den[1, -1:]
+        qq = float((qd * qd.conjugate()).real[0])
+        aw, ap = size[0], abs(self.pole)
         t = -((1.0 - aw) * (1.0 + aw) * (1.0 - ap) * (1.0 + ap)) / qq
         g0 = -math.inf if t == -1.0 else 0.5 * float(np.log1p(np.array(t)))
-        return g0 - s, float(np.log(np.array(aq))) + s, gh
+        return g0 - s, float(np.log(np.array(size[1]))) + s, gh
 
 
 class _Images(NamedTuple):
@@ -664,14 +667,16 @@ class GreenFunction:
         return g.reshape(w.shape), h.reshape(w.shape), gh.reshape(w.shape)
 
     def parts1(self, z: complex) -> tuple[float, float, complex]:
-        """:meth:`parts` of one point as Python scalars (:class:`_OnePoint`: the sums of
-        :meth:`_eval` in a few numpy calls on short vectors; equal to rounding)."""
+        """:meth:`parts` of one point as Python scalars: :meth:`_eval` on a 1-point array
+        (the series sums of a batch, bitwise), without :meth:`parts`' reshaping and chunking;
+        the control step's faster path is :meth:`_parts1`."""
         with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
-            return self._parts1(complex(z))
+            g, h, gh = self._eval(np.array([complex(z)]))
+        return float(g[0]), float(h[0]), complex(gh[0])
 
-    def _parts1(self, z: complex) -> tuple[float, float, complex]:
-        """:meth:`parts1` without the errstate guard: for points of the closed domain, where
-        no denominator vanishes (poles and image points lie in the holes or outside)."""
+    def _parts1(self, z: complex) -> tuple[float, float, complex] | None:
+        """:meth:`parts1` in ~35 numpy calls on short vectors (:class:`_OnePoint`); None
+        outside the closed domain (where :meth:`parts1` has no meaning either)."""
         return self._one.parts(z)
 
     def h(self, w: ArrayLike) -> FArray:
@@ -833,9 +838,10 @@ class HarmonicNavigation(NavigationFunction):
         return phi, grad
 
     def value_and_gradient1(self, w: complex) -> tuple[float, complex]:
-        if not self.domain.clearance1(w) >= 0:  # outside the closed domain (or NaN)
+        parts = self.green._parts1(w)
+        if parts is None:  # outside the closed domain (or NaN)
             return np.nan, complex(np.nan, 0.0)
-        big_g, h, grad_h = self.green._parts1(w)  # inside: no denominator vanishes
+        big_g, h, grad_h = parts
         wd = self.goal
         e = w - wd
         g = (e * e.conjugate()).real
