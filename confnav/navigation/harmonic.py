@@ -651,7 +651,31 @@ class GreenFunction:
         self._cf[:, 1:] = cx
         self._cd = np.zeros((2 * m, n + 1), dtype=np.complex128)
         self._cd[:, :-1] = k * cx
+        self._rows: dict[tuple[int, int], CArray] = {}
         self._one = _OnePoint.of(self._cen, self._images, self._cf, self._cd, self._b, self.pole)
+
+    def _row(self, n: int, n_img: int) -> CArray:
+        """This function's row of :func:`_stacked_parts`: the series coefficients ``_cf``,
+        ``_cd`` padded to ``n`` terms, ``b``, the pole, the image points and their signs
+        padded to ``n_img`` (cached per shape: a fleet's step stacks the same rows again)."""
+        row = self._rows.get((n, n_img))
+        if row is None:
+            pad = ((0, 0), (0, n - self._n))
+            m = self._images.points.size
+            row = np.concatenate(
+                [
+                    np.pad(self._cf, pad).ravel(),
+                    np.pad(self._cd, pad).ravel(),
+                    self._b,
+                    [self.pole],
+                    np.pad(self._images.points, (0, n_img - m)),
+                    np.pad(self._images.signs, (0, n_img - m)),
+                ]
+            ).astype(np.complex128)
+            if len(self._rows) >= 4:
+                self._rows.clear()
+            self._rows[(n, n_img)] = row
+        return row
 
     def parts(self, w: ArrayLike) -> tuple[FArray, FArray, CArray]:
         """``(G, h, grad H)`` at ``w`` (same shape), ``H = S - sum_i s_i L(w; p_i)``, complex
@@ -737,27 +761,16 @@ def _stacked_parts(greens: Sequence[GreenFunction], z: CArray) -> tuple[FArray, 
     p = z.size
     n = max(g._n for g in greens)
     k = cen.c.size
-    uniq: dict[int, list[int]] = {}
-    for i, g in enumerate(greens):
-        uniq.setdefault(id(g), []).append(i)
     n_img = max(g._images.points.size for g in greens)
-    cf = np.zeros((p, 2 * k, n + 1), dtype=np.complex128)
-    cd = np.zeros((p, 2 * k, n + 1), dtype=np.complex128)
-    b = np.zeros((p, k), dtype=np.float64)
-    pole = np.empty(p, dtype=np.complex128)
-    ip = np.zeros((p, n_img), dtype=np.complex128)  # image points, 0 where padded
-    isg = np.zeros((p, n_img), dtype=np.float64)  # their signs, 0 where padded
-    for idx in uniq.values():
-        g = greens[idx[0]]
-        ii = np.asarray(idx, dtype=np.intp)
-        if k:
-            cf[ii, :, : g._n + 1] = g._cf
-            cd[ii, :, : g._n + 1] = g._cd
-            b[ii] = g._b
-        pole[ii] = g.pole
-        m = g._images.points.size
-        ip[ii, :m] = g._images.points
-        isg[ii, :m] = g._images.signs
+    # one row per point (its goal's coefficients, zero padded), stacked in one call
+    table = np.stack([g._row(n, n_img) for g in greens])
+    a, e = 2 * k * (n + 1), 4 * k * (n + 1)
+    cf = table[:, :a].reshape(p, 2 * k, n + 1)
+    cd = table[:, a:e].reshape(p, 2 * k, n + 1)
+    b = table[:, e : e + k].real
+    pole = table[:, e + k]
+    ip = table[:, e + k + 1 : e + k + 1 + n_img]  # image points, 0 where padded
+    isg = table[:, e + k + 1 + n_img :].real  # their signs, 0 where padded
     with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
         s = np.zeros(p, dtype=np.float64)
         grad_h = np.zeros(p, dtype=np.complex128)
