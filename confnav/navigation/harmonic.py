@@ -541,7 +541,10 @@ class _OnePoint(NamedTuple):
         qq = float((qd * qd.conjugate()).real[0])
         aw, ap = size[0], abs(self.pole)
         t = -((1.0 - aw) * (1.0 + aw) * (1.0 - ap) * (1.0 + ap)) / qq
-        g0 = -math.inf if t == -1.0 else 0.5 * float(np.log1p(np.array(t)))
+        if t > -1.0:
+            g0 = 0.5 * float(np.log1p(np.array(t)))
+        else:  # at the pole (-inf), or rounded below -1 / NaN (NaN, as numpy's log1p)
+            g0 = -math.inf if t == -1.0 else math.nan
         return g0 - s, float(np.log(np.array(size[1]))) + s, gh
 
 
