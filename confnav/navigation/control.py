@@ -186,6 +186,12 @@ def _speed_law(
     return np.asarray(unit * v, dtype=np.complex128), np.asarray(sat & (size > 0))
 
 
+def _full(shape: tuple[int, ...], value: Any, dtype: type) -> Any:
+    """``np.full(shape, value, dtype)``; a 0-d array by ``np.array`` (one C call instead of
+    numpy's Python-level ``full``: the one-robot step builds five of them)."""
+    return np.array(value, dtype=dtype) if shape == () else np.full(shape, value, dtype=dtype)
+
+
 def _workspace_contains(cmap: ConformalLike, z: complex) -> bool | None:
     ws = getattr(cmap, "workspace", None)
     if ws is None or not hasattr(ws, "contains"):
@@ -428,11 +434,11 @@ class Controller:
         if arrived or bad:
             u = 0j
         return ControlOutput(
-            u=np.full(shape, u, dtype=np.complex128),
-            status=np.full(shape, status, dtype=np.int8),
-            phi=np.full(shape, np.nan if bad else phi, dtype=np.float64),
-            w=np.full(shape, complex(np.nan, 0.0) if bad else w, dtype=np.complex128),
-            saturated=np.full(shape, sat and not arrived and not bad, dtype=bool),
+            u=_full(shape, u, np.complex128),
+            status=_full(shape, status, np.int8),
+            phi=_full(shape, np.nan if bad else phi, np.float64),
+            w=_full(shape, complex(np.nan, 0.0) if bad else w, np.complex128),
+            saturated=_full(shape, sat and not arrived and not bad, np.bool_),
         )
 
     def _clearance1(self, z: complex) -> float:
@@ -479,7 +485,7 @@ class Controller:
         pts = self._stall_points()
         if pts.size == 0:
             return False
-        return bool(np.min(np.abs(w - pts)) <= self.stall_radius * abs(dw))
+        return bool(np.minimum.reduce(np.abs(w - pts)) <= self.stall_radius * abs(dw))
 
     def from_map_values(
         self, z: ArrayLike, w: ArrayLike, dw: ArrayLike, clearance: ArrayLike | None = None

@@ -456,6 +456,98 @@ def _disk_green(z: CArray, pole: complex) -> FArray:
         return np.asarray(0.5 * np.log1p(-one_minus / (q * q.conjugate()).real), dtype=np.float64)
 
 
+class _OnePoint(NamedTuple):
+    """``(G, h, grad H)`` of :meth:`GreenFunction._eval` at one point: its operations in its
+    order on short vectors, in ~35 numpy calls instead of ~60 on (1, K) arrays with their
+    errstate guard and the domain test (the single-robot control step).
+
+    Every denominator is ``ga w + de``, in one (2, T) array: the holes' ``d = w - c_j`` and
+    ``q = 1 - conj(c_j) w`` (the series variables are ``u = r / d``, ``v = r w / q``), the
+    image points' ``w - p_i`` and ``1 - conj(p_i) w``, and ``w`` and the pole's
+    ``1 - conj(w_d) w``; each entry is bitwise the batch's (``1 w + (-c) = w - c``).  Every
+    complex product, quotient and modulus is numpy's as in the batch: numpy's complex
+    multiply may fuse and its modulus is its own hypot, so Python's scalars differ by an ulp,
+    which ``G_0`` magnifies 30-fold where ``|M| << 1``, and the harmonic gradient's
+    cancellation 100-fold (tests/test_single_robot_path.py, test_fleet_step.py).
+    """
+
+    ga: CArray  # (2, T) with den = ga w + de: rows (d, w - p, w) and (q, 1 - conj(p) w, q_d)
+    de: CArray
+    al: CArray  # (2, K): the series variables (u, v) = (al w + be) / den[:, :K]
+    be: CArray
+    r: FArray
+    rm: FArray  # radii of the M holes (the first M centres)
+    cf: CArray
+    cd: CArray
+    start: CArray  # (2K, n + 1) of ones
+    c: CArray  # centres, then image points (for the gradients of the logarithms)
+    b: FArray
+    sg: FArray
+    pole: complex
+
+    @classmethod
+    def of(
+        cls, cen: _Centres, images: _Images, cf: CArray, cd: CArray, b: FArray, pole: complex
+    ) -> _OnePoint:
+        c, r, p = cen.c, cen.r, images.points
+        one, zero = np.ones(c.size, complex), np.zeros(c.size, complex)
+        ones = np.ones(p.size, complex)
+        return cls(
+            ga=np.array([np.r_[one, ones, 1.0], np.r_[-np.conj(c), -np.conj(p), -np.conj(pole)]]),
+            de=np.array([np.r_[-c, -p, 0.0], np.r_[one, ones, 1.0]]),
+            al=np.array([zero, r + 0j]),
+            be=np.array([r + 0j, zero]),
+            r=r,
+            rm=r[: cen.m],
+            cf=cf,
+            cd=cd,
+            start=np.ones(cf.shape, dtype=np.complex128),
+            c=np.r_[c, p],
+            b=b,
+            sg=images.signs,
+            pole=pole,
+        )
+
+    def parts(self, w: complex) -> tuple[float, float, complex] | None:
+        """``(G, h, grad H)`` at ``w``; None outside the closed domain (as
+        :meth:`CircleDomain.clearance`: ``1 - |w|`` and ``|w - c_j| - r_j``, numpy's moduli);
+        the operations of ``_eval`` in its order, on the rows of one (2, T) array."""
+        k, m = self.r.size, self.rm.size
+        den = self.ga * w + self.de  # (d, w - p, w), (q, 1 - conj(p) w, 1 - conj(w_d) w)
+        size = np.abs(den[:, -1]).tolist()  # |w|, |1 - conj(w_d) w|
+        clearance = 1.0 - size[0]
+        if m:
+            clearance = min(clearance, float(np.minimum.reduce(np.abs(den[0, :m]) - self.rm)))
+        if not clearance >= 0:  # outside (or NaN)
+            return None
+        x = (self.al * w + self.be) / den[:, :k]  # u, v
+        xpow = self.start.copy()
+        xpow[:, 1:] = x.reshape(-1, 1)
+        xpow.cumprod(axis=1, out=xpow)
+        u, q, r = x[0], den[1, :k], self.r
+        dxdw = np.concatenate([-(u * u) / r, r / (q * q)])
+        f = np.einsum("pjk,jk->p", xpow[None], self.cf)
+        fp = np.einsum("pjk,jk,pj->p", xpow[None], self.cd, dxdw[None])
+        top, bot = den[0, :-1], den[1, :-1]  # (d, w - p), (q, 1 - conj(p) w)
+        logs = np.log(np.abs(top / bot))
+        grads = 1.0 / np.conj(top) + self.c / np.conj(bot)
+        s = float(f.real[0] + logs[:k] @ self.b)
+        gh = complex(np.conj(fp[0]) + grads[:k] @ self.b)
+        if self.sg.size:  # H = S - sum_i s_i L(w; p_i), as _Images.value and .gradient
+            s = s - float(logs[k:] @ self.sg)
+            gh = gh - complex(grads[k:] @ self.sg)
+        # G_0 as _disk_green, h = log|1 - conj(w_d) w| + S
+        qd = den[1, -1:]
+        qq = float((qd * qd.conjugate()).real[0])
+        aw, ap = size[0], abs(self.pole)
+        t = -((1.0 - aw) * (1.0 + aw) * (1.0 - ap) * (1.0 + ap)) / qq
+        if t > -1.0:
+            g0 = 0.5 * float(np.log1p(np.array(t)))
+        else:  # at the pole (-inf), or rounded below -1 / NaN (NaN, as numpy's log1p)
+            g0 = -math.inf if t == -1.0 else math.nan
+        return g0 - s, float(np.log(np.array(size[1]))) + s, gh
+
+
 class _Images(NamedTuple):
     """Image pairs ``sum_i s_i L(w; p_i)`` of one pole (module docstring)."""
 
@@ -562,6 +654,31 @@ class GreenFunction:
         self._cf[:, 1:] = cx
         self._cd = np.zeros((2 * m, n + 1), dtype=np.complex128)
         self._cd[:, :-1] = k * cx
+        self._rows: dict[tuple[int, int], CArray] = {}
+        self._one = _OnePoint.of(self._cen, self._images, self._cf, self._cd, self._b, self.pole)
+
+    def _row(self, n: int, n_img: int) -> CArray:
+        """This function's row of :func:`_stacked_parts`: the series coefficients ``_cf``,
+        ``_cd`` padded to ``n`` terms, ``b``, the pole, the image points and their signs
+        padded to ``n_img`` (cached per shape: a fleet's step stacks the same rows again)."""
+        row = self._rows.get((n, n_img))
+        if row is None:
+            pad = ((0, 0), (0, n - self._n))
+            m = self._images.points.size
+            row = np.concatenate(
+                [
+                    np.pad(self._cf, pad).ravel(),
+                    np.pad(self._cd, pad).ravel(),
+                    self._b,
+                    [self.pole],
+                    np.pad(self._images.points, (0, n_img - m)),
+                    np.pad(self._images.signs, (0, n_img - m)),
+                ]
+            ).astype(np.complex128)
+            if len(self._rows) >= 4:
+                self._rows.clear()
+            self._rows[(n, n_img)] = row
+        return row
 
     def parts(self, w: ArrayLike) -> tuple[FArray, FArray, CArray]:
         """``(G, h, grad H)`` at ``w`` (same shape), ``H = S - sum_i s_i L(w; p_i)``, complex
@@ -578,10 +695,16 @@ class GreenFunction:
 
     def parts1(self, z: complex) -> tuple[float, float, complex]:
         """:meth:`parts` of one point as Python scalars: :meth:`_eval` on a 1-point array
-        (the series sums of a batch, bitwise), without :meth:`parts`' reshaping and chunking."""
+        (the series sums of a batch, bitwise), without :meth:`parts`' reshaping and chunking;
+        the control step's faster path is :meth:`_parts1`."""
         with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
             g, h, gh = self._eval(np.array([complex(z)]))
         return float(g[0]), float(h[0]), complex(gh[0])
+
+    def _parts1(self, z: complex) -> tuple[float, float, complex] | None:
+        """:meth:`parts1` in ~35 numpy calls on short vectors (:class:`_OnePoint`); None
+        outside the closed domain (where :meth:`parts1` has no meaning either)."""
+        return self._one.parts(z)
 
     def h(self, w: ArrayLike) -> FArray:
         """``h = log|w - w_d| - G`` (harmonic, ``log|zeta - w_d|`` on the boundary)."""
@@ -641,27 +764,16 @@ def _stacked_parts(greens: Sequence[GreenFunction], z: CArray) -> tuple[FArray, 
     p = z.size
     n = max(g._n for g in greens)
     k = cen.c.size
-    uniq: dict[int, list[int]] = {}
-    for i, g in enumerate(greens):
-        uniq.setdefault(id(g), []).append(i)
     n_img = max(g._images.points.size for g in greens)
-    cf = np.zeros((p, 2 * k, n + 1), dtype=np.complex128)
-    cd = np.zeros((p, 2 * k, n + 1), dtype=np.complex128)
-    b = np.zeros((p, k), dtype=np.float64)
-    pole = np.empty(p, dtype=np.complex128)
-    ip = np.zeros((p, n_img), dtype=np.complex128)  # image points, 0 where padded
-    isg = np.zeros((p, n_img), dtype=np.float64)  # their signs, 0 where padded
-    for idx in uniq.values():
-        g = greens[idx[0]]
-        ii = np.asarray(idx, dtype=np.intp)
-        if k:
-            cf[ii, :, : g._n + 1] = g._cf
-            cd[ii, :, : g._n + 1] = g._cd
-            b[ii] = g._b
-        pole[ii] = g.pole
-        m = g._images.points.size
-        ip[ii, :m] = g._images.points
-        isg[ii, :m] = g._images.signs
+    # one row per point (its goal's coefficients, zero padded), stacked in one call
+    table = np.stack([g._row(n, n_img) for g in greens])
+    a, e = 2 * k * (n + 1), 4 * k * (n + 1)
+    cf = table[:, :a].reshape(p, 2 * k, n + 1)
+    cd = table[:, a:e].reshape(p, 2 * k, n + 1)
+    b = table[:, e : e + k].real
+    pole = table[:, e + k]
+    ip = table[:, e + k + 1 : e + k + 1 + n_img]  # image points, 0 where padded
+    isg = table[:, e + k + 1 + n_img :].real  # their signs, 0 where padded
     with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
         s = np.zeros(p, dtype=np.float64)
         grad_h = np.zeros(p, dtype=np.complex128)
@@ -742,9 +854,10 @@ class HarmonicNavigation(NavigationFunction):
         return phi, grad
 
     def value_and_gradient1(self, w: complex) -> tuple[float, complex]:
-        big_g, h, grad_h = self.green.parts1(w)
-        if not self.domain.clearance1(w) >= 0:  # outside the closed domain
+        parts = self.green._parts1(w)
+        if parts is None:  # outside the closed domain (or NaN)
             return np.nan, complex(np.nan, 0.0)
+        big_g, h, grad_h = parts
         wd = self.goal
         e = w - wd
         g = (e * e.conjugate()).real

@@ -112,7 +112,7 @@ class CircleDomain:
         """:meth:`clearance` of one point (a Python float)."""
         d = 1.0 - abs(w)
         if self.centers.size:
-            d = min(d, float(np.min(np.abs(w - self.centers) - self.radii)))
+            d = min(d, float(np.minimum.reduce(np.abs(w - self.centers) - self.radii)))
         return d
 
     def contains(self, w: ArrayLike) -> NDArray[np.bool_]:
