@@ -42,6 +42,9 @@ SOLVER_PATHS = (
     "confnav/types.py",
     "confnav/scenes",
 )
+#: The solver plus the navigation functions, control law and simulation (no services, no
+#: atlas): what the navigation and map-evaluation benchmarks run.
+NAVIGATION_PATHS = (*SOLVER_PATHS, "confnav/navigation", "confnav/maps")
 
 
 @dataclass(frozen=True)
@@ -67,7 +70,12 @@ BENCHMARKS: dict[str, Bench] = {
         quick=("--limit", "60"),
         measures=SOLVER_PATHS,
     ),
-    "eval": Bench("bench_eval.py", "eval.json", "map evaluation and control-step costs"),
+    "eval": Bench(
+        "bench_eval.py",
+        "eval.json",
+        "map evaluation and control-step costs",
+        measures=NAVIGATION_PATHS,
+    ),
     "scale": Bench(
         "bench_scale.py",
         "scale.json",
@@ -80,6 +88,7 @@ BENCHMARKS: dict[str, Bench] = {
         "navigation_defaults.json",
         "success / path ratio with the library defaults on realistic scenes",
         quick=("--starts", "20", "--only", "default", "--no-cost"),
+        measures=NAVIGATION_PATHS,
     ),
     "services": Bench("bench_services.py", "services.json", "latency and CPU over real Zenoh"),
     "mapimport": Bench(
