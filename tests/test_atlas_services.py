@@ -11,8 +11,10 @@ from __future__ import annotations
 import itertools
 import json
 import shutil
+import subprocess
 import tempfile
 import threading
+import time
 from collections import defaultdict
 from pathlib import Path
 
@@ -30,7 +32,7 @@ from confnav.schemas import (
 )
 from confnav.services.bus import ZenohBus, zenoh_config
 from confnav.services.launcher import LaunchConfig, Launcher, ServiceSpec
-from conftest import RobotWatch, launched_system, wait_for
+from conftest import RobotWatch, confnav_cmd, launched_system, subprocess_env, wait_for
 from mcap.reader import make_reader
 
 from confnav.atlas import plan
@@ -298,6 +300,7 @@ def test_two_transform_instances_share_an_atlas(tmp_path: Path) -> None:
 
         n_solved = wait_for(per_instance, timeout=10, interval=0.2)
         assert min(n_solved) >= jobs_a // 4, n_solved  # split, not one instance doing it all
+        print(f"{jobs_a} chart jobs; solved per instance {n_solved}; both claimed {len(both)}")
 
         # kill t1 while it holds claims on the next atlas: t2 solves them and completes it
         before = {z: set(c) for z, c in claims.claimed.items()}
@@ -316,3 +319,80 @@ def test_two_transform_instances_share_an_atlas(tmp_path: Path) -> None:
         assert index_b.revision == atlas_revision([m.revision for m in ref_b.charts])
         with claims.lock:
             assert victims <= claims.claimed[zids["t2"]]  # t2 took over the killed claims
+
+
+@pytest.mark.timeout(200)
+def test_replayed_atlas_recording_drives_a_fresh_controller(tmp_path: Path) -> None:
+    """Issue 15: an atlas run is recorded (transform, controller, simulator, recorder
+    processes), then ``confnav replay --live --inputs-only`` (a process) re-publishes it to a
+    fresh controller process with no transform service on the bus: the replay answers the
+    controller's transform, atlas and chart queries from the recording, and the controller
+    answers the replayed poses with the recorded commands (same pose: same command)."""
+    ws_file = tmp_path / "corr.json"
+    SCENE.workspace.save(ws_file)
+    mcap_path = tmp_path / "run.mcap"
+    x, y = STARTS["a1"]
+    sim = ["--workspace", f"corr={ws_file}", "--time-scale", "2", "--robot", f"a1=corr:{x},{y}"]
+    record = [
+        ServiceSpec("recorder", ["--out", str(mcap_path)]),
+        ServiceSpec("transform", ["--workspace", f"corr={ws_file}"]),
+        ServiceSpec("controller", []),
+        ServiceSpec("simulator", sim),
+    ]
+    goal = Goal(robot_id="a1", ws_id="corr", goal=(SCENE.goal.real, SCENE.goal.imag), v_max=1.0)
+    with launched_system(record, tmp_path / "rec", prefix="cnr") as run:
+        watch = RobotWatch()
+        watch.attach(run.bus, run.keys)
+        wait_for(
+            lambda: [r for r in run.bus.query(run.keys.ws("corr", "atlas")) if r.ok],
+            timeout=120,
+            interval=0.5,
+        )
+        run.bus.publish(run.keys.robot("a1", "goal"), encode(goal))
+
+        def arrived() -> bool:
+            with watch.lock:
+                return bool(watch.status["a1"]) and watch.status["a1"][-1].state == "arrived"
+
+        wait_for(arrived, timeout=120, interval=0.2)
+        assert run.shutdown().get("recorder") == 0
+    recorded: dict[int, VelocityCommand] = {}
+    with open(mcap_path, "rb") as f:
+        for _schema, channel, message in make_reader(f).iter_messages():
+            if channel.topic.endswith("/cmd_vel"):
+                cmd = decode(VelocityCommand, message.data)
+                if cmd.pose_seq >= 0 and cmd.chart is not None:
+                    recorded[cmd.pose_seq] = cmd
+    assert len({c.chart for c in recorded.values()}) >= 3  # the run switched charts
+
+    live: dict[int, VelocityCommand] = {}
+    lock = threading.Lock()
+
+    def on_cmd(key: str, payload: bytes) -> None:
+        c = decode(VelocityCommand, payload)
+        with lock:
+            live[c.pose_seq] = c
+
+    with launched_system([ServiceSpec("controller", [])], tmp_path / "rp", prefix="cnp") as rp:
+        rp.bus.subscribe(rp.keys.any_robot("cmd_vel"), on_cmd)
+        zenoh_args = ["--mode", "client", "--connect", rp.launcher.config.connect[0]]
+        res = subprocess.run(
+            [*confnav_cmd("replay", str(mcap_path), "--live", "--inputs-only"), *zenoh_args],
+            capture_output=True,
+            text=True,
+            timeout=120,
+            env=subprocess_env(),
+        )
+        assert res.returncode == 0, res.stdout + res.stderr
+        assert "/ws/corr/atlas" in res.stdout  # the index went out too
+        time.sleep(0.5)  # the last commands
+        with lock:
+            answered = {s: c for s, c in live.items() if s >= 0 and c.chart is not None}
+    common = set(answered) & set(recorded)
+    print(f"replayed atlas: {len(common)} of {len(recorded)} recorded commands recomputed live")
+    # poses superseded in either run (a newer pose waiting) have no command there
+    assert len(common) >= 0.5 * len(recorded), (len(common), len(recorded), len(answered))
+    for seq in sorted(common):
+        a, b = answered[seq], recorded[seq]
+        assert a.chart == b.chart and a.map_revision == b.map_revision, seq
+        assert abs(complex(*a.linear) - complex(*b.linear)) <= 1e-9, seq
