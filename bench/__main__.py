@@ -105,8 +105,10 @@ BENCHMARKS: dict[str, Bench] = {
 
 
 def head() -> tuple[str, bool]:
-    """(commit of HEAD, whether tracked files differ from it)."""
-    return git("rev-parse", "HEAD"), bool(git("status", "--porcelain", "--untracked-files=no"))
+    """(commit of HEAD, whether tracked files other than results differ from it: a result
+    written by an earlier benchmark of the same session does not make the code dirty)."""
+    changed = git("status", "--porcelain", "--untracked-files=no", "--", ".", ":!bench/results")
+    return git("rev-parse", "HEAD"), bool(changed)
 
 
 def recorded_commit(doc: Any) -> str | None:

@@ -93,3 +93,22 @@ def test_solver_results_go_stale_only_with_the_solver(monkeypatch: pytest.Monkey
     assert bm.freshness("services", "a" * 40, "b" * 40) == " (stale: 2 files changed)"
     changed.append("confnav/conformal/gnk.py")
     assert bm.freshness("core", "a" * 40, "b" * 40) == " (stale: 1 files changed)"
+
+
+def test_a_result_written_earlier_does_not_make_the_code_dirty(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """``dirty`` asks git about tracked files other than bench/results (a result of an earlier
+    benchmark in the same session is not a code change)."""
+    import bench.__main__ as bm
+
+    seen: list[tuple[str, ...]] = []
+
+    def fake_git(*args: str) -> str:
+        seen.append(args)
+        return "abc" if args[0] == "rev-parse" else ""
+
+    monkeypatch.setattr(bm, "git", fake_git)
+    assert bm.head() == ("abc", False)
+    status = next(a for a in seen if a[0] == "status")
+    assert ":!bench/results" in status

@@ -147,3 +147,19 @@ def test_explicit_k_that_fails_the_check_is_reported(
     assert "k=3 is too small" in err and "1 spurious" in err
     assert main([*args, "--k", "auto"]) == 0  # auto k is checked already: no extra check
     assert "too small" not in capsys.readouterr().err
+
+
+def test_unicycle_path_ratios_are_those_of_the_steered_point(room: Path, tmp_path: Path) -> None:
+    """A unicycle steers its look-ahead point to the goal; its path ratio compares that point's
+    path with the shortest path from where that point starts (the axle's path ends d short
+    of the goal, and its ratio was reported below 1 on an imported floor plan: 0.936)."""
+    out = tmp_path / "u.json"
+    args = ["simulate", str(room), "--goal=1.5,-1.5", "--random", "12", "--seed", "3"]
+    assert main([*args, "--robot-radius", "0.1", "--unicycle", "0.3", f"--json={out}"]) == 0
+    doc = json.loads(out.read_text())
+    assert doc["summary"]["success_rate"] == 1.0
+    tol = doc["params"]["goal_tol"]
+    for r in doc["runs"]:
+        # no path is shorter than the shortest one, up to the goal tolerance
+        assert r["point_path_length"] >= r["shortest_path"] - tol - 1e-9
+        assert r["path_ratio"] == pytest.approx(r["point_path_length"] / r["shortest_path"])

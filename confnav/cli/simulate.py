@@ -175,7 +175,7 @@ def run_simulate(args: argparse.Namespace) -> int:
     from confnav.maps.footprint import inflate
     from confnav.navigation.control import Controller
     from confnav.navigation.shortest_path import ShortestPaths
-    from confnav.navigation.unicycle import simulate_robots
+    from confnav.navigation.unicycle import UnicycleResult, look_ahead_point, simulate_robots
     from confnav.scenes.scenarios import random_starts
 
     ws = Workspace.load(args.workspace)
@@ -222,15 +222,22 @@ def run_simulate(args: argparse.Namespace) -> int:
         t_max=args.t_max,
         record_paths=args.plot is not None,
     )
-    shortest = ShortestPaths(nav_ws, ctl.goal).lengths(res.starts)
     runs = [r.to_dict() for r in res.runs()]
-    for r, s in zip(runs, shortest, strict=True):
+    if isinstance(res, UnicycleResult):
+        # the look-ahead point is what is steered to the goal: its path against the shortest
+        # from where it starts (the axle's path ends d short of the goal: ratios below 1)
+        origin = look_ahead_point(res.starts, res.headings, float(args.unicycle))
+        length = res.point_length
+        for r, p in zip(runs, length, strict=True):
+            r["point_path_length"] = float(p)
+    else:
+        origin, length = res.starts, res.path_length
+    shortest = ShortestPaths(nav_ws, ctl.goal).lengths(origin)
+    for r, s, p in zip(runs, shortest, length, strict=True):
         r["shortest_path"] = float(s)
-        r["path_ratio"] = (
-            r["path_length"] / float(s) if r["success"] and np.isfinite(s) and s > 0 else None
-        )
+        r["path_ratio"] = float(p) / float(s) if r["success"] and np.isfinite(s) and s > 0 else None
     ok = res.success & np.isfinite(shortest) & (shortest > 0)
-    ratio = res.path_length[ok] / shortest[ok]
+    ratio = length[ok] / shortest[ok]
     summary = {
         "n": int(res.starts.size),
         "success_rate": res.success_rate,
@@ -279,6 +286,8 @@ def run_simulate(args: argparse.Namespace) -> int:
             args.plot,
             title=f"{args.workspace}: {100 * res.success_rate:.1f}% of {summary['n']} arrived",
             outcomes=[r["status"] for r in runs],
+            walls=ws if body else None,
+            shrink=body,
         )
     if args.require is not None and res.success_rate < args.require:
         print(

@@ -525,11 +525,26 @@ def _own_map(
         v = mesh.eta[mesh.tau == 0]
         turn = np.angle((np.roll(v, -1) - v) / (v - np.roll(v, 1)))
         sharpest = float(np.degrees(np.min(np.pi - np.abs(turn))))
+        if sharpest < NEEDLE_DEGREES:
+            why = (
+                f"its sharpest corner is {sharpest:.1f} degrees -- needle-like corners make the "
+                "equation nearly singular: blunt them or use more nodes"
+            )
+        else:  # no needle: what is left is a crowded region (measured on an imported map)
+            why = (
+                f"its sharpest corner is {sharpest:.1f} degrees, not needle-like; a region "
+                "reached through a narrow passage (crowding) also makes the equation "
+                "ill-conditioned: widen the passage or solve the workspace as an atlas "
+                "(confnav atlas)"
+            )
         raise ConvergenceError(
-            f"{name}: the boundary integral equation did not converge ({exc}); its sharpest "
-            f"corner is {sharpest:.1f} degrees -- needle-like corners make the equation "
-            "nearly singular: blunt them or use more nodes"
+            f"{name}: the boundary integral equation did not converge ({exc}); {why}"
         ) from exc
+
+
+#: Corners sharper than this (degrees) are needle-like: the GNK operator of such a polygon can
+#: have a spurious eigenvalue near 0 (confnav.conformal.meshing).
+NEEDLE_DEGREES = 20.0
 
 
 #: Points of other boundaries on the wrong side of a disk map's circle, all within this band

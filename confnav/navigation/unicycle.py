@@ -172,10 +172,12 @@ class UnicycleResult(SimulationResult):
     are axle
     positions, plus the start and final ``headings`` (rad). ``min_clearance`` is the *body's*
     (axle clearance minus the radius) along the whole path; ``final_distance`` is that of the
-    look-ahead point."""
+    look-ahead point, and so is ``point_length``, the length of the path of the point that
+    is steered to the goal (``path_length`` is the axle's)."""
 
     headings: FArray
     final_theta: FArray
+    point_length: FArray
 
 
 def _lowered(clearance: Any, margin: float) -> Any:
@@ -224,6 +226,7 @@ def simulate_unicycle(
     status = np.full(n, -1, dtype=np.int8)
     t = np.zeros(n)
     length = np.zeros(n)
+    plength = np.zeros(n)
     minclr = c.copy()
     nsteps = np.zeros(n, dtype=np.int64)
     vmax = np.zeros(n)
@@ -256,6 +259,8 @@ def simulate_unicycle(
         hit, low = _chord_check(z[a], zn, c[a] - sag, cn - sag, _lowered(body, float(sag.max())))
         minclr[a] = np.minimum(minclr[a], low)
         length[a] += np.abs(v) * h
+        # the look-ahead point p = z + d e^{i theta} moves at |v + i d omega| along the arc
+        plength[a] += np.abs(v + 1j * uc.d * om) * h
         vmax[a] = np.maximum(vmax[a], np.abs(v))
         z[a], th[a], c[a], t[a] = zn, thn, cn, t[a] + h
         nsteps[a] += 1
@@ -288,6 +293,7 @@ def simulate_unicycle(
         paths=paths,
         headings=th0,
         final_theta=th,
+        point_length=plength,
     )
 
 

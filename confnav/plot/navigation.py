@@ -16,6 +16,7 @@ from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 from numpy.typing import NDArray
 
+from confnav.geometry import Workspace
 from confnav.navigation.control import Controller
 from confnav.plot.style import SMALL_CIRCLE, label_circles, label_polygons, save
 from confnav.types import CArray
@@ -50,13 +51,19 @@ def plot_workspace(
     paths: Sequence[CArray] = (),
     n_grid: int = 260,
     outcomes: Sequence[str] = (),
+    walls: Workspace | None = None,
+    shrink: float = 0.0,
 ) -> None:
     """Level sets of V = phi(T(x)), the obstacles, the goal and the trajectories (axes in
-    metres; with ``outcomes`` a marker per path end and a legend)."""
+    metres; with ``outcomes`` a marker per path end and a legend).
+
+    For a robot with a body the map is of the free space shrunk by ``shrink``: then ``walls``
+    (the real workspace) are drawn as the walls and obstacles, and the shrunk free space that
+    the robot's centre keeps to as a dashed outline."""
     ws = getattr(ctl.cmap, "workspace", None)
     if ws is None:
         raise ValueError("the map has no workspace to plot")
-    x0, y0, x1, y1 = ws.bounds
+    x0, y0, x1, y1 = (walls or ws).bounds
     x = np.linspace(x0, x1, n_grid)
     y = np.linspace(y0, y1, n_grid)
     z = x[None, :] + 1j * y[:, None]
@@ -64,13 +71,19 @@ def plot_workspace(
     inside = ws.contains(z)
     v[inside] = ctl.lyapunov(z[inside])
     ax.contour(x, y, v, levels=_levels(v), linewidths=0.6, cmap="viridis")
-    for j, p in enumerate(ws.boundaries):
+    for j, p in enumerate((walls or ws).boundaries):
         q = np.r_[p, p[:1]]
         if j == 0:
             ax.plot(q.real, q.imag, "k-", lw=1.2)
         else:
             ax.fill(q.real, q.imag, color="0.55", ec="k", lw=1.0)
-    label_polygons(ax, ws.obstacles)
+    if walls is not None:
+        label = f"free space of the centre (walls grown by {shrink:g} m)"
+        for p in ws.boundaries:
+            q = np.r_[p, p[:1]]
+            ax.plot(q.real, q.imag, "--", color="tab:blue", lw=0.8, label=label)
+            label = "_"  # one legend entry
+    label_polygons(ax, ws.obstacles)  # the obstacles of the map (circle i <-> obstacle i)
     _trajectories(ax, paths, outcomes)
     ax.plot(ctl.goal.real, ctl.goal.imag, "k*", ms=12, mfc="gold", ls="none", label="goal")
     ax.set_aspect("equal")
@@ -78,6 +91,10 @@ def plot_workspace(
     ax.set_ylabel("y [m]")
     ax.set_title(f"workspace: level sets of {ctl.navfn.name} phi(T(x))")
     ax.legend(loc="best", fontsize=8, framealpha=0.8)
+
+
+#: Smallest magnification worth an inset (below it the main view shows the small disks).
+MIN_ZOOM = 3.0
 
 
 def plot_circle_domain(
@@ -94,14 +111,23 @@ def plot_circle_domain(
         lo = complex(c.real.min(), c.imag.min())
         hi = complex(c.real.max(), c.imag.max())
         side = max(hi.real - lo.real, hi.imag - lo.imag, 20 * float(radii[small].max()), 0.01)
-        side *= 1.6
-        mid = (lo + hi) / 2
-        inset = ax.inset_axes((0.03, 0.03, 0.36, 0.36))
-        _draw_domain(inset, ctl, mapped, mid - side / 2 * (1 + 1j), side, n_grid // 2)
-        inset.set_xticks([])
-        inset.set_yticks([])
-        inset.set_title(f"x{2 / side:.0f}", fontsize=7, pad=2)
-        ax.indicate_inset_zoom(inset, edgecolor="0.3")
+        side = min(side * 1.6, 2.0)
+        if 2.0 / side >= MIN_ZOOM:  # else the main view shows them well enough
+            # the window inside the view [-1, 1]^2 (a zoom box never sticks out of the axes)
+            mid = (lo + hi) / 2
+            half = side / 2
+            mid = complex(
+                min(max(mid.real, -1 + half), 1 - half), min(max(mid.imag, -1 + half), 1 - half)
+            )
+            # the inset in the corner of the axes farthest from the window it magnifies
+            x0 = 0.61 if mid.real < 0 else 0.03
+            y0 = 0.61 if mid.imag < 0 else 0.03
+            inset = ax.inset_axes((x0, y0, 0.36, 0.36))
+            _draw_domain(inset, ctl, mapped, mid - half * (1 + 1j), side, n_grid // 2)
+            inset.set_xticks([])
+            inset.set_yticks([])
+            inset.set_title(f"x{2 / side:.0f}", fontsize=7, pad=2)
+            ax.indicate_inset_zoom(inset, edgecolor="0.3")
     ax.set_aspect("equal")
     ax.set_xlabel("Re w (dimensionless)")
     ax.set_ylabel("Im w")
@@ -149,11 +175,17 @@ def _trajectories(ax: Axes, paths: Sequence[CArray], outcomes: Sequence[str] = (
 
 
 def navigation_figure(
-    ctl: Controller, paths: Sequence[CArray], title: str = "", outcomes: Sequence[str] = ()
+    ctl: Controller,
+    paths: Sequence[CArray],
+    title: str = "",
+    outcomes: Sequence[str] = (),
+    walls: Workspace | None = None,
+    shrink: float = 0.0,
 ) -> Figure:
-    """Two panels: workspace (seed Fig. 2) and circle domain (seed Fig. 3)."""
+    """Two panels: workspace (seed Fig. 2) and circle domain (seed Fig. 3); ``walls`` and
+    ``shrink`` as in :func:`plot_workspace`."""
     fig, (a, b) = plt.subplots(1, 2, figsize=(12, 6), constrained_layout=True)
-    plot_workspace(a, ctl, paths, outcomes=outcomes)
+    plot_workspace(a, ctl, paths, outcomes=outcomes, walls=walls, shrink=shrink)
     plot_circle_domain(b, ctl, paths)
     if title:
         fig.suptitle(title)
@@ -164,5 +196,12 @@ def save_navigation_figure(
     ctl: Controller, paths: Sequence[CArray], path: str | Path, title: str = "", **kw: Any
 ) -> Path:
     """Write :func:`navigation_figure` to ``path`` (PNG/PDF/SVG by extension)."""
-    fig = navigation_figure(ctl, paths, title, outcomes=kw.get("outcomes", ()))
+    fig = navigation_figure(
+        ctl,
+        paths,
+        title,
+        outcomes=kw.get("outcomes", ()),
+        walls=kw.get("walls"),
+        shrink=kw.get("shrink", 0.0),
+    )
     return save(fig, path, dpi=kw.get("dpi", 120))
