@@ -1,8 +1,25 @@
-"""The transform service's side of atlases (issue 15 item 3).
+"""The transform service's side of atlases (issue 15 items 1 and 3).
 
 A workspace too crowded for one map (:func:`confnav.atlas.needs_atlas`, or a
-``CrowdingError`` of the single solve) is solved as an atlas (:func:`solve_or_atlas`, in the
-service's worker).  The service then publishes
+``CrowdingError`` of the single solve in a worker, :func:`single_or_atlas`) is solved as an
+atlas by :class:`ChartShare` in a thread of the service: :func:`confnav.atlas.solve_atlas`
+decomposes it there and hands the cells to a :class:`SharedExecutor`, which solves them on
+the service's worker pool (``--workers`` at once) and splits them with the other transform
+service instances on the bus:
+
+- a cell's chart job has a content key (a hash of the cell workspace, ``tol``, the accepted
+  error and the probe depth: :func:`job_key`); before solving it, an instance queries
+  ``{prefix}/chart/{atlas}/{job}`` (answered by every instance that holds the result, solved
+  or fetched) and skips a job another instance has claimed;
+- a claim is a liveliness token ``{prefix}/claim/{atlas}/{job}/{zid}``, declared while the
+  chart solves and undeclared after its result is served; a dead instance's tokens vanish
+  with its session, so its jobs are free again and solved by the others;
+- each instance starts with its own share (job ``j`` of ``n`` is instance ``j mod n``'s, by
+  rank of the zids of the live transform services) and then takes whatever is left; two
+  instances that claim one job at the same instant both solve it, harmless (the solve is a
+  deterministic function of the job), so the result is that of one instance alone.
+
+The service then publishes
 
 - one ``TransformSolution`` per chart on ``{prefix}/ws/{ws}~c{i}/transform`` (the cell's own
   workspace id: queryable exactly like any transform),
@@ -16,43 +33,72 @@ A transform query on the atlas workspace itself is answered with ``reply_err`` s
 
 from __future__ import annotations
 
+import concurrent.futures as cf
+import hashlib
+import json
+import logging
 import threading
 import time
+from collections import OrderedDict, defaultdict
+from collections.abc import Callable, Iterable, Iterator
 from typing import TYPE_CHECKING, Any
 
 from confnav.schemas import AtlasCell, AtlasIndex, SolveDiagnostics, TransformSolution, encode
-from confnav.services.bus import QueryError, key_matches
+from confnav.services.bus import Closeable, QueryError, key_matches
 
 from confnav.atlas.wire import ATLAS_MARKER, atlas_revision, chart_ws_id
 
 if TYPE_CHECKING:
     from confnav.services.transform import TransformService
 
-#: Chart solves of one atlas run one after the other inside the service's solver worker (the
-#: service's pool already runs ``--workers`` workspaces at once); ``confnav atlas`` and
-#: :func:`confnav.atlas.solve_atlas` solve charts in parallel.
-ATLAS_WORKERS = 1
+log = logging.getLogger(__name__)
+
+#: Atlases whose chart results an instance keeps serving to its peers (least recent dropped).
+KEEP_ATLASES = 8
+
+#: Seconds between checks of the claims while waiting for a peer's chart (a claim that
+#: vanishes or a local solve that ends wakes the wait at once).
+POLL = 0.5
 
 
-def solve_or_atlas(ws: Any, tol: float) -> dict[str, Any]:
-    """One map's result dict, or ``{"atlas": index fields, "charts": [result dicts]}``."""
+def single_or_atlas(ws: Any, tol: float) -> dict[str, Any]:
+    """Worker: one map's result dict, or ``{"needs_atlas": why}`` (the service then solves
+    the atlas chart by chart, :meth:`ChartShare.solve`)."""
     from confnav.services.transform import solution_result
 
-    from confnav.atlas.charts import needs_atlas, solve_atlas
-    from confnav.atlas.wire import index_fields
+    from confnav.atlas.charts import needs_atlas
     from confnav.conformal.solver import solve
     from confnav.errors import CrowdingError
 
-    if not needs_atlas(ws):
-        try:
-            return solution_result(solve(ws, tol=tol), tol)
-        except CrowdingError:
-            pass
-    atlas = solve_atlas(ws, tol, workers=ATLAS_WORKERS)
+    if needs_atlas(ws):
+        return {"needs_atlas": "too elongated for one map"}
+    try:
+        return solution_result(solve(ws, tol), tol)
+    except CrowdingError as exc:
+        return {"needs_atlas": f"one map crowds: {exc}"}
+
+
+def atlas_result(atlas: Any) -> dict[str, Any]:
+    """The result dict of a solved :class:`confnav.atlas.Atlas`: ``{"atlas": index fields,
+    "charts": [result dicts]}`` (what :func:`messages_of` turns into messages)."""
+    from confnav.services.transform import solution_result
+
+    from confnav.atlas.wire import index_fields
+
     return {
         "atlas": index_fields(atlas),
-        "charts": [solution_result(m, tol) for m in atlas.charts],
+        "charts": [solution_result(m, atlas.tol) for m in atlas.charts],
     }
+
+
+def job_key(*args: Any) -> str:
+    """Content key of a chart job (the arguments of the cell solve: cell workspace JSON,
+    ``tol``, accepted error, probe depth): equal jobs give equal charts on every instance."""
+    return hashlib.sha256(json.dumps([repr(a) for a in args]).encode()).hexdigest()[:32]
+
+
+class AtlasAbandoned(Exception):
+    """The atlas solve was abandoned (timed out, superseded or the service stopped)."""
 
 
 def _pt(p: Any) -> tuple[float, float]:
@@ -189,3 +235,188 @@ def finish_atlas(svc: TransformService, ws_id: str, h: str, result: dict[str, An
     svc._publish_status(ws_id, "solved", h, index.revision, f"atlas of {len(charts)} charts")
     svc.solved.set()
     return None
+
+
+ChartResult = tuple[str, float, str]
+"""What a cell solve returns (:func:`confnav.atlas.charts._solve_one`): the map's JSON (""
+if it failed), the solve's wall time, the failure message."""
+
+
+class ChartShare:
+    """An instance's part in solving atlases with its peers (see the module docstring):
+    serves the chart results it holds on ``{prefix}/chart/{atlas}/{job}`` and tracks the
+    claims ``{prefix}/claim/{atlas}/{job}/{zid}`` of every instance."""
+
+    def __init__(self, svc: TransformService) -> None:
+        self.svc = svc
+        self.prefix = svc.keys.prefix
+        self._cond = threading.Condition()
+        # atlas key -> job key -> encoded ChartResult (least recently used atlas first)
+        self._results: OrderedDict[str, dict[str, bytes]] = OrderedDict()
+        self._claims: defaultdict[tuple[str, str], set[str]] = defaultdict(set)
+
+    def start(self) -> list[Closeable]:
+        """Declare the chart queryable and the claim subscriber (the handles to close)."""
+        return [
+            # not complete: each instance holds some results, a query must reach them all
+            self.svc.bus.queryable(f"{self.prefix}/chart/*/*", self._on_query, complete=False),
+            self.svc.bus.subscribe_liveliness(f"{self.prefix}/claim/*/*/*", self._on_claim),
+        ]
+
+    # bus side ------------------------------------------------------------------------
+    def _on_query(self, keyexpr: str, payload: bytes | None) -> list[tuple[str, bytes]]:
+        with self._cond:
+            return [
+                (key, data)
+                for a, jobs in self._results.items()
+                for j, data in jobs.items()
+                if key_matches(keyexpr, key := f"{self.prefix}/chart/{a}/{j}")
+            ]
+
+    def _on_claim(self, key: str, alive: bool) -> None:
+        parts = key[len(self.prefix) + 1 :].split("/")
+        if len(parts) != 4 or parts[0] != "claim":
+            return
+        _, a, j, zid = parts
+        with self._cond:
+            if alive:
+                self._claims[(a, j)].add(zid)
+            else:
+                self._claims[(a, j)].discard(zid)
+                if not self._claims[(a, j)]:
+                    del self._claims[(a, j)]
+            self._cond.notify_all()
+
+    def _claimed_by_peer(self, a: str, j: str) -> bool:
+        with self._cond:
+            return bool(self._claims.get((a, j), set()) - {self.svc.bus.zid})
+
+    def _keep(self, a: str, j: str, result: ChartResult) -> None:
+        with self._cond:
+            self._results.setdefault(a, {})[j] = json.dumps(list(result)).encode()
+            self._results.move_to_end(a)
+            while len(self._results) > KEEP_ATLASES:
+                self._results.popitem(last=False)
+
+    def _fetch(self, a: str, j: str) -> ChartResult | None:
+        """A peer's result of job ``j`` (None if nobody holds it)."""
+        for r in self.svc.bus.query(f"{self.prefix}/chart/{a}/{j}", timeout=2.0):
+            if not r.ok or r.payload is None:
+                continue
+            try:
+                text, wall, err = json.loads(r.payload)
+                result = (str(text), float(wall), str(err))
+            except (ValueError, TypeError):
+                log.warning("bad chart result on %s: ignored", r.key)
+                continue
+            self._keep(a, j, result)
+            return result
+        return None
+
+    def _order(self, n: int) -> list[int]:
+        """Job order for this instance: its share (``j mod size == rank``, by the live
+        transform services' zids) first, then the others' from their ends (stealing)."""
+        alive = self.svc.bus.alive(self.svc.keys.alive_of("transform"))
+        zids = {k.rsplit("/", 1)[-1] for k in alive}
+        ranked = sorted(zids | {self.svc.bus.zid})
+        size, rank = len(ranked), ranked.index(self.svc.bus.zid)
+        mine = [i for i in range(n) if i % size == rank]
+        return mine + [i for i in reversed(range(n)) if i % size != rank]
+
+    # solving -------------------------------------------------------------------------
+    def solve(self, h: str, defn: Any, abandoned: Callable[[], bool]) -> dict[str, Any]:
+        """Solve the atlas of definition ``defn`` (hash ``h``) with the peers (a thread of
+        the service); raises :class:`AtlasAbandoned` or what ``solve_atlas`` raises."""
+        from confnav.services.transform import workspace_of
+
+        from confnav.atlas.charts import solve_atlas
+
+        ex = SharedExecutor(self, h[:32], abandoned)
+        atlas = solve_atlas(workspace_of(defn), defn.tol, workers=self.svc.workers, executor=ex)
+        return atlas_result(atlas)
+
+    def run(
+        self,
+        a: str,
+        fn: Callable[..., ChartResult],
+        jobs: list[tuple[Any, ...]],
+        abandoned: Callable[[], bool],
+    ) -> list[ChartResult]:
+        """Every job's result, in order: fetched from a peer, or solved on the service's
+        pool (at most ``workers`` at once) under a claim token."""
+        keys = [job_key(*args) for args in jobs]
+        order = self._order(len(jobs))
+        results: dict[int, ChartResult] = {}
+        running: dict[cf.Future[ChartResult], int] = {}
+        tokens: dict[int, Closeable] = {}
+        failures: defaultdict[int, int] = defaultdict(int)
+        bus, svc = self.svc.bus, self.svc
+
+        def wake(_f: object) -> None:
+            with self._cond:
+                self._cond.notify_all()
+
+        try:
+            while len(results) < len(jobs):
+                if abandoned():
+                    raise AtlasAbandoned(f"atlas {a}: abandoned")
+                free = svc.workers - len(running)
+                for i in order:
+                    if free <= 0:
+                        break
+                    if i in results or i in tokens or self._claimed_by_peer(a, keys[i]):
+                        continue
+                    got = self._fetch(a, keys[i])
+                    if got is not None:
+                        results[i] = got
+                        svc.count("charts_fetched")
+                        continue
+                    tokens[i] = bus.declare_token(f"{self.prefix}/claim/{a}/{keys[i]}/{bus.zid}")
+                    fut = svc.submit_job(fn, *jobs[i])
+                    fut.add_done_callback(wake)
+                    running[fut] = i
+                    free -= 1
+                if len(results) == len(jobs):
+                    break
+                with self._cond:
+                    if not any(f.done() for f in running):
+                        self._cond.wait(POLL)
+                for fut in [f for f in running if f.done()]:
+                    i = running.pop(fut)
+                    try:
+                        res = fut.result()
+                    except (cf.BrokenExecutor, cf.CancelledError) as exc:
+                        tokens.pop(i).close()  # free again: retried (here or by a peer)
+                        failures[i] += 1
+                        svc.count("chart_retries")
+                        if failures[i] >= svc.max_attempts:
+                            from confnav.errors import SolverError
+
+                            raise SolverError(
+                                f"atlas {a}: chart job failed {failures[i]} times ({exc!r})"
+                            ) from exc
+                        continue
+                    self._keep(a, keys[i], res)  # served before the claim goes
+                    tokens.pop(i).close()
+                    results[i] = res
+                    svc.count("charts_solved")
+        finally:
+            for t in tokens.values():
+                t.close()
+            for f in running:
+                f.cancel()
+        return [results[i] for i in range(len(jobs))]
+
+
+class SharedExecutor(cf.Executor):
+    """The executor :func:`confnav.atlas.solve_atlas` solves one atlas's cells with: its
+    ``map`` runs :meth:`ChartShare.run` (only ``map`` is provided)."""
+
+    def __init__(self, share: ChartShare, atlas_key: str, abandoned: Callable[[], bool]) -> None:
+        self.share, self.atlas_key, self.abandoned = share, atlas_key, abandoned
+
+    def map(  # type: ignore[override]
+        self, fn: Callable[..., ChartResult], *iterables: Iterable[Any], **_kw: Any
+    ) -> Iterator[ChartResult]:
+        jobs = list(zip(*iterables, strict=True))
+        return iter(self.share.run(self.atlas_key, fn, jobs, self.abandoned))

@@ -84,7 +84,9 @@ class Bus(Protocol):
         self, selector: str, timeout: float = 2.0, payload: bytes | None = None
     ) -> list[Reply]: ...
 
-    def queryable(self, keyexpr: str, handler: QueryHandler) -> Closeable: ...
+    def queryable(
+        self, keyexpr: str, handler: QueryHandler, complete: bool = True
+    ) -> Closeable: ...
 
     def declare_token(self, key: str) -> Closeable: ...
 
@@ -387,7 +389,10 @@ class ZenohBus(_Subscriptions):
                 out.append(Reply(selector, None, text))
         return out
 
-    def queryable(self, keyexpr: str, handler: QueryHandler) -> Closeable:
+    def queryable(self, keyexpr: str, handler: QueryHandler, complete: bool = True) -> Closeable:
+        """``complete``: this queryable answers for all of ``keyexpr`` (a query then reaches
+        the nearest such one only); False for one holding a part (queries reach them all)."""
+
         def answer(q: zenoh.Query) -> None:
             key = str(q.key_expr)
             try:
@@ -405,7 +410,7 @@ class ZenohBus(_Subscriptions):
                 q.drop()  # type: ignore[no-untyped-call]
 
         disp = _Dispatcher(f"qbl:{keyexpr}", answer)
-        qbl = self._session.declare_queryable(keyexpr, disp.put, complete=True)
+        qbl = self._session.declare_queryable(keyexpr, disp.put, complete=complete)
 
         def close() -> None:
             qbl.undeclare()  # type: ignore[no-untyped-call]
@@ -542,8 +547,8 @@ class InMemoryBus(_Subscriptions):
                 out.append(Reply(selector, None, f"internal error: {exc}"))
         return out
 
-    def queryable(self, keyexpr: str, handler: QueryHandler) -> Closeable:
-        entry = (keyexpr, handler)
+    def queryable(self, keyexpr: str, handler: QueryHandler, complete: bool = True) -> Closeable:
+        entry = (keyexpr, handler)  # every matching queryable answers here
         with self._net.lock:
             self._net.queryables.append(entry)
 

@@ -16,6 +16,15 @@ recorded topics; an explicit ``include`` overrides the default exclusions.
 Before sending, replay waits up to ``wait_subscribers`` seconds until every replayed key has a
 matching subscriber (Zenoh matching status), so a recorder or controller started just before
 does not miss the first messages; keys nobody listens to are reported.
+
+While it runs, replay also answers what a transform service answers (``serve_maps``, on by
+default; :class:`RecordedMaps`): queries on ``ws/*/transform`` (a workspace's or an atlas
+chart's ``TransformSolution``) and ``ws/*/atlas`` (``AtlasIndex``) under the replay prefix,
+with the latest one the replay has sent (before it sends the first one: the first recorded),
+and ``reply_err`` ``atlas: ...`` for a transform query on a workspace recorded as an atlas.
+It declares the liveliness token of a transform service meanwhile, so a live controller
+driven by the replay fetches its maps and atlases by query as from the real service (an
+atlas recording needs that: the controller fetches charts by query only).
 """
 
 from __future__ import annotations
@@ -27,9 +36,11 @@ import time
 from collections import Counter
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import zenoh
 from confnav.services.bus import flush, key_matches
+from confnav.services.keys import KeyError_, Keys
 
 from confnav.errors import ConfnavError
 from confnav.recording.reader import Recording, RecordingError
@@ -74,7 +85,13 @@ class ReplayReport:
         return "\n".join(lines)
 
 
-INPUT_KINDS = ("ws/*/definition", "ws/*/transform", "robot/*/goal", "robot/*/pose")
+INPUT_KINDS = (
+    "ws/*/definition",
+    "ws/*/transform",
+    "ws/*/atlas",
+    "robot/*/goal",
+    "robot/*/pose",
+)
 """What drives a controller: with ``inputs_only`` a live controller recomputes the rest."""
 
 
@@ -140,6 +157,80 @@ def _wait_matching(
     return sorted(pending)
 
 
+class RecordedMaps:
+    """The recorded ``TransformSolution`` and ``AtlasIndex`` messages of a recording, served
+    to queries under the replay's prefix (see the module docstring).
+
+    Each key's messages are kept in log-time order; :meth:`sent` moves a key's answer to the
+    message the replay has just sent on it.  Thread-safe (queries arrive on Zenoh threads and
+    are answered from memory, without blocking).
+    """
+
+    KINDS = ("transform", "atlas")
+
+    def __init__(self, rec: Recording, prefix: str) -> None:
+        self.keys = Keys(prefix)
+        self._lock = threading.Lock()
+        self._messages: dict[str, list[tuple[int, bytes]]] = {}  # key -> (log time, payload)
+        self._current: dict[str, tuple[int, bytes]] = {}  # key -> its answer now
+        mine = [
+            t
+            for t in rec.topics()
+            if any(key_matches(f"{rec.prefix}/ws/*/{k}", t) for k in self.KINDS)
+        ]
+        for msg in rec.iter_messages(mine) if mine else ():
+            key = remap(msg.topic, rec.prefix, prefix)
+            self._messages.setdefault(key, []).append((msg.log_time_ns, msg.data))
+        self._current = {k: v[0] for k, v in self._messages.items()}
+        self._sent: dict[str, int] = {}  # key -> index of the message sent last
+
+    def __bool__(self) -> bool:
+        return bool(self._messages)
+
+    def sent(self, key: str) -> None:
+        """The replay sent the next recorded message on ``key``: it answers from now on."""
+        with self._lock:
+            msgs = self._messages.get(key)
+            if msgs is None:
+                return
+            i = self._sent.get(key, -1) + 1
+            if i < len(msgs):
+                self._sent[key] = i
+                self._current[key] = msgs[i]
+
+    def answer(self, keyexpr: str) -> list[tuple[str, bytes]]:
+        """Replies to a query (raises :class:`ReplayError` with the ``reply_err`` text)."""
+        with self._lock:
+            found = sorted((k, v[1]) for k, v in self._current.items() if key_matches(keyexpr, k))
+            if found or "*" in keyexpr:
+                if not found:
+                    raise ReplayError(f"no recorded map matches {keyexpr[:80]!r}")
+                return found
+            try:
+                parsed = self.keys.parse(keyexpr)
+            except KeyError_ as exc:
+                raise ReplayError(f"bad key {keyexpr[:80]!r}: {exc}") from None
+            atlas = self._current.get(self.keys.ws(parsed.ident, "atlas"))
+        if parsed.kind == "transform" and atlas is not None:
+            from confnav.atlas.wire import ATLAS_MARKER
+
+            raise ReplayError(
+                f"{ATLAS_MARKER} workspace {parsed.ident!r} is recorded as an atlas: "
+                f"query ws/{parsed.ident}/atlas"
+            )
+        raise ReplayError(f"workspace {parsed.ident!r}: no recorded {parsed.kind}")
+
+    def on_query(self, q: zenoh.Query) -> None:
+        """Zenoh queryable callback: answer from memory (never blocks)."""
+        try:
+            for key, data in self.answer(str(q.key_expr)):
+                q.reply(key, data, encoding=zenoh.Encoding.APPLICATION_JSON)
+        except ReplayError as exc:
+            q.reply_err(str(exc).encode())
+        finally:
+            q.drop()  # type: ignore[no-untyped-call]
+
+
 REPLAY_PREFIX = "replay"
 """Default: a recording of prefix ``P`` is replayed under ``replay/P``."""
 
@@ -157,6 +248,7 @@ def replay(
     on_message: Callable[[str, int], None] | None = None,
     inputs_only: bool = False,
     live: bool = False,
+    serve_maps: bool = True,
 ) -> ReplayReport:
     """Republish the recording ``path`` on a Zenoh session opened from ``conf``.
 
@@ -172,6 +264,8 @@ def replay(
     on_message : called with (key, log_time_ns) after each put (progress, tests).
     inputs_only : replay only the controller's inputs (definitions, transforms, goals, poses),
         to drive a live controller with recorded data; combined with ``include``.
+    serve_maps : answer transform and atlas queries from the recording while replaying, as
+        a transform service (:class:`RecordedMaps`; its liveliness token declared meanwhile).
     """
     if speed is not None and not (speed > 0 and speed < float("inf")):
         raise ReplayError(f"speed must be a positive finite number, got {speed}")
@@ -196,9 +290,21 @@ def replay(
             prefix = f"{REPLAY_PREFIX}/{rec.prefix}"
         keys = {t: remap(t, rec.prefix, prefix) for t in topics}
         report.recorded_duration_s = rec.duration_s
+        maps = RecordedMaps(rec, rec.prefix if prefix is None else prefix) if serve_maps else None
         with zenoh.open(conf) as session:
             publishers: dict[str, zenoh.Publisher] = {}
+            served: list[Any] = []  # queryables and token, undeclared at the end
             try:
+                if maps:
+                    mk = maps.keys
+                    for kind in RecordedMaps.KINDS:  # not complete: a live service answers too
+                        served.append(
+                            session.declare_queryable(
+                                mk.any_ws(kind), maps.on_query, complete=False
+                            )
+                        )
+                    zid = str(session.zid())
+                    served.append(session.liveliness().declare_token(mk.alive("transform", zid)))
                 for key in sorted(set(keys.values())):
                     try:
                         publishers[key] = session.declare_publisher(
@@ -232,6 +338,8 @@ def replay(
                         else:
                             report.max_lateness_s = max(report.max_lateness_s, -delay)
                     key = keys[msg.topic]
+                    if maps:
+                        maps.sent(key)  # answered from now on (before subscribers query it)
                     publishers[key].put(msg.data)
                     report.published[key] += 1
                     if on_message is not None:
@@ -241,12 +349,15 @@ def replay(
             finally:
                 for pub in publishers.values():
                     pub.undeclare()  # type: ignore[no-untyped-call]
+                for handle in served:
+                    handle.undeclare()
     logger.info("replayed %d messages from %s", report.total, path)
     return report
 
 
 __all__ = [
     "INPUT_KINDS",
+    "RecordedMaps",
     "ReplayError",
     "ReplayReport",
     "input_keyexprs",

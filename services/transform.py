@@ -49,7 +49,7 @@ from confnav.schemas import (
     decode,
     encode,
 )
-from confnav.services.atlas_transform import AtlasStore, finish_atlas
+from confnav.services.atlas_transform import AtlasStore, ChartShare, finish_atlas
 from confnav.services.bus import Bus, QueryError
 from confnav.services.keys import KeyError_, Keys
 from confnav.services.runtime import Service, add_zenoh_args, run_until_signal
@@ -118,13 +118,13 @@ def _xy(z: complex) -> tuple[float, float]:
 
 
 def solve_definition(defn_json: str) -> dict[str, Any]:
-    """Solve one workspace (runs in a worker process): the map's coefficients and summary;
-    a workspace too crowded for one map is solved as an atlas (``{"atlas": ..., "charts":
-    [...]}``, :func:`confnav.services.atlas_transform.solve_or_atlas`)."""
-    from confnav.services.atlas_transform import solve_or_atlas
+    """Solve one workspace (runs in a worker process): the map's coefficients and summary,
+    or ``{"needs_atlas": why}`` for a workspace too crowded for one map (the service then
+    solves its charts, :class:`confnav.services.atlas_transform.ChartShare`)."""
+    from confnav.services.atlas_transform import single_or_atlas
 
     defn = WorkspaceDefinition.model_validate_json(defn_json)
-    return solve_or_atlas(workspace_of(defn), defn.tol)
+    return single_or_atlas(workspace_of(defn), defn.tol)
 
 
 def solution_result(cmap: Any, tol: float) -> dict[str, Any]:
@@ -206,7 +206,7 @@ class TransformService(Service):
         self._workers = workers
         self._executor_kind = executor
         self._pool: cf.Executor | None = None
-        self._lock = threading.Lock()
+        self._lock = threading.RLock()  # submit_job is called with it held
         self._ws: dict[str, _WsState] = {}
         self.max_attempts = max_attempts
         self.solve_timeout = solve_timeout
@@ -220,6 +220,13 @@ class TransformService(Service):
         self._cache_dir = Path(cache_dir) if cache_dir else None
         self.solved = threading.Event()  # set each time a solution is published (tests)
         self.atlases = AtlasStore()  # workspaces solved as atlases (index + charts)
+        self.charts = ChartShare(self)  # atlas charts solved with the peer instances
+        self._atlas_threads = cf.ThreadPoolExecutor(4, thread_name_prefix="atlas")
+
+    @property
+    def workers(self) -> int:
+        """Solves run at once (the pool's size; an atlas's charts use as many)."""
+        return self._workers
 
     # lifecycle -------------------------------------------------------------------------
     def _new_pool(self) -> cf.Executor:
@@ -241,6 +248,7 @@ class TransformService(Service):
         self._handles.append(self.bus.subscribe(self.keys.any_ws("delete"), self._on_delete))
         self._handles.append(self.bus.queryable(self.keys.any_ws("transform"), self._on_query))
         self._handles.append(self.bus.queryable(self.keys.any_ws("atlas"), self._on_query))
+        self._handles.extend(self.charts.start())
         defs: dict[str, WorkspaceDefinition] = {}
         for ws_id, source in self.sources.items():
             try:
@@ -255,6 +263,7 @@ class TransformService(Service):
 
     def stop(self) -> None:
         super().stop()
+        self._atlas_threads.shutdown(wait=False, cancel_futures=True)
         if self._pool is not None:
             self._pool.shutdown(wait=False, cancel_futures=True)
 
@@ -368,18 +377,34 @@ class TransformService(Service):
             self._results.popitem(last=False)
             self.count("cache_evictions")
 
-    def _solve(self, ws_id: str, h: str, defn: WorkspaceDefinition) -> None:
-        """Attach ``ws_id`` to the running solve of ``h``, starting one if there is none
-        (on a new pool if the current one is broken)."""
+    def submit_job(self, fn: Callable[..., Any], *args: Any) -> cf.Future[Any]:
+        """Run ``fn(*args)`` on the solver pool (a new pool if the current one is broken)."""
+        with self._lock:
+            assert self._pool is not None, "service not started"
+            try:
+                return self._pool.submit(fn, *args)
+            except (cf.BrokenExecutor, RuntimeError):  # a worker died: new pool
+                self._rebuild_pool()
+                return self._pool.submit(fn, *args)
+
+    def _solve(self, ws_id: str, h: str, defn: WorkspaceDefinition, atlas: bool = False) -> None:
+        """Attach ``ws_id`` to the running solve of ``h``, starting one if there is none:
+        the worker's solve, or with ``atlas`` the chart by chart solve of an atlas (a thread
+        handing the charts to the pool and the peers, :meth:`ChartShare.solve`)."""
         with self._lock:
             fut = self._inflight.get(h)
             if fut is None:
-                assert self._pool is not None, "service not started"
-                try:
-                    fut = self._pool.submit(self._solve_fn, defn.model_dump_json())
-                except (cf.BrokenExecutor, RuntimeError):  # a worker died: new pool
-                    self._rebuild_pool()
-                    fut = self._pool.submit(self._solve_fn, defn.model_dump_json())
+                if atlas:
+                    box: list[cf.Future[dict[str, Any]]] = []
+                    fut = self._atlas_threads.submit(
+                        self.charts.solve,
+                        h,
+                        defn,
+                        lambda: self.stopped or (bool(box) and box[0] in self._abandoned),
+                    )
+                    box.append(fut)
+                else:
+                    fut = self.submit_job(self._solve_fn, defn.model_dump_json())
                 self._inflight[h] = fut
                 self._started[h] = time.monotonic()
                 self._attempts[h] = self._attempts.get(h, 0) + 1
@@ -425,6 +450,10 @@ class TransformService(Service):
             return
         except Exception as exc:
             self._finish(ws_id, h, None, f"{type(exc).__name__}: {exc}")
+            return
+        if "needs_atlas" in result:  # too crowded for one map: solve its charts
+            log.info("workspace %r: an atlas (%s)", ws_id, result["needs_atlas"])
+            self._solve(ws_id, h, defn, atlas=True)
             return
         with self._lock:
             self._remember(h, result)

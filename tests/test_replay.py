@@ -374,3 +374,58 @@ def test_recorded_inputs_drive_a_live_controller_to_the_recorded_commands(
     assert len(common) >= 0.5 * len(recorded), (len(common), c)
     for key in common:
         assert abs(complex(*answered[key].linear) - recorded[key]) <= 1e-9, key
+
+
+def test_recorded_maps_answer_like_a_transform_service(tmp_path: Path) -> None:
+    """``RecordedMaps`` (what ``replay`` serves to queries): per key the latest message the
+    replay has sent (before any, the first recorded), under the replay's prefix; the atlas
+    marker for a transform query on a workspace recorded as an atlas; clear errors else."""
+    from confnav.schemas import AtlasIndex, TransformSolution
+    from confnav.services.replay import RecordedMaps
+
+    from confnav.atlas.wire import ATLAS_MARKER
+
+    path = tmp_path / "maps.mcap"
+    with open(path, "wb") as f:
+        w = Writer(f)
+        w.start(L.PROFILE, "test")
+        sid = w.register_schema(
+            L.schema_name(TransformSolution), L.SCHEMA_ENCODING, L.schema_data(TransformSolution)
+        )
+        aid = w.register_schema(
+            L.schema_name(AtlasIndex), L.SCHEMA_ENCODING, L.schema_data(AtlasIndex)
+        )
+        ws = w.register_channel("confnav/ws/w1/transform", L.MESSAGE_ENCODING, sid)
+        chart = w.register_channel("confnav/ws/at~c0/transform", L.MESSAGE_ENCODING, sid)
+        index = w.register_channel("confnav/ws/at/atlas", L.MESSAGE_ENCODING, aid)
+        pose = w.register_channel("confnav/robot/r1/pose", L.MESSAGE_ENCODING, sid)
+        for t, (cid, data) in enumerate(
+            [(ws, b"w1-a"), (chart, b"c0"), (index, b"idx"), (pose, b"p"), (ws, b"w1-b")]
+        ):
+            w.add_message(cid, T0 + t, data, T0 + t)
+        w.finish()
+    with Recording(path) as rec:
+        maps = RecordedMaps(rec, "replay/confnav")
+    k = "replay/confnav/ws"
+    assert maps.answer(f"{k}/w1/transform") == [(f"{k}/w1/transform", b"w1-a")]  # first
+    maps.sent(f"{k}/w1/transform")
+    assert maps.answer(f"{k}/w1/transform") == [(f"{k}/w1/transform", b"w1-a")]
+    maps.sent(f"{k}/w1/transform")
+    assert maps.answer(f"{k}/w1/transform") == [(f"{k}/w1/transform", b"w1-b")]  # latest sent
+    maps.sent(f"{k}/w1/transform")  # nothing more recorded: stays the last one
+    assert maps.answer(f"{k}/w1/transform") == [(f"{k}/w1/transform", b"w1-b")]
+    assert maps.answer(f"{k}/at~c0/transform") == [(f"{k}/at~c0/transform", b"c0")]
+    assert maps.answer(f"{k}/at/atlas") == [(f"{k}/at/atlas", b"idx")]
+    assert maps.answer(f"{k}/*/atlas") == [(f"{k}/at/atlas", b"idx")]
+    assert [key for key, _ in maps.answer(f"{k}/*/transform")] == [
+        f"{k}/at~c0/transform",
+        f"{k}/w1/transform",
+    ]
+    with pytest.raises(ReplayError, match=f"^{ATLAS_MARKER}"):
+        maps.answer(f"{k}/at/transform")
+    with pytest.raises(ReplayError, match="'w2': no recorded transform"):
+        maps.answer(f"{k}/w2/transform")
+    with pytest.raises(ReplayError, match="no recorded map matches"):
+        maps.answer(f"{k}/*/status")
+    with pytest.raises(ReplayError, match="bad key"):
+        maps.answer("elsewhere/ws/w1/transform")

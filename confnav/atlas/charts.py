@@ -11,7 +11,7 @@ import logging
 import time
 import warnings
 from collections.abc import Callable
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import Executor, ProcessPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -132,11 +132,14 @@ def solve_atlas(
     accept: float = 1e-6,
     max_rounds: int = 4,
     progress: Callable[[str], None] | None = None,
+    executor: Executor | None = None,
     **decompose_kw: Any,
 ) -> Atlas:
     """Decompose ``ws`` (:func:`confnav.atlas.decompose`) and solve every cell's map.
 
-    Cells are solved by a process pool of ``workers`` (1: in this process).  A chart that
+    Cells are solved by a process pool of ``workers`` (1: in this process), or by
+    ``executor`` (its ``map`` gets :func:`_solve_one` and the job lists; not shut down here:
+    the transform service's executor spreads cells over its pool and its peers).  A chart that
     misses ``tol`` is kept if its error estimate is within ``accept`` (the accuracy the
     controller evaluates to, ``ConformalMap.for_navigation``; recorded with ``tol_met``
     False: splitting does not help a chart whose error comes from one re-entrant corner).
@@ -152,7 +155,8 @@ def solve_atlas(
     split: set[Tile] = set(decompose_kw.pop("split", ()))
     done: dict[str, ConformalMap] = {}
     records: list[ChartRecord] = []
-    pool = ProcessPoolExecutor(max_workers=workers) if workers > 1 else None
+    own = executor is None and workers > 1
+    pool = ProcessPoolExecutor(max_workers=workers) if own else executor
     try:
         for _round in range(max_rounds + 1):
             dec = decompose(ws, split=split, **decompose_kw)
@@ -201,7 +205,7 @@ def solve_atlas(
             f"atlas: cell of tile {bad.tile} still fails after {max_rounds} splits: {bad.error}"
         )
     finally:
-        if pool is not None:
+        if own and pool is not None:
             pool.shutdown()
 
 

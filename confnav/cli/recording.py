@@ -65,6 +65,11 @@ def register(subparsers: Any) -> None:
         action="store_true",
         help="replay onto the recorded keys: drives a running system's controller and robots",
     )
+    p.add_argument(
+        "--no-serve-maps",
+        action="store_true",
+        help="do not answer transform/atlas/chart queries from the recording while replaying",
+    )
     add_zenoh_args(p)
     p.set_defaults(prefix=None)  # replay: default replay/PREFIX, --prefix remaps, --live none
     for action in p._actions:
@@ -174,6 +179,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
                 stop=stop,
                 inputs_only=args.inputs_only,
                 live=args.live,
+                serve_maps=not args.no_serve_maps,
             )
     except zenoh.ZError as exc:
         print(f"confnav replay: zenoh error: {exc}", file=sys.stderr)
