@@ -10,9 +10,7 @@ from __future__ import annotations
 
 import itertools
 import json
-import shutil
 import subprocess
-import tempfile
 import threading
 import time
 from collections import defaultdict
@@ -30,8 +28,7 @@ from confnav.schemas import (
     decode,
     encode,
 )
-from confnav.services.bus import ZenohBus, zenoh_config
-from confnav.services.launcher import LaunchConfig, Launcher, ServiceSpec
+from confnav.services.launcher import ServiceSpec
 from conftest import RobotWatch, confnav_cmd, launched_system, subprocess_env, wait_for
 from mcap.reader import make_reader
 
@@ -55,39 +52,25 @@ STARTS = {"a1": (0.5, 0.5), "a2": (1.2, 0.3)}
 def test_corridor_atlas_through_the_services(tmp_path: Path) -> None:
     ws_file = tmp_path / "corr.json"
     SCENE.workspace.save(ws_file)
-    sockdir = tempfile.mkdtemp(prefix="cna", dir="/tmp")
-    sock = f"unixsock-stream/{sockdir}/router.sock"
     sim_args = ["--workspace", f"corr={ws_file}", "--time-scale", "2"]
     for rid, (x, y) in STARTS.items():
         sim_args += ["--robot", f"{rid}=corr:{x},{y}"]
     mcap_path = tmp_path / "atlas.mcap"
-    cfg = LaunchConfig(
-        listen=[sock],
-        services=[
-            ServiceSpec("recorder", ["--out", str(mcap_path)]),
-            ServiceSpec("transform", ["--workspace", f"corr={ws_file}"]),
-            ServiceSpec("controller", []),
-            ServiceSpec("simulator", sim_args),
-        ],
-        startup_timeout=60,
-        log_dir=str(tmp_path / "logs"),
-    )
-    launcher = Launcher(cfg, verbose=1)
-    stop = threading.Event()
-    monitor = threading.Thread(target=launcher.monitor, args=(stop,), daemon=True)
-    bus = None
+    services = [
+        ServiceSpec("recorder", ["--out", str(mcap_path)]),
+        ServiceSpec("transform", ["--workspace", f"corr={ws_file}"]),
+        ServiceSpec("controller", []),
+        ServiceSpec("simulator", sim_args),
+    ]
     watch = RobotWatch()
     lock, status, collisions = watch.lock, watch.status, watch.collisions
-    try:
-        launcher.start()
-        monitor.start()
-        bus = ZenohBus(zenoh_config("client", connect=[sock]))
-        k = launcher.keys
+    with launched_system(services, tmp_path, prefix="cna") as system:
+        bus, k = system.bus, system.keys
         watch.attach(bus, k)
 
         # the atlas is served: index, every chart, and the workspace's own transform says so
         replies = wait_for(
-            lambda: [r for r in bus.query(k.ws("corr", "atlas")) if r.ok],  # type: ignore[union-attr]
+            lambda: [r for r in bus.query(k.ws("corr", "atlas")) if r.ok],
             timeout=180,
             interval=0.5,
         )
@@ -124,16 +107,8 @@ def test_corridor_atlas_through_the_services(tmp_path: Path) -> None:
         wait_for(done, timeout=150, interval=0.2)
         with lock:
             assert collisions == []
-        bus.close()
-        bus = None
-        codes = launcher.shutdown()
+        codes = system.shutdown()
         assert codes.get("recorder") == 0, codes
-    finally:
-        stop.set()
-        if bus is not None:
-            bus.close()
-        launcher.shutdown()
-        shutil.rmtree(sockdir, ignore_errors=True)
 
     # the recording: the index, the charts, and each robot's active chart per command
     seen: dict[str, list[int]] = defaultdict(list)
