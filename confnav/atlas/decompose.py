@@ -14,7 +14,8 @@ with small cells, each mapped on its own.  The cells come from overlapping tiles
 4. a tile whose pieces are too crowded a priori -- the elongation ``area / (2 r)^2``, with
    ``r`` the largest inscribed radius, above ``max_ratio`` (``max_ratio_holes`` for a piece
    with obstacles; it is ``L/w`` for an L x w rectangle), or more than ``max_obstacles``
-   holes -- is split into four, down to ``min_tile``.
+   holes -- is split into four, down to ``min_tile``; a tile whose chart failed
+   (``split``) is split further, down to a side of ``FORCED_MIN_MARGINS`` margins.
 
 Why it covers: a free point lies in the core (un-enlarged) square of some tile, at least 3/4 of
 that tile's overlap from its cut edges; cleaning removes nothing of the core except where the
@@ -65,6 +66,9 @@ __all__ = [
 #: needs (:attr:`Decomposition.passage`): local goals then lie twice as deep as required,
 #: slack for the redone decomposition and the inscribed-disk tolerance (1e-3 relative).
 AUTO_MARGIN_FRACTION = 0.5
+
+#: A tile whose chart failed is split down to a side of this many margins (below ``min_tile``).
+FORCED_MIN_MARGINS = 2.0
 
 
 class PassageError(WorkspaceError):
@@ -390,7 +394,8 @@ def decompose(
         circle within ~exp(-pi q / 2) of the unit circle (q = 3.75: 3e-3, too close for the
         harmonic navigation function's series; measured in tests/test_atlas.py's corridor).
     min_tile : smallest tile side (default ``tile / 16``).
-    split : core tiles to split regardless (used when a cell's solve failed).
+    split : core tiles to split regardless (used when a cell's solve failed), even below
+        ``min_tile`` (down to a side of ``FORCED_MIN_MARGINS * margin``).
 
     Raises
     ------
@@ -480,7 +485,12 @@ def _decompose(ws: Workspace, p: _Params, margin: float, forced: frozenset[Tile]
             or len(piece.interiors) > p.max_obstacles
             for piece, q in zip(pieces, ratios, strict=True)
         )
-        if (bad or core in forced) and side / 2 >= min_tile - 1e-12:
+        # a tile whose chart failed (``forced``) splits below ``min_tile``: the a-priori tests
+        # miss a channel between two obstacles (a SLAM speck beside a sofa), which only a
+        # cell cut across it maps well; down to a side of 2 margin, where the cell's extent
+        # (side + 2 band, band >= 2 margin) is about 1.5 passage widths (margin <= w / 4)
+        floor = FORCED_MIN_MARGINS * margin if core in forced else min_tile
+        if (bad or core in forced) and side / 2 >= floor - 1e-12:
             cx, cy = (core[0] + core[2]) / 2, (core[1] + core[3]) / 2
             todo += [
                 (core[0], core[1], cx, cy),

@@ -174,7 +174,7 @@ def run_simulate(args: argparse.Namespace) -> int:
     from confnav.geometry import Workspace
     from confnav.maps.footprint import inflate
     from confnav.navigation.control import Controller
-    from confnav.navigation.shortest_path import ShortestPaths
+    from confnav.navigation.shortest_path import ShortestPaths, path_ratio
     from confnav.navigation.unicycle import UnicycleResult, look_ahead_point, simulate_robots
     from confnav.scenes.scenarios import random_starts
 
@@ -233,11 +233,11 @@ def run_simulate(args: argparse.Namespace) -> int:
     else:
         origin, length = res.starts, res.path_length
     shortest = ShortestPaths(nav_ws, ctl.goal).lengths(origin)
-    for r, s, p in zip(runs, shortest, length, strict=True):
+    ratios = path_ratio(length, shortest, ctl.goal_tol)
+    for r, s, q in zip(runs, shortest, ratios, strict=True):
         r["shortest_path"] = float(s)
-        r["path_ratio"] = float(p) / float(s) if r["success"] and np.isfinite(s) and s > 0 else None
-    ok = res.success & np.isfinite(shortest) & (shortest > 0)
-    ratio = length[ok] / shortest[ok]
+        r["path_ratio"] = float(q) if r["success"] and np.isfinite(q) else None
+    ratio = ratios[res.success & np.isfinite(ratios)]
     summary = {
         "n": int(res.starts.size),
         "success_rate": res.success_rate,
