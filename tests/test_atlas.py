@@ -16,13 +16,17 @@ import confnav
 from confnav.atlas import (
     Atlas,
     AtlasNavigator,
+    atlas_reason,
+    bottleneck,
     decompose,
+    elongation,
     needs_atlas,
     overlaps,
     plan,
     solve_atlas,
     solve_auto,
 )
+from confnav.atlas.charts import BOTTLENECK_MAX_RATIO
 from confnav.atlas.scenes import corridor, office, spiral, warehouse
 from confnav.errors import SolverError, WorkspaceError
 from confnav.geometry import Workspace
@@ -173,6 +177,26 @@ def test_a_failed_chart_splits_below_min_tile_until_it_maps() -> None:
     assert inside
     for i in inside:
         assert 1 - abs(complex(a.charts[i].T(np.array([pocket]))[0])) > 1e-6
+
+
+def test_bottleneck_finds_a_region_behind_a_long_narrow_passage() -> None:
+    """A pocket behind a 5 cm x 1.2 m slit (L/w = 24) is found a priori, where the slit is;
+    two near-touching squares (gap 0.01: the circles come close, nothing crowds) and a room
+    with a 0.9 m door are not."""
+    ws = slit_pocket()
+    q, where = bottleneck(ws.polygon)
+    assert q > BOTTLENECK_MAX_RATIO and abs(where.real - 2) < 0.025 and 3 < where.imag < 4.2
+    assert elongation(ws.polygon) < 8 and needs_atlas(ws)  # elongation alone misses it
+    assert "narrow passage at (2" in atlas_reason(ws)
+
+    def sq(x: float) -> list[tuple[float, float]]:
+        return [(x, -0.5), (x + 1, -0.5), (x + 1, 0.5), (x, 0.5)]
+
+    pair = Workspace([(-2, -2), (2, -2), (2, 2), (-2, 2)], [sq(-1.005), sq(0.005)])
+    assert bottleneck(pair.polygon)[0] < 1 and not needs_atlas(pair)
+    wall = [(0, 0), (5.95, 0), (5.95, 2.0), (6.05, 2.0), (6.05, 0), (12, 0), (12, 5), (6.05, 5),
+            (6.05, 2.9), (5.95, 2.9), (5.95, 5), (0, 5)]  # fmt: skip
+    assert bottleneck(Workspace(wall, []).polygon)[0] < 1
 
 
 def test_a_failed_tile_at_the_smallest_split_stays() -> None:

@@ -18,13 +18,13 @@ from typing import Any
 import numpy as np
 import shapely
 
-from confnav.atlas.decompose import Decomposition, Tile, decompose, elongation
+from confnav.atlas.decompose import Decomposition, Tile, bottleneck, decompose, elongation
 from confnav.conformal.cmap import ConformalMap
 from confnav.conformal.solver import solve
 from confnav.errors import ConfnavError, CrowdingError, SolverError, fmt_point
 from confnav.geometry import Workspace
 
-__all__ = ["Atlas", "ChartRecord", "needs_atlas", "solve_atlas", "solve_auto"]
+__all__ = ["Atlas", "ChartRecord", "atlas_reason", "needs_atlas", "solve_atlas", "solve_auto"]
 
 log = logging.getLogger(__name__)
 
@@ -37,6 +37,11 @@ SINGLE_MAP_MAX_RATIO = 8.0
 #: (measured: alcove_dock shrunk by 0.2 m, a 0.28 m channel under a table in a cell of
 #: elongation 4.2; a robot 0.3 m inside mapped 8e-15 *outside* the disk and got a NaN field).
 CROWDED_GAP = 1e-10
+
+#: :func:`confnav.atlas.decompose.bottleneck` above this: one map is not attempted.  Measured:
+#: 0-1.4 on every single-map scene here (shared scenes, studio, U-trap, offices, gap 0.01),
+#: 6.6 on a SLAM studio shrunk by 0.3 m whose single map crowded to 1.5e-12.
+BOTTLENECK_MAX_RATIO = 4.0
 
 
 @dataclass(frozen=True)
@@ -133,9 +138,26 @@ def fmt_tile(t: Tile) -> str:
     return f"{fmt_point(complex(t[0], t[1]))}-{fmt_point(complex(t[2], t[3]))}"
 
 
+def atlas_reason(ws: Workspace) -> str:
+    """Why one map of ``ws`` would crowd, a priori ("" if nothing says so): the free space
+    too elongated (:func:`elongation`), or a region reached only through a long narrow
+    passage (:func:`bottleneck`; found in 0.1-0.8 s, where a single map of such a floor plan
+    took 7.5 minutes to fail)."""
+    q = elongation(ws.polygon)
+    if q > SINGLE_MAP_MAX_RATIO:
+        return f"too elongated for one map (area / (2 inradius)^2 = {q:.3g})"
+    q, where = bottleneck(ws.polygon)
+    if q > BOTTLENECK_MAX_RATIO:
+        return (
+            f"a region is reached only through a narrow passage at {fmt_point(where)} "
+            f"(length / width >= {q:.3g}): one map crowds it"
+        )
+    return ""
+
+
 def needs_atlas(ws: Workspace) -> bool:
-    """A-priori test: is the free space too elongated (or too cluttered) for one map?"""
-    return elongation(ws.polygon) > SINGLE_MAP_MAX_RATIO
+    """A-priori test: would one map of the free space crowd (:func:`atlas_reason`)?"""
+    return bool(atlas_reason(ws))
 
 
 def solve_atlas(

@@ -160,6 +160,11 @@ def _load_map(args: argparse.Namespace, ws: Any) -> Any:
         cmap.check_workspace(ws)  # a map of another workspace: MapMismatchError, exit != 0
         return cmap.for_navigation()
     t0 = time.perf_counter()
+    from confnav.atlas.charts import atlas_reason
+
+    why = atlas_reason(ws)
+    if why:  # simulate solves one map: say early that it is likely to fail, and what works
+        print(f"warning: {why}; if the solve fails, `confnav atlas` navigates it", file=sys.stderr)
     print(f"solving the conformal map of {ws.n_obstacles} obstacles...", file=sys.stderr)
 
     def progress(msg: str) -> None:
