@@ -66,12 +66,13 @@ def single_or_atlas(ws: Any, tol: float) -> dict[str, Any]:
     the atlas chart by chart, :meth:`ChartShare.solve`)."""
     from confnav.services.transform import solution_result
 
-    from confnav.atlas.charts import needs_atlas
+    from confnav.atlas.charts import atlas_reason
     from confnav.conformal.solver import solve
     from confnav.errors import CrowdingError
 
-    if needs_atlas(ws):
-        return {"needs_atlas": "too elongated for one map"}
+    why = atlas_reason(ws)
+    if why:
+        return {"needs_atlas": why}
     try:
         return solution_result(solve(ws, tol), tol)
     except CrowdingError as exc:

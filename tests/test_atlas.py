@@ -16,13 +16,17 @@ import confnav
 from confnav.atlas import (
     Atlas,
     AtlasNavigator,
+    atlas_reason,
+    bottleneck,
     decompose,
+    elongation,
     needs_atlas,
     overlaps,
     plan,
     solve_atlas,
     solve_auto,
 )
+from confnav.atlas.charts import BOTTLENECK_MAX_RATIO
 from confnav.atlas.scenes import corridor, office, spiral, warehouse
 from confnav.errors import SolverError, WorkspaceError
 from confnav.geometry import Workspace
@@ -140,6 +144,76 @@ def test_solve_atlas_splits_a_tile_whose_cell_fails() -> None:
     assert len(dec.cells) > len(base.cells)
     assert all(c.tile != tile for c in dec.cells)
     assert dec.uncovered_area() <= 1e-9 * ws.polygon.area
+
+
+def slit_pocket(width: float = 0.05, length: float = 1.2) -> Workspace:
+    """A 4 x 3 m room with a table and, off its top wall, a 0.5 m pocket reached only through
+    a slit ``width`` wide and ``length`` long: one chart holding the slit crowds the pocket
+    like exp(-pi length / width)."""
+    a, b = 2 - width / 2, 2 + width / 2
+    top = 3 + length
+    outer = [(0, 0), (4, 0), (4, 3), (b, 3), (b, top), (2.25, top), (2.25, top + 0.5),
+             (1.75, top + 0.5), (1.75, top), (a, top), (a, 3), (0, 3)]  # fmt: skip
+    return Workspace(outer, [[(1, 1), (2.5, 1), (2.5, 1.6), (1, 1.6)]])
+
+
+def test_a_failed_chart_splits_below_min_tile_until_it_maps() -> None:
+    """The a-priori tests stop at ``min_tile`` (here 1.2 m: tiles of 2.55 m); the cells holding
+    the slit then crowd, and their tiles are split further on the failure alone (the studio
+    of a SLAM grid: a speck 6 cm from the sofa failed at min_tile before)."""
+    ws = slit_pocket()
+    a = solve_atlas(ws, TOL, workers=2, min_tile=1.2)
+    sides = [c.tile[2] - c.tile[0] for c in a.decomposition.cells]
+    assert min(sides) < 1.2 / 2  # split on failure, below min_tile
+    assert any(r.error.startswith("crowded") for r in a.records)  # why they split
+    # each final cell's own solve (cell numbers change between rounds; the hash does not)
+    recs = a.chart_records
+    assert [r.key for r in recs] == [c.workspace.content_hash for c in a.decomposition.cells]
+    assert all(not r.error and r.n_nodes == m.n_nodes for r, m in zip(recs, a.charts, strict=True))
+    assert a.decomposition.uncovered_area() <= 1e-9 * ws.polygon.area
+    # every chart maps its cell's deep points away from the unit circle: the pocket's centre
+    pocket = complex(2.0, 4.45)
+    inside = [i for i, c in enumerate(a.decomposition.cells) if c.depth(np.array([pocket]))[0] > 0]
+    assert inside
+    for i in inside:
+        assert 1 - abs(complex(a.charts[i].T(np.array([pocket]))[0])) > 1e-6
+
+
+def test_bottleneck_finds_a_region_behind_a_long_narrow_passage() -> None:
+    """A pocket behind a 5 cm x 1.2 m slit (L/w = 24) is found a priori, where the slit is;
+    two near-touching squares (gap 0.01: the circles come close, nothing crowds) and a room
+    with a 0.9 m door are not."""
+    ws = slit_pocket()
+    q, where = bottleneck(ws.polygon)
+    assert q > BOTTLENECK_MAX_RATIO and abs(where.real - 2) < 0.025 and 3 < where.imag < 4.2
+    assert elongation(ws.polygon) < 8 and needs_atlas(ws)  # elongation alone misses it
+    assert "narrow passage at (2" in atlas_reason(ws)
+
+    def sq(x: float) -> list[tuple[float, float]]:
+        return [(x, -0.5), (x + 1, -0.5), (x + 1, 0.5), (x, 0.5)]
+
+    pair = Workspace([(-2, -2), (2, -2), (2, 2), (-2, 2)], [sq(-1.005), sq(0.005)])
+    assert bottleneck(pair.polygon)[0] < 1 and not needs_atlas(pair)
+    wall = [(0, 0), (5.95, 0), (5.95, 2.0), (6.05, 2.0), (6.05, 0), (12, 0), (12, 5), (6.05, 5),
+            (6.05, 2.9), (5.95, 2.9), (5.95, 5), (0, 5)]  # fmt: skip
+    assert bottleneck(Workspace(wall, []).polygon)[0] < 1
+
+
+def test_a_failed_tile_at_the_smallest_split_stays() -> None:
+    """A failed tile splits down to a side of FORCED_MIN_MARGINS margins, no further."""
+    ws = slit_pocket()
+    dec = decompose(ws, margin=0.05)
+    small = next(c.tile for c in decompose(ws, margin=0.05, split=[dec.cells[0].tile]).cells)
+    side = small[2] - small[0]
+    split = [small]
+    for _ in range(8):  # split the same corner until it stops
+        cells = decompose(ws, margin=0.05, split=split).cells
+        corner = min((c.tile for c in cells), key=lambda t: (t[2] - t[0], t[0], t[1]))
+        if corner in split:
+            break
+        split.append(corner)
+        side = corner[2] - corner[0]
+    assert 2 * 0.05 <= side < 4 * 0.05 + 1e-9
 
 
 def test_bad_parameters_are_clear_errors() -> None:

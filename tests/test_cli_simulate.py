@@ -53,6 +53,9 @@ def test_simulate_starts_with_negative_coordinates(room: Path, tmp_path: Path) -
         assert r["success"] and not r["collided"] and r["min_clearance"] > 0
         assert r["final_distance"] <= 0.02 + 1e-12  # the default goal tolerance
         assert r["path_length"] >= r["shortest_path"] - 0.02 - 1e-9  # stops at 0.02 m
+        # the ratio is against the shortest path into the 0.02 m goal disk: never below 1
+        assert r["path_ratio"] == pytest.approx(r["path_length"] / (r["shortest_path"] - 0.02))
+        assert r["path_ratio"] >= 1.0 - 1e-9
     assert summary["success_rate"] == 1.0 and summary["collisions"] == 0
     assert summary["median_path_ratio"] >= 1.0
     # from (1.2, 0.1) around the square to (-1, 0): via two corners, exact length
@@ -162,4 +165,5 @@ def test_unicycle_path_ratios_are_those_of_the_steered_point(room: Path, tmp_pat
     for r in doc["runs"]:
         # no path is shorter than the shortest one, up to the goal tolerance
         assert r["point_path_length"] >= r["shortest_path"] - tol - 1e-9
-        assert r["path_ratio"] == pytest.approx(r["point_path_length"] / r["shortest_path"])
+        assert r["path_ratio"] == pytest.approx(r["point_path_length"] / (r["shortest_path"] - tol))
+        assert r["path_ratio"] >= 1.0 - 1e-9

@@ -259,6 +259,16 @@ def test_shortest_path_around_a_square() -> None:
     assert_allclose(got, exact, rtol=1e-12)
 
 
+def test_path_ratio_is_against_the_goal_disk_and_never_below_one() -> None:
+    from confnav.navigation.shortest_path import path_ratio
+
+    # a straight 0.1 m trip that stops at the 0.02 m goal disk: 0.08 m driven, ratio exactly 1
+    # (against the goal itself it read 0.8); a start inside the disk has no ratio
+    got = path_ratio([0.08, 0.3, 0.0], [0.1, 0.2, 0.01], 0.02)
+    assert_allclose(got[:2], [1.0, 0.3 / 0.18], rtol=1e-12)
+    assert np.isnan(got[2])
+
+
 def test_potential_field_gets_trapped_in_the_cup() -> None:
     from confnav.navigation.baseline import PotentialField
     from confnav.scenes.scenarios import cup_trap

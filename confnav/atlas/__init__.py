@@ -8,13 +8,21 @@
 - :mod:`confnav.atlas.scenes`: office floor, warehouse, spiral corridors.
 """
 
-from confnav.atlas.charts import Atlas, ChartRecord, needs_atlas, solve_atlas, solve_auto
+from confnav.atlas.charts import (
+    Atlas,
+    ChartRecord,
+    atlas_reason,
+    needs_atlas,
+    solve_atlas,
+    solve_auto,
+)
 from confnav.atlas.compose import AtlasNavigator, AtlasRun, CellPlan, overlaps, plan
 from confnav.atlas.decompose import (
     Cell,
     Decomposition,
     Overlap,
     PassageError,
+    bottleneck,
     decompose,
     elongation,
 )
@@ -29,6 +37,8 @@ __all__ = [
     "Decomposition",
     "Overlap",
     "PassageError",
+    "atlas_reason",
+    "bottleneck",
     "decompose",
     "elongation",
     "needs_atlas",

@@ -18,13 +18,13 @@ from typing import Any
 import numpy as np
 import shapely
 
-from confnav.atlas.decompose import Decomposition, Tile, decompose, elongation
+from confnav.atlas.decompose import Decomposition, Tile, bottleneck, decompose, elongation
 from confnav.conformal.cmap import ConformalMap
 from confnav.conformal.solver import solve
 from confnav.errors import ConfnavError, CrowdingError, SolverError, fmt_point
 from confnav.geometry import Workspace
 
-__all__ = ["Atlas", "ChartRecord", "needs_atlas", "solve_atlas", "solve_auto"]
+__all__ = ["Atlas", "ChartRecord", "atlas_reason", "needs_atlas", "solve_atlas", "solve_auto"]
 
 log = logging.getLogger(__name__)
 
@@ -37,6 +37,11 @@ SINGLE_MAP_MAX_RATIO = 8.0
 #: (measured: alcove_dock shrunk by 0.2 m, a 0.28 m channel under a table in a cell of
 #: elongation 4.2; a robot 0.3 m inside mapped 8e-15 *outside* the disk and got a NaN field).
 CROWDED_GAP = 1e-10
+
+#: :func:`confnav.atlas.decompose.bottleneck` above this: one map is not attempted.  Measured:
+#: 0-1.4 on every single-map scene here (shared scenes, studio, U-trap, offices, gap 0.01),
+#: 6.6 on a SLAM studio shrunk by 0.3 m whose single map crowded to 1.5e-12.
+BOTTLENECK_MAX_RATIO = 4.0
 
 
 @dataclass(frozen=True)
@@ -53,6 +58,9 @@ class ChartRecord:
     tile: Tile
     error: str = ""
     tol_met: bool = True
+    #: content hash of the cell's workspace (``cell`` numbers the cells of the round that
+    #: solved it; a chart kept from an earlier round has a different number now)
+    key: str = ""
 
 
 @dataclass(frozen=True)
@@ -74,6 +82,12 @@ class Atlas:
     @property
     def workspace(self) -> Workspace:
         return self.decomposition.workspace
+
+    @property
+    def chart_records(self) -> tuple[ChartRecord, ...]:
+        """The successful solve of each final cell's chart, in cell order."""
+        by_key = {r.key: r for r in self.records if not r.error}
+        return tuple(by_key[c.workspace.content_hash] for c in self.decomposition.cells)
 
     @property
     def cpu_time(self) -> float:
@@ -119,9 +133,31 @@ def _solve_one(ws_json: str, tol: float, accept: float, depth: float) -> tuple[s
         return "", time.perf_counter() - t0, f"{type(exc).__name__}: {exc}"
 
 
+def fmt_tile(t: Tile) -> str:
+    """A tile as ``(x0, y0)-(x1, y1)``, 4 decimals."""
+    return f"{fmt_point(complex(t[0], t[1]))}-{fmt_point(complex(t[2], t[3]))}"
+
+
+def atlas_reason(ws: Workspace) -> str:
+    """Why one map of ``ws`` would crowd, a priori ("" if nothing says so): the free space
+    too elongated (:func:`elongation`), or a region reached only through a long narrow
+    passage (:func:`bottleneck`; found in 0.1-0.8 s, where a single map of such a floor plan
+    took 7.5 minutes to fail)."""
+    q = elongation(ws.polygon)
+    if q > SINGLE_MAP_MAX_RATIO:
+        return f"too elongated for one map (area / (2 inradius)^2 = {q:.3g})"
+    q, where = bottleneck(ws.polygon)
+    if q > BOTTLENECK_MAX_RATIO:
+        return (
+            f"a region is reached only through a narrow passage at {fmt_point(where)} "
+            f"(length / width >= {q:.3g}): one map crowds it"
+        )
+    return ""
+
+
 def needs_atlas(ws: Workspace) -> bool:
-    """A-priori test: is the free space too elongated (or too cluttered) for one map?"""
-    return elongation(ws.polygon) > SINGLE_MAP_MAX_RATIO
+    """A-priori test: would one map of the free space crowd (:func:`atlas_reason`)?"""
+    return bool(atlas_reason(ws))
 
 
 def solve_atlas(
@@ -130,7 +166,7 @@ def solve_atlas(
     *,
     workers: int = 2,
     accept: float = 1e-6,
-    max_rounds: int = 4,
+    max_rounds: int = 8,
     progress: Callable[[str], None] | None = None,
     executor: Executor | None = None,
     **decompose_kw: Any,
@@ -178,7 +214,9 @@ def solve_atlas(
             for i, (text, wall, err) in zip(todo, results, strict=True):
                 cell = dec.cells[i]
                 if err:
-                    records.append(ChartRecord(i, wall, 0, np.nan, np.nan, cell.tile, err))
+                    records.append(
+                        ChartRecord(i, wall, 0, np.nan, np.nan, cell.tile, err, key=keys[i])
+                    )
                     log.info("cell %d (tile %s) failed: %s", i, cell.tile, err)
                     failed.append(cell.tile)
                     continue
@@ -194,15 +232,24 @@ def solve_atlas(
                         float(radii.min()) if radii.size else 1.0,
                         cell.tile,
                         tol_met=bool(m.diagnostics.error_estimate <= tol),
+                        key=keys[i],
                     )
                 )
             if not failed:
                 charts = tuple(done[k] for k in keys)
                 return Atlas(dec, charts, tol, tuple(records), time.perf_counter() - t0, workers)
+            if set(failed) <= split:  # forced before and not split: at the smallest side
+                bad = [r for r in records if r.error][-1]
+                side = bad.tile[2] - bad.tile[0]
+                raise SolverError(
+                    f"atlas: cell of tile {fmt_tile(bad.tile)} fails and its tile ({side:.3g} m) "
+                    f"is at the smallest split (margin {dec.margin:.3g} m): {bad.error}"
+                )
             split |= set(failed)
         bad = [r for r in records if r.error][-1]
         raise SolverError(
-            f"atlas: cell of tile {bad.tile} still fails after {max_rounds} splits: {bad.error}"
+            f"atlas: cell of tile {fmt_tile(bad.tile)} still fails after {max_rounds} splits: "
+            f"{bad.error}"
         )
     finally:
         if own and pool is not None:

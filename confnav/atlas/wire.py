@@ -81,7 +81,7 @@ def index_fields(atlas: Atlas) -> dict[str, Any]:
     """The JSON-able description of an atlas's cells and decomposition (no charts): the
     fields of :class:`confnav.schemas.AtlasIndex` but the ids, revisions and stamp."""
     dec = atlas.decomposition
-    times = {r.cell: r.wall_time for r in atlas.records if not r.error}
+    times = {i: r.wall_time for i, r in enumerate(atlas.chart_records)}
     cells = []
     for c in dec.cells:
         cells.append(

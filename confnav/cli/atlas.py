@@ -22,6 +22,8 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
+import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -81,7 +83,7 @@ def run_atlas(args: argparse.Namespace) -> int:
     from confnav.errors import NavigationError, fmt_point
     from confnav.geometry import Workspace
     from confnav.maps.footprint import inflate
-    from confnav.navigation.shortest_path import ShortestPaths
+    from confnav.navigation.shortest_path import ShortestPaths, path_ratio
     from confnav.navigation.sim import STATUS_NAMES
     from confnav.scenes.scenarios import random_starts
 
@@ -90,18 +92,26 @@ def run_atlas(args: argparse.Namespace) -> int:
         raise NavigationError(f"--robot-radius must be >= 0, got {args.robot_radius!r}")
     body = args.robot_radius + (args.unicycle or 0.0)  # the footprint shrinks the free space
     named = {f"start {k}": z for k, z in enumerate(args.starts or [])}
+    for name, z in {"goal": args.goal, **named}.items():  # before a solve of minutes
+        if not bool(ws.contains(np.array([z]))[0]):
+            raise NavigationError(f"{name} {fmt_point(z)} is not in the workspace's free space")
     nav_ws = inflate(ws, body, keep=args.goal, require=named) if body else ws
     kw = {k: getattr(args, k) for k in ("tile", "margin") if getattr(args, k) is not None}
-    atlas = solve_atlas(nav_ws, args.tol, workers=args.workers, **kw)
+    t0 = time.perf_counter()
+
+    def progress(msg: str) -> None:
+        print(f"  [{time.perf_counter() - t0:6.1f} s] {msg}", file=sys.stderr, flush=True)
+
+    atlas = solve_atlas(nav_ws, args.tol, workers=args.workers, progress=progress, **kw)
     print(
         f"atlas: {len(atlas.charts)} cells, solved in {atlas.wall_time:.2f} s "
         f"(charts {atlas.cpu_time:.2f} s, speed-up x{atlas.speedup:.2f})"
     )
     print(f"{'cell':>4} {'obst':>4} {'nodes':>6} {'time s':>7} {'error':>8}")
-    ok_records = [r for r in atlas.records if not r.error]
-    for r in ok_records:
-        n_obs = atlas.decomposition.cells[r.cell].workspace.n_obstacles
-        print(f"{r.cell:>4} {n_obs:>4} {r.n_nodes:>6} {r.wall_time:>7.2f} {r.error_estimate:>8.1e}")
+    ok_records = atlas.chart_records
+    for i, r in enumerate(ok_records):
+        n_obs = atlas.decomposition.cells[i].workspace.n_obstacles
+        print(f"{i:>4} {n_obs:>4} {r.n_nodes:>6} {r.wall_time:>7.2f} {r.error_estimate:>8.1e}")
     dec = atlas.decomposition
     thin = dec.passage
     if thin is not None:
@@ -131,8 +141,8 @@ def run_atlas(args: argparse.Namespace) -> int:
     if starts is not None:
         run = nav.run(starts) if args.unicycle is None else run_unicycles(nav, ws, starts, args)
         short = ShortestPaths(nav_ws, nav.goal).lengths(starts)
-        ratio = run.path_length / short
-        ok = run.success
+        ratio = path_ratio(run.path_length, short, nav.controller(nav.plan.goal_cells[0]).goal_tol)
+        ok = run.success & np.isfinite(ratio)
         med = float(np.median(ratio[ok])) if ok.any() else float("nan")
         print(
             f"{starts.size} robots: {run.message}; collisions {int(run.collided.sum())}; "

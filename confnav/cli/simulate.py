@@ -160,6 +160,11 @@ def _load_map(args: argparse.Namespace, ws: Any) -> Any:
         cmap.check_workspace(ws)  # a map of another workspace: MapMismatchError, exit != 0
         return cmap.for_navigation()
     t0 = time.perf_counter()
+    from confnav.atlas.charts import atlas_reason
+
+    why = atlas_reason(ws)
+    if why:  # simulate solves one map: say early that it is likely to fail, and what works
+        print(f"warning: {why}; if the solve fails, `confnav atlas` navigates it", file=sys.stderr)
     print(f"solving the conformal map of {ws.n_obstacles} obstacles...", file=sys.stderr)
 
     def progress(msg: str) -> None:
@@ -174,7 +179,7 @@ def run_simulate(args: argparse.Namespace) -> int:
     from confnav.geometry import Workspace
     from confnav.maps.footprint import inflate
     from confnav.navigation.control import Controller
-    from confnav.navigation.shortest_path import ShortestPaths
+    from confnav.navigation.shortest_path import ShortestPaths, path_ratio
     from confnav.navigation.unicycle import UnicycleResult, look_ahead_point, simulate_robots
     from confnav.scenes.scenarios import random_starts
 
@@ -233,11 +238,11 @@ def run_simulate(args: argparse.Namespace) -> int:
     else:
         origin, length = res.starts, res.path_length
     shortest = ShortestPaths(nav_ws, ctl.goal).lengths(origin)
-    for r, s, p in zip(runs, shortest, length, strict=True):
+    ratios = path_ratio(length, shortest, ctl.goal_tol)
+    for r, s, q in zip(runs, shortest, ratios, strict=True):
         r["shortest_path"] = float(s)
-        r["path_ratio"] = float(p) / float(s) if r["success"] and np.isfinite(s) and s > 0 else None
-    ok = res.success & np.isfinite(shortest) & (shortest > 0)
-    ratio = length[ok] / shortest[ok]
+        r["path_ratio"] = float(q) if r["success"] and np.isfinite(q) else None
+    ratio = ratios[res.success & np.isfinite(ratios)]
     summary = {
         "n": int(res.starts.size),
         "success_rate": res.success_rate,

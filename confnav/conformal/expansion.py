@@ -169,7 +169,8 @@ class LocalExpansions:
                 pb, pk = new_index[pb[keep]], pk[keep]
                 ix, iy, c, beta, bnd = ix[meet], iy[meet], c[meet], beta[meet], bnd[meet]
             diff = eta[pk] - c[pb]
-            rho = R / np.abs(diff)
+            with np.errstate(divide="ignore"):  # a node on a box centre: rho = inf, near
+                rho = R / np.abs(diff)
             far = rho <= separation
             self._add_far(beta, bnd, pb[far], diff[far], rho[far], q[pk[far]], aq[pk[far]], R)
             pb, pk = pb[~far], pk[~far]

@@ -41,6 +41,7 @@ References
 
 from __future__ import annotations
 
+import logging
 import math
 from dataclasses import dataclass
 from typing import Literal
@@ -51,6 +52,8 @@ from shapely.geometry import MultiPolygon, Point, Polygon
 
 from confnav.errors import NavigationError, WorkspaceError
 from confnav.geometry import Workspace
+
+log = logging.getLogger(__name__)
 
 __all__ = [
     "Inflation",
@@ -250,6 +253,13 @@ def inflate(
                 "obstacle or wall: no component of the shrunk free space holds it"
             )
         j = found
+        if j != 0:  # components are sorted by area: the goal's is not the largest
+            log.warning(
+                "the point (%.6g, %.6g) kept lies in %s, not in the largest, %s: a passage "
+                "narrower than %g (twice the radius) cuts it off, and robots elsewhere "
+                "cannot reach it",
+                keep.real, keep.imag, inf.describe(j), inf.describe(0), 2 * inf.radius,
+            )  # fmt: skip
     inf.check_reachable(j, dict(require or {}))
     anchor = (
         ws.anchor

@@ -24,7 +24,7 @@ from confnav.errors import NavigationError, fmt_point
 from confnav.geometry import Workspace
 from confnav.types import CArray, FArray
 
-__all__ = ["ShortestPaths", "bend_vertices"]
+__all__ = ["ShortestPaths", "bend_vertices", "path_ratio"]
 
 
 def bend_vertices(ws: Workspace) -> CArray:
@@ -37,6 +37,19 @@ def bend_vertices(ws: Workspace) -> CArray:
         # obstacle: convex vertex (left turn); outer: reflex vertex (right turn)
         out.append(p[cross > 0] if j > 0 else p[cross < 0])
     return np.concatenate(out) if out else np.zeros(0, dtype=np.complex128)
+
+
+def path_ratio(length: ArrayLike, shortest: ArrayLike, goal_tol: float) -> FArray:
+    """Path length over the shortest path to the goal *disk* of radius ``goal_tol``.
+
+    A robot stops anywhere within ``goal_tol`` of the goal, so its path is compared with
+    ``shortest - goal_tol``, a lower bound of any path into the disk by the triangle
+    inequality (d(s, g) <= d(s, e) + |e - g|): the ratio is >= 1.  Against ``shortest`` itself a
+    0.1 m trip measured 0.82.  NaN where the start is already within the disk.
+    """
+    reach = np.asarray(shortest, dtype=np.float64) - float(goal_tol)
+    ok = np.isfinite(reach) & (reach > 0)
+    return np.where(ok, np.asarray(length, dtype=np.float64) / np.where(ok, reach, 1.0), np.nan)
 
 
 class ShortestPaths:
