@@ -176,7 +176,7 @@ def _load_map(args: argparse.Namespace, ws: Any) -> Any:
     return cmap
 
 
-def _as_atlas(args: argparse.Namespace) -> int:
+def _as_atlas(args: argparse.Namespace, nav_ws: Any) -> int:
     """Run ``confnav atlas`` with this command's options (robots, body, speed limit, JSON)."""
     from confnav.cli.atlas import run_atlas
     from confnav.navigation import defaults
@@ -199,7 +199,7 @@ def _as_atlas(args: argparse.Namespace) -> int:
         workspace=args.workspace, goal=args.goal, starts=args.starts, random=args.random,
         seed=args.seed, tol=1e-8, workers=2, tile=None, margin=None, hysteresis=None,
         speed=args.v_max, robot_radius=args.robot_radius, unicycle=args.unicycle,
-        omega_max=args.omega_max, json=args.json,
+        omega_max=args.omega_max, json=args.json, shrunk=nav_ws,
     )  # fmt: skip
     return int(run_atlas(atlas_args))
 
@@ -227,7 +227,7 @@ def run_simulate(args: argparse.Namespace) -> int:
         if why and not args.single_map:
             print(f"note: {why}: navigating it as an atlas (confnav atlas; "
                   "--single-map forces one map)", file=sys.stderr)  # fmt: skip
-            return _as_atlas(args)
+            return _as_atlas(args, nav_ws)
         if why:
             print(f"warning: {why}; the single map may fail", file=sys.stderr)
         elif atlas_reason(nav_ws):
