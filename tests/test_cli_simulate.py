@@ -167,3 +167,23 @@ def test_unicycle_path_ratios_are_those_of_the_steered_point(room: Path, tmp_pat
         assert r["point_path_length"] >= r["shortest_path"] - tol - 1e-9
         assert r["path_ratio"] == pytest.approx(r["point_path_length"] / (r["shortest_path"] - tol))
         assert r["path_ratio"] >= 1.0 - 1e-9
+
+
+def test_a_workspace_one_map_would_crowd_runs_as_an_atlas(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A 12 m x 1 m corridor (L/w = 12, past what one map resolves) is navigated as an atlas,
+    said on stderr, with the options that do not apply named."""
+    from confnav.atlas.scenes import corridor
+
+    ws_path = tmp_path / "corridor.json"
+    corridor(12).workspace.save(ws_path)
+    out = tmp_path / "runs.json"
+    args = ["simulate", str(ws_path), "--goal=11.5,0.5", "--random", "3", f"--json={out}"]
+    assert main([*args, "--plot", str(tmp_path / "p.png")]) == 0
+    cap = capsys.readouterr()
+    assert "too elongated for one map" in cap.err and "navigating it as an atlas" in cap.err
+    assert "--plot not used by the atlas run" in cap.err
+    assert "3 robots: 3 arrived; collisions 0" in cap.out
+    doc = json.loads(out.read_text())
+    assert len(doc["cells"]) > 1 and [r["status"] for r in doc["runs"]] == ["arrived"] * 3

@@ -133,8 +133,13 @@ def test_narrow_passage_names_goal_and_component() -> None:
     assert passed.n_obstacles == 0 and passed.contains(3 + 0j) and passed.contains(-3 + 0j)
     with pytest.raises(UnreachableGoalError, match=r"goal \(3, 0\).*component 1 of 2"):
         inflate(ws, 0.2, keep=-3 + 2j, require={"goal": 3 + 0j})
-    with pytest.raises(UnreachableGoalError, match=r"within r=0\.2"):
-        inflate(ws, 0.2, require={"goal": 4.9 + 0j})
+    with pytest.raises(UnreachableGoalError, match=r"within r=0\.2") as err:
+        inflate(ws, 0.2, keep=4.9 + 0j)
+    # the message offers the nearest point the robot's centre can reach: 4.8, just inside
+    near = str(err.value).split("the nearest point that does is (")[1].split(")")[0]
+    x, y = (float(v) for v in near.split(", "))
+    assert 4.79 < x < 4.8 and y == pytest.approx(0, abs=1e-9)
+    inflate(ws, 0.2, keep=complex(x, y))  # and it is indeed reachable
 
 
 def test_a_goal_cut_off_in_a_small_pocket_is_warned_about(caplog: pytest.LogCaptureFixture) -> None:

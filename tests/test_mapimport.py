@@ -123,7 +123,12 @@ def test_speck_rule(tmp_path: Path) -> None:
     res = import_map(write_map(tmp_path, free))
     assert res.workspace.n_obstacles == 3  # two rectangles and the free-standing speck
     assert res.report.dropped_specks == 0
+    # the kept one is said: grown by a robot it may cut rooms off (the wall-merged one is wall)
+    assert [w for w in res.report.warnings if "one-cell" in w] == [
+        next(w for w in res.report.warnings if w.startswith("kept 1 one-cell obstacle(s)"))
+    ]
     dropped = import_map(write_map(tmp_path, free), min_obstacle_cells=2)
+    assert not any("one-cell" in w for w in dropped.report.warnings)
     assert dropped.workspace.n_obstacles == 2 and dropped.report.dropped_specks == 1
     assert any("non-conservative" in w for w in dropped.report.warnings)
 

@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 import shapely
+from shapely.geometry import Polygon
 
 from confnav.atlas.decompose import Decomposition, Tile, bottleneck, decompose, elongation
 from confnav.conformal.cmap import ConformalMap
@@ -39,9 +40,11 @@ SINGLE_MAP_MAX_RATIO = 8.0
 CROWDED_GAP = 1e-10
 
 #: :func:`confnav.atlas.decompose.bottleneck` above this: one map is not attempted.  Measured:
-#: 0-1.4 on every single-map scene here (shared scenes, studio, U-trap, offices, gap 0.01),
-#: 6.6 on a SLAM studio shrunk by 0.3 m whose single map crowded to 1.5e-12.
-BOTTLENECK_MAX_RATIO = 4.0
+#: 0-1.6 where one map solves (the shared scenes, a studio, a U-trap, two offices, two squares
+#: 0.01 apart, the README's office map: 1.57, solved in 104 s); 4.35 on a SLAM studio shrunk by
+#: 0.3 m (its single map crowded to 1.5e-12 after 7.5 min), 6.5-10.9 on a SLAM apartment shrunk
+#: by 0.3 m (GMRES failed on 18,360 nodes after 131 s), 21.9 for a pocket behind a 5 cm slit.
+BOTTLENECK_MAX_RATIO = 3.0
 
 
 @dataclass(frozen=True)
@@ -138,12 +141,19 @@ def fmt_tile(t: Tile) -> str:
     return f"{fmt_point(complex(t[0], t[1]))}-{fmt_point(complex(t[2], t[3]))}"
 
 
-def atlas_reason(ws: Workspace) -> str:
+def atlas_reason(ws: Workspace, *, loops: bool = False) -> str:
     """Why one map of ``ws`` would crowd, a priori ("" if nothing says so): the free space
     too elongated (:func:`elongation`), or a region reached only through a long narrow
     passage (:func:`bottleneck`; found in 0.1-0.8 s, where a single map of such a floor plan
-    took 7.5 minutes to fail)."""
-    q = elongation(ws.polygon)
+    took 7.5 minutes to fail).
+
+    ``loops``: measure the elongation with the obstacles filled in.  A channel that loops
+    around an obstacle is an annulus, conformally a ring of modulus ~ w/L, not a crowding
+    channel (a 4 m room around a 1 m box shrunk by 0.4 m: elongation 10.4, its single map
+    fine); filled, only the arms that end somewhere count.  Off by default: a warehouse's
+    aisles between shelf rows are loops too, and its single map is not attempted."""
+    poly = Polygon(ws.polygon.exterior) if loops else ws.polygon
+    q = elongation(poly)
     if q > SINGLE_MAP_MAX_RATIO:
         return f"too elongated for one map (area / (2 inradius)^2 = {q:.3g})"
     q, where = bottleneck(ws.polygon)

@@ -46,7 +46,7 @@ import numpy as np
 import shapely
 from shapely.geometry import MultiPolygon, Polygon, box
 from shapely.geometry.base import BaseGeometry
-from shapely.ops import polylabel
+from shapely.ops import nearest_points, polylabel
 
 from confnav.errors import WorkspaceError, fmt_point
 from confnav.geometry import Workspace
@@ -123,12 +123,14 @@ def bottleneck(poly: Polygon, levels: int = 28) -> tuple[float, complex]:
     conformal map crowds it like a channel of that ``L / w`` -- a SLAM speck 6 cm from a sofa
     cut 7.9 m^2 of a studio off this way, and its single map failed after 7.5 minutes.  Such
     passages are what an opening removes: for half-widths ``d = r 2^(-k/4)`` (``r``: the largest
-    inscribed radius) the free space is eroded by ``d``; where that splits it into several
-    regions, each piece of ``poly`` minus the regions dilated back that touches two of them is
-    a passage narrower than ``2 d`` of area about ``L w``, and ``q = area / (2 d)^2`` bounds its
-    ``L / w`` from below.  Returns the largest ``q`` (0 if nothing splits) and the passage's
-    representative point.  Narrow gaps *between* two regions that stay connected elsewhere
-    (two near-touching obstacles) do not count: they bring circles close, they do not crowd.
+    inscribed radius) the free space is eroded by ``d``; where that splits it into regions at
+    least ``2 d`` wide, the pieces of ``poly`` outside the regions dilated back are passages
+    narrower than ``2 d``.  A region's way out is its shortest one: over the pieces it
+    touches, the distance from its contact to another region's contact, ``L``; ``q = L / (2 d)``
+    bounds ``L / w`` from below.  Returns the largest ``q`` over the regions but the largest
+    one (0 if nothing splits) and the middle of that way.  A long corridor with doors all
+    along it gives short ways (its rooms are not behind it), and a narrow gap *between* two
+    regions that stay connected elsewhere (two near-touching obstacles) gives none.
     """
     r = inscribed(poly)[1]
     best, where = 0.0, complex(np.nan, np.nan)
@@ -140,12 +142,26 @@ def bottleneck(poly: Polygon, levels: int = 28) -> tuple[float, complex]:
             continue
         grown = [p.buffer(d * (1 + 1e-6)) for p in regions]
         rest = poly.difference(shapely.union_all(grown))
+        way = np.full(len(regions), np.inf)  # each region's shortest way to another
+        mid = np.full(len(regions), complex(np.nan, np.nan))
         for piece in _polygons(rest):
-            if sum(piece.intersects(g) for g in grown) >= 2:
-                q = piece.area / (2 * d) ** 2
-                if q > best:
-                    pt = piece.representative_point()
-                    best, where = q, complex(pt.x, pt.y)
+            edge = piece.boundary
+            touch = {i: edge.intersection(g) for i, g in enumerate(grown) if edge.intersects(g)}
+            for a, ca in touch.items():
+                for b, cb in touch.items():
+                    if a != b and not ca.is_empty and not cb.is_empty:
+                        length = float(ca.distance(cb))
+                        if length < way[a]:
+                            pa, pb = nearest_points(ca, cb)
+                            way[a], mid[a] = length, complex(pa.x + pb.x, pa.y + pb.y) / 2
+        main = int(np.argmax([p.area for p in regions]))
+        way[main] = 0.0  # crowding is of the regions behind, seen from the main one
+        finite = np.isfinite(way)
+        if finite.any():
+            i = int(np.argmax(np.where(finite, way, -1.0)))
+            q = way[i] / (2 * d)
+            if q > best:
+                best, where = float(q), complex(mid[i])
     return float(best), where
 
 

@@ -95,7 +95,14 @@ def run_atlas(args: argparse.Namespace) -> int:
     for name, z in {"goal": args.goal, **named}.items():  # before a solve of minutes
         if not bool(ws.contains(np.array([z]))[0]):
             raise NavigationError(f"{name} {fmt_point(z)} is not in the workspace's free space")
-    nav_ws = inflate(ws, body, keep=args.goal, require=named) if body else ws
+    shrunk = getattr(args, "shrunk", None)  # simulate's, already inflated (and warned about)
+    nav_ws = (
+        shrunk
+        if shrunk is not None
+        else inflate(ws, body, keep=args.goal, require=named)
+        if body
+        else ws
+    )
     kw = {k: getattr(args, k) for k in ("tile", "margin") if getattr(args, k) is not None}
     t0 = time.perf_counter()
 

@@ -69,6 +69,12 @@ def register(subparsers: Any) -> None:
     g.add_argument("--random", type=positive_int, metavar="N", help="N random starts in free space")
     p.add_argument("--seed", type=int, default=0, help="seed for --random")
     p.add_argument("--map", type=Path, help="a solved map (JSON) instead of solving")
+    p.add_argument(
+        "--single-map",
+        action="store_true",
+        help="solve one map even where it would crowd (default: such a workspace, too "
+        "elongated or with a region behind a long narrow passage, runs as `confnav atlas`)",
+    )
     p.add_argument("--robot-radius", type=float, default=0.0, help="disk robot radius (m)")
     p.add_argument(
         "--unicycle",
@@ -160,11 +166,6 @@ def _load_map(args: argparse.Namespace, ws: Any) -> Any:
         cmap.check_workspace(ws)  # a map of another workspace: MapMismatchError, exit != 0
         return cmap.for_navigation()
     t0 = time.perf_counter()
-    from confnav.atlas.charts import atlas_reason
-
-    why = atlas_reason(ws)
-    if why:  # simulate solves one map: say early that it is likely to fail, and what works
-        print(f"warning: {why}; if the solve fails, `confnav atlas` navigates it", file=sys.stderr)
     print(f"solving the conformal map of {ws.n_obstacles} obstacles...", file=sys.stderr)
 
     def progress(msg: str) -> None:
@@ -173,6 +174,34 @@ def _load_map(args: argparse.Namespace, ws: Any) -> Any:
     cmap = confnav.solve(ws, progress=progress).for_navigation()
     print(f"map solved in {time.perf_counter() - t0:.1f} s", file=sys.stderr)
     return cmap
+
+
+def _as_atlas(args: argparse.Namespace, nav_ws: Any) -> int:
+    """Run ``confnav atlas`` with this command's options (robots, body, speed limit, JSON)."""
+    from confnav.cli.atlas import run_atlas
+    from confnav.navigation import defaults
+
+    unused = [
+        name
+        for name, given, default in (
+            ("--navfn", args.navfn, defaults.NAVFN),
+            ("--k", args.k, "auto"),
+            ("--speed-law", args.speed_law, defaults.SPEED_LAW),
+            ("--gain", args.gain, defaults.GAIN),
+            ("--tolerance", args.tolerance, defaults.GOAL_TOL),
+            ("--plot", args.plot, None),
+        )
+        if given != default
+    ]
+    if unused:
+        print(f"note: {', '.join(unused)} not used by the atlas run", file=sys.stderr)
+    atlas_args = argparse.Namespace(
+        workspace=args.workspace, goal=args.goal, starts=args.starts, random=args.random,
+        seed=args.seed, tol=1e-8, workers=2, tile=None, margin=None, hysteresis=None,
+        speed=args.v_max, robot_radius=args.robot_radius, unicycle=args.unicycle,
+        omega_max=args.omega_max, json=args.json, shrunk=nav_ws,
+    )  # fmt: skip
+    return int(run_atlas(atlas_args))
 
 
 def run_simulate(args: argparse.Namespace) -> int:
@@ -189,6 +218,20 @@ def run_simulate(args: argparse.Namespace) -> int:
     body = args.robot_radius + (args.unicycle or 0.0)  # the footprint shrinks the free space
     named = {f"start {k}": z for k, z in enumerate(args.starts or [])}
     nav_ws = inflate(ws, body, keep=args.goal, require=named) if body else ws
+    if not args.map:
+        from confnav.atlas.charts import atlas_reason
+
+        # a priori, in under a second: one map would crowd (a loop around an obstacle is no
+        # channel: such a room keeps its single map, as it always did here)
+        why = atlas_reason(nav_ws, loops=True)
+        if why and not args.single_map:
+            print(f"note: {why}: navigating it as an atlas (confnav atlas; "
+                  "--single-map forces one map)", file=sys.stderr)  # fmt: skip
+            return _as_atlas(args, nav_ws)
+        if why:
+            print(f"warning: {why}; the single map may fail", file=sys.stderr)
+        elif atlas_reason(nav_ws):
+            print("note: elongated, but around obstacles: solving one map", file=sys.stderr)
     cmap = _load_map(args, nav_ws)
     ctl = Controller(
         cmap,

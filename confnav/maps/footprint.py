@@ -144,6 +144,27 @@ class Inflation:
                 return j
         return None
 
+    def nearest(self, z: complex) -> tuple[complex, int]:
+        """The point of the shrunk free space nearest ``z`` (just inside it) and its component."""
+        p = Point(z.real, z.imag)
+        j = min(range(len(self.components)), key=lambda i: self.components[i].distance(p))
+        c = self.components[j]
+        q = c.exterior.interpolate(c.exterior.project(p))
+        for ring in c.interiors:  # the nearest boundary point may lie on a hole
+            r = ring.interpolate(ring.project(p))
+            if r.distance(p) < q.distance(p):
+                q = r
+        w = complex(q.x, q.y)
+        # a step of 1e-4 of the size inwards: on the boundary is not inside, and the point
+        # printed to 6 digits must still be
+        d = 1e-4 * self.workspace.diameter
+        away = (w - z) / abs(w - z) if w != z else 1.0  # on, away from z: the inward normal
+        for k in range(8):
+            u = w + d * away * np.exp(2j * np.pi * k / 8)
+            if c.contains(Point(u.real, u.imag)):
+                return complex(u), j
+        return w, j
+
     def describe(self, j: int) -> str:
         c = self.components[j]
         rp = c.representative_point()
@@ -248,9 +269,12 @@ def inflate(
     else:
         found = inf.component_of(complex(keep))
         if found is None:
+            near, k = inf.nearest(complex(keep))
             raise UnreachableGoalError(
                 f"point ({keep.real:.6g}, {keep.imag:.6g}) is within r={inf.radius:g} of an "
-                "obstacle or wall: no component of the shrunk free space holds it"
+                "obstacle or wall: no component of the shrunk free space holds it; the nearest "
+                f"point that does is ({near.real:.6g}, {near.imag:.6g}), "
+                f"{abs(near - keep):.3g} m away, in {inf.describe(k)}"
             )
         j = found
         if j != 0:  # components are sorted by area: the goal's is not the largest

@@ -311,8 +311,17 @@ def workspace_from_grid(
     warnings: list[str] = []
     holes, n_holes = ndimage.label(~kept, structure=np.ones((3, 3)))
     outside = holes[0, 0] if not kept[0, 0] else 0
-    if min_obstacle_cells > 0:
-        sizes = np.bincount(holes.ravel(), minlength=n_holes + 1)
+    sizes = np.bincount(holes.ravel(), minlength=n_holes + 1)
+    if min_obstacle_cells <= 0:
+        ones = np.flatnonzero(sizes == 1)
+        ones = ones[(ones != 0) & (ones != outside)]
+        if ones.size:  # kept (conservative), but said: grown by a robot each blocks a square
+            warnings.append(
+                f"kept {ones.size} one-cell obstacle(s), SLAM specks perhaps: grown by a robot "
+                f"of radius R each blocks a square of side 2 R + {resolution:g} m and can cut "
+                "rooms off; --min-obstacle-cells 1 drops them (non-conservative)"
+            )
+    else:
         small = np.flatnonzero(sizes <= min_obstacle_cells)
         small = small[(small != 0) & (small != outside)]
         if small.size:
