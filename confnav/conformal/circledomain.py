@@ -438,6 +438,13 @@ def koebe_iteration(
             progress(sweep, change)
         if not np.isfinite(change):
             raise ConvergenceError(f"Koebe iteration produced non-finite values in sweep {sweep}")
+        if M == 0:
+            # no obstacles: the first sweep's interior map of the polygon IS the Riemann map
+            # onto the unit disk; the iteration only makes hole images circular ([1], sec. 3),
+            # so nothing is left to iterate (a second sweep re-solved the unit circle on its
+            # smooth grid: half of every atlas cell's solve, measured)
+            remaining, converged = 0.0, True
+            break
         radii = radii[1:]
         if M and radii.min() < CROWDING_RADIUS:
             j = int(np.argmin(radii))
