@@ -294,10 +294,16 @@ def test_corridor_a_single_map_cannot_do_is_navigated_by_the_atlas(atlas: Atlas)
     ws = atlas.workspace
     nav = AtlasNavigator(atlas, GOAL)
     starts = random_starts(ws, 24, seed=3)
-    run = nav.run(starts)
+    run = nav.run(starts, record_paths=True)
     assert run.success.all(), run.message
     assert not run.collided.any()
     assert np.all(run.min_clearance > 0)
+    # the recorded paths (windows joined) are the robots' paths: start, end and length
+    assert run.paths is not None and len(run.paths) == starts.size
+    for k, p in enumerate(run.paths):
+        assert p[0] == starts[k] and p[-1] == run.final[k]
+        assert np.sum(np.abs(np.diff(p))) == pytest.approx(run.path_length[k], rel=1e-9)
+        assert np.all(ws.clearance(p) > 0)
     # each robot's cells go strictly down the order: at most one visit per cell
     for seq in run.cells:
         ranks = nav.plan.rank[list(seq)]

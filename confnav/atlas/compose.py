@@ -133,6 +133,8 @@ class AtlasRun(Outcomes):
     cells: tuple[tuple[int, ...], ...]
     wall_time: float
     reasons: tuple[str, ...] = ()
+    #: each robot's accepted points when ``record_paths`` was set (windows joined)
+    paths: tuple[CArray, ...] | None = None
 
 
 class AtlasNavigator:
@@ -278,6 +280,7 @@ class AtlasNavigator:
         t_max: float | None = None,
         max_step: float | None = None,
         atol: float = 1e-6,
+        record_paths: bool = False,
     ) -> AtlasRun:
         """Simulate robots from ``starts`` (complex array) to the goal.
 
@@ -285,7 +288,8 @@ class AtlasNavigator:
         ``window`` time units (default: the time to cross 4 ``hysteresis``), collisions checked
         against the *whole* workspace; between windows the switching rule is applied (a
         supervisor at a fixed rate).  A robot that reaches a local goal switches to the next
-        cell (it lies ``margin`` deep there).
+        cell (it lies ``margin`` deep there).  ``record_paths`` keeps every robot's accepted
+        points (for plots).
         """
         import time as _time
 
@@ -311,6 +315,7 @@ class AtlasNavigator:
         switches = np.zeros(n, dtype=np.int64)
         history: list[list[int]] = [[int(a)] for a in active]
         still = np.zeros(n, dtype=np.int64)
+        pieces: list[list[CArray]] = [[z[k : k + 1].copy()] for k in range(n)]
         while True:
             run = np.flatnonzero(status < 0)
             if run.size == 0:
@@ -321,7 +326,11 @@ class AtlasNavigator:
                 res = simulate(
                     ctrl, z[idx], clearance=ws.clearance, t_max=window, max_step=max_step,
                     atol=atol, stall_distance=1e-12, stall_steps=10**9,
+                    record_paths=record_paths,
                 )  # fmt: skip
+                if record_paths and res.paths is not None:
+                    for k, piece in zip(idx.tolist(), res.paths, strict=True):
+                        pieces[k].append(piece[1:])  # its first point ends the last window
                 moved = np.abs(res.final - z[idx])
                 z[idx] = res.final
                 length[idx] += res.path_length
@@ -366,4 +375,5 @@ class AtlasNavigator:
             cells=tuple(tuple(h) for h in history),
             wall_time=_time.perf_counter() - t0,
             reasons=tuple(r or _REASONS[int(st)] for r, st in zip(reasons, status, strict=True)),
+            paths=tuple(np.concatenate(p) for p in pieces) if record_paths else None,
         )

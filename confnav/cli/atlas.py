@@ -75,6 +75,9 @@ def register(subparsers: Any) -> None:
         "--omega-max", type=positive_float, default=2.0, help="unicycle yaw-rate limit, rad/s"
     )
     p.add_argument("--json", type=output_path, help="write cells, plan and runs here")
+    p.add_argument(
+        "--plot", type=output_path, help="write a figure with the cells and the paths here"
+    )
     p.set_defaults(func=run_atlas)
 
 
@@ -146,7 +149,12 @@ def run_atlas(args: argparse.Namespace) -> int:
     )
     code = 0
     if starts is not None:
-        run = nav.run(starts) if args.unicycle is None else run_unicycles(nav, ws, starts, args)
+        plot = getattr(args, "plot", None)
+        run = (
+            nav.run(starts, record_paths=plot is not None)
+            if args.unicycle is None
+            else run_unicycles(nav, ws, starts, args, record_paths=plot is not None)
+        )
         short = ShortestPaths(nav_ws, nav.goal).lengths(starts)
         ratio = path_ratio(run.path_length, short, nav.controller(nav.plan.goal_cells[0]).goal_tol)
         ok = run.success & np.isfinite(ratio)
@@ -180,13 +188,25 @@ def run_atlas(args: argparse.Namespace) -> int:
             )
         ]
         code = 0 if bool(run.success.all()) and not run.collided.any() else 1
+        if plot is not None:
+            from confnav.plot.atlas import save_atlas_figure
+
+            out = save_atlas_figure(
+                atlas, run, nav.goal, plot, walls=ws if body else None, shrink=body
+            )
+            print(f"plot written to {out}")
     if args.json:
         args.json.write_text(json.dumps(doc, indent=1))
     return code
 
 
 def run_unicycles(
-    nav: AtlasNavigator, ws: Any, starts: np.ndarray, args: argparse.Namespace
+    nav: AtlasNavigator,
+    ws: Any,
+    starts: np.ndarray,
+    args: argparse.Namespace,
+    *,
+    record_paths: bool = False,
 ) -> AtlasRun:
     """Unicycles from ``starts`` (random headings from ``--seed``), one switching controller
     each (it holds the robot's active chart), as an :class:`AtlasRun`: collisions and
@@ -210,6 +230,7 @@ def run_unicycles(
             clearance=ws.clearance,
             radius=args.robot_radius,
             t_max=t_max,
+            record_paths=record_paths,
         )
         for c, z, h in zip(ctrls, starts, heads, strict=True)
     ]
@@ -235,4 +256,5 @@ def run_unicycles(
             c.stop_reason[1] if c.stop_reason else STATUS_NAMES[int(st)]
             for c, st in zip(ctrls, status, strict=True)
         ),
+        paths=tuple(r.paths[0] for r in runs if r.paths) if record_paths else None,
     )

@@ -189,7 +189,6 @@ def _as_atlas(args: argparse.Namespace, nav_ws: Any) -> int:
             ("--speed-law", args.speed_law, defaults.SPEED_LAW),
             ("--gain", args.gain, defaults.GAIN),
             ("--tolerance", args.tolerance, defaults.GOAL_TOL),
-            ("--plot", args.plot, None),
         )
         if given != default
     ]
@@ -199,7 +198,7 @@ def _as_atlas(args: argparse.Namespace, nav_ws: Any) -> int:
         workspace=args.workspace, goal=args.goal, starts=args.starts, random=args.random,
         seed=args.seed, tol=1e-8, workers=2, tile=None, margin=None, hysteresis=None,
         speed=args.v_max, robot_radius=args.robot_radius, unicycle=args.unicycle,
-        omega_max=args.omega_max, json=args.json, shrunk=nav_ws,
+        omega_max=args.omega_max, json=args.json, shrunk=nav_ws, plot=args.plot,
     )  # fmt: skip
     return int(run_atlas(atlas_args))
 
