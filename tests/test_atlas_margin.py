@@ -166,7 +166,7 @@ def test_confnav_atlas_defaults_on_the_door_with_a_robot_radius(
     assert "5 arrived; collisions 0" in text
     # the door's half-width halved (the channels under the furniture, 0.2 m too, are
     # crowded: their tiles split, and the passage named may be one of those)
-    assert "margin 0.05 m (automatic); narrowest passage the cells need: " in text
+    assert "margin 0.05 m (automatic); thinnest overlap the cells need: " in text
     assert all(r["reason"] == "arrived" for r in json.loads(out.read_text())["runs"])
     # a given margin that cannot fit: one line naming the passage, no robot run
     assert main([*args, "--margin=0.13"]) == 1

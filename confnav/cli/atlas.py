@@ -127,9 +127,12 @@ def run_atlas(args: argparse.Namespace) -> int:
     if thin is not None:
         how = "given" if args.margin is not None else "automatic"
         w = 2 * float(nav_ws.clearance(np.array([thin.point]))[0])
+        # the thinnest overlap is a passage of the free space or a sliver of two split cells:
+        # say what was measured (its depth) and how wide the free space is there
         print(
-            f"margin {dec.margin:.3g} m ({how}); narrowest passage the cells need: "
-            f"{w:.3g} m wide at {fmt_point(thin.point)}"
+            f"margin {dec.margin:.3g} m ({how}); thinnest overlap the cells need: "
+            f"{thin.depth:.3g} m deep at {fmt_point(thin.point)}, where the free space is "
+            f"{w:.3g} m wide"
         )
     nav = AtlasNavigator(atlas, args.goal, hysteresis=args.hysteresis, speed=args.speed)
     doc: dict[str, Any] = {
