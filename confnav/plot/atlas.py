@@ -15,7 +15,7 @@ from matplotlib.figure import Figure
 from confnav.atlas import Atlas, AtlasRun
 from confnav.geometry import Workspace
 from confnav.navigation.sim import STATUS_NAMES
-from confnav.plot.navigation import _trajectories
+from confnav.plot.navigation import _trajectories, draw_walls
 from confnav.plot.style import save
 
 __all__ = ["atlas_figure", "save_atlas_figure"]
@@ -39,18 +39,7 @@ def atlas_figure(
     x0, y0, x1, y1 = (walls or ws).bounds
     aspect = (y1 - y0) / max(x1 - x0, 1e-12)
     fig, ax = plt.subplots(figsize=(10, float(np.clip(10 * aspect, 4, 14))))
-    for j, p in enumerate((walls or ws).boundaries):
-        q = np.r_[p, p[:1]]
-        if j == 0:
-            ax.plot(q.real, q.imag, "k-", lw=1.2)
-        else:
-            ax.fill(q.real, q.imag, color="0.55", ec="k", lw=0.8)
-    if walls is not None:
-        label = f"free space of the centre (walls grown by {shrink:g} m)"
-        for p in ws.boundaries:
-            q = np.r_[p, p[:1]]
-            ax.plot(q.real, q.imag, "--", color="tab:blue", lw=0.8, label=label)
-            label = "_"
+    draw_walls(ax, ws, walls, shrink)
     label = f"cells ({len(atlas.decomposition.cells)})"
     for c in atlas.decomposition.cells:
         xs, ys = c.polygon.exterior.xy

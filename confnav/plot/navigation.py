@@ -45,6 +45,23 @@ OUTCOME_MARKERS: dict[str, tuple[str, str]] = {
 }
 
 
+def draw_walls(ax: Axes, ws: Workspace, walls: Workspace | None, shrink: float) -> None:
+    """The walls and obstacles of ``walls`` (the real workspace; ``ws`` if None) and, for a
+    robot with a body, the free space ``ws`` of its centre (shrunk by ``shrink``) dashed."""
+    for j, p in enumerate((walls or ws).boundaries):
+        q = np.r_[p, p[:1]]
+        if j == 0:
+            ax.plot(q.real, q.imag, "k-", lw=1.2)
+        else:
+            ax.fill(q.real, q.imag, color="0.55", ec="k", lw=1.0)
+    if walls is not None:
+        label = f"free space of the centre (walls grown by {shrink:g} m)"
+        for p in ws.boundaries:
+            q = np.r_[p, p[:1]]
+            ax.plot(q.real, q.imag, "--", color="tab:blue", lw=0.8, label=label)
+            label = "_"  # one legend entry
+
+
 def plot_workspace(
     ax: Axes,
     ctl: Controller,
@@ -71,18 +88,7 @@ def plot_workspace(
     inside = ws.contains(z)
     v[inside] = ctl.lyapunov(z[inside])
     ax.contour(x, y, v, levels=_levels(v), linewidths=0.6, cmap="viridis")
-    for j, p in enumerate((walls or ws).boundaries):
-        q = np.r_[p, p[:1]]
-        if j == 0:
-            ax.plot(q.real, q.imag, "k-", lw=1.2)
-        else:
-            ax.fill(q.real, q.imag, color="0.55", ec="k", lw=1.0)
-    if walls is not None:
-        label = f"free space of the centre (walls grown by {shrink:g} m)"
-        for p in ws.boundaries:
-            q = np.r_[p, p[:1]]
-            ax.plot(q.real, q.imag, "--", color="tab:blue", lw=0.8, label=label)
-            label = "_"  # one legend entry
+    draw_walls(ax, ws, walls, shrink)
     label_polygons(ax, ws.obstacles)  # the obstacles of the map (circle i <-> obstacle i)
     _trajectories(ax, paths, outcomes)
     ax.plot(ctl.goal.real, ctl.goal.imag, "k*", ms=12, mfc="gold", ls="none", label="goal")
