@@ -137,6 +137,7 @@ class _Operator:
             self.rowi = self.Ki.sum(axis=1)
         else:
             self.c0 = self._cauchy(self.q0)
+        self._last: tuple[FloatArray, ComplexArray] | None = None
 
     def _cauchy(self, q: ComplexArray) -> ComplexArray:
         """sum over alive k != i of q_k/(eta_i - eta_k), at every node i (FMM)."""
@@ -155,8 +156,14 @@ class _Operator:
         """sum_{k != i} K_ik (x_k - x_i), complex (Re -> M part, Im -> N part)."""
         if self.dense:
             return np.asarray((self.Kr @ x - self.rowr * x) + 1j * (self.Ki @ x - self.rowi * x))
+        # one-entry memo: GMRES's last product is (I - N) mu of the solution, whose M mu (h)
+        # needs the same FMM sum
+        if self._last is not None and np.array_equal(self._last[0], x):
+            return self._last[1]
         cx = self._cauchy(self.q0 * x.astype(np.complex128))
-        return np.asarray(-(2.0 / self.n) * self.A * (cx - x * self.c0))
+        sx = np.asarray(-(2.0 / self.n) * self.A * (cx - x * self.c0))
+        self._last = (x.copy(), sx)
+        return sx
 
     def I_minus_N(self, x: FloatArray) -> FloatArray:
         if self.dense:
@@ -189,6 +196,7 @@ def solve_gnk(
     op = _Operator(eta, deta, A)
     n = eta.size
     rhs = -op.M(gamma)
+    imn_gamma = op.I_minus_N(gamma)  # for h; the same FMM sum as M gamma (memo in S)
     lin = LinearOperator((n, n), matvec=op.I_minus_N, dtype=np.float64)
     count = [0]
 
@@ -228,7 +236,7 @@ def solve_gnk(
             f"GMRES did not converge for the GNK equation (n={n}, residual {res:.2e} > "
             f"{GMRES_ACCEPT * rtol:.1e} after {count[0]} iterations)"
         )
-    hpt = 0.5 * (op.M(mu) - op.I_minus_N(gamma))
+    hpt = 0.5 * (op.M(mu) - imn_gamma)  # M mu: the memo of GMRES's last product
     return GNKSolution(
         mu=np.asarray(mu),
         h=float(np.mean(hpt)),
