@@ -45,6 +45,15 @@ of nearby states is never removed (mirror asymmetry of the radii 6e-7, boundary 
 2.2e-4, against 1e-8 and 2.5e-6 plain; the residual check refused the map). Extrapolating the
 domain alone loses the composition of maps that *is* the answer.
 
+Warm starts (tried, measured, not used): starting each smooth-grid GNK solve from the previous
+sweep's mu of the same boundary (read off at equal laid angles) made GMRES *slower* (gap 0.1:
+794 iterations against 721 from zero). Near the fixed point mu tends to 0 (every map becomes a
+similarity, whose mu vanishes), shrinking by the contraction per sweep, so the old mu is
+further from the new one than zero is. Its best multiple ``t mu_old`` (least squares, one
+extra product) is 1e-3 relative away, but GMRES gains three digits in about one iteration on
+these smooth grids (~3 iterations per solve for 1e-11 relative), and the start costs one
+product more than a zero start: 2645 FMM sums against 2371 at gap 0.01, 80 nodes per side.
+
 References
 ----------
 .. [1] M. M. S. Nasser, "Fast computation of the circular map", Comput. Methods Funct. Theory
