@@ -34,6 +34,18 @@ def _bench() -> ModuleType:
     return mod
 
 
+def test_bench_command_line_defaults_to_every_mode() -> None:
+    """``python -m bench chaos`` passes no mode: all three run (it used to exit 2, Python
+    3.11's argparse checking the empty positional against its choices); a wrong mode is a
+    usage error."""
+    bench = _bench()
+    assert bench.parse_args([]).modes == ["fuzz", "kill", "soak"]
+    assert bench.parse_args(["fuzz", "--n", "5"]).modes == ["fuzz"]
+    with pytest.raises(SystemExit) as exc:
+        bench.parse_args(["fuzz", "bogus"])
+    assert exc.value.code == 2
+
+
 def test_malformed_messages_never_crash_and_are_all_counted(
     mem_net: InMemoryNetwork, tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
