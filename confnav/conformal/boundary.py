@@ -141,4 +141,35 @@ def graded_polygon(
     return BoundaryMesh(eta, deta, side, tau)
 
 
-__all__ = ["GRADING_P", "BoundaryMesh", "graded_polygon", "kress_sigma"]
+def _vertex_order(m: BoundaryMesh) -> tuple[ComplexArray, FloatArray]:
+    """The mesh's vertices by side, and every node's position ``side + tau/2pi`` along the
+    polygon in its original (unreversed) order."""
+    at = m.tau == 0
+    return m.eta[at][np.argsort(m.side[at])], m.side + m.tau / (2 * np.pi)
+
+
+def resample(old: BoundaryMesh, values: FloatArray, new: BoundaryMesh) -> FloatArray | None:
+    """Values at the nodes of ``old`` carried to the nodes of ``new``, a mesh of the same
+    polygon with other node counts per side (a first guess, not an exact transfer).
+
+    Interpolated by a periodic cubic spline in ``side + tau/2pi``: on Kress's graded mesh the
+    functions of the boundary integral equation are smooth in tau up to the vertices (their
+    tau-derivatives vanish there to order p - 1, see :func:`kress_sigma`), so one spline runs
+    through the corners (C. de Boor, "A Practical Guide to Splines", Springer 1978, ch. IV:
+    the cubic spline interpolant errs by O(h^4) times the fourth derivative). Returns None
+    when the two meshes are not of the same polygon (its sides split differently).
+    """
+    from scipy.interpolate import CubicSpline
+
+    v_old, x_old = _vertex_order(old)
+    v_new, x_new = _vertex_order(new)
+    if v_old.shape != v_new.shape or not np.array_equal(v_old, v_new) or values.shape != (old.n,):
+        return None
+    order = np.argsort(x_old)
+    x = np.r_[x_old[order], v_old.size]
+    y = np.asarray(values, dtype=np.float64)[order]
+    spline = CubicSpline(x, np.r_[y, y[0]], bc_type="periodic")
+    return np.asarray(spline(x_new), dtype=np.float64)
+
+
+__all__ = ["GRADING_P", "BoundaryMesh", "graded_polygon", "kress_sigma", "resample"]

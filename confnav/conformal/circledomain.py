@@ -120,6 +120,9 @@ class CircleDomainResult:
     #: Largest relative Fourier tail of a smooth grid solved on while above its target (at
     #: SMOOTH_MAX, or laid too small in an early sweep; 0: none).
     resolution_error: float = 0.0
+    #: The first sweep's GNK solution of each boundary on its graded mesh (outer first): the
+    #: next mesh level's first guess (:func:`confnav.conformal.boundary.resample`).
+    first_mu: list[FloatArray | None] = field(default_factory=list)
 
 
 def _winding(curve: ComplexArray, z: complex) -> float:
@@ -154,8 +157,13 @@ class _Boundary:
     tail: float = SMOOTH_TAIL  # Fourier tail (relative) the smooth grid must reach
     capped_tail: float = 0.0  # Fourier tail of the grid while it is at SMOOTH_MAX (0: not)
 
-    def own_map(self, alpha: complex, others: ComplexArray, rtol: float) -> CurveMap:
+    def own_map(
+        self, alpha: complex, others: ComplexArray, rtol: float, x0: FloatArray | None = None
+    ) -> CurveMap:
         """Solve the disk map of this boundary's current image and move it onto |w| = 1.
+
+        ``x0``: a first guess of the GNK solution, used in the first sweep (on the polygon's
+        graded mesh; the previous mesh level's solution there).
 
         ``others`` are points of the other boundaries: if they have come closer to this curve
         than its smooth grid resolves, the grid is refined first (exact FFT upsampling of an
@@ -172,7 +180,7 @@ class _Boundary:
             if m > self.S.size:
                 self.S, self.dS = upsample(np.stack([self.S, self.dS]), m)
         if self.S is None:  # first sweep: the polygon, on its graded mesh
-            cm = (exterior_map if self.hole else interior_map)(self.P, self.dP, alpha, rtol)
+            cm = (exterior_map if self.hole else interior_map)(self.P, self.dP, alpha, rtol, x0)
             sgn = -1.0 if self.hole else 1.0
             self.u = sgn * np.unwrap(np.angle(cm.f))
             self.u = self.u - 2 * np.pi * np.floor(self.u[0] / (2 * np.pi))
@@ -370,6 +378,7 @@ def koebe_iteration(
     max_sweeps: int = MAX_SWEEPS,
     progress: Callable[[int, float], None] | None = None,
     gmres_tol: float = GMRES_RTOL,
+    first_guess: list[FloatArray | None] | None = None,
 ) -> CircleDomainResult:
     """Run the iteration on graded meshes (outer counter-clockwise, holes clockwise).
 
@@ -405,6 +414,8 @@ def koebe_iteration(
     history: list[float] = []
     gm_its = 0
     sweeps = 0
+    guess = list(first_guess) if first_guess is not None else [None] * (M + 1)
+    first_mu: list[FloatArray | None] = [None] * (M + 1)
     for sweep in range(1, max_sweeps + 1):
         sweeps = sweep
         u_old = [None if b.u is None else b.u.copy() for b in bnds]
@@ -417,8 +428,12 @@ def koebe_iteration(
                     f"Koebe iteration lost track of obstacle {k - 1} in sweep {sweep} "
                     "(its tracked point left the boundary image)"
                 )
-            F = _own_map(b, c[k - 1], f"obstacle {k - 1}", meshes[k], _curves(bnds, k), gmres_tol)
+            F = _own_map(
+                b, c[k - 1], f"obstacle {k - 1}", meshes[k], _curves(bnds, k), gmres_tol, guess[k]
+            )
             gm_its += F.gmres_iterations
+            if sweep == 1:
+                first_mu[k] = F.mu
             others = np.concatenate([[a], np.delete(c, k - 1)])
             out = _apply(F, bnds, k, others)
             _check_images(_curves(bnds, k), out[: others.size], True, f"obstacle {k - 1}", sweep)
@@ -426,8 +441,12 @@ def koebe_iteration(
             img, dimg = out[: others.size], out[others.size :]
             a, D = complex(img[0]), D * complex(dimg[0])
             c = np.insert(img[1:], k - 1, 0.0)
-        f0 = _own_map(bnds[0], a, "the outer boundary", meshes[0], _curves(bnds, 0), gmres_tol)
+        f0 = _own_map(
+            bnds[0], a, "the outer boundary", meshes[0], _curves(bnds, 0), gmres_tol, guess[0]
+        )
         gm_its += f0.gmres_iterations
+        if sweep == 1:
+            first_mu[0] = f0.mu
         out = _apply(f0, bnds, 0, c)
         _check_images(_curves(bnds, 0), out[: c.size], False, "the outer boundary", sweep)
         _regrid(bnds[0], _curves(bnds, 0), "the outer boundary", sweep)
@@ -494,6 +513,7 @@ def koebe_iteration(
         iteration_error=iteration_error,
         converged=bool(converged and iteration_error <= tol),
         resolution_error=max(b.capped_tail for b in bnds),
+        first_mu=first_mu,
     )
 
 
@@ -533,10 +553,11 @@ def _own_map(
     mesh: BoundaryMesh,
     others: ComplexArray,
     rtol: float,
+    x0: FloatArray | None = None,
 ) -> CurveMap:
     """``b.own_map`` with failures reported against the boundary and its sharpest corner."""
     try:
-        return b.own_map(alpha, others, rtol)
+        return b.own_map(alpha, others, rtol, x0)
     except ConvergenceError as exc:
         v = mesh.eta[mesh.tau == 0]
         turn = np.angle((np.roll(v, -1) - v) / (v - np.roll(v, 1)))

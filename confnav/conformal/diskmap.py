@@ -46,6 +46,7 @@ from confnav.conformal.gnk import (
     spectral_derivative_complex,
 )
 from confnav.types import CArray as ComplexArray
+from confnav.types import FArray as FloatArray
 
 
 @dataclass(frozen=True)
@@ -66,6 +67,8 @@ class CurveMap:
         ``f'(alpha)`` (interior) or ``F'(inf)`` (exterior); real and positive.
     gmres_iterations
         Iterations of the GNK solve (diagnostic).
+    mu
+        The GNK solution at the nodes (a first guess for the same curve on a finer mesh).
     """
 
     eta: ComplexArray
@@ -76,6 +79,7 @@ class CurveMap:
     exterior: bool
     scale: float
     gmres_iterations: int
+    mu: FloatArray | None = None
 
     def evaluate(
         self, z: ComplexArray, derivative: bool = True
@@ -122,15 +126,19 @@ class CurveMap:
 
 
 def interior_map(
-    eta: ComplexArray, deta: ComplexArray, alpha: complex, rtol: float = GMRES_RTOL
+    eta: ComplexArray,
+    deta: ComplexArray,
+    alpha: complex,
+    rtol: float = GMRES_RTOL,
+    x0: FloatArray | None = None,
 ) -> CurveMap:
     """Map the inside of a counter-clockwise curve onto the unit disk (DESIGN.md sec. 2).
 
     ``rtol``: relative GMRES residual of the GNK solve
-    (:func:`confnav.conformal.gnk.gmres_rtol`)."""
+    (:func:`confnav.conformal.gnk.gmres_rtol`); ``x0``: a first guess of its ``mu``."""
     A = eta - alpha
     gamma = -np.log(np.abs(A))
-    sol = solve_gnk(eta, deta, A, gamma, rtol)
+    sol = solve_gnk(eta, deta, A, gamma, rtol, x0)
     theta_dot = (deta / A).imag + spectral_derivative(sol.mu)
     f = A / np.abs(A) * np.exp(1j * sol.mu)
     return CurveMap(
@@ -142,19 +150,24 @@ def interior_map(
         exterior=False,
         scale=float(np.exp(-sol.h)),
         gmres_iterations=sol.iterations,
+        mu=sol.mu,
     )
 
 
 def exterior_map(
-    eta: ComplexArray, deta: ComplexArray, alpha: complex, rtol: float = GMRES_RTOL
+    eta: ComplexArray,
+    deta: ComplexArray,
+    alpha: complex,
+    rtol: float = GMRES_RTOL,
+    x0: FloatArray | None = None,
 ) -> CurveMap:
     """Map the outside of a clockwise curve onto |w| > 1 with F'(inf) > 0 (DESIGN.md sec. 2).
 
     ``rtol``: relative GMRES residual of the GNK solve
-    (:func:`confnav.conformal.gnk.gmres_rtol`)."""
+    (:func:`confnav.conformal.gnk.gmres_rtol`); ``x0``: a first guess of its ``mu``."""
     A = np.ones_like(eta)
     gamma = np.log(np.abs(eta - alpha))
-    sol = solve_gnk(eta, deta, A, gamma, rtol)
+    sol = solve_gnk(eta, deta, A, gamma, rtol, x0)
     phi = gamma + sol.h + 1j * sol.mu
     # Phi_inf = (1/2pi i) oint_ccw Phi/(zeta - alpha) dzeta; eta runs clockwise -> minus sign.
     phi_inf = -(2 * np.pi / eta.size) / (2j * np.pi) * np.sum(phi * deta / (eta - alpha))
@@ -169,6 +182,7 @@ def exterior_map(
         exterior=True,
         scale=float(np.exp(sol.h - phi_inf.real)),
         gmres_iterations=sol.iterations,
+        mu=sol.mu,
     )
 
 

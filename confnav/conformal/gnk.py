@@ -187,11 +187,14 @@ def solve_gnk(
     A: ComplexArray,
     gamma: FloatArray,
     rtol: float = GMRES_RTOL,
+    x0: FloatArray | None = None,
 ) -> GNKSolution:
     """Solve ``(I - N) mu = -M gamma`` and return ``mu`` and ``h`` (see module docstring).
 
     ``rtol`` is the relative GMRES residual asked for (see :func:`gmres_rtol`); a run stopped at
-    its iteration limit is accepted only within :data:`GMRES_ACCEPT` of it.
+    its iteration limit is accepted only within :data:`GMRES_ACCEPT` of it. ``x0``: a first
+    guess of ``mu`` (e.g. the previous mesh level's solution); the residual asked for is
+    relative to the right-hand side either way, so it changes the work, not the accuracy.
     """
     op = _Operator(eta, deta, A)
     n = eta.size
@@ -213,6 +216,8 @@ def solve_gnk(
     # cycles would not help: 20 of them took 147 s on an imported floor plan before failing
     bnorm = max(float(np.linalg.norm(rhs)), 1e-300)
     mu = np.zeros(n)
+    if x0 is not None and x0.shape == (n,) and np.all(np.isfinite(x0)):
+        mu = np.array(x0, dtype=np.float64)
     res = np.inf
     for _cycle in range(GMRES_MAXITER):
         mu, info = gmres(
