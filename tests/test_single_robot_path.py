@@ -85,6 +85,14 @@ def test_map_single_point_equals_batch(nav_map: ConformalMap) -> None:
     assert cov.sum() >= 30 and (~cov & np.isfinite(nav_map.T(z))).sum() >= 30  # both paths
     w, dw = nav_map.T_and_dT(z)
     cond_w, cond_dw = _conditioning(nav_map, z)
+    # away from the walls T' = (N'D - N D')/D^2 from the expansion's sums (bitwise the
+    # batch's, checked below) is rounded in scalars against numpy's vector arithmetic: a few
+    # ulp of its terms, i.e. relative to |T'| times the cancellation in N'D - N D' (measured
+    # up to 154 on these points, the rounding then 1.3e-14 relative: 1 ulp of the terms)
+    _, S, dS = ex.sums(z)
+    with np.errstate(all="ignore"):
+        terms = np.abs(dS[:, 0] * S[:, 1]) + np.abs(S[:, 0] * dS[:, 1])
+        cancel = np.nan_to_num(terms / np.abs(dS[:, 0] * S[:, 1] - S[:, 0] * dS[:, 1]), nan=1.0)
     for k in range(z.size):
         w1, dw1 = nav_map.T_and_dT1(z[k])
         w0, dw0 = nav_map.T_and_dT(z[k])  # 0-d array in, 0-d arrays out
@@ -92,7 +100,7 @@ def test_map_single_point_equals_batch(nav_map: ConformalMap) -> None:
         # near a wall the direct sums (one robot: 1-D dots; a batch: BLAS) add 6000 terms in
         # another order: rounding relative to the sums of the terms' moduli, not to |T'|
         rw = RTOL * (1.0 if cov[k] else cond_w[k])
-        rd = RTOL * (1.0 if cov[k] else cond_dw[k])
+        rd = RTOL * (max(cancel[k], 1.0) if cov[k] else cond_dw[k])
         assert _close(w1, w[k], rw) and _close(dw1, dw[k], rd), (k, z[k], w1 - w[k], dw1 - dw[k])
         assert _close(w0, w[k], rw) and _close(dw0, dw[k], rd)
         if cov[k]:  # the expansion's row is bitwise the batch's

@@ -54,6 +54,7 @@ import scipy.sparse as sp
 import shapely
 from scipy.special import comb
 
+from confnav.powers import power_table
 from confnav.types import BArray as BoolArray
 from confnav.types import CArray as ComplexArray
 from confnav.types import FArray as FloatArray
@@ -282,10 +283,7 @@ class LocalExpansions:
         if covered.any():
             lf = leaf[covered]
             zeta = (zz[covered] - self._centres[lf]) / self._radii[lf]
-            V = np.empty((zeta.size, 1, self.degree + 1), np.complex128)
-            V[:, 0, 0] = 1.0
-            V[:, 0, 1:] = zeta[:, None]
-            np.cumprod(V, axis=2, out=V)
+            V = power_table(zeta[:, None], self.degree)  # (points, 1, degree + 1)
             out[covered] = np.matmul(V, self._coef[lf])[:, 0, :]
         return covered, out[:, : self._nsum], out[:, self._nsum :]
 

@@ -79,6 +79,7 @@ from numpy.typing import ArrayLike
 
 from confnav.errors import NavigationError
 from confnav.navigation.navfn import CircleDomain, NavigationFunction
+from confnav.powers import power_table
 from confnav.types import CArray, FArray, IArray
 
 __all__ = ["GreenBasis", "GreenDiagnostics", "GreenFunction", "HarmonicNavigation"]
@@ -719,10 +720,7 @@ class GreenFunction:
         if self._cen.c.size:
             u, v, d, q = _variables(self._cen, z)
             x = np.concatenate([u, v], axis=1)  # (P, 2M)
-            xpow = np.empty((*x.shape, self._n + 1), dtype=np.complex128)
-            xpow[:, :, 0] = 1.0
-            xpow[:, :, 1:] = x[:, :, None]
-            np.cumprod(xpow, axis=2, out=xpow)
+            xpow = power_table(x, self._n)
             r = self._cen.r
             dxdw = np.concatenate([-(u * u) / r, r / (q * q)], axis=1)
             f = np.einsum("pjk,jk->p", xpow, self._cf)
@@ -780,10 +778,7 @@ def _stacked_parts(greens: Sequence[GreenFunction], z: CArray) -> tuple[FArray, 
         if k:  # the same sums as GreenFunction._eval, with per-point coefficients
             u, v, d, q = _variables(cen, z)
             x = np.concatenate([u, v], axis=1)
-            xpow = np.empty((*x.shape, n + 1), dtype=np.complex128)
-            xpow[:, :, 0] = 1.0
-            xpow[:, :, 1:] = x[:, :, None]
-            np.cumprod(xpow, axis=2, out=xpow)
+            xpow = power_table(x, n)
             r = cen.r
             dxdw = np.concatenate([-(u * u) / r, r / (q * q)], axis=1)
             f = np.einsum("pjk,pjk->p", xpow, cf)
