@@ -142,6 +142,25 @@ def test_narrow_passage_names_goal_and_component() -> None:
     inflate(ws, 0.2, keep=complex(x, y))  # and it is indeed reachable
 
 
+def test_a_goal_exactly_a_radius_from_the_wall_is_refused_before_any_solve() -> None:
+    """Found from the CLI: a goal at the back of a charging alcove exactly r (radius +
+    look-ahead, 0.35) from the wall was inside the mitre-shrunk space to rounding, the map
+    sent it onto the unit circle, and `confnav simulate` failed after a 77 s solve with "not
+    inside the circle domain". It is refused at once, with a point the robot can reach."""
+    outer = [(0, 0), (10, 0), (10, 7), (0, 7), (0, 4), (-0.8, 4), (-0.8, 3), (0, 3)]
+    ws = Workspace(outer, [square(5 + 3.5j, 1)])
+    with pytest.raises(UnreachableGoalError, match=r"\(-0\.45, 3\.5\) is within r=0\.35") as err:
+        inflate(ws, 0.35, keep=-0.45 + 3.5j)
+    near = str(err.value).split("the nearest point that does is (")[1].split(")")[0]
+    x, y = (float(v) for v in near.split(", "))
+    assert -0.45 < x < -0.448 and y == pytest.approx(3.5, abs=1e-3)  # 1e-4 of the size in
+    nav = inflate(ws, 0.35, keep=complex(x, y))  # that one is reachable ...
+    assert nav.contains(complex(x, y))
+    inflate(ws, 0.35, keep=-0.44 + 3.5j)  # ... and so is a goal 1 cm further out
+    with pytest.raises(UnreachableGoalError, match=r"start 0 \(-0\.45, 3\.6\)"):
+        inflate(ws, 0.35, keep=5 + 1j, require={"start 0": -0.45 + 3.6j})
+
+
 def test_a_goal_cut_off_in_a_small_pocket_is_warned_about(caplog: pytest.LogCaptureFixture) -> None:
     """A goal whose component is not the largest is kept, but said: a SLAM speck in an alcove's
     mouth left a studio's robots 0.18 of its 26.7 m^2, and `confnav atlas --random` drew every

@@ -76,6 +76,13 @@ RADIUS_QUANTUM = 1e-4
 MIN_COMPONENT_FRACTION = 1e-6
 
 
+#: Points closer than this (relative to the workspace size) to the shrunk free space's
+#: boundary are not in it (:meth:`Inflation.component_of`): far above rounding, far below any
+#: clearance that matters to a robot (0.1 mm in a 10 m room), and below the 1e-4 step inwards
+#: of the points :meth:`Inflation.nearest` suggests.
+EDGE_RTOL = 1e-5
+
+
 class UnreachableGoalError(NavigationError):
     """A point (goal or start) is not in the kept component of the shrunk free space."""
 
@@ -137,11 +144,24 @@ class Inflation:
         return self.effective_radius - self.radius
 
     def component_of(self, z: complex) -> int | None:
-        """Index of the component holding ``z`` (None: within ``radius`` of the boundary)."""
+        """Index of the component holding ``z`` (None: within ``radius`` of the boundary).
+
+        A point on the shrunk boundary to within :data:`EDGE_RTOL` of the workspace size
+        counts as outside: there the robot's footprint touches a wall, and the map sends the
+        point onto a circle of the circle domain, where no navigation function has its goal
+        (found from the CLI: a goal exactly ``radius`` from a wall was "inside" to rounding,
+        and the run failed after a 77 s solve with "not inside the circle domain").
+        """
         p = Point(z.real, z.imag)
+        edge = EDGE_RTOL * self.workspace.diameter
         for j, c in enumerate(self.components):
             if c.contains(p):
-                return j
+                return (
+                    j
+                    if c.exterior.distance(p) > edge
+                    and all(ring.distance(p) > edge for ring in c.interiors)
+                    else None
+                )
         return None
 
     def nearest(self, z: complex) -> tuple[complex, int]:
@@ -159,11 +179,15 @@ class Inflation:
         # printed to 6 digits must still be
         d = 1e-4 * self.workspace.diameter
         away = (w - z) / abs(w - z) if w != z else 1.0  # on, away from z: the inward normal
+        # of 8 directions, the one deepest inside (the first inside may run almost along the
+        # wall, closer to it than component_of accepts)
+        best, depth = w, 0.0
         for k in range(8):
             u = w + d * away * np.exp(2j * np.pi * k / 8)
-            if c.contains(Point(u.real, u.imag)):
-                return complex(u), j
-        return w, j
+            pu = Point(u.real, u.imag)
+            if c.contains(pu) and c.boundary.distance(pu) > depth:
+                best, depth = complex(u), c.boundary.distance(pu)
+        return best, j
 
     def describe(self, j: int) -> str:
         c = self.components[j]
