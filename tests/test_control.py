@@ -349,6 +349,30 @@ def test_map_values_entry_point_is_the_controller() -> None:
     assert ctls[0](z[:8]).status[3] == Status.ERROR and ctls[0](z[:8]).status[7] == Status.ARRIVED
 
 
+def test_a_goal_the_map_sends_onto_a_circle_is_refused_in_workspace_terms() -> None:
+    """A goal inside the workspace whose image lies on (or, by the map's error, across) a
+    circle of the circle domain -- a goal on a wall to rounding, as in a charging alcove whose
+    shrunk back wall ran through it -- is refused in the words of the workspace, not with the
+    circle-domain coordinates the navigation function would report."""
+
+    class OnCircle:
+        """T = identity onto SEED, and no workspace test of its own: the goal gets to T."""
+
+        centers, radii, workspace = SEED.centers, SEED.radii, None
+
+        def T_and_dT(self, z: Any) -> tuple[np.ndarray, np.ndarray]:
+            z = np.asarray(z, dtype=complex)
+            return z, np.ones_like(z)
+
+    ctl_map = OnCircle()
+    with pytest.raises(NavigationError, match=r"goal \(1, 0\) is too close to a wall"):
+        Controller(ctl_map, 1.0 + 0j)
+    edge = SEED.centers[0] + SEED.radii[0]  # on an obstacle's circle
+    with pytest.raises(NavigationError, match="too close to a wall"):
+        Controller(ctl_map, edge)
+    Controller(ctl_map, 0.9 + 0j)  # inside: fine
+
+
 @pytest.fixture(scope="module")
 def room_map() -> Any:
     """A real solved map: a 2 x 1 m room with a square pillar (corners, straight walls)."""
