@@ -156,12 +156,7 @@ class Inflation:
         edge = EDGE_RTOL * self.workspace.diameter
         for j, c in enumerate(self.components):
             if c.contains(p):
-                return (
-                    j
-                    if c.exterior.distance(p) > edge
-                    and all(ring.distance(p) > edge for ring in c.interiors)
-                    else None
-                )
+                return j if c.boundary.distance(p) > edge else None
         return None
 
     def nearest(self, z: complex) -> tuple[complex, int]:
@@ -185,8 +180,9 @@ class Inflation:
         for k in range(8):
             u = w + d * away * np.exp(2j * np.pi * k / 8)
             pu = Point(u.real, u.imag)
-            if c.contains(pu) and c.boundary.distance(pu) > depth:
-                best, depth = complex(u), c.boundary.distance(pu)
+            inside = c.boundary.distance(pu) if c.contains(pu) else 0.0
+            if inside > depth:
+                best, depth = complex(u), inside
         return best, j
 
     def describe(self, j: int) -> str:

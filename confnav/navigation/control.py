@@ -302,7 +302,8 @@ class Controller:
         # circle-domain figures: "not inside the circle domain", a series that does not
         # converge, no valid k). Not the map's error estimate: an atlas chart's local goal
         # 3.2e-7 deep in a chart of estimate 3.5e-7 navigates well (tests/test_atlas_margin.py)
-        depth = float(CircleDomain.of(cmap).clearance1(wd))
+        domain = CircleDomain.of(cmap)
+        depth = float(domain.clearance1(wd))
         if not depth > MIN_GOAL_DEPTH:
             raise NavigationError(
                 f"goal {fmt_point(self.goal)} is too close to a wall to navigate to: the map "
@@ -316,7 +317,7 @@ class Controller:
                 raise NavigationError("navigation function goal differs from T(goal)")
             self.navfn = navfn
         else:
-            self.domain = CircleDomain.of(cmap)
+            self.domain = domain
             try:
                 self.navfn = make_navfn(navfn, self.domain, wd, k=k, samples=_samples(cmap))
             except NavigationError as exc:
