@@ -156,7 +156,8 @@ def reference() -> dict[str, Any]:
     ws = default_workspace()
     la = load1()
     c0, t0 = time.process_time(), time.perf_counter()
-    res, eta, _, _ = _solve_level(ws, REF_LEVEL, REF_TOL, None)
+    res, meshes = _solve_level(ws, REF_LEVEL, REF_TOL, None)
+    eta = [m.eta for m in meshes]
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     coarser = _solve_level(ws, REF_CHECK_LEVEL, REF_TOL, None)[0]
     accuracy = max(
@@ -366,7 +367,8 @@ def node_scaling(ref: dict[str, Any], levels: tuple[int, ...]) -> dict[str, Any]
     for level in levels:
         la = load1()
         c0, t0 = time.process_time(), time.perf_counter()
-        res, eta, _, _ = _solve_level(ws, level, REF_TOL, None)
+        res, meshes = _solve_level(ws, level, REF_TOL, None)
+        eta = [m.eta for m in meshes]
         wall, cpu = time.perf_counter() - t0, time.process_time() - c0
         err = errors_vs(np.asarray(res.centers), np.asarray(res.radii), ref)
         if level == REF_LEVEL:  # the reference's own mesh: error 0 by construction

@@ -82,7 +82,7 @@ class AccuracyWarning(UserWarning):
 
 
 #: A level's graded meshes and its first sweep's GNK solutions (the next level's first guess).
-_Warm = tuple[list[BoundaryMesh], list["FloatArray | None"]]
+_Warm = tuple[list[BoundaryMesh], list[FloatArray | None]]
 
 
 def _solve_level(
@@ -91,7 +91,7 @@ def _solve_level(
     tol: float,
     progress: Callable[[str], None] | None,
     warm: _Warm | None = None,
-) -> tuple[CircleDomainResult, list[ComplexArray], list[ComplexArray], _Warm]:
+) -> tuple[CircleDomainResult, list[BoundaryMesh]]:
     plans = plan_boundaries(ws, nodes_per_side, tol)
     meshes = [graded_polygon(plans[0].vertices, plans[0].nodes)] + [
         graded_polygon(p.vertices, p.nodes).reversed() for p in plans[1:]
@@ -117,7 +117,7 @@ def _solve_level(
         gmres_tol=gmres_rtol(tol),
         first_guess=guess,
     )
-    return res, [m.eta for m in meshes], [m.deta for m in meshes], (meshes, res.first_mu)
+    return res, meshes
 
 
 def _make_map(
@@ -211,7 +211,7 @@ def solve(
         if progress is not None:
             progress(f"solving with {ns} nodes per side at the sharpest corners")
         try:
-            res, eta, deta, warm = _solve_level(workspace, ns, tol, progress, warm)
+            res, meshes = _solve_level(workspace, ns, tol, progress, warm)
         except GapError as exc:
             if best is None:
                 raise
@@ -231,6 +231,8 @@ def solve(
                 continue
             log.warning("refinement to level %d failed (%s); keeping level %d", ns, exc, best[3])
             break
+        warm = (meshes, res.first_mu)  # the next level's first guesses
+        eta, deta = [m.eta for m in meshes], [m.deta for m in meshes]
         if prev is not None:
             diff = _difference(res, prev)
             # error of the finer solve ~ diff * rho/(1 - rho), rho = error ratio per level:
