@@ -444,7 +444,14 @@ def _terminate(popen: subprocess.Popen[bytes], timeout: float) -> int | None:
 
 def add_parser(sub: Any) -> None:
     p: argparse.ArgumentParser = sub.add_parser(
-        "launch", help="start a router and the services of a TOML manifest (deploy/local.toml)"
+        "launch",
+        help="start a router and the services of a TOML manifest (deploy/local.toml)",
+        description="Start a Zenoh router (unless the manifest names one) and each service of "
+        "the manifest as its own process, in order, each waiting for the previous one's "
+        "liveliness; restart a process that exits (with a backoff); Ctrl-C or SIGTERM stops "
+        "them in reverse order. Each process logs at INFO to LOG_DIR/NAME.log when the "
+        "manifest sets log_dir (-v: DEBUG). The processes stop by themselves if the launcher "
+        "dies (even by kill -9).",
     )
     p.add_argument("config", help="TOML manifest")
     p.set_defaults(func=main)

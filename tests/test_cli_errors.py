@@ -173,3 +173,53 @@ def test_every_numeric_option_says_its_unit() -> None:
     """Help of each option taking a real number names its unit (or says it has none)."""
     missing = [(c, o, h) for c, o, h in _numeric_options() if not UNIT.search(h)]
     assert not missing, missing
+
+
+@pytest.mark.parametrize(
+    "make_args",
+    [
+        lambda ws, tmp: (
+            "simulate",
+            ws,
+            "--map",
+            f"{tmp}/missing.json",
+            "--goal=0.5,0.5",
+            "--starts=-0.5,-0.5",
+        ),
+        lambda ws, tmp: ("solve", f"{tmp}/missing.json"),
+        lambda ws, tmp: ("inspect", f"{tmp}/missing.mcap"),
+    ],
+)
+def test_missing_input_file_is_one_line(make_args, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+    """An OS error (here: a missing file) is caught once, at the CLI's top: one line naming
+    the file and the reason, exit 1, no traceback (issue 26, item 6)."""
+    res = run(*make_args(workspace(tmp_path), tmp_path))
+    assert res.returncode == 1, res.stderr
+    assert "Traceback" not in res.stderr
+    lines = res.stderr.strip().splitlines()
+    assert len(lines) == 1, res.stderr
+    assert "missing." in lines[0] and "error:" in lines[0]
+    assert "no such file" in lines[0].lower()
+
+
+def test_os_error_is_caught_at_the_top(monkeypatch: pytest.MonkeyPatch, capsys) -> None:  # type: ignore[no-untyped-def]
+    """Any command's OSError (not only a missing file) ends in one line and exit 1."""
+    from confnav.cli import app
+
+    def boom(args: object) -> int:
+        raise PermissionError(13, "Permission denied", "/root/x.json")
+
+    parser = app.build_parser
+    monkeypatch.setattr(app, "build_parser", lambda: _with_func(parser(), boom))
+    assert app.main(["schemas", "export", "out"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert err == "confnav schemas: error: /root/x.json: Permission denied"
+
+
+def _with_func(parser, func):  # type: ignore[no-untyped-def]
+    parser.set_defaults(func=func)
+    for action in parser._actions:
+        if hasattr(action, "choices") and isinstance(action.choices, dict):
+            for child in action.choices.values():
+                _with_func(child, func)
+    return parser

@@ -7,8 +7,10 @@ subcommands with ``set_defaults(func=...)``; ``func(args) -> int`` is the exit c
 from __future__ import annotations
 
 import argparse
+import errno
 import importlib
 import logging
+import re
 import sys
 from collections.abc import Sequence
 
@@ -58,24 +60,63 @@ EXAMPLES: dict[str, str] = {
 """One example per command, shown at the end of its ``--help`` unless the module gave one."""
 
 
-def _polish(parser: argparse.ArgumentParser, path: str) -> None:
-    """Give a (sub)command's help the shared look: defaults shown, an example, recursively."""
+#: A negative point or number list (``-0.5,0.5``, ``-1,2;3,4``, ``-1e-3``): an argument, not an
+#: option (argparse's own pattern knows only plain negative numbers; no confnav option looks
+#: like a number, so nothing else is shadowed).
+NEGATIVE_ARG = re.compile(r"^-\d+$|^-\d*\.\d+$|^-(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?[,;]")
+
+_REST_ROLE = re.compile(r":(?:mod|class|func|meth|data|attr|obj|exc|ref|doc):`~?([^`]*)`")
+_REST_LITERAL = re.compile(r"``([^`]*)``")
+
+
+def plain(text: str) -> str:
+    """Help text without reST markup: ``:mod:`x``` and double-backquoted ``x`` become ``x``."""
+    return _REST_LITERAL.sub(r"\1", _REST_ROLE.sub(r"\1", text))
+
+
+def _sentence(text: str) -> str:
+    text = text.strip()
+    return (text[:1].upper() + text[1:]).rstrip(".") + "."
+
+
+def _polish_action(action: argparse.Action) -> None:
+    """One option's help: plain text, and its default shown once (by the formatter unless the
+    text states it: ``(default: ...)``, ``default 0: ...``), never ``(default: None)``."""
+    if action.help == argparse.SUPPRESS:
+        return
+    if action.help is None:
+        if action.option_strings and action.default not in (None, False, argparse.SUPPRESS, []):
+            action.help = "default: %(default)s"
+        return
+    action.help = plain(action.help)
+    if "%(default" in action.help:
+        return
+    says_default = re.search(r"\bdefault\b", action.help) is not None
+    empty = action.default is None or (isinstance(action.default, list) and not action.default)
+    if says_default or empty or isinstance(action.default, bool):
+        action.help += "%(default).0s"  # the formatter would repeat or say nothing useful
+
+
+def _polish(parser: argparse.ArgumentParser, path: str, summary: str | None = None) -> None:
+    """Give a (sub)command's help the shared look, recursively: defaults shown once, no reST,
+    a description (the one-line summary its parent lists if it has none), an example, and
+    negative points accepted as arguments (``confnav goal r1 -0.5,0.5``)."""
     if parser.formatter_class in (argparse.HelpFormatter, argparse.RawDescriptionHelpFormatter):
         parser.formatter_class = HelpFormatter
+    parser._negative_number_matcher = NEGATIVE_ARG
+    if parser.description is None and summary:
+        parser.description = _sentence(summary)
+    if parser.description is not None:
+        parser.description = plain(parser.description)
     if parser.epilog is None and path in EXAMPLES:
         parser.epilog = f"example: {EXAMPLES[path]}"
     for action in parser._actions:
         if isinstance(action, argparse._SubParsersAction):
+            helps = {a.dest: a.help for a in action._choices_actions}
             for name, child in action.choices.items():
-                _polish(child, f"{path} {name}".strip())
-        elif action.default == [] and action.help and "%(default" not in action.help:
-            action.help += "%(default).0s"  # a repeatable option: "(default: [])" says nothing
-        elif (
-            action.help is None
-            and action.option_strings
-            and action.default not in (None, False, argparse.SUPPRESS, [])
-        ):
-            action.help = "default: %(default)s"
+                _polish(child, f"{path} {name}".strip(), helps.get(name))
+        else:
+            _polish_action(action)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -89,8 +130,10 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in SUBCOMMAND_MODULES:
         importlib.import_module(name).register(sub)
+    parser._negative_number_matcher = NEGATIVE_ARG
+    helps = {a.dest: a.help for a in sub._choices_actions}
     for name, child in sub.choices.items():
-        _polish(child, name)
+        _polish(child, name, helps.get(name))
     return parser
 
 
@@ -107,8 +150,21 @@ def main(argv: Sequence[str] | None = None) -> int:
     except ConfnavError as exc:
         print(f"confnav {args.command}: error: {exc}", file=sys.stderr)
         return 1
+    except OSError as exc:  # a missing or unreadable file, a full disk...: one line
+        print(f"confnav {args.command}: error: {_os_error(exc)}", file=sys.stderr)
+        return 1
     except KeyboardInterrupt:
+        print(f"confnav {args.command}: interrupted", file=sys.stderr)
         return 130
+
+
+def _os_error(exc: OSError) -> str:
+    """``cannot open missing.json: No such file or directory`` (what, where, why)."""
+    why = exc.strerror or (errno.errorcode.get(exc.errno, "") if exc.errno else "") or str(exc)
+    if exc.filename is None:
+        return why
+    where = f"{exc.filename}" + (f" -> {exc.filename2}" if exc.filename2 is not None else "")
+    return f"{where}: {why}"
 
 
 if __name__ == "__main__":

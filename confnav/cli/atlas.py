@@ -1,7 +1,7 @@
 """``confnav atlas``: solve a workspace as an atlas of charts and navigate by composition.
 
 ``confnav atlas WS.json --goal=X,Y (--starts="X,Y;X,Y" | --random N --seed S) [--tol 1e-8]
-[--workers 2] [--tile T] [--margin M] [--hysteresis H] [--speed V]
+[--workers 2] [--tile T] [--margin M] [--hysteresis H] [--v-max V]
 [--robot-radius R] [--unicycle D [--omega-max W]] [--json OUT.json]``
 
 Prints the cells (tile, obstacles, nodes, solve time) and the runs' summary: success,
@@ -31,6 +31,7 @@ import numpy as np
 
 from confnav.argtypes import output_path, positive_float, positive_int
 from confnav.cli.simulate import _point, _points
+from confnav.navigation import defaults
 
 if TYPE_CHECKING:
     from confnav.atlas import AtlasNavigator, AtlasRun
@@ -65,7 +66,14 @@ def register(subparsers: Any) -> None:
         "the cells cut through; one it cannot hold is an error naming it)",
     )
     p.add_argument("--hysteresis", type=float, help="switching depth, m (default margin/2)")
-    p.add_argument("--speed", type=float, default=1.0, help="commanded speed, m/s")
+    p.add_argument(
+        "--v-max",
+        "--speed",
+        dest="speed",
+        type=positive_float,
+        default=defaults.V_MAX,
+        help="speed limit, m/s (as confnav simulate; --speed: the old name)",
+    )
     p.add_argument("--robot-radius", type=float, default=0.0, help="disk robot radius, m")
     p.add_argument(
         "--unicycle", type=positive_float, metavar="D",

@@ -33,7 +33,7 @@ from confnav.schemas import (
     decode,
     encode,
 )
-from confnav.schemas.messages import DriveName, NavFnName
+from confnav.schemas.messages import DriveName, NavFnName, SpeedLawName
 from confnav.services.bus import ZenohBus
 from confnav.services.keys import KeyError_, Keys, validate_id
 from confnav.services.runtime import add_zenoh_args, bus_from_args
@@ -148,6 +148,9 @@ def _goal(args: argparse.Namespace) -> int:
             tolerance=args.tolerance,
             robot_radius=args.robot_radius,
             drive=args.drive,
+            lookahead=args.lookahead,
+            omega_max=args.omega_max,
+            speed_law=args.speed_law,
             stamp_ns=time.time_ns(),
         )
     except ValidationError as exc:
@@ -315,7 +318,7 @@ def register(subparsers: Any) -> None:
         help="send a goal to a robot of a running system",
         formatter_class=fmt,
         epilog="example: confnav goal r1 0.6,0.2 --ws room --connect tcp/127.0.0.1:7447\n"
-        "         (a negative X after --: confnav goal r1 --ws room -- -0.6,0.2)",
+        "         confnav goal r1 -0.6,-0.2 --ws room (a negative point as it is)",
     )
     g.add_argument("robot", type=robot_id, metavar="ROBOT", help="robot id")
     g.add_argument("point", type=point, metavar="X,Y", help="goal position, m")
@@ -337,6 +340,24 @@ def register(subparsers: Any) -> None:
     )
     g.add_argument("--robot-radius", type=float, default=0.0, help="robot disc radius, m")
     g.add_argument("--drive", default="holonomic", choices=get_args(DriveName))
+    g.add_argument(
+        "--lookahead",
+        type=positive_float,
+        default=Goal.model_fields["lookahead"].default,
+        help="unicycle look-ahead distance, m (the point that reaches the goal)",
+    )
+    g.add_argument(
+        "--omega-max",
+        type=positive_float,
+        default=Goal.model_fields["omega_max"].default,
+        help="unicycle yaw-rate limit, rad/s",
+    )
+    g.add_argument(
+        "--speed-law",
+        default=defaults.SPEED_LAW,
+        choices=get_args(SpeedLawName),
+        help="normalized or theorem2 (as confnav simulate)",
+    )
     g.add_argument(
         "--timeout",
         type=float,
