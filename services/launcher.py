@@ -35,7 +35,7 @@ from typing import IO, Any
 
 from confnav.services.bus import ZenohBus, zenoh_config
 from confnav.services.keys import DEFAULT_PREFIX, Keys
-from confnav.services.runtime import stop_on_signals
+from confnav.services.runtime import Lifeline, stop_on_signals
 
 from confnav.errors import ConfnavError
 
@@ -199,6 +199,8 @@ class Launcher:
         #: Zenoh id given to the router this launcher starts (its services must reach it)
         self.router_id = "a" + secrets.token_hex(7)
         self.failed: str | None = None  # why the launch cannot go on (set by check())
+        #: children stop by themselves when this process ends, even by kill -9
+        self.lifeline = Lifeline()
 
     # processes ---------------------------------------------------------------------------
     def _open_log(self, label: str) -> IO[bytes] | None:
@@ -214,6 +216,7 @@ class Launcher:
         logf = self._open_log(label)
         env = dict(os.environ, PYTHONUNBUFFERED="1")
         env.update({k: v for k, v in SINGLE_THREAD_BLAS.items() if k not in os.environ})
+        env.update(self.lifeline.child_env())
         popen = subprocess.Popen(
             argv,
             stdout=logf if logf else None,
@@ -221,12 +224,16 @@ class Launcher:
             stdin=subprocess.DEVNULL,
             env=env,
             start_new_session=True,  # Ctrl-C reaches the launcher only: it stops them in order
+            pass_fds=(self.lifeline.read_fd,),
         )
         log.info("started %s (pid %d)", label, popen.pid)
         return popen, logf
 
     def _verbosity(self) -> list[str]:
-        return ["-" + "v" * self.verbose] if self.verbose else []
+        """``-v`` (INFO) at least when the output goes to log files: they are for reading
+        afterwards; on the launcher's terminal only warnings unless asked."""
+        level = max(self.verbose, 1) if self.config.log_dir else self.verbose
+        return ["-" + "v" * level] if level else []
 
     def _service_argv(self, spec: ServiceSpec) -> list[str]:
         argv = confnav_command(*self._verbosity(), "serve", spec.name, "--mode", "client")
@@ -426,6 +433,7 @@ class Launcher:
             codes["router"] = _terminate(self.router.popen, self.config.stop_timeout)
             if self.router.log is not None:
                 self.router.log.close()
+        self.lifeline.close()
         log.info("all stopped: %s", codes)
         return codes
 

@@ -4,13 +4,17 @@ periodic health, counters, and running until SIGINT/SIGTERM with the session alw
 from __future__ import annotations
 
 import argparse
+import ctypes
 import logging
+import os
+import select
 import signal
+import sys
 import threading
 import time
 from collections import Counter
 from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from types import FrameType
 from typing import TypeVar
 
@@ -177,6 +181,100 @@ class Service:
                 self.bus.publish(key, encode(self.health()))
             except Exception:
                 log.exception("publishing health failed")
+
+
+# ------------------------------------------------------------------------------------------
+# children die with their supervisor
+# ------------------------------------------------------------------------------------------
+SUPERVISOR_ENV = "CONFNAV_SUPERVISOR"
+"""Set by a supervisor (``confnav launch``, ``confnav demo``) for its children:
+``PID:FD[:d]``: the supervisor's pid, the read end of its lifeline pipe, and ``d`` when the
+child was started by the supervisor's main thread (then the kernel's parent-death signal is
+safe to use: it fires when the thread that forked the child ends, not only the process)."""
+
+PR_SET_PDEATHSIG = 1  # <linux/prctl.h>
+
+
+class Lifeline:
+    """The supervisor's side: a pipe whose write end only the supervisor holds.
+
+    Every child gets the read end (``pass_fds``) and :data:`SUPERVISOR_ENV`. When the
+    supervisor's process ends, however it ends (``kill -9`` included), the kernel closes the
+    write end and each child's read sees end-of-file: :func:`watch_supervisor` then stops the
+    child as SIGTERM does (a recorder still finishes its file)."""
+
+    def __init__(self) -> None:
+        self.read_fd, self.write_fd = os.pipe()  # both close on exec: passed explicitly
+        self.pid = os.getpid()
+
+    def child_env(self) -> dict[str, str]:
+        main = threading.current_thread() is threading.main_thread()
+        return {SUPERVISOR_ENV: f"{self.pid}:{self.read_fd}" + (":d" if main else "")}
+
+    def close(self) -> None:
+        for fd in (self.read_fd, self.write_fd):
+            with suppress(OSError):
+                os.close(fd)
+        self.read_fd = self.write_fd = -1
+
+
+def _set_parent_death_signal(sig: int) -> bool:
+    """Linux ``prctl(PR_SET_PDEATHSIG, sig)`` (True if set); elsewhere nothing (False)."""
+    if not sys.platform.startswith("linux"):
+        return False
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        return int(libc.prctl(PR_SET_PDEATHSIG, int(sig), 0, 0, 0)) == 0
+    except (OSError, AttributeError):
+        return False
+
+
+def watch_supervisor(
+    environ: dict[str, str] | os._Environ[str] | None = None, grace: float = 20.0
+) -> threading.Thread | None:
+    """In a child of a supervisor (:data:`SUPERVISOR_ENV` set): stop when the supervisor dies.
+
+    Three ways, each enough alone: the kernel's parent-death signal (Linux ``prctl``, SIGTERM,
+    when the supervisor's main thread started this child), end-of-file on the lifeline pipe,
+    and the parent pid changing (polled every 0.5 s: portable, and covers a lifeline whose
+    write end leaked into another process). On either of the last two this process sends
+    itself SIGTERM (the services stop cleanly on it) and exits hard after ``grace`` s if that
+    did not end it. The variable is removed, so grandchildren do not inherit it. Returns the
+    watching thread (None when not supervised)."""
+    env = os.environ if environ is None else environ
+    spec = env.pop(SUPERVISOR_ENV, None)
+    if not spec:
+        return None
+    try:
+        pid_s, fd_s, *flags = spec.split(":")
+        pid, fd = int(pid_s), int(fd_s)
+    except ValueError:
+        log.warning("ignoring malformed %s=%r", SUPERVISOR_ENV, spec)
+        return None
+    if "d" in flags:
+        _set_parent_death_signal(signal.SIGTERM)
+
+    def gone(why: str) -> None:
+        log.warning("supervisor (pid %d) %s: stopping", pid, why)
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(grace)
+        log.error("still running %g s after the supervisor ended: exiting", grace)
+        os._exit(1)
+
+    def watch() -> None:
+        while True:
+            if os.getppid() != pid:
+                return gone("is gone")
+            try:
+                ready, _, _ = select.select([fd], [], [], 0.5)
+                if ready and os.read(fd, 1) == b"":
+                    return gone("closed the lifeline")
+            except (OSError, ValueError):  # no such fd (not a pipe from a supervisor)
+                time.sleep(0.5)
+
+    t = threading.Thread(target=watch, name="supervisor-watch", daemon=True)
+    t.start()
+    return t
 
 
 @contextmanager

@@ -240,3 +240,104 @@ def _router_pid(parent: int) -> int | None:
         return _pid_of(parent, "router")
     except AssertionError:
         return None
+
+
+def _children(parent: int) -> dict[int, str]:
+    """pid -> command line of the processes whose parent is ``parent`` (from /proc)."""
+    out: dict[int, str] = {}
+    for d in Path("/proc").iterdir():
+        if not d.name.isdigit():
+            continue
+        try:
+            ppid = int((d / "stat").read_text().rsplit(")", 1)[1].split()[1])
+            cmd = (d / "cmdline").read_bytes().replace(b"\0", b" ").decode()
+        except (OSError, ValueError, IndexError):
+            continue
+        if ppid == parent:
+            out[int(d.name)] = cmd
+    return out
+
+
+def _running(pid: int) -> bool:
+    """Whether ``pid`` runs (a zombie awaiting its reaper does not count)."""
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except (OSError, IndexError):
+        return False
+    return state != "Z"
+
+
+@pytest.mark.integration
+@pytest.mark.timeout(120)
+@pytest.mark.parametrize("how", ["main-thread", "monitor-thread"])
+def test_children_die_with_a_killed_launcher(tmp_path: Path, sockdir: Path, how: str) -> None:
+    """``kill -9`` of ``confnav launch``: router, recorder, transform, controller and simulator
+    all exit by themselves (issue 26 item 14), the recorder with a finished file (they stop as
+    on SIGTERM). ``monitor-thread``: the same for a service the launcher restarted (started by
+    a thread, where the kernel's parent-death signal does not apply: the lifeline does)."""
+    room = tmp_path / "room.json"
+    Workspace([(-1, -1), (1, -1), (1, 1), (-1, 1)], [[(0.2, -0.2), (0.5, -0.2), (0.5, 0.2)]]).save(
+        room
+    )
+    sock = f"unixsock-stream/{sockdir}/r.sock"
+    body = f"""
+[[service]]
+name = "recorder"
+args = ["--out", "{tmp_path / "launch.mcap"}"]
+[[service]]
+name = "transform"
+args = ["--workspace", "room={room}"]
+[[service]]
+name = "controller"
+[[service]]
+name = "simulator"
+args = ["--workspace", "room={room}", "--robot", "r1=room:0.8,0.8"]
+"""
+    manifest = _manifest(tmp_path, sock, body)
+    proc = subprocess.Popen(
+        confnav_cmd("launch", str(manifest)),
+        env=subprocess_env(),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        start_new_session=True,
+    )
+    kids: dict[int, str] = {}
+    try:
+        assert proc.stdout is not None
+        line = proc.stdout.readline().decode()  # "confnav launch: ... 4/4 services alive"
+        assert "4/4 services alive" in line, line + proc.stdout.read().decode()
+        if how == "monitor-thread":
+            pid = _pid_of(proc.pid, "controller")
+            os.kill(pid, signal.SIGKILL)  # restarted by the launcher's monitor
+            wait_for(lambda: _has_child(proc.pid, "controller", pid), timeout=30, interval=0.1)
+        kids = _children(proc.pid)
+        names = " ".join(kids.values())
+        for name in ("router", "recorder", "transform", "controller", "simulator"):
+            assert f"serve {name}" in names, names
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait(10)
+        wait_for(lambda: not any(_running(p) for p in kids), timeout=30, interval=0.1)
+    finally:
+        for p in kids:  # never leave them behind, whatever failed
+            if _running(p):
+                os.kill(p, signal.SIGKILL)
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+    log = (tmp_path / "logs" / "recorder.log").read_text()
+    assert "signal 15: stopping" in log or "supervisor" in log, log[-2000:]
+    # launched without -v, the log files still say what happened (INFO), not only warnings
+    for name in ("router", "transform", "controller", "simulator"):
+        assert " INFO " in (tmp_path / "logs" / f"{name}.log").read_text(), name
+    if how == "monitor-thread":  # no parent-death signal: the lifeline stopped it, and it says so
+        log = (tmp_path / "logs" / "controller.log").read_text()
+        assert f"supervisor (pid {proc.pid})" in log, log[-2000:]
+    with open(tmp_path / "launch.mcap", "rb") as f:
+        assert make_reader(f).get_summary() is not None  # stopped cleanly: file finished
+
+
+def _has_child(parent: int, label: str, not_pid: int) -> bool:
+    try:
+        return _pid_of(parent, label) != not_pid
+    except AssertionError:
+        return False

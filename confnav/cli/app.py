@@ -10,12 +10,17 @@ import argparse
 import errno
 import importlib
 import logging
+import os
 import re
 import sys
 from collections.abc import Sequence
 
 from confnav import __version__
 from confnav.errors import ConfnavError
+
+SUPERVISOR_ENV = "CONFNAV_SUPERVISOR"
+"""Set for the children of ``confnav launch`` and ``confnav demo``
+(:data:`confnav.services.runtime.SUPERVISOR_ENV`)."""
 
 SUBCOMMAND_MODULES: tuple[str, ...] = (
     "confnav.cli.solve",
@@ -138,6 +143,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    if SUPERVISOR_ENV in os.environ:  # a child of confnav launch / demo: die with it
+        from confnav.services.runtime import watch_supervisor
+
+        watch_supervisor()
     parser = build_parser()
     args = parser.parse_args(argv)
     level = logging.WARNING - 10 * min(args.verbose, 2)
