@@ -7,10 +7,9 @@ import json
 import logging
 from typing import Any
 
-import zenoh
-from confnav.services.bus import zenoh_config
+from confnav.services.bus import ZenohBus, zenoh_config
 from confnav.services.keys import DEFAULT_PREFIX, Keys
-from confnav.services.runtime import stop_on_signals
+from confnav.services.runtime import Service, stop_on_signals
 
 log = logging.getLogger(__name__)
 
@@ -36,16 +35,29 @@ def add_parser(sub: Any) -> None:
     p.set_defaults(func=main)
 
 
+class RouterService(Service):
+    """The router's own session as a service: liveliness token ``{prefix}/alive/router/{zid}``
+    and health on ``{prefix}/health/router/{zid}`` every second (``confnav status`` shows it
+    with the others' instead of waiting for a health message forever)."""
+
+    name = "router"
+
+    def _start(self) -> None:
+        pass
+
+
 def main(args: argparse.Namespace) -> int:
     conf = zenoh_config("router", args.listen, args.connect, args.zenoh_config)
     if args.id:
         conf.insert_json5("id", json.dumps(args.id))
     keys = Keys(args.prefix)
-    with stop_on_signals() as ev, zenoh.open(conf) as session:
-        zid = str(session.zid())
-        token = session.liveliness().declare_token(keys.alive("router", zid))
-        log.info("router %s listening on %s", zid, args.listen or "(config)")
-        while not ev.wait(0.5):
-            pass
-        token.undeclare()  # type: ignore[no-untyped-call]
+    with stop_on_signals() as ev, ZenohBus(conf) as bus:
+        service = RouterService(bus, keys)
+        service.start()
+        log.info("router %s listening on %s", bus.zid, args.listen or "(config)")
+        try:
+            while not ev.wait(0.5):
+                pass
+        finally:
+            service.stop()
     return 0

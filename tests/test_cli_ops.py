@@ -106,6 +106,36 @@ def test_goal_makes_robot_arrive_and_status_lists_it(system: str) -> None:
 
 
 @pytest.mark.integration
+@pytest.mark.timeout(120)
+def test_status_lists_robots_by_their_poses_and_the_routers_health(system: str) -> None:
+    """A robot the simulator moves is listed although no controller reports on it (before any
+    goal, or after a cancel, when the controller forgets it); the router has health like the
+    other services (issue 26 item 9)."""
+    cancel = run("cancel", "r1", "--connect", system)
+    assert cancel.returncode == 0, cancel.stderr
+
+    def seen() -> str | None:
+        st = run("status", "--window", "1.5", "--connect", system)
+        assert st.returncode == 0, st.stderr
+        return (
+            st.stdout if "robot r1" in st.stdout and " ok " in _line(st.stdout, "router") else None
+        )
+
+    text = wait_for(seen, timeout=60, interval=0.5)
+    assert "robots: 1" in text
+    line = _line(text, "robot r1")
+    assert " idle " in line
+    pos = line.split(" at (")[1].split(")")[0]
+    x, y = (float(v) for v in pos.split(","))
+    assert -1 < x < 1 and -1 < y < 1  # a position from the robot's poses, inside the room
+    assert "no health message" not in text
+
+
+def _line(text: str, what: str) -> str:
+    return next((ln for ln in text.splitlines() if what in ln), "")
+
+
+@pytest.mark.integration
 def test_goal_outside_free_space_is_rejected(system: str) -> None:
     res = run("goal", "r1", "0.3,0", "--ws", "room", "--connect", system)  # inside the obstacle
     assert res.returncode == 1

@@ -26,6 +26,7 @@ from confnav.navigation import defaults
 from confnav.schemas import (
     Goal,
     GoalCancel,
+    Pose,
     RobotStatus,
     ServiceHealth,
     TransformSolution,
@@ -216,11 +217,16 @@ def _robot_line(s: RobotStatus) -> str:
 
 
 def collect_status(bus: ZenohBus, keys: Keys, window: float) -> dict[str, Any]:
-    """Listen ``window`` s to robot statuses, workspace statuses and health, query the served
-    transforms and the liveliness tokens; return what was seen, grouped."""
-    robots, ws_status, health = _Latest(), _Latest(), _Latest()
+    """Listen ``window`` s to robot statuses and poses, workspace statuses and health, query
+    the served transforms and the liveliness tokens; return what was seen, grouped.
+
+    A robot is listed if it publishes poses (the simulator's, a real robot's) or a controller
+    reports on it: the controller reports only on robots it drives (a goal) and forgets a
+    cancelled robot, which still stands somewhere."""
+    robots, ws_status, health, poses = _Latest(), _Latest(), _Latest(), _Latest()
     handles = [
         bus.subscribe(keys.any_robot("status"), robots.handler(RobotStatus, lambda s: s.robot_id)),
+        bus.subscribe(keys.any_robot("pose"), poses.handler(Pose, lambda p: p.robot_id)),
         bus.subscribe(keys.any_ws("status"), ws_status.handler(TransformStatus, lambda s: s.ws_id)),
         bus.subscribe(
             f"{keys.prefix}/health/**",
@@ -248,6 +254,7 @@ def collect_status(bus: ZenohBus, keys: Keys, window: float) -> dict[str, Any]:
         services.append((p.ident, p.kind))
     return {
         "robots": robots.snapshot(),
+        "poses": poses.snapshot(),
         "workspaces": ws_status.snapshot(),
         "solved": solved,
         "health": health.snapshot(),
@@ -274,7 +281,21 @@ def format_status(seen: dict[str, Any]) -> str:
             lines.append(f"  {w:<16} {st.state:<8} revision {st.revision or '-'}{extra}")
         else:
             lines.append(f"  {w:<16} {'solved':<8} revision {seen['solved'][w]}")
-    robots: dict[str, RobotStatus] = seen["robots"]
+    robots: dict[str, RobotStatus] = dict(seen["robots"])
+    poses: dict[str, Pose] = seen.get("poses", {})
+    for rid, pose in poses.items():  # the newest position; a robot no controller reports on
+        st = robots.get(rid)
+        if st is None:
+            robots[rid] = RobotStatus(
+                robot_id=rid,
+                stamp_ns=time.time_ns(),
+                state="idle",
+                reason="no_goal",
+                message="(poses only: no controller drives it)",
+                position=(pose.x, pose.y),
+            )
+        else:  # a pose of this window is newer than the controller's last word
+            robots[rid] = st.model_copy(update={"position": (pose.x, pose.y)})
     lines.append(f"robots: {len(robots)}")
     lines += ["  " + _robot_line(robots[r]) for r in sorted(robots)]
     return "\n".join(lines)
