@@ -4,7 +4,8 @@ differential-drive one.
 Starts a router (unix socket in a temp dir) and the recorder, transform, controller and
 simulator as separate processes, waits for the map, sends the four goals, shows progress,
 stops when every robot has arrived or collided (or at the timeout), and writes
-``OUT/demo.mcap`` and ``OUT/demo.png``; prints a summary table. Exit code 0 only if every
+``OUT/demo.mcap`` and ``OUT/demo.png`` (a second run: ``demo.1.mcap`` and ``demo.1.png``);
+prints a summary table. Exit code 0 only if every
 robot arrived without collision.
 """
 
@@ -114,6 +115,26 @@ class DemoMonitor:
             return all(t.arrived_at is not None or t.collided for t in self.tracks.values())
 
 
+def _state(t: Track) -> str:
+    """``navigating``, or ``stopped (missing_map)``: the reason whenever it is not plain."""
+    plain = {"navigating": "ok", "arrived": "arrived", "waiting": ""}
+    if t.reason and t.reason != plain.get(t.state):
+        return f"{t.state} ({t.reason})"
+    return t.state
+
+
+def figure_path(out: Path, new_recordings: list[Path]) -> Path:
+    """The PNG named as this run's recording (``demo.1.mcap`` -> ``demo.1.png``: a second
+    demo in the same folder keeps the first one's picture as it keeps its recording); without
+    a recording the first free ``demo[.N].png``."""
+    from confnav.services.recorder import free_path
+
+    firsts = [p for p in new_recordings if ".part" not in p.name]
+    if firsts:
+        return firsts[0].with_suffix(".png")
+    return free_path(out / "demo.png")
+
+
 def demo_config(
     sock: str,
     out: Path,
@@ -163,23 +184,33 @@ def wait_for_map(launcher: Launcher, timeout: float, stop: threading.Event) -> s
 
 
 def plot_demo(tracks: dict[str, Track], path: Path) -> None:
-    """Workspace, start/goal and trajectory of every robot (matplotlib Agg)."""
+    """Write :func:`demo_figure` to ``path``."""
+    from confnav.plot.style import save
+
+    save(demo_figure(tracks), path)
+
+
+def demo_figure(tracks: dict[str, Track]) -> Any:
+    """Workspace, start/goal and trajectory of every robot (matplotlib Agg), each robot in
+    its colour of ``confnav inspect --plot`` and the Foxglove scene."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from confnav.plot.style import save
+    from confnav.recording.scene import robot_color
     from confnav.scenes.workspaces import default_workspace
 
     ws = default_workspace()
+    # the colours of confnav inspect --plot and the Foxglove scene: by sorted robot id
+    colors = {rid: robot_color(i) for i, rid in enumerate(sorted(tracks))}
     fig, ax = plt.subplots(figsize=(7, 6))
     outer = [*list(ws.outer), ws.outer[0]]
     ax.plot([z.real for z in outer], [z.imag for z in outer], "k-", lw=1.5)
     for ob in ws.obstacles:
         ax.fill([z.real for z in ob], [z.imag for z in ob], color="0.6", ec="k")
-    for i, t in enumerate(tracks.values()):
-        c = f"C{i}"
+    for t in tracks.values():
+        c = colors[t.robot_id]
         if t.path:
             ax.plot(
                 [z.real for z in t.path],
@@ -205,7 +236,7 @@ def plot_demo(tracks: dict[str, Track], path: Path) -> None:
     ax.set_ylabel("y [m]")
     ax.set_title(f"confnav demo: default workspace, {len(tracks)} robots")
     ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8, frameon=False)
-    save(fig, path)
+    return fig
 
 
 def summary(tracks: dict[str, Track]) -> tuple[str, bool]:
@@ -330,7 +361,8 @@ def run_demo(
                     next_print = now + 1.0
                     with mon.lock:
                         parts = [
-                            f"{t.robot_id}: {t.distance:5.2f} m {t.state}" for t in tracks.values()
+                            f"{t.robot_id}: {t.distance:5.2f} m {_state(t)}"
+                            for t in tracks.values()
                         ]
                     print(f"[{now - mon.t0:5.1f} s] " + " | ".join(parts), flush=True)
                 stop.wait(0.1)
@@ -339,18 +371,19 @@ def run_demo(
     finally:
         launcher.shutdown()
         shutil.rmtree(sockdir, ignore_errors=True)
+    recordings = sorted(
+        set(out.glob("demo*.mcap")) - old_recordings, key=lambda p: p.stat().st_mtime
+    )
+    png = figure_path(out, recordings)
     with mon.lock:
-        plot_demo(tracks, out / "demo.png")
+        plot_demo(tracks, png)
         table, ok = summary(tracks)
     print()
     print(table)
     print("arrived (s): seconds after the goals were sent (`confnav inspect` counts from the")
     print("first recorded message and also gives the time after each robot's goal)")
     print()
-    recordings = sorted(
-        set(out.glob("demo*.mcap")) - old_recordings, key=lambda p: p.stat().st_mtime
-    )
-    print(f"recording: {', '.join(map(str, recordings)) or '-'}   plot: {out / 'demo.png'}")
+    print(f"recording: {', '.join(map(str, recordings)) or '-'}   plot: {png}")
     print("result:", "all robots arrived without collision" if ok else "FAILED")
     return 0 if ok else 1
 

@@ -38,7 +38,7 @@ def atlas_figure(
     ws = atlas.workspace
     x0, y0, x1, y1 = (walls or ws).bounds
     aspect = (y1 - y0) / max(x1 - x0, 1e-12)
-    fig, ax = plt.subplots(figsize=(10, float(np.clip(10 * aspect, 4, 14))))
+    fig, ax = plt.subplots(figsize=(10, float(np.clip(10 * aspect, 4, 14))), layout="constrained")
     draw_walls(ax, ws, walls, shrink)
     label = f"cells ({len(atlas.decomposition.cells)})"
     for c in atlas.decomposition.cells:
@@ -57,7 +57,8 @@ def atlas_figure(
         or f"atlas: {len(atlas.charts)} charts; {arrived}/{run.success.size} arrived, "
         f"{int(run.collided.sum())} collisions"
     )
-    ax.legend(loc="best", fontsize=8, framealpha=0.8)
+    # beside the map, never on it (a legend "best" placed still covers walls and starts)
+    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0, fontsize=8)
     return fig
 
 

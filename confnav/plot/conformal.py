@@ -17,6 +17,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 from matplotlib.axes import Axes
 from matplotlib.figure import Figure
+from matplotlib.lines import Line2D
 
 from confnav.conformal.cmap import ConformalMap
 from confnav.plot.style import OBSTACLE_FILL, label_circles, label_polygons, save
@@ -85,16 +86,20 @@ def map_figure(m: ConformalMap, title: str = "") -> Figure:
         ax1.plot(w.real, w.imag, "-", color="tab:blue", lw=0.6)
     draw_workspace(ax0, m)
     draw_circle_domain(ax1, m)
-    ax0.set_title("workspace: preimage of the polar grid\n(obstacles numbered as their circles)")
-    ax1.set_title("circle domain T(workspace): polar grid")
-    fig.legend(
-        *ax0.get_legend_handles_labels(), loc="outside lower center", fontsize=9, frameon=False
-    )
+    # one-line panel titles: the figure's title sits above them in the layout (a two-line
+    # panel title grew into the suptitle's space)
+    ax0.set_title("workspace: preimage of the polar grid", fontsize=11)
+    ax1.set_title("circle domain T(workspace): polar grid", fontsize=11)
+    handles, labels = ax0.get_legend_handles_labels()
+    handles.append(Line2D([], [], ls="none"))
+    labels.append("obstacle j maps to circle j")
+    fig.legend(handles, labels, loc="outside lower center", ncols=2, fontsize=9, frameon=False)
     d = m.diagnostics
     fig.suptitle(
-        (title + "\n" if title else "")
+        (title + ": " if title else "")
         + f"estimated error {d.error_estimate:.1e} (tol {d.tol:.0e}), {sum(d.nodes)} nodes, "
-        f"{d.sweeps} sweeps, {d.wall_time:.2f} s"
+        f"{d.sweeps} sweeps, {d.wall_time:.2f} s",
+        fontsize=12,
     )
     return fig
 

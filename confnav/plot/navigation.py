@@ -13,6 +13,8 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 from matplotlib.axes import Axes
+from matplotlib.cm import ScalarMappable
+from matplotlib.contour import ContourSet
 from matplotlib.figure import Figure
 from numpy.typing import NDArray
 
@@ -70,9 +72,11 @@ def plot_workspace(
     outcomes: Sequence[str] = (),
     walls: Workspace | None = None,
     shrink: float = 0.0,
-) -> None:
+    legend: bool = True,
+) -> ContourSet:
     """Level sets of V = phi(T(x)), the obstacles, the goal and the trajectories (axes in
-    metres; with ``outcomes`` a marker per path end and a legend).
+    metres; with ``outcomes`` a marker per path end and, if ``legend``, a legend); returns the
+    level sets (for a colour bar: phi is 0 at the goal and 1 on the boundary).
 
     For a robot with a body the map is of the free space shrunk by ``shrink``: then ``walls``
     (the real workspace) are drawn as the walls and obstacles, and the shrunk free space that
@@ -87,7 +91,7 @@ def plot_workspace(
     v = np.full(z.shape, np.nan)
     inside = ws.contains(z)
     v[inside] = ctl.lyapunov(z[inside])
-    ax.contour(x, y, v, levels=_levels(v), linewidths=0.6, cmap="viridis")
+    levels = ax.contour(x, y, v, levels=_levels(v), linewidths=0.6, cmap="viridis", vmin=0, vmax=1)
     draw_walls(ax, ws, walls, shrink)
     label_polygons(ax, ws.obstacles)  # the obstacles of the map (circle i <-> obstacle i)
     _trajectories(ax, paths, outcomes)
@@ -96,7 +100,9 @@ def plot_workspace(
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")
     ax.set_title(f"workspace: level sets of {ctl.navfn.name} phi(T(x))")
-    ax.legend(loc="best", fontsize=8, framealpha=0.8)
+    if legend:
+        ax.legend(loc="best", fontsize=8, framealpha=0.8)
+    return levels
 
 
 #: Smallest magnification worth an inset (below it the main view shows the small disks).
@@ -190,9 +196,22 @@ def navigation_figure(
 ) -> Figure:
     """Two panels: workspace (seed Fig. 2) and circle domain (seed Fig. 3); ``walls`` and
     ``shrink`` as in :func:`plot_workspace`."""
-    fig, (a, b) = plt.subplots(1, 2, figsize=(12, 6), constrained_layout=True)
-    plot_workspace(a, ctl, paths, outcomes=outcomes, walls=walls, shrink=shrink)
+    fig, (a, b) = plt.subplots(1, 2, figsize=(13, 6.2), layout="constrained")
+    levels = plot_workspace(
+        a, ctl, paths, outcomes=outcomes, walls=walls, shrink=shrink, legend=False
+    )
     plot_circle_domain(b, ctl, paths)
+    # one colour bar for both panels: the level sets are the same function, phi(T(x)) = phi(w)
+    bar = fig.colorbar(
+        ScalarMappable(norm=levels.norm, cmap=levels.cmap), ax=[a, b], shrink=0.85, pad=0.02
+    )
+    bar.set_label(f"{ctl.navfn.name} phi (0 at the goal, 1 on every boundary)")
+    bar.ax.hlines(levels.levels, 0, 1, colors="k", lw=0.4)  # where the drawn level sets are
+    # the legend below the panels, where it hides nothing (the goal sits anywhere)
+    fig.legend(
+        *a.get_legend_handles_labels(), loc="outside lower center", ncols=6, fontsize=9,
+        frameon=False,
+    )  # fmt: skip
     if title:
         fig.suptitle(title)
     return fig
