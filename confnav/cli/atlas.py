@@ -22,8 +22,12 @@ from __future__ import annotations
 
 import argparse
 import json
+import signal
 import sys
 import time
+from collections.abc import Iterator
+from concurrent.futures import ProcessPoolExecutor
+from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -120,7 +124,10 @@ def run_atlas(args: argparse.Namespace) -> int:
     def progress(msg: str) -> None:
         print(f"  [{time.perf_counter() - t0:6.1f} s] {msg}", file=sys.stderr, flush=True)
 
-    atlas = solve_atlas(nav_ws, args.tol, workers=args.workers, progress=progress, **kw)
+    with interruptible_pool(args.workers) as pool:
+        atlas = solve_atlas(
+            nav_ws, args.tol, workers=args.workers, progress=progress, executor=pool, **kw
+        )
     print(
         f"atlas: {len(atlas.charts)} cells, solved in {atlas.wall_time:.2f} s "
         f"(charts {atlas.cpu_time:.2f} s, speed-up x{atlas.speedup:.2f})"
@@ -209,6 +216,35 @@ def run_atlas(args: argparse.Namespace) -> int:
     if args.json:
         args.json.write_text(json.dumps(doc, indent=1))
     return code
+
+
+@contextmanager
+def interruptible_pool(workers: int) -> Iterator[ProcessPoolExecutor | None]:
+    """The chart solvers' process pool (None for one worker: solved in this process), whose
+    workers ignore SIGINT: on Ctrl-C (KeyboardInterrupt here) the queued charts are cancelled
+    and the running ones' processes terminated at once, instead of finishing the charts they
+    had started (13-23 s on a warehouse at tol 1e-12) while the terminal shows nothing."""
+    if workers <= 1:
+        yield None
+        return
+    pool = ProcessPoolExecutor(max_workers=workers, initializer=_ignore_sigint)
+    try:
+        yield pool
+    except BaseException:
+        procs = list((pool._processes or {}).values())
+        pool.shutdown(wait=False, cancel_futures=True)
+        for proc in procs:
+            proc.terminate()
+        for proc in procs:
+            proc.join(timeout=5.0)
+        raise
+    else:
+        pool.shutdown()
+
+
+def _ignore_sigint() -> None:
+    """Workers leave Ctrl-C to the parent (which stops them)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 def run_unicycles(

@@ -206,7 +206,7 @@ def navigation_figure(
         ScalarMappable(norm=levels.norm, cmap=levels.cmap), ax=[a, b], shrink=0.85, pad=0.02
     )
     bar.set_label(f"{ctl.navfn.name} phi (0 at the goal, 1 on every boundary)")
-    bar.ax.hlines(levels.levels, 0, 1, colors="k", lw=0.4)  # where the drawn level sets are
+    bar.ax.hlines(np.asarray(levels.levels), 0, 1, colors="k", lw=0.4)  # the drawn levels
     # the legend below the panels, where it hides nothing (the goal sits anywhere)
     fig.legend(
         *a.get_legend_handles_labels(), loc="outside lower center", ncols=6, fontsize=9,
