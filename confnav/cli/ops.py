@@ -284,8 +284,8 @@ def format_status(seen: dict[str, Any]) -> str:
     robots: dict[str, RobotStatus] = dict(seen["robots"])
     poses: dict[str, Pose] = seen.get("poses", {})
     for rid, pose in poses.items():  # the newest position; a robot no controller reports on
-        st = robots.get(rid)
-        if st is None:
+        known = robots.get(rid)
+        if known is None:
             robots[rid] = RobotStatus(
                 robot_id=rid,
                 stamp_ns=time.time_ns(),
@@ -295,7 +295,7 @@ def format_status(seen: dict[str, Any]) -> str:
                 position=(pose.x, pose.y),
             )
         else:  # a pose of this window is newer than the controller's last word
-            robots[rid] = st.model_copy(update={"position": (pose.x, pose.y)})
+            robots[rid] = known.model_copy(update={"position": (pose.x, pose.y)})
     lines.append(f"robots: {len(robots)}")
     lines += ["  " + _robot_line(robots[r]) for r in sorted(robots)]
     return "\n".join(lines)
