@@ -25,7 +25,7 @@ def _walk(
 
 
 PARSERS = dict(_walk(build_parser()))
-REST = re.compile(r"``|:(mod|class|func|meth|data|attr|obj|exc|ref):`")
+REST = re.compile(r"`|:(mod|class|func|meth|data|attr|obj|exc|ref):")
 
 
 def _option_helps(parser: argparse.ArgumentParser) -> Iterator[tuple[str, str]]:

@@ -72,11 +72,14 @@ NEGATIVE_ARG = re.compile(r"^-\d+$|^-\d*\.\d+$|^-(\d+\.?\d*|\.\d+)([eE][-+]?\d+)
 
 _REST_ROLE = re.compile(r":(?:mod|class|func|meth|data|attr|obj|exc|ref|doc):`~?([^`]*)`")
 _REST_LITERAL = re.compile(r"``([^`]*)``")
+_REST_INTERPRETED = re.compile(r"`([^`]+)`")
 
 
 def plain(text: str) -> str:
-    """Help text without reST markup: ``:mod:`x``` and double-backquoted ``x`` become ``x``."""
-    return _REST_LITERAL.sub(r"\1", _REST_ROLE.sub(r"\1", text))
+    """Help text without reST markup: ``:mod:`x```, double-backquoted ``x`` and
+    single-backquoted `x` become x."""
+    text = _REST_LITERAL.sub(r"\1", _REST_ROLE.sub(r"\1", text))
+    return _REST_INTERPRETED.sub(r"\1", text)
 
 
 def _sentence(text: str) -> str:
