@@ -50,7 +50,7 @@ def register(subparsers: Any) -> None:
         "navigation laws (docs/ATLAS.md).",
     )
     p.add_argument("workspace", type=Path, help="workspace JSON/GeoJSON")
-    p.add_argument("--goal", type=_point, required=True, help="goal X,Y (use --goal=X,Y)")
+    p.add_argument("--goal", type=_point, required=True, help="goal X,Y, m (negative: --goal -1,2)")
     g = p.add_mutually_exclusive_group()
     g.add_argument("--starts", type=_points, help='starts "X,Y;X,Y;..." (one argument)')
     g.add_argument("--random", type=positive_int, metavar="N", help="N random starts in free space")
