@@ -12,6 +12,18 @@ JSON with the confnav JSON Schema).
 A full scene goes out every ``full_period`` seconds even when nothing moves, so a client that
 connects late sees the workspace at once; on start the service asks the transform services
 for the solved maps (the queryable on ``{prefix}/ws/*/transform``).
+
+Every channel is latched: when a client subscribes, the channel's latest message is sent again
+(a scene channel gets a full scene), so the first message of a channel (logged before any
+client could subscribe to the channel it created) and a status older than the client still
+reach it. The re-send runs on a worker thread, not in the SDK's ``on_subscribe`` callback
+(foxglove-sdk may call it before the client's sink is attached to the channel, and a message
+logged there is dropped: foxglove/foxglove-sdk pull request 533).
+
+Clients may publish (``clientPublish`` capability, JSON): a message on a client channel named
+``{prefix}/robot/{r}/goal`` is validated as a :class:`confnav.schemas.Goal` for robot ``r``
+and put on the bus under that key, as ``confnav goal`` would; anything else is counted as
+rejected and logged, never raised.
 """
 
 from __future__ import annotations
@@ -19,11 +31,12 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import queue
 import threading
 import time
-from typing import Any
+from typing import TYPE_CHECKING, Any, cast
 
-from confnav.schemas import DecodeError, schema_bytes, schema_name
+from confnav.schemas import DecodeError, Goal, decode, encode, schema_bytes, schema_name
 from confnav.services.bus import Bus
 from confnav.services.keys import Keys
 from confnav.services.runtime import Service, add_zenoh_args, run_until_signal
@@ -36,6 +49,9 @@ from confnav.recording.scene import (
     scene_update_schema_text,
 )
 from confnav.recording.scene_builder import SceneBuilder, SceneMessage, decode_on_key
+
+if TYPE_CHECKING:
+    from foxglove.websocket import ServerListener
 
 log = logging.getLogger(__name__)
 
@@ -64,26 +80,74 @@ class FoxgloveLiveService(Service):
         self._builder = SceneBuilder(self.keys.prefix)
         self._lock = threading.Lock()  # the builder and the channel table
         self._channels: dict[str, Any] = {}
+        self._latest: dict[str, tuple[str, int]] = {}  # status topic -> (payload, log time)
+        self._resend: queue.Queue[str | None] = queue.Queue()  # topics a client subscribed to
+        self._client_topics: dict[tuple[int, int], str] = {}  # (client, client channel) -> topic
         self._server: Any = None
         self._ctx: Any = None
 
     def _start(self) -> None:
         import foxglove  # 0.6 s to import: only where the live view runs
+        from foxglove.websocket import Capability
 
         self._ctx = foxglove.Context()
         self._server = foxglove.start_server(
-            name="confnav", host=self.host, port=self.port, context=self._ctx
+            name="confnav",
+            host=self.host,
+            port=self.port,
+            context=self._ctx,
+            capabilities=[Capability.ClientPublish],
+            supported_encodings=["json"],
+            server_listener=cast("ServerListener", _Listener(self)),
         )
         self.port = int(self._server.port)
         self._handles.append(self.bus.subscribe(self.keys.all(), self._on_message))
         self.spawn(self._periodic, "scene")
+        self.spawn(self._latch, "latch")
         log.info("foxglove live view on ws://%s:%d", self.host, self.port)
 
     def stop(self) -> None:
         super().stop()
+        self._resend.put(None)
         if self._server is not None:
             self._server.stop()
             self._server = None
+
+    # latching and client publishing ---------------------------------------------------------
+    def _latch(self) -> None:
+        """Re-send a channel's latest message to the clients when one subscribes to it."""
+        while not self._stop.is_set():
+            topic = self._resend.get()
+            if topic is None:
+                return
+            try:
+                with self._lock:
+                    now = time.time_ns()
+                    if topic in self._latest:
+                        payload, _t = self._latest[topic]
+                        self._channels[topic].log(payload, log_time=now)
+                        self.count("latched")
+                    else:  # a scene channel: a full scene of every workspace
+                        self._send(self._builder.flush(now))
+            except Exception:
+                self.count("errors")
+                log.exception("latched re-send on %s failed", topic)
+
+    def _on_client_message(self, topic: str, data: bytes) -> None:
+        """A client's message: a Goal on ``{prefix}/robot/{r}/goal`` goes to the bus."""
+        try:
+            parsed = self.keys.parse(topic)
+            if parsed.group != "robot" or parsed.kind != "goal":
+                raise ValueError(f"clients may publish Goals only, not on {topic!r}")
+            goal = decode(Goal, data)
+            if goal.robot_id != parsed.ident:
+                raise ValueError(f"goal for {goal.robot_id!r} on {topic!r}")
+        except (DecodeError, ValueError) as exc:
+            self.count("client_rejected")
+            log.warning("client message on %s rejected: %s", topic, exc)
+            return
+        self.bus.publish(self.keys.robot(goal.robot_id, "goal"), encode(goal))
+        self.count("client_goals")
 
     # channels -----------------------------------------------------------------------------
     def _channel(self, topic: str, schema: str, data: bytes) -> Any:
@@ -121,7 +185,9 @@ class FoxgloveLiveService(Service):
             if key.rsplit("/", 1)[-1] in STATUS_KINDS:
                 model = type(message)
                 ch = self._channel(key, schema_name(model), schema_bytes(model))
-                ch.log(payload.decode("utf-8", "replace"), log_time=now)
+                text = payload.decode("utf-8", "replace")
+                self._latest[key] = (text, now)
+                ch.log(text, log_time=now)
                 self.count("status")
                 return
             try:
@@ -151,6 +217,31 @@ class FoxgloveLiveService(Service):
         for r in replies:
             if r.ok and r.payload is not None:
                 self._on_message(r.key, r.payload)
+
+
+class _Listener:
+    """foxglove-sdk's ``ServerListener``: subscriptions trigger the latched re-send, client
+    channels are remembered by (client, channel id), client messages go to the service. The
+    callbacks run on the SDK's threads: they only hand work over and never raise."""
+
+    def __init__(self, service: FoxgloveLiveService) -> None:
+        self.service = service
+
+    def on_subscribe(self, client: Any, channel: Any) -> None:
+        self.service._resend.put(str(channel.topic))
+
+    def on_client_advertise(self, client: Any, channel: Any) -> None:
+        self.service._client_topics[(int(client.id), int(channel.id))] = str(channel.topic)
+
+    def on_client_unadvertise(self, client: Any, client_channel_id: int) -> None:
+        self.service._client_topics.pop((int(client.id), int(client_channel_id)), None)
+
+    def on_message_data(self, client: Any, client_channel_id: int, data: bytes) -> None:
+        topic = self.service._client_topics.get((int(client.id), int(client_channel_id)))
+        if topic is None:
+            self.service.count("client_rejected")
+            return
+        self.service._on_client_message(topic, bytes(data))
 
 
 def add_parser(sub: Any) -> None:

@@ -12,7 +12,7 @@ from typing import Any
 
 import pytest
 import websockets
-from confnav.schemas import Goal, Pose, RobotStatus, encode
+from confnav.schemas import Goal, Pose, RobotStatus, decode, encode
 from confnav.services.foxglove_live import FoxgloveLiveService
 from confnav.services.keys import Keys
 from conftest import square_definition
@@ -140,3 +140,114 @@ def test_demo_live_and_manifest_entries(tmp_path: Any) -> None:
         assert callable(args.func), shlex.join(raw[name]["args"])
     on = dict(raw["ros2"], enabled=True)
     assert [s.name for s in LaunchConfig.from_dict({"service": [on]}).services] == ["ros2"]
+
+
+async def _connect(port: int) -> Any:
+    ws = await websockets.connect(
+        f"ws://127.0.0.1:{port}", subprotocols=[SUBPROTOCOL, "foxglove.websocket.v1"]
+    )
+    assert ws.subprotocol == SUBPROTOCOL
+    return ws
+
+
+async def _advertised(ws: Any, topic: str) -> tuple[dict[str, Any], dict[str, Any]]:
+    """serverInfo, then the advertisement of ``topic`` (waiting for it, 10 s)."""
+    info = json.loads(await asyncio.wait_for(ws.recv(), 5))
+    assert info["op"] == "serverInfo"
+    while True:
+        msg = await asyncio.wait_for(ws.recv(), 10)
+        if isinstance(msg, str) and json.loads(msg)["op"] == "advertise":
+            for ch in json.loads(msg)["channels"]:
+                if ch["topic"] == topic:
+                    return info, ch
+
+
+def test_a_late_client_gets_the_latest_status_without_a_new_one(make_bus: Any) -> None:
+    """Latched channels: statuses published once, before any client connected (the first
+    messages of their channel, logged as the channel was created), reach a client that
+    subscribes afterwards: the latest one, with nothing published again."""
+    service_bus, pub_bus = make_bus(), make_bus()
+    svc = FoxgloveLiveService(service_bus, port=0, full_period=30.0, health_period=0)
+    svc.start()
+    try:
+        for n, state in enumerate(("navigating", "stopped"), start=1):
+            status = RobotStatus(
+                robot_id="r1", stamp_ns=time.time_ns(), state=state, reason="ok", ws_id="room"
+            )
+            pub_bus.publish(K.robot("r1", "status"), encode(status))
+            deadline = time.monotonic() + 10
+            while svc.counters["status"] < n:
+                assert time.monotonic() < deadline, "the service never got the status"
+                time.sleep(0.02)
+
+        async def late_client() -> dict[str, Any]:
+            ws = await _connect(svc.port)
+            try:
+                _info, ch = await _advertised(ws, STATUS)
+                sub = {"id": 7, "channelId": ch["id"]}
+                await ws.send(json.dumps({"op": "subscribe", "subscriptions": [sub]}))
+                while True:  # an event: the latched message (10 s per frame, no re-publish)
+                    msg = await asyncio.wait_for(ws.recv(), 10)
+                    if isinstance(msg, bytes) and msg[0] == 0x01:
+                        sub_id, _t = struct.unpack_from("<IQ", msg, 1)
+                        assert sub_id == 7
+                        return dict(json.loads(msg[13:]))
+            finally:
+                await ws.close()
+
+        got = asyncio.run(late_client())
+    finally:
+        svc.stop()
+    assert got["type"] == "confnav.RobotStatus" and got["state"] == "stopped"
+
+
+def test_a_client_publishes_a_goal_that_reaches_the_bus(make_bus: Any) -> None:
+    """clientPublish: a Goal a Foxglove client publishes (JSON) on ``confnav/robot/r9/goal``
+    is validated and put on the bus; a goal naming another robot, or a message on a key that
+    is not a goal, is rejected (counted) and never reaches the bus."""
+    service_bus, listen_bus = make_bus(), make_bus()
+    goals: list[Goal] = []
+    listen_bus.subscribe(K.any_robot("goal"), lambda k, p: goals.append(decode(Goal, p)))
+    svc = FoxgloveLiveService(service_bus, port=0, full_period=30.0, health_period=0)
+    svc.start()
+    try:
+
+        async def publishing_client() -> dict[str, Any]:
+            ws = await _connect(svc.port)
+            try:
+                info = json.loads(await asyncio.wait_for(ws.recv(), 5))
+                channels = [
+                    {"id": 1, "topic": K.robot("r9", "goal"), "encoding": "json",
+                     "schemaName": "confnav.Goal"},
+                    {"id": 2, "topic": K.robot("r9", "pose"), "encoding": "json",
+                     "schemaName": "confnav.Pose"},
+                ]  # fmt: skip
+                await ws.send(json.dumps({"op": "advertise", "channels": channels}))
+
+                def data(channel: int, message: Any) -> bytes:  # client MessageData, op 0x01
+                    return struct.pack("<BI", 0x01, channel) + json.dumps(message).encode()
+
+                wrong = json.loads(encode(Goal(robot_id="r8", ws_id="room", goal=(0.1, 0.2))))
+                await ws.send(data(1, wrong))
+                await ws.send(data(2, {"robot_id": "r9"}))
+                good = json.loads(encode(Goal(robot_id="r9", ws_id="room", goal=(-0.5, 0.25))))
+                await ws.send(data(1, good))
+                deadline = time.monotonic() + 10
+                while not goals:  # an event: the goal on the bus
+                    assert time.monotonic() < deadline, "the client's goal never reached the bus"
+                    await asyncio.sleep(0.02)
+                return dict(info)
+            finally:
+                await ws.close()
+
+        info = asyncio.run(publishing_client())
+        deadline = time.monotonic() + 10
+        while svc.counters["client_rejected"] < 2:
+            assert time.monotonic() < deadline, dict(svc.counters)
+            time.sleep(0.02)
+    finally:
+        svc.stop()
+    assert "clientPublish" in info["capabilities"]
+    assert "json" in info.get("supportedEncodings", [])
+    assert [(g.robot_id, g.ws_id, g.goal) for g in goals] == [("r9", "room", (-0.5, 0.25))]
+    assert svc.counters["client_goals"] == 1
