@@ -69,7 +69,8 @@ def _num(x: float) -> str:
 
 
 def _origin(doc: dict[str, Any]) -> str:
-    prov = doc.get("provenance") if isinstance(doc.get("provenance"), dict) else {}
+    raw = doc.get("provenance")
+    prov: dict[str, Any] = raw if isinstance(raw, dict) else {}
     commit = str(prov.get("commit") or doc.get("commit") or "")[:8] or "not recorded"
     date = str(prov.get("date") or doc.get("date") or "")[:10] or "undated"
     load = prov.get("loadavg_start") or doc.get("loadavg_start")
