@@ -61,6 +61,8 @@ def _num(x: float) -> str:
     """Milliseconds and seconds as the docs print them: 3 significant digits, no exponent."""
     if x != x:  # NaN
         return "-"
+    if x != 0 and abs(x) < 0.01:
+        return f"{x:.1e}"
     if abs(x) >= 1000:
         return f"{x:.0f}"
     if abs(x) >= 100:
@@ -156,9 +158,51 @@ def atlas_table(docs: list[dict[str, Any]]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _measured(t: dict[str, Any]) -> str:
+    for key, unit in (("measured_s", " s"), ("p99_ms", " ms p99"), ("measured", ""), ("value", "")):
+        if key in t:
+            v = t[key]
+            return (_num(float(v)) + unit) if isinstance(v, int | float) else str(v)
+    return "-"
+
+
+def _met(t: dict[str, Any]) -> str:
+    if "met" in t:
+        return "met" if t["met"] else "missed"
+    status = str(t.get("status", "-")).lower()
+    return {"miss": "missed", "ok": "met"}.get(status, status)
+
+
+def targets_table(docs: list[dict[str, Any]], files: list[str] | None = None) -> str:
+    """Every target a results file records (the list layout: core, certificate, eval, scale,
+    services, chaos; navigation's and atlas's per-scenario layouts by scenario)."""
+    lines = ["| results | target | measured | |", "|---|---|---|---|"]
+    names = files or [""] * len(docs)
+    for name, doc in zip(names, docs, strict=True):
+        targets = doc.get("targets")
+        if isinstance(targets, list):
+            for t in targets:
+                what = str(t.get("target") or t.get("name") or "-")
+                lines.append(f"| `{name}` | {what} | {_measured(t)} | {_met(t)} |")
+        elif isinstance(targets, dict) and isinstance(doc.get("results"), list):  # atlas
+            for r in doc["results"]:
+                met = r.get("met", {})
+                ok = all(met.values()) if met else False
+                lines.append(
+                    f"| `{name}` | {r['scenario']}: success, collisions, path ratio, solve "
+                    f"| {r['solve_wall_s']:.1f} s solve, {round(r['success'] * r['starts'])}/"
+                    f"{r['starts']} arrived | {'met' if ok else 'missed'} |"
+                )
+        elif isinstance(targets, dict):  # navigation: "scene / navfn" -> "x met, y missed"
+            for what, verdict in targets.items():
+                lines.append(f"| `{name}` | {what} | {verdict} | |")
+    return "\n".join(lines) + "\n"
+
+
 TABLES: dict[str, Callable[[list[dict[str, Any]]], str]] = {
     "services": services_table,
     "atlas": atlas_table,
+    "targets": targets_table,
 }
 
 
@@ -167,7 +211,8 @@ def render(kind: str, files: list[str], at: str | None = None) -> str:
     if kind not in TABLES:
         raise TableError(f"unknown table {kind!r}; known: {', '.join(sorted(TABLES))}")
     docs = [load(f, at) for f in files]
-    return _header(kind, files, at, docs) + TABLES[kind](docs)
+    table = targets_table(docs, files) if kind == "targets" else TABLES[kind](docs)
+    return _header(kind, files, at, docs) + table
 
 
 def blocks(text: str) -> Iterator[tuple[str, list[str], str | None, str]]:
