@@ -251,3 +251,66 @@ def test_a_client_publishes_a_goal_that_reaches_the_bus(make_bus: Any) -> None:
     assert "json" in info.get("supportedEncodings", [])
     assert [(g.robot_id, g.ws_id, g.goal) for g in goals] == [("r9", "room", (-0.5, 0.25))]
     assert svc.counters["client_goals"] == 1
+
+
+def test_a_unicycle_is_drawn_in_the_circle_domain_of_the_map_it_drives_on() -> None:
+    """A unicycle of radius r and look-ahead d drives on the map of its workspace shrunk by
+    r + d (``{ws}~r{r+d}``) and the map steers the point d ahead of its axle: that point is
+    drawn in the shrunk workspace's circle domain, and the robot is not drawn in the circle
+    domain of the unshrunk map it does not drive on."""
+    import math
+    import types
+
+    from confnav.schemas import SolveDiagnostics, TransformSolution, WorkspaceDefinition
+
+    from confnav.maps.footprint import derived_ws_id
+    from confnav.recording import scene_builder as sb
+
+    square = [(-1.0, -1.0), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0)]
+
+    class Scaled:  # T(z) = z * s: stand-in maps with their workspace's polygons
+        def __init__(self, s: float) -> None:
+            self.s = s
+            outer = [complex(*p) for p in square]
+            self.workspace = types.SimpleNamespace(outer=outer, obstacles=[])
+
+        def T(self, z: Any) -> Any:
+            return z * self.s
+
+    def solution(ws_id: str) -> TransformSolution:
+        diag = SolveDiagnostics(
+            sweeps=1, error_estimate=0.0, wall_time=0.0, tol=1e-10, boundary_residual=0.0,
+            tol_met=True,
+        )  # fmt: skip
+        return TransformSolution(
+            ws_id=ws_id, revision="r", definition_hash="d", workspace_hash="h", stamp_ns=1,
+            anchor=(0.0, 0.0), centers=[(0.5, 0.5)], radii=[0.1], diagnostics=diag,
+            coefficients={},
+        )  # fmt: skip
+
+    shrunk = derived_ws_id("w1", 0.2 + 0.1)
+    maps = {"w1": Scaled(0.5), shrunk: Scaled(1 / 3)}
+    builder = sb.SceneBuilder(period_ns=0, map_loader=lambda sol: maps[sol.ws_id])
+    t = 1_700_000_000_000_000_000
+    builder.observe(WorkspaceDefinition(ws_id="w1", outer=square, obstacles=[]), t)
+    goal = Goal(
+        robot_id="u1", ws_id="w1", goal=(0.0, 0.0), drive="unicycle", robot_radius=0.2,
+        lookahead=0.1,
+    )  # fmt: skip
+    builder.observe(goal, t)
+    builder.observe(Pose(robot_id="u1", stamp_ns=t, seq=0, x=0.3, y=-0.2, theta=0.5), t)
+    builder.observe(solution("w1"), t)
+    builder.observe(solution(shrunk), t)
+    msgs = {m.topic: m.message for m in builder.flush(t + 1)}
+    plain = msgs["confnav/viz/w1/circle_domain"]
+    assert "robot/u1" not in {e["id"] for e in plain["entities"]}
+    cd = msgs[f"confnav/viz/{shrunk}/circle_domain"]
+    robot = next(e for e in cd["entities"] if e["id"] == "robot/u1")
+    pos = robot["cubes"][0]["pose"]["position"]
+    px, py = 0.3 + 0.1 * math.cos(0.5), -0.2 + 0.1 * math.sin(0.5)
+    # scene coordinates are rounded to 1e-6
+    assert pos["x"] == pytest.approx(px / 3, abs=1e-6)
+    assert pos["y"] == pytest.approx(py / 3, abs=1e-6)
+    # the workspace scene still shows the robot's body where it is
+    body = next(e for e in msgs["confnav/viz/w1/scene"]["entities"] if e["id"] == "robot/u1")
+    assert body["cubes"][0]["pose"]["position"]["x"] == pytest.approx(0.3)
