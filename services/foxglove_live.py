@@ -29,6 +29,7 @@ rejected and logged, never raised.
 from __future__ import annotations
 
 import argparse
+import heapq
 import json
 import logging
 import queue
@@ -57,6 +58,7 @@ log = logging.getLogger(__name__)
 
 DEFAULT_PORT = 8765
 STATUS_KINDS = ("status",)  # passed through as they are (robot and workspace status)
+LATCH_AGAIN_S = 0.3  # a subscription's latched message is sent at once and again after this
 
 
 class FoxgloveLiveService(Service):
@@ -115,11 +117,22 @@ class FoxgloveLiveService(Service):
 
     # latching and client publishing ---------------------------------------------------------
     def _latch(self) -> None:
-        """Re-send a channel's latest message to the clients when one subscribes to it."""
+        """Re-send a channel's latest message to the clients when one subscribes to it: at
+        once, and again after :data:`LATCH_AGAIN_S` (the SDK may attach the new client's sink
+        to the channel only after ``on_subscribe``: a message logged before is not sent to
+        it, foxglove/foxglove-sdk pull request 533). Duplicates are harmless: a status or a
+        full scene replaces the last one."""
+        due: list[tuple[float, str]] = []  # second sends: (monotonic time, topic)
         while not self._stop.is_set():
-            topic = self._resend.get()
-            if topic is None:
-                return
+            timeout = max(0.0, due[0][0] - time.monotonic()) if due else None
+            try:
+                topic = self._resend.get(timeout=timeout)
+            except queue.Empty:
+                topic = heapq.heappop(due)[1]
+            else:
+                if topic is None:
+                    return
+                heapq.heappush(due, (time.monotonic() + LATCH_AGAIN_S, topic))
             try:
                 with self._lock:
                     now = time.time_ns()
