@@ -158,6 +158,39 @@ def atlas_table(docs: list[dict[str, Any]]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def navigation_table(docs: list[dict[str, Any]]) -> str:
+    """``bench_navigation.py`` rows: per scenario and navigation function, the share of starts
+    that arrived, collisions, and the median time / path ratios (and the harmonic cost)."""
+    (doc,) = docs
+    rows = doc.get("rows")
+    if not isinstance(rows, list):
+        raise TableError("not a navigation results file (no 'rows')")
+    lines = [
+        "| scenario | navfn | arrived | collisions | median t / (L / v_max) | speed law alone "
+        "| median path / shortest |",
+        "|---|---|---:|---:|---:|---:|---:|",
+    ]
+    for r in rows:
+        for m in r["methods"].values():
+            nf = m["navfn"] + (f" k={m['k']:g}" if m.get("k") else "")
+            lines.append(
+                f"| {r['scenario']} | {nf} | {100 * m['success_rate']:.1f} % | {m['collisions']} "
+                f"| {m['median_time_ratio']:.2f} | {m['median_law_ratio']:.2f} "
+                f"| {m['median_path_ratio']:.2f} |"
+            )
+    out = "\n".join(lines) + "\n"
+    h = doc.get("harmonic_cost")
+    if isinstance(h, dict):
+        out += (
+            f"\nHarmonic cost on {h['scenario']} ({h['goals']} goals, CPU): per-map factorization "
+            f"{h['precompute_s']:.2f} s, per goal {1000 * h['per_goal_median_s']:.1f} ms median, "
+            f"{1000 * h['per_goal_max_s']:.0f} ms max; factors {h['basis_bytes'] / 1e6:.0f} MB, "
+            f"peak of the numpy allocations {h['peak_traced_bytes'] / 1e6:.0f} MB; "
+            f"{h['goals_not_converged']} goals not converged.\n"
+        )
+    return out
+
+
 def _measured(t: dict[str, Any]) -> str:
     for key, unit in (("measured_s", " s"), ("p99_ms", " ms p99"), ("measured", ""), ("value", "")):
         if key in t:
@@ -202,6 +235,7 @@ def targets_table(docs: list[dict[str, Any]], files: list[str] | None = None) ->
 TABLES: dict[str, Callable[[list[dict[str, Any]]], str]] = {
     "services": services_table,
     "atlas": atlas_table,
+    "navigation": navigation_table,
     "targets": targets_table,
 }
 
