@@ -191,6 +191,26 @@ def navigation_table(docs: list[dict[str, Any]]) -> str:
     return out
 
 
+def fleet_table(docs: list[dict[str, Any]]) -> str:
+    """``bench_eval.py``'s fleet step: CPU per robot with every robot its own goal, in one
+    vectorized step against one robot at a time, and the cost of a new goal's controller."""
+    (doc,) = docs
+    rows = doc.get("fleet")
+    if not isinstance(rows, list):
+        raise TableError("not an eval results file (no 'fleet')")
+    lines = [
+        "| navfn | goals | fleet step, us CPU per robot | one robot at a time, us CPU "
+        "| new goal's controller, ms CPU |",
+        "|---|---:|---:|---:|---:|",
+    ]
+    for r in rows:
+        lines.append(
+            f"| {r['navfn']} | {r['goals']} | {r['fleet_per_robot_cpu_us']:.1f} "
+            f"| {r['one_by_one_per_robot_cpu_us']:.1f} | {r['controller_build_cpu_ms']:.2f} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
 def _measured(t: dict[str, Any]) -> str:
     for key, unit in (("measured_s", " s"), ("p99_ms", " ms p99"), ("measured", ""), ("value", "")):
         if key in t:
@@ -236,6 +256,7 @@ TABLES: dict[str, Callable[[list[dict[str, Any]]], str]] = {
     "services": services_table,
     "atlas": atlas_table,
     "navigation": navigation_table,
+    "fleet": fleet_table,
     "targets": targets_table,
 }
 
