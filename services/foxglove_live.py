@@ -33,9 +33,10 @@ import heapq
 import json
 import logging
 import queue
+import re
 import threading
 import time
-from typing import TYPE_CHECKING, Any, cast
+from typing import TYPE_CHECKING, Any
 
 from confnav.schemas import DecodeError, Goal, decode, encode, schema_bytes, schema_name
 from confnav.services.bus import Bus
@@ -59,6 +60,7 @@ log = logging.getLogger(__name__)
 DEFAULT_PORT = 8765
 STATUS_KINDS = ("status",)  # passed through as they are (robot and workspace status)
 LATCH_AGAIN_S = 0.3  # a subscription's latched message is sent at once and again after this
+SDK_CLIENT_LOGGER = "foxglove.websocket.connected_client"  # where the SDK logs refusals
 
 
 class FoxgloveLiveService(Service):
@@ -83,7 +85,10 @@ class FoxgloveLiveService(Service):
         self._lock = threading.Lock()  # the builder and the channel table
         self._channels: dict[str, Any] = {}
         self._latest: dict[str, tuple[str, int]] = {}  # status topic -> (payload, log time)
-        self._resend: queue.Queue[str | None] = queue.Queue()  # topics a client subscribed to
+        # topics a client subscribed to; ids of channels a client was told are unknown (int)
+        self._resend: queue.Queue[str | int | None] = queue.Queue()
+        self._schemas: dict[str, tuple[str, bytes]] = {}  # topic -> (schema name, schema)
+        self._unknown = _UnknownChannelHandler(self._resend)
         self._client_topics: dict[tuple[int, int], str] = {}  # (client, client channel) -> topic
         self._server: Any = None
         self._ctx: Any = None
@@ -100,16 +105,18 @@ class FoxgloveLiveService(Service):
             context=self._ctx,
             capabilities=[Capability.ClientPublish],
             supported_encodings=["json"],
-            server_listener=cast("ServerListener", _Listener(self)),
+            server_listener=_listener(self),
         )
         self.port = int(self._server.port)
         self._handles.append(self.bus.subscribe(self.keys.all(), self._on_message))
         self.spawn(self._periodic, "scene")
         self.spawn(self._latch, "latch")
+        logging.getLogger(SDK_CLIENT_LOGGER).addHandler(self._unknown)
         log.info("foxglove live view on ws://%s:%d", self.host, self.port)
 
     def stop(self) -> None:
         super().stop()
+        logging.getLogger(SDK_CLIENT_LOGGER).removeHandler(self._unknown)
         self._resend.put(None)
         if self._server is not None:
             self._server.stop()
@@ -126,15 +133,17 @@ class FoxgloveLiveService(Service):
         while not self._stop.is_set():
             timeout = max(0.0, due[0][0] - time.monotonic()) if due else None
             try:
-                topic = self._resend.get(timeout=timeout)
+                item = self._resend.get(timeout=timeout)
             except queue.Empty:
-                topic = heapq.heappop(due)[1]
-            else:
-                if topic is None:
-                    return
-                heapq.heappush(due, (time.monotonic() + LATCH_AGAIN_S, topic))
+                item = heapq.heappop(due)[1]
+            if item is None:
+                return
             try:
                 with self._lock:
+                    topic = self._reopen(item) if isinstance(item, int) else item
+                    if topic is None:
+                        continue
+                    heapq.heappush(due, (time.monotonic() + LATCH_AGAIN_S, topic))
                     now = time.time_ns()
                     if topic in self._latest:
                         payload, _t = self._latest[topic]
@@ -144,7 +153,22 @@ class FoxgloveLiveService(Service):
                         self._send(self._builder.flush(now))
             except Exception:
                 self.count("errors")
-                log.exception("latched re-send on %s failed", topic)
+                log.exception("latched re-send of %s failed", item)
+
+    def _reopen(self, channel_id: int) -> str | None:
+        """A client was refused channel ``channel_id`` as unknown (foxglove-sdk 0.30: a channel
+        created while a client is connected can be advertised to it before the server knows
+        it; the client then never hears from it). Close the channel and open it again under a
+        new id: clients get unadvertise + advertise and subscribe again. Returns its topic
+        (None when the id is not one of ours, or no longer open)."""
+        topic = next((t for t, ch in self._channels.items() if ch.id() == channel_id), None)
+        if topic is None:
+            return None
+        self._channels.pop(topic).close()
+        self._channel(topic, *self._schemas[topic])
+        self.count("channels_reopened")
+        log.info("channel %d (%s) refused to a client as unknown: re-advertised", channel_id, topic)
+        return topic
 
     def _on_client_message(self, topic: str, data: bytes) -> None:
         """A client's message: a Goal on ``{prefix}/robot/{r}/goal`` goes to the bus."""
@@ -168,6 +192,7 @@ class FoxgloveLiveService(Service):
 
         ch = self._channels.get(topic)
         if ch is None:
+            self._schemas[topic] = (schema, data)
             ch = self._channels[topic] = foxglove.Channel(
                 topic,
                 schema=foxglove.Schema(name=schema, encoding=SCHEMA_ENCODING, data=data),
@@ -232,29 +257,47 @@ class FoxgloveLiveService(Service):
                 self._on_message(r.key, r.payload)
 
 
-class _Listener:
-    """foxglove-sdk's ``ServerListener``: subscriptions trigger the latched re-send, client
+class _UnknownChannelHandler(logging.Handler):
+    """Catches foxglove-sdk's "attempted to subscribe to unknown channel: N" (logged through
+    Python logging) and hands the channel id to the service's worker, which re-advertises it."""
+
+    PATTERN = re.compile(r"subscribe to unknown channel: (\d+)")
+
+    def __init__(self, out: queue.Queue[str | int | None]) -> None:
+        super().__init__(logging.ERROR)
+        self.out = out
+
+    def emit(self, record: logging.LogRecord) -> None:
+        m = self.PATTERN.search(record.getMessage())
+        if m:
+            self.out.put(int(m[1]))
+
+
+def _listener(service: FoxgloveLiveService) -> ServerListener:
+    """foxglove-sdk's ``ServerListener`` (subclassed, so every callback the SDK may call
+    exists; the SDK's defaults do nothing): subscriptions trigger the latched re-send, client
     channels are remembered by (client, channel id), client messages go to the service. The
     callbacks run on the SDK's threads: they only hand work over and never raise."""
+    from foxglove.websocket import ServerListener
 
-    def __init__(self, service: FoxgloveLiveService) -> None:
-        self.service = service
+    class Listener(ServerListener):
+        def on_subscribe(self, client: Any, channel: Any) -> None:
+            service._resend.put(str(channel.topic))
 
-    def on_subscribe(self, client: Any, channel: Any) -> None:
-        self.service._resend.put(str(channel.topic))
+        def on_client_advertise(self, client: Any, channel: Any) -> None:
+            service._client_topics[(int(client.id), int(channel.id))] = str(channel.topic)
 
-    def on_client_advertise(self, client: Any, channel: Any) -> None:
-        self.service._client_topics[(int(client.id), int(channel.id))] = str(channel.topic)
+        def on_client_unadvertise(self, client: Any, client_channel_id: int) -> None:
+            service._client_topics.pop((int(client.id), int(client_channel_id)), None)
 
-    def on_client_unadvertise(self, client: Any, client_channel_id: int) -> None:
-        self.service._client_topics.pop((int(client.id), int(client_channel_id)), None)
+        def on_message_data(self, client: Any, client_channel_id: int, data: bytes) -> None:
+            topic = service._client_topics.get((int(client.id), int(client_channel_id)))
+            if topic is None:
+                service.count("client_rejected")
+                return
+            service._on_client_message(topic, bytes(data))
 
-    def on_message_data(self, client: Any, client_channel_id: int, data: bytes) -> None:
-        topic = self.service._client_topics.get((int(client.id), int(client_channel_id)))
-        if topic is None:
-            self.service.count("client_rejected")
-            return
-        self.service._on_client_message(topic, bytes(data))
+    return Listener()
 
 
 def add_parser(sub: Any) -> None:

@@ -73,11 +73,17 @@ async def _client(port: int, bus: Any) -> tuple[dict[str, Any], dict[str, Any], 
                 _publish(bus)
                 republish = now + 0.5
             msg = await asyncio.wait_for(ws.recv(), 5)
-            if isinstance(msg, str) and "Unknown channel" in json.loads(msg).get("message", ""):
-                # foxglove-sdk 0.30 race: a channel advertised while a client is connected can
-                # be unknown to that client for a moment; the Foxglove app subscribes later
-                await asyncio.sleep(0.2)
-                await ws.send(request)
+            if isinstance(msg, str) and json.loads(msg)["op"] == "advertise":
+                # a channel re-advertised (the service does so when foxglove-sdk refused a
+                # subscription to it as unknown): subscribe again, as the Foxglove app does
+                for ch in json.loads(msg)["channels"]:
+                    for sub_id, topic in ((1, SCENE), (2, STATUS)):
+                        if ch["topic"] == topic:
+                            channels[topic] = ch
+                            again = {"id": sub_id, "channelId": ch["id"]}
+                            await ws.send(
+                                json.dumps({"op": "subscribe", "subscriptions": [again]})
+                            )
             if isinstance(msg, bytes) and msg[0] == 0x01:  # MessageData
                 sub_id, _log_time = struct.unpack_from("<IQ", msg, 1)
                 got[sub_id] = json.loads(msg[13:])
@@ -314,3 +320,64 @@ def test_a_unicycle_is_drawn_in_the_circle_domain_of_the_map_it_drives_on() -> N
     # the workspace scene still shows the robot's body where it is
     body = next(e for e in msgs["confnav/viz/w1/scene"]["entities"] if e["id"] == "robot/u1")
     assert body["cubes"][0]["pose"]["position"]["x"] == pytest.approx(0.3)
+
+
+def test_channels_created_while_a_client_is_connected_all_reach_it(mem_net: Any) -> None:
+    """40 status channels created while a client is connected, the client subscribing to each
+    as soon as it is advertised (as the Foxglove app does): foxglove-sdk 0.30 refuses some of
+    those subscriptions as "unknown channel" (1-3 of 40 in every run here) and such a channel
+    stayed silent; the service now re-advertises a refused channel, so every one delivers."""
+    import logging
+
+    from confnav.services import foxglove_live
+
+    svc = FoxgloveLiveService(mem_net.bus("svc"), port=0, full_period=30.0, health_period=0)
+    svc.start()
+    pub = mem_net.bus("pub")
+    n = 40
+
+    async def client() -> set[str]:
+        ws = await _connect(svc.port)
+        try:
+            await asyncio.wait_for(ws.recv(), 5)  # serverInfo
+            for i in range(n):
+                st = RobotStatus(
+                    robot_id=f"q{i}", stamp_ns=time.time_ns(), state="navigating", reason="ok"
+                )
+                pub.publish(K.robot(f"q{i}", "status"), encode(st))
+            subs: dict[int, str] = {}
+            got: set[str] = set()
+            deadline = time.monotonic() + 20  # an event with a generous timeout
+            while len(got) < n:
+                assert time.monotonic() < deadline, f"{n - len(got)} channels stayed silent"
+                try:
+                    msg = await asyncio.wait_for(ws.recv(), 1)
+                except TimeoutError:
+                    continue
+                if isinstance(msg, str) and json.loads(msg)["op"] == "advertise":
+                    for ch in json.loads(msg)["channels"]:
+                        subs[len(subs) + 1] = ch["topic"]
+                        sub = {"id": len(subs), "channelId": ch["id"]}
+                        await ws.send(json.dumps({"op": "subscribe", "subscriptions": [sub]}))
+                elif isinstance(msg, bytes) and msg[0] == 0x01:
+                    got.add(subs[struct.unpack_from("<I", msg, 1)[0]])
+            return got
+        finally:
+            await ws.close()
+
+    try:
+        got = asyncio.run(client())
+        # a refusal the SDK logs is handled: the channel is re-advertised under a new id
+        topic = K.robot("q0", "status")
+        old = svc._channels[topic].id()
+        logging.getLogger(foxglove_live.SDK_CLIENT_LOGGER).error(
+            "Client 127.0.0.1:1 attempted to subscribe to unknown channel: %d", old
+        )
+        deadline = time.monotonic() + 10
+        while svc._channels[topic].id() == old:
+            assert time.monotonic() < deadline, "the refused channel was not re-advertised"
+            time.sleep(0.02)
+    finally:
+        svc.stop()
+    assert got == {K.robot(f"q{i}", "status") for i in range(n)}
+    assert svc.counters["channels_reopened"] >= 1
