@@ -202,6 +202,19 @@ def run(name: str, quick: bool, out: Path | None, extra: list[str], nice: int) -
         },
     )
     print(f"bench {name}: wrote {target}")
+    from bench import tables
+
+    quoting = [
+        str(p.relative_to(ROOT))
+        for p in tables.doc_files()
+        for _k, files, at, _b in tables.blocks(p.read_text())
+        if at is None and target.name in files
+    ]
+    if quoting and target.resolve().parent == RESULTS:
+        print(
+            f"bench {name}: the docs quote {target.name} ({', '.join(sorted(set(quoting)))}): "
+            "run `python -m bench --refresh-docs`"
+        )
     return 0
 
 
