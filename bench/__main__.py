@@ -4,9 +4,11 @@ Runs ``bench/bench_*.py`` of that benchmark as a child process (under ``nice``),
 JSON it wrote with its provenance: the commit (and whether the tree had uncommitted changes),
 the UTC date, the machine's load average (``os.getloadavg()``) before and after, the CPU count
 and the exact command. ``python -m bench --list`` lists the benchmarks with the commit their
-stored results were made at ("stale" when that is not HEAD). ``--quick`` runs the benchmark's
-short mode and writes ``results/NAME.quick.json``, never over the full results; ``--dry-run``
-prints the command without running it.
+stored results were made at ("stale" when that is not HEAD); ``--table KIND FILE [--at
+COMMIT]`` prints a results file's markdown table for the docs (:mod:`bench.tables`) and
+``--refresh-docs`` rewrites the docs' generated blocks from the JSON. ``--quick`` runs the
+benchmark's short mode and writes ``results/NAME.quick.json``, never over the full results;
+``--dry-run`` prints the command without running it.
 """
 
 from __future__ import annotations
@@ -200,6 +202,19 @@ def run(name: str, quick: bool, out: Path | None, extra: list[str], nice: int) -
         },
     )
     print(f"bench {name}: wrote {target}")
+    from bench import tables
+
+    quoting = [
+        str(p.relative_to(ROOT))
+        for p in tables.doc_files()
+        for _k, files, at, _b in tables.blocks(p.read_text())
+        if at is None and target.name in files
+    ]
+    if quoting and target.resolve().parent == RESULTS:
+        print(
+            f"bench {name}: the docs quote {target.name} ({', '.join(sorted(set(quoting)))}): "
+            "run `python -m bench --refresh-docs`"
+        )
     return 0
 
 
@@ -248,11 +263,39 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, default=None, help="results file (default: results/)")
     ap.add_argument("--dry-run", action="store_true", help="print the command only")
     ap.add_argument("--nice", type=int, default=10, help="niceness of the benchmark process")
+    ap.add_argument(
+        "--table",
+        nargs="+",
+        metavar=("KIND", "FILE"),
+        help="print the markdown table KIND (services, atlas) from bench/results/FILE ...",
+    )
+    ap.add_argument("--at", default=None, help="with --table: read the files at this git commit")
+    ap.add_argument(
+        "--refresh-docs",
+        action="store_true",
+        help="rewrite the generated blocks (<!-- bench:... -->) of README.md, docs/, bench/",
+    )
     argv = list(sys.argv[1:] if argv is None else argv)
     extra = argv[argv.index("--") + 1 :] if "--" in argv else []  # passed on to the benchmark
     args = ap.parse_args(argv[: len(argv) - len(extra) - (1 if "--" in argv else 0)])
     if args.list:
         list_benchmarks()
+        return 0
+    if args.table or args.refresh_docs:
+        from bench import tables
+
+        try:
+            if args.table:
+                if len(args.table) < 2:
+                    ap.error("--table needs a KIND and at least one results FILE")
+                print(tables.render(args.table[0], args.table[1:], args.at), end="")
+            else:
+                for path in tables.doc_files():
+                    if tables.refresh(path):
+                        print(f"refreshed {path.relative_to(ROOT)}")
+        except tables.TableError as exc:
+            print(f"python -m bench: {exc}", file=sys.stderr)
+            return 2
         return 0
     if args.name is None:
         ap.error("a benchmark NAME or --list is needed")

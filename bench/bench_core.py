@@ -3,7 +3,7 @@
     python bench/bench_core.py [--quick] [--runs 3] [--out bench/results/core.json]
 
 1. reference: a much finer solve of the default workspace (``_solve_level(ws, 256, 1e-12)``),
-   checked against the 7-digit values of DESIGN.md sec. 5;
+   checked against the 7-digit values of docs/METHOD.md sec. 5;
 2. accuracy table for tol = 1e-6 .. 1e-12: wall time (median over fresh solves), true error of
    centres and radii against the reference, the solver's own error estimate and whether it bounds
    the true error, tol_met, level reached, nodes, sweeps;
@@ -17,7 +17,7 @@
    0.1, 0.01, 0.001 at tol 1e-8) and mirror-symmetric triangles: time, error estimate and its
    parts, tol_met, and the true asymmetry (an exact lower bound of the error: the circle domain
    of a mirror-symmetric workspace with the anchor on the axis is symmetric under
-   w -> -conj(w)); plus the default workspace against DESIGN.md sec. 5. Each case runs in a
+   w -> -conj(w)); plus the default workspace against docs/METHOD.md sec. 5. Each case runs in a
    child process with a time limit. Targets: gap 0.01 to 1e-8 in <= 10 s; no case claims an
    accuracy it lacks (asymmetry <= error estimate).
 
@@ -72,7 +72,7 @@ OBSTACLE_TOL = 1e-8
 TARGET_DEFAULT = (1e-10, 0.5)  # (tol, seconds): issue 12
 TARGET_OBSTACLES = (50, 1e-8, 10.0)  # (n, tol, seconds)
 
-# DESIGN.md sec. 5: two independent careful solves (triangle, rectangle, star, U).
+# docs/METHOD.md sec. 5: two independent careful solves (triangle, rectangle, star, U).
 DESIGN_RADII = np.array([0.1420658, 0.1593344, 0.1413721, 0.2170942])
 DESIGN_CENTERS = np.array(
     [
@@ -217,11 +217,11 @@ def print_reference(ref: dict[str, Any]) -> None:
                 f"{DESIGN_CENTERS[k].real:+.7f}{DESIGN_CENTERS[k].imag:+.7f}i",
             ]
         )
-    print(table(["obstacle", "radius", "DESIGN", "centre", "DESIGN"], rows))
+    print(table(["obstacle", "radius", "reference", "centre", "reference"], rows))
     dev = ref["design_max_deviation"]
     print(
         f"|T'(anchor)| = {ref['abs_derivative_at_anchor']:.12f} (DESIGN {DESIGN_DERIVATIVE})\n"
-        f"max deviation from DESIGN.md sec. 5: radii {dev['radii']:.1e}, centres "
+        f"max deviation from docs/METHOD.md sec. 5: radii {dev['radii']:.1e}, centres "
         f"{dev['centers']:.1e}, |T'| {dev['derivative']:.1e}; agree to all 7 digits: "
         f"{'yes' if ref['design_agrees_7_digits'] else 'NO'}\n"
     )
@@ -768,7 +768,7 @@ def certificate_targets(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
     )
     out.append(
         {
-            "name": "default workspace matches DESIGN.md sec. 5 (7 digits)",
+            "name": "default workspace matches docs/METHOD.md sec. 5 (7 digits)",
             "status": "met" if design_ok else "missed",
         }
     )

@@ -1,6 +1,6 @@
 """Map evaluation and control-step costs: direct Cauchy sums, local expansions, pyfmmlib.
 
-Measures on the default workspace (seed Sec. VI, DESIGN.md sec. 5), for the navigation map
+Measures on the default workspace (seed Sec. VI, docs/METHOD.md sec. 5), for the navigation map
 the controller service uses (``for_navigation()``) and for the full solver map:
 
 * T and T' per point for a batch of 1000 robots and for one robot: the direct barycentric

@@ -11,7 +11,9 @@ phases, and their own robots' commands received (so no single receiver throttles
   (the scaling curve), in three goal modes: ``own`` (every robot its own goal, all
   different), ``changing`` (every robot gets a new goal of its own every few seconds,
   staggered) and ``shared`` (all robots one goal: one vectorized call per pose block);
-- messages lost (poses sent after the warm-up neither answered nor superseded);
+- every pose sent after the warm-up accounted for from sequence numbers (:func:`account_poses`):
+  answered, superseded (a newer pose of the same robot was answered) or lost (no answer to it
+  nor to any newer pose of its robot); the three add up to the poses sent, none is clamped;
 - coefficient query latency and solve-to-first-command after a workspace update.
 
 Targets: issue 4: 100 robots at 50 Hz, p99 <= 5 ms, none lost; issue 12 item 3: 500 robots at
@@ -162,8 +164,33 @@ def play_robots(
         done.wait(300)
         with cmds.lock:
             lat = np.array(cmds.lat_ns, dtype=np.int64)
-            answered = len(cmds.seen)
-        out.put({"part": part, "lat_ns": lat, "answered": answered})
+            counts = account_poses(set(cmds.seen), ids, warm, ticks)
+        out.put({"part": part, "lat_ns": lat, **counts})
+
+
+def account_poses(
+    answered: set[tuple[str, int]], robots: list[str], first_seq: int, end_seq: int
+) -> dict[str, int]:
+    """Account for every pose ``first_seq <= seq < end_seq`` of every robot from the sequence
+    numbers of the poses answered. A controller answers the newest pose it holds of a robot
+    and drops the older ones, so for each robot, with ``newest`` its newest answered pose:
+    an unanswered pose older than ``newest`` was **superseded** (replaced by a newer pose of the
+    same robot that was answered), an unanswered pose newer than ``newest`` is **lost** (neither
+    it nor anything after it got an answer). ``answered + superseded + lost == sent`` exactly,
+    each count >= 0 by construction. Answers outside the range (the warm-up) are not counted."""
+    mine = set(robots)
+    by_robot: dict[str, list[int]] = {r: [] for r in robots}
+    for rid, seq in answered:
+        if rid in mine and first_seq <= seq < end_seq:
+            by_robot[rid].append(seq)
+    n_ans = n_sup = n_lost = 0
+    for seqs in by_robot.values():
+        newest = max(seqs, default=first_seq - 1)
+        n_ans += len(seqs)
+        n_sup += (newest - first_seq + 1) - len(seqs)
+        n_lost += end_seq - 1 - newest
+    sent = len(robots) * max(0, end_seq - first_seq)
+    return {"sent": sent, "answered": n_ans, "superseded": n_sup, "lost": n_lost}
 
 
 class Commands:
@@ -318,14 +345,17 @@ def run_load(
     time.sleep(1.5)  # answers and one health period
     cpu = return_cpu(time.monotonic() - t0)
     load1 = os.getloadavg()
-    superseded = HEALTH.total("poses_superseded") - sup0
+    superseded_reported = HEALTH.total("poses_superseded") - sup0
     done.set()
     parts = [q.get(timeout=60) for _ in children]
     for ch in children:
         ch.join(30)
     lat = np.concatenate([r["lat_ns"] for r in parts]).astype(float) / 1e6
     answered = sum(r["answered"] for r in parts)
+    superseded = sum(r["superseded"] for r in parts)
+    lost = sum(r["lost"] for r in parts)
     sent = n * (ticks - warm)
+    assert sum(r["sent"] for r in parts) == sent == answered + superseded + lost
     ctl_cpu = sum(v for k, v in cpu.items() if k.startswith("cpu_controller"))
     return {
         "robots": n,
@@ -340,10 +370,13 @@ def run_load(
         "sent": sent,
         "answered": answered,
         "unanswered": sent - answered,
-        "superseded": superseded,  # by a newer pose of the same robot (overload)
-        # neither answered nor superseded (the superseded count covers the whole run,
-        # warm-up included, so this is a lower bound; clamped at 0)
-        "lost": max(0, sent - answered - superseded),
+        # from sequence numbers (account_poses): answered + superseded + lost == sent
+        "superseded": superseded,  # a newer pose of the same robot was answered (overload)
+        "lost": lost,  # neither it nor a newer pose of its robot was answered
+        # the controllers' own counter, for comparison: it covers the whole run, warm-up
+        # included, so sent - answered - superseded_reported can be negative (the clamped
+        # -22,001 of 500 robots on 4 controllers: up to 500 x 50 warm-up poses superseded)
+        "superseded_reported": superseded_reported,
         "late_publishes": late,
         "p50_ms": float(np.percentile(lat, 50)) if lat.size else float("nan"),
         "p99_ms": float(np.percentile(lat, 99)) if lat.size else float("nan"),
@@ -620,8 +653,9 @@ def report(results: dict[str, Any], rate: float, seconds: float) -> None:
         f"{results['navfn']}; {results['publishers']} processes play the robots (poses at "
         "independent phases, commands received per zone); latency = cmd_vel receipt - the "
         "pose's own stamp; "
-        "superseded = poses replaced by a newer one of the same robot while the controller was "
-        "busy; load = 1-min load average of the 2-core machine, shared with other work)"
+        "superseded = unanswered poses older than an answered one of the same robot (the "
+        "controller was busy), lost = unanswered with no newer answer, both from sequence "
+        "numbers; load = 1-min load average of the 2-core machine, shared with other work)"
     )
     print("\nscaling curve (own goals): p99 ms by controller processes")
     ctls = sorted({r["controllers"] for r in results["runs"]})

@@ -1,4 +1,4 @@
-"""Zenoh key layout of confnav (DESIGN.md section 1).
+"""Zenoh key layout of confnav (docs/METHOD.md section 1).
 
 Every key starts with a configurable prefix (default ``confnav``)::
 

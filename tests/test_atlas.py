@@ -111,7 +111,7 @@ def test_local_goals_lie_deep_in_the_next_cell_and_the_order_is_acyclic(atlas: A
 
 # ---------------------------------------------------------------- charts
 def _rectangle_derivative(a: float, b: float) -> float:
-    """f'(0) of the map of [-a, a] x [-b, b] onto the disk, f(0) = 0 (DESIGN.md section 4):
+    """f'(0) of the map of [-a, a] x [-b, b] onto the disk, f(0) = 0 (docs/METHOD.md section 4):
     (1 + k) K / (2 a) with K'/K = 2 b / a."""
     m = brentq(lambda m: ellipk(1 - m) / ellipk(m) - 2 * b / a, 1e-12, 1 - 1e-12)
     return float((1 + np.sqrt(m)) * ellipk(m) / (2 * a))

@@ -112,3 +112,25 @@ def test_a_result_written_earlier_does_not_make_the_code_dirty(
     assert bm.head() == ("abc", False)
     status = next(a for a in seen if a[0] == "status")
     assert ":!bench/results" in status
+
+
+def test_pose_accounting_from_sequence_numbers() -> None:
+    """bench services: every pose after the warm-up is answered, superseded (a newer pose of
+    its robot was answered) or lost (no answer to it or anything newer), exactly, never
+    clamped; answers in the warm-up (seq < first) do not count."""
+    sys.path.insert(0, str(ROOT / "bench"))  # the benchmarks run as scripts from bench/
+    from bench.bench_services import account_poses
+
+    # robot a: 10..19 sent, answered 10, 12, 15 -> superseded 11, 13, 14; lost 16..19
+    # robot b: answered 19 only -> superseded 10..18, lost none
+    # robot c: nothing answered -> all 10 lost; an answer in the warm-up (seq 5) is ignored,
+    # and so is a robot not played here (x)
+    seen = {("a", 10), ("a", 12), ("a", 15), ("b", 19), ("c", 5), ("x", 12)}
+    got = account_poses(seen, ["a", "b", "c"], 10, 20)
+    assert got == {"sent": 30, "answered": 4, "superseded": 3 + 9, "lost": 4 + 0 + 10}
+    assert got["answered"] + got["superseded"] + got["lost"] == got["sent"]
+    # everything answered: nothing superseded or lost
+    every = {(r, s) for r in "ab" for s in range(3, 8)}
+    assert account_poses(every, ["a", "b"], 3, 8) == {
+        "sent": 10, "answered": 10, "superseded": 0, "lost": 0
+    }  # fmt: skip

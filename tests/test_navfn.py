@@ -11,7 +11,7 @@ from confnav.navigation.critical import choose_k, find_critical_points
 from confnav.navigation.factory import make_navfn
 from confnav.navigation.navfn import CircleDomain, KoditschekRimon
 
-# circle domain of the default workspace (DESIGN.md section 5)
+# circle domain of the default workspace (docs/METHOD.md section 5)
 SEED = CircleDomain(
     np.array([0.4227371 + 0.2466153j, -0.4018952 + 0.2782662j, -0.4826272 - 0.3720324j,
               0.0160941 - 0.3776479j]),

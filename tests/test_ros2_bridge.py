@@ -119,19 +119,19 @@ def test_liveliness_tokens_of_node_publishers_subscriptions(bridge: Any) -> None
     want = {
         f"{head}/0/NN/{node}",
         f"{head}/1/MP/{node}/%r1%cmd_vel/geometry_msgs::msg::dds_::Twist_/"
-        f"{h(codec.TWIST)}/:2:,10:,:,:,,",
+        f"{h(codec.TWIST)}/::,10:,:,:,,",
         f"{head}/2/MS/{node}/%r1%odom/nav_msgs::msg::dds_::Odometry_/"
-        f"{h(codec.ODOMETRY)}/2:2:,5:,:,:,,",
+        f"{h(codec.ODOMETRY)}/2::,5:,:,:,,",
         f"{head}/3/MS/{node}/%r1%goal_pose/geometry_msgs::msg::dds_::PoseStamped_/"
-        f"{h(codec.POSE_STAMPED)}/:2:,10:,:,:,,",
+        f"{h(codec.POSE_STAMPED)}/::,10:,:,:,,",
         f"{head}/4/MP/{node}/%fleet%b%cmd_vel/geometry_msgs::msg::dds_::Twist_/"
-        f"{h(codec.TWIST)}/:2:,10:,:,:,,",
+        f"{h(codec.TWIST)}/::,10:,:,:,,",
         f"{head}/5/MS/{node}/%fleet%b%odom/nav_msgs::msg::dds_::Odometry_/"
-        f"{h(codec.ODOMETRY)}/2:2:,5:,:,:,,",
+        f"{h(codec.ODOMETRY)}/2::,5:,:,:,,",
         f"{head}/6/MS/{node}/%fleet%b%goal_pose/geometry_msgs::msg::dds_::PoseStamped_/"
-        f"{h(codec.POSE_STAMPED)}/:2:,10:,:,:,,",
+        f"{h(codec.POSE_STAMPED)}/::,10:,:,:,,",
         f"{head}/7/MS/{node}/%map/nav_msgs::msg::dds_::OccupancyGrid_/"
-        f"{h(codec.OCCUPANCY_GRID)}/::,1:,:,:,,",
+        f"{h(codec.OCCUPANCY_GRID)}/:1:,1:,:,:,,",
     }
     assert got == want
 

@@ -63,15 +63,39 @@ def test_names() -> None:
 
 
 def test_qos_keyexpr() -> None:
-    # qos_to_keyexpr: "R:D:H,depth:dl_s,dl_ns:ls_s,ls_ns:L,lease_s,lease_ns", a field empty when
-    # it equals qos.cpp's default (reliable, transient local, keep last, 42, infinite, automatic)
+    # qos_to_keyexpr (liveliness_utils.cpp): "R:D:H,depth:dl_s,dl_ns:ls_s,ls_ns:L,lease_s,lease_ns",
+    # a field empty when it equals qos.cpp's default of the zenoh 1.x rmw_zenoh (7efeee2b,
+    # RMW_ZENOH_DEFAULT_*: reliable, volatile, keep last, 42, infinite, automatic)
     assert wire.qos_keyexpr(wire.QoS()) == "::,:,:,:,,"
-    assert wire.qos_keyexpr(wire.DEFAULT_QOS) == ":2:,10:,:,:,,"
-    assert wire.qos_keyexpr(wire.SENSOR_QOS) == "2:2:,5:,:,:,,"
-    assert wire.qos_keyexpr(wire.MAP_QOS) == "::,1:,:,:,,"  # transient local is the default
-    full = wire.QoS(2, 2, 2, 3, (1, 2), (3, 4), 3, (5, 6))
-    assert wire.qos_keyexpr(full) == "2:2:2,3:1,2:3,4:3,5,6"
+    # rclcpp QoS(10) after QoS::best_available_qos: reliable, volatile, keep last 10, durations
+    # and liveliness "default" mapped to rmw_zenoh's: only the depth is written
+    assert wire.qos_keyexpr(wire.DEFAULT_QOS) == "::,10:,:,:,,"
+    assert wire.qos_keyexpr(wire.SENSOR_QOS) == "2::,5:,:,:,,"  # best effort, volatile, 5
+    assert wire.qos_keyexpr(wire.MAP_QOS) == ":1:,1:,:,:,,"  # transient local (1) is written
+    full = wire.QoS(2, 1, 2, 3, (1, 2), (3, 4), 3, (5, 6))
+    assert wire.qos_keyexpr(full) == "2:1:2,3:1,2:3,4:3,5,6"
     assert wire.qos_keyexpr(wire.QoS(deadline=(0, 0))) == "::,:0,0:,:,,"
+
+
+def test_token_of_a_real_node_with_default_qos() -> None:
+    # teleop_twist_keyboard: node "teleop_twist_keyboard", create_publisher(Twist, "cmd_vel", 10)
+    # in the root namespace, domain 0. Entity::Entity (liveliness_utils.cpp, 3411fdec) writes
+    # AdminSpace/DomainId/Zid/Nid/Id/EntityStr/Enclave/Namespace/NodeName/TopicName/TopicType/
+    # TopicTypeHash/TopicQoS with "/" mangled to "%" (enclave "/" and namespace "/" -> "%"), and
+    # qos_to_keyexpr leaves every default field empty: reliable and volatile are rmw_zenoh's
+    # defaults (qos.cpp), so only the depth 10 is written. The GID is XXH3-128 of that text.
+    info = wire.TopicInfo("/cmd_vel", "geometry_msgs/msg/Twist", TWIST_HASH, wire.DEFAULT_QOS)
+    zid = "f446b0e7bcea4bbcc4bc5f1f757e6683"
+    token = wire.liveliness_token(
+        0, zid, 0, 10, wire.EntityKind.PUBLISHER, "/", "teleop_twist_keyboard", info
+    )
+    real = (
+        f"@ros2_lv/0/{zid}/0/10/MP/%/%/teleop_twist_keyboard/%cmd_vel/"
+        f"geometry_msgs::msg::dds_::Twist_/{TWIST_HASH}/::,10:,:,:,,"
+    )
+    assert token == real
+    # durability written as "2" (as before) is another token, hence another GID
+    assert wire.entity_gid(token) != wire.entity_gid(real.replace("/::,10:", "/:2:,10:"))
 
 
 def test_liveliness_tokens() -> None:
@@ -83,7 +107,7 @@ def test_liveliness_tokens() -> None:
     pub = wire.liveliness_token(0, "aabb", 0, 3, wire.EntityKind.PUBLISHER, "/", "b", info)
     assert pub == (
         "@ros2_lv/0/aabb/0/3/MP/%/%/b/%r1%cmd_vel/geometry_msgs::msg::dds_::Twist_/"
-        f"{TWIST_HASH}/:2:,10:,:,:,,"
+        f"{TWIST_HASH}/::,10:,:,:,,"
     )
     sub = wire.liveliness_token(5, "z", 2, 4, wire.EntityKind.SUBSCRIPTION, "/robots", "n", info)
     assert sub.startswith("@ros2_lv/5/z/2/4/MS/%/%robots/n/%r1%cmd_vel/")

@@ -1,4 +1,4 @@
-"""The conformal map against exact answers (DESIGN.md sec. 4) and conformal invariants.
+"""The conformal map against exact answers (docs/METHOD.md sec. 4) and conformal invariants.
 
 Tolerances are the accuracy the solver is asked for (or the stated exact-answer target), not
 loosened to pass: each one would fail if the map were wrong in the 10th digit.
@@ -110,7 +110,7 @@ def test_square_frame_onto_annulus(a: float, capacity: float, tol: float) -> Non
 
 def test_default_workspace_matches_design_reference(default_map: ConformalMap) -> None:
     m = default_map
-    # DESIGN.md sec. 5 (two independent solves, 7 digits)
+    # docs/METHOD.md sec. 5 (two independent solves, 7 digits)
     np.testing.assert_allclose(m.radii, [0.1420658, 0.1593344, 0.1413721, 0.2170942], atol=6e-8)
     np.testing.assert_allclose(
         m.centers,

@@ -71,7 +71,7 @@ def test_random_workspaces_are_accurate_or_rejected(ws: Workspace) -> None:
 
 def test_crowding_is_detected_not_returned() -> None:
     # an obstacle in a chamber behind a corridor of length/width 10: its circle would have a
-    # radius ~exp(-pi * 10) ~ 1e-14, below what double precision resolves (DESIGN.md sec. 6)
+    # radius ~exp(-pi * 10) ~ 1e-14, below what double precision resolves (docs/METHOD.md sec. 6)
     h = 0.05
     outer = [
         [-1, -1],

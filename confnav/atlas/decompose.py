@@ -1,6 +1,6 @@
 """Decomposition of a free space into overlapping, well-conditioned cells (quadtree of tiles).
 
-A single conformal map of a long corridor crowds like ``exp(-pi L / w)`` (DESIGN.md section 6):
+A single conformal map of a long corridor crowds like ``exp(-pi L / w)`` (docs/METHOD.md section 6):
 beyond ``L/w ~ 11`` its far end is below double precision.  An atlas covers the free space
 with small cells, each mapped on its own.  The cells come from overlapping tiles:
 
@@ -169,7 +169,7 @@ def elongation(poly: Polygon) -> float:
     """A-priori crowding indicator ``area / (2 r)^2`` (``r``: largest inscribed radius).
 
     It is ``L/w`` for an ``L x w`` rectangle, about 1 for a square or a disk; the map of a
-    channel of this elongation contracts like ``exp(-pi L/w)`` (DESIGN.md section 6).
+    channel of this elongation contracts like ``exp(-pi L/w)`` (docs/METHOD.md section 6).
     """
     r = inscribed(poly)[1]
     return float(poly.area / (2 * r) ** 2) if r > 0 else float("inf")

@@ -6,8 +6,8 @@ traversed with Kress's grading function ``sigma`` so that all derivatives of ``e
 order ``p - 1`` vanish at the vertices. The trapezoidal rule on the graded parametrisation then
 converges like ``n^-p`` despite the corner singularities.
 
-With equal shares ``S_k = 2pi(k-1)/L`` this is exactly DESIGN.md section 2 (and the seed's
-eqs. (sigma), (g), (eta), with the errata of DESIGN.md section 6); unequal ``n_k`` let long
+With equal shares ``S_k = 2pi(k-1)/L`` this is exactly docs/METHOD.md section 2 (and the seed's
+eqs. (sigma), (g), (eta), with the errata of docs/METHOD.md section 6); unequal ``n_k`` let long
 sides and sides close to other boundaries get more nodes without changing the scheme.
 
 References
@@ -28,7 +28,7 @@ from numpy.typing import NDArray
 from confnav.types import CArray as ComplexArray
 from confnav.types import FArray as FloatArray
 
-#: Grading exponent. DESIGN.md sec. 2 recommends p = 5 because p >= 6 puts nodes within 1e-16
+#: Grading exponent. docs/METHOD.md sec. 2 recommends p = 5 because p >= 6 puts nodes within 1e-16
 #: of the vertices. Here such nodes are dropped as quadrature sources (their weight is below
 #: rounding, see confnav.conformal.gnk.alive_nodes) and only the first Koebe sweep works on the
 #: graded
@@ -96,8 +96,8 @@ class BoundaryMesh:
     def interior_mask(self, margin: float = 0.125) -> NDArray[np.bool_]:
         """Nodes away from the vertices: outside the first/last ``margin`` of each side.
 
-        Convergence is measured only there (DESIGN.md sec. 2, "Convergence"): rounding near
-        re-entrant corners keeps the change at vertex-adjacent nodes near 1e-9..1e-11.
+        Convergence is measured only there (docs/METHOD.md sec. 2, "Convergence test"): rounding
+        near re-entrant corners keeps the change at vertex-adjacent nodes near 1e-9..1e-11.
         """
         lo = 2 * np.pi * margin
         return np.asarray((self.tau >= lo) & (self.tau <= 2 * np.pi - lo))

@@ -10,7 +10,7 @@ One sweep (Nasser, CMFT 2015; the seed's "multiple single-connected problems"):
 At convergence every step is a similarity: ``c_j`` are the centres, ``r_j`` the radii. Each
 sweep normalises only its last map, so the rotations of the earlier exterior maps stay in the
 composition; at the end everything is rotated by ``e^{-i arg D}``, D = T'(anchor)
-(DESIGN.md sec. 2, "Final rotation").
+(docs/METHOD.md sec. 2, "Final rotation").
 
 Two representations of each boundary (this module's design choice):
 
@@ -60,7 +60,7 @@ References
    15 (2015) 187-223, secs. 3-4 (the iteration, ~100x error reduction per sweep).
 .. [2] P. Henrici, "Applied and Computational Complex Analysis", Vol. 3, Wiley 1986,
    sec. 13.3 (trigonometric interpolation of boundary correspondence functions).
-.. [3] DESIGN.md sec. 2 (checked formulas, final rotation, convergence test).
+.. [3] docs/METHOD.md sec. 2 (checked formulas, final rotation, convergence test).
 """
 
 from __future__ import annotations
@@ -81,7 +81,7 @@ from confnav.types import CArray as ComplexArray
 from confnav.types import FArray as FloatArray
 
 #: Circles smaller than this (relative to the unit disk) cannot be resolved in double precision:
-#: the image nodes of such a boundary crowd together below rounding (DESIGN.md sec. 6).
+#: the image nodes of such a boundary crowd together below rounding (docs/METHOD.md sec. 6).
 CROWDING_RADIUS = 1e-11
 MAX_SWEEPS = 200
 #: Sweeps without any decrease of the change (below the best of the three before) after which

@@ -11,7 +11,7 @@ formula over all boundary components (weights ``2pi/n_j``), accurate up to the b
 
 References
 ----------
-.. [1] DESIGN.md sec. 2, "Cauchy evaluation (barycentric form)".
+.. [1] docs/METHOD.md sec. 2, "Cauchy evaluation in barycentric form".
 .. [2] A. P. Austin, P. Kravanja, L. N. Trefethen, "Numerical algorithms based on analytic
    function values at roots of unity", SIAM J. Numer. Anal. 52 (2014) 1795-1821, sec. 4.
 """
@@ -512,7 +512,7 @@ class ConformalMap:
         consecutive nodes share a side) and, on every side, the points at the fractions
         :data:`CORNER_FRACTIONS` from each of its corners -- all but within
         :data:`CORNER_ZONE` of a corner. T maps the outer polygon onto
-        ``|w| = 1`` and obstacle j onto ``|w - c_j| = r_j`` (DESIGN.md sec. 2).
+        ``|w| = 1`` and obstacle j onto ``|w - c_j| = r_j`` (docs/METHOD.md sec. 2).
         """
         eta = self._parts[0]
         targets, owner = [], []

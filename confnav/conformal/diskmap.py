@@ -29,7 +29,7 @@ References
 .. [2] J.-P. Berrut, L. N. Trefethen, "Barycentric Lagrange interpolation", SIAM Rev. 46
    (2004); A. P. Austin, P. Kravanja, L. N. Trefethen, SIAM J. Numer. Anal. 52 (2014) 1795-1821
    (barycentric Cauchy formula near the boundary).
-.. [3] DESIGN.md sec. 2 (formulas checked against two independent implementations).
+.. [3] docs/METHOD.md sec. 2 (formulas checked against two independent implementations).
 """
 
 from __future__ import annotations
@@ -132,7 +132,7 @@ def interior_map(
     rtol: float = GMRES_RTOL,
     x0: FloatArray | None = None,
 ) -> CurveMap:
-    """Map the inside of a counter-clockwise curve onto the unit disk (DESIGN.md sec. 2).
+    """Map the inside of a counter-clockwise curve onto the unit disk (docs/METHOD.md sec. 2).
 
     ``rtol``: relative GMRES residual of the GNK solve
     (:func:`confnav.conformal.gnk.gmres_rtol`); ``x0``: a first guess of its ``mu``."""
@@ -161,7 +161,7 @@ def exterior_map(
     rtol: float = GMRES_RTOL,
     x0: FloatArray | None = None,
 ) -> CurveMap:
-    """Map the outside of a clockwise curve onto |w| > 1 with F'(inf) > 0 (DESIGN.md sec. 2).
+    """Map the outside of a clockwise curve onto |w| > 1 with F'(inf) > 0 (docs/METHOD.md sec. 2).
 
     ``rtol``: relative GMRES residual of the GNK solve
     (:func:`confnav.conformal.gnk.gmres_rtol`); ``x0``: a first guess of its ``mu``."""

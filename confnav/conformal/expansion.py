@@ -1,6 +1,6 @@
 """O(1)-per-point evaluation of the map's Cauchy sums by local (Taylor) expansions on a quadtree.
 
-``ConformalMap`` evaluates T and T' from the discrete Cauchy sums (DESIGN.md sec. 2)
+``ConformalMap`` evaluates T and T' from the discrete Cauchy sums (docs/METHOD.md sec. 2)
 
     S_j(z) = sum_k q_jk / (eta_k - z),   j = 1 (q = w W eta', sum N), 2 (q = w eta', sum D),
 

@@ -20,7 +20,7 @@ singularities are removed with ``N 1 = -1`` and ``M 1 = 0``:
 where ``x'`` is the spectral (FFT) derivative. The system is solved by GMRES; a matrix-vector
 product is one Cauchy sum (direct or FMM, see :mod:`confnav.conformal.cauchy`), so a solve costs
 O(n^2) dense or O(n) with the FMM. (The seed's eqs. (integral equation) and (c) swap the known
-and unknown functions -- DESIGN.md sec. 6 errata; this module follows DESIGN.md sec. 2.)
+and unknown functions -- docs/METHOD.md sec. 6 errata; this module follows docs/METHOD.md sec. 2.)
 
 References
 ----------

@@ -51,7 +51,7 @@ REF_ANGLE = 1.75
 #: Kress's grading narrows the strip of analyticity of the integrands (sigma has complex poles
 #: near the middle of each side), so the e^(-2 pi d/h) rate is reached only for about half
 #: the spacing: measured on the 4x2 rectangle, factor 1 leaves 3e-10 error at tol 1e-12,
-#: factor 2 gives 1.3e-12 (the exact f'(0) of DESIGN.md sec. 4).
+#: factor 2 gives 1.3e-12 (the exact f'(0) of docs/METHOD.md sec. 4).
 GRADING_STRIP = 2.0
 #: Level at which the proximity rule is applied as derived (it scales like a straight corner).
 LEVEL_BASE = 80

@@ -3,7 +3,7 @@
 The node count is chosen by refinement, not by a magic constant: the Koebe-type iteration is run
 on graded meshes of increasing size (nodes per side from :data:`LEVELS`), and the change of the
 circle domain (centres and radii) between consecutive levels gives the discretisation error of
-the finer one. With grading exponent p the error decays like n^-p (DESIGN.md sec. 2), so each
+the finer one. With grading exponent p the error decays like n^-p (docs/METHOD.md sec. 2), so each
 step of ``LEVELS`` (x1.5) cuts it by about 7x.
 
 The error estimate covers every error source (issue 8), each measured on its own:

@@ -1,7 +1,7 @@
 """Feedback law of the seed paper's Theorem 2 for kinematic robots ``x' = u``, with a speed law.
 
 The Theorem 2 field is ``f(x) = -conj(T'(x)) grad phi(T(x))`` (complex form of
-``-J_T^T grad phi``, DESIGN.md section 3): the negative workspace gradient of the Lyapunov
+``-J_T^T grad phi``, docs/METHOD.md section 3): the negative workspace gradient of the Lyapunov
 function ``V = phi o T``, whose image in the circle domain is ``w' = -|T'|^2 grad phi``.
 Two speed laws drive the robot along it (:data:`confnav.navigation.defaults.SPEED_LAWS`):
 
@@ -22,7 +22,7 @@ flows; e.g. Chicone, *Ordinary Differential Equations with Applications*, Prop. 
 property of Theorem 2 that is a property of the curves carries over: the free space is
 positively invariant (no collision), and every curve not on the stable manifold of a saddle
 (a set of measure zero) ends at the goal (almost-global convergence; Koditschek-Rimon
-1990 [2]_, Prop. 2.4, and DESIGN.md section 3).  ``dV/dt = s <grad V, f> = -s |f|^2 < 0``
+1990 [2]_, Prop. 2.4, and docs/METHOD.md section 3).  ``dV/dt = s <grad V, f> = -s |f|^2 < 0``
 off the critical points.  Convergence in *finite-looking* time is what changes: with
 ``v >= min(v_max, gain d)`` the robot reaches the goal disk of radius ``goal_tol`` after at
 most ``L / v_max + log(v_max / (gain goal_tol)) / gain`` seconds along a path of length L.

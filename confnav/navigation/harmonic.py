@@ -39,7 +39,7 @@ and the data of ``S`` is as small as ``G`` there, so the fit's *relative* accura
 over to ``G``, its gradient and ``1 - phi``.
 
 **Cost bounded per map.**  The least-squares matrix depends on the circle domain only, not on
-the goal (the boundary data is linear in it, DESIGN.md section 3): :class:`GreenBasis` builds
+the goal (the boundary data is linear in it, docs/METHOD.md section 3): :class:`GreenBasis` builds
 it once per map, scales its columns and stores a QR factorization; a new goal is then one
 ``Q^T b`` and a triangular solve plus a residual check on points between the collocation
 points.  The number of terms per circle grows on a ladder (a finer basis is factored only
@@ -806,7 +806,7 @@ def _exp(x: float) -> float:
 
 
 class HarmonicNavigation(NavigationFunction):
-    """Harmonic navigation function ``phi_H = exp(2 G)`` (DESIGN.md section 3).
+    """Harmonic navigation function ``phi_H = exp(2 G)`` (docs/METHOD.md section 3).
 
     ``diagnostics`` holds the :class:`GreenDiagnostics` of the series.  ``tol`` bounds the
     boundary error of the series, and so the error of ``G`` everywhere; with ``samples``

@@ -237,8 +237,8 @@ def obstacle_function1(
 class KoditschekRimon(NavigationFunction):
     """Koditschek-Rimon navigation function ``phi_k`` on a circle domain [1]_.
 
-    Uses the squared distance ``g = |w - w_d|^2`` (smooth at the goal; DESIGN.md section 6)
-    and the cancellation-free gradient of DESIGN.md section 3,
+    Uses the squared distance ``g = |w - w_d|^2`` (smooth at the goal; docs/METHOD.md section 6)
+    and the cancellation-free gradient of docs/METHOD.md section 3,
     ``grad phi_k = D^(-1/k-1) (beta grad g - (g/k) grad beta)``, ``D = g^k + beta``.
 
     Parameters

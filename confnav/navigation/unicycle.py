@@ -8,7 +8,7 @@ distance ``d`` ahead of the axle moves by ``p' = (v + i d omega) e^{i theta}``, 
 
 gives ``p' = u`` exactly (input-output feedback linearisation of the unicycle about a point
 off the wheel axis [1]_ (sec. 11.5.3 on the kinematic model, "input/output linearization"),
-[2]_; DESIGN.md sec. 3). The point ``p`` therefore follows the
+[2]_; docs/METHOD.md sec. 3). The point ``p`` therefore follows the
 Theorem 2 field of :class:`confnav.navigation.control.Controller` with all its guarantees, and a
 body of
 radius ``r`` around the axle stays within ``r + d`` of ``p``: navigate ``p`` in the free space

@@ -103,6 +103,8 @@ class _Robot:
     trail_w: list[Point] = field(default_factory=list)  # images of trail[: len(trail_w)]
     trail_w_map: int = 0  # id() of the map trail_w was computed with
     chart: int | None = None  # active chart on an atlas (from cmd_vel)
+    map_ws: str | None = None  # the workspace whose map drives it ({ws}~r{R} with a footprint)
+    lookahead: float = 0.0  # a unicycle's steered point is this far ahead of the axle
 
 
 @dataclass
@@ -213,8 +215,14 @@ class SceneBuilder:
                 return []
             self._on_transform(message)
         elif isinstance(message, Goal):
+            from confnav.maps.footprint import derived_ws_id
+
             robot = self._robot(message.robot_id)
             robot.ws, robot.goal = message.ws_id, message.goal
+            # the map it drives on: its workspace shrunk by its footprint (docs/NAVIGATION.md)
+            unicycle = message.drive == "unicycle"
+            robot.lookahead = message.lookahead if unicycle else 0.0
+            robot.map_ws = derived_ws_id(message.ws_id, message.robot_radius + robot.lookahead)
             for ws in self._ws.values():
                 ws.dirty = True
         elif isinstance(message, Pose):
@@ -360,7 +368,15 @@ class SceneBuilder:
         ws_msg["entities"] += self._atlas_entities(ws_id, robots, now_ns, full)
         out = [SceneMessage(scene_topic(ws_id, self.prefix), ws_msg, now_ns)]
         if ws.radii:
-            w_views = {rid: self._map_view(ws.cmap, r, full) for rid, r in sorted(robots.items())}
+            # in a circle domain only the robots that drive on its map (a robot with a footprint
+            # drives on the map of {ws}~r{R}, drawn in that workspace's circle domain)
+            single = len(self._ws) == 1
+            on_map = {
+                rid: r
+                for rid, r in self._robots.items()
+                if (r.map_ws or r.ws) == ws_id or (r.ws is None and single)
+            }
+            w_views = {rid: self._map_view(ws.cmap, r, full) for rid, r in sorted(on_map.items())}
             cd_msg = circle_domain_scene(ws.centers, ws.radii, now_ns, w_views, ws=ws_id)
             if not full:
                 cd_msg["entities"] = cd_msg["entities"][1:]
@@ -374,7 +390,11 @@ class SceneBuilder:
         if robot.trail_w_map != id(cmap):
             robot.trail_w, robot.trail_w_map = [], id(cmap)
         goal_z = robot.goal if full else None
-        extra = [p for p in (robot.position, goal_z) if p is not None]
+        steered = robot.position
+        if steered is not None and robot.lookahead:  # a unicycle: the map steers the point ahead
+            d, th = robot.lookahead, robot.theta
+            steered = (steered[0] + d * math.cos(th), steered[1] + d * math.sin(th))
+        extra = [p for p in (steered, goal_z) if p is not None]
         pending = robot.trail[len(robot.trail_w) :] if full else []
         images = _image(cmap, [*extra, *pending])
         pos = images.pop(0) if robot.position is not None else None

@@ -1,6 +1,6 @@
 """Ready-made workspaces: the seed paper's default scene and random mixed-obstacle rooms.
 
-The default workspace is the seed's Sec. VI scene with the concrete coordinates of DESIGN.md
+The default workspace is the seed's Sec. VI scene with the concrete coordinates of docs/METHOD.md
 section 5 (outer square, triangle, rectangle, 6-pointed star, non-star-shaped U).
 """
 
@@ -25,7 +25,7 @@ def star(center: complex, r_tip: float, r_notch: float, tips: int, phase: float)
 
 
 def default_workspace() -> Workspace:
-    """The seed's Sec. VI workspace (DESIGN.md sec. 5), anchor at the goal (0, 0)."""
+    """The seed's Sec. VI workspace (docs/METHOD.md sec. 5), anchor at the goal (0, 0)."""
     outer = [[-2, -2], [2, -2], [2, 2], [-2, 2]]
     triangle = [[0.6, 0.3], [1.3, 0.4], [0.85, 1.0]]
     rectangle = [[-1.1, 0.3], [-0.6, 0.3], [-0.6, 1.0], [-1.1, 1.0]]

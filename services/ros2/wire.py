@@ -7,8 +7,16 @@ Pure functions (no session). Every format is taken from the rmw_zenoh source, ci
   liveliness_utils.cpp``: data key (``TopicInfo::TopicInfo``), token layout
   (``Entity::Entity``, ``KeyexprIndex``), the session id chunk (``zid_to_str``), name
   mangling (``mangle_name``), QoS string (``qos_to_keyexpr``) and the entity GID (XXH3-128
-  of the token, ``low64`` then ``high64``); ``qos.cpp`` for the defaults an omitted QoS field
-  stands for; ``type_support_common.cpp`` (``_create_type_name``) for the DDS type name.
+  of the token, ``low64`` then ``high64``); ``type_support_common.cpp``
+  (``_create_type_name``) for the DDS type name. ``qos_to_keyexpr`` is unchanged in the zenoh
+  1.x rmw_zenoh (commit ``3411fdec149fe0c932f24d4d79ef908eb81d7482``).
+- The defaults an omitted QoS field stands for: ``rmw_zenoh_cpp/src/detail/qos.cpp``
+  (``RMW_ZENOH_DEFAULT_*``, ``QoS::QoS``) of the zenoh 1.x rmw_zenoh (commits
+  ``7efeee2b9009b816a4bd4a3148af3cca40f753d5`` and ``5e10d47b06c3fe327105d06a8350be455411ea5b``):
+  reliable, **volatile**, keep last, depth 42, infinite deadline, lifespan and lease, automatic
+  liveliness. (The ``bfc065f8`` snapshot still had transient local.) A real node's QoS first goes
+  through ``QoS::best_available_qos``, which turns the rmw "system default" values (0, and the
+  zero durations) into these defaults, so rclcpp's ``QoS(10)`` is written ``::,10:,:,:,,``.
 - The attachment: that snapshot still builds on zenoh-c 0.11 (``z_bytes_map`` attachments),
   whose protocol a zenoh 1.x session (eclipse-zenoh-python here, and rmw_zenoh in ROS 2 Jazzy
   and later) cannot talk to. The zenoh 1.x layout is ``ros2/rmw_zenoh`` commit
@@ -63,11 +71,11 @@ INFINITE: Final = (9_223_372_036, 854_775_807)  # RMW_DURATION_INFINITE (sec, ns
 @dataclass(frozen=True)
 class QoS:
     """The QoS policies in a token; the defaults are rmw_zenoh's (``qos.cpp``: reliable,
-    transient local, keep last 42, infinite deadline / lifespan / lease, automatic liveliness).
+    volatile, keep last 42, infinite deadline / lifespan / lease, automatic liveliness).
     Durations are (sec, nsec)."""
 
     reliability: int = RELIABLE
-    durability: int = TRANSIENT_LOCAL
+    durability: int = VOLATILE
     history: int = KEEP_LAST
     depth: int = 42
     deadline: tuple[int, int] = INFINITE
@@ -86,7 +94,8 @@ MAP_QOS: Final = QoS(durability=TRANSIENT_LOCAL, depth=1)
 
 def qos_keyexpr(qos: QoS) -> str:
     """``liveliness_utils.cpp`` ``qos_to_keyexpr``: ``R:D:H,depth:dl_s,dl_ns:ls_s,ls_ns:L,lease_s,
-    lease_ns``, each field left empty when it equals rmw_zenoh's default."""
+    lease_ns`` (``:`` between policies, ``,`` within one; enums and durations in decimal), each
+    field left empty when it equals rmw_zenoh's default (:class:`QoS`)."""
     d = QoS()
 
     def f(value: int, default: int) -> str:
