@@ -371,13 +371,13 @@ class SafetyFilter:
             t_next = ((zz[:, None] - g.a[nx]) * np.conj(g.d[nx])).real / g.dd[nx]
         dup = (t >= 1.0) & (t_next <= 0.0)
         dist_row = np.where(has & ~dup, dist, np.inf)
-        reach = np.minimum(self.kappa * c_abs, self.lookahead)  # rows beyond are implied
+        reach = np.minimum(_times(self.kappa, c_abs), self.lookahead)  # further rows: implied
         dist_row = np.where(dist_row <= reach[:, None], dist_row, np.inf)
         k = dist_row.shape[1]
         cap = np.full(zz.size, np.inf)
         if self.hold_time > 0:
             cap = self.slope * np.maximum(clearance, 0.0)
-        trunc = self.kappa * c_abs > self.lookahead  # rows beyond the lookahead dropped
+        trunc = _times(self.kappa, c_abs) > self.lookahead  # rows beyond the lookahead dropped
         if k > self.max_rows:
             order = np.argsort(dist_row, axis=1, kind="stable")
             dropped = np.take_along_axis(
@@ -474,6 +474,11 @@ class SafetyFilter:
         return complex(pr.u[0]), bool(pr.changed[0]), bool(pr.infeasible[0])
 
 
+def _times(k: float, x: FArray) -> FArray:
+    """``k * x`` for ``x >= 0`` with ``inf * 0 = 0`` (``k`` may be inf)."""
+    return np.where(x > 0, k * np.where(x > 0, x, 1.0), 0.0)
+
+
 class _Grid:
     """Uniform grid over the workspace: per cell the candidate segments (every segment that
     can give a row or be nearest anywhere in the cell), the cell's clearance lower bound and
@@ -526,7 +531,7 @@ class _Grid:
         low = np.maximum(dq - r, 0.0)
         inside = np.asarray(ws.contains(q), dtype=bool)
         side = np.where(dq > r, np.where(inside, 1, -1), 0).astype(np.int8)
-        speed = np.minimum(flt.alpha * np.minimum(low, flt.lookahead), flt.slope * low)
+        speed = np.minimum(flt.alpha * np.minimum(low, flt.lookahead), _times(flt.slope, low))
         speed = np.where(side == 1, speed, 0.0)
         sizes = [len(ring) for ring in ws.boundaries]
         starts = np.cumsum([0, *sizes[:-1]])
