@@ -78,6 +78,7 @@ if TYPE_CHECKING:
 __all__ = [
     "ALPHA",
     "FEAS_RTOL",
+    "MARGIN",
     "MAX_ROWS",
     "Projection",
     "SafetyFilter",
@@ -87,9 +88,13 @@ __all__ = [
 
 #: Default CBF rate (1/s).  Must stay below ``HOLD_FRACTION / HOLD_TIME`` (2/s) or the rows
 #: are implied by the speed cap (module docstring).
-ALPHA = 1.0
+ALPHA = 1.5
 #: Default lookahead (m): wall rows come from segments at most this far away.
 LOOKAHEAD = 1.0
+#: Default margin (m) the rows keep from the walls: the rows forbid any approach closer than
+#: it, so integration error (a simulator's tolerance, a real robot's tracking) cannot eat up
+#: the last exponentially small distance the continuous-time condition would allow.
+MARGIN = 1e-3
 #: Most wall rows per robot (the nearest ones; the cap implies the rest).
 MAX_ROWS = 8
 #: Relative tolerance of the feasibility test (a nominal command within it is kept as is).
@@ -169,6 +174,9 @@ def project(
         raise NavigationError(f"normals {a.shape} and bounds {b.shape} differ in shape")
     c = np.full(n, np.inf) if cap is None else np.broadcast_to(np.asarray(cap, np.float64), (n,))
     a, b, bad = _normalised(a, b)
+    live = np.isfinite(b).any(axis=0)
+    if not live.all():  # columns that are padding for every robot cost nothing
+        a, b = a[:, live], b[:, live]
     bad |= np.isnan(c)
     speed = np.abs(u)
     finite_b = np.where(np.isfinite(b), np.abs(b), 0.0)
@@ -301,7 +309,7 @@ class SafetyFilter:
         hold_time: float = defaults.HOLD_TIME,
         hold_fraction: float = defaults.HOLD_FRACTION,
         lookahead: float = LOOKAHEAD,
-        margin: float = 0.0,
+        margin: float = MARGIN,
         max_rows: int = MAX_ROWS,
     ) -> None:
         for name, v in (
@@ -373,20 +381,21 @@ class SafetyFilter:
         dist_row = np.where(has & ~dup, dist, np.inf)
         reach = np.minimum(_times(self.kappa, c_abs), self.lookahead)  # further rows: implied
         dist_row = np.where(dist_row <= reach[:, None], dist_row, np.inf)
-        k = dist_row.shape[1]
         cap = np.full(zz.size, np.inf)
         if self.hold_time > 0:
             cap = self.slope * np.maximum(clearance, 0.0)
         trunc = _times(self.kappa, c_abs) > self.lookahead  # rows beyond the lookahead dropped
-        if k > self.max_rows:
-            order = np.argsort(dist_row, axis=1, kind="stable")
+        # the nearest rows first, as many columns as the robot with the most rows needs
+        order = np.argsort(dist_row, axis=1, kind="stable")
+        width = int(np.isfinite(dist_row).sum(axis=1).max(initial=0))
+        if width > self.max_rows:
             dropped = np.take_along_axis(
                 dist_row, order[:, self.max_rows : self.max_rows + 1], axis=1
             )[:, 0]
-            order = order[:, : self.max_rows]
-            dist_row = np.take_along_axis(dist_row, order, axis=1)
-            diff = np.take_along_axis(diff, order, axis=1)
             cap = np.minimum(cap, np.where(np.isfinite(dropped), self.alpha * dropped, np.inf))
+        order = order[:, : min(width, self.max_rows)]
+        dist_row = np.take_along_axis(dist_row, order, axis=1)
+        diff = np.take_along_axis(diff, order, axis=1)
         cap = np.where(trunc, np.minimum(cap, self.alpha * self.lookahead), cap)
         live = np.isfinite(dist_row)
         with np.errstate(invalid="ignore", divide="ignore"):
