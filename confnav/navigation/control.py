@@ -36,6 +36,13 @@ the footprint): the held command ends inside the disk of radius ``c`` about ``x`
 the free space.  The cap is one more factor ``s > 0`` off the walls: same curves as above;
 the time bound holds where it does not bind (``c >= v_max hold_time / HOLD_FRACTION``).
 
+**Safety layer.**  After the speed law every command passes the filter of
+:mod:`confnav.navigation.safety` (on by default when the map has a workspace): the nearest
+command that keeps the robot out of every wall by the exact polygon distance (control barrier
+function rows per nearby side, and the held-command cap above with the exact clearance), so
+no contact depends on the map's accuracy; where no row binds the command is the law's, bitwise
+(docs/NAVIGATION.md, "Safety layer").
+
 The law depends on the map only through :class:`ConformalLike` (``T_and_dT``, ``centers``,
 ``radii``), so exact maps can stand in for the solver in tests.  A new goal reuses the map
 (:meth:`Controller.with_goal`) and, for the harmonic function, the map's factorization.
@@ -55,13 +62,11 @@ from __future__ import annotations
 import cmath
 import enum
 import logging
-import queue
 import threading
-import time
 import weakref
 from concurrent.futures import Future
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, ClassVar, Literal, Protocol
+from typing import TYPE_CHECKING, Any, Literal, Protocol
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -79,14 +84,19 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
-__all__ = ["ConformalLike", "ControlOutput", "Controller", "SafetyCounts", "Status", "speed_law"]
+__all__ = [
+    "ConformalLike",
+    "ControlOutput",
+    "Controller",
+    "SafetyCounts",
+    "SearchExecutor",
+    "Status",
+    "speed_law",
+]
 
 
 #: Lowest factor of the optional slow-down near walls (keeps the speed positive: same paths).
 SLOW_FLOOR = 0.2
-#: Share of a core the background critical-point searches of a process may take (the worker
-#: sleeps ``(1/SEARCH_DUTY - 1)`` times each search's CPU time, at most 2 s, afterwards).
-SEARCH_DUTY = 0.25
 _NO_POINTS: CArray = np.zeros(0, dtype=np.complex128)
 
 
@@ -104,6 +114,17 @@ class ConformalLike(Protocol):
     def radii(self) -> Any: ...
 
     def T_and_dT(self, z: Any) -> tuple[Any, Any]: ...
+
+
+class SearchExecutor(Protocol):
+    """Runs critical-point searches in the background for
+    :meth:`Controller.search_critical_points`: ``submit_search(ref, future)`` must eventually
+    complete ``future`` with ``ref().critical_points()`` (or its exception), or cancel it when
+    ``ref()`` is None (nobody holds the controller any more)."""
+
+    def submit_search(
+        self, controller: weakref.ref[Controller], future: Future[CriticalPoints]
+    ) -> None: ...
 
 
 class Status(enum.IntEnum):
@@ -394,14 +415,6 @@ class Controller:
         self._search: Future[CriticalPoints] | None = None
         self._search_lock = threading.Lock()
 
-    #: One background daemon worker for every controller's critical-point search (a burst of
-    #: new goals queues up instead of taking every core, and an exiting process never waits
-    #: for a search); started on first use.
-    _searches: ClassVar[
-        queue.SimpleQueue[tuple[weakref.ref[Controller], Future[CriticalPoints]]]
-    ] = queue.SimpleQueue()
-    _searcher: ClassVar[threading.Thread | None] = None
-    _searcher_lock: ClassVar[threading.Lock] = threading.Lock()
 
     def _params(self) -> dict[str, Any]:
         return {
@@ -658,50 +671,25 @@ class Controller:
 
     check = critical_points
 
-    def search_critical_points(self) -> Future[CriticalPoints]:
-        """Start :meth:`critical_points` in the background (once per controller) and return
-        its future.
+    def search_critical_points(self, executor: SearchExecutor) -> Future[CriticalPoints]:
+        """Have ``executor`` run :meth:`critical_points` in the background (once per
+        controller) and return its future.
 
         ``__call__`` never waits for the search: it reports STALLED near a critical point as
         soon as the points have landed (a few seconds for 20 obstacles), MOVING before.  Long
         running hosts (the controller service) call this when they build a controller, so
-        stall detection works without anyone asking for the points first.  The one search
-        worker of the process takes at most :data:`SEARCH_DUTY` of a core (a burst of new goals
-        must not starve the control steps), and skips controllers nobody holds any more (a
-        robot that got a new goal before its old goal's search began): their futures are
-        cancelled.
+        stall detection works without anyone asking for the points first.  The core starts no
+        thread: the host passes its executor (the controller service's is
+        ``confnav.services.critical_search.CriticalSearchWorker``: one duty-cycled worker per
+        process, which skips controllers nobody holds any more).  ``executor.submit_search``
+        gets a weak reference to this controller and the future to complete
+        (:class:`SearchExecutor`).
         """
         with self._search_lock:
             if self._search is None:
                 self._search = Future()
-                with Controller._searcher_lock:
-                    if Controller._searcher is None:
-                        Controller._searcher = threading.Thread(
-                            target=Controller._search_loop, name="critical-points", daemon=True
-                        )
-                        Controller._searcher.start()
-                Controller._searches.put((weakref.ref(self), self._search))
+                executor.submit_search(weakref.ref(self), self._search)
             return self._search
-
-    @staticmethod
-    def _search_loop() -> None:
-        while True:
-            ref, fut = Controller._searches.get()
-            ctl = ref()
-            if ctl is None:  # dropped by every holder before its turn: cancelled, not run
-                fut.cancel()
-                continue
-            if not fut.set_running_or_notify_cancel():
-                continue
-            t0 = time.process_time()
-            try:
-                fut.set_result(ctl.critical_points())
-            except Exception as exc:  # reported through the future, never kills the worker
-                log.warning("critical-point search failed for %r: %s", ctl, exc)
-                fut.set_exception(exc)
-            del ctl  # not kept alive by the idle worker
-            busy = time.process_time() - t0  # the process's CPU: includes others' work, so
-            time.sleep(min(busy * (1.0 / SEARCH_DUTY - 1.0), 2.0))  # this errs on the idle side
 
     def _stall_points(self) -> CArray:
         cp = self._critical  # never computed here: __call__ must not block on the search
