@@ -191,14 +191,23 @@ def project(
     out[bad & ~np.isnan(u)] = 0j
     changed[bad & ~np.isnan(u)] = True
     if todo.size:
-        m = a.shape[1]
-        n_cand = 1 + 3 * m + m * (m - 1) // 2
-        step = max(1, _BLOCK // max(1, n_cand * max(m, 1)))
-        for s in range(0, todo.size, step):  # blocks bound the memory, not a loop per robot
-            idx = todo[s : s + step]
-            best, found = _nearest_feasible(u[idx], a[idx], b[idx], c[idx], rtol)
-            out[idx] = np.where(found, best, 0j)
-            infeasible[idx] = ~found
+        # each robot's live rows first; robots grouped by their number of live rows (the
+        # candidates grow as m^2: most robots near a wall have one or two)
+        pad = ~np.isfinite(b[todo])
+        order = np.argsort(pad, axis=1, kind="stable")
+        at = np.take_along_axis(a[todo], order, axis=1)
+        bt = np.take_along_axis(b[todo], order, axis=1)
+        count = (~pad).sum(axis=1)
+        for m in np.unique(count).tolist():  # at most m + 1 groups
+            grp = np.flatnonzero(count == m)
+            n_cand = 1 + 3 * m + m * (m - 1) // 2
+            step = max(1, _BLOCK // max(1, n_cand * max(m, 1)))
+            for s in range(0, grp.size, step):  # blocks bound the memory
+                g = grp[s : s + step]
+                idx = todo[g]
+                best, found = _nearest_feasible(u[idx], at[g, :m], bt[g, :m], c[idx], rtol)
+                out[idx] = np.where(found, best, 0j)
+                infeasible[idx] = ~found
         changed[todo] = out[todo] != u[todo]
     return Projection(
         u=out.reshape(shape), changed=changed.reshape(shape), infeasible=infeasible.reshape(shape)
