@@ -98,7 +98,7 @@ def drive(cmap: Any, ws: Workspace, starts: np.ndarray, safety: bool) -> dict[st
             changed + c.changed,
             infeasible + c.infeasible,
         )
-    row = {s: int(n) for s, n in zip(STATUS_NAMES, counts, strict=True)}
+    row: dict[str, Any] = {s: int(n) for s, n in zip(STATUS_NAMES, counts, strict=True)}
     row.update(
         starts=int(starts.size),
         min_clearance=minclr,
@@ -186,9 +186,7 @@ def table(doc: dict[str, Any]) -> str:
     lines.append(
         f"accurate map: filter changed {a['evaluations_changed']} of {a['evaluations']} "
         f"evaluations ({100 * a['fraction_evaluations']:.3f} %); at accepted points: "
-        + ", ".join(
-            f"{k} {100 * v['fraction']:.3f} %" for k, v in a["at_accepted_points"].items()
-        )
+        + ", ".join(f"{k} {100 * v['fraction']:.3f} %" for k, v in a["at_accepted_points"].items())
     )
     for n, c in doc["cost"].items():
         lines.append(
@@ -247,9 +245,7 @@ def main() -> None:
         "starts": n,
         "goals": [[g.real, g.imag] for g in GOALS],
         "t_max": T_MAX,
-        "maps": {
-            k: {"error_estimate": float(v.diagnostics.error_estimate)} for k, v in m.items()
-        },
+        "maps": {k: {"error_estimate": float(v.diagnostics.error_estimate)} for k, v in m.items()},
         "drive": drive_rows,
         "activity": act,
         "cost": cst,

@@ -415,7 +415,6 @@ class Controller:
         self._search: Future[CriticalPoints] | None = None
         self._search_lock = threading.Lock()
 
-
     def _params(self) -> dict[str, Any]:
         return {
             "speed_law": self.speed_law,
@@ -569,9 +568,7 @@ class Controller:
         self.safety_counts.add(1, int(changed), int(infeasible))
         return u, sat and not changed, changed
 
-    def _law1(
-        self, z: complex, dw: complex, g: complex, c: float | None
-    ) -> tuple[complex, bool]:
+    def _law1(self, z: complex, dw: complex, g: complex, c: float | None) -> tuple[complex, bool]:
         """:meth:`_law` and :func:`speed_law` of one point (same formulas, scalars)."""
         f = -dw.conjugate() * g
         size = abs(f)
