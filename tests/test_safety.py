@@ -309,3 +309,23 @@ def test_safety_option_errors() -> None:
     assert Controller(m, 0.6 + 0j).safety is None  # no workspace: nothing to filter against
     with pytest.raises(NavigationError, match="hold_fraction"):
         SafetyFilter(_ring_room(), hold_fraction=1.0)
+
+
+def test_one_robot_filter_equals_the_batch() -> None:
+    """filter1 (scalar tests near and far from walls, the batch code on one robot otherwise)
+    gives the batch's result exactly, and its fast test keeps only commands the batch keeps."""
+    ws = default_workspace()
+    f = SafetyFilter(ws)
+    rng = np.random.default_rng(5)
+    z = random_starts(ws, 800, seed=9, margin=0.0005)
+    u = 0.6 * np.exp(2j * np.pi * rng.random(z.size)) * rng.random(z.size)
+    batch = f(z, u)
+    assert 0 < batch.changed.sum() < z.size
+    fast = 0
+    for i in range(z.size):
+        zi, ui = complex(z[i]), complex(u[i])
+        assert f.filter1(zi, ui) == (batch.u[i], batch.changed[i], batch.infeasible[i]), i
+        if f._feasible1(zi, ui, f.grid.cell1(zi)):
+            fast += 1
+            assert not batch.changed[i], i
+    assert fast > 0

@@ -476,8 +476,12 @@ class SafetyFilter:
         )
 
     def filter1(self, z: complex, u: complex) -> tuple[complex, bool, bool]:
-        """:meth:`__call__` of one robot: ``(u, changed, infeasible)``.  Far from the walls a
-        Python-scalar test; otherwise the batch code on one robot (same arithmetic)."""
+        """:meth:`__call__` of one robot: ``(u, changed, infeasible)``.
+
+        Far from the walls a Python-scalar test; near them a sufficient test of ``u`` against
+        every candidate side of the robot's cell (:meth:`_feasible1`); only a command that
+        fails it goes through the batch code on one robot, so the result is the batch's
+        bitwise whenever the command is kept, and the batch's own result otherwise."""
         if not (
             math.isfinite(z.real)
             and math.isfinite(z.imag)
@@ -486,10 +490,47 @@ class SafetyFilter:
         ):
             return u, False, False
         g = self.grid
-        if abs(u) <= g.free_speed[g.cell1(z)]:
+        cell = g.cell1(z)
+        if abs(u) <= g.free_speed[cell] or self._feasible1(z, u, cell):
             return u, False, False
         pr = self(np.array([z]), np.array([u]))
         return complex(pr.u[0]), bool(pr.changed[0]), bool(pr.infeasible[0])
+
+    def _feasible1(self, z: complex, u: complex, cell: int) -> bool:
+        """Whether ``u`` certainly meets the rows and the cap of :meth:`rows` at ``z``: inside
+        the free space, ``|u|`` within the cap (and within ``alpha * lookahead`` where rows
+        were cut off there), no more rows than ``max_rows``, and every candidate side of the
+        cell within reach met exactly (duplicate vertex rows are the same row).  A sufficient
+        test: :func:`project` keeps such a ``u`` unchanged (its tolerance only widens it)."""
+        g = self.grid
+        seg = g.candidates[cell]
+        seg = seg[seg >= 0]
+        if seg.size == 0:
+            return False
+        a, d = g.a[seg], g.d[seg]
+        t = np.minimum(np.maximum(((z - a) * np.conj(d)).real / g.dd[seg], 0.0), 1.0)
+        diff = z - (a + t * d)
+        dist = np.abs(diff)
+        c = float(dist.min())
+        side = int(g.side[cell])
+        inside = side == 1 or (side == 0 and bool(g.inside(np.array([z]), np.array([cell]))[0]))
+        if not (inside and c > 0):
+            return False
+        speed = abs(u)
+        if self.hold_time > 0 and not speed <= self.slope * c:
+            return False
+        reach = min(self.kappa * c, self.lookahead)
+        if self.kappa * c > self.lookahead and not speed <= self.alpha * self.lookahead:
+            return False
+        near = dist <= reach
+        if int(near.sum()) > self.max_rows:
+            return False
+        dn, diffn = dist[near], diff[near]
+        pos = dn > 0
+        slack = (np.conj(diffn[pos]) * u).real / dn[pos] + self.alpha * np.maximum(
+            dn[pos] - self.margin, 0.0
+        )
+        return bool(np.all(slack >= 0.0))
 
 
 def _times(k: float, x: FArray) -> FArray:
