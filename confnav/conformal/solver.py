@@ -6,21 +6,32 @@ circle domain (centres and radii) between consecutive levels gives the discretis
 the finer one. With grading exponent p the error decays like n^-p (DESIGN.md sec. 2), so each
 step of ``LEVELS`` (x1.5) cuts it by about 7x.
 
-The error estimate covers every error source (issue 8), each measured on its own:
+The error estimate covers every error source (issues 8, 26), each measured on its own:
 
-* discretisation: the level differences above, extrapolated;
+* discretisation: the level differences above, extrapolated with the slower of the assumed
+  order and the contraction observed over three levels; an estimate with no observed
+  contraction (two levels: ``nodes_per_side`` with a failed coarse level) or from differences
+  that stopped shrinking is listed in ``unverified`` and never gives ``tol_met``;
 * iteration: the Koebe iteration runs until its remaining error, extrapolated from the
   observed contraction, is below ``tol / 10``; a stalled or unfinished iteration is reported
   (``iteration_converged = False``), never taken as converged;
 * a-posteriori: :meth:`ConformalMap.boundary_residual` -- T at points between the nodes on
   every side (midpoints, and points graded towards every corner) must land on its circle;
-* size caps: a smooth grid held at its cap adds its Fourier tail; a level that would need more
-  nodes than the mesh allows (a gap too narrow) ends the refinement and is listed in ``caps``.
+  not checked within ``CORNER_ZONE`` (1e-4 of the shorter side) of a corner, as the
+  diagnostics' table states;
+* size caps: a smooth grid held at its cap (in any sweep, the last one's regrid included) or
+  left above its target tail by the last sweep adds its Fourier tail; a level that would need
+  more nodes than the mesh allows (a gap too narrow) ends the refinement and is listed in
+  ``caps``;
+* linear solves: the largest residual any GMRES solve left (``gmres_residual``; a run accepted
+  at up to ``GMRES_ACCEPT`` times its target counts with its measured residual);
+* evaluation: once the map evaluates through local expansions, their truncation bound
+  (``evaluation_error``).
 
-``tol_met`` is true only if all are within ``tol``. A map that misses ``tol`` is returned with
-``tol_met = False`` and an :class:`AccuracyWarning`; one whose estimate exceeds
-:data:`UNUSABLE_ERROR` raises :class:`~confnav.errors.SolverError` -- a silently wrong map is
-never returned.
+``tol_met`` is true only if all are within ``tol`` and nothing is ``unverified``. A map that
+misses ``tol`` is returned with ``tol_met = False`` and an :class:`AccuracyWarning`; one whose
+estimate exceeds :data:`UNUSABLE_ERROR` raises :class:`~confnav.errors.SolverError` -- a
+silently wrong map is never returned.
 """
 
 from __future__ import annotations
@@ -64,6 +75,15 @@ LEVELS: tuple[int, ...] = (24, 36, 54, 80, 120, 180, 256, 384, 576)
 ASSUMED_ORDER = 5.0
 #: Levels solved before an estimate may stop the refinement.
 MIN_LEVELS = 3
+#: A level difference that shrank by less than this factor from the previous one has stopped
+#: converging geometrically: the tail extrapolation ``diff rho / (1 - rho)`` does not hold,
+#: and the estimate is reported as unverified (``SolveReport.unverified``; no ``tol_met``)
+#: unless the difference is at the rounding floor (:data:`ROUNDING_DIFFERENCE`).
+RHO_LEVELS_MAX = 0.9
+#: Level differences below ``ROUNDING_DIFFERENCE * tol`` are rounding of the circle domain,
+#: not discretisation: whether they shrink says nothing (their estimate, at most
+#: ``9 * diff``, is far inside ``tol``).
+ROUNDING_DIFFERENCE = 1e-3
 #: An estimated error above this makes the map useless for navigation: raise instead.
 UNUSABLE_ERROR = 1e-4
 #: Share of ``tol`` left to the Koebe iteration's remaining error (the rest: discretisation).
@@ -120,16 +140,21 @@ def _solve_level(
     return res, meshes
 
 
+#: One solved level: result, nodes, their derivatives, nodes per side, discretisation
+#: estimate, and why that estimate is unverified (empty: verified).
+_Level = tuple[CircleDomainResult, list[ComplexArray], list[ComplexArray], int, float, list[str]]
+
+
 def _make_map(
     ws: Workspace,
-    level: tuple[CircleDomainResult, list[ComplexArray], list[ComplexArray], int, float],
+    level: _Level,
     tol: float,
     caps: list[str],
     refinements: list[dict[str, float]],
     t0: float,
 ) -> ConformalMap:
     """The map of one solved level with its full error budget (residual computed here)."""
-    res, eta, deta, ns, disc = level
+    res, eta, deta, ns, disc, unverified = level
     diag = SolveReport(
         tol=tol,
         error_estimate=float("inf"),
@@ -148,11 +173,65 @@ def _make_map(
         resolution_error=res.resolution_error,
         caps=list(caps),
         refinements=list(refinements),
+        gmres_residual=res.gmres_residual,
+        unverified=list(unverified),
+        min_radius=float(np.min(res.radii)) if res.radii.size else 1.0,
     )
     m = ConformalMap(ws, eta, deta, res.W, res.dW, res.centers, res.radii, diag)
+    diag.crowding = crowding(m)
     m.diagnostics = diag.with_residual(m.boundary_residual())
     m.diagnostics.wall_time = time.perf_counter() - t0
     return m
+
+
+#: Crowding (decades, :func:`crowding`) from which one map is not advised: a side compressed
+#: 10^6 times below its boundary's average keeps ~10 of double precision's 16 digits for T
+#: there, against map tolerances of 1e-8..1e-10 (the solver's choice, not a measured limit).
+CROWDING_ATLAS_DECADES = 6.0
+#: Smallest circle radius below which one map is not advised (a circle of radius 1e-6 is
+#: 10^5 above :data:`~confnav.conformal.circledomain.CROWDING_RADIUS`, where the solve fails).
+MIN_RADIUS_ATLAS = 1e-6
+
+
+def crowding(m: ConformalMap) -> list[float]:
+    """Conformal crowding of each boundary of ``m`` (outer first), in decades.
+
+    For every side of a boundary: its share of the boundary's length against the share of
+    the image circle its images cover (chord sums over the nodes between its two corners);
+    the boundary's crowding is ``log10`` of the largest such quotient, at least 0 (a side
+    that maps to 10^-k of the circle it would get in proportion to its length: k). Crowding
+    of a region reached through a narrow passage grows like exp(-pi L / w) (Driscoll &
+    Trefethen, "Schwarz-Christoffel Mapping", Cambridge 2002, sec. 2.6), so the measured
+    decades say how close a map is to the end of double precision.
+    """
+    out: list[float] = []
+    eta, _, W, _ = m._parts
+    for e, w, v in zip(eta, W, m.workspace.boundaries, strict=True):
+        idx = np.sort(np.unique(np.argmin(np.abs(e[:, None] - np.asarray(v)[None, :]), axis=0)))
+        seg_len = np.abs(np.roll(e, -1) - e)
+        seg_arc = np.abs(np.roll(w, -1) - w)
+        side = np.searchsorted(idx, np.arange(e.size), side="right") - 1  # side of each segment
+        side[side < 0] = idx.size - 1  # segments before the first corner close the last side
+        L = np.bincount(side, seg_len, idx.size)
+        A = np.bincount(side, seg_arc, idx.size)
+        q = (L / L.sum()) / np.maximum(A / A.sum(), 1e-300)
+        out.append(float(max(0.0, np.log10(np.max(q)))))
+    return out
+
+
+def crowding_reason(diag: SolveReport) -> str:
+    """Why a solved map says an atlas would serve better ("" if nothing does): its smallest
+    circle below :data:`MIN_RADIUS_ATLAS` or a boundary crowded by
+    :data:`CROWDING_ATLAS_DECADES` or more (measured by the solve, :func:`crowding`)."""
+    why = []
+    if diag.min_radius < MIN_RADIUS_ATLAS:
+        why.append(f"smallest circle radius {diag.min_radius:.1e} < {MIN_RADIUS_ATLAS:.0e}")
+    worst = max(diag.crowding, default=0.0)
+    if worst >= CROWDING_ATLAS_DECADES:
+        j = diag.crowding.index(worst)
+        name = "the outer boundary" if j == 0 else f"obstacle {j - 1}"
+        why.append(f"{name} crowded by 10^{worst:.1f}")
+    return "; ".join(why)
 
 
 def _difference(a: CircleDomainResult, b: CircleDomainResult) -> float:
@@ -177,7 +256,9 @@ def solve(
     tol
         Target accuracy of the circle domain (centres and radii, absolute, unit-disk scale).
     nodes_per_side
-        Fix the mesh instead of refining (the error estimate then uses the next coarser level).
+        Fix the mesh instead of refining: three levels, ``nodes_per_side`` and the two next
+        coarser ones (x1.5 steps), so that the discretisation estimate rests on an observed
+        contraction, never on an assumed order alone.
     progress
         Called with one-line progress messages.
 
@@ -192,7 +273,10 @@ def solve(
     if nodes_per_side is not None:
         if nodes_per_side < 8:
             raise SolverError("nodes_per_side must be at least 8")
-        levels = [max(8, round(nodes_per_side / 1.5)), nodes_per_side]
+        levels = sorted(
+            {max(8, round(nodes_per_side / 2.25)), max(8, round(nodes_per_side / 1.5))}
+            | {nodes_per_side}
+        )
     else:
         start = 0 if tol >= 1e-7 else (1 if tol >= 1e-9 else 3)
         levels = list(LEVELS[start:])
@@ -202,8 +286,7 @@ def solve(
     prev_ns = 0
     failed: ConvergenceError | None = None
     prev_diff: float | None = None
-    best: tuple[CircleDomainResult, list[ComplexArray], list[ComplexArray], int, float] | None
-    best = None
+    best: _Level | None = None
     cmap: ConformalMap | None = None
     solved = 0  # levels solved (a skipped level does not count)
     warm: _Warm | None = None
@@ -238,9 +321,22 @@ def solve(
             # error of the finer solve ~ diff * rho/(1 - rho), rho = error ratio per level:
             # the slower of the assumed order and the observed contraction (Aitken).
             rho = (prev_ns / ns) ** ASSUMED_ORDER
+            unverified: list[str] = []
+            ratio = float("nan")
             if prev_diff is not None and prev_diff > 0:
-                rho = max(rho, diff / prev_diff)
-            rho = min(rho, 0.9)
+                ratio = diff / prev_diff
+                rho = max(rho, ratio)
+            else:
+                unverified.append(
+                    f"discretisation estimate from two mesh levels ({prev_ns} and {ns} nodes per "
+                    f"side) on an assumed order n^-{ASSUMED_ORDER:g}, no contraction observed"
+                )
+            if rho >= RHO_LEVELS_MAX and diff > ROUNDING_DIFFERENCE * tol:
+                unverified.append(
+                    f"level differences stopped shrinking ({prev_diff:.1e} -> {diff:.1e} at "
+                    f"{ns} nodes per side): the extrapolation does not hold"
+                )
+            rho = min(rho, RHO_LEVELS_MAX)  # the figure only; unverified says it is not one
             est = diff * rho / (1 - rho)
             refinements.append(
                 {
@@ -251,10 +347,12 @@ def solve(
                     "wall_time": res.wall_time,
                 }
             )
-            best = (res, eta, deta, ns, est)
+            if np.isfinite(ratio):  # difference / previous difference (observed contraction)
+                refinements[-1]["ratio"] = ratio
+            best = (res, eta, deta, ns, est, unverified)
             cmap = None
             prev_diff = diff
-            if est <= tol and solved + 1 >= MIN_LEVELS:
+            if est <= tol and solved + 1 >= MIN_LEVELS and not unverified:
                 # the discretisation is fine; the a-posteriori residual must agree, else refine
                 cmap = _make_map(workspace, best, tol, caps, refinements, t0)
                 # kept per level: a residual above tol at a level whose discretisation estimate
@@ -295,7 +393,7 @@ def solve(
         ]
         if not diag.iteration_converged:
             why.append("the Koebe iteration did not converge (stalled or sweep limit)")
-        why += diag.caps
+        why += diag.caps + diag.unverified
         warnings.warn(
             f"conformal map: estimated error {diag.error_estimate:.1e}, tol {tol:.1e} not met "
             f"(finest mesh {diag.nodes_per_side} nodes per side): " + "; ".join(why),
@@ -305,4 +403,4 @@ def solve(
     return cmap
 
 
-__all__ = ["LEVELS", "AccuracyWarning", "solve"]
+__all__ = ["LEVELS", "AccuracyWarning", "crowding", "crowding_reason", "solve"]
