@@ -28,6 +28,18 @@ The error estimate covers every error source (issues 8, 26), each measured on it
 * evaluation: once the map evaluates through local expansions, their truncation bound
   (``evaluation_error``).
 
+Refining where the error is (issue 24): a level whose discretisation estimate is within
+``tol / 2`` but whose boundary residual is not refines only the sides the residual names (and
+their neighbours) to the next level's nodes (:func:`_refine_sides`); its estimate is the base
+level's plus the change this causes (triangle inequality, no order assumed). Measured in
+``bench/results/local_refinement.json`` and ``core_certificate.json`` (see bench/README.md):
+two squares 0.01 apart to 1e-8 take four level solves instead of five (8 sides at 120 nodes
+after 36, 54, 80; residual 1.17e-9 as with the full 180-node level). The sweeps themselves
+(61 per level at a contraction of 0.79 there) are unchanged: a faster iteration for
+near-touching circles (one GNK system over all boundaries per step, or Newton on the circle
+parameters) was not built. ``initial=`` (warm re-solve) starts the refinement two levels
+below the previous map's: ``bench/results/core_resolve.json``.
+
 ``tol_met`` is true only if all are within ``tol`` and nothing is ``unverified``. A map that
 misses ``tol`` is returned with ``tol_met = False`` and an :class:`AccuracyWarning`; one whose
 estimate exceeds :data:`UNUSABLE_ERROR` raises :class:`~confnav.errors.SolverError` -- a
