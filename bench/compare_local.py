@@ -1,6 +1,6 @@
 """Per-side refinement against everywhere refinement, one case, same process (issue 24 item 2).
 
-    python bench/compare_local.py CASE MODES TOL     # CASE: mixed10, default, gap01, gap001
+    python bench/compare_local.py CASE MODES TOL     # CASE: mixed10, default, gap01, gap001, shrunk
                                                      # MODES: local,full
 
 Prints one JSON line per mode: wall and CPU time, load average before and after, tol_met, the
@@ -21,6 +21,7 @@ import numpy as np
 
 from confnav import Workspace
 from confnav.conformal import solver
+from confnav.maps.footprint import inflate
 from confnav.scenes.workspaces import default_workspace, mixed_obstacles
 
 ROOM = [[-2, -2], [2, -2], [2, 2], [-2, 2]]
@@ -39,6 +40,7 @@ CASES = {
     "default": default_workspace,
     "gap01": lambda: squares(0.1),
     "gap001": lambda: squares(0.01),
+    "shrunk": lambda: inflate(default_workspace(), 0.2),
 }
 
 
