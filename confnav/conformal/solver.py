@@ -54,6 +54,7 @@ import warnings
 from collections.abc import Callable
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from confnav.conformal.boundary import BoundaryMesh, graded_polygon, resample
 from confnav.conformal.circledomain import CircleDomainResult, koebe_iteration
@@ -222,7 +223,13 @@ def crowding(m: ConformalMap) -> list[float]:
     out: list[float] = []
     eta, _, W, _ = m._parts
     for e, w, v in zip(eta, W, m.workspace.boundaries, strict=True):
-        idx = np.sort(np.unique(np.argmin(np.abs(e[:, None] - np.asarray(v)[None, :]), axis=0)))
+        vv = np.asarray(v)
+        # the node at each corner (graded meshes put a node on every vertex); a k-d tree, not
+        # an n x L distance matrix: imported floor plans have thousands of vertices
+        nearest = cKDTree(np.column_stack([e.real, e.imag])).query(
+            np.column_stack([vv.real, vv.imag])
+        )[1]
+        idx = np.sort(np.unique(nearest))
         seg_len = np.abs(np.roll(e, -1) - e)
         seg_arc = np.abs(np.roll(w, -1) - w)
         side = np.searchsorted(idx, np.arange(e.size), side="right") - 1  # side of each segment
