@@ -34,11 +34,15 @@ their neighbours) to the next level's nodes (:func:`_refine_sides`); its estimat
 level's plus the change this causes (triangle inequality, no order assumed). Measured in
 ``bench/results/local_refinement.json`` and ``core_certificate.json`` (see bench/README.md):
 two squares 0.01 apart to 1e-8 take four level solves instead of five (8 sides at 120 nodes
-after 36, 54, 80; residual 1.17e-9 as with the full 180-node level). The sweeps themselves
-(61 per level at a contraction of 0.79 there) are unchanged: a faster iteration for
-near-touching circles (one GNK system over all boundaries per step, or Newton on the circle
-parameters) was not built. ``initial=`` (warm re-solve) starts the refinement two levels
-below the previous map's: ``bench/results/core_resolve.json``.
+after 36, 54, 80; residual 1.17e-9 as with the full 180-node level; 114 s CPU against 141 s in
+one process, the same map to 4e-14 in asymmetry). On 10 mixed obstacles the base estimate
+(8.0e-9) left too little of 1e-8 for the change (2.4e-9), hence :data:`LOCAL_HEADROOM`. The
+sweeps themselves (61 per level at a contraction of 0.79 there) are unchanged: a faster
+iteration for near-touching circles (one GNK system over all boundaries per step, or Newton on
+the circle parameters) was not built. ``initial=`` (warm re-solve) starts the refinement two
+levels below the previous map's: on 10 mixed obstacles at 1e-8, 13.4 s CPU against a cold
+solve's 21.4 s after moving one obstacle by 0.2 m, the same map to 6.1e-13
+(``bench/results/core_resolve.json``).
 
 ``tol_met`` is true only if all are within ``tol`` and nothing is ``unverified``. A map that
 misses ``tol`` is returned with ``tol_met = False`` and an :class:`AccuracyWarning`; one whose
