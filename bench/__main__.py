@@ -72,6 +72,13 @@ BENCHMARKS: dict[str, Bench] = {
         quick=("--limit", "60"),
         measures=SOLVER_PATHS,
     ),
+    "resolve": Bench(
+        "bench_core.py",
+        "core_resolve.json",
+        "warm re-solves: an obstacle moved, removed, added (issue 24 item 3)",
+        args=("--resolve",),
+        measures=SOLVER_PATHS,
+    ),
     "eval": Bench(
         "bench_eval.py",
         "eval.json",

@@ -802,6 +802,119 @@ def run_certificate(out_path: Path, limit_s: float) -> int:
 
 
 # --------------------------------------------------------------------------------------------
+RESOLVE_RESULTS = RESULTS.parent / "core_resolve.json"
+#: Target (issue 24 item 3): re-solve after moving one obstacle of a 10-obstacle room by 0.2 m.
+RESOLVE_TARGET_S = 1.0
+
+
+def _moved(ws: Any, j: int, step: float) -> Any:
+    """``ws`` with obstacle ``j`` moved by ``step`` in the first of 8 directions that keeps
+    the workspace valid (and the anchor outside it)."""
+    from confnav import Workspace
+
+    for k in range(8):
+        d = step * np.exp(2j * np.pi * k / 8)
+        obs = [o + (d if i == j else 0) for i, o in enumerate(ws.obstacles)]
+        try:
+            return Workspace(ws.outer, obs, ws.anchor), d
+        except ConfnavError:
+            continue
+    raise RuntimeError(f"obstacle {j} cannot move by {step}")
+
+
+def _timed_solve(ws: Any, tol: float, **kw: Any) -> tuple[Any, dict[str, Any]]:
+    load = os.getloadavg()[0]
+    c0, t0 = time.process_time(), time.perf_counter()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", AccuracyWarning)
+        m = confnav.solve(ws, tol=tol, **kw)
+    d = m.diagnostics
+    return m, {
+        "wall_time": time.perf_counter() - t0,
+        "cpu_time": time.process_time() - c0,
+        "load1": load,
+        "tol_met": bool(d.tol_met),
+        "error_estimate": float(d.error_estimate),
+        "levels": [int(r["nodes_per_side"]) for r in d.refinements],
+        "nodes": int(sum(d.nodes)),
+    }
+
+
+def run_resolve(out_path: Path, n_obstacles: int, tol: float) -> int:
+    """Warm re-solves (issue 24 item 3): a room of ``n_obstacles`` mixed obstacles solved
+    cold; then one obstacle moved by 0.2 m, one removed and one added back, each solved warm
+    (``solve(..., initial=previous)``) and cold in the same run, with the distance of the two
+    circle domains (both certified to ``tol``)."""
+    info = machine_info()
+    code = code_info()
+    print(
+        f"confnav warm re-solve benchmark, {info['date']}, commit {code['commit'][:12]}, load "
+        f"{' '.join(f'{x:.2f}' for x in info['loadavg_start'])}\n",
+        flush=True,
+    )
+    full = mixed_obstacles(n_obstacles, seed=0)
+    base, row0 = _timed_solve(full, tol)
+    print(f"cold {n_obstacles} obstacles: {row0['wall_time']:.1f} s, levels {row0['levels']}")
+    moved, step = _moved(full, 0, 0.2)
+    from confnav import Workspace
+
+    fewer = Workspace(full.outer, full.obstacles[:-1], full.anchor)
+    rows = []
+    for name, ws, start in (
+        ("moved 0.2 m", moved, base),
+        ("one removed", fewer, base),
+        ("one added", full, None),
+    ):
+        init = start if start is not None else rows[-1]["_map"]
+        warm, rw = _timed_solve(ws, tol, initial=init)
+        cold, rc = _timed_solve(ws, tol)
+        dc = np.max(np.abs(warm.centers - cold.centers))
+        dist = float(max(dc, np.max(np.abs(warm.radii - cold.radii))))
+        row = {"case": name, "warm": rw, "cold": rc, "distance": dist, "_map": warm}
+        rows.append(row)
+        print(
+            f"{name:12s} warm {rw['wall_time']:6.1f} s (levels {rw['levels']}), cold "
+            f"{rc['wall_time']:6.1f} s (levels {rc['levels']}), |warm - cold| {dist:.1e}, "
+            f"tol_met {rw['tol_met']}/{rc['tol_met']}",
+            flush=True,
+        )
+    for r in rows:
+        r.pop("_map")
+    moved_row = rows[0]
+    targets = [
+        {
+            "name": f"re-solve after moving one of {n_obstacles} obstacles by 0.2 m <= "
+            f"{RESOLVE_TARGET_S:g} s",
+            "measured_s": moved_row["warm"]["wall_time"],
+            "status": "met" if moved_row["warm"]["wall_time"] <= RESOLVE_TARGET_S else "missed",
+        },
+        {
+            "name": "warm map equals the cold map within their estimates",
+            "status": "met"
+            if all(
+                r["distance"] <= r["warm"]["error_estimate"] + r["cold"]["error_estimate"]
+                for r in rows
+            )
+            else "missed",
+        },
+    ]
+    for t in targets:
+        print(f"  {t['name']}: {t['status']}")
+    info["loadavg_end"] = list(os.getloadavg())
+    result = {
+        "machine": info,
+        "code": code,
+        "obstacles": n_obstacles,
+        "tol": tol,
+        "step": [step.real, step.imag],
+        "cold_start": row0,
+        "rows": rows,
+        "targets": targets,
+    }
+    out_path.parent.mkdir(parents=True, exist_ok=True)
+    out_path.write_text(json.dumps(result, indent=1) + "\n")
+    print(f"load average at end {info['loadavg_end'][0]:.2f}; wrote {out_path}")
+    return 0
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -811,7 +924,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, default=None)
     ap.add_argument("--certificate", action="store_true", help="only the issue-8 rows (section 6)")
     ap.add_argument("--limit", type=float, default=300.0, help="--certificate: s per case")
+    ap.add_argument("--resolve", action="store_true", help="only the warm re-solve rows")
+    ap.add_argument("--obstacles", type=int, default=10, help="--resolve: obstacles in the room")
     args = ap.parse_args(argv)
+    if args.resolve:
+        n = 5 if args.quick else args.obstacles
+        return run_resolve(args.out or RESOLVE_RESULTS, n, OBSTACLE_TOL)
     if args.certificate:
         return run_certificate(args.out or CERT_RESULTS, args.limit)
     args.out = args.out or RESULTS

@@ -20,12 +20,20 @@ import shapely
 from shapely.geometry import Polygon
 
 from confnav.atlas.decompose import Decomposition, Tile, bottleneck, decompose, elongation
-from confnav.conformal.cmap import ConformalMap
-from confnav.conformal.solver import solve
+from confnav.conformal.cmap import ConformalMap, SolveReport
+from confnav.conformal.solver import AccuracyWarning, crowding_reason, solve
 from confnav.errors import ConfnavError, CrowdingError, SolverError, fmt_point
 from confnav.geometry import Workspace
 
-__all__ = ["Atlas", "ChartRecord", "atlas_reason", "needs_atlas", "solve_atlas", "solve_auto"]
+__all__ = [
+    "Atlas",
+    "ChartRecord",
+    "atlas_reason",
+    "needs_atlas",
+    "single_map_or_atlas",
+    "solve_atlas",
+    "solve_auto",
+]
 
 log = logging.getLogger(__name__)
 
@@ -51,7 +59,8 @@ BOTTLENECK_MAX_RATIO = 3.0
 class ChartRecord:
     """How one cell's chart was obtained: solve wall time (in the worker), nodes, error
     estimate, smallest radius; ``error`` is the failure message of a failed attempt;
-    ``tol_met`` False for a chart kept within ``accept`` but above ``tol``."""
+    ``tol_met`` is the solver's own ``diagnostics.tol_met`` (False for a chart kept because it
+    meets ``accept`` -- :meth:`~confnav.conformal.cmap.SolveReport.meets` -- but not ``tol``)."""
 
     cell: int
     wall_time: float
@@ -93,6 +102,21 @@ class Atlas:
         return tuple(by_key[c.workspace.content_hash] for c in self.decomposition.cells)
 
     @property
+    def diagnostics(self) -> SolveReport:
+        """The worst chart's diagnostics: a chart that misses its ``tol`` before one that
+        meets it, then the largest error estimate (the atlas is as accurate as its worst
+        chart)."""
+        return max(
+            (c.diagnostics for c in self.charts),
+            key=lambda d: (not d.tol_met, d.error_estimate),
+        )
+
+    @property
+    def tol_met(self) -> bool:
+        """Every chart met ``tol`` by the solver's own certificate."""
+        return all(c.diagnostics.tol_met for c in self.charts)
+
+    @property
     def cpu_time(self) -> float:
         return float(sum(r.wall_time for r in self.records))
 
@@ -104,19 +128,26 @@ class Atlas:
 def _solve_one(ws_json: str, tol: float, accept: float, depth: float) -> tuple[str, float, str]:
     """Worker: (map JSON or "", wall time, error message).  Runs in a child process.
 
-    A map that misses ``tol`` but whose error estimate is within ``accept`` is kept; one
-    that maps a point ``depth`` inside the cell within :data:`CROWDED_GAP` of the unit
-    circle is not (probes: the vertices of the cell shrunk by ``depth``, which reach into
-    the ends of its channels)."""
+    A map is kept on the solver's own certificate: its ``tol_met``, or, when it misses
+    ``tol``, the same criterion at ``accept`` (every error source within ``accept``, the
+    Koebe iteration converged, no size cap hit: :meth:`SolveReport.meets`), never on the
+    error estimate alone; one that maps a point ``depth`` inside the cell within
+    :data:`CROWDED_GAP` of the unit circle is not (probes: the vertices of the cell shrunk
+    by ``depth``, which reach into the ends of its channels)."""
     t0 = time.perf_counter()
     try:
         ws = Workspace.from_json(ws_json)
         with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
+            # the solver's verdict is read from its diagnostics below, not from the warning
+            warnings.simplefilter("ignore", AccuracyWarning)
             m = solve(ws, tol)
-        est = m.diagnostics.error_estimate
-        if est > max(tol, accept):
-            return "", time.perf_counter() - t0, f"tolerance not met (estimate {est:.1e})"
+        diag = m.diagnostics
+        if not (diag.tol_met or diag.meets(max(tol, accept))):
+            why = [f"estimate {diag.error_estimate:.1e}"]
+            if not diag.iteration_converged:
+                why.append("Koebe iteration not converged")
+            why += diag.caps
+            return "", time.perf_counter() - t0, "tolerance not met (" + "; ".join(why) + ")"
         probe = shapely.get_coordinates(ws.polygon.buffer(-depth).boundary)
         if probe.size:
             z = probe[:, 0] + 1j * probe[:, 1]
@@ -163,6 +194,17 @@ def atlas_reason(ws: Workspace, *, loops: bool = False) -> str:
             f"(length / width >= {q:.3g}): one map crowds it"
         )
     return ""
+
+
+def single_map_or_atlas(ws: Workspace, m: ConformalMap | None = None) -> str:
+    """Why ``ws`` should be solved as an atlas ("" for a single map): the a-priori reasons
+    (:func:`atlas_reason`) and, given a solved map ``m`` of it, the crowding measured by the
+    solve (:func:`confnav.conformal.solver.crowding_reason`: its smallest circle and each
+    boundary's crowding in ``m.diagnostics``)."""
+    why = [atlas_reason(ws)]
+    if m is not None:
+        why.append(crowding_reason(m.diagnostics))
+    return "; ".join(w for w in why if w)
 
 
 def needs_atlas(ws: Workspace) -> bool:
@@ -241,7 +283,7 @@ def solve_atlas(
                         float(m.diagnostics.error_estimate),
                         float(radii.min()) if radii.size else 1.0,
                         cell.tile,
-                        tol_met=bool(m.diagnostics.error_estimate <= tol),
+                        tol_met=bool(m.diagnostics.tol_met),
                         key=keys[i],
                     )
                 )

@@ -123,6 +123,8 @@ class CircleDomainResult:
     #: The first sweep's GNK solution of each boundary on its graded mesh (outer first): the
     #: next mesh level's first guess (:func:`confnav.conformal.boundary.resample`).
     first_mu: list[FloatArray | None] = field(default_factory=list)
+    #: Largest absolute GNK residual of any solve (:attr:`CurveMap.gmres_residual`).
+    gmres_residual: float = 0.0
 
 
 def _winding(curve: ComplexArray, z: complex) -> float:
@@ -225,7 +227,13 @@ class _Boundary:
         close approach is magnified, and m follows from the gap seen in s.
         """
         self.c, gap = _grading(others)
-        self.m = max(self.m, _grid_size(gap, self.tail)[0])
+        m, capped = _grid_size(gap, self.tail)
+        self.m = max(self.m, m)
+        if capped and self.m >= SMOOTH_MAX:
+            # held at its cap: modes decay like (1 + gap)^-j, so the grid resolves the curve
+            # to about (1 + gap)^(-m/2) -- an error kept even if no later sweep solves on it
+            # (the passive nodes of the final sweep are read off this grid)
+            self.capped_tail = max(self.capped_tail, float((1.0 + gap) ** (-self.m / 2)))
         sgn = -1.0 if self.hole else 1.0
         s_grid = 2 * np.pi * np.arange(self.m) / self.m
         self.S, self.dS = _mobius_grid(self.c, sgn, s_grid)[:2]
@@ -413,6 +421,7 @@ def koebe_iteration(
     D = 1.0 + 0j
     history: list[float] = []
     gm_its = 0
+    gm_res = 0.0
     sweeps = 0
     guess = list(first_guess) if first_guess is not None else [None] * (M + 1)
     first_mu: list[FloatArray | None] = [None] * (M + 1)
@@ -432,6 +441,7 @@ def koebe_iteration(
                 b, c[k - 1], f"obstacle {k - 1}", meshes[k], _curves(bnds, k), gmres_tol, guess[k]
             )
             gm_its += F.gmres_iterations
+            gm_res = max(gm_res, F.gmres_residual)
             if sweep == 1:
                 first_mu[k] = F.mu
             others = np.concatenate([[a], np.delete(c, k - 1)])
@@ -445,6 +455,7 @@ def koebe_iteration(
             bnds[0], a, "the outer boundary", meshes[0], _curves(bnds, 0), gmres_tol, guess[0]
         )
         gm_its += f0.gmres_iterations
+        gm_res = max(gm_res, f0.gmres_residual)
         if sweep == 1:
             first_mu[0] = f0.mu
         out = _apply(f0, bnds, 0, c)
@@ -490,6 +501,15 @@ def koebe_iteration(
         converged = False  # sweep limit: the extrapolated remaining error is reported
     iteration_error = remaining if converged and remaining <= tol else _stalled_error(history)
     rot = complex(np.exp(-1j * np.angle(D)))
+    for b in bnds:
+        # the final passive nodes are interpolated from each smooth grid as the last sweep left
+        # it (moved by the maps after its own): its Fourier tail there is a resolution error
+        # too, whether or not a sweep solved on it (a final grid above its target tail was
+        # not counted before)
+        if b.S is not None:
+            tail = _tail(b.S)
+            if tail > b.tail:
+                b.capped_tail = max(b.capped_tail, tail)
     passive = [b.passive() for b in bnds]
     W = [p[0] * rot for p in passive]
     dW = [p[1] * rot for p in passive]
@@ -514,6 +534,7 @@ def koebe_iteration(
         converged=bool(converged and iteration_error <= tol),
         resolution_error=max(b.capped_tail for b in bnds),
         first_mu=first_mu,
+        gmres_residual=gm_res,
     )
 
 

@@ -80,6 +80,8 @@ class CurveMap:
     scale: float
     gmres_iterations: int
     mu: FloatArray | None = None
+    #: Absolute residual the GNK solve left (:attr:`confnav.conformal.gnk.GNKSolution.residual`).
+    gmres_residual: float = 0.0
 
     def evaluate(
         self, z: ComplexArray, derivative: bool = True
@@ -151,6 +153,7 @@ def interior_map(
         scale=float(np.exp(-sol.h)),
         gmres_iterations=sol.iterations,
         mu=sol.mu,
+        gmres_residual=sol.residual,
     )
 
 
@@ -183,6 +186,7 @@ def exterior_map(
         scale=float(np.exp(sol.h - phi_inf.real)),
         gmres_iterations=sol.iterations,
         mu=sol.mu,
+        gmres_residual=sol.residual,
     )
 
 

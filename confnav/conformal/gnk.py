@@ -79,6 +79,10 @@ class GNKSolution:
     h: float
     h_spread: float  # max - min of the pointwise h: a residual check (0 in exact arithmetic)
     iterations: int
+    #: Absolute 2-norm of the residual left, ``|(I - N) mu + M gamma|``: ``rtol`` times the
+    #: right-hand side's norm when GMRES met its target, the measured residual when a run
+    #: stopped at its limit was accepted within :data:`GMRES_ACCEPT` of it.
+    residual: float = 0.0
 
 
 #: Up to this many nodes the GNK matrix is built densely (O(n^2) memory, fast BLAS matvecs);
@@ -247,6 +251,7 @@ def solve_gnk(
         h=float(np.mean(hpt)),
         h_spread=float(np.ptp(hpt)),
         iterations=count[0],
+        residual=(rtol if info == 0 else res) * bnorm,
     )
 
 

@@ -6,21 +6,48 @@ circle domain (centres and radii) between consecutive levels gives the discretis
 the finer one. With grading exponent p the error decays like n^-p (docs/METHOD.md sec. 2), so each
 step of ``LEVELS`` (x1.5) cuts it by about 7x.
 
-The error estimate covers every error source (issue 8), each measured on its own:
+The error estimate covers every error source (issues 8, 26), each measured on its own:
 
-* discretisation: the level differences above, extrapolated;
+* discretisation: the level differences above, extrapolated with the slower of the assumed
+  order and the contraction observed over three levels; an estimate with no observed
+  contraction (two levels: ``nodes_per_side`` with a failed coarse level) or from differences
+  that stopped shrinking is listed in ``unverified`` and never gives ``tol_met``;
 * iteration: the Koebe iteration runs until its remaining error, extrapolated from the
   observed contraction, is below ``tol / 10``; a stalled or unfinished iteration is reported
   (``iteration_converged = False``), never taken as converged;
 * a-posteriori: :meth:`ConformalMap.boundary_residual` -- T at points between the nodes on
   every side (midpoints, and points graded towards every corner) must land on its circle;
-* size caps: a smooth grid held at its cap adds its Fourier tail; a level that would need more
-  nodes than the mesh allows (a gap too narrow) ends the refinement and is listed in ``caps``.
+  not checked within ``CORNER_ZONE`` (1e-4 of the shorter side) of a corner, as the
+  diagnostics' table states;
+* size caps: a smooth grid held at its cap (in any sweep, the last one's regrid included) or
+  left above its target tail by the last sweep adds its Fourier tail; a level that would need
+  more nodes than the mesh allows (a gap too narrow) ends the refinement and is listed in
+  ``caps``;
+* linear solves: the largest residual any GMRES solve left (``gmres_residual``; a run accepted
+  at up to ``GMRES_ACCEPT`` times its target counts with its measured residual);
+* evaluation: once the map evaluates through local expansions, their truncation bound
+  (``evaluation_error``).
 
-``tol_met`` is true only if all are within ``tol``. A map that misses ``tol`` is returned with
-``tol_met = False`` and an :class:`AccuracyWarning`; one whose estimate exceeds
-:data:`UNUSABLE_ERROR` raises :class:`~confnav.errors.SolverError` -- a silently wrong map is
-never returned.
+Refining where the error is (issue 24): a level whose discretisation estimate is within
+``tol / 2`` but whose boundary residual is not refines only the sides the residual names (and
+their neighbours) to the next level's nodes (:func:`_refine_sides`); its estimate is the base
+level's plus the change this causes (triangle inequality, no order assumed). Measured in
+``bench/results/local_refinement.json`` and ``core_certificate.json`` (see bench/README.md):
+two squares 0.01 apart to 1e-8 take four level solves instead of five (8 sides at 120 nodes
+after 36, 54, 80; residual 1.17e-9 as with the full 180-node level; 114 s CPU against 141 s in
+one process, the same map to 4e-14 in asymmetry). On 10 mixed obstacles the base estimate
+(8.0e-9) left too little of 1e-8 for the change (2.4e-9), hence :data:`LOCAL_HEADROOM`. The
+sweeps themselves (61 per level at a contraction of 0.79 there) are unchanged: a faster
+iteration for near-touching circles (one GNK system over all boundaries per step, or Newton on
+the circle parameters) was not built. ``initial=`` (warm re-solve) starts the refinement two
+levels below the previous map's: on 10 mixed obstacles at 1e-8, 13.4 s CPU against a cold
+solve's 21.4 s after moving one obstacle by 0.2 m, the same map to 6.1e-13
+(``bench/results/core_resolve.json``).
+
+``tol_met`` is true only if all are within ``tol`` and nothing is ``unverified``. A map that
+misses ``tol`` is returned with ``tol_met = False`` and an :class:`AccuracyWarning`; one whose
+estimate exceeds :data:`UNUSABLE_ERROR` raises :class:`~confnav.errors.SolverError` -- a
+silently wrong map is never returned.
 """
 
 from __future__ import annotations
@@ -31,12 +58,13 @@ import warnings
 from collections.abc import Callable
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from confnav.conformal.boundary import BoundaryMesh, graded_polygon, resample
 from confnav.conformal.circledomain import CircleDomainResult, koebe_iteration
 from confnav.conformal.cmap import ConformalMap, SolveReport
 from confnav.conformal.gnk import gmres_rtol
-from confnav.conformal.meshing import plan_boundaries
+from confnav.conformal.meshing import NODE_MULTIPLE, PanelPlan, plan_boundaries
 from confnav.errors import (
     ConvergenceError,
     GapError,
@@ -64,6 +92,16 @@ LEVELS: tuple[int, ...] = (24, 36, 54, 80, 120, 180, 256, 384, 576)
 ASSUMED_ORDER = 5.0
 #: Levels solved before an estimate may stop the refinement.
 MIN_LEVELS = 3
+#: A level difference that shrank by less than this factor from the previous one has stopped
+#: converging geometrically: the tail extrapolation ``diff rho / (1 - rho)`` does not hold,
+#: and the estimate is reported as unverified (``SolveReport.unverified``; no ``tol_met``)
+#: unless the difference is at the rounding floor (:data:`ROUNDING_DIFFERENCE`).
+RHO_LEVELS_MAX = 0.9
+#: Level differences below ``ROUNDING_DIFFERENCE * tol``, or within the sum of the two
+#: levels' iteration errors, are rounding and iteration noise, not discretisation: whether they
+#: shrink says nothing (measured: two squares 0.1 apart at tol 1e-8, differences 2.52e-10 and
+#: 2.55e-10 at 80 and 120 nodes per side, iteration errors 3.9e-10 each; 7.0e-11 at 180).
+ROUNDING_DIFFERENCE = 1e-3
 #: An estimated error above this makes the map useless for navigation: raise instead.
 UNUSABLE_ERROR = 1e-4
 #: Share of ``tol`` left to the Koebe iteration's remaining error (the rest: discretisation).
@@ -91,8 +129,10 @@ def _solve_level(
     tol: float,
     progress: Callable[[str], None] | None,
     warm: _Warm | None = None,
+    plans: list[PanelPlan] | None = None,
 ) -> tuple[CircleDomainResult, list[BoundaryMesh]]:
-    plans = plan_boundaries(ws, nodes_per_side, tol)
+    if plans is None:
+        plans = plan_boundaries(ws, nodes_per_side, tol)
     meshes = [graded_polygon(plans[0].vertices, plans[0].nodes)] + [
         graded_polygon(p.vertices, p.nodes).reversed() for p in plans[1:]
     ]
@@ -120,16 +160,21 @@ def _solve_level(
     return res, meshes
 
 
+#: One solved level: result, nodes, their derivatives, nodes per side, discretisation
+#: estimate, and why that estimate is unverified (empty: verified).
+_Level = tuple[CircleDomainResult, list[ComplexArray], list[ComplexArray], int, float, list[str]]
+
+
 def _make_map(
     ws: Workspace,
-    level: tuple[CircleDomainResult, list[ComplexArray], list[ComplexArray], int, float],
+    level: _Level,
     tol: float,
     caps: list[str],
     refinements: list[dict[str, float]],
     t0: float,
 ) -> ConformalMap:
     """The map of one solved level with its full error budget (residual computed here)."""
-    res, eta, deta, ns, disc = level
+    res, eta, deta, ns, disc, unverified = level
     diag = SolveReport(
         tol=tol,
         error_estimate=float("inf"),
@@ -148,11 +193,196 @@ def _make_map(
         resolution_error=res.resolution_error,
         caps=list(caps),
         refinements=list(refinements),
+        gmres_residual=res.gmres_residual,
+        unverified=list(unverified),
+        min_radius=float(np.min(res.radii)) if res.radii.size else 1.0,
     )
     m = ConformalMap(ws, eta, deta, res.W, res.dW, res.centers, res.radii, diag)
+    diag.crowding = crowding(m)
     m.diagnostics = diag.with_residual(m.boundary_residual())
     m.diagnostics.wall_time = time.perf_counter() - t0
     return m
+
+
+#: Crowding (decades, :func:`crowding`) from which one map is not advised: a side compressed
+#: 10^6 times below its boundary's average keeps ~10 of double precision's 16 digits for T
+#: there, against map tolerances of 1e-8..1e-10 (the solver's choice, not a measured limit).
+CROWDING_ATLAS_DECADES = 6.0
+#: Smallest circle radius below which one map is not advised (a circle of radius 1e-6 is
+#: 10^5 above :data:`~confnav.conformal.circledomain.CROWDING_RADIUS`, where the solve fails).
+MIN_RADIUS_ATLAS = 1e-6
+
+
+def crowding(m: ConformalMap) -> list[float]:
+    """Conformal crowding of each boundary of ``m`` (outer first), in decades.
+
+    For every side of a boundary: its share of the boundary's length against the share of
+    the image circle its images cover (chord sums over the nodes between its two corners);
+    the boundary's crowding is ``log10`` of the largest such quotient, at least 0 (a side
+    that maps to 10^-k of the circle it would get in proportion to its length: k). Crowding
+    of a region reached through a narrow passage grows like exp(-pi L / w) (Driscoll &
+    Trefethen, "Schwarz-Christoffel Mapping", Cambridge 2002, sec. 2.6), so the measured
+    decades say how close a map is to the end of double precision.
+    """
+    out: list[float] = []
+    eta, _, W, _ = m._parts
+    for e, w, v in zip(eta, W, m.workspace.boundaries, strict=True):
+        vv = np.asarray(v)
+        # the node at each corner (graded meshes put a node on every vertex); a k-d tree, not
+        # an n x L distance matrix: imported floor plans have thousands of vertices
+        nearest = cKDTree(np.column_stack([e.real, e.imag])).query(
+            np.column_stack([vv.real, vv.imag])
+        )[1]
+        idx = np.sort(np.unique(nearest))
+        seg_len = np.abs(np.roll(e, -1) - e)
+        seg_arc = np.abs(np.roll(w, -1) - w)
+        side = np.searchsorted(idx, np.arange(e.size), side="right") - 1  # side of each segment
+        side[side < 0] = idx.size - 1  # segments before the first corner close the last side
+        L = np.bincount(side, seg_len, idx.size)
+        A = np.bincount(side, seg_arc, idx.size)
+        q = (L / L.sum()) / np.maximum(A / A.sum(), 1e-300)
+        out.append(float(max(0.0, np.log10(np.max(q)))))
+    return out
+
+
+def crowding_reason(diag: SolveReport) -> str:
+    """Why a solved map says an atlas would serve better ("" if nothing does): its smallest
+    circle below :data:`MIN_RADIUS_ATLAS` or a boundary crowded by
+    :data:`CROWDING_ATLAS_DECADES` or more (measured by the solve, :func:`crowding`)."""
+    why = []
+    if diag.min_radius < MIN_RADIUS_ATLAS:
+        why.append(f"smallest circle radius {diag.min_radius:.1e} < {MIN_RADIUS_ATLAS:.0e}")
+    worst = max(diag.crowding, default=0.0)
+    if worst >= CROWDING_ATLAS_DECADES:
+        j = diag.crowding.index(worst)
+        name = "the outer boundary" if j == 0 else f"obstacle {j - 1}"
+        why.append(f"{name} crowded by 10^{worst:.1f}")
+    return "; ".join(why)
+
+
+#: Refine only the sides whose a-posteriori residual asks (issue 24 item 2) when a level's
+#: discretisation estimate is within ``tol`` but its boundary residual is not, before solving
+#: the next level everywhere; at most this many rounds (each moves the sides still above
+#: ``tol`` one level finer).
+LOCAL_ROUNDS = 2
+LOCAL_REFINEMENT = True
+#: Per-side refinement is tried only while the base level's estimate leaves this share of
+#: ``tol`` to the change it causes (its estimate is base + change). Measured on 10 mixed
+#: obstacles at 1e-8: base 8.0e-9, change 2.4e-9 -- the partial level met the residual
+#: (6.5e-9) but not the estimate (1.04e-8), and the full level had to follow (4.2 s lost).
+LOCAL_HEADROOM = 0.5
+
+
+def _bad_sides(m: ConformalMap, plans: list[PanelPlan], tol: float) -> list[tuple[int, int]]:
+    """(boundary, side of its plan) of every residual check point above ``tol``: the side
+    nearest to the point (a point at a corner belongs to both its sides: both are returned)."""
+    z, res, owner = m.boundary_residuals()
+    bad = ~(res <= tol)
+    out: set[tuple[int, int]] = set()
+    for j in np.unique(owner[bad]):
+        pts = z[bad & (owner == j)]
+        v = np.asarray(plans[int(j)].vertices)
+        a, e = v[None, :], (np.roll(v, -1) - v)[None, :]
+        t = np.clip(((pts[:, None] - a) * np.conj(e)).real / np.abs(e) ** 2, 0.0, 1.0)
+        d = np.abs(pts[:, None] - (a + t * e))
+        near = d <= d.min(axis=1, keepdims=True) * (1 + 1e-9) + 1e-15
+        for k in np.flatnonzero(near.any(axis=0)):
+            out.add((int(j), int(k)))
+    return sorted(out)
+
+
+def _refine_sides(
+    ws: Workspace,
+    ns: int,
+    finer: list[int],
+    base: _Level,
+    bad_map: ConformalMap,
+    tol: float,
+    progress: Callable[[str], None] | None,
+    warm: _Warm | None,
+    caps: list[str],
+    refinements: list[dict[str, float]],
+    t0: float,
+) -> tuple[ConformalMap, _Level] | None:
+    """Refine only the sides whose boundary residual is above ``tol`` (and their neighbours),
+    each to the next level's nodes, up to :data:`LOCAL_ROUNDS` times; None if that does not
+    give a map meeting ``tol`` (the caller then solves the next level everywhere).
+
+    The discretisation estimate of a partly refined mesh is the base level's (observed over
+    three levels) plus the change of the circle domain from it: the error of the refined
+    solution is at most the base's plus their difference (triangle inequality), so no order
+    is assumed.
+    """
+    res0, est0 = base[0], base[4]
+    try:
+        plans0 = plan_boundaries(ws, ns, tol)
+        finer_plans = [plan_boundaries(ws, f, tol) for f in finer[:LOCAL_ROUNDS]]
+    except GapError:
+        return None
+    if not finer_plans:
+        return None
+    level = [np.zeros(p.nodes.size, np.intp) for p in plans0]
+    m = bad_map
+    for _round in range(LOCAL_ROUNDS):
+        bad = _bad_sides(m, plans0, tol)
+        if not bad:
+            return None
+        for j, k in bad:
+            L = level[j].size
+            for kk in (k - 1, k, k + 1):
+                level[j][kk % L] = min(level[j][kk % L] + 1, len(finer_plans))
+        plans = []
+        for j, p0 in enumerate(plans0):
+            nodes = p0.nodes.copy()
+            for lv in range(1, len(finer_plans) + 1):
+                pf = finer_plans[lv - 1][j]
+                if pf.nodes.size != nodes.size or not np.array_equal(pf.vertices, p0.vertices):
+                    if np.any(level[j] >= lv):  # sides split differently: the whole boundary
+                        nodes = pf.nodes.copy()
+                        p0 = pf
+                        break
+                    continue
+                nodes = np.where(level[j] >= lv, np.maximum(nodes, pf.nodes), nodes)
+            nodes[0] += (-int(nodes.sum())) % NODE_MULTIPLE
+            plans.append(PanelPlan(vertices=p0.vertices, nodes=nodes))
+        n_ref = int(sum(int(np.count_nonzero(lv)) for lv in level))
+        if progress is not None:
+            progress(f"refining {n_ref} sides where the boundary residual asks")
+        try:
+            res, meshes = _solve_level(ws, ns, tol, progress, warm, plans)
+        except ConvergenceError as exc:
+            log.warning("local refinement failed (%s)", exc)
+            return None
+        diff = _difference(res, res0)
+        est = est0 + diff
+        eta, deta = [mm.eta for mm in meshes], [mm.deta for mm in meshes]
+        lvl: _Level = (res, eta, deta, ns, est, list(base[5]))
+        refinements.append(
+            {
+                "nodes_per_side": ns,
+                "refined_sides": n_ref,
+                "difference": diff,
+                "error_estimate": est,
+                "iteration_error": res.iteration_error,
+                "wall_time": res.wall_time,
+            }
+        )
+        m = _make_map(ws, lvl, tol, caps, refinements, t0)
+        refinements[-1]["boundary_residual"] = m.diagnostics.boundary_residual
+        if m.diagnostics.tol_met:
+            return m, lvl
+    return None
+
+
+def _warm_start_level(initial: ConformalMap, tol: float) -> int:
+    """Index into :data:`LEVELS` at which a re-solve like ``initial`` starts: two levels
+    below the finest full level ``initial`` solved (so that the estimate still rests on a
+    contraction observed over three levels), 0 if ``initial`` says nothing usable (solved to
+    a looser tolerance: its levels were too coarse for ``tol``)."""
+    d = initial.diagnostics
+    if d.tol > tol or d.nodes_per_side not in LEVELS:
+        return 0
+    return max(0, LEVELS.index(d.nodes_per_side) - 2)
 
 
 def _difference(a: CircleDomainResult, b: CircleDomainResult) -> float:
@@ -167,6 +397,7 @@ def solve(
     *,
     nodes_per_side: int | None = None,
     progress: Callable[[str], None] | None = None,
+    initial: ConformalMap | None = None,
 ) -> ConformalMap:
     """Compute the conformal map of ``workspace`` onto a circle domain.
 
@@ -177,9 +408,18 @@ def solve(
     tol
         Target accuracy of the circle domain (centres and radii, absolute, unit-disk scale).
     nodes_per_side
-        Fix the mesh instead of refining (the error estimate then uses the next coarser level).
+        Fix the mesh instead of refining: three levels, ``nodes_per_side`` and the two next
+        coarser ones (x1.5 steps), so that the discretisation estimate rests on an observed
+        contraction, never on an assumed order alone.
     progress
         Called with one-line progress messages.
+    initial
+        A map of a workspace like this one (an obstacle moved, added or removed; the same
+        workspace at another radius): a warm re-solve. The same workspace solved to at least
+        ``tol`` is returned as is; otherwise the refinement starts two levels below the one
+        ``initial`` needed (:func:`_warm_start_level`), skipping the coarse levels, and keeps
+        the full certificate (three levels, residual). Anything that does not fit (another
+        tolerance range, a fixed mesh) falls back to a cold solve's levels.
 
     Raises
     ------
@@ -188,13 +428,26 @@ def solve(
     """
     if not (np.isfinite(tol) and 0 < tol < 1):
         raise SolverError(f"tol must be in (0, 1), got {tol}")
+    if (
+        initial is not None
+        and nodes_per_side is None
+        and initial.workspace.content_hash == workspace.content_hash
+        and initial.diagnostics.tol_met
+        and initial.diagnostics.tol <= tol
+    ):
+        return initial  # the same workspace, already solved at least as accurately
     t0 = time.perf_counter()
     if nodes_per_side is not None:
         if nodes_per_side < 8:
             raise SolverError("nodes_per_side must be at least 8")
-        levels = [max(8, round(nodes_per_side / 1.5)), nodes_per_side]
+        levels = sorted(
+            {max(8, round(nodes_per_side / 2.25)), max(8, round(nodes_per_side / 1.5))}
+            | {nodes_per_side}
+        )
     else:
         start = 0 if tol >= 1e-7 else (1 if tol >= 1e-9 else 3)
+        if initial is not None:
+            start = max(start, _warm_start_level(initial, tol))
         levels = list(LEVELS[start:])
     refinements: list[dict[str, float]] = []
     caps: list[str] = []
@@ -202,8 +455,7 @@ def solve(
     prev_ns = 0
     failed: ConvergenceError | None = None
     prev_diff: float | None = None
-    best: tuple[CircleDomainResult, list[ComplexArray], list[ComplexArray], int, float] | None
-    best = None
+    best: _Level | None = None
     cmap: ConformalMap | None = None
     solved = 0  # levels solved (a skipped level does not count)
     warm: _Warm | None = None
@@ -238,9 +490,24 @@ def solve(
             # error of the finer solve ~ diff * rho/(1 - rho), rho = error ratio per level:
             # the slower of the assumed order and the observed contraction (Aitken).
             rho = (prev_ns / ns) ** ASSUMED_ORDER
+            unverified: list[str] = []
+            ratio = float("nan")
             if prev_diff is not None and prev_diff > 0:
-                rho = max(rho, diff / prev_diff)
-            rho = min(rho, 0.9)
+                ratio = diff / prev_diff
+                rho = max(rho, ratio)
+            else:
+                unverified.append(
+                    f"discretisation estimate from two mesh levels ({prev_ns} and {ns} nodes per "
+                    f"side) on an assumed order n^-{ASSUMED_ORDER:g}, no contraction observed"
+                )
+            # a difference within the two levels' own iteration errors is iteration noise
+            noise = max(ROUNDING_DIFFERENCE * tol, res.iteration_error + prev.iteration_error)
+            if rho >= RHO_LEVELS_MAX and diff > noise:
+                unverified.append(
+                    f"level differences stopped shrinking ({prev_diff:.1e} -> {diff:.1e} at "
+                    f"{ns} nodes per side): the extrapolation does not hold"
+                )
+            rho = min(rho, RHO_LEVELS_MAX)  # the figure only; unverified says it is not one
             est = diff * rho / (1 - rho)
             refinements.append(
                 {
@@ -251,10 +518,12 @@ def solve(
                     "wall_time": res.wall_time,
                 }
             )
-            best = (res, eta, deta, ns, est)
+            if np.isfinite(ratio):  # difference / previous difference (observed contraction)
+                refinements[-1]["ratio"] = ratio
+            best = (res, eta, deta, ns, est, unverified)
             cmap = None
             prev_diff = diff
-            if est <= tol and solved + 1 >= MIN_LEVELS:
+            if est <= tol and solved + 1 >= MIN_LEVELS and not unverified:
                 # the discretisation is fine; the a-posteriori residual must agree, else refine
                 cmap = _make_map(workspace, best, tol, caps, refinements, t0)
                 # kept per level: a residual above tol at a level whose discretisation estimate
@@ -262,6 +531,25 @@ def solve(
                 refinements[-1]["boundary_residual"] = cmap.diagnostics.boundary_residual
                 if cmap.diagnostics.boundary_residual <= tol:
                     break
+                finer = levels[levels.index(ns) + 1 :]
+                if LOCAL_REFINEMENT and finer and est <= LOCAL_HEADROOM * tol:
+                    local = _refine_sides(
+                        workspace,
+                        ns,
+                        finer,
+                        best,
+                        cmap,
+                        tol,
+                        progress,
+                        warm,
+                        caps,
+                        refinements,
+                        t0,
+                    )
+                    if local is not None:
+                        cmap, best = local
+                        break
+                    cmap = None
         prev, prev_ns = res, ns
         solved += 1
     if best is None:
@@ -295,7 +583,7 @@ def solve(
         ]
         if not diag.iteration_converged:
             why.append("the Koebe iteration did not converge (stalled or sweep limit)")
-        why += diag.caps
+        why += diag.caps + diag.unverified
         warnings.warn(
             f"conformal map: estimated error {diag.error_estimate:.1e}, tol {tol:.1e} not met "
             f"(finest mesh {diag.nodes_per_side} nodes per side): " + "; ".join(why),
@@ -305,4 +593,4 @@ def solve(
     return cmap
 
 
-__all__ = ["LEVELS", "AccuracyWarning", "solve"]
+__all__ = ["LEVELS", "AccuracyWarning", "crowding", "crowding_reason", "solve"]
