@@ -21,7 +21,6 @@ collisions and clearances those of the body in the original workspace.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
@@ -30,6 +29,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from confnav.argtypes import output_path, positive_float, positive_int
+from confnav.cli.jsonout import write_json
 from confnav.cli.simulate import _point, _points
 
 if TYPE_CHECKING:
@@ -199,7 +199,7 @@ def run_atlas(args: argparse.Namespace) -> int:
             )
             print(f"plot written to {out}")
     if args.json:
-        args.json.write_text(json.dumps(doc, indent=1))
+        write_json(Path(args.json), doc)  # inf/NaN (no path, never measured) as null
     return code
 
 
