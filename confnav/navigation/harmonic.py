@@ -137,11 +137,12 @@ class GreenDiagnostics:
     threshold: what it had to reach (``min(tol, REL_TOL min |G(samples)|)``); history:
     (n_terms, residual) per attempt; converged: residual <= threshold; images: circles whose
     image charge was used; basis_seconds: time spent factoring for this fit (0: reused);
-    rounding_limited: samples where the error bound of ``G`` (harmonic measures times the
-    residual) exceeds ``REL_TOL |G|`` plus the rounding of ``G``'s terms, accepted because the
-    residual is at the fit's rounding floor (:data:`ROUNDING` times the size of the boundary
-    data): ``|G|`` there (the far end of a long room, 1e-12) is as accurate as double
-    precision allows, not certified to ``REL_TOL``.
+    rounding_limited: samples where ``G`` is certified to the rounding of its terms
+    (:data:`ROUNDING` times their size) rather than to ``REL_TOL |G|``: ``REL_TOL |G|`` is below
+    that rounding, or the error bound (harmonic measures times the residual) exceeds it and the
+    fit was accepted at its own rounding floor (:data:`ROUNDING` times the size of the
+    boundary data). ``|G|`` there (the far end of a long room, 1e-16..1e-12) is as accurate as
+    double precision allows, and no more.
     """
 
     n_terms: int
@@ -347,8 +348,10 @@ class GreenBasis:
                     floor = np.maximum(FLOOR, ROUNDING * size)
                     allowed = (REL_TOL * np.abs(g[fin]) + floor) / np.maximum(spread, 1e-300)
                     thr = min(thr, float(np.min(allowed, initial=np.inf)))
-                    # samples whose accuracy the rounding sets, not REL_TOL |G|
-                    limited = int(np.count_nonzero(allowed < res))
+                    # samples whose accuracy the rounding sets, not REL_TOL |G|: below its
+                    # terms' rounding, or beyond a residual at the fit's floor (below)
+                    limited = int(np.count_nonzero((REL_TOL * np.abs(g[fin]) < floor)
+                                                   | (allowed < res)))  # fmt: skip
                 history.append((lv.n, res))
                 # at the rounding floor more terms cannot lower the residual: the fit is as
                 # good as double precision makes it, and the samples it cannot certify to
