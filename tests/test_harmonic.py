@@ -359,3 +359,36 @@ def test_crowded_domain_converges_at_the_rounding_floor_honestly() -> None:
     phi, grad = nf.value_and_gradient(samples)
     assert np.all((phi >= 0) & (phi <= 1 + 1e-12)) and np.all(np.isfinite(grad))
     assert np.all(phi[SAMPLES_FAR.size :] < 1)
+
+
+def test_recentred_fit_is_the_same_function() -> None:
+    """The fallback for crowded circles fits G on a Moebius image that spreads them; by
+    conformal invariance it is the same phi (within the two fits' residuals) and its gradient
+    is the chain rule's (checked against central differences)."""
+    from confnav.navigation.harmonic import RecentredHarmonic, conformal_centre, moebius_domain
+
+    dom = WAREHOUSE_R032
+    a = conformal_centre(dom)
+    img = moebius_domain(dom, a)
+    # the image is the exact Moebius image (against the three-point construction) and spread
+    ref = image_domain(dom, a)
+    assert_allclose(img.centers, ref.centers, atol=1e-12)
+    assert_allclose(img.radii, ref.radii, atol=1e-12)
+    assert abs(np.sum(img.radii * img.centers) / np.sum(img.radii)) < 1e-3  # near the fixed point
+    assert img.radii.min() > 2 * dom.radii.min()
+    goal = -0.3 + 0.2j
+    plain = HarmonicNavigation(dom, goal)
+    rec = RecentredHarmonic(dom, goal)
+    w = interior_points(dom, 200, 0.01, seed=8)
+    bound = plain.diagnostics.residual + rec.diagnostics.residual + 1e-13
+    # |phi - phi'| <= 2 |G - G'| for phi = exp(2 G) <= 1
+    assert np.max(np.abs(plain.value(w) - rec.value(w))) <= 2 * bound
+    h = 1e-6
+    _, grad = rec.value_and_gradient(w)
+    fd = (rec.value(w + h) - rec.value(w - h)) / (2 * h) + 1j * (
+        rec.value(w + 1j * h) - rec.value(w - 1j * h)
+    ) / (2 * h)
+    assert_allclose(grad, fd, atol=1e-7)
+    moved = rec.with_goal(0.1 - 0.5j)
+    assert moved.centre == rec.centre and moved.goal == 0.1 - 0.5j
+    assert moved.value(np.array([0.1 - 0.5j]))[0] == 0.0
