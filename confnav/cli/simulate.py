@@ -437,6 +437,11 @@ def _reason(args: argparse.Namespace, ctl: Any, res: Any, i: int) -> str:
         return "the body touched an obstacle or wall"
     if status == "stalled":
         return "no progress (a critical point of the navigation function or a held command)"
+    if not (np.isfinite(res.final[i]) and np.isfinite(res.time[i])):
+        return (
+            f"the robot's state became non-finite after {int(res.n_steps[i])} steps (a "
+            "non-finite command; the integrator stopped it)"
+        )
     if args.unicycle:
         theta = res.final_theta[i : i + 1]
         p = complex(look_ahead_point(res.final[i : i + 1], theta, float(args.unicycle))[0])
