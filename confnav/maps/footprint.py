@@ -287,11 +287,14 @@ def _reopen_passages(
     module docstring), so their union does too. The round shrink minus the mitred one is
     a sliver at every convex corner (the mitre's tip beyond the arc), touching the mitred
     region along one curve, plus, where a mitre tip closed a passage, a piece touching it
-    on both sides of the passage (or not at all: a region the mitre lost). Only those pieces
-    are added: the topology is the round shrink's, and the vertices stay the mitre's except
-    in the passages. Returns the region and the number of pieces added.
+    on both sides of the passage (or not at all: a region the mitre lost). Only where the two
+    shrinks differ in topology (components and their holes) are those pieces added: the
+    topology is the round shrink's, and the vertices stay the mitre's except in the passages.
+    Returns the region and the number of pieces added.
     """
     rounded = free.buffer(-_effective_radius(r, "round", quad_segs), quad_segs=quad_segs)
+    if _topology(rounded) == _topology(mitred):
+        return mitred, 0  # the same components and holes: the mitre's vertices only
     extra = shapely.difference(rounded, mitred)
     pieces = [g for g in getattr(extra, "geoms", [extra]) if isinstance(g, Polygon) and g.area > 0]
     if not pieces:
@@ -305,6 +308,15 @@ def _reopen_passages(
     # grown by eps within the round shrink: rounding leaves no gap along the seams
     grown = shapely.intersection(shapely.buffer(add, eps), rounded)
     return shapely.union_all([mitred, *grown]), len(add)
+
+
+def _topology(region: shapely.Geometry) -> tuple[int, ...]:
+    """Hole counts of the components of ``region`` that are not slivers, largest first."""
+    parts = [g for g in getattr(region, "geoms", [region]) if isinstance(g, Polygon)]
+    big = max((g.area for g in parts), default=0.0)
+    keep = sorted((g for g in parts if g.area >= MIN_COMPONENT_FRACTION * big),
+                  key=lambda g: -g.area)  # fmt: skip
+    return tuple(len(g.interiors) for g in keep)
 
 
 def inflate(
