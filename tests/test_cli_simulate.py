@@ -188,3 +188,105 @@ def test_a_workspace_one_map_would_crowd_runs_as_an_atlas(
     assert (tmp_path / "p.png").stat().st_size > 10_000
     doc = json.loads(out.read_text())
     assert len(doc["cells"]) > 1 and [r["status"] for r in doc["runs"]] == ["arrived"] * 3
+
+
+def test_a_crowding_error_raised_mid_solve_falls_back_to_the_atlas(
+    room: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The a-priori test does not flag the room, the solve itself raises a crowding error (as
+    the README's office with a 0.2 m unicycle did in sweep 2): simulate runs the atlas instead
+    of exiting 1; ``--single-map`` keeps the error."""
+    import confnav
+    import confnav.cli.atlas as atlas_cli
+    from confnav.errors import UnresolvedCrowdingError
+
+    def crowded(*args: object, **kwargs: object) -> None:
+        raise UnresolvedCrowdingError("points of other boundaries just outside the unit circle")
+
+    ran: list[object] = []
+    monkeypatch.setattr(confnav, "solve", crowded)
+    monkeypatch.setattr(atlas_cli, "run_atlas", lambda a: ran.append(a) or 0)
+    args = ["simulate", str(room), "--goal=1.5,-1.5", "--starts=-1.5,1.5"]
+    assert main([*args, "--robot-radius", "0.1", "--unicycle", "0.1"]) == 0
+    err = capsys.readouterr().err
+    assert "one map crowds" in err and "navigating it as an atlas" in err
+    assert len(ran) == 1 and ran[0].unicycle == 0.1 and ran[0].shrunk is not None  # type: ignore[attr-defined]
+    assert main([*args, "--single-map"]) == 1
+    assert "just outside the unit circle" in capsys.readouterr().err
+    assert len(ran) == 1
+
+
+def test_json_never_carries_inf_or_nan(
+    room: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A value with no finite answer (no shortest path, a clearance never measured) is null in
+    the JSON: the writer used to die on ``Out of range float values are not JSON compliant``."""
+    from confnav.cli.jsonout import json_safe, write_json
+    from confnav.navigation.shortest_path import ShortestPaths
+
+    real = ShortestPaths.lengths
+
+    def no_path_for_the_first(self: ShortestPaths, z: np.ndarray) -> np.ndarray:
+        out = np.array(real(self, z), dtype=float)
+        out[0] = np.inf
+        return out
+
+    monkeypatch.setattr(ShortestPaths, "lengths", no_path_for_the_first)
+    out = tmp_path / "o.json"
+    assert main(["simulate", str(room), "--goal=-1,0", "--starts=1.2,0.1;0,-1.2",
+                 f"--json={out}"]) == 0  # fmt: skip
+    text = out.read_text()
+    assert "Infinity" not in text and "NaN" not in text
+    runs = json.loads(text)["runs"]
+    assert runs[0]["shortest_path"] is None and runs[0]["path_ratio"] is None
+    assert runs[1]["shortest_path"] > 0 and runs[1]["path_ratio"] >= 1.0 - 1e-9
+    doc = {"a": np.float64(np.inf), "b": [float("nan"), np.array([1.0, -np.inf])], "c": 2}
+    assert json_safe(doc) == {"a": None, "b": [None, [1.0, None]], "c": 2}
+    write_json(tmp_path / "x.json", doc)
+    assert json.loads((tmp_path / "x.json").read_text())["b"] == [None, [1.0, None]]
+
+
+def test_a_unicycle_whose_look_ahead_point_is_outside_is_refused_up_front(
+    room: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Starts 0.055-0.074 m inside the shrunk free space (less than the look-ahead) ended as
+    a robot ``error`` at t = 0 with an empty reason; now a clear error names the start, why,
+    and the nearest start that works with any heading."""
+    from confnav.maps.footprint import inflate
+
+    r, d = 0.1, 0.1
+    nav = inflate(Workspace.from_dict(ROOM), r + d)
+    # starts 0.06 m inside the shrunk space, next to the outer wall, on all four sides
+    starts = [complex(x, -2 + r + d + 0.06) for x in (-1.5, -1.0, 1.0, 1.5)]
+    starts += [complex(-2 + r + d + 0.06, y) for y in (-1.0, 1.0)]
+    assert np.allclose(nav.clearance(np.array(starts)), 0.06)
+    text = ";".join(f"{z.real:g},{z.imag:g}" for z in starts)
+    args = ["simulate", str(room), "--goal=1.5,1.5", f"--starts={text}",
+            "--robot-radius", str(r), "--unicycle", str(d)]  # fmt: skip
+    assert main(args) == 1
+    err = capsys.readouterr().err
+    assert "look-ahead point" in err and "outside the navigable space" in err
+    assert "0.06 m inside that space and needs more than 0.1 m" in err
+    near = err.split("with any heading is (")[1].split(")")[0]
+    zn = complex(*(float(v) for v in near.split(",")))
+    assert 0.1 < float(nav.clearance(np.array([zn]))[0]) < 0.11  # just deep enough
+
+
+def test_t_max_help_and_behaviour_agree(
+    room: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``--help`` named 10000 s while a unicycle run stopped at 1000 s."""
+    with pytest.raises(SystemExit):
+        main(["simulate", "--help"])
+    help_text = " ".join(capsys.readouterr().out.split())
+    assert "default: 10000 s, 1000 s for unicycles" in help_text
+    out = tmp_path / "u.json"
+    args = ["simulate", str(room), "--goal=1.5,-1.5", "--starts=-1.5,1.5",
+            "--robot-radius", "0.1", "--unicycle", "0.1"]  # fmt: skip
+    assert main([*args, f"--json={out}"]) == 0
+    assert json.loads(out.read_text())["params"]["t_max"] == 1000.0
+    assert main([*args, "--t-max", "1.5", f"--json={out}"]) == 0
+    doc = json.loads(out.read_text())
+    (run,) = doc["runs"]
+    assert run["status"] == "timeout" and run["time"] == pytest.approx(1.5)
+    assert run["reason"].startswith("time limit 1.5 s reached")

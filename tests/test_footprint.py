@@ -258,3 +258,57 @@ def test_controller_names_an_unreachable_goal() -> None:
         navigation.make_controller(cmap, bad)
     uni = ok.model_copy(update={"drive": "unicycle", "lookahead": 0.05})
     assert navigation.map_ws_id(uni) == "room~r0.15"
+
+
+def _wedges(width: float, tip_deg: float = 50.0) -> Workspace:
+    """Two wedge-shaped obstacles (tip angle ``tip_deg``) pointing at each other, their tips
+    ``width`` apart at the origin: the passage between them is ``width`` wide."""
+    h = 2 * math.tan(math.radians(tip_deg / 2))
+    left = [(-width / 2, 0), (-width / 2 - 2, -h), (-width / 2 - 2, h)]
+    right = [(width / 2, 0), (width / 2 + 2, h), (width / 2 + 2, -h)]
+    return Workspace(ROOM, [left, right])
+
+
+def _door(width: float, tip_deg: float = 50.0) -> Workspace:
+    """A wall across the room, part of the outer boundary, with a door ``width`` wide between
+    two pointed jambs (tip angle ``tip_deg``): the passage is between parts of one ring."""
+    h = 0.5 * math.tan(math.radians(tip_deg / 2))
+    w = width / 2
+    outer = [(-5, -5), (5, -5), (5, 5), (-5, 5), (-5, h), (-0.5 - w, h), (-w, 0),
+             (-0.5 - w, -h), (-5, -h)]  # fmt: skip
+    hole = [(w, 0), (0.5 + w, h), (4.9, h), (4.9, -h), (0.5 + w, -h)]
+    return Workspace(outer, [hole])
+
+
+@pytest.mark.parametrize("make", [_wedges, _door], ids=["two obstacles", "door in a wall"])
+def test_a_passage_stays_open_exactly_when_the_true_minkowski_sum_leaves_it_open(
+    make: Any,
+) -> None:
+    """Mitre joins grew two facing 50-degree corners by about 0.45 m each for a 0.32 m disk and
+    closed a 0.78 m passage the disk passes; the passage is now reopened from the round-join
+    shrink (circumscribed: still inside the exact one), and a 0.60 m passage stays closed."""
+    r = 0.32
+    for width, is_open in ((0.78, True), (0.66, True), (0.60, False)):
+        ws = make(width)
+        inf = shrink_free_space(ws, r)
+        mid = shapely.Point(0, 0)  # the middle of the passage
+        # exact: the disk fits at the middle iff the passage is wider than 2 r
+        assert (float(ws.clearance(np.array([0j]))[0]) > r) == is_open
+        assert any(c.contains(mid) for c in inf.components) == is_open, width
+        assert (inf.reopened > 0) == is_open  # the mitre alone closes all three
+        # still conservative: every point of the result is >= r from every wall and obstacle
+        union = shapely.MultiPolygon(list(inf.components))
+        assert shapely.distance(union.boundary, ws.polygon.boundary) >= r * (1 - 1e-9)
+        assert ws.polygon.buffer(1e-9).contains(union)
+        # the mitre's vertices stay away from the passage: only the reopened pieces are round
+        mitre_only = ws.polygon.buffer(-r, join_style="mitre", mitre_limit=5.0)
+        n = sum(len(c.exterior.coords) + sum(len(h.coords) for h in c.interiors)
+                for c in inf.components)  # fmt: skip
+        n_mitre = sum(len(c.exterior.coords) + sum(len(h.coords) for h in c.interiors)
+                      for c in getattr(mitre_only, "geoms", [mitre_only]))  # fmt: skip
+        assert n <= n_mitre + 40
+    # with the passage open, a goal across it is reachable from the other side
+    inflate(make(0.78), r, keep=complex(0, 3), require={"goal": complex(0, -3)})
+    if make is _door:
+        with pytest.raises(UnreachableGoalError):
+            inflate(make(0.60), r, keep=complex(0, 3), require={"goal": complex(0, -3)})

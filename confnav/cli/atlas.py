@@ -21,7 +21,6 @@ collisions and clearances those of the body in the original workspace.
 from __future__ import annotations
 
 import argparse
-import json
 import signal
 import sys
 import time
@@ -34,6 +33,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from confnav.argtypes import output_path, positive_float, positive_int
+from confnav.cli.jsonout import write_json
 from confnav.cli.simulate import _point, _points
 from confnav.navigation import defaults
 
@@ -214,7 +214,7 @@ def run_atlas(args: argparse.Namespace) -> int:
             )
             print(f"plot written to {out}")
     if args.json:
-        args.json.write_text(json.dumps(doc, indent=1))
+        write_json(Path(args.json), doc)  # inf/NaN (no path, never measured) as null
     return code
 
 

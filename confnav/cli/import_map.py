@@ -9,6 +9,7 @@ workspace is the free space shrunk by the radius (for the robot's centre).
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -79,8 +80,8 @@ def run(args: argparse.Namespace) -> int:
         max_error=args.max_error,
     )
     args.output.write_text(res.workspace.to_json(indent=1) + "\n")
-    for line in res.report.lines():
-        print(line)
+    for line in res.report.lines():  # warnings (e.g. the border taken as a wall) on stderr
+        print(line, file=sys.stderr if line.startswith("warning:") else sys.stdout)
     print(f"workspace written to {args.output}")
     if args.plot:
         _plot(args.map, res, args.plot)

@@ -16,7 +16,6 @@ navigation functions.
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import sys
 import time
@@ -26,9 +25,14 @@ from typing import Any
 import numpy as np
 
 from confnav.argtypes import output_path, positive_float, positive_int
-from confnav.errors import NavigationError
+from confnav.cli.jsonout import finite, write_json
+from confnav.errors import ConfnavError, CrowdingError, NavigationError, fmt_point
 
 log = logging.getLogger(__name__)
+
+#: Time limit per robot when ``--t-max`` is not given (s): a unicycle's zero-order-hold
+#: integration takes many more steps per simulated second than the adaptive point robot's.
+T_MAX_POINT, T_MAX_UNICYCLE = 1e4, 1e3
 
 
 def _point(text: str) -> complex:
@@ -86,7 +90,13 @@ def register(subparsers: Any) -> None:
         "--omega-max", type=positive_float, default=2.0, help="unicycle yaw-rate limit, rad/s"
     )
     _law_options(p)
-    p.add_argument("--t-max", type=positive_float, default=1e4, help="time limit per robot (s)")
+    p.add_argument(
+        "--t-max",
+        type=positive_float,
+        default=None,
+        help=f"time limit per robot, s (default: {T_MAX_POINT:g} s, {T_MAX_UNICYCLE:g} s for "
+        "unicycles)",
+    )
     p.add_argument(
         "--require",
         type=float,
@@ -204,34 +214,87 @@ def _as_atlas(args: argparse.Namespace, nav_ws: Any) -> int:
 
 
 def run_simulate(args: argparse.Namespace) -> int:
+    """``confnav simulate``: the steps below, in order (each a function of this module)."""
     from confnav.geometry import Workspace
-    from confnav.maps.footprint import inflate
-    from confnav.navigation.control import Controller
-    from confnav.navigation.shortest_path import ShortestPaths, path_ratio
-    from confnav.navigation.unicycle import UnicycleResult, look_ahead_point, simulate_robots
-    from confnav.scenes.scenarios import random_starts
 
+    _check_options(args)
     ws = Workspace.load(args.workspace)
+    body = args.robot_radius + (args.unicycle or 0.0)  # the footprint shrinks the free space
+    nav_ws = _navigable_space(args, ws, body)
+    if not args.map and _crowds_one_map(args, nav_ws):
+        return _as_atlas(args, nav_ws)
+    try:
+        cmap = _load_map(args, nav_ws)
+    except CrowdingError as exc:  # found mid-solve, not by the a-priori test
+        if args.map or args.single_map:
+            raise
+        print(f"note: one map crowds ({exc}): navigating it as an atlas (confnav atlas; "
+              "--single-map forces one map)", file=sys.stderr)  # fmt: skip
+        return _as_atlas(args, nav_ws)
+    ctl = _controller(args, cmap)
+    starts, headings = _starts(args, nav_ws)
+    res = _drive(args, ctl, ws, starts, headings)
+    runs, ratios = _runs(args, ctl, nav_ws, res)
+    summary, params = _summary(res, ratios, runs), _params(args, ctl)
+    _print_report(runs, summary, params, ctl)
+    if args.json:
+        doc = {"workspace": str(args.workspace), "params": params, "summary": summary,
+               "runs": runs}  # fmt: skip
+        write_json(Path(args.json), doc)
+    if args.plot:
+        _plot(args, ctl, ws, res, runs, summary, body)
+    if args.require is not None and res.success_rate < args.require:
+        print(
+            f"FAIL: success rate {res.success_rate:.4f} is below --require {args.require:g}",
+            file=sys.stderr,
+        )
+        return 1
+    return 0
+
+
+def _check_options(args: argparse.Namespace) -> None:
+    """Option values argparse cannot check alone; resolves the default ``--t-max``."""
     if args.require is not None and not 0 <= args.require <= 1:
         raise NavigationError("--require needs a rate in [0, 1]")
-    body = args.robot_radius + (args.unicycle or 0.0)  # the footprint shrinks the free space
-    named = {f"start {k}": z for k, z in enumerate(args.starts or [])}
-    nav_ws = inflate(ws, body, keep=args.goal, require=named) if body else ws
-    if not args.map:
-        from confnav.atlas.charts import atlas_reason
+    if args.random is not None and args.random < 1:
+        raise NavigationError("--random needs N >= 1")
+    if args.unicycle is not None and not (np.isfinite(args.unicycle) and args.unicycle > 0):
+        raise NavigationError(f"--unicycle needs a look-ahead distance > 0, got {args.unicycle!r}")
+    if args.t_max is None:
+        args.t_max = T_MAX_UNICYCLE if args.unicycle else T_MAX_POINT
 
-        # a priori, in under a second: one map would crowd (a loop around an obstacle is no
-        # channel: such a room keeps its single map, as it always did here)
-        why = atlas_reason(nav_ws, loops=True)
-        if why and not args.single_map:
-            print(f"note: {why}: navigating it as an atlas (confnav atlas; "
-                  "--single-map forces one map)", file=sys.stderr)  # fmt: skip
-            return _as_atlas(args, nav_ws)
-        if why:
-            print(f"warning: {why}; the single map may fail", file=sys.stderr)
-        elif atlas_reason(nav_ws):
-            print("note: elongated, but around obstacles: solving one map", file=sys.stderr)
-    cmap = _load_map(args, nav_ws)
+
+def _navigable_space(args: argparse.Namespace, ws: Any, body: float) -> Any:
+    """The workspace of the steered point: ``ws`` shrunk by radius + look-ahead, keeping the
+    goal's component; every given start must lie in it (``UnreachableGoalError`` otherwise)."""
+    from confnav.maps.footprint import inflate
+
+    if not body:
+        return ws
+    named = {f"start {k}": z for k, z in enumerate(args.starts or [])}
+    return inflate(ws, body, keep=args.goal, require=named)
+
+
+def _crowds_one_map(args: argparse.Namespace, nav_ws: Any) -> bool:
+    """The a-priori test (under a second): True if the workspace should run as an atlas."""
+    from confnav.atlas.charts import atlas_reason
+
+    # a loop around an obstacle is no channel: such a room keeps its single map
+    why = atlas_reason(nav_ws, loops=True)
+    if why and not args.single_map:
+        print(f"note: {why}: navigating it as an atlas (confnav atlas; "
+              "--single-map forces one map)", file=sys.stderr)  # fmt: skip
+        return True
+    if why:
+        print(f"warning: {why}; the single map may fail", file=sys.stderr)
+    elif atlas_reason(nav_ws):
+        print("note: elongated, but around obstacles: solving one map", file=sys.stderr)
+    return False
+
+
+def _controller(args: argparse.Namespace, cmap: Any) -> Any:
+    from confnav.navigation.control import Controller
+
     ctl = Controller(
         cmap,
         args.goal,
@@ -252,97 +315,213 @@ def run_simulate(args: argparse.Namespace) -> int:
                 "use --k auto or --navfn harmonic",
                 file=sys.stderr,
             )
+    return ctl
+
+
+def _starts(args: argparse.Namespace, nav_ws: Any) -> tuple[np.ndarray, np.ndarray | None]:
+    """The starts and, for unicycles, their headings (uniform, from ``--seed``). A unicycle
+    whose look-ahead point lies outside the navigable space cannot be steered: refused here,
+    naming the start, why, and the nearest start that works with every heading."""
+    from confnav.scenes.scenarios import random_starts
+
+    d = args.unicycle
     if args.random is not None:
-        if args.random < 1:
-            raise NavigationError("--random needs N >= 1")
-        starts = random_starts(nav_ws, args.random, args.seed, margin=0.05 + (args.unicycle or 0))
+        # margin d + 5 cm: the look-ahead point is inside whatever the heading
+        starts = random_starts(nav_ws, args.random, args.seed, margin=0.05 + (d or 0))
     else:
         starts = np.array(args.starts, dtype=np.complex128)
-    res = simulate_robots(
-        ctl,
+    if d is None:
+        return starts, None
+    headings = np.random.default_rng(args.seed).uniform(-np.pi, np.pi, starts.size)
+    _check_look_ahead(nav_ws, starts, headings, float(d), args.robot_radius)
+    return starts, headings
+
+
+def _check_look_ahead(
+    nav_ws: Any, starts: np.ndarray, headings: np.ndarray, d: float, radius: float
+) -> None:
+    """``NavigationError`` for the first start whose look-ahead point is not strictly inside
+    the navigable space (the free space shrunk by radius + d)."""
+    from confnav.maps.footprint import EDGE_RTOL, shrink_free_space
+    from confnav.navigation.unicycle import look_ahead_point
+
+    p = look_ahead_point(starts, headings, d)
+    depth = np.asarray(nav_ws.clearance(p), dtype=float)
+    bad = np.flatnonzero(~(depth > EDGE_RTOL * nav_ws.diameter))
+    if bad.size == 0:
+        return
+    k = int(bad[0])
+    here = float(np.asarray(nav_ws.clearance(starts[k : k + 1]))[0])
+    try:  # every heading works from a start more than d inside the navigable space
+        near, _ = shrink_free_space(nav_ws, 1.001 * d).nearest(complex(starts[k]))
+        hint = f"; the nearest start that works with any heading is {fmt_point(near)}"
+    except ConfnavError:
+        hint = ""
+    raise NavigationError(
+        f"start {k} {fmt_point(complex(starts[k]))}: its look-ahead point "
+        f"{fmt_point(complex(p[k]))} (heading {np.degrees(headings[k]):.0f} deg, {d:g} m "
+        f"ahead) is outside the navigable space (the free space shrunk by the radius "
+        f"{radius:g} m plus the look-ahead {d:g} m), so it cannot be steered; the start is "
+        f"{here:.3g} m inside that space and needs more than {d:g} m"
+        + f" ({len(bad)} of {starts.size} starts)" * (len(bad) > 1)
+        + hint
+    )
+
+
+def _drive(
+    args: argparse.Namespace, ctl: Any, ws: Any, starts: np.ndarray, headings: np.ndarray | None
+) -> Any:
+    """Integrate the robots for at most ``--t-max`` each; collisions are the body's in ``ws``."""
+    from confnav.navigation.sim import simulate
+    from confnav.navigation.unicycle import UnicycleController, simulate_unicycle
+
+    if headings is None:
+        return simulate(
+            ctl,
+            starts,
+            clearance=lambda z: ws.clearance(z) - args.robot_radius,
+            t_max=args.t_max,
+            record_paths=args.plot is not None,
+        )
+    uc = UnicycleController(ctl, float(args.unicycle), v_max=ctl.v_max, omega_max=args.omega_max)
+    return simulate_unicycle(
+        uc,
         starts,
-        workspace=ws,
+        headings,
+        clearance=ws.clearance,
         radius=args.robot_radius,
-        lookahead=args.unicycle,
-        omega_max=args.omega_max,
-        seed=args.seed,
+        dt=0.02,
         t_max=args.t_max,
         record_paths=args.plot is not None,
     )
+
+
+def _runs(
+    args: argparse.Namespace, ctl: Any, nav_ws: Any, res: Any
+) -> tuple[list[dict[str, Any]], np.ndarray]:
+    """Per-robot dicts (JSON-ready: None where a value is undefined) and the path ratios."""
+    from confnav.navigation.shortest_path import ShortestPaths, path_ratio
+    from confnav.navigation.unicycle import UnicycleResult, look_ahead_point
+
     runs = [r.to_dict() for r in res.runs()]
     if isinstance(res, UnicycleResult):
         # the look-ahead point is what is steered to the goal: its path against the shortest
         # from where it starts (the axle's path ends d short of the goal: ratios below 1)
         origin = look_ahead_point(res.starts, res.headings, float(args.unicycle))
         length = res.point_length
-        for r, p in zip(runs, length, strict=True):
-            r["point_path_length"] = float(p)
+        for r, q in zip(runs, length, strict=True):
+            r["point_path_length"] = float(q)
     else:
         origin, length = res.starts, res.path_length
     shortest = ShortestPaths(nav_ws, ctl.goal).lengths(origin)
     ratios = path_ratio(length, shortest, ctl.goal_tol)
-    for r, s, q in zip(runs, shortest, ratios, strict=True):
-        r["shortest_path"] = float(s)
-        r["path_ratio"] = float(q) if r["success"] and np.isfinite(q) else None
+    for i, (r, s, q) in enumerate(zip(runs, shortest, ratios, strict=True)):
+        r["shortest_path"] = finite(s)  # None: no path (another component)
+        r["path_ratio"] = finite(q) if r["success"] else None
+        for key in ("min_clearance", "final_distance", "time", "path_length", "max_speed"):
+            r[key] = finite(r[key])  # None: undefined (e.g. a robot that never moved)
+        if not r["success"] and not r.get("reason"):
+            r["reason"] = _reason(args, ctl, res, i)
+    return runs, np.asarray(ratios, dtype=float)
+
+
+def _reason(args: argparse.Namespace, ctl: Any, res: Any, i: int) -> str:
+    """A reason for a failed run whose integrator gave none (never an empty reason)."""
+    from confnav.navigation.sim import STATUS_NAMES
+    from confnav.navigation.unicycle import look_ahead_point
+
+    status = STATUS_NAMES[int(res.status[i])]
+    if status == "timeout":
+        return f"time limit {args.t_max:g} s reached (--t-max), {res.final_distance[i]:.3g} m short"
+    if status == "collided":
+        return "the body touched an obstacle or wall"
+    if status == "stalled":
+        return "no progress (a critical point of the navigation function or a held command)"
+    if not (np.isfinite(res.final[i]) and np.isfinite(res.time[i])):
+        return (
+            f"the robot's state became non-finite after {int(res.n_steps[i])} steps (a "
+            "non-finite command; the integrator stopped it)"
+        )
+    if args.unicycle:
+        theta = res.final_theta[i : i + 1]
+        p = complex(look_ahead_point(res.final[i : i + 1], theta, float(args.unicycle))[0])
+        return (
+            f"the controller refused the look-ahead point {fmt_point(p)} (outside the map's "
+            f"domain or a non-finite command) at t = {res.time[i]:.3g} s"
+        )
+    return (
+        f"the controller refused the position {fmt_point(complex(res.final[i]))} (outside "
+        f"the map's domain or a non-finite command) at t = {res.time[i]:.3g} s"
+    )
+
+
+def _summary(res: Any, ratios: np.ndarray, runs: list[dict[str, Any]]) -> dict[str, Any]:
     ratio = ratios[res.success & np.isfinite(ratios)]
-    summary = {
+    clear = [r["min_clearance"] for r in runs if r["min_clearance"] is not None]
+    return {
         "n": int(res.starts.size),
-        "success_rate": res.success_rate,
+        "success_rate": finite(res.success_rate),
         "collisions": int(res.collided.sum()),
         "stalled": int((res.status == 2).sum()),
         "timeouts": int((res.status == 3).sum()),
         "errors": int((res.status == 4).sum()),
         "median_path_ratio": float(np.median(ratio)) if ratio.size else None,
         "median_time": float(np.median(res.time[res.success])) if res.success.any() else None,
-        "min_clearance": float(np.min(res.min_clearance)),
+        "min_clearance": min(clear) if clear else None,
         "wall_time": res.wall_time,
     }
-    params = {
+
+
+def _params(args: argparse.Namespace, ctl: Any) -> dict[str, Any]:
+    return {
         "navfn": ctl.navfn.name,
         "k": getattr(ctl.navfn, "k", None),
         "fallback": ctl.fallback or None,
         "speed_law": ctl.speed_law,
         "gain": ctl.gain,
-        "v_max": None if not np.isfinite(ctl.v_max) else ctl.v_max,
+        "v_max": finite(ctl.v_max),  # None: no speed limit
         "goal": [ctl.goal.real, ctl.goal.imag],
         "goal_tol": ctl.goal_tol,
+        "t_max": args.t_max,
     }
+
+
+def _print_report(
+    runs: list[dict[str, Any]], summary: dict[str, Any], params: dict[str, Any], ctl: Any
+) -> None:
     print(run_table(runs))
+    rate = summary["success_rate"]
     print(
         f"{summary['n']} robots, {params['navfn']}"
         + (f" k={params['k']:g}" if params["k"] is not None else "")
-        + f", {ctl.speed_law} law: success {100 * res.success_rate:.1f}%, collisions "
-        f"{summary['collisions']}, stalled {summary['stalled']}, timeouts {summary['timeouts']}"
-        f", median path ratio "
+        + f", {ctl.speed_law} law: success "
+        + ("n/a" if rate is None else f"{100 * rate:.1f}%")
+        + f", collisions {summary['collisions']}, stalled {summary['stalled']}, timeouts "
+        f"{summary['timeouts']}, errors {summary['errors']}, median path ratio "
         + (f"{summary['median_path_ratio']:.3f}" if summary["median_path_ratio"] else "n/a")
     )
-    if args.json:
-        doc: dict[str, Any] = {
-            "workspace": str(args.workspace),
-            "params": params,
-            "summary": summary,
-            "runs": runs,
-        }
-        Path(args.json).write_text(json.dumps(doc, indent=1, allow_nan=False, default=_jsonable))
-    if args.plot:
-        from confnav.plot.navigation import save_navigation_figure
 
-        save_navigation_figure(
-            ctl,
-            res.paths or (),
-            args.plot,
-            title=f"{args.workspace}: {100 * res.success_rate:.1f}% of {summary['n']} arrived",
-            outcomes=[r["status"] for r in runs],
-            walls=ws if body else None,
-            shrink=body,
-        )
-    if args.require is not None and res.success_rate < args.require:
-        print(
-            f"FAIL: success rate {res.success_rate:.4f} is below --require {args.require:g}",
-            file=sys.stderr,
-        )
-        return 1
-    return 0
+
+def _plot(
+    args: argparse.Namespace,
+    ctl: Any,
+    ws: Any,
+    res: Any,
+    runs: list[dict[str, Any]],
+    summary: dict[str, Any],
+    body: float,
+) -> None:
+    from confnav.plot.navigation import save_navigation_figure
+
+    save_navigation_figure(
+        ctl,
+        res.paths or (),
+        args.plot,
+        title=f"{args.workspace}: {100 * res.success_rate:.1f}% of {summary['n']} arrived",
+        outcomes=[r["status"] for r in runs],
+        walls=ws if body else None,
+        shrink=body,
+    )
 
 
 TABLE_ROWS = 20
@@ -375,17 +554,11 @@ def _row(i: int, r: dict[str, Any]) -> tuple[str, ...]:
         str(i),
         f"({r['start'][0]:.2f}, {r['start'][1]:.2f})",
         r["status"],
-        f"{r['time']:.1f}",
+        "-" if r["time"] is None else f"{r['time']:.1f}",
         "-" if ratio is None else f"{ratio:.3f}",
-        f"{r['min_clearance']:.3f}",
+        "-" if r["min_clearance"] is None else f"{r['min_clearance']:.3f}",
         r.get("reason", ""),
     )
-
-
-def _jsonable(x: Any) -> Any:
-    if isinstance(x, np.generic):
-        return x.item()
-    raise TypeError(type(x))
 
 
 def run_figures(args: argparse.Namespace) -> int:

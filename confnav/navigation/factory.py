@@ -13,7 +13,7 @@ from numpy.typing import ArrayLike
 
 from confnav.errors import NavigationError
 from confnav.navigation.critical import choose_k
-from confnav.navigation.harmonic import HarmonicNavigation
+from confnav.navigation.harmonic import HarmonicNavigation, RecentredHarmonic
 from confnav.navigation.navfn import (
     NAVFN_NAMES,
     CircleDomain,
@@ -38,7 +38,10 @@ def make_navfn(
     For ``"kr"``, ``k="auto"`` picks the smallest k of :data:`confnav.navigation.critical.K_LADDER`
     whose critical points check out (one minimum, M saddles); an integer k is used as is.
     ``samples`` (harmonic only): circle-domain points where the fit must be accurate relative
-    to the size of G (see :meth:`confnav.navigation.harmonic.GreenBasis.fit`).
+    to the size of G (see :meth:`confnav.navigation.harmonic.GreenBasis.fit`). A harmonic fit
+    that does not converge is redone on a Moebius image of the domain that spreads crowded
+    circles (:class:`confnav.navigation.harmonic.RecentredHarmonic`); if that fails too, its
+    error is raised (the controller then falls back to Koditschek-Rimon).
     """
     dom = CircleDomain.of(domain)
     if name == "kr":
@@ -48,5 +51,12 @@ def make_navfn(
             return choose_k(dom, goal).navfn
         return KoditschekRimon(dom, goal, k)
     if name == "harmonic":
-        return HarmonicNavigation(dom, goal, samples=samples)
+        try:
+            return HarmonicNavigation(dom, goal, samples=samples)
+        except NavigationError as exc:
+            if "did not converge" not in str(exc) or dom.n_obstacles < 2:
+                raise
+        # circles crowded towards one point of the unit circle (the anchor at one end of a
+        # long map): the same Green's function fitted where a Moebius map spreads them
+        return RecentredHarmonic(dom, goal, samples=samples)
     raise NavigationError(f"unknown navigation function {name!r}; choose from {NAVFN_NAMES}")
