@@ -208,6 +208,7 @@ def pairwise_rows(
     hold_time: float = defaults.HOLD_TIME,
     fraction: float = defaults.HOLD_FRACTION,
     active: ArrayLike | None = None,
+    horizon: float = 0.0,
 ) -> Rows:
     """Rows keeping the disks of N controlled robots off each other and off other disks.
 
@@ -216,6 +217,12 @@ def pairwise_rows(
     controlled here (robots of another controller, real or replayed ones, movers) with their
     velocity (m/s; 0 if unknown) and whether they run this same filter (``cooperative``).
     ``active`` (default all): robots that take rows; the others are still obstacles.
+    ``horizon`` (s): a non-cooperative disk with velocity ``v_j`` counts as the capsule it
+    sweeps over the next ``horizon`` seconds (segment ``z_j .. z_j + v_j horizon`` widened by
+    its radius): a robot then keeps out of a mover's path ahead of it and leaves it sideways,
+    instead of only backing away from a person who walks faster than the robot can drive.
+    The capsule is convex and translates with ``v_j``, so the argument below holds with the
+    normal at its nearest point, and it contains the disk.
 
     For a pair at distance ``D = |z_i - z_j|``, unit normal ``n = (z_i - z_j) / D`` and gap
     ``h = D - r_i - r_j`` the barrier is ``h`` itself (the distance form of Wang, Ames,
@@ -265,7 +272,9 @@ def pairwise_rows(
             ii += [pr[:, 0], pr[:, 1]]
             jj += [pr[:, 1], pr[:, 0]]
     if m:
-        reach = float(r.max()) + float(orad.max()) + (vtop + float(np.abs(ovel).max())) / alpha
+        fast = max(vtop, float(np.abs(ovel).max()))  # cooperative rows bind up to 2 v_max
+        reach = float(r.max()) + float(orad.max()) + (vtop + fast) / alpha
+        reach += float(np.abs(ovel).max()) * horizon
         sm = cKDTree(pts).sparse_distance_matrix(
             cKDTree(np.column_stack([oz.real, oz.imag])), reach, output_type="ndarray"
         )
@@ -282,7 +291,12 @@ def pairwise_rows(
     allr = np.concatenate([r, orad])
     allv = np.concatenate([np.zeros(n, np.complex128), ovel])
     coop = np.concatenate([np.ones(n, bool), ocoop])
-    d = z[i] - allz[j]
+    sweep = np.where(coop[j], 0j, allv[j] * horizon)  # capsule axis (0: a disk)
+    ss = np.abs(sweep) ** 2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s_near = np.clip(np.real(np.conj(sweep) * (z[i] - allz[j])) / ss, 0.0, 1.0)
+    near = allz[j] + np.where(ss > 0, s_near, 0.0) * sweep
+    d = z[i] - near
     dist = np.abs(d)
     nrm = np.where(dist > 0, d / np.where(dist > 0, dist, 1.0), 1.0 + 0j)
     gap = dist - r[i] - allr[j]
@@ -317,7 +331,7 @@ def project_rows(
     points on the circle ``|u| = cap``; the feasible candidate nearest ``u_nom`` wins.
     Vectorized over robots; ``a``, ``b`` of shape (N, K).  Returns ``(u, feasible)``; where
     the rows and the cap leave no command, ``u`` is the candidate of least largest violation
-    (``feasible`` False).
+    (``feasible`` False) within the cap.
     """
     un = np.asarray(u_nom, dtype=np.complex128).reshape(-1)
     n = un.size
@@ -359,9 +373,16 @@ def project_rows(
     cost = np.where(feas, np.abs(Cf - un[:, None]) ** 2, np.inf)
     best = np.argmin(cost, axis=1)
     ok = np.isfinite(cost[np.arange(n), best])
-    least = np.argmin(viol, axis=1)
-    pick = np.where(ok, best, least)
-    return Cf[np.arange(n), pick], ok
+    # no feasible command: the candidate (scaled into the cap) of least largest row violation
+    m = np.abs(Cf)
+    Cc = np.where(m > cp[:, None], Cf * (cp[:, None] / np.where(m > 0, m, 1.0)), Cf)
+    rv = np.zeros(Cc.shape)
+    if k:
+        sl = np.real(np.conj(A)[:, None, :] * Cc[:, :, None]) - B[:, None, :]
+        rv = np.max(np.maximum(-sl, 0.0), axis=2)
+    least = np.argmin(np.where(finite, rv, np.inf), axis=1)
+    rows_ = np.arange(n)
+    return np.where(ok, Cf[rows_, best], Cc[rows_, least]), ok
 
 
 def side_pass(

@@ -129,6 +129,7 @@ def simulate_fleet(
     avoid: bool = True,
     side_passing: bool = True,
     record_paths: bool = False,
+    mover_horizon: float = 2.0,
 ) -> FleetResult:
     """Drive robot i from ``starts[i]`` with ``controllers[i]`` until all arrive or ``t_max``.
 
@@ -137,6 +138,8 @@ def simulate_fleet(
     on the map of the free space shrunk by ``r + d``; its disk in the filter is ``r + d``
     around that point); ``theta``: initial headings.  ``avoid`` False: no pairwise rows (the
     robots are ghosts to each other, the state before the fleet filter); the wall cap stays.
+    ``mover_horizon``: movers count as the capsule they sweep in that many seconds
+    (:func:`~confnav.navigation.fleet.pairwise_rows`).
     """
     ctrls = list(controllers)
     x = np.asarray(starts, dtype=np.complex128).reshape(-1).copy()
@@ -167,6 +170,7 @@ def simulate_fleet(
     frozen = np.zeros(n, dtype=bool)  # hit a wall or error: stays put
     monitor = DeadlockMonitor(n)
     in_contact: set[tuple[int, int]] = set()
+    mover_touch = np.zeros((len(movers), n), dtype=bool)
     pairs_out: list[tuple[int, int, float]] = []
     robot_contacts = mover_contacts = wall_contacts = errors = infeasible = 0
     min_gap = min_mover_gap = np.inf
@@ -210,6 +214,7 @@ def simulate_fleet(
                 hold_time=hold_time,
                 fraction=fraction,
                 active=~frozen,
+                horizon=mover_horizon,
             )
         else:
             rows = Rows.empty(n)
@@ -265,7 +270,9 @@ def simulate_fleet(
             dmin, _ = swept_min_distance(x0, x, np.full(n, m0), np.full(n, m1))
             gap = dmin - r - m.radius
             min_mover_gap = min(min_mover_gap, float(gap.min()))
-            mover_contacts += int((gap <= 0).sum())
+            touch = gap <= 0
+            mover_contacts += int((touch & ~mover_touch[mi]).sum())  # contact onsets
+            mover_touch[mi] = touch
     return FleetResult(
         arrived=~np.isnan(arrival),
         arrival_time=arrival,
