@@ -1,0 +1,102 @@
+"""Fleets through the services: the simulator reports robot-robot contacts along each step
+(real Zenoh), the movers message, two robots swapping through the whole system."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from typing import Any
+
+import pytest
+from confnav.schemas import (
+    CollisionEvent,
+    DecodeError,
+    Movers,
+    SpawnRequest,
+    VelocityCommand,
+    decode,
+    encode,
+    model_for_key_parts,
+)
+from confnav.services.keys import Keys
+from confnav.services.simulator import SimulatorService
+from confnav.services.transform import workspace_of
+from conftest import square_definition, wait_for
+
+K = Keys()
+
+
+def test_movers_message_and_key() -> None:
+    msg = decode(
+        Movers,
+        b'{"ws_id": "hall", "stamp_ns": 5, "movers": [{"mover_id": "p1", "position": [1.0, 2.0],'
+        b' "radius": 0.3, "velocity": [1.2, 0.0]}]}',
+    )
+    assert decode(Movers, encode(msg)) == msg
+    assert msg.movers[0].velocity == (1.2, 0.0)
+    key = K.ws("hall", "movers")
+    assert key == "confnav/ws/hall/movers"
+    parsed = K.parse(key)
+    assert model_for_key_parts(parsed.group, parsed.kind) is Movers
+    for bad in (
+        b'{"ws_id": "hall", "stamp_ns": 5, "movers": [{"mover_id": "p", "position": [0, 0], '
+        b'"radius": 0.0}]}',  # radius must be > 0
+        b'{"ws_id": "hall", "stamp_ns": 5, "movers": [{"mover_id": "p", "position": [0, 0], '
+        b'"radius": 0.3, "velocity": [NaN, 0]}]}',
+    ):
+        with pytest.raises(DecodeError):
+            decode(Movers, bad)
+
+
+@pytest.mark.timeout(60)
+def test_simulator_reports_a_robot_pass_through_the_step_ends_miss(
+    make_bus: Callable[[], Any],
+) -> None:
+    """r1 (disk 0.05) drives from x = -0.3 to 0.1 in one 0.4 s step past r2 (disk 0.05)
+    standing at (0, 0.05): both step ends are > 0.1 apart, the closest approach (0.05, at
+    x = 0) is a contact: one event per robot, naming the other; both stop there."""
+    sim = SimulatorService(make_bus(), K, sources={}, cmd_timeout=30.0)
+    sim._workspaces["sq"] = workspace_of(square_definition("sq"))
+    sim._stop.set()  # stepped by hand
+    sim.start()
+    client = make_bus()
+    events: list[CollisionEvent] = []
+    client.subscribe(
+        K.any_robot("collision"), lambda k, p: events.append(decode(CollisionEvent, p))
+    )
+    try:
+        time.sleep(0.3)
+        for rid, x, y in (("r1", -0.3, 0.0), ("r2", 0.0, 0.05)):
+            client.publish(
+                K.sim("sim", "spawn"),
+                encode(SpawnRequest(robot_id=rid, ws_id="sq", position=(x, y), robot_radius=0.05)),
+            )
+        wait_for(lambda: len(sim.positions()) == 2, timeout=10)
+        client.publish(
+            K.robot("r1", "cmd_vel"),
+            encode(VelocityCommand(robot_id="r1", stamp_ns=time.time_ns(), linear=(1.0, 0.0))),
+        )
+        wait_for(lambda: sim.counters["commands"] == 1, timeout=10)
+        sim.step(0.4)
+        wait_for(lambda: len(events) == 2, timeout=10)
+        by = {e.robot_id: e for e in events}
+        assert by["r1"].other_robot_id == "r2" and by["r2"].other_robot_id == "r1"
+        assert by["r1"].clearance == pytest.approx(-0.05)
+        assert by["r1"].position == pytest.approx((0.0, 0.0), abs=1e-12)
+        assert sim.positions()["r1"] == pytest.approx(0.0, abs=1e-12)  # stopped where it hit
+        sim.step(0.4)  # the contact is reported once
+        time.sleep(0.2)
+        assert len(events) == 2 and len(sim.collisions) == 2
+    finally:
+        sim.stop()
+
+
+def test_simulator_step_end_only_robots_apart_no_event(mem_net: Any) -> None:
+    """The same pass 0.11 m to the side: closest approach 0.11 > 0.1, no event."""
+    sim = SimulatorService(mem_net.bus("sim"), K, cmd_timeout=30.0)
+    sim.spawn_robot("r1", "sq", -0.3 + 0j, radius=0.05)
+    sim.spawn_robot("r2", "sq", 0.11j, radius=0.05)
+    sim._robots["r1"].u = 1.0 + 0j
+    sim._robots["r1"].cmd_t = time.monotonic()
+    sim.step(0.4)
+    assert sim.collisions == [] and sim.positions()["r1"] == pytest.approx(0.1)
