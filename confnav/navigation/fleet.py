@@ -241,7 +241,8 @@ def pairwise_rows(
     separate speed cap; it holds exactly for commands held at most ``hold_time`` that start
     together and for neighbours that keep their velocity (movers) over the hold.
 
-    A row can bind only if ``b > -v_max[i]`` (``|u_i| <= v_max`` meets it otherwise), i.e. for
+    Two points (``r_i + r_j = 0``) have no bodies to touch and get no row (robots without a
+    radius drive as ghosts, as before the fleet filter).  A row can bind only if ``b > -v_max[i]`` (``|u_i| <= v_max`` meets it otherwise), i.e. for
     ``h < 2 v_max / alpha`` (controlled) or ``h < (v_max + |v_j|) / alpha``: neighbours are
     searched within that reach (``scipy.spatial.cKDTree``), farther ones give no rows, so
     leaving them out is exact.
@@ -301,7 +302,7 @@ def pairwise_rows(
     nrm = np.where(dist > 0, d / np.where(dist > 0, dist, 1.0), 1.0 + 0j)
     gap = dist - r[i] - allr[j]
     b = np.where(coop[j], -0.5 * alpha * gap, -alpha * gap + np.real(np.conj(nrm) * allv[j]))
-    bind = b > -vm[i]
+    bind = (b > -vm[i]) & (r[i] + allr[j] > 0)  # two points (no bodies) never touch
     i, j, nrm, b, gap = i[bind], j[bind], nrm[bind], b[bind], gap[bind]
     if i.size == 0:
         return Rows.empty(n)
