@@ -92,6 +92,8 @@ class Neighbours:
         # deadlock monitor per robot: best distance to goal, its time, blocked until
         self._dl: dict[str, tuple[float, float, float]] = {}
         self.counters: dict[str, int] = {}
+        #: robot id -> whether this controller serves it (set by :func:`attach`)
+        self.served: Callable[[str], bool] | None = None
 
     def _count(self, name: str, n: int = 1) -> None:
         self.counters[name] = self.counters.get(name, 0) + n
@@ -167,11 +169,14 @@ class Neighbours:
     # the filter --------------------------------------------------------------------------
     def _others(
         self, floor: str | None, exclude: set[str], now: float
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Other robots' (positions, radii, velocities) and the movers on ``floor``."""
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Other robots' and the movers on ``floor``: (positions, radii, velocities,
+        cooperative); a robot this controller serves (``served``) is cooperative: it runs
+        this filter with its own poses."""
         zs: list[complex] = []
         rs: list[float] = []
         vs: list[complex] = []
+        co: list[bool] = []
         wall = time.time_ns()
         with self._lock:
             for rid in [r for r, s in self._seen.items() if now - s.t > POSE_TTL]:
@@ -184,7 +189,9 @@ class Neighbours:
                     continue
                 zs.append(s.z)
                 rs.append(b.radius if b is not None else self.default_radius)
-                vs.append(s.v)
+                mine = self.served is not None and self.served(rid)
+                vs.append(0j if mine else s.v)
+                co.append(mine)
             for fl, (m, _) in list(self._movers.items()):
                 age = (wall - m.stamp_ns) * 1e-9
                 if age > MOVERS_TTL:
@@ -197,10 +204,12 @@ class Neighbours:
                     zs.append(complex(*d.position) + v * max(age, 0.0))
                     rs.append(d.radius)
                     vs.append(v)
+                    co.append(False)
         return (
             np.array(zs, dtype=np.complex128),
             np.array(rs, dtype=np.float64),
             np.array(vs, dtype=np.complex128),
+            np.array(co, dtype=bool),
         )
 
     def filter_block(self, results: list[Any], now: float | None = None) -> list[Any]:
@@ -261,7 +270,7 @@ class Neighbours:
         # (v + i d omega) e^{i theta} (confnav.navigation.unicycle)
         u_nom = np.where(body, (u_law.real + 1j * d * u_law.imag) * np.exp(1j * th), u_law)
         live = np.isfinite(u_nom) & (codes != Status.ERROR)
-        oz, orad, ov = self._others(floor, own, now)
+        oz, orad, ov, oco = self._others(floor, own, now)
         rows = pairwise_rows(
             p,
             rad,
@@ -269,6 +278,7 @@ class Neighbours:
             others=oz,
             others_radius=orad,
             others_velocity=ov,
+            others_cooperative=oco,
             hold_time=self.hold_time,
             fraction=self.fraction,
             active=live,
@@ -327,8 +337,12 @@ class Neighbours:
 def attach(service: Any, **kw: Any) -> Neighbours:
     """A :class:`Neighbours` subscribed on ``service``'s bus (its handles closed with it)."""
     nb = Neighbours(service.keys, **kw)
+
+    def served(rid: str) -> bool:
+        r = service._robots.get(rid)
+        return r is not None and r.goal is not None and r.ctrl is not None
+
+    nb.served = served
     service._handles.extend(nb.subscribe(service.bus))
     return nb
 
-
-NeighboursFactory = Callable[[Any], Neighbours]

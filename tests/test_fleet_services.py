@@ -100,3 +100,57 @@ def test_simulator_step_end_only_robots_apart_no_event(mem_net: Any) -> None:
     sim._robots["r1"].cmd_t = time.monotonic()
     sim.step(0.4)
     assert sim.collisions == [] and sim.positions()["r1"] == pytest.approx(0.1)
+
+
+@pytest.mark.timeout(180)
+def test_two_robots_swap_through_the_services(make_bus: Callable[[], Any]) -> None:
+    """Real Zenoh, in-process transform, controller and simulator: two disk robots (r 0.2)
+    swap head-on along one line in a 4 x 2 m room (the symmetric case a pure safety filter
+    freezes in): the simulator reports no contact and both arrive."""
+    from confnav.schemas import Goal, RobotStatus, WorkspaceDefinition
+    from confnav.services.controller import ControllerService
+    from confnav.services.transform import TransformService
+
+    room = WorkspaceDefinition(ws_id="hall", outer=[(0, 0), (4, 0), (4, 2), (0, 2)], tol=1e-6)
+    services: list[Any] = [
+        TransformService(make_bus(), K, executor="thread", health_period=0.5),
+        ControllerService(make_bus(), K, health_period=0.5),
+        SimulatorService(make_bus(), K, rate_hz=50, time_scale=2.0, cmd_timeout=1.0),
+    ]
+    sim = services[2]
+    ctl = services[1]
+    client = make_bus()
+    state: dict[str, str] = {}
+    client.subscribe(
+        K.any_robot("status"),
+        lambda k, p: state.__setitem__(
+            decode(RobotStatus, p).robot_id, decode(RobotStatus, p).state
+        ),
+    )
+    for s in services:
+        s.start()
+    try:
+        time.sleep(0.5)
+        client.publish(K.ws("hall", "definition"), encode(room))
+        wait_for(lambda: "hall" in sim._workspaces, timeout=30)
+        starts = {"a": (0.6, 1.0), "b": (3.4, 1.0)}
+        for rid, (x, y) in starts.items():
+            client.publish(
+                K.sim("sim", "spawn"),
+                encode(SpawnRequest(robot_id=rid, ws_id="hall", position=(x, y), robot_radius=0.2)),
+            )
+        wait_for(lambda: len(sim.positions()) == 2, timeout=10)
+        for rid, (x, y) in starts.items():
+            goal = (4.0 - x, y)
+            client.publish(
+                K.robot(rid, "goal"),
+                encode(Goal(robot_id=rid, ws_id="hall", goal=goal, robot_radius=0.2)),
+            )
+        wait_for(lambda: state.get("a") == "arrived" and state.get("b") == "arrived", timeout=150)
+        assert sim.collisions == []
+        pos = sim.positions()
+        assert abs(pos["a"] - (3.4 + 1.0j)) < 0.05 and abs(pos["b"] - (0.6 + 1.0j)) < 0.05
+        assert ctl.neighbours is not None and ctl.neighbours.counters.get("filtered", 0) > 0
+    finally:
+        for s in reversed(services):
+            s.stop()
