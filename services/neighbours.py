@@ -75,7 +75,7 @@ class Neighbours:
         hold_time: float = defaults.HOLD_TIME,
         fraction: float = defaults.HOLD_FRACTION,
         side_passing: bool = True,
-        window: float = 2.0,
+        window: float = 1.0,
         progress: float = 0.1,
     ) -> None:
         self.keys = keys

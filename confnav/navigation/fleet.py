@@ -242,7 +242,9 @@ def pairwise_rows(
     together and for neighbours that keep their velocity (movers) over the hold.
 
     Two points (``r_i + r_j = 0``) have no bodies to touch and get no row (robots without a
-    radius drive as ghosts, as before the fleet filter).  A row can bind only if ``b > -v_max[i]`` (``|u_i| <= v_max`` meets it otherwise), i.e. for
+    radius drive as ghosts, as before the fleet filter).
+
+    A row can bind only if ``b > -v_max[i]`` (``|u_i| <= v_max`` meets it otherwise), i.e. for
     ``h < 2 v_max / alpha`` (controlled) or ``h < (v_max + |v_j|) / alpha``: neighbours are
     searched within that reach (``scipy.spatial.cKDTree``), farther ones give no rows, so
     leaving them out is exact.
@@ -436,7 +438,7 @@ class DeadlockMonitor:
         self,
         n: int,
         *,
-        window: float = 2.0,
+        window: float = 1.0,
         progress: float = 0.1,
         engage_gap: float = 0.5,
         release: float = 1.0,

@@ -130,6 +130,8 @@ def simulate_fleet(
     side_passing: bool = True,
     record_paths: bool = False,
     mover_horizon: float = 2.0,
+    pass_angle: float = np.pi / 4,
+    deadlock_window: float = 1.0,
 ) -> FleetResult:
     """Drive robot i from ``starts[i]`` with ``controllers[i]`` until all arrive or ``t_max``.
 
@@ -139,7 +141,10 @@ def simulate_fleet(
     around that point); ``theta``: initial headings.  ``avoid`` False: no pairwise rows (the
     robots are ghosts to each other, the state before the fleet filter); the wall cap stays.
     ``mover_horizon``: movers count as the capsule they sweep in that many seconds
-    (:func:`~confnav.navigation.fleet.pairwise_rows`).
+    (:func:`~confnav.navigation.fleet.pairwise_rows`).  ``pass_angle``, ``deadlock_window``:
+    the side-passing rule's largest turn and the deadlock monitor's window
+    (:func:`~confnav.navigation.fleet.side_pass`,
+    :class:`~confnav.navigation.fleet.DeadlockMonitor`).
     """
     ctrls = list(controllers)
     x = np.asarray(starts, dtype=np.complex128).reshape(-1).copy()
@@ -168,7 +173,7 @@ def simulate_fleet(
         raise ValueError(f"robot {i} starts in contact with a wall (clearance {c_now[i]:.3g})")
     arrival = np.full(n, np.nan)
     frozen = np.zeros(n, dtype=bool)  # hit a wall or error: stays put
-    monitor = DeadlockMonitor(n)
+    monitor = DeadlockMonitor(n, window=deadlock_window)
     in_contact: set[tuple[int, int]] = set()
     mover_touch = np.zeros((len(movers), n), dtype=bool)
     pairs_out: list[tuple[int, int, float]] = []
@@ -220,7 +225,7 @@ def simulate_fleet(
             rows = Rows.empty(n)
         blocked = monitor.update(t, np.abs(p - goal), rows) if side_passing else None
         if side_passing:
-            u_nom = side_pass(u_nom, rows, blocked=blocked)
+            u_nom = side_pass(u_nom, rows, blocked=blocked, angle=pass_angle)
         u, ok = project_rows(u_nom, rows.a, rows.b, cap)
         filter_time += time.perf_counter() - t0
         infeasible += int((~ok).sum())
