@@ -4,9 +4,11 @@ poses) and the robot-robot contacts the simulator reported."""
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import pytest
 from confnav.schemas import CollisionEvent, Pose, SpawnRequest
+from test_foxglove_scene import validator  # noqa: F401  (the SceneUpdate schema fixture)
 from test_inspect import T0, _Rec
 
 from confnav.recording.inspect import inspect_recording
@@ -62,3 +64,30 @@ def test_one_robot_has_no_closest_pair(tmp_path: Path) -> None:
     r.finish()
     rep = inspect_recording(p)
     assert rep.closest is None and "closest robot-robot" not in rep.format()
+
+
+def test_movers_in_the_foxglove_scene(validator: Any) -> None:  # noqa: F811
+    """A Movers message shows in the workspace scene as one ``movers`` entity: each disk, a
+    velocity line to where it will be in 1 s, its id; the next message replaces it."""
+    import math
+
+    from confnav.schemas import MoverDisk, Movers, WorkspaceDefinition
+
+    from confnav.recording import scene_builder as sb
+
+    b = sb.SceneBuilder(period_ns=0)
+    b.observe(WorkspaceDefinition(ws_id="w1", outer=[(0, 0), (4, 0), (4, 3), (0, 3)]), T0)
+    person = MoverDisk(mover_id="p1", position=(1.0, 1.0), radius=0.3, velocity=(1.2, 0.0))
+    msgs = b.observe(Movers(ws_id="w1", stamp_ns=T0, movers=[person]), T0 + 1)
+    scene = next(m for m in msgs if m.topic == "confnav/viz/w1/scene").message
+    ent = next(e for e in scene["entities"] if e["id"] == "movers")
+    disk, vel = ent["lines"]
+    radii = [math.hypot(p["x"] - 1.0, p["y"] - 1.0) for p in disk["points"]]
+    validator.validate(scene)
+    # coordinates are written to 1e-6 m (confnav.recording.scene.COORD_DECIMALS)
+    assert max(abs(r - 0.3) for r in radii) < 2e-6 and disk["type"] == 1  # a closed loop
+    assert vel["points"][1]["x"] == pytest.approx(2.2) and ent["texts"][0]["text"] == "p1"
+    msgs = b.observe(Movers(ws_id="w1", stamp_ns=T0 + 2), T0 + 2)  # gone
+    scene = next(m for m in msgs if m.topic == "confnav/viz/w1/scene").message
+    ent = next(e for e in scene["entities"] if e["id"] == "movers")
+    assert ent["lines"] == [] and ent["texts"] == []

@@ -154,3 +154,27 @@ def test_two_robots_swap_through_the_services(make_bus: Callable[[], Any]) -> No
     finally:
         for s in reversed(services):
             s.stop()
+
+
+def test_recorder_records_movers(mem_net: Any, tmp_path: Any) -> None:
+    from confnav.schemas import MoverDisk
+    from confnav.services.recorder import Recorder
+
+    from confnav.recording.reader import Recording, decode_message
+
+    rec = Recorder(mem_net.bus("rec"), K, tmp_path / "m.mcap", health_period=0)
+    rec.start()
+    try:
+        pub = mem_net.bus("tracker")
+        msg = Movers(
+            ws_id="hall",
+            stamp_ns=time.time_ns(),
+            movers=[MoverDisk(mover_id="p1", position=(1.0, 2.0), radius=0.3)],
+        )
+        pub.publish(K.ws("hall", "movers"), encode(msg))
+        wait_for(lambda: rec.recorded >= 1, timeout=10)
+    finally:
+        rec.stop()
+    with Recording(tmp_path / "m.mcap") as r:
+        got = [decode_message(m) for m in r.iter_messages() if m.topic.endswith("/movers")]
+    assert got == [msg]
