@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import warnings
+from typing import Any
 
 import numpy as np
 import pytest
@@ -187,3 +188,20 @@ def test_person_crossing_a_robots_path(room_map) -> None:  # type: ignore[no-unt
         [ctrl], [1.0 + 1.2j], ROOM, radius=0.2, movers=[person], t_max=60, avoid=False
     )
     assert ghost.mover_contacts > 0
+
+
+def test_unicycles_swap_through_their_look_ahead_disks() -> None:
+    """Four unicycles (body 0.2 m around the axle, look-ahead 0.1 m: filter disk 0.3 m around
+    the look-ahead point, map of the room shrunk by 0.3): no body touches another or a wall,
+    all arrive; ghosts touch."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        cmap = solve(inflate(ROOM, 0.3), 1e-5)
+    ang = 2 * np.pi * np.arange(4) / 4 + 0.1
+    starts = 5 + 4j + 3.0 * np.exp(1j * ang)
+    goals = 5 + 4j - 3.0 * np.exp(1j * ang)
+    ctrls = [Controller(cmap, g) for g in goals]
+    kw: dict[str, Any] = {"radius": 0.2, "lookahead": 0.1, "theta": np.angle(goals - starts)}
+    res = simulate_fleet(ctrls, starts, ROOM, t_max=80, **kw)
+    assert res.robot_contacts == 0 and res.wall_contacts == 0 and res.arrived.all()
+    assert simulate_fleet(ctrls, starts, ROOM, t_max=80, avoid=False, **kw).robot_contacts > 0
