@@ -70,6 +70,7 @@ from confnav.errors import MapMismatchError, NavigationError, fmt_point
 from confnav.navigation import defaults
 from confnav.navigation.factory import make_navfn
 from confnav.navigation.navfn import CircleDomain, NavigationFunction
+from confnav.navigation.safety import SafetyFilter, safety_filter
 from confnav.types import CArray, FArray, as_point
 
 if TYPE_CHECKING:
@@ -78,7 +79,7 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
-__all__ = ["ConformalLike", "ControlOutput", "Controller", "Status", "speed_law"]
+__all__ = ["ConformalLike", "ControlOutput", "Controller", "SafetyCounts", "Status", "speed_law"]
 
 
 #: Lowest factor of the optional slow-down near walls (keeps the speed positive: same paths).
@@ -119,7 +120,9 @@ class ControlOutput:
     """Result of one control step for a batch of robots (arrays of the pose's shape).
 
     u: commanded velocity (complex, m/s); status: :class:`Status` codes (int8);
-    phi: ``V = phi(T(x))``; w: ``T(x)``; saturated: True where the speed is ``v_max``.
+    phi: ``V = phi(T(x))``; w: ``T(x)``; saturated: True where the speed is ``v_max``;
+    filtered: True where the safety layer (:mod:`confnav.navigation.safety`) changed the
+    law's command (None: no safety layer).
     """
 
     u: CArray
@@ -127,6 +130,7 @@ class ControlOutput:
     phi: FArray
     w: CArray
     saturated: NDArray[np.bool_]
+    filtered: NDArray[np.bool_] | None = None
 
 
 def speed_law(
@@ -204,6 +208,49 @@ def _workspace_contains(cmap: ConformalLike, z: complex) -> bool | None:
     return bool(np.asarray(ws.contains(np.asarray(z))))
 
 
+@dataclass
+class SafetyCounts:
+    """How often a controller's safety layer ran (``commands``: robot commands filtered),
+    changed the law's command (``changed``) and found no safe command but 0
+    (``infeasible``: e.g. a pose outside the free space)."""
+
+    commands: int = 0
+    changed: int = 0
+    infeasible: int = 0
+
+    def add(self, commands: int, changed: int, infeasible: int) -> None:
+        self.commands += commands
+        self.changed += changed
+        self.infeasible += infeasible
+
+    @property
+    def fraction_changed(self) -> float:
+        return self.changed / self.commands if self.commands else 0.0
+
+
+def _safety_layer(
+    safety: bool | Workspace | SafetyFilter | None, ws: Any, hold_time: float
+) -> SafetyFilter | None:
+    """The controller's :class:`SafetyFilter` (``Controller(safety=...)``)."""
+    from confnav.geometry import Workspace
+
+    if safety is False:
+        return None
+    if isinstance(safety, SafetyFilter):
+        return safety
+    if isinstance(safety, Workspace):
+        return safety_filter(safety, hold_time=hold_time)
+    if isinstance(ws, Workspace):
+        return safety_filter(ws, hold_time=hold_time)
+    if safety is None:
+        return None
+    if safety is True:
+        raise NavigationError("safety=True needs a map with a workspace (exact geometry)")
+    raise NavigationError(
+        f"safety must be a bool, a Workspace or a SafetyFilter, got {type(safety).__name__}"
+    )
+
+
 class Controller:
     """The navigation law for one goal on one conformal map.
 
@@ -236,6 +283,14 @@ class Controller:
     may be any point the robot steers, e.g. a point ahead of a unicycle's axle.
     workspace : the workspace in use; if given, a map whose ``workspace_hash`` differs from
         its ``content_hash`` is refused with :class:`~confnav.errors.MapMismatchError`.
+    safety : the safety layer on exact geometry (:mod:`confnav.navigation.safety`) every
+        command passes after the speed law.  None (default): on when the map has a
+        :class:`~confnav.geometry.Workspace` (filtered against it, with this ``hold_time``);
+        False: off; True: on (needs the map's workspace); a ``Workspace``: filter against that
+        one (the workspace in use, e.g. the true one when the map is coarse or wrong); a
+        :class:`~confnav.navigation.safety.SafetyFilter`: that filter.  Where no constraint
+        is active the command is the law's, bitwise.  :attr:`safety_counts` counts how often
+        it acts; ``ControlOutput.filtered`` says where.
     """
 
     def __init__(
@@ -253,6 +308,7 @@ class Controller:
         stall_radius: float | None = None,
         workspace: Workspace | None = None,
         hold_time: float | None = None,
+        safety: bool | Workspace | SafetyFilter | None = None,
     ) -> None:
         bound = getattr(cmap, "workspace_hash", None)
         if workspace is not None and bound != workspace.content_hash:  # issue 8
@@ -290,6 +346,9 @@ class Controller:
         for name, on in (("slow_distance", self.slow_distance), ("hold_time", self.hold_time)):
             if on > 0 and self._clearance is None:
                 raise NavigationError(f"{name} needs a map with a workspace (clearance)")
+        self.safety: SafetyFilter | None = _safety_layer(safety, ws, self.hold_time)
+        #: how often the safety layer ran and acted (commands, changed, infeasible)
+        self.safety_counts = SafetyCounts()
         if _workspace_contains(cmap, self.goal) is False:
             raise NavigationError(f"goal {fmt_point(self.goal)} is not in the free space")
         wd = complex(np.asarray(cmap.T_and_dT(np.asarray(self.goal))[0]))
@@ -353,6 +412,7 @@ class Controller:
             "slow_distance": self.slow_distance,
             "stall_radius": self.stall_radius,
             "hold_time": self.hold_time,
+            "safety": self.safety if self.safety is not None else False,
         }
 
     def with_goal(self, goal: complex | tuple[float, float] | ArrayLike) -> Controller:
@@ -376,7 +436,19 @@ class Controller:
 
     def _command(
         self, z: CArray, dw: CArray, g: CArray, clearance: FArray | None = None
+    ) -> tuple[CArray, NDArray[np.bool_], NDArray[np.bool_] | None]:
+        """The law's command, then the safety layer: ``(u, saturated, filtered)``."""
+        u, sat = self._law(z, dw, g, clearance)
+        if self.safety is None:
+            return u, sat, None
+        pr = self.safety(z, u)
+        self.safety_counts.add(pr.u.size, int(pr.changed.sum()), int(pr.infeasible.sum()))
+        return pr.u, sat & ~pr.changed, pr.changed
+
+    def _law(
+        self, z: CArray, dw: CArray, g: CArray, clearance: FArray | None = None
     ) -> tuple[CArray, NDArray[np.bool_]]:
+        """The speed law's command (before the safety layer)."""
         slow = v_cap = None
         if self.uses_clearance:
             c = self.clearance(z) if clearance is None else clearance
@@ -400,6 +472,12 @@ class Controller:
         w, dw = self.cmap.T_and_dT(z)
         g = self.navfn.gradient(w)
         return self._command(z, np.asarray(dw), g)[0]
+
+    def law_velocity(self, z: ArrayLike) -> CArray:
+        """The speed law's command without the safety layer (for comparisons)."""
+        z = np.asarray(z, dtype=np.complex128)
+        w, dw = self.cmap.T_and_dT(z)
+        return self._law(z, np.asarray(dw), self.navfn.gradient(w))[0]
 
     def __call__(self, z: ArrayLike) -> ControlOutput:
         """Command and status for a batch of robot positions (complex array, any shape)."""
@@ -439,7 +517,7 @@ class Controller:
         c = None
         if self.uses_clearance:
             c = self._clearance1(z_eval) if clearance is None or bad else float(clearance)
-        u, sat = self._command1(z_eval, dw, g, c)
+        u, sat, filt = self._command1(z_eval, dw, g, c)
         arrived = not bad and abs(z - self.goal) <= self.goal_tol
         if bad:
             status = Status.ERROR
@@ -457,6 +535,9 @@ class Controller:
             phi=_full(shape, np.nan if bad else phi, np.float64),
             w=_full(shape, complex(np.nan, 0.0) if bad else w, np.complex128),
             saturated=_full(shape, sat and not arrived and not bad, np.bool_),
+            filtered=None
+            if filt is None
+            else _full(shape, filt and not arrived and not bad, np.bool_),
         )
 
     def _clearance1(self, z: complex) -> float:
@@ -466,8 +547,19 @@ class Controller:
 
     def _command1(
         self, z: complex, dw: complex, g: complex, c: float | None
+    ) -> tuple[complex, bool, bool | None]:
+        """:meth:`_command` of one point: the law (:meth:`_law1`), then the safety layer."""
+        u, sat = self._law1(z, dw, g, c)
+        if self.safety is None:
+            return u, sat, None
+        u, changed, infeasible = self.safety.filter1(z, u)
+        self.safety_counts.add(1, int(changed), int(infeasible))
+        return u, sat and not changed, changed
+
+    def _law1(
+        self, z: complex, dw: complex, g: complex, c: float | None
     ) -> tuple[complex, bool]:
-        """:meth:`_command` and :func:`speed_law` of one point (same formulas, scalars)."""
+        """:meth:`_law` and :func:`speed_law` of one point (same formulas, scalars)."""
         f = -dw.conjugate() * g
         size = abs(f)
         if self.speed_law == "theorem2":
@@ -534,7 +626,7 @@ class Controller:
             c = np.asarray(clearance, dtype=np.float64)
             if bad.any():  # the bad poses are evaluated at the goal (then set to u = 0)
                 c = np.where(bad, self.clearance(self.goal), c)
-        u, sat = self._command(np.where(bad, self.goal, z), dw, g, c)
+        u, sat, filt = self._command(np.where(bad, self.goal, z), dw, g, c)
         arrived = ~bad & (np.abs(z - self.goal) <= self.goal_tol)
         stalled = ~bad & ~arrived & self._near_critical(w, dw)
         status = np.full(z.shape, Status.MOVING, dtype=np.int8)
@@ -548,6 +640,7 @@ class Controller:
             phi=np.where(bad, np.nan, phi),
             w=np.where(bad, np.nan + 0j, w),
             saturated=sat & ~arrived & ~bad,
+            filtered=None if filt is None else filt & ~arrived & ~bad,
         )
 
     def critical_points(self) -> CriticalPoints:
