@@ -32,7 +32,7 @@ from confnav.services.keys import KeyError_, Keys
 
 from confnav.navigation import defaults
 from confnav.navigation.control import Status
-from confnav.navigation.fleet import Rows, pairwise_rows, project_rows, side_pass
+from confnav.navigation.fleet import Rows, pairwise_rows, project_with_walls, side_pass
 from confnav.navigation.unicycle import twist_from_velocity
 
 log = logging.getLogger(__name__)
@@ -298,7 +298,8 @@ class Neighbours:
             if has[i] and getattr(ctrl, "uses_clearance", False) and ctrl.hold_time > 0:
                 c = float(np.asarray(ctrl.clearance(np.array([p[i]])))[0])
                 cap[i] = min(cap[i], defaults.HOLD_FRACTION * max(c, 0.0) / ctrl.hold_time)
-        u, ok = project_rows(u0, rows.a, rows.b, cap)
+        walls = [getattr(getattr(e[4], "controller", e[4]), "safety", None) for e in entries]
+        u, ok = project_with_walls(u0, p, rows, cap, walls)
         self._count("filtered", int(has.sum()))
         self._count("infeasible", int((~ok & has).sum()))
         for i, e in enumerate(entries):

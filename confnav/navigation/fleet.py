@@ -41,6 +41,7 @@ __all__ = [
     "fleet_step",
     "pairwise_rows",
     "project_rows",
+    "project_with_walls",
     "side_pass",
     "swept_min_distance",
 ]
@@ -413,6 +414,40 @@ def project_rows(
     least = np.argmin(np.where(finite, rv, np.inf), axis=1)
     rows_ = np.arange(n)
     return np.where(ok, Cf[rows_, best], Cc[rows_, least]), ok
+
+
+def project_with_walls(
+    u_nom: ArrayLike,
+    z: ArrayLike,
+    rows: Rows,
+    cap: ArrayLike,
+    walls: Sequence[object | None],
+) -> tuple[CArray, NDArray[np.bool_]]:
+    """The pairwise rows and each robot's wall rows in one projection.
+
+    ``walls[i]``: robot i's wall filter (a :class:`confnav.navigation.safety.SafetyFilter`
+    on the workspace its point ``z[i]`` navigates in, e.g. ``Controller.safety``; robots
+    sharing one are projected together), or None (pairwise rows and ``cap`` only:
+    :func:`project_rows`).  The filter adds its wall rows and its held-command cap and solves
+    the joint QP (its ``extra_normals``/``extra_bounds``); where that has no solution the
+    robot gets :func:`project_rows`' least-violation command on the pairwise rows and cap.
+    Returns ``(u, feasible)``.
+    """
+    un = np.asarray(u_nom, dtype=np.complex128).reshape(-1)
+    zz = np.asarray(z, dtype=np.complex128).reshape(-1)
+    cp = _as_f(cap, un.size)
+    u, ok = project_rows(un, rows.a, rows.b, cp)
+    groups: dict[int, tuple[object, list[int]]] = {}
+    for i, f in enumerate(walls):
+        if f is not None:
+            groups.setdefault(id(f), (f, []))[1].append(i)
+    for f, idx in groups.values():
+        m = np.array(idx, dtype=np.intp)
+        pr = f(zz[m], un[m], cap=cp[m], extra_normals=rows.a[m], extra_bounds=rows.b[m])  # type: ignore[operator]
+        good = ~np.asarray(pr.infeasible, dtype=bool)
+        u[m[good]] = np.asarray(pr.u)[good]
+        ok[m] = good
+    return u, ok
 
 
 def side_pass(

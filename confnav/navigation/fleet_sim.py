@@ -5,11 +5,13 @@ Every ``dt`` (the control period, at most the hold time) all robots get a new co
 once, computed from the same snapshot: the nominal command of each robot's controller
 (:func:`~confnav.navigation.fleet.fleet_step`, batched per map), turned by the side-passing
 rule (:func:`~confnav.navigation.fleet.side_pass`), then projected onto the pairwise rows
-(:func:`~confnav.navigation.fleet.pairwise_rows`) and the wall cap ``|u| <= fraction *
+(:func:`~confnav.navigation.fleet.pairwise_rows`), the wall rows of the robot's safety layer
+(``Controller.safety``, :mod:`confnav.navigation.safety`) in the same projection
+(:func:`~confnav.navigation.fleet.project_with_walls`) and the wall cap ``|u| <= fraction *
 c_body / hold_time`` (the hold cap of :mod:`confnav.navigation.control`: ``c_body`` is the
 exact clearance of the robot's disk, 1-Lipschitz, so a command held ``hold_time`` keeps the
-disk off every wall).  Commands are held exactly (points: straight lines; unicycles: exact
-arcs, :func:`~confnav.navigation.unicycle.step_exact`).
+disk off every wall, with or without the safety layer).  Commands are held exactly (points:
+straight lines; unicycles: exact arcs, :func:`~confnav.navigation.unicycle.step_exact`).
 
 Contacts are checked along every step, not at its ends: robot-robot and robot-mover with the
 exact closest approach of linearly moving centres
@@ -36,7 +38,7 @@ from confnav.navigation.fleet import (
     Rows,
     fleet_step,
     pairwise_rows,
-    project_rows,
+    project_with_walls,
     side_pass,
     swept_min_distance,
 )
@@ -166,6 +168,8 @@ def simulate_fleet(
     gidx = [np.array(g, dtype=np.intp) for g in groups.values()]
     radii_groups = [(rv, np.flatnonzero(r == rv)) for rv in np.unique(r)]
     clear = workspace.clearance
+    # each robot's wall filter (the safety layer on its map's workspace), joined with the rows
+    walls = [getattr(c, "safety", None) for c in ctrls]
 
     c_now = np.asarray(clear(x), dtype=np.float64) - r
     if np.any(~(c_now > 0)):
@@ -226,7 +230,7 @@ def simulate_fleet(
         blocked = monitor.update(t, np.abs(p - goal), rows) if side_passing else None
         if side_passing:
             u_nom = side_pass(u_nom, rows, blocked=blocked, angle=pass_angle)
-        u, ok = project_rows(u_nom, rows.a, rows.b, cap)
+        u, ok = project_with_walls(u_nom, p, rows, cap, walls)
         filter_time += time.perf_counter() - t0
         infeasible += int((~ok).sum())
         u = np.where(frozen, 0j, u)
