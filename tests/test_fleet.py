@@ -205,3 +205,15 @@ def test_unicycles_swap_through_their_look_ahead_disks() -> None:
     res = simulate_fleet(ctrls, starts, ROOM, t_max=80, **kw)
     assert res.robot_contacts == 0 and res.wall_contacts == 0 and res.arrived.all()
     assert simulate_fleet(ctrls, starts, ROOM, t_max=80, avoid=False, **kw).robot_contacts > 0
+
+
+def test_robot_in_a_movers_way_leaves_sideways() -> None:
+    # a robot on the path of a person 1 m away walking at it (1 m/s): the capsule's nearest
+    # point is the robot itself; the row asks it to leave to the right of the person's motion
+    rows = pairwise_rows(
+        [0j], 0.2, 0.5, others=[1.0], others_radius=[0.3], others_velocity=[-1.0], horizon=2.0
+    )
+    assert rows.a[0, 0] == pytest.approx(1j)  # person heads -x: its right is +y
+    assert rows.b[0, 0] == pytest.approx(2 * 0.5)  # -alpha * gap with gap = -0.5
+    u, ok = project_rows([0.5 + 0j], rows.a, rows.b, [0.5])
+    assert not ok[0] and u[0] == pytest.approx(0.5j)  # as fast as it can, sideways

@@ -178,3 +178,68 @@ def test_recorder_records_movers(mem_net: Any, tmp_path: Any) -> None:
     with Recording(tmp_path / "m.mcap") as r:
         got = [decode_message(m) for m in r.iter_messages() if m.topic.endswith("/movers")]
     assert got == [msg]
+
+
+class _R:
+    """The controller's per-robot record, as far as the fleet hook reads it."""
+
+    def __init__(self, rid: str, radius: float) -> None:
+        from confnav.schemas import Goal
+
+        self.robot_id = rid
+        self.goal = Goal(robot_id=rid, ws_id="hall", goal=(5.0, 0.0), robot_radius=radius)
+
+
+class _Law:
+    frame = "world"
+
+
+def _block(poses: list[tuple[str, float, float]], u: list[complex], radius: float = 0.2) -> Any:
+    import numpy as np
+    from confnav.schemas import Pose
+
+    members = [
+        (_R(rid, radius), Pose(robot_id=rid, stamp_ns=1, x=x, y=y)) for rid, x, y in poses
+    ]
+    return [((_Law(), members), (np.array(u, dtype=complex), np.zeros(len(u), dtype=int)))]
+
+
+def test_hook_leaves_a_lone_robot_bitwise_and_keeps_two_apart() -> None:
+    from confnav.services.neighbours import Neighbours
+
+    nb = Neighbours(K)
+    lone = _block([("a", 0.0, 0.0)], [0.3 + 0.1j])
+    out = nb.filter_block(lone)
+    assert out[0][1][0][0] == 0.3 + 0.1j  # bitwise: no neighbour, no change
+    # two robots 0.6 m apart (gap 0.2) driving at each other at 0.5 m/s: each may close at
+    # most alpha * gap / 2 = 0.2 m/s along the line (and turns right: side passing)
+    pair = _block([("a", 0.0, 0.0), ("b", 0.6, 0.0)], [0.5 + 0j, -0.5 + 0j])
+    out = nb.filter_block(pair)
+    ua, ub = out[0][1][0]
+    assert ua.real <= 0.2 + 1e-12 and -ub.real <= 0.2 + 1e-12
+    assert ua.imag < 0 < ub.imag  # both keep right
+    # points (radius 0) are no bodies: untouched
+    pts = _block([("a", 0.0, 0.0), ("b", 0.6, 0.0)], [0.5 + 0j, -0.5 + 0j], radius=0.0)
+    assert list(nb.filter_block(pts)[0][1][0]) == [0.5 + 0j, -0.5 + 0j]
+
+
+def test_hook_avoids_movers_from_the_bus(mem_net: Any) -> None:
+    """A person (0.3 m) on ``ws/hall/movers`` 0.8 m ahead walking at the robot at 1 m/s: the
+    robot's command toward it is replaced by one that opens the gap (full responsibility)."""
+    from confnav.schemas import MoverDisk
+    from confnav.services.neighbours import Neighbours
+
+    nb = Neighbours(K)
+    for h in nb.subscribe(mem_net.bus("ctl")):
+        assert h is not None
+    msg = Movers(
+        ws_id="hall",
+        stamp_ns=time.time_ns(),
+        movers=[MoverDisk(mover_id="p", position=(1.0, 0.0), radius=0.3, velocity=(-1.0, 0.0))],
+    )
+    mem_net.bus("tracker").publish(K.ws("hall", "movers"), encode(msg))
+    wait_for(lambda: nb._movers)
+    out = nb.filter_block(_block([("a", 0.0, 0.0)], [0.5 + 0j]))
+    u = out[0][1][0][0]
+    # gap 0.5, n = -1: Re(-u) >= -2 * 0.5 + 1 = 0 (plus the 2 s capsule ahead): no approach
+    assert u.real <= 1e-9 and abs(u) <= 0.5 + 1e-9

@@ -329,7 +329,11 @@ def pairwise_rows(
     near = allz[j] + np.where(ss > 0, s_near, 0.0) * sweep
     d = z[i] - near
     dist = np.abs(d)
-    nrm = np.where(dist > 0, d / np.where(dist > 0, dist, 1.0), 1.0 + 0j)
+    # on a capsule's axis (in a mover's way): leave to the right of its motion; coincident
+    # centres of two disks: an arbitrary unit normal
+    sw = np.abs(sweep)
+    side = np.where(sw > 0, -1j * sweep / np.where(sw > 0, sw, 1.0), 1.0 + 0j)
+    nrm = np.where(dist > 0, d / np.where(dist > 0, dist, 1.0), side)
     gap = dist - r[i] - allr[j]
     b = np.where(coop[j], -0.5 * alpha * gap, -alpha * gap + np.real(np.conj(nrm) * allv[j]))
     bind = (b > -vm[i]) & (r[i] + allr[j] > 0)  # two points (no bodies) never touch
@@ -404,9 +408,14 @@ def project_rows(
     cost = np.where(feas, np.abs(Cf - un[:, None]) ** 2, np.inf)
     best = np.argmin(cost, axis=1)
     ok = np.isfinite(cost[np.arange(n), best])
-    # no feasible command: the candidate (scaled into the cap) of least largest row violation
+    # no feasible command: the candidate (scaled into the cap) of least largest row violation,
+    # among them each row's own best, cap times its unit normal
     m = np.abs(Cf)
     Cc = np.where(m > cp[:, None], Cf * (cp[:, None] / np.where(m > 0, m, 1.0)), Cf)
+    if k:
+        an = np.abs(A)
+        Cc = np.concatenate([Cc, cp[:, None] * A / np.where(an > 0, an, 1.0)], axis=1)
+        finite = np.concatenate([finite, an > 0], axis=1)
     rv = np.zeros(Cc.shape)
     if k:
         sl = np.real(np.conj(A)[:, None, :] * Cc[:, :, None]) - B[:, None, :]
