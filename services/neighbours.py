@@ -12,7 +12,8 @@ velocities), with the side-passing rule and deadlock detection of
 :mod:`confnav.navigation.fleet` (docs/NAVIGATION.md, "Fleets").
 
 A robot with no neighbour within reach of a row keeps the control law's command bitwise, so
-a robot alone drives exactly as without this module.  A robot whose floor is unknown (no goal
+a robot alone drives exactly as without this module; so does a robot without a radius (a
+point), except near a mover.  A robot whose floor is unknown (no goal
 or spawn request seen) counts as a neighbour on every floor (conservative).
 """
 
@@ -169,7 +170,7 @@ class Neighbours:
     # the filter --------------------------------------------------------------------------
     def _others(
         self, floor: str | None, exclude: set[str], now: float
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Other robots' and the movers on ``floor``: (positions, radii, velocities,
         cooperative); a robot this controller serves (``served``) is cooperative: it runs
         this filter with its own poses."""
@@ -177,6 +178,7 @@ class Neighbours:
         rs: list[float] = []
         vs: list[complex] = []
         co: list[bool] = []
+        mv: list[bool] = []
         wall = time.time_ns()
         with self._lock:
             for rid in [r for r, s in self._seen.items() if now - s.t > POSE_TTL]:
@@ -192,6 +194,7 @@ class Neighbours:
                 mine = self.served is not None and self.served(rid)
                 vs.append(0j if mine else s.v)
                 co.append(mine)
+                mv.append(False)
             for fl, (m, _) in list(self._movers.items()):
                 age = (wall - m.stamp_ns) * 1e-9
                 if age > MOVERS_TTL:
@@ -205,11 +208,13 @@ class Neighbours:
                     rs.append(d.radius)
                     vs.append(v)
                     co.append(False)
+                    mv.append(True)
         return (
             np.array(zs, dtype=np.complex128),
             np.array(rs, dtype=np.float64),
             np.array(vs, dtype=np.complex128),
             np.array(co, dtype=bool),
+            np.array(mv, dtype=bool),
         )
 
     def filter_block(self, results: list[Any], now: float | None = None) -> list[Any]:
@@ -270,7 +275,7 @@ class Neighbours:
         # (v + i d omega) e^{i theta} (confnav.navigation.unicycle)
         u_nom = np.where(body, (u_law.real + 1j * d * u_law.imag) * np.exp(1j * th), u_law)
         live = np.isfinite(u_nom) & (codes != Status.ERROR)
-        oz, orad, ov, oco = self._others(floor, own, now)
+        oz, orad, ov, oco, omv = self._others(floor, own, now)
         rows = pairwise_rows(
             p,
             rad,
@@ -279,6 +284,7 @@ class Neighbours:
             others_radius=orad,
             others_velocity=ov,
             others_cooperative=oco,
+            others_mover=omv,
             hold_time=self.hold_time,
             fraction=self.fraction,
             active=live,

@@ -360,7 +360,8 @@ class SimulatorService(Service):
         self, group: list[tuple[SimRobot, complex]], stamp: int
     ) -> list[CollisionEvent]:
         """Robot-robot contacts along the step (swept disks); each new contact once, as one
-        event per robot naming the other; both robots stop where they touched."""
+        event per robot naming the other; both robots stop where they touched.  Robots
+        without a radius are points, not bodies: they touch nothing."""
         z0 = np.array([z for _, z in group], dtype=np.complex128)
         z1 = np.array([r.z for r, _ in group], dtype=np.complex128)
         rad = np.array([r.radius for r, _ in group], dtype=np.float64)
@@ -377,7 +378,7 @@ class SimulatorService(Service):
             dmin, s = swept_min_distance(z0[a], z1[a], z0[b], z1[b])
             gap = dmin - rad[a] - rad[b]
             for i, j, g, f in zip(a, b, gap, s, strict=True):
-                if not g <= 0:
+                if not g <= 0 or rad[i] <= 0 or rad[j] <= 0:  # a point is not a body
                     continue
                 key = (min(ids[i], ids[j]), max(ids[i], ids[j]))
                 touching.add(key)

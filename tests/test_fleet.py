@@ -217,3 +217,12 @@ def test_robot_in_a_movers_way_leaves_sideways() -> None:
     assert rows.b[0, 0] == pytest.approx(2 * 0.5)  # -alpha * gap with gap = -0.5
     u, ok = project_rows([0.5 + 0j], rows.a, rows.b, [0.5])
     assert not ok[0] and u[0] == pytest.approx(0.5j)  # as fast as it can, sideways
+
+
+def test_points_are_not_bodies_but_avoid_movers() -> None:
+    # a point robot next to a disk robot: no rows either way (points drive as before)
+    rows = pairwise_rows([0j, 0.3], [0.0, 0.2], 0.5)
+    assert rows.count.tolist() == [0, 0]
+    # the same point next to a mover of radius 0.2: it keeps out of the mover's disk
+    rows = pairwise_rows([0j], 0.0, 0.5, others=[0.3], others_radius=[0.2], others_mover=[True])
+    assert rows.count.tolist() == [1] and rows.gap[0, 0] == pytest.approx(0.1)

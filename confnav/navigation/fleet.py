@@ -233,6 +233,7 @@ def pairwise_rows(
     others_radius: ArrayLike | None = None,
     others_velocity: ArrayLike | None = None,
     others_cooperative: ArrayLike | None = None,
+    others_mover: ArrayLike | None = None,
     hold_time: float = defaults.HOLD_TIME,
     fraction: float = defaults.HOLD_FRACTION,
     active: ArrayLike | None = None,
@@ -269,8 +270,10 @@ def pairwise_rows(
     separate speed cap; it holds exactly for commands held at most ``hold_time`` that start
     together and for neighbours that keep their velocity (movers) over the hold.
 
-    Two points (``r_i + r_j = 0``) have no bodies to touch and get no row (robots without a
-    radius drive as ghosts, as before the fleet filter).
+    A robot without a radius is a point, not a body: pairs of robots get rows only when both
+    radii are positive (a point robot drives as before the fleet filter, and a disk robot
+    does not make room for points); ``others_mover`` marks the other disks that are movers,
+    which every robot avoids, a point robot included.
 
     A row can bind only if ``b > -v_max[i]`` (``|u_i| <= v_max`` meets it otherwise), i.e. for
     ``h < 2 v_max / alpha`` (controlled) or ``h < (v_max + |v_j|) / alpha``: neighbours are
@@ -290,6 +293,7 @@ def pairwise_rows(
     m = oz.size
     orad, ovel = _as_f(others_radius, m), _as_c(others_velocity, m)
     ocoop = _as_f(others_cooperative, m).astype(bool)
+    omover = _as_f(others_mover, m).astype(bool)
     if n == 0:
         return Rows.empty(0)
     pts = np.column_stack([z.real, z.imag])
@@ -336,7 +340,9 @@ def pairwise_rows(
     nrm = np.where(dist > 0, d / np.where(dist > 0, dist, 1.0), side)
     gap = dist - r[i] - allr[j]
     b = np.where(coop[j], -0.5 * alpha * gap, -alpha * gap + np.real(np.conj(nrm) * allv[j]))
-    bind = (b > -vm[i]) & (r[i] + allr[j] > 0)  # two points (no bodies) never touch
+    mover = np.concatenate([np.zeros(n, bool), omover])
+    bodies = np.where(mover[j], r[i] + allr[j] > 0, (r[i] > 0) & (allr[j] > 0))
+    bind = (b > -vm[i]) & bodies
     i, j, nrm, b, gap = i[bind], j[bind], nrm[bind], b[bind], gap[bind]
     if i.size == 0:
         return Rows.empty(n)

@@ -220,6 +220,7 @@ def simulate_fleet(
                 others=mz,
                 others_radius=mr,
                 others_velocity=mv,
+                others_mover=np.ones(mz.size, dtype=bool),
                 hold_time=hold_time,
                 fraction=fraction,
                 active=~frozen,
