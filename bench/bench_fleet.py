@@ -11,7 +11,11 @@ check).  Scenarios (disk robots r = 0.2 m, v_max 0.5 m/s, maps of the free space
   two 1.2 m boxes, each sent to the opposite point;
 * ``door 8``: two 4.9 m rooms joined by a 1.2 m door in a 0.2 m wall, 4 robots each way;
 * ``person``: one robot crossing the room while a person (disk 0.3 m, 1.2 m/s) walks across
-  its path, timed to meet it (without the filter the two touch).
+  its path, timed to meet it (without the filter the two touch);
+* ``warehouse``: 20 unicycles (body 0.2 m, look-ahead 0.1 m, omega_max 2 rad/s) in the
+  README's ``examples/warehouse.yaml`` (map of the free space shrunk by 0.3 m, tol 1e-4), 10
+  rounds: each round every robot gets a random goal (at least 0.8 m from the others' goals)
+  and drives there from where the last round left it (opt-in: ``--warehouse``; slow).
 
 Per scenario: robot-robot, mover and wall contacts, arrival %, time to the last arrival
 against the slowest robot's lone run (the same robot alone on the same map; target <= 2x),
@@ -119,6 +123,75 @@ def door() -> tuple[np.ndarray, np.ndarray]:
     return np.concatenate([left, right]), np.concatenate([right, left])
 
 
+def warehouse(rounds: int, seed: int = 0) -> dict[str, Any]:
+    """20 unicycles, random goals, ``rounds`` rounds in the README's warehouse."""
+    from confnav import import_map
+
+    root = Path(__file__).resolve().parent.parent
+    ws = import_map(str(root / "examples" / "warehouse.yaml"))
+    ws = getattr(ws, "workspace", ws)
+    rd, d, n = 0.2, 0.1, 20
+    t0 = time.perf_counter()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        cmap = solve(inflate(ws, rd + d), 1e-4)
+    solve_s = time.perf_counter() - t0
+    shrunk = cmap.workspace
+    rng = np.random.default_rng(seed)
+    xs = [z.real for z in shrunk.outer]
+    ys = [z.imag for z in shrunk.outer]
+
+    def spots(k: int, avoid: np.ndarray) -> np.ndarray:
+        out: list[complex] = []
+        while len(out) < k:
+            c = complex(rng.uniform(min(xs), max(xs)), rng.uniform(min(ys), max(ys)))
+            if shrunk.clearance(np.array([c]))[0] < 0.05:
+                continue
+            near = np.concatenate([np.array(out, dtype=complex), avoid])
+            if near.size and np.min(np.abs(near - c)) < 0.8:
+                continue
+            out.append(c)
+        return np.array(out)
+
+    p = spots(n, np.zeros(0, dtype=complex))  # look-ahead points at the start
+    th = rng.uniform(-np.pi, np.pi, n)
+    x = p - d * np.exp(1j * th)
+    tot = {"robot_contacts": 0, "wall_contacts": 0, "arrived": 0, "goals": 0, "infeasible": 0}
+    times, gaps, costs = [], [], []
+    for _ in range(rounds):
+        goals = spots(n, np.zeros(0, dtype=complex))
+        ctrls = [Controller(cmap, g) for g in goals]
+        res = simulate_fleet(
+            ctrls, x, ws, radius=rd, lookahead=d, theta=th, omega_max=2.0, t_max=T_MAX
+        )
+        tot["robot_contacts"] += res.robot_contacts
+        tot["wall_contacts"] += res.wall_contacts
+        tot["arrived"] += int(res.arrived.sum())
+        tot["goals"] += n
+        tot["infeasible"] += res.infeasible
+        times.append(res.last_arrival if np.isfinite(res.last_arrival) else None)
+        print(
+            f"#   round {len(times)}: {int(res.arrived.sum())}/{n} arrived, "
+            f"{res.robot_contacts} robot / {res.wall_contacts} wall contacts, "
+            f"t {res.t_end:.1f} s (load {loadavg()})",
+            flush=True,
+        )
+        gaps.append(res.min_gap)
+        costs.append(res.filter_us_per_robot_step)
+        assert res.final is not None and res.final_theta is not None
+        x, th = res.final, res.final_theta
+    return {
+        "robots": n,
+        "rounds": rounds,
+        "solve_s": solve_s,
+        **tot,
+        "arrived_pct": 100.0 * tot["arrived"] / tot["goals"],
+        "last_arrival_per_round_s": times,
+        "min_gap_m": float(np.min(gaps)),
+        "filter_us_per_robot_step": float(np.mean(costs)),
+    }
+
+
 def batched_cost(n: int = 200, reps: int = 20) -> dict[str, Any]:
     """rows + projection for n robots (r 0.2) at random in a 30 x 30 m hall, 3 per 10 m^2."""
     rng = np.random.default_rng(0)
@@ -145,6 +218,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     ap.add_argument("--quick", action="store_true", help="swaps of 4 and 8 and the person only")
     ap.add_argument("--out", type=Path, default=RESULTS / "fleet.json")
+    ap.add_argument("--warehouse", action="store_true", help="run the warehouse rounds (slow)")
+    ap.add_argument("--rounds", type=int, default=10, help="warehouse rounds")
     args = ap.parse_args()
     started = datetime.now(UTC).isoformat(timespec="seconds")
     commit = git("rev-parse", "HEAD")
@@ -160,6 +235,10 @@ def main() -> None:
         print(f"# door done (load {loadavg()})", flush=True)
     person = Mover(start=5.0 + 7.6j, end=5.0 + 0.35j, radius=0.3, speed=1.2, t_start=3.25)
     rows["person"] = run(ROOM, room_map, np.array([1.0 + 1.2j]), np.array([8.5 + 1.2j]), [person])
+    wh = None
+    if args.warehouse and not args.quick:
+        wh = warehouse(args.rounds)
+        print(f"# warehouse done (load {loadavg()})", flush=True)
     cost = batched_cost()
     hdr = (
         f"{'scenario':10s} {'N':>3s} {'r-r':>4s} {'mov':>4s} {'wall':>4s} {'arr%':>5s} "
@@ -182,6 +261,13 @@ def main() -> None:
         f"batched rows + projection, {cost['robots']} robots: "
         f"{cost['us_per_robot']:.2f} us/robot"
     )
+    if wh is not None:
+        print(
+            f"warehouse: {wh['robots']} unicycles x {wh['rounds']} rounds: "
+            f"{wh['robot_contacts']} robot / {wh['wall_contacts']} wall contacts, "
+            f"{wh['arrived_pct']:.1f}% of goals reached, min gap {wh['min_gap_m']:.4f} m, "
+            f"map solved in {wh['solve_s']:.1f} s"
+        )
     targets = {
         name: {
             "no contact": r["robot_contacts"] + r["mover_contacts"] + r["wall_contacts"] == 0,
@@ -190,6 +276,11 @@ def main() -> None:
         }
         for name, r in rows.items()
     }
+    if wh is not None:
+        targets["warehouse"] = {
+            "no contact": wh["robot_contacts"] + wh["wall_contacts"] == 0,
+            "99% arrive": wh["arrived_pct"] >= 99.0,
+        }
     for name, t in targets.items():
         print(f"  {name}: " + ", ".join(f"{k} {'met' if v else 'MISSED'}" for k, v in t.items()))
     doc = {
@@ -207,6 +298,7 @@ def main() -> None:
         "control_period_s": 0.05,
         "scenarios": rows,
         "batched_cost": cost,
+        "warehouse": wh,
         "targets": targets,
     }
     args.out.parent.mkdir(parents=True, exist_ok=True)

@@ -92,6 +92,8 @@ class FleetResult:
     deadlocks: int
     contact_pairs: list[tuple[int, int, float]] = field(default_factory=list)
     paths: CArray | None = None
+    final: CArray | None = None  # positions at the end (axles for unicycles)
+    final_theta: FArray | None = None
 
     @property
     def arrival_rate(self) -> float:
@@ -300,4 +302,6 @@ def simulate_fleet(
         deadlocks=monitor.detections,
         contact_pairs=pairs_out,
         paths=np.array(paths) if paths is not None else None,
+        final=x.copy(),
+        final_theta=th.copy(),
     )
