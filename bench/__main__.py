@@ -90,6 +90,12 @@ BENCHMARKS: dict[str, Bench] = {
         quick=("--starts", "20", "--only", "default", "--no-cost"),
         measures=NAVIGATION_PATHS,
     ),
+    "safety": Bench(
+        "bench_safety.py",
+        "safety.json",
+        "safety layer: wrong and coarse maps, activity on an accurate map, cost per robot",
+        measures=NAVIGATION_PATHS,
+    ),
     "services": Bench("bench_services.py", "services.json", "latency and CPU over real Zenoh"),
     "mapimport": Bench(
         "bench_mapimport.py",

@@ -2,7 +2,7 @@
 
 :func:`fetch_atlas` queries ``{prefix}/ws/{ws}/atlas`` (the ``AtlasIndex``), then each chart's
 ``TransformSolution`` on ``{prefix}/ws/{ws}~c{i}/transform`` (checking that it is the revision
-the index names), loads the charts with :func:`confnav.navigation.messages.load_map` and
+the index names), loads the charts with :func:`confnav.services.navigation.load_map` and
 returns the :class:`confnav.atlas.wire.AtlasMap` the controller installs like a map.
 """
 
@@ -11,10 +11,10 @@ from __future__ import annotations
 from confnav.schemas import AtlasIndex, TransformSolution, decode
 from confnav.services.bus import Bus
 from confnav.services.keys import Keys
+from confnav.services.navigation import load_map
 
 from confnav.atlas.wire import AtlasMap, atlas_map_of
 from confnav.errors import ConfnavError
-from confnav.navigation.messages import load_map
 
 
 class AtlasFetchError(ConfnavError):

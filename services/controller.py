@@ -53,6 +53,7 @@ from confnav.schemas import (
     decode,
     encode,
 )
+from confnav.services import navigation
 from confnav.services.atlas_client import fetch_atlas
 from confnav.services.bus import Bus
 from confnav.services.keys import KeyError_, Keys
@@ -61,7 +62,6 @@ from confnav.services.shard import RobotSelector, robot_key_exprs, serialized
 from confnav.services.transform import definition_hash, workspace_of
 
 from confnav.atlas.wire import ATLAS_MARKER, AtlasMap, is_chart_ws_id
-from confnav.navigation import messages as navigation
 from confnav.navigation.control import Controller
 from confnav.navigation.fleet import fleet_step
 
@@ -413,7 +413,7 @@ class ControllerService(Service):
                 self._ctrl_cache.popitem(last=False)
             search = getattr(getattr(ctrl, "controller", ctrl), "search_critical_points", None)
             if search is not None:  # in the background: STALLED near a saddle once they land
-                search()
+                search(navigation.CRITICAL_SEARCH)
             return ctrl, ""
 
     def _fetch_loop(self) -> None:

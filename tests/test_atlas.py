@@ -298,6 +298,12 @@ def test_corridor_a_single_map_cannot_do_is_navigated_by_the_atlas(atlas: Atlas)
     assert run.success.all(), run.message
     assert not run.collided.any()
     assert np.all(run.min_clearance > 0)
+    # every chart's commands pass the safety layer against the whole workspace (a chart's cut
+    # edges are not walls: the robots above crossed them)
+    assert nav._controllers
+    for ctl in nav._controllers.values():
+        assert ctl.safety is not None and ctl.safety.workspace is ws
+        assert ctl.safety_counts.commands > 0
     # the recorded paths (windows joined) are the robots' paths: start, end and length
     assert run.paths is not None and len(run.paths) == starts.size
     for k, p in enumerate(run.paths):

@@ -31,6 +31,7 @@ from confnav.schemas import (
 )
 from confnav.services.atlas_transform import messages_of
 from confnav.services.launcher import ServiceSpec
+from confnav.services.navigation import commands, footprint_radius, make_controller, map_ws_id
 from confnav.services.transform import solution_result
 from conftest import RobotWatch, launched_system, wait_for
 from mcap.reader import make_reader
@@ -41,7 +42,6 @@ from confnav.atlas.wire import AtlasController, AtlasMap, atlas_map_of, index_fi
 from confnav.conformal.cmap import ConformalMap
 from confnav.maps.footprint import derived_ws_id, inflate
 from confnav.navigation.control import Status
-from confnav.navigation.messages import commands, footprint_radius, make_controller, map_ws_id
 from confnav.navigation.unicycle import (
     ARRIVED,
     UnicycleController,

@@ -13,6 +13,7 @@ import pytest
 from confnav.schemas import AtlasIndex, Goal, TransformSolution, decode, encode
 from confnav.services.atlas_transform import AtlasStore, messages_of
 from confnav.services.bus import QueryError
+from confnav.services.navigation import commands, make_controller
 from confnav.services.transform import solution_result
 from test_atlas import GOAL, TOL, pillar_corridor
 
@@ -27,7 +28,6 @@ from confnav.atlas.wire import (
 )
 from confnav.conformal.cmap import ConformalMap
 from confnav.navigation.control import Status
-from confnav.navigation.messages import commands, make_controller
 
 
 @pytest.fixture(scope="module")

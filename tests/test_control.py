@@ -11,6 +11,7 @@ from typing import Any
 import numpy as np
 import pytest
 from confnav.schemas import Goal
+from confnav.services.critical_search import CriticalSearchWorker
 from numpy.testing import assert_allclose
 
 from confnav.errors import NavigationError
@@ -155,8 +156,9 @@ def test_status_codes() -> None:
 def test_background_search_makes_the_saddle_stall_without_blocking() -> None:
     ctl = Controller(MOB, 0.1j, navfn="kr", k=6, goal_tol=1e-3)
     saddle_ws = MOB.inverse(find_critical_points(ctl.navfn).saddles[0])
-    fut = ctl.search_critical_points()
-    assert ctl.search_critical_points() is fut  # once per controller
+    worker = CriticalSearchWorker()
+    fut = ctl.search_critical_points(worker)
+    assert ctl.search_critical_points(worker) is fut  # once per controller
     cp = fut.result(timeout=60)
     assert cp.ok and cp.saddles.size == SEED.n_obstacles
     assert ctl(saddle_ws).status == Status.STALLED
@@ -166,15 +168,30 @@ def test_background_search_makes_the_saddle_stall_without_blocking() -> None:
 def test_background_search_skips_controllers_nobody_holds() -> None:
     """A robot's goal replaced before its search began: the search is cancelled, not run
     (the worker is busy with the first controller while the second is dropped)."""
+    worker = CriticalSearchWorker()
     held = Controller(MOB, 0.1j, navfn="kr", k=6)
-    first = held.search_critical_points()
+    first = held.search_critical_points(worker)
     dropped = Controller(MOB, 0.3 - 0.2j, navfn="kr", k=6)
-    fut = dropped.search_critical_points()
+    fut = dropped.search_critical_points(worker)
     del dropped
     assert first.result(timeout=60).ok
     with pytest.raises(CancelledError):
         fut.result(timeout=60)
-    assert held.search_critical_points() is first  # a held one keeps its result
+    assert held.search_critical_points(worker) is first  # a held one keeps its result
+
+
+def test_the_core_starts_no_thread() -> None:
+    """Controllers, their steps and critical points run in the caller's thread; background
+    searches need an executor the host passes (issue 26 item 16)."""
+    import threading
+
+    before = set(threading.enumerate())
+    ctl = Controller(MOB, 0.1j, navfn="kr", k=6)
+    ctl(np.array([0.5 + 0j, 0.2 - 0.3j]))
+    assert ctl.critical_points().ok
+    assert set(threading.enumerate()) == before
+    with pytest.raises(TypeError):
+        ctl.search_critical_points()  # type: ignore[call-arg]
 
 
 def test_new_goal_reuses_the_map() -> None:

@@ -246,9 +246,8 @@ def test_controller_names_an_unreachable_goal() -> None:
     """The controller service's adapter turns 'goal not in the map' on a footprint map into an
     UnreachableGoalError naming the robot, the goal and the shrunk workspace."""
     from confnav.schemas import Goal
+    from confnav.services import navigation
     from conftest import IdentityMap
-
-    from confnav.navigation import messages as navigation
 
     cmap = IdentityMap([0.4 + 0j], [0.25])  # the map of "room~r0.1": the obstacle grown by 0.1
     ok = Goal(robot_id="r1", ws_id="room", goal=(-0.5, 0.0), robot_radius=0.1)

@@ -372,8 +372,7 @@ def test_viz_cli_on_a_golden_recording(tmp_path: Path, validator: Any) -> None:
     goal = next(e for e in last_cd["entities"] if e["id"] == "goal/r1")["spheres"][0]
     g = goal["pose"]["position"]
     from confnav.schemas import TransformSolution, decode
-
-    from confnav.navigation.messages import load_map
+    from confnav.services.navigation import load_map
 
     (sol,) = [decode(TransformSolution, d) for n, t, d, _t in msgs if t.endswith("/transform")]
     w = complex(load_map(sol).T(0j))  # the goal (0, 0) mapped by the recorded map

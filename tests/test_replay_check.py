@@ -11,10 +11,10 @@ from typing import Any
 
 import pytest
 from confnav.schemas import Goal, Pose, VelocityCommand, encode
+from confnav.services import navigation
 from conftest import confnav_cmd, identity_loader, subprocess_env
 from mcap.writer import Writer
 
-from confnav.navigation import messages as navigation
 from confnav.recording import layout as L
 from confnav.recording.reader import RecordingError
 from confnav.recording.replay_check import (

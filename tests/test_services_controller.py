@@ -698,7 +698,7 @@ def test_a_goal_arriving_while_its_map_is_installed_gets_a_controller(
     of that map: a lost race used to leave the robot without one until the next map."""
     import threading
 
-    from confnav.navigation.messages import make_controller
+    from confnav.services.navigation import make_controller
 
     entered, release = threading.Event(), threading.Event()
 

@@ -222,7 +222,7 @@ def test_disk_cache_survives_restart(mem_net: InMemoryNetwork, tmp_path: Path) -
 def test_real_solver_in_process_pool_over_zenoh(make_bus: Callable[[], Any]) -> None:
     """The real solver in a spawned worker process; the solution comes back over Zenoh and
     loads into a map identical to an in-process solve."""
-    from confnav.navigation.messages import load_map
+    from confnav.services.navigation import load_map
 
     svc_bus, client = make_bus(), make_bus()
     svc = TransformService(svc_bus, K, executor="process", workers=1, health_period=0.5)

@@ -154,6 +154,9 @@ class AtlasNavigator:
     nav_maps, links : the charts' ``for_navigation()`` maps and :func:`overlaps`, when the
         caller already has them (one per atlas, shared by every goal); computed otherwise.
     controller_kw : further :class:`confnav.Controller` keywords (``navfn``, ``goal_tol``).
+        ``safety`` defaults to the *whole* workspace (``atlas.workspace``): every chart's
+        commands pass the safety layer of :mod:`confnav.navigation.safety` against the
+        workspace in use, not against the chart (whose cut edges are not walls).
     """
 
     def __init__(
@@ -197,12 +200,14 @@ class AtlasNavigator:
     def controller(self, i: int) -> Controller:
         """The Theorem 2 law of cell ``i``'s chart towards its local goal (built on demand)."""
         if i not in self._controllers:
+            kw = dict(self.controller_kw)
+            kw.setdefault("safety", self.atlas.workspace)  # the walls, not the chart's cuts
             self._controllers[i] = Controller(
                 self._nav_maps[i],
                 complex(self.plan.local_goal[i]),
                 v_max=self.speed,
                 gain=self.speed / self.floor_radius,
-                **self.controller_kw,
+                **kw,
             )
         return self._controllers[i]
 

@@ -36,6 +36,13 @@ the footprint): the held command ends inside the disk of radius ``c`` about ``x`
 the free space.  The cap is one more factor ``s > 0`` off the walls: same curves as above;
 the time bound holds where it does not bind (``c >= v_max hold_time / HOLD_FRACTION``).
 
+**Safety layer.**  After the speed law every command passes the filter of
+:mod:`confnav.navigation.safety` (on by default when the map has a workspace): the nearest
+command that keeps the robot out of every wall by the exact polygon distance (control barrier
+function rows per nearby side, and the held-command cap above with the exact clearance), so
+no contact depends on the map's accuracy; where no row binds the command is the law's, bitwise
+(docs/NAVIGATION.md, "Safety layer").
+
 The law depends on the map only through :class:`ConformalLike` (``T_and_dT``, ``centers``,
 ``radii``), so exact maps can stand in for the solver in tests.  A new goal reuses the map
 (:meth:`Controller.with_goal`) and, for the harmonic function, the map's factorization.
@@ -55,13 +62,11 @@ from __future__ import annotations
 import cmath
 import enum
 import logging
-import queue
 import threading
-import time
 import weakref
 from concurrent.futures import Future
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, ClassVar, Literal, Protocol
+from typing import TYPE_CHECKING, Any, Literal, Protocol
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -70,6 +75,7 @@ from confnav.errors import MapMismatchError, NavigationError, fmt_point
 from confnav.navigation import defaults
 from confnav.navigation.factory import make_navfn
 from confnav.navigation.navfn import CircleDomain, NavigationFunction
+from confnav.navigation.safety import SafetyFilter, safety_filter
 from confnav.types import CArray, FArray, as_point
 
 if TYPE_CHECKING:
@@ -78,14 +84,19 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
-__all__ = ["ConformalLike", "ControlOutput", "Controller", "Status", "speed_law"]
+__all__ = [
+    "ConformalLike",
+    "ControlOutput",
+    "Controller",
+    "SafetyCounts",
+    "SearchExecutor",
+    "Status",
+    "speed_law",
+]
 
 
 #: Lowest factor of the optional slow-down near walls (keeps the speed positive: same paths).
 SLOW_FLOOR = 0.2
-#: Share of a core the background critical-point searches of a process may take (the worker
-#: sleeps ``(1/SEARCH_DUTY - 1)`` times each search's CPU time, at most 2 s, afterwards).
-SEARCH_DUTY = 0.25
 _NO_POINTS: CArray = np.zeros(0, dtype=np.complex128)
 
 
@@ -105,6 +116,17 @@ class ConformalLike(Protocol):
     def T_and_dT(self, z: Any) -> tuple[Any, Any]: ...
 
 
+class SearchExecutor(Protocol):
+    """Runs critical-point searches in the background for
+    :meth:`Controller.search_critical_points`: ``submit_search(ref, future)`` must eventually
+    complete ``future`` with ``ref().critical_points()`` (or its exception), or cancel it when
+    ``ref()`` is None (nobody holds the controller any more)."""
+
+    def submit_search(
+        self, controller: weakref.ref[Controller], future: Future[CriticalPoints]
+    ) -> None: ...
+
+
 class Status(enum.IntEnum):
     """Per-robot status of the control law."""
 
@@ -119,7 +141,9 @@ class ControlOutput:
     """Result of one control step for a batch of robots (arrays of the pose's shape).
 
     u: commanded velocity (complex, m/s); status: :class:`Status` codes (int8);
-    phi: ``V = phi(T(x))``; w: ``T(x)``; saturated: True where the speed is ``v_max``.
+    phi: ``V = phi(T(x))``; w: ``T(x)``; saturated: True where the speed is ``v_max``;
+    filtered: True where the safety layer (:mod:`confnav.navigation.safety`) changed the
+    law's command (None: no safety layer).
     """
 
     u: CArray
@@ -127,6 +151,7 @@ class ControlOutput:
     phi: FArray
     w: CArray
     saturated: NDArray[np.bool_]
+    filtered: NDArray[np.bool_] | None = None
 
 
 def speed_law(
@@ -204,6 +229,49 @@ def _workspace_contains(cmap: ConformalLike, z: complex) -> bool | None:
     return bool(np.asarray(ws.contains(np.asarray(z))))
 
 
+@dataclass
+class SafetyCounts:
+    """How often a controller's safety layer ran (``commands``: robot commands filtered),
+    changed the law's command (``changed``) and found no safe command but 0
+    (``infeasible``: e.g. a pose outside the free space)."""
+
+    commands: int = 0
+    changed: int = 0
+    infeasible: int = 0
+
+    def add(self, commands: int, changed: int, infeasible: int) -> None:
+        self.commands += commands
+        self.changed += changed
+        self.infeasible += infeasible
+
+    @property
+    def fraction_changed(self) -> float:
+        return self.changed / self.commands if self.commands else 0.0
+
+
+def _safety_layer(
+    safety: bool | Workspace | SafetyFilter | None, ws: Any, hold_time: float
+) -> SafetyFilter | None:
+    """The controller's :class:`SafetyFilter` (``Controller(safety=...)``)."""
+    from confnav.geometry import Workspace
+
+    if safety is False:
+        return None
+    if isinstance(safety, SafetyFilter):
+        return safety
+    if isinstance(safety, Workspace):
+        return safety_filter(safety, hold_time=hold_time)
+    if isinstance(ws, Workspace):
+        return safety_filter(ws, hold_time=hold_time)
+    if safety is None:
+        return None
+    if safety is True:
+        raise NavigationError("safety=True needs a map with a workspace (exact geometry)")
+    raise NavigationError(
+        f"safety must be a bool, a Workspace or a SafetyFilter, got {type(safety).__name__}"
+    )
+
+
 class Controller:
     """The navigation law for one goal on one conformal map.
 
@@ -236,6 +304,14 @@ class Controller:
     may be any point the robot steers, e.g. a point ahead of a unicycle's axle.
     workspace : the workspace in use; if given, a map whose ``workspace_hash`` differs from
         its ``content_hash`` is refused with :class:`~confnav.errors.MapMismatchError`.
+    safety : the safety layer on exact geometry (:mod:`confnav.navigation.safety`) every
+        command passes after the speed law.  None (default): on when the map has a
+        :class:`~confnav.geometry.Workspace` (filtered against it, with this ``hold_time``);
+        False: off; True: on (needs the map's workspace); a ``Workspace``: filter against that
+        one (the workspace in use, e.g. the true one when the map is coarse or wrong); a
+        :class:`~confnav.navigation.safety.SafetyFilter`: that filter.  Where no constraint
+        is active the command is the law's, bitwise.  :attr:`safety_counts` counts how often
+        it acts; ``ControlOutput.filtered`` says where.
     """
 
     def __init__(
@@ -253,6 +329,7 @@ class Controller:
         stall_radius: float | None = None,
         workspace: Workspace | None = None,
         hold_time: float | None = None,
+        safety: bool | Workspace | SafetyFilter | None = None,
     ) -> None:
         bound = getattr(cmap, "workspace_hash", None)
         if workspace is not None and bound != workspace.content_hash:  # issue 8
@@ -290,6 +367,9 @@ class Controller:
         for name, on in (("slow_distance", self.slow_distance), ("hold_time", self.hold_time)):
             if on > 0 and self._clearance is None:
                 raise NavigationError(f"{name} needs a map with a workspace (clearance)")
+        self.safety: SafetyFilter | None = _safety_layer(safety, ws, self.hold_time)
+        #: how often the safety layer ran and acted (commands, changed, infeasible)
+        self.safety_counts = SafetyCounts()
         if _workspace_contains(cmap, self.goal) is False:
             raise NavigationError(f"goal {fmt_point(self.goal)} is not in the free space")
         wd = complex(np.asarray(cmap.T_and_dT(np.asarray(self.goal))[0]))
@@ -335,14 +415,6 @@ class Controller:
         self._search: Future[CriticalPoints] | None = None
         self._search_lock = threading.Lock()
 
-    #: One background daemon worker for every controller's critical-point search (a burst of
-    #: new goals queues up instead of taking every core, and an exiting process never waits
-    #: for a search); started on first use.
-    _searches: ClassVar[
-        queue.SimpleQueue[tuple[weakref.ref[Controller], Future[CriticalPoints]]]
-    ] = queue.SimpleQueue()
-    _searcher: ClassVar[threading.Thread | None] = None
-    _searcher_lock: ClassVar[threading.Lock] = threading.Lock()
 
     def _params(self) -> dict[str, Any]:
         return {
@@ -353,6 +425,7 @@ class Controller:
             "slow_distance": self.slow_distance,
             "stall_radius": self.stall_radius,
             "hold_time": self.hold_time,
+            "safety": self.safety if self.safety is not None else False,
         }
 
     def with_goal(self, goal: complex | tuple[float, float] | ArrayLike) -> Controller:
@@ -376,7 +449,19 @@ class Controller:
 
     def _command(
         self, z: CArray, dw: CArray, g: CArray, clearance: FArray | None = None
+    ) -> tuple[CArray, NDArray[np.bool_], NDArray[np.bool_] | None]:
+        """The law's command, then the safety layer: ``(u, saturated, filtered)``."""
+        u, sat = self._law(z, dw, g, clearance)
+        if self.safety is None:
+            return u, sat, None
+        pr = self.safety(z, u)
+        self.safety_counts.add(pr.u.size, int(pr.changed.sum()), int(pr.infeasible.sum()))
+        return pr.u, sat & ~pr.changed, pr.changed
+
+    def _law(
+        self, z: CArray, dw: CArray, g: CArray, clearance: FArray | None = None
     ) -> tuple[CArray, NDArray[np.bool_]]:
+        """The speed law's command (before the safety layer)."""
         slow = v_cap = None
         if self.uses_clearance:
             c = self.clearance(z) if clearance is None else clearance
@@ -400,6 +485,12 @@ class Controller:
         w, dw = self.cmap.T_and_dT(z)
         g = self.navfn.gradient(w)
         return self._command(z, np.asarray(dw), g)[0]
+
+    def law_velocity(self, z: ArrayLike) -> CArray:
+        """The speed law's command without the safety layer (for comparisons)."""
+        z = np.asarray(z, dtype=np.complex128)
+        w, dw = self.cmap.T_and_dT(z)
+        return self._law(z, np.asarray(dw), self.navfn.gradient(w))[0]
 
     def __call__(self, z: ArrayLike) -> ControlOutput:
         """Command and status for a batch of robot positions (complex array, any shape)."""
@@ -439,7 +530,7 @@ class Controller:
         c = None
         if self.uses_clearance:
             c = self._clearance1(z_eval) if clearance is None or bad else float(clearance)
-        u, sat = self._command1(z_eval, dw, g, c)
+        u, sat, filt = self._command1(z_eval, dw, g, c)
         arrived = not bad and abs(z - self.goal) <= self.goal_tol
         if bad:
             status = Status.ERROR
@@ -457,6 +548,9 @@ class Controller:
             phi=_full(shape, np.nan if bad else phi, np.float64),
             w=_full(shape, complex(np.nan, 0.0) if bad else w, np.complex128),
             saturated=_full(shape, sat and not arrived and not bad, np.bool_),
+            filtered=None
+            if filt is None
+            else _full(shape, filt and not arrived and not bad, np.bool_),
         )
 
     def _clearance1(self, z: complex) -> float:
@@ -466,8 +560,19 @@ class Controller:
 
     def _command1(
         self, z: complex, dw: complex, g: complex, c: float | None
+    ) -> tuple[complex, bool, bool | None]:
+        """:meth:`_command` of one point: the law (:meth:`_law1`), then the safety layer."""
+        u, sat = self._law1(z, dw, g, c)
+        if self.safety is None:
+            return u, sat, None
+        u, changed, infeasible = self.safety.filter1(z, u)
+        self.safety_counts.add(1, int(changed), int(infeasible))
+        return u, sat and not changed, changed
+
+    def _law1(
+        self, z: complex, dw: complex, g: complex, c: float | None
     ) -> tuple[complex, bool]:
-        """:meth:`_command` and :func:`speed_law` of one point (same formulas, scalars)."""
+        """:meth:`_law` and :func:`speed_law` of one point (same formulas, scalars)."""
         f = -dw.conjugate() * g
         size = abs(f)
         if self.speed_law == "theorem2":
@@ -534,7 +639,7 @@ class Controller:
             c = np.asarray(clearance, dtype=np.float64)
             if bad.any():  # the bad poses are evaluated at the goal (then set to u = 0)
                 c = np.where(bad, self.clearance(self.goal), c)
-        u, sat = self._command(np.where(bad, self.goal, z), dw, g, c)
+        u, sat, filt = self._command(np.where(bad, self.goal, z), dw, g, c)
         arrived = ~bad & (np.abs(z - self.goal) <= self.goal_tol)
         stalled = ~bad & ~arrived & self._near_critical(w, dw)
         status = np.full(z.shape, Status.MOVING, dtype=np.int8)
@@ -548,6 +653,7 @@ class Controller:
             phi=np.where(bad, np.nan, phi),
             w=np.where(bad, np.nan + 0j, w),
             saturated=sat & ~arrived & ~bad,
+            filtered=None if filt is None else filt & ~arrived & ~bad,
         )
 
     def critical_points(self) -> CriticalPoints:
@@ -565,50 +671,25 @@ class Controller:
 
     check = critical_points
 
-    def search_critical_points(self) -> Future[CriticalPoints]:
-        """Start :meth:`critical_points` in the background (once per controller) and return
-        its future.
+    def search_critical_points(self, executor: SearchExecutor) -> Future[CriticalPoints]:
+        """Have ``executor`` run :meth:`critical_points` in the background (once per
+        controller) and return its future.
 
         ``__call__`` never waits for the search: it reports STALLED near a critical point as
         soon as the points have landed (a few seconds for 20 obstacles), MOVING before.  Long
         running hosts (the controller service) call this when they build a controller, so
-        stall detection works without anyone asking for the points first.  The one search
-        worker of the process takes at most :data:`SEARCH_DUTY` of a core (a burst of new goals
-        must not starve the control steps), and skips controllers nobody holds any more (a
-        robot that got a new goal before its old goal's search began): their futures are
-        cancelled.
+        stall detection works without anyone asking for the points first.  The core starts no
+        thread: the host passes its executor (the controller service's is
+        ``confnav.services.critical_search.CriticalSearchWorker``: one duty-cycled worker per
+        process, which skips controllers nobody holds any more).  ``executor.submit_search``
+        gets a weak reference to this controller and the future to complete
+        (:class:`SearchExecutor`).
         """
         with self._search_lock:
             if self._search is None:
                 self._search = Future()
-                with Controller._searcher_lock:
-                    if Controller._searcher is None:
-                        Controller._searcher = threading.Thread(
-                            target=Controller._search_loop, name="critical-points", daemon=True
-                        )
-                        Controller._searcher.start()
-                Controller._searches.put((weakref.ref(self), self._search))
+                executor.submit_search(weakref.ref(self), self._search)
             return self._search
-
-    @staticmethod
-    def _search_loop() -> None:
-        while True:
-            ref, fut = Controller._searches.get()
-            ctl = ref()
-            if ctl is None:  # dropped by every holder before its turn: cancelled, not run
-                fut.cancel()
-                continue
-            if not fut.set_running_or_notify_cancel():
-                continue
-            t0 = time.process_time()
-            try:
-                fut.set_result(ctl.critical_points())
-            except Exception as exc:  # reported through the future, never kills the worker
-                log.warning("critical-point search failed for %r: %s", ctl, exc)
-                fut.set_exception(exc)
-            del ctl  # not kept alive by the idle worker
-            busy = time.process_time() - t0  # the process's CPU: includes others' work, so
-            time.sleep(min(busy * (1.0 / SEARCH_DUTY - 1.0), 2.0))  # this errs on the idle side
 
     def _stall_points(self) -> CArray:
         cp = self._critical  # never computed here: __call__ must not block on the search

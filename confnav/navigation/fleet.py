@@ -11,7 +11,8 @@ at 50 Hz took 0.75 s of CPU per second and the commands fell 100 ms behind, meas
 bench/bench_services.py).
 
 The result is each robot's ``Controller.from_map_values`` (tests/test_fleet_step.py: equal to
-rounding), so everything said there (the speed law, the hold cap, stall reports) holds here.
+rounding), so everything said there (the speed law, the hold cap, the safety layer of
+:mod:`confnav.navigation.safety`, stall reports) holds here.
 """
 
 from __future__ import annotations
@@ -102,6 +103,7 @@ def fleet_step(
             slow=None if slow is None else slow[m],
             v_cap=None if v_cap is None else v_cap[m],
         )
+    filt = _safety_layer(us, inv, zc, u, sat)
     goal_tol = per_robot([c.goal_tol for c in us], np.float64)
     arrived = ~bad & (np.abs(z - goal) <= goal_tol)
     stalled = ~bad & ~arrived & _near_critical(us, inv, w, dw)
@@ -115,7 +117,32 @@ def fleet_step(
         phi=np.where(bad, np.nan, phi),
         w=np.where(bad, np.nan + 0j, w),
         saturated=sat & ~arrived & ~bad,
+        filtered=None if filt is None else filt & ~arrived & ~bad,
     )
+
+
+def _safety_layer(
+    us: list[Controller], inv: np.ndarray, z: CArray, u: CArray, sat: np.ndarray
+) -> np.ndarray | None:
+    """``Controller._command``'s safety layer for every robot, in place on ``u``/``sat``
+    (one call per distinct filter: controllers of one workspace share it); the changed mask,
+    or None when no controller has one."""
+    flts = [c.safety for c in us]
+    if all(f is None for f in flts):
+        return None
+    changed = np.zeros(z.size, dtype=bool)
+    key = np.array([id(f) for f in flts], dtype=np.int64)[inv]
+    for f in {id(f): f for f in flts if f is not None}.values():
+        m = np.flatnonzero(key == id(f))
+        pr = f(z[m], u[m])
+        u[m], changed[m] = pr.u, pr.changed
+        sat[m] &= ~pr.changed
+        n_ch = np.bincount(inv[m], weights=pr.changed, minlength=len(us))
+        n_in = np.bincount(inv[m], weights=pr.infeasible, minlength=len(us))
+        n_all = np.bincount(inv[m], minlength=len(us))
+        for j in np.flatnonzero(n_all):  # per distinct controller (stats only)
+            us[j].safety_counts.add(int(n_all[j]), int(n_ch[j]), int(n_in[j]))
+    return changed
 
 
 def _near_critical(us: list[Controller], inv: np.ndarray, w: CArray, dw: CArray) -> np.ndarray:

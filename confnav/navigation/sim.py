@@ -6,7 +6,10 @@ serves the whole batch.  A run ends at the goal tolerance (success), at a collis
 time limit or after too many steps.  Collisions are checked with the exact distance to the
 polygons (``Workspace.clearance``) at every accepted point and along every chord between them:
 a chord of length L between points of clearance c_a, c_b is certified free when
-L < c_a + c_b (clearance is 1-Lipschitz); otherwise it is bisected.
+L < c_a + c_b (clearance is 1-Lipschitz); otherwise it is bisected.  A chord that hits an
+obstacle although both its ends are free (a step that turns round a corner closer than the
+chord is long: a robot sliding along a wall under the safety layer) is checked again along the
+step's cubic Hermite interpolant, the path the integrator actually describes.
 
 A robot is ``stalled`` only when it makes no progress: over a time window its image in the
 circle domain moved less than a fraction of its local length scale (see :func:`simulate`), or
@@ -201,6 +204,33 @@ def _chord_check(
     return hit, low
 
 
+def _curve_check(
+    z0: CArray,
+    z1: CArray,
+    h: FArray,
+    k0: CArray,
+    k1: CArray,
+    c0: FArray,
+    c1: FArray,
+    clearance: Clearance,
+    pieces: int = 16,
+) -> tuple[NDArray[np.bool_], FArray]:
+    """:func:`_chord_check` along the cubic Hermite interpolant of steps (the integrator's
+    dense output; Hairer, Norsett, Wanner, *Solving ODE I*, sec. II.6) instead of their chord:
+    ``pieces`` sub-chords each.  (hits an obstacle, clearance lower bound) per step."""
+    s = np.linspace(0.0, 1.0, pieces + 1)[1:-1]
+    mid = _hermite(z0[:, None], z1[:, None], h[:, None], k0[:, None], k1[:, None], s[None, :])
+    pts = np.concatenate([z0[:, None], mid, z1[:, None]], axis=1)
+    cm = np.asarray(clearance(mid.ravel()), dtype=np.float64).reshape(mid.shape)
+    cs = np.concatenate([c0[:, None], cm, c1[:, None]], axis=1)
+    hit, low = _chord_check(
+        pts[:, :-1].ravel(), pts[:, 1:].ravel(), cs[:, :-1].ravel(), cs[:, 1:].ravel(), clearance
+    )
+    n = z0.size
+    hits = np.asarray(hit.reshape(n, pieces).any(axis=1), dtype=bool)
+    return hits, np.asarray(low.reshape(n, pieces).min(axis=1), dtype=np.float64)
+
+
 def _hermite(z0: CArray, z1: CArray, h: FArray, k0: CArray, k1: CArray, s: FArray) -> CArray:
     s2, s3 = s * s, s * s * s
     return (
@@ -276,25 +306,98 @@ def simulate(
     ------
     NavigationError
         for non-finite starts, or starts outside the free space, or no clearance function.
+
+    The steps, in order: :func:`_start` (checks, first velocity and step size), then while a
+    robot runs: :func:`_dormand_prince` (one step of every running robot),
+    :func:`_step_sizes` (accept or reject, next step size), :func:`_accept` (goal crossing,
+    collision check, bookkeeping, stall and time limits); :func:`_finish` (the result).
     """
     import time as _time
 
     t0 = _time.perf_counter()
-    z = _as_points(starts).copy()
-    z0 = z.copy()
     clr = clearance if clearance is not None else _clearance_of(fld)
     if clr is None:
         raise NavigationError("simulate needs a clearance function (no workspace on the field)")
-    c0 = np.asarray(clr(z), dtype=np.float64)
-    if np.any(~(c0 > 0)):
-        i = int(np.flatnonzero(~(c0 > 0))[0])
-        raise NavigationError(f"start {fmt_point(z[i])} is not in the free space")
-    n = z.size
-    goal = complex(fld.goal)
-    tol = float(fld.goal_tol)
-    t = np.zeros(n)
+    opts = _Options(
+        goal=complex(fld.goal),
+        tol=float(fld.goal_tol),
+        t_max=t_max,
+        atol=atol,
+        max_step=max_step,
+        max_steps=max_steps,
+        stall_distance=10.0 * float(fld.goal_tol) if stall_distance is None else stall_distance,
+        stall_steps=stall_steps,
+        stall_window=stall_window,
+        stall_progress=stall_progress,
+        record_paths=record_paths,
+        clearance=clr,
+        progress=_progress_measure(fld, clr, complex(fld.goal)),
+    )
+    run = _start(fld, starts, opts)
+    while True:
+        ai = np.flatnonzero(run.status < 0)
+        if ai.size == 0:
+            break
+        znew, errv, ka = _dormand_prince(fld, run, ai)
+        ok, hn, chord, speed = _step_sizes(run.z[ai], run.h[ai], znew, errv, ka[6], opts)
+        _accept(run, ai, ok, znew, chord, speed, ka, opts)
+        _next_step(run, ai, hn, opts)
+    return _finish(fld, run, opts, _time.perf_counter() - t0)
+
+
+@dataclass(frozen=True)
+class _Options:
+    """What :func:`simulate` was asked (and the field's goal, clearance and progress measure)."""
+
+    goal: complex
+    tol: float
+    t_max: float
+    atol: float
+    max_step: float
+    max_steps: int
+    stall_distance: float
+    stall_steps: int
+    stall_window: float
+    stall_progress: float
+    record_paths: bool
+    clearance: Clearance
+    progress: Callable[[CArray], tuple[CArray, FArray]]
+
+
+@dataclass
+class _Run:
+    """The state of a batch during :func:`simulate`: one entry per robot (status < 0: running);
+    ``k1`` the velocity at ``z`` (the first stage of the next step, FSAL), ``h`` the next step,
+    ``w_ref, s_ref, t_ref`` the progress window's start, ``z_anchor, n_anchor`` the point and
+    step count the robot last moved ``stall_distance`` away from."""
+
+    z0: CArray
+    z: CArray
+    t: FArray
+    h: FArray
+    k1: CArray
+    status: NDArray[np.int8]
+    cur_clr: FArray
+    length: FArray
+    minclr: FArray
+    vmax: FArray
+    nsteps: NDArray[np.int64]
+    w_ref: CArray
+    s_ref: FArray
+    t_ref: FArray
+    z_anchor: CArray
+    n_anchor: NDArray[np.int64]
+    nfev: int = 0
+    path_chunks: list[tuple[NDArray[np.intp], CArray]] = field(default_factory=list)
+
+
+def _progress_measure(
+    fld: Any, clr: Clearance, goal: complex
+) -> Callable[[CArray], tuple[CArray, FArray]]:
+    """``(position, local scale)`` of the stall test: the circle-domain image and scale when the
+    field has ``circle_domain_position`` (a Controller), else the workspace position and
+    ``min(clearance, |x - x_d|)`` (:func:`simulate`, ``stall_window``)."""
     progress_of = getattr(fld, "circle_domain_position", None)
-    near_critical = getattr(fld, "near_critical", None)
 
     def position_and_scale(zz: CArray) -> tuple[CArray, FArray]:
         if progress_of is not None:
@@ -303,22 +406,21 @@ def simulate(
         sc = np.minimum(np.asarray(clr(zz), dtype=np.float64), np.abs(zz - goal))
         return zz, sc
 
-    w_ref, s_ref = position_and_scale(z)
-    t_ref = np.zeros(n)
-    z_anchor = z.copy()
-    n_anchor = np.zeros(n, dtype=np.int64)
-    if stall_distance is None:
-        stall_distance = 10.0 * tol
-    length = np.zeros(n)
-    minclr = c0.copy()
-    vmax = np.zeros(n)
-    nsteps = np.zeros(n, dtype=np.int64)
-    status = np.full(n, -1, dtype=np.int8)
-    cur_clr = c0.copy()
-    path_chunks: list[tuple[NDArray[np.intp], CArray]] = []
+    return position_and_scale
 
-    arrived0 = np.abs(z - goal) <= tol
-    status[arrived0] = ARRIVED
+
+def _start(fld: VelocityField, starts: ArrayLike, o: _Options) -> _Run:
+    """Check the starts, mark those already at the goal, evaluate the first velocity and choose
+    the first step (5 % of the clearance or ``max_step``, whichever is smaller)."""
+    z = _as_points(starts).copy()
+    c0 = np.asarray(o.clearance(z), dtype=np.float64)
+    if np.any(~(c0 > 0)):
+        i = int(np.flatnonzero(~(c0 > 0))[0])
+        raise NavigationError(f"start {fmt_point(z[i])} is not in the free space")
+    n = z.size
+    w_ref, s_ref = o.progress(z)
+    status = np.full(n, -1, dtype=np.int8)
+    status[np.abs(z - o.goal) <= o.tol] = ARRIVED
     k1 = np.full(n, np.nan + 0j)
     act = status < 0
     nfev = 0
@@ -326,119 +428,208 @@ def simulate(
         k1[act] = fld.velocity(z[act])
         nfev += 1
     speed0 = np.abs(k1)
-    vmax = np.where(np.isfinite(speed0), speed0, 0.0)
     h = np.where(
         speed0 > 0,
-        np.minimum(0.05 * np.maximum(c0, 1e-6), max_step) / np.maximum(speed0, 1e-300),
-        t_max,
+        np.minimum(0.05 * np.maximum(c0, 1e-6), o.max_step) / np.maximum(speed0, 1e-300),
+        o.t_max,
     )
-    h = np.minimum(h, t_max)
+    h = np.minimum(h, o.t_max)
     status[act & ~np.isfinite(k1)] = ERROR
+    return _Run(
+        z0=z.copy(),
+        z=z,
+        t=np.zeros(n),
+        h=h,
+        k1=k1,
+        status=status,
+        cur_clr=c0.copy(),
+        length=np.zeros(n),
+        minclr=c0.copy(),
+        vmax=np.where(np.isfinite(speed0), speed0, 0.0),
+        nsteps=np.zeros(n, dtype=np.int64),
+        w_ref=w_ref,
+        s_ref=s_ref,
+        t_ref=np.zeros(n),
+        z_anchor=z.copy(),
+        n_anchor=np.zeros(n, dtype=np.int64),
+        nfev=nfev,
+    )
 
-    while True:
-        ai = np.flatnonzero(status < 0)
-        if ai.size == 0:
-            break
-        za, ha, ta = z[ai], h[ai], t[ai]
-        ka = [k1[ai]]
-        for s in range(1, 7):
-            zs = za + ha * sum(c * kk for c, kk in zip(_A[s], ka, strict=False) if c != 0.0)
-            ks = np.asarray(fld.velocity(zs), dtype=np.complex128)
-            nfev += 1
-            ka.append(ks)
-        znew = za + ha * sum(c * kk for c, kk in zip(_A[6], ka, strict=False) if c != 0.0)
-        errv = ha * sum(e * kk for e, kk in zip(_E, ka, strict=False) if e != 0.0)
-        err = np.abs(errv) / atol
-        err = np.where(np.isfinite(err) & np.isfinite(znew), err, np.inf)
-        chord = np.abs(znew - za)
-        ok = (err <= 1.0) & (chord <= 1.5 * max_step)
-        # step size control
-        with np.errstate(divide="ignore"):
-            fac = np.clip(0.9 * err ** (-0.2), 0.2, 5.0)
-        fac = np.where(ok, fac, np.minimum(fac, 0.5))
-        fac = np.where(np.isfinite(err), fac, 0.25)
-        speed = np.abs(ka[6])
-        hn = ha * fac
-        hn = np.where(
-            np.isfinite(speed) & (speed > 0),
-            np.minimum(hn, max_step / np.maximum(speed, 1e-300)),
-            hn,
-        )
-        # accepted steps
-        ia = ai[ok]
-        if ia.size:
-            zo, zn, hk, ck = za[ok], znew[ok], ha[ok], chord[ok]
-            arr = np.abs(zn - goal) <= tol
-            if arr.any():  # first crossing of the goal circle on the cubic Hermite interpolant
-                sa, za_ = _goal_crossing(
-                    zo[arr], zn[arr], hk[arr], ka[0][ok][arr], ka[6][ok][arr], goal, tol
-                )
-                zn[arr], hk[arr], ck[arr] = za_, hk[arr] * sa, np.abs(za_ - zo[arr])
-            cn = np.asarray(clr(zn), dtype=np.float64)
-            hit, low = _chord_check(zo, zn, cur_clr[ia], cn, clr)
-            minclr[ia] = np.minimum(minclr[ia], low)
-            z[ia] = zn
-            t[ia] = ta[ok] + hk
-            length[ia] += ck
-            cur_clr[ia] = cn
-            nsteps[ia] += 1
-            k1[ia] = ka[6][ok]
-            sp = speed[ok]
-            vmax[ia] = np.maximum(vmax[ia], np.where(np.isfinite(sp), sp, 0.0))
-            if record_paths:
-                path_chunks.append((ia, zn.copy()))
-            collided = hit | (cn <= 0)
-            status[ia[collided]] = COLLIDED
-            arrived = ~collided & arr
-            status[ia[arrived]] = ARRIVED
-            rest = ~collided & ~arrived
-            moved = np.abs(zn - z_anchor[ia]) > stall_distance
-            z_anchor[ia[moved]] = zn[moved]
-            n_anchor[ia[moved]] = nsteps[ia[moved]]
-            chatter = rest & (nsteps[ia] - n_anchor[ia] >= stall_steps)
-            status[ia[chatter]] = STALLED
-            rest &= ~chatter
-            due = rest & (t[ia] - t_ref[ia] >= stall_window)
-            if due.any():
-                idx = ia[due]
-                w_now, s_now = position_and_scale(zn[due])
-                rel = np.abs(w_now - w_ref[idx]) / np.maximum(s_ref[idx], 1e-300)
-                stuck = ~(rel >= stall_progress)
-                status[idx[stuck]] = STALLED
-                w_ref[idx], s_ref[idx], t_ref[idx] = w_now, s_now, t[idx]
-                rest[np.flatnonzero(due)[stuck]] = False
-            late = rest & (t[ia] >= t_max * (1 - 1e-12))
-            status[ia[late]] = TIMEOUT
-            status[ia[rest & ~late & (nsteps[ia] >= max_steps)]] = TIMEOUT
-        h[ai] = np.minimum(hn, t_max - t[ai])
-        h[ai] = np.where(h[ai] > 0, h[ai], 1e-300)
-        tiny = h[ai] < 1e-13 * np.maximum(t[ai], 1.0)
-        still = status[ai] < 0
-        status[ai[tiny & still]] = ERROR
 
+def _dormand_prince(
+    fld: VelocityField, run: _Run, ai: NDArray[np.intp]
+) -> tuple[CArray, CArray, list[CArray]]:
+    """One Dormand-Prince 5(4) step of the running robots ``ai`` (one batch call of the field
+    per stage): the new points, the error vectors and the seven stage velocities."""
+    za, ha = run.z[ai], run.h[ai]
+    ka = [run.k1[ai]]
+    for s in range(1, 7):
+        zs = za + ha * sum(c * kk for c, kk in zip(_A[s], ka, strict=False) if c != 0.0)
+        ks = np.asarray(fld.velocity(zs), dtype=np.complex128)
+        run.nfev += 1
+        ka.append(ks)
+    znew = za + ha * sum(c * kk for c, kk in zip(_A[6], ka, strict=False) if c != 0.0)
+    errv = ha * sum(e * kk for e, kk in zip(_E, ka, strict=False) if e != 0.0)
+    return znew, errv, ka
+
+
+def _step_sizes(
+    za: CArray, ha: FArray, znew: CArray, errv: CArray, k_end: CArray, o: _Options
+) -> tuple[NDArray[np.bool_], FArray, FArray, FArray]:
+    """Accept a step when its error is within ``atol`` and its chord within 1.5 ``max_step``;
+    the next step from the usual ``0.9 err^(-1/5)`` factor (at most halved after a rejection,
+    quartered after a non-finite error), its chord at most ``max_step``.  Returns (ok, next
+    step, chord, speed at the end)."""
+    err = np.abs(errv) / o.atol
+    err = np.where(np.isfinite(err) & np.isfinite(znew), err, np.inf)
+    chord = np.abs(znew - za)
+    ok = (err <= 1.0) & (chord <= 1.5 * o.max_step)
+    with np.errstate(divide="ignore"):
+        fac = np.clip(0.9 * err ** (-0.2), 0.2, 5.0)
+    fac = np.where(ok, fac, np.minimum(fac, 0.5))
+    fac = np.where(np.isfinite(err), fac, 0.25)
+    speed = np.abs(k_end)
+    hn = ha * fac
+    hn = np.where(
+        np.isfinite(speed) & (speed > 0),
+        np.minimum(hn, o.max_step / np.maximum(speed, 1e-300)),
+        hn,
+    )
+    return ok, hn, chord, speed
+
+
+def _accept(
+    run: _Run,
+    ai: NDArray[np.intp],
+    ok: NDArray[np.bool_],
+    znew: CArray,
+    chord: FArray,
+    speed: FArray,
+    ka: list[CArray],
+    o: _Options,
+) -> None:
+    """Move the robots whose step was accepted: cut a step that enters the goal disk at the
+    first crossing, check the step for collisions, update the counters, then the statuses
+    (collided, arrived, stalled, time or step limit)."""
+    ia = ai[ok]
+    if not ia.size:
+        return
+    zo, zn, hk, ck = run.z[ia], znew[ok], run.h[ai][ok], chord[ok]
+    k0, k6 = ka[0][ok], ka[6][ok]
+    arr = np.abs(zn - o.goal) <= o.tol
+    if arr.any():  # first crossing of the goal circle on the cubic Hermite interpolant
+        sa, za_ = _goal_crossing(zo[arr], zn[arr], hk[arr], k0[arr], k6[arr], o.goal, o.tol)
+        zn[arr], hk[arr], ck[arr] = za_, hk[arr] * sa, np.abs(za_ - zo[arr])
+    cn = np.asarray(o.clearance(zn), dtype=np.float64)
+    hit = _collisions(run, ia, zo, zn, hk, k0, k6, cn, arr, o)
+    run.z[ia] = zn
+    run.t[ia] = run.t[ia] + hk
+    run.length[ia] += ck
+    run.cur_clr[ia] = cn
+    run.nsteps[ia] += 1
+    run.k1[ia] = k6
+    sp = speed[ok]
+    run.vmax[ia] = np.maximum(run.vmax[ia], np.where(np.isfinite(sp), sp, 0.0))
+    if o.record_paths:
+        run.path_chunks.append((ia, zn.copy()))
+    collided = hit | (cn <= 0)
+    run.status[ia[collided]] = COLLIDED
+    arrived = ~collided & arr
+    run.status[ia[arrived]] = ARRIVED
+    _stalls_and_limits(run, ia, zn, ~collided & ~arrived, o)
+
+
+def _collisions(
+    run: _Run,
+    ia: NDArray[np.intp],
+    zo: CArray,
+    zn: CArray,
+    hk: FArray,
+    k0: CArray,
+    k6: CArray,
+    cn: FArray,
+    arr: NDArray[np.bool_],
+    o: _Options,
+) -> NDArray[np.bool_]:
+    """Whether each accepted step hits an obstacle (its chord; a chord that cuts a corner
+    between two free ends again along the step's Hermite interpolant); lowers ``minclr``."""
+    hit, low = _chord_check(zo, zn, run.cur_clr[ia], cn, o.clearance)
+    # a chord that cuts a corner the step's path goes round (both ends free): the path is
+    # the step's cubic Hermite interpolant, checked on 16 sub-chords
+    again = np.flatnonzero(hit & (cn > 0) & ~arr)
+    if again.size:
+        hit[again], low[again] = _curve_check(
+            zo[again], zn[again], hk[again], k0[again], k6[again],
+            run.cur_clr[ia][again], cn[again], o.clearance,
+        )  # fmt: skip
+    run.minclr[ia] = np.minimum(run.minclr[ia], low)
+    return hit
+
+
+def _stalls_and_limits(
+    run: _Run, ia: NDArray[np.intp], zn: CArray, rest: NDArray[np.bool_], o: _Options
+) -> None:
+    """Statuses of the moved robots ``ia[rest]`` still running: chattering in place for
+    ``stall_steps`` steps, no progress over a ``stall_window`` (:func:`simulate`), then the
+    time and step limits."""
+    moved = np.abs(zn - run.z_anchor[ia]) > o.stall_distance
+    run.z_anchor[ia[moved]] = zn[moved]
+    run.n_anchor[ia[moved]] = run.nsteps[ia[moved]]
+    chatter = rest & (run.nsteps[ia] - run.n_anchor[ia] >= o.stall_steps)
+    run.status[ia[chatter]] = STALLED
+    rest &= ~chatter
+    due = rest & (run.t[ia] - run.t_ref[ia] >= o.stall_window)
+    if due.any():
+        idx = ia[due]
+        w_now, s_now = o.progress(zn[due])
+        rel = np.abs(w_now - run.w_ref[idx]) / np.maximum(run.s_ref[idx], 1e-300)
+        stuck = ~(rel >= o.stall_progress)
+        run.status[idx[stuck]] = STALLED
+        run.w_ref[idx], run.s_ref[idx], run.t_ref[idx] = w_now, s_now, run.t[idx]
+        rest[np.flatnonzero(due)[stuck]] = False
+    late = rest & (run.t[ia] >= o.t_max * (1 - 1e-12))
+    run.status[ia[late]] = TIMEOUT
+    run.status[ia[rest & ~late & (run.nsteps[ia] >= o.max_steps)]] = TIMEOUT
+
+
+def _next_step(run: _Run, ai: NDArray[np.intp], hn: FArray, o: _Options) -> None:
+    """The next step of the robots just stepped (within ``t_max``); a step that underflows
+    (below 1e-13 of the time) ends the robot's run as ``error``."""
+    run.h[ai] = np.minimum(hn, o.t_max - run.t[ai])
+    run.h[ai] = np.where(run.h[ai] > 0, run.h[ai], 1e-300)
+    tiny = run.h[ai] < 1e-13 * np.maximum(run.t[ai], 1.0)
+    still = run.status[ai] < 0
+    run.status[ai[tiny & still]] = ERROR
+
+
+def _finish(fld: VelocityField, run: _Run, o: _Options, wall_time: float) -> SimulationResult:
+    """The :class:`SimulationResult` of a finished batch (paths joined per robot, reasons)."""
+    n = run.z.size
     path_tuple: tuple[CArray, ...] | None = None
-    if record_paths:
-        who = np.concatenate([np.arange(n)] + [c[0] for c in path_chunks])
-        pts = np.concatenate([z0] + [c[1] for c in path_chunks])
+    if o.record_paths:
+        who = np.concatenate([np.arange(n)] + [c[0] for c in run.path_chunks])
+        pts = np.concatenate([run.z0] + [c[1] for c in run.path_chunks])
         order = np.argsort(who, kind="stable")
         path_tuple = tuple(np.split(pts[order], np.cumsum(np.bincount(who, minlength=n))[:-1]))
-    final_distance = np.abs(z - goal)
-    reasons = _reasons(status, z, t, nsteps, t_max, max_steps, stall_window, near_critical)
+    reasons = _reasons(
+        run.status, run.z, run.t, run.nsteps, o.t_max, o.max_steps, o.stall_window,
+        getattr(fld, "near_critical", None),
+    )  # fmt: skip
     return SimulationResult(
-        starts=z0,
-        goal=goal,
-        success=status == ARRIVED,
-        collided=status == COLLIDED,
-        status=status,
-        time=t,
-        path_length=length,
-        min_clearance=minclr,
-        final_distance=final_distance,
-        max_speed=vmax,
-        n_steps=nsteps,
-        final=z,
-        nfev=nfev,
-        wall_time=_time.perf_counter() - t0,
+        starts=run.z0,
+        goal=o.goal,
+        success=run.status == ARRIVED,
+        collided=run.status == COLLIDED,
+        status=run.status,
+        time=run.t,
+        path_length=run.length,
+        min_clearance=run.minclr,
+        final_distance=np.abs(run.z - o.goal),
+        max_speed=run.vmax,
+        n_steps=run.nsteps,
+        final=run.z,
+        nfev=run.nfev,
+        wall_time=wall_time,
         paths=path_tuple,
         reasons=reasons,
     )

@@ -40,7 +40,7 @@ def _circle_domain_images(
     """(map, robot -> images T(z) of its decimated trajectory), None if the map won't load."""
     import numpy as np
 
-    from confnav.navigation.messages import load_map
+    from confnav.services.navigation import load_map
 
     try:
         cmap = load_map(tr)

@@ -21,7 +21,6 @@ from pathlib import Path
 from typing import Any
 
 from confnav.errors import ConfnavError
-from confnav.navigation.messages import map_ws_id
 from confnav.recording.layout import METADATA_NAME
 from confnav.recording.reader import NS_PER_S, ChannelInfo, Recording, decode_message
 from confnav.recording.scene import SCENE_SCHEMA_NAME
@@ -36,6 +35,7 @@ from confnav.schemas import (
     VelocityCommand,
     WorkspaceDefinition,
 )
+from confnav.services.navigation import map_ws_id
 
 logger = logging.getLogger(__name__)
 

@@ -2,7 +2,7 @@
 
 The recorded inputs of the controller (transform solutions, goals, poses) are fed in log-time
 order, without Zenoh, through the same code the live controller service runs
-(:mod:`confnav.navigation.messages`: ``load_map``, ``make_controller``, ``command``); each
+(:mod:`confnav.services.navigation`: ``load_map``, ``make_controller``, ``command``); each
 recorded ``cmd_vel`` that answers a pose (``pose_seq``/``pose_stamp_ns``) is recomputed from
 that pose, the goal in force at the command's log time and the map it names
 (``map_revision``), and compared with the recorded one.
@@ -36,7 +36,6 @@ from typing import Any
 
 from confnav.atlas.wire import atlas_map_of
 from confnav.errors import ConfnavError
-from confnav.navigation import messages as navigation
 from confnav.recording.reader import Recording, RecordingError, decode_message
 from confnav.schemas import (
     AtlasIndex,
@@ -46,6 +45,7 @@ from confnav.schemas import (
     TransformSolution,
     VelocityCommand,
 )
+from confnav.services import navigation
 
 logger = logging.getLogger(__name__)
 
@@ -141,8 +141,8 @@ def decide(
     ctrl: navigation.ControllerLike | None, x: float, y: float, theta: float = 0.0
 ) -> tuple[complex, str]:
     """The command the live controller publishes for a pose: zero without a controller, else
-    what :func:`confnav.navigation.messages.decide` (the controller service's own decision)
-    makes of the control law's output from :func:`confnav.navigation.messages.command`
+    what :func:`confnav.services.navigation.decide` (the controller service's own decision)
+    makes of the control law's output from :func:`confnav.services.navigation.command`
     (a unicycle's body twist ``v + i omega`` from the pose's heading)."""
     if ctrl is None:
         return 0j, "no controller"

@@ -65,6 +65,7 @@ def run_pipeline(
     if some robot has not arrived within ``timeout`` seconds.
     """
     from confnav.schemas import Goal, encode
+    from confnav.services import navigation
     from confnav.services.bus import InMemoryNetwork
     from confnav.services.controller import ControllerService
     from confnav.services.keys import Keys
@@ -72,8 +73,6 @@ def run_pipeline(
     from confnav.services.simulator import SimulatorService
     from confnav.services.transform import TransformService, solve_definition
     from conftest import fake_solve, identity_loader, square_definition  # tests/conftest.py
-
-    from confnav.navigation import messages as navigation
 
     if solver not in ("fake", "real"):
         raise ValueError("solver must be 'fake' or 'real'")
