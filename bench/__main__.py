@@ -110,6 +110,12 @@ BENCHMARKS: dict[str, Bench] = {
         "atlas solve and navigation on floor plans",
         quick=("--starts", "10", "--scenario", "office"),
     ),
+    "fleet": Bench(
+        "bench_fleet.py",
+        "fleet.json",
+        "fleets: robot-robot contacts, arrival, filter cost (swaps, door, person)",
+        measures=NAVIGATION_PATHS,
+    ),
     "chaos": Bench(
         "bench_chaos.py",
         "chaos.json",

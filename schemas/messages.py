@@ -272,7 +272,10 @@ class RobotStatus(Message):
 
 
 class CollisionEvent(Message):
-    """Simulator report: the robot left the free space (``clearance`` <= 0, metres)."""
+    """Simulator report: the robot left the free space (``clearance`` <= 0, metres), or its
+    disk touched another robot's (``other_robot_id`` names it; ``clearance`` is then the gap
+    between the two disks at their closest approach along the step, <= 0, and ``position``
+    this robot's centre there)."""
 
     TYPE: ClassVar[str] = "confnav.CollisionEvent"
     type: Literal["confnav.CollisionEvent"] = "confnav.CollisionEvent"
@@ -282,6 +285,8 @@ class CollisionEvent(Message):
     stamp_ns: TimeNs
     position: Point
     clearance: Finite
+    other_robot_id: Id | None = None
+    """The other robot of a robot-robot contact (None: a wall)."""
 
 
 class SpawnRequest(Message):
@@ -373,3 +378,33 @@ class AtlasIndex(Message):
     decomposition: dict[str, JsonValue]
     wall_time: Annotated[float, Field(ge=0.0)] = 0.0
     cpu_time: Annotated[float, Field(ge=0.0)] = 0.0
+
+
+MAX_MOVERS = 1024
+
+
+class MoverDisk(Message):
+    """One moving obstacle that is not a robot (a person, a forklift): a disk of ``radius``
+    (m) at ``position`` moving with ``velocity`` (m/s, workspace frame; [0, 0] if unknown)."""
+
+    TYPE: ClassVar[str] = "confnav.MoverDisk"
+    type: Literal["confnav.MoverDisk"] = "confnav.MoverDisk"
+    schema_version: Literal[1] = 1
+    mover_id: Id
+    position: Point
+    radius: Positive
+    velocity: Point = (0.0, 0.0)
+
+
+class Movers(Message):
+    """The moving obstacles of a workspace at ``stamp_ns``, on ``{prefix}/ws/{ws}/movers``
+    (from a tracker, a person detector or a simulation).  Each message is the complete list:
+    a mover missing from it is gone.  Controllers keep every robot's disk off the movers'
+    disks (docs/NAVIGATION.md, "Fleets"), using their velocities."""
+
+    TYPE: ClassVar[str] = "confnav.Movers"
+    type: Literal["confnav.Movers"] = "confnav.Movers"
+    schema_version: Literal[1] = 1
+    ws_id: Id
+    stamp_ns: TimeNs
+    movers: Annotated[list[MoverDisk], Field(max_length=MAX_MOVERS)] = []

@@ -12,6 +12,7 @@ from confnav.schemas.messages import (
     Goal,
     GoalCancel,
     Message,
+    Movers,
     Pose,
     RobotStatus,
     ServiceHealth,
@@ -42,6 +43,7 @@ MESSAGE_MODELS: tuple[type[Message], ...] = (
     SimControl,
     ServiceHealth,
     AtlasIndex,
+    Movers,
 )
 MODELS_BY_TYPE: dict[str, type[Message]] = {m.TYPE: m for m in MESSAGE_MODELS}
 
@@ -52,6 +54,7 @@ MODEL_BY_KEY_KIND: dict[tuple[str, str], type[Message]] = {
     ("ws", "transform"): TransformSolution,
     ("ws", "status"): TransformStatus,
     ("ws", "atlas"): AtlasIndex,
+    ("ws", "movers"): Movers,
     ("robot", "goal"): Goal,
     ("robot", "cancel"): GoalCancel,
     ("robot", "pose"): Pose,

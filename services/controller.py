@@ -57,6 +57,8 @@ from confnav.services import navigation
 from confnav.services.atlas_client import fetch_atlas
 from confnav.services.bus import Bus
 from confnav.services.keys import KeyError_, Keys
+from confnav.services.neighbours import Neighbours
+from confnav.services.neighbours import attach as attach_neighbours
 from confnav.services.runtime import Service, add_zenoh_args, run_until_signal
 from confnav.services.shard import RobotSelector, robot_key_exprs, serialized
 from confnav.services.transform import definition_hash, workspace_of
@@ -176,6 +178,7 @@ class ControllerService(Service):
         self._rids: dict[str, str] = {}  # pose key -> robot id
         self._cmd_keys: dict[str, str] = {}  # robot id -> cmd_vel key
         self.swapped = threading.Event()  # set on each hot swap (tests)
+        self.neighbours: Neighbours | None = None  # fleet hook (services/neighbours.py)
 
     def _start(self) -> None:
         k = self.keys
@@ -204,6 +207,7 @@ class ControllerService(Service):
                     linger=self.linger,
                 )
             )
+        self.neighbours = attach_neighbours(self)  # fleet hook: every robot's pose, movers
         self.spawn(self._fetch_loop, "fetch")
         self.spawn(self._watchdog_loop, "watchdog")
 
@@ -672,7 +676,12 @@ class ControllerService(Service):
             assert ctrl is not None
             groups.setdefault(id(ctrl), (ctrl, []))[1].append((r, pose))
         members_of = list(groups.values())
-        for (ctrl, members), res in zip(members_of, self._control(members_of), strict=True):
+        results = list(zip(members_of, self._control(members_of), strict=True))
+        # --- fleet hook (services/neighbours.py): keep robots off each other and movers ---
+        if self.neighbours is not None:
+            results = self.neighbours.filter_block(results, now)
+        # --- end fleet hook ---
+        for (ctrl, members), res in results:
             if isinstance(res, Exception):
                 self.count("navigation_errors")
                 for r, pose in members:

@@ -7,6 +7,7 @@ Every key starts with a configurable prefix (default ``confnav``)::
     {prefix}/ws/{ws}/status            TransformStatus (solving / solved / failed)
     {prefix}/ws/{ws}/atlas             AtlasIndex (put on change + queryable; charts on
                                        {prefix}/ws/{ws}~c{i}/transform)
+    {prefix}/ws/{ws}/movers            Movers (moving obstacles that are not robots)
     {prefix}/robot/{r}/goal            Goal
     {prefix}/robot/{r}/pose            Pose
     {prefix}/robot/{r}/cmd_vel         VelocityCommand
@@ -32,7 +33,7 @@ from confnav.schemas.messages import ID_PATTERN, MAX_ID_LENGTH
 DEFAULT_PREFIX: Final = "confnav"
 _ID_RE = re.compile(ID_PATTERN)
 
-WS_KINDS: Final = ("definition", "delete", "transform", "status", "atlas")
+WS_KINDS: Final = ("definition", "delete", "transform", "status", "atlas", "movers")
 ROBOT_KINDS: Final = ("goal", "cancel", "pose", "cmd_vel", "status", "collision")
 SIM_KINDS: Final = ("spawn", "control")
 

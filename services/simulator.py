@@ -48,9 +48,12 @@ from confnav.services.bus import Bus
 from confnav.services.keys import KeyError_, Keys, validate_id
 from confnav.services.runtime import Service, add_zenoh_args, run_until_signal
 from confnav.services.transform import load_definition, parse_sources, workspace_of
+from scipy.spatial import cKDTree
 
 from confnav.errors import fmt_point
 from confnav.navigation import defaults
+from confnav.navigation.fleet import swept_min_distance
+from confnav.navigation.sim import _chord_check
 from confnav.navigation.unicycle import step_exact
 
 log = logging.getLogger(__name__)
@@ -108,6 +111,7 @@ class SimulatorService(Service):
         self._workspaces: dict[str, Any] = {}
         self._sources = dict(sources or {})
         self.collisions: list[CollisionEvent] = []
+        self._touching: set[tuple[str, str]] = set()  # robot pairs in contact (sorted ids)
         self.ticks = 0
         for rid, ws, x, y in robots or []:
             self.spawn_robot(rid, ws, complex(x, y))
@@ -279,41 +283,127 @@ class SimulatorService(Service):
 
     # integration -------------------------------------------------------------------------
     def _integrate(self, robots: list[SimRobot], dt: float, now: float) -> list[CollisionEvent]:
-        """Move the robots by their current commands; the new collisions. Under the lock."""
+        """Move the robots by their current commands; the new collisions. Under the lock.
+
+        A held command is integrated exactly (a straight segment ``u dt``; a unicycle's arc,
+        :func:`~confnav.navigation.unicycle.step_exact`), and contacts are checked along the
+        step, not at its ends: walls with the core's chord check
+        (:func:`confnav.navigation.sim._chord_check`, the exact clearance is 1-Lipschitz),
+        robots with the exact closest approach of the two centres over the step
+        (:func:`confnav.navigation.fleet.swept_min_distance`; a unicycle's axle along its
+        chord)."""
         hits: list[CollisionEvent] = []
-        by_ws: dict[str, list[SimRobot]] = {}
+        by_ws: dict[str, list[tuple[SimRobot, complex]]] = {}
         for r in robots:
-            if r.collided:
-                continue
-            fresh = self._current(r, now)
-            u = r.u if fresh else 0j
-            if fresh and r.twist is not None:  # body-frame twist: exact arc (unicycle)
-                z1, th1 = step_exact(r.z, r.theta, r.twist[0], r.twist[1], dt)
-                r.z, r.theta = complex(z1), float(th1)
-            elif u != 0j:
-                r.z += u * dt
-                r.theta = math.atan2(u.imag, u.real)
-            r.sim_time += dt
-            by_ws.setdefault(r.ws_id, []).append(r)
+            z0 = r.z
+            if not r.collided:
+                fresh = self._current(r, now)
+                u = r.u if fresh else 0j
+                if fresh and r.twist is not None:  # body-frame twist: exact arc (unicycle)
+                    z1, th1 = step_exact(r.z, r.theta, r.twist[0], r.twist[1], dt)
+                    r.z, r.theta = complex(z1), float(th1)
+                elif u != 0j:
+                    r.z += u * dt
+                    r.theta = math.atan2(u.imag, u.real)
+                r.sim_time += dt
+            by_ws.setdefault(r.ws_id, []).append((r, z0))
+        stamp = time.time_ns()
         for ws_id, group in by_ws.items():
             ws = self._workspaces.get(ws_id)
-            if ws is None:
-                continue
-            clear = np.asarray(ws.clearance(np.array([r.z for r in group])), dtype=float)
-            clear -= np.array([r.radius for r in group])  # the body's clearance
-            for r, c in zip(group, clear, strict=True):
-                if not c > 0.0:  # also NaN
+            moving = [(r, z0) for r, z0 in group if not r.collided]
+            if ws is not None and moving:
+                hits += self._wall_hits(ws, ws_id, moving, stamp)
+        # robots of one floor: a derived workspace ({ws}~r0.2) is the same floor
+        floors: dict[str, list[tuple[SimRobot, complex]]] = {}
+        for ws_id, group in by_ws.items():
+            floors.setdefault(ws_id.split("~", 1)[0], []).extend(group)
+        for group in floors.values():
+            hits += self._robot_hits(group, stamp)
+        return hits
+
+    def _wall_hits(
+        self, ws: Any, ws_id: str, group: list[tuple[SimRobot, complex]], stamp: int
+    ) -> list[CollisionEvent]:
+        z0 = np.array([z for _, z in group], dtype=np.complex128)
+        z1 = np.array([r.z for r, _ in group], dtype=np.complex128)
+        rad = np.array([r.radius for r, _ in group], dtype=np.float64)
+        c1 = np.asarray(ws.clearance(z1), dtype=float) - rad  # the body's clearance
+        hit = ~(c1 > 0.0)  # also NaN
+        low = c1.copy()
+        moved = (z1 != z0) & ~hit
+        for rv in np.unique(rad[moved]):
+            idx = np.flatnonzero(moved & (rad == rv))
+            c0 = np.asarray(ws.clearance(z0[idx]), dtype=float) - rv
+
+            def body(q: Any, rv: float = float(rv)) -> Any:
+                return np.asarray(ws.clearance(q), dtype=float) - rv
+
+            h, lo = _chord_check(z0[idx], z1[idx], c0, c1[idx], body)
+            hit[idx] |= h
+            low[idx] = np.minimum(low[idx], lo)
+        out = []
+        for (r, _), bad, c in zip(group, hit, low, strict=True):
+            if bad:
+                r.collided = True
+                out.append(
+                    CollisionEvent(
+                        robot_id=r.robot_id,
+                        ws_id=ws_id,
+                        stamp_ns=stamp,
+                        position=(r.z.real, r.z.imag),
+                        clearance=min(float(c), 0.0) if math.isfinite(c) else -1.0,
+                    )
+                )
+        return out
+
+    def _robot_hits(
+        self, group: list[tuple[SimRobot, complex]], stamp: int
+    ) -> list[CollisionEvent]:
+        """Robot-robot contacts along the step (swept disks); each new contact once, as one
+        event per robot naming the other; both robots stop where they touched.  Robots
+        without a radius are points, not bodies: they touch nothing."""
+        z0 = np.array([z for _, z in group], dtype=np.complex128)
+        z1 = np.array([r.z for r, _ in group], dtype=np.complex128)
+        rad = np.array([r.radius for r, _ in group], dtype=np.float64)
+        mid = 0.5 * (z0 + z1)
+        reach = 2 * float(rad.max()) + float(np.abs(z1 - z0).max()) + 1e-9
+        pairs = cKDTree(np.column_stack([mid.real, mid.imag])).query_pairs(
+            reach, output_type="ndarray"
+        )
+        ids = [r.robot_id for r, _ in group]
+        touching: set[tuple[str, str]] = set()
+        out: list[CollisionEvent] = []
+        if pairs.size:
+            a, b = pairs[:, 0], pairs[:, 1]
+            dmin, s = swept_min_distance(z0[a], z1[a], z0[b], z1[b])
+            gap = dmin - rad[a] - rad[b]
+            for i, j, g, f in zip(a, b, gap, s, strict=True):
+                if not g <= 0 or rad[i] <= 0 or rad[j] <= 0:  # a point is not a body
+                    continue
+                key = (min(ids[i], ids[j]), max(ids[i], ids[j]))
+                touching.add(key)
+                if key in self._touching:
+                    continue
+                for k, other in ((i, j), (j, i)):
+                    r = group[k][0]
+                    at = z0[k] + f * (z1[k] - z0[k])
                     r.collided = True
-                    hits.append(
+                    r.z = complex(at)  # stays where it touched
+                    out.append(
                         CollisionEvent(
                             robot_id=r.robot_id,
-                            ws_id=ws_id,
-                            stamp_ns=time.time_ns(),
-                            position=(r.z.real, r.z.imag),
-                            clearance=float(c) if math.isfinite(c) else -1.0,
+                            ws_id=r.ws_id,
+                            stamp_ns=stamp,
+                            position=(at.real, at.imag),
+                            clearance=float(g),
+                            other_robot_id=ids[other],
                         )
                     )
-        return hits
+        # pairs of this floor that are apart again may touch anew later
+        mine = set(ids)
+        self._touching = {p for p in self._touching if not (p[0] in mine and p[1] in mine)}
+        self._touching |= touching
+        return out
 
     def step(self, dt: float) -> None:
         """Advance every robot by ``dt`` sim seconds and publish the poses (robot state is

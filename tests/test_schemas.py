@@ -49,6 +49,11 @@ SAMPLES: list[S.Message] = [
     S.RobotStatus(robot_id="r1", stamp_ns=6, state="stopped", reason="stale_pose"),
     S.CollisionEvent(robot_id="r1", ws_id="w1", stamp_ns=7, position=(1, 1), clearance=-0.01),
     S.SpawnRequest(robot_id="r2", ws_id="w1", position=(0.3, 0.3)),
+    S.Movers(
+        ws_id="w1",
+        stamp_ns=7,
+        movers=[S.MoverDisk(mover_id="person1", position=(1, 2), radius=0.3, velocity=(1.2, 0))],
+    ),
     S.SimControl(action="reset", robot_id="r2"),
     S.ServiceHealth(service="transform", zid="abc", stamp_ns=8, state="ok", uptime_s=1.0),
     S.AtlasIndex(

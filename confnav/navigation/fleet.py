@@ -13,21 +13,38 @@ bench/bench_services.py).
 The result is each robot's ``Controller.from_map_values`` (tests/test_fleet_step.py: equal to
 rounding), so everything said there (the speed law, the hold cap, the safety layer of
 :mod:`confnav.navigation.safety`, stall reports) holds here.
+
+Robots that avoid each other (second half of this module): :func:`pairwise_rows` turns the
+neighbours' disks into half-plane rows ``Re(conj(a) u_i) >= b`` on each robot's command,
+:func:`project_rows` solves ``min |u - u_nom|^2`` subject to them and a speed cap, and
+:func:`side_pass` with :class:`DeadlockMonitor` keeps symmetric encounters from freezing
+(docs/NAVIGATION.md, "Fleets").
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import ArrayLike
+from numpy.typing import ArrayLike, NDArray
+from scipy.spatial import cKDTree
 
 from confnav.navigation import defaults
 from confnav.navigation.control import SLOW_FLOOR, Controller, ControlOutput, Status, speed_law
 from confnav.navigation.navfn import value_and_gradient_stacked
 from confnav.types import CArray, FArray
 
-__all__ = ["fleet_step"]
+__all__ = [
+    "DeadlockMonitor",
+    "Rows",
+    "fleet_step",
+    "pairwise_rows",
+    "project_rows",
+    "project_with_walls",
+    "side_pass",
+    "swept_min_distance",
+]
 
 
 def fleet_step(
@@ -157,3 +174,386 @@ def _near_critical(us: list[Controller], inv: np.ndarray, w: CArray, dw: CArray)
     d: FArray = np.min(np.abs(w[:, None] - table[inv]), axis=1)
     radius = np.array([c.stall_radius for c in us], dtype=np.float64)[inv]
     return np.asarray(d <= radius * np.abs(dw))
+
+
+# ------------------------------------------------------------------------------------------
+# Robots that avoid each other: pairwise rows, their projection, side passing.
+# ------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Rows:
+    """Half-plane rows on the commands of N robots: ``Re(conj(a[i, k]) u_i) >= b[i, k]``.
+
+    ``a`` are unit vectors (complex, pointing from the neighbour to the robot), ``b`` in m/s;
+    padding rows have ``a = 0``, ``b = 0`` (always met).  ``who[i, k]`` names the neighbour:
+    ``j < N`` robot j of the batch, ``N + m`` the m-th other disk, -1 padding; ``gap`` is the
+    surface gap (m) between the two disks (``inf`` on padding).  This is the row format the
+    safety layer's projection takes (walls add rows of the same kind).
+    """
+
+    a: CArray
+    b: FArray
+    who: NDArray[np.intp]
+    gap: FArray
+
+    @property
+    def count(self) -> NDArray[np.intp]:
+        """Rows per robot."""
+        return np.asarray((self.who >= 0).sum(axis=1), dtype=np.intp)
+
+    @staticmethod
+    def empty(n: int) -> Rows:
+        return Rows(
+            a=np.zeros((n, 0), dtype=np.complex128),
+            b=np.zeros((n, 0)),
+            who=np.zeros((n, 0), dtype=np.intp),
+            gap=np.zeros((n, 0)),
+        )
+
+
+def _as_c(x: ArrayLike | None, n: int, fill: complex = 0j) -> CArray:
+    if x is None:
+        return np.full(n, fill, dtype=np.complex128)
+    return np.broadcast_to(np.asarray(x, dtype=np.complex128).reshape(-1), (n,)).copy()
+
+
+def _as_f(x: ArrayLike | None, n: int, fill: float = 0.0) -> FArray:
+    if x is None:
+        return np.full(n, fill, dtype=np.float64)
+    return np.broadcast_to(np.asarray(x, dtype=np.float64).reshape(-1), (n,)).copy()
+
+
+def pairwise_rows(
+    z: ArrayLike,
+    radius: ArrayLike,
+    v_max: ArrayLike,
+    *,
+    others: ArrayLike | None = None,
+    others_radius: ArrayLike | None = None,
+    others_velocity: ArrayLike | None = None,
+    others_cooperative: ArrayLike | None = None,
+    others_mover: ArrayLike | None = None,
+    hold_time: float = defaults.HOLD_TIME,
+    fraction: float = defaults.HOLD_FRACTION,
+    active: ArrayLike | None = None,
+    horizon: float = 0.0,
+) -> Rows:
+    """Rows keeping the disks of N controlled robots off each other and off other disks.
+
+    Robot i at ``z[i]`` (its disk's centre: a unicycle's look-ahead point with radius ``r +
+    d``) with radius ``radius[i]`` and speed limit ``v_max[i]``; ``others`` are disks not
+    controlled here (robots of another controller, real or replayed ones, movers) with their
+    velocity (m/s; 0 if unknown) and whether they run this same filter (``cooperative``).
+    ``active`` (default all): robots that take rows; the others are still obstacles.
+    ``horizon`` (s): a non-cooperative disk with velocity ``v_j`` counts as the capsule it
+    sweeps over the next ``horizon`` seconds (segment ``z_j .. z_j + v_j horizon`` widened by
+    its radius): a robot then keeps out of a mover's path ahead of it and leaves it sideways,
+    instead of only backing away from a person who walks faster than the robot can drive.
+    The capsule is convex and translates with ``v_j``, so the argument below holds with the
+    normal at its nearest point, and it contains the disk.
+
+    For a pair at distance ``D = |z_i - z_j|``, unit normal ``n = (z_i - z_j) / D`` and gap
+    ``h = D - r_i - r_j`` the barrier is ``h`` itself (the distance form of Wang, Ames,
+    Egerstedt, "Safety barrier certificates for collisions-free multirobot systems", IEEE
+    T-RO 33(3) 2017, sec. IV), with rate ``alpha = fraction / hold_time``:
+
+    * both controlled (or ``cooperative``), reciprocal, each takes half (ibid., eq. (13)):
+      ``Re(conj(n) u_i) >= -alpha h / 2``;
+    * the other is not controlled and moves with ``v_j``: full responsibility,
+      ``Re(conj(n) u_i) >= -alpha h + Re(conj(n) v_j)``.
+
+    Held commands.  Velocities constant over ``t <= hold_time`` give ``|d(t)| >= Re(conj(n)
+    d(t)) = D + t Re(conj(n)(u_i - u_j))`` (Cauchy-Schwarz), and the rows of the pair add up
+    to ``Re(conj(n)(u_i - u_j)) >= -alpha h``: so ``h(t) >= (1 - fraction) h(0) > 0`` for
+    every ``t`` in the hold.  This is the pairwise twin of the wall hold cap and needs no
+    separate speed cap; it holds exactly for commands held at most ``hold_time`` that start
+    together and for neighbours that keep their velocity (movers) over the hold.
+
+    A robot without a radius is a point, not a body: pairs of robots get rows only when both
+    radii are positive (a point robot drives as before the fleet filter, and a disk robot
+    does not make room for points); ``others_mover`` marks the other disks that are movers,
+    which every robot avoids, a point robot included.
+
+    A row can bind only if ``b > -v_max[i]`` (``|u_i| <= v_max`` meets it otherwise), i.e. for
+    ``h < 2 v_max / alpha`` (controlled) or ``h < (v_max + |v_j|) / alpha``: neighbours are
+    searched within that reach (``scipy.spatial.cKDTree``), farther ones give no rows, so
+    leaving them out is exact.
+    """
+    z = np.asarray(z, dtype=np.complex128).reshape(-1)
+    n = z.size
+    r = _as_f(radius, n)
+    vm = _as_f(v_max, n)
+    act = np.ones(n, dtype=bool) if active is None else _as_f(active, n).astype(bool)
+    if not (hold_time > 0 and 0 < fraction <= 1):
+        raise ValueError(f"hold_time > 0 and 0 < fraction <= 1 needed, got {hold_time}, {fraction}")
+    alpha = fraction / hold_time
+    oz = np.zeros(0, dtype=np.complex128) if others is None else np.asarray(others, np.complex128)
+    oz = oz.reshape(-1)
+    m = oz.size
+    orad, ovel = _as_f(others_radius, m), _as_c(others_velocity, m)
+    ocoop = _as_f(others_cooperative, m).astype(bool)
+    omover = _as_f(others_mover, m).astype(bool)
+    if n == 0:
+        return Rows.empty(0)
+    pts = np.column_stack([z.real, z.imag])
+    vtop = float(vm.max(initial=0.0))
+    ii: list[NDArray[np.intp]] = []
+    jj: list[NDArray[np.intp]] = []
+    if n > 1:
+        reach = 2 * float(r.max()) + 2 * vtop / alpha
+        pr = cKDTree(pts).query_pairs(reach, output_type="ndarray")
+        if pr.size:
+            ii += [pr[:, 0], pr[:, 1]]
+            jj += [pr[:, 1], pr[:, 0]]
+    if m:
+        fast = max(vtop, float(np.abs(ovel).max()))  # cooperative rows bind up to 2 v_max
+        reach = float(r.max()) + float(orad.max()) + (vtop + fast) / alpha
+        reach += float(np.abs(ovel).max()) * horizon
+        sm = cKDTree(pts).sparse_distance_matrix(
+            cKDTree(np.column_stack([oz.real, oz.imag])), reach, output_type="ndarray"
+        )
+        if sm.size:
+            ii.append(sm["i"].astype(np.intp))
+            jj.append(sm["j"].astype(np.intp) + n)
+    if not ii:
+        return Rows.empty(n)
+    i = np.concatenate(ii)
+    j = np.concatenate(jj)
+    keep = act[i]
+    i, j = i[keep], j[keep]
+    allz = np.concatenate([z, oz])
+    allr = np.concatenate([r, orad])
+    allv = np.concatenate([np.zeros(n, np.complex128), ovel])
+    coop = np.concatenate([np.ones(n, bool), ocoop])
+    sweep = np.where(coop[j], 0j, allv[j] * horizon)  # capsule axis (0: a disk)
+    ss = np.abs(sweep) ** 2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s_near = np.clip(np.real(np.conj(sweep) * (z[i] - allz[j])) / ss, 0.0, 1.0)
+    near = allz[j] + np.where(ss > 0, s_near, 0.0) * sweep
+    d = z[i] - near
+    dist = np.abs(d)
+    # on a capsule's axis (in a mover's way): leave to the right of its motion; coincident
+    # centres of two disks: an arbitrary unit normal
+    sw = np.abs(sweep)
+    side = np.where(sw > 0, -1j * sweep / np.where(sw > 0, sw, 1.0), 1.0 + 0j)
+    nrm = np.where(dist > 0, d / np.where(dist > 0, dist, 1.0), side)
+    gap = dist - r[i] - allr[j]
+    b = np.where(coop[j], -0.5 * alpha * gap, -alpha * gap + np.real(np.conj(nrm) * allv[j]))
+    mover = np.concatenate([np.zeros(n, bool), omover])
+    bodies = np.where(mover[j], r[i] + allr[j] > 0, (r[i] > 0) & (allr[j] > 0))
+    bind = (b > -vm[i]) & bodies
+    i, j, nrm, b, gap = i[bind], j[bind], nrm[bind], b[bind], gap[bind]
+    if i.size == 0:
+        return Rows.empty(n)
+    order = np.lexsort((-b, i))  # by robot, the tightest row first
+    i, j, nrm, b, gap = i[order], j[order], nrm[order], b[order], gap[order]
+    cnt = np.bincount(i, minlength=n)
+    start = np.concatenate([[0], np.cumsum(cnt)[:-1]])
+    col = np.arange(i.size) - start[i]
+    k = int(cnt.max())
+    a_out = np.zeros((n, k), dtype=np.complex128)
+    b_out = np.zeros((n, k))
+    w_out = np.full((n, k), -1, dtype=np.intp)
+    g_out = np.full((n, k), np.inf)
+    a_out[i, col], b_out[i, col], w_out[i, col], g_out[i, col] = nrm, b, j, gap
+    return Rows(a=a_out, b=b_out, who=w_out, gap=g_out)
+
+
+def project_rows(
+    u_nom: ArrayLike, a: ArrayLike, b: ArrayLike, cap: ArrayLike
+) -> tuple[CArray, NDArray[np.bool_]]:
+    """``argmin |u - u_nom|^2`` s.t. ``Re(conj(a_k) u) >= b_k`` and ``|u| <= cap``, per robot.
+
+    Exact for this 2-D convex QP by enumeration of its possible active sets (an optimum of a
+    strictly convex QP in the plane has at most two active constraints: Boyd and
+    Vandenberghe, *Convex Optimization*, 2004, sec. 5.5.3, KKT): ``u_nom`` (clipped to the
+    cap), its projection on each line, each pair of lines' intersection, each line's two
+    points on the circle ``|u| = cap``; the feasible candidate nearest ``u_nom`` wins.
+    Vectorized over robots; ``a``, ``b`` of shape (N, K).  Returns ``(u, feasible)``; where
+    the rows and the cap leave no command, ``u`` is the candidate of least largest violation
+    (``feasible`` False) within the cap.
+    """
+    un = np.asarray(u_nom, dtype=np.complex128).reshape(-1)
+    n = un.size
+    A = np.asarray(a, dtype=np.complex128).reshape(n, -1)
+    B = np.asarray(b, dtype=np.float64).reshape(n, -1)
+    cp = _as_f(cap, n)
+    k = A.shape[1]
+    mag = np.abs(un)
+    c0 = np.where(mag > cp, un * (cp / np.where(mag > 0, mag, 1.0)), un)
+    cands = [c0[:, None], np.zeros((n, 1), np.complex128)]
+    if k:
+        a2 = np.abs(A) ** 2
+        with np.errstate(divide="ignore", invalid="ignore"):
+            cands.append(un[:, None] + (B - np.real(np.conj(A) * un[:, None])) / a2 * A)
+            an = np.abs(A)
+            ah = A / an
+            beta = B / an
+            s = np.sqrt(cp[:, None] ** 2 - beta**2)
+            cands += [ah * (beta + 1j * s), ah * (beta - 1j * s)]
+        if k > 1:
+            p, q = np.triu_indices(k, 1)
+            ar, ai = A.real, A.imag
+            det = ar[:, p] * ai[:, q] - ai[:, p] * ar[:, q]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                x = (B[:, p] * ai[:, q] - ai[:, p] * B[:, q]) / det
+                y = (ar[:, p] * B[:, q] - B[:, p] * ar[:, q]) / det
+            cands.append(x + 1j * y)
+    C = np.concatenate(cands, axis=1)
+    scale = np.maximum(np.maximum(cp, mag), 1e-300)[:, None]
+    tol = 1e-9 * scale
+    finite = np.isfinite(C)
+    Cf = np.where(finite, C, 0j)
+    viol = np.maximum(np.abs(Cf) - cp[:, None], 0.0)
+    if k:
+        slack = np.real(np.conj(A)[:, None, :] * Cf[:, :, None]) - B[:, None, :]
+        viol = np.maximum(viol, np.max(np.maximum(-slack, 0.0), axis=2))
+    viol = np.where(finite, viol, np.inf)
+    feas = viol <= tol
+    cost = np.where(feas, np.abs(Cf - un[:, None]) ** 2, np.inf)
+    best = np.argmin(cost, axis=1)
+    ok = np.isfinite(cost[np.arange(n), best])
+    # no feasible command: the candidate (scaled into the cap) of least largest row violation,
+    # among them each row's own best, cap times its unit normal
+    m = np.abs(Cf)
+    Cc = np.where(m > cp[:, None], Cf * (cp[:, None] / np.where(m > 0, m, 1.0)), Cf)
+    if k:
+        an = np.abs(A)
+        Cc = np.concatenate([Cc, cp[:, None] * A / np.where(an > 0, an, 1.0)], axis=1)
+        finite = np.concatenate([finite, an > 0], axis=1)
+    rv = np.zeros(Cc.shape)
+    if k:
+        sl = np.real(np.conj(A)[:, None, :] * Cc[:, :, None]) - B[:, None, :]
+        rv = np.max(np.maximum(-sl, 0.0), axis=2)
+    least = np.argmin(np.where(finite, rv, np.inf), axis=1)
+    rows_ = np.arange(n)
+    return np.where(ok, Cf[rows_, best], Cc[rows_, least]), ok
+
+
+def project_with_walls(
+    u_nom: ArrayLike,
+    z: ArrayLike,
+    rows: Rows,
+    cap: ArrayLike,
+    walls: Sequence[object | None],
+) -> tuple[CArray, NDArray[np.bool_]]:
+    """The pairwise rows and each robot's wall rows in one projection.
+
+    ``walls[i]``: robot i's wall filter (a :class:`confnav.navigation.safety.SafetyFilter`
+    on the workspace its point ``z[i]`` navigates in, e.g. ``Controller.safety``; robots
+    sharing one are projected together), or None (pairwise rows and ``cap`` only:
+    :func:`project_rows`).  The filter adds its wall rows and its held-command cap and solves
+    the joint QP (its ``extra_normals``/``extra_bounds``); where that has no solution the
+    robot gets :func:`project_rows`' least-violation command on the pairwise rows and cap.
+    Returns ``(u, feasible)``.
+    """
+    un = np.asarray(u_nom, dtype=np.complex128).reshape(-1)
+    zz = np.asarray(z, dtype=np.complex128).reshape(-1)
+    cp = _as_f(cap, un.size)
+    u, ok = project_rows(un, rows.a, rows.b, cp)
+    groups: dict[int, tuple[object, list[int]]] = {}
+    for i, f in enumerate(walls):
+        if f is not None:
+            groups.setdefault(id(f), (f, []))[1].append(i)
+    for f, idx in groups.values():
+        m = np.array(idx, dtype=np.intp)
+        pr = f(zz[m], un[m], cap=cp[m], extra_normals=rows.a[m], extra_bounds=rows.b[m])  # type: ignore[operator]
+        good = ~np.asarray(pr.infeasible, dtype=bool)
+        u[m[good]] = np.asarray(pr.u)[good]
+        ok[m] = good
+    return u, ok
+
+
+def side_pass(
+    u_nom: ArrayLike,
+    rows: Rows,
+    *,
+    blocked: ArrayLike | None = None,
+    pass_gap: float = 1.0,
+    angle: float = np.pi / 4,
+    blocked_angle: float = np.pi / 2,
+) -> CArray:
+    """The nominal commands turned to the right near a neighbour ahead: the side-passing rule.
+
+    Every robot applies the same rule (traffic keeps right): its command is rotated clockwise
+    by ``angle * e`` with ``e = max_k clip(1 - gap_k / pass_gap, 0, 1) * max(0, cos)`` over the
+    neighbours of its rows (``cos`` the cosine between the command and the direction to the
+    neighbour), and by ``blocked_angle`` when :class:`DeadlockMonitor` says it is blocked.
+    Two robots meeting head-on both turn right and pass each other on their left (the
+    symmetry that freezes a pure safety filter is broken the same way for both; Wang, Ames,
+    Egerstedt, IEEE T-RO 2017, sec. VI, use a perturbation for the same purpose).  Only the
+    nominal command turns: the rows still bound the filtered one, so safety is unaffected.
+    """
+    un = np.asarray(u_nom, dtype=np.complex128).reshape(-1)
+    n = un.size
+    if rows.a.shape[1] == 0:
+        e = np.zeros(n)
+    else:
+        mag = np.abs(un)
+        dirn = np.where(mag > 0, un / np.where(mag > 0, mag, 1.0), 0j)
+        ahead = np.maximum(np.real(np.conj(-rows.a) * dirn[:, None]), 0.0)
+        near = np.clip(1.0 - rows.gap / pass_gap, 0.0, 1.0)
+        e = np.max(np.where(rows.who >= 0, near * ahead, 0.0), axis=1)
+    theta = angle * e
+    if blocked is not None:
+        theta = np.where(np.asarray(blocked, dtype=bool).reshape(-1), blocked_angle, theta)
+    return np.asarray(un * np.exp(-1j * theta), dtype=np.complex128)
+
+
+class DeadlockMonitor:
+    """Detects robots held up by other robots: no progress toward the goal for ``window`` s
+    while a robot row is engaged (within ``engage_gap`` m).
+
+    Progress is a decrease of the distance to the goal by ``progress`` m below the best so
+    far; while no robot row is engaged the clock restarts (a stall without neighbours is the
+    navigation law's business, not a deadlock).  A blocked robot stays blocked for
+    ``release`` s after it is detected (a hysteresis: the side step must take it somewhere).
+    """
+
+    def __init__(
+        self,
+        n: int,
+        *,
+        window: float = 1.0,
+        progress: float = 0.1,
+        engage_gap: float = 0.5,
+        release: float = 1.0,
+    ) -> None:
+        self.window = float(window)
+        self.progress = float(progress)
+        self.engage_gap = float(engage_gap)
+        self.release = float(release)
+        self.best = np.full(n, np.inf)
+        self.t_best = np.zeros(n)
+        self.until = np.full(n, -np.inf)
+        self.detections = 0
+
+    def update(self, t: float, dist_to_goal: ArrayLike, rows: Rows) -> NDArray[np.bool_]:
+        """The robots blocked at time ``t`` (distances to the goal now, the rows in use)."""
+        d = np.asarray(dist_to_goal, dtype=np.float64).reshape(-1)
+        engaged = np.any((rows.who >= 0) & (rows.gap < self.engage_gap), axis=1)
+        better = d < self.best - self.progress
+        reset = better | ~engaged
+        self.best = np.where(reset, d, self.best)
+        self.t_best = np.where(reset, t, self.t_best)
+        new = engaged & (t - self.t_best > self.window) & (self.until < t)
+        self.detections += int(new.sum())
+        self.until = np.where(new, t + self.release, self.until)
+        self.t_best = np.where(new, t, self.t_best)
+        return np.asarray(self.until >= t)
+
+
+def swept_min_distance(
+    a0: ArrayLike, a1: ArrayLike, b0: ArrayLike, b1: ArrayLike
+) -> tuple[FArray, FArray]:
+    """Smallest distance of two points moving linearly ``a0 -> a1`` and ``b0 -> b1`` over one
+    step, and the fraction of the step where it occurs (exact: the relative position ``d(s) =
+    d0 + s (d1 - d0)`` is closest to 0 at ``s* = clip(-Re(conj(d0) e) / |e|^2, 0, 1)``, ``e =
+    d1 - d0``, the minimum of a convex quadratic on [0, 1])."""
+    d0 = np.asarray(a0, np.complex128) - np.asarray(b0, np.complex128)
+    e = (np.asarray(a1, np.complex128) - np.asarray(b1, np.complex128)) - d0
+    ee = np.abs(e) ** 2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = np.where(ee > 0, np.clip(-np.real(np.conj(d0) * e) / np.where(ee > 0, ee, 1), 0, 1), 0)
+    return np.asarray(np.abs(d0 + s * e), dtype=np.float64), np.asarray(s, dtype=np.float64)

@@ -2,7 +2,8 @@
 
 :func:`inspect_recording` reads a recording (:mod:`confnav.recording.reader`) and summarises
 it: channels, counts, duration, robots, whether and when each arrived, minimum clearance per
-robot. :meth:`InspectReport.format` and :func:`report_json` print it; the figure is
+robot, and the closest approach of any two robots' disks (:func:`closest_approach`).
+:meth:`InspectReport.format` and :func:`report_json` print it; the figure is
 :func:`confnav.plot.recording.plot_recording`.
 
 Time origin: every time in a report (``t = ...``, ``arrival_time_s``) is seconds after the log
@@ -31,6 +32,7 @@ from confnav.schemas import (
     Goal,
     Pose,
     RobotStatus,
+    SpawnRequest,
     TransformSolution,
     VelocityCommand,
     WorkspaceDefinition,
@@ -69,6 +71,9 @@ class RobotSummary:
     map_revision: str | None = None  # of the last command or status that named one
     atlas: str | None = None  # ws_id of the atlas it was driven on (None: a single map)
     chart: int | None = None  # its active chart at the end (atlas only)
+    radius: float = 0.0  # body radius (m) from its spawn request or goal
+    pose_stamps: list[int] = field(default_factory=list)  # stamp_ns of each trajectory point
+    robot_contacts: list[str] = field(default_factory=list)  # robots it touched (simulator)
 
 
 @dataclass
@@ -88,6 +93,8 @@ class InspectReport:
     unknown_schemas: list[str]
     invalid_messages: int
     atlases: dict[str, AtlasIndex] = field(default_factory=dict)
+    #: the closest approach of two robots (:func:`closest_approach`), None: fewer than two
+    closest: dict[str, Any] | None = None
 
     @property
     def duration_s(self) -> float:
@@ -142,6 +149,14 @@ class InspectReport:
             },
             "unknown_schemas": self.unknown_schemas,
             "invalid_messages": self.invalid_messages,
+            "closest_robot_approach": self.closest,
+            "robot_contacts": sorted(
+                {
+                    tuple(sorted((rid, o)))
+                    for rid, r in self.robots.items()
+                    for o in r.robot_contacts
+                }
+            ),
         }
 
     def atlas_robots(self, ws_id: str) -> list[str]:
@@ -200,6 +215,15 @@ class InspectReport:
             out.append(f"atlas {ws_id}: {len(atlas.cells)} cells, {used}")
         if not self.robots:
             out.append("\nno robots recorded")
+        if self.closest is not None:
+            near = self.closest
+            out.append(
+                f"\nclosest robot-robot approach: {near['robots'][0]} and {near['robots'][1]}, "
+                f"centres {near['distance']:.4f} m apart, "
+                f"gap {near['gap']:.4f} m between their disks "
+                f"(radii {near['radii'][0]:g}, {near['radii'][1]:g}) at t = {near['time_s']:.3f} s"
+                + ("  CONTACT" if near["gap"] <= 0 else "")
+            )
         for rid, r in sorted(self.robots.items()):
             out.append(f"\nrobot {rid}" + (f" (workspace {r.ws_id})" if r.ws_id else ""))
             out.append(f"  poses {r.poses}, commands {r.commands}, path {r.path_length:.3f} m")
@@ -232,6 +256,8 @@ class InspectReport:
                 out.append(
                     f"  COLLISION at t = {r.collision_time_s:.3f} s at {_fmt_pt(r.collision_at)}"
                 )
+            if r.robot_contacts:
+                out.append(f"  touched robot(s) {', '.join(sorted(set(r.robot_contacts)))}")
             if r.min_clearance is not None and r.min_clearance_at is not None:
                 out.append(
                     f"  minimum clearance {r.min_clearance:.4f} m at {_fmt_pt(r.min_clearance_at)}"
@@ -312,6 +338,7 @@ def inspect_recording(path: str | os.PathLike[str]) -> InspectReport:
                     r.path_length += math.hypot(p[0] - q[0], p[1] - q[1])
                 r.trajectory.append(p)
                 pose_times[model.robot_id].append(msg.log_time_ns)
+                r.pose_stamps.append(model.stamp_ns or msg.log_time_ns)
                 r.poses += 1
             elif isinstance(model, Goal):
                 r = robot(model.robot_id)
@@ -320,6 +347,10 @@ def inspect_recording(path: str | os.PathLike[str]) -> InspectReport:
                 r.ws_id = model.ws_id
                 r.map_ws_id = map_ws_id(model)
                 r.goal_time_s = (msg.log_time_ns - first_ns) / NS_PER_S
+                r.radius = max(r.radius, model.robot_radius)
+            elif isinstance(model, SpawnRequest):
+                r = robot(model.robot_id)
+                r.radius = max(r.radius, model.robot_radius)
             elif isinstance(model, AtlasIndex):
                 atlases[model.ws_id] = model
                 atlas_of_revision[model.revision] = model.ws_id
@@ -332,6 +363,8 @@ def inspect_recording(path: str | os.PathLike[str]) -> InspectReport:
                 r.map_revision = model.map_revision or r.map_revision
             elif isinstance(model, CollisionEvent):
                 r = robot(model.robot_id)
+                if model.other_robot_id is not None:
+                    r.robot_contacts.append(model.other_robot_id)
                 if r.collision_at is None:
                     r.collision_at = (model.position[0], model.position[1])
                     r.collision_time_s = (msg.log_time_ns - (first_ns or 0)) / NS_PER_S
@@ -371,6 +404,7 @@ def inspect_recording(path: str | os.PathLike[str]) -> InspectReport:
             if wd is not None and r.trajectory:
                 _min_clearance(r, wd)
         return InspectReport(
+            closest=closest_approach(robots, start),
             path=rec.path,
             prefix=rec.prefix,
             message_count=sum(counts.values()),
@@ -402,8 +436,71 @@ def _min_clearance(r: RobotSummary, wd: WorkspaceDefinition) -> None:
     r.min_clearance_at = r.trajectory[i]
 
 
+def closest_approach(robots: dict[str, RobotSummary], start_ns: int = 0) -> dict[str, Any] | None:
+    """The closest approach of two robots' disks over a recording.
+
+    Each robot's centre moves linearly between its recorded poses (by pose stamp); on the
+    common refinement of all pose times every pair moves linearly, so the closest approach
+    within each interval is the exact minimum of a convex quadratic
+    (:func:`confnav.navigation.fleet.swept_min_distance`).  Only times where both robots have
+    poses count.  Returns the pair, centre distance, gap between the disks (radii from the
+    spawn requests or goals) and the time (s after ``start_ns``).
+    """
+    import numpy as np
+
+    from confnav.navigation.fleet import swept_min_distance
+
+    ids = sorted(rid for rid, r in robots.items() if len(r.trajectory) >= 1)
+    if len(ids) < 2:
+        return None
+    tracks = []
+    for rid in ids:
+        r = robots[rid]
+        t = np.asarray(r.pose_stamps, dtype=np.int64)
+        order = np.argsort(t, kind="stable")
+        xy = np.asarray(r.trajectory, dtype=np.float64)[order]
+        tracks.append((t[order], xy[:, 0] + 1j * xy[:, 1]))
+    grid = np.unique(np.concatenate([t for t, _ in tracks]))
+    tg = (grid - grid[0]).astype(np.float64)
+    pos = np.full((len(ids), grid.size), np.nan + 0j)
+    for k, (t, z) in enumerate(tracks):
+        tt = (t - grid[0]).astype(np.float64)
+        inside = (tg >= tt[0]) & (tg <= tt[-1])
+        pos[k, inside] = np.interp(tg[inside], tt, z.real) + 1j * np.interp(tg[inside], tt, z.imag)
+    radii = np.array([robots[rid].radius for rid in ids])
+    best: dict[str, Any] | None = None
+    for i in range(len(ids)):
+        for j in range(i + 1, len(ids)):
+            a0, a1 = pos[i, :-1], pos[i, 1:]
+            b0, b1 = pos[j, :-1], pos[j, 1:]
+            ok = np.isfinite(a0) & np.isfinite(a1) & np.isfinite(b0) & np.isfinite(b1)
+            if grid.size == 1 or not ok.any():
+                both = np.isfinite(pos[i]) & np.isfinite(pos[j])
+                if not both.any():
+                    continue
+                d = np.abs(pos[i] - pos[j])
+                k = int(np.nanargmin(np.where(both, d, np.nan)))
+                dist, when = float(d[k]), float(tg[k])
+            else:
+                dmin, s = swept_min_distance(a0[ok], a1[ok], b0[ok], b1[ok])
+                k = int(np.argmin(dmin))
+                seg = np.flatnonzero(ok)[k]
+                dist = float(dmin[k])
+                when = float(tg[seg] + s[k] * (tg[seg + 1] - tg[seg]))
+            gap = dist - radii[i] - radii[j]
+            if best is None or gap < best["gap"]:
+                best = {
+                    "robots": [ids[i], ids[j]],
+                    "distance": dist,
+                    "gap": float(gap),
+                    "radii": [float(radii[i]), float(radii[j])],
+                    "time_s": (when + float(grid[0] - start_ns)) / NS_PER_S,
+                }
+    return best
+
+
 def report_json(report: InspectReport) -> str:
     return json.dumps(report.to_dict(), indent=2, sort_keys=True)
 
 
-__all__ = ["InspectReport", "RobotSummary", "inspect_recording", "report_json"]
+__all__ = ["InspectReport", "RobotSummary", "closest_approach", "inspect_recording", "report_json"]

@@ -21,16 +21,19 @@ from confnav.recording.scene import (
     RobotView,
     circle_domain_scene,
     circle_domain_topic,
+    circle_points,
     line_primitive,
     robot_color,
     scene_entity,
     scene_topic,
+    text_primitive,
     workspace_scene,
 )
 from confnav.schemas import (
     AtlasIndex,
     Goal,
     Message,
+    Movers,
     Pose,
     RobotStatus,
     TransformSolution,
@@ -47,6 +50,7 @@ DEFAULT_TRAIL_POINTS = 256  # maximum points per robot trail
 DEFAULT_TRAIL_RESOLUTION = 0.002  # minimum trail spacing / workspace diameter
 
 Point = tuple[float, float]
+MOVER_COLOR = (0.95, 0.55, 0.0, 1.0)  # movers (people, forklifts): orange
 
 
 class MapLike(Protocol):
@@ -187,6 +191,7 @@ class SceneBuilder:
         self._ws: dict[str, _Ws] = {}
         self._robots: dict[str, _Robot] = {}
         self._cells: dict[str, list[list[Point]]] = {}  # atlas ws -> cell outlines
+        self._movers: dict[str, Movers] = {}  # floor (base ws id) -> latest movers
 
     def _robot(self, rid: str) -> _Robot:
         if rid not in self._robots:
@@ -223,6 +228,8 @@ class SceneBuilder:
             self._extend_trail(robot)
         elif isinstance(message, RobotStatus) and message.ws_id is not None:
             self._robot(message.robot_id).ws = message.ws_id
+        elif isinstance(message, Movers):
+            self._movers[message.ws_id.split("~", 1)[0]] = message
         elif isinstance(message, VelocityCommand) and message.chart is not None:
             self._robot(message.robot_id).chart = message.chart
             return []
@@ -358,6 +365,7 @@ class SceneBuilder:
         if not full:
             ws_msg["entities"] = ws_msg["entities"][1:]
         ws_msg["entities"] += self._atlas_entities(ws_id, robots, now_ns, full)
+        ws_msg["entities"] += self._mover_entities(ws_id, now_ns)
         out = [SceneMessage(scene_topic(ws_id, self.prefix), ws_msg, now_ns)]
         if ws.radii:
             w_views = {rid: self._map_view(ws.cmap, r, full) for rid, r in sorted(robots.items())}
@@ -366,6 +374,32 @@ class SceneBuilder:
                 cd_msg["entities"] = cd_msg["entities"][1:]
             out.append(SceneMessage(circle_domain_topic(ws_id, self.prefix), cd_msg, now_ns))
         return out
+
+    def _mover_entities(self, ws_id: str, now_ns: int) -> list[dict[str, Any]]:
+        """One entity ``movers`` (replaced each time, so a mover that is gone disappears):
+        each mover's disk, its velocity as a line to where it will be in 1 s, its id."""
+        m = self._movers.get(ws_id.split("~", 1)[0])
+        if m is None:
+            return []
+        lines, texts = [], []
+        for d in m.movers:
+            c = complex(*d.position)
+            lines.append(line_primitive(circle_points(c, d.radius), MOVER_COLOR, loop=True))
+            v = complex(*d.velocity)
+            if v != 0:
+                ahead = (c + v).real, (c + v).imag  # where it will be in 1 s
+                lines.append(line_primitive([d.position, ahead], MOVER_COLOR))
+            texts.append(text_primitive(d.position, d.mover_id, MOVER_COLOR, font_size=10.0))
+        return [
+            scene_entity(
+                "movers",
+                WORKSPACE_FRAME,
+                now_ns,
+                lines=lines,
+                texts=texts,
+                metadata={"movers": str(len(m.movers))},
+            )
+        ]
 
     def _map_view(self, cmap: MapLike | None, robot: _Robot, full: bool) -> RobotView:
         """The robot in the circle domain (images under T; nothing without a map)."""

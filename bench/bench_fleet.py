@@ -1,0 +1,218 @@
+"""Fleets that avoid each other: robot-robot contacts, arrival and the filter's cost.
+
+    python bench/bench_fleet.py [--quick] [--out bench/results/fleet.json]
+
+Core simulation (:func:`confnav.navigation.fleet_sim.simulate_fleet`: every robot its own
+Controller and goal on one map, commands held 0.05 s, pairwise barrier rows + side passing +
+the wall hold cap, contacts checked along every step with swept disks and the core's chord
+check).  Scenarios (disk robots r = 0.2 m, v_max 0.5 m/s, maps of the free space shrunk by r):
+
+* ``swap N``: N robots on a ring of radius 3.5 m (3.0 m for N <= 4) in a 10 x 8 m room with
+  two 1.2 m boxes, each sent to the opposite point;
+* ``door 8``: two 4.9 m rooms joined by a 1.2 m door in a 0.2 m wall, 4 robots each way;
+* ``person``: one robot crossing the room while a person (disk 0.3 m, 1.2 m/s) walks across
+  its path, timed to meet it (without the filter the two touch).
+
+Per scenario: robot-robot, mover and wall contacts, arrival %, time to the last arrival
+against the slowest robot's lone run (the same robot alone on the same map; target <= 2x),
+deadlocks detected, infeasible projections, the filter's cost per robot and step (rows,
+side passing, projection, the wall cap's clearance; Python overhead included, so small
+fleets pay more per robot), and the same run without the filter (``ghost contacts``).
+A batched cost row measures rows + projection alone for 200 robots.  Prints a table, writes
+JSON with the commit and the load average.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+import warnings
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from provenance import git, loadavg
+
+from confnav import Controller, Workspace, inflate, solve
+from confnav.navigation.fleet import pairwise_rows, project_rows
+from confnav.navigation.fleet_sim import Mover, simulate_fleet
+
+RESULTS = Path(__file__).resolve().parent / "results"
+R = 0.2
+TOL = 1e-6
+T_MAX = 200.0
+
+ROOM = Workspace(
+    [(0, 0), (10, 0), (10, 8), (0, 8)],
+    [
+        [(3, 2.5), (4.2, 2.5), (4.2, 3.7), (3, 3.7)],
+        [(6, 4.5), (7.2, 4.5), (7.2, 5.7), (6, 5.7)],
+    ],
+)
+DOOR = Workspace(
+    [
+        (0, 0), (4.9, 0), (4.9, 3.4), (5.1, 3.4), (5.1, 0), (10, 0), (10, 8), (5.1, 8),
+        (5.1, 4.6), (4.9, 4.6), (4.9, 8), (0, 8),
+    ]
+)  # fmt: skip
+
+
+def shrunk_map(ws: Workspace) -> Any:
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return solve(inflate(ws, R), TOL)
+
+
+def run(
+    ws: Workspace, cmap: Any, starts: np.ndarray, goals: np.ndarray, movers: list[Mover] = ()
+) -> dict[str, Any]:
+    ctrls = [Controller(cmap, g) for g in goals]
+    t0 = time.perf_counter()
+    res = simulate_fleet(ctrls, starts, ws, radius=R, movers=movers, t_max=T_MAX)
+    wall = time.perf_counter() - t0
+    ghost = simulate_fleet(ctrls, starts, ws, radius=R, movers=movers, t_max=T_MAX, avoid=False)
+    lone = [
+        simulate_fleet([c], [s], ws, radius=R, t_max=T_MAX).arrival_time[0]
+        for c, s in zip(ctrls, starts, strict=True)
+    ]
+    slowest = float(np.nanmax(lone))
+    last = res.last_arrival
+    return {
+        "robots": len(ctrls),
+        "robot_contacts": res.robot_contacts,
+        "mover_contacts": res.mover_contacts,
+        "wall_contacts": res.wall_contacts,
+        "arrived_pct": 100.0 * res.arrival_rate,
+        "last_arrival_s": last if np.isfinite(last) else None,
+        "slowest_lone_s": slowest,
+        "ratio": last / slowest if np.isfinite(last) else None,
+        "min_gap_m": res.min_gap if np.isfinite(res.min_gap) else None,
+        "min_mover_gap_m": res.min_mover_gap if np.isfinite(res.min_mover_gap) else None,
+        "min_wall_clearance_m": res.min_wall_clearance,
+        "deadlocks": res.deadlocks,
+        "infeasible": res.infeasible,
+        "filter_us_per_robot_step": res.filter_us_per_robot_step,
+        "steps": res.steps,
+        "wall_s": wall,
+        "ghost_robot_contacts": ghost.robot_contacts,
+        "ghost_mover_contacts": ghost.mover_contacts,
+    }
+
+
+def ring(n: int) -> tuple[np.ndarray, np.ndarray]:
+    rad = 3.0 if n <= 4 else 3.5
+    ang = 2 * np.pi * np.arange(n) / n + 0.1  # off the axes: no robot starts on a box's axis
+    starts = 5 + 4j + rad * np.exp(1j * ang)
+    return starts, 5 + 4j - rad * np.exp(1j * ang)
+
+
+def door() -> tuple[np.ndarray, np.ndarray]:
+    ys = np.array([2.5, 3.5, 4.5, 5.5])
+    left = 2.0 + 1j * ys
+    right = 8.0 + 1j * ys[::-1]
+    return np.concatenate([left, right]), np.concatenate([right, left])
+
+
+def batched_cost(n: int = 200, reps: int = 20) -> dict[str, Any]:
+    """rows + projection for n robots (r 0.2) at random in a 30 x 30 m hall, 3 per 10 m^2."""
+    rng = np.random.default_rng(0)
+    z = rng.random(n) * 30 + 1j * rng.random(n) * 30
+    keep = [0]
+    for i in range(1, n):  # no overlaps
+        if np.min(np.abs(z[i] - z[keep])) > 0.45:
+            keep.append(i)
+    z = z[keep]
+    u = 0.5 * np.exp(2j * np.pi * rng.random(z.size))
+    t0 = time.perf_counter()
+    for _ in range(reps):
+        rows = pairwise_rows(z, R, 0.5)
+        project_rows(u, rows.a, rows.b, 0.5)
+    dt = (time.perf_counter() - t0) / reps
+    return {
+        "robots": int(z.size),
+        "us_per_robot": 1e6 * dt / z.size,
+        "rows_per_robot_max": int(rows.count.max()),
+    }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
+    ap.add_argument("--quick", action="store_true", help="swaps of 4 and 8 and the person only")
+    ap.add_argument("--out", type=Path, default=RESULTS / "fleet.json")
+    args = ap.parse_args()
+    started = datetime.now(UTC).isoformat(timespec="seconds")
+    commit = git("rev-parse", "HEAD")
+    dirty = bool(git("status", "--porcelain", "--untracked-files=no"))
+    load0 = loadavg()
+    room_map = shrunk_map(ROOM)
+    rows: dict[str, dict[str, Any]] = {}
+    for n in (4, 8) if args.quick else (4, 8, 20):
+        rows[f"swap {n}"] = run(ROOM, room_map, *ring(n))
+        print(f"# swap {n} done (load {loadavg()})", flush=True)
+    if not args.quick:
+        rows["door 8"] = run(DOOR, shrunk_map(DOOR), *door())
+        print(f"# door done (load {loadavg()})", flush=True)
+    person = Mover(start=5.0 + 7.6j, end=5.0 + 0.35j, radius=0.3, speed=1.2, t_start=3.25)
+    rows["person"] = run(ROOM, room_map, np.array([1.0 + 1.2j]), np.array([8.5 + 1.2j]), [person])
+    cost = batched_cost()
+    hdr = (
+        f"{'scenario':10s} {'N':>3s} {'r-r':>4s} {'mov':>4s} {'wall':>4s} {'arr%':>5s} "
+        f"{'last s':>7s} {'lone s':>7s} {'ratio':>6s} {'min gap':>8s} {'dl':>3s} "
+        f"{'us/rob':>7s} {'ghost':>5s}"
+    )
+    print(hdr)
+    for name, r in rows.items():
+        last = r["last_arrival_s"]
+        print(
+            f"{name:10s} {r['robots']:3d} {r['robot_contacts']:4d} {r['mover_contacts']:4d} "
+            f"{r['wall_contacts']:4d} {r['arrived_pct']:5.0f} "
+            f"{(last if last is not None else float('nan')):7.2f} {r['slowest_lone_s']:7.2f} "
+            f"{(r['ratio'] if r['ratio'] is not None else float('nan')):6.2f} "
+            f"{min(r['min_gap_m'] or np.inf, r['min_mover_gap_m'] or np.inf):8.4f} "
+            f"{r['deadlocks']:3d} {r['filter_us_per_robot_step']:7.1f} "
+            f"{r['ghost_robot_contacts'] + r['ghost_mover_contacts']:5d}"
+        )
+    print(
+        f"batched rows + projection, {cost['robots']} robots: "
+        f"{cost['us_per_robot']:.2f} us/robot"
+    )
+    targets = {
+        name: {
+            "no contact": r["robot_contacts"] + r["mover_contacts"] + r["wall_contacts"] == 0,
+            "all arrive": r["arrived_pct"] == 100.0,
+            "within 2x lone": r["ratio"] is not None and r["ratio"] <= 2.0,
+        }
+        for name, r in rows.items()
+    }
+    for name, t in targets.items():
+        print(f"  {name}: " + ", ".join(f"{k} {'met' if v else 'MISSED'}" for k, v in t.items()))
+    doc = {
+        "commit": commit,
+        "dirty": dirty,
+        "started": started,
+        "finished": datetime.now(UTC).isoformat(timespec="seconds"),
+        "load_before": load0,
+        "load_after": loadavg(),
+        "note": "timings under the load shown (shared machine), not idle figures",
+        "cpu_count": os.cpu_count(),
+        "quick": args.quick,
+        "robot_radius": R,
+        "map_tol": TOL,
+        "control_period_s": 0.05,
+        "scenarios": rows,
+        "batched_cost": cost,
+        "targets": targets,
+    }
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(doc, indent=1, default=float))
+    print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,355 @@
+"""Neighbours of a controller's robots: every robot's latest pose and every mover, and the
+fleet filter applied to a whole pose block at once.
+
+The controller service serves some robots (its shard); the others on the bus are obstacles
+too: robots of another controller shard, real robots, replayed ones.  :class:`Neighbours`
+subscribes to every robot's pose (``{prefix}/robot/*/pose``), goal and spawn request (for
+their disks: ``robot_radius``, a unicycle's look-ahead) and to ``{prefix}/ws/*/movers``
+(:class:`~confnav.schemas.Movers`), and :meth:`Neighbours.filter_block` keeps the commands of
+one pose block off each other (reciprocal rows), off every other robot (full responsibility,
+with its velocity estimated from its last two poses) and off the movers (with their
+velocities), with the side-passing rule and deadlock detection of
+:mod:`confnav.navigation.fleet` (docs/NAVIGATION.md, "Fleets").
+
+A robot with no neighbour within reach of a row keeps the control law's command bitwise, so
+a robot alone drives exactly as without this module; so does a robot without a radius (a
+point), except near a mover.  A robot whose floor is unknown (no goal
+or spawn request seen) counts as a neighbour on every floor (conservative).
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from confnav.schemas import DecodeError, Goal, Movers, Pose, SpawnRequest, decode
+from confnav.services.bus import Bus, Closeable
+from confnav.services.keys import KeyError_, Keys
+
+from confnav.navigation import defaults
+from confnav.navigation.control import Status
+from confnav.navigation.fleet import Rows, pairwise_rows, project_with_walls, side_pass
+from confnav.navigation.unicycle import twist_from_velocity
+
+log = logging.getLogger(__name__)
+
+#: A pose older than this (s, receive time) is forgotten: the robot is gone or stopped sending.
+POSE_TTL = 2.0
+#: Movers older than this (s after their stamp) are forgotten.
+MOVERS_TTL = 1.0
+#: Movers count as the capsule they sweep in this many seconds (fleet.pairwise_rows).
+MOVER_HORIZON = 2.0
+
+
+@dataclass
+class _Seen:
+    z: complex
+    theta: float
+    t: float  # monotonic receive time
+    stamp_ns: int
+    v: complex = 0j  # estimated from the last two poses (m/s)
+
+
+@dataclass
+class _Body:
+    ws: str | None = None  # floor (the base workspace id), None: unknown
+    radius: float = 0.0
+
+
+def _floor(ws_id: str) -> str:
+    return ws_id.split("~", 1)[0]
+
+
+class Neighbours:
+    """Tracks the robots and movers on the bus; filters a controller's pose blocks."""
+
+    def __init__(
+        self,
+        keys: Keys,
+        *,
+        default_radius: float = 0.0,
+        hold_time: float = defaults.HOLD_TIME,
+        fraction: float = defaults.HOLD_FRACTION,
+        side_passing: bool = True,
+        window: float = 1.0,
+        progress: float = 0.1,
+    ) -> None:
+        self.keys = keys
+        self.default_radius = float(default_radius)
+        self.hold_time = float(hold_time)
+        self.fraction = float(fraction)
+        self.side_passing = side_passing
+        self.window = float(window)
+        self.progress = float(progress)
+        self._lock = threading.Lock()
+        self._seen: dict[str, _Seen] = {}
+        self._body: dict[str, _Body] = {}
+        self._movers: dict[str, tuple[Movers, float]] = {}
+        # deadlock monitor per robot: best distance to goal, its time, blocked until
+        self._dl: dict[str, tuple[float, float, float]] = {}
+        self.counters: dict[str, int] = {}
+        #: robot id -> whether this controller serves it (set by :func:`attach`)
+        self.served: Callable[[str], bool] | None = None
+
+    def _count(self, name: str, n: int = 1) -> None:
+        self.counters[name] = self.counters.get(name, 0) + n
+
+    # inputs ------------------------------------------------------------------------------
+    def subscribe(self, bus: Bus) -> list[Closeable]:
+        k = self.keys
+        return [
+            bus.subscribe_latest(k.any_robot("pose"), self._on_poses),
+            bus.subscribe(k.any_robot("goal"), self._on_goal),
+            bus.subscribe(k.any_sim("spawn"), self._on_spawn),
+            bus.subscribe(k.any_ws("movers"), self._on_movers),
+        ]
+
+    def _on_poses(self, items: list[tuple[str, bytes]]) -> None:
+        now = time.monotonic()
+        for key, payload in items:
+            try:
+                rid = self.keys.parse(key).ident
+                pose = decode(Pose, payload)
+            except (KeyError_, DecodeError):
+                self._count("rejected")
+                continue
+            self.note_pose(rid, pose, now)
+
+    def note_pose(self, rid: str, pose: Pose, now: float | None = None) -> None:
+        now = time.monotonic() if now is None else now
+        z = complex(pose.x, pose.y)
+        with self._lock:
+            old = self._seen.get(rid)
+            v = 0j
+            if old is not None and pose.stamp_ns > old.stamp_ns:
+                dt = (pose.stamp_ns - old.stamp_ns) * 1e-9
+                v = (z - old.z) / dt if dt > 1e-3 else old.v
+            elif old is not None and pose.stamp_ns <= old.stamp_ns:
+                return  # replayed or reordered
+            self._seen[rid] = _Seen(z, pose.theta, now, pose.stamp_ns, v)
+
+    def _on_goal(self, key: str, payload: bytes) -> None:
+        try:
+            g = decode(Goal, payload)
+        except DecodeError:
+            return
+        with self._lock:  # the body disk around the pose (a unicycle's axle)
+            b = self._body.setdefault(g.robot_id, _Body())
+            b.ws = _floor(g.ws_id)
+            b.radius = max(b.radius, g.robot_radius)
+
+    def _on_spawn(self, key: str, payload: bytes) -> None:
+        try:
+            s = decode(SpawnRequest, payload)
+        except DecodeError:
+            return
+        with self._lock:
+            b = self._body.setdefault(s.robot_id, _Body())
+            b.ws = _floor(s.ws_id)
+            b.radius = max(b.radius, s.robot_radius)
+
+    def _on_movers(self, key: str, payload: bytes) -> None:
+        try:
+            ws = self.keys.parse(key).ident
+            m = decode(Movers, payload)
+            if m.ws_id != ws:
+                raise DecodeError("invalid_input", "ws id differs from key")
+        except (KeyError_, DecodeError):
+            self._count("rejected")
+            return
+        with self._lock:
+            old = self._movers.get(_floor(ws))
+            if old is None or m.stamp_ns >= old[0].stamp_ns:
+                self._movers[_floor(ws)] = (m, time.monotonic())
+
+    # the filter --------------------------------------------------------------------------
+    def _others(
+        self, floor: str | None, exclude: set[str], now: float
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Other robots' and the movers on ``floor``: (positions, radii, velocities,
+        cooperative); a robot this controller serves (``served``) is cooperative: it runs
+        this filter with its own poses."""
+        zs: list[complex] = []
+        rs: list[float] = []
+        vs: list[complex] = []
+        co: list[bool] = []
+        mv: list[bool] = []
+        wall = time.time_ns()
+        with self._lock:
+            for rid in [r for r, s in self._seen.items() if now - s.t > POSE_TTL]:
+                del self._seen[rid]
+            for rid, s in self._seen.items():
+                if rid in exclude:
+                    continue
+                b = self._body.get(rid)
+                if b is not None and floor is not None and b.ws is not None and b.ws != floor:
+                    continue
+                zs.append(s.z)
+                rs.append(b.radius if b is not None else self.default_radius)
+                mine = self.served is not None and self.served(rid)
+                vs.append(0j if mine else s.v)
+                co.append(mine)
+                mv.append(False)
+            for fl, (m, _) in list(self._movers.items()):
+                age = (wall - m.stamp_ns) * 1e-9
+                if age > MOVERS_TTL:
+                    del self._movers[fl]
+                    continue
+                if floor is not None and fl != floor:
+                    continue
+                for d in m.movers:
+                    v = complex(*d.velocity)
+                    zs.append(complex(*d.position) + v * max(age, 0.0))
+                    rs.append(d.radius)
+                    vs.append(v)
+                    co.append(False)
+                    mv.append(True)
+        return (
+            np.array(zs, dtype=np.complex128),
+            np.array(rs, dtype=np.float64),
+            np.array(vs, dtype=np.complex128),
+            np.array(co, dtype=bool),
+            np.array(mv, dtype=bool),
+        )
+
+    def filter_block(self, results: list[Any], now: float | None = None) -> list[Any]:
+        """The controller's results of one pose block, ``[((ctrl, [(robot, pose), ...]),
+        (u, codes) or an exception), ...]``, with every robot's command filtered against the
+        others (module docstring).  Robots without rows keep their command bitwise."""
+        now = time.monotonic() if now is None else now
+        entries: list[tuple[int, int, Any, Any, Any]] = []  # (group, k, robot, pose, ctrl)
+        for gi, ((ctrl, members), res) in enumerate(results):
+            if isinstance(res, BaseException):
+                continue
+            for k, (r, pose) in enumerate(members):
+                if r.goal is not None:
+                    entries.append((gi, k, r, pose, ctrl))
+        if not entries:
+            return results
+        by_floor: dict[str, list[int]] = {}
+        for i, e in enumerate(entries):
+            by_floor.setdefault(_floor(e[2].goal.ws_id), []).append(i)
+        out: list[Any] = [
+            (
+                g,
+                res
+                if isinstance(res, BaseException)
+                else (np.array(res[0], complex), np.array(res[1])),
+            )
+            for g, res in results
+        ]
+        own = {e[2].robot_id for e in entries}
+        for floor, idx in by_floor.items():
+            self._filter_floor(floor, [entries[i] for i in idx], out, own, now)
+        return out
+
+    def _filter_floor(
+        self,
+        floor: str,
+        entries: list[tuple[int, int, Any, Any, Any]],
+        out: list[Any],
+        own: set[str],
+        now: float,
+    ) -> None:
+        goals = [e[2].goal for e in entries]
+        z = np.array([complex(e[3].x, e[3].y) for e in entries])
+        th = np.array([e[3].theta for e in entries])
+        body = np.array([getattr(e[4], "frame", "world") == "body" for e in entries])
+        d = np.array(
+            [
+                float(getattr(e[4], "d", g.lookahead)) if b else 0.0
+                for e, g, b in zip(entries, goals, body, strict=True)
+            ]
+        )
+        p = z + d * np.exp(1j * th)
+        rad = np.array([g.robot_radius for g in goals]) + d
+        vmax = np.array([g.v_max for g in goals])
+        u_law = np.array([out[e[0]][1][0][e[1]] for e in entries], dtype=complex)
+        codes = np.array([int(out[e[0]][1][1][e[1]]) for e in entries])
+        # the velocity of the steered point: a unicycle's twist v + i omega moves p by
+        # (v + i d omega) e^{i theta} (confnav.navigation.unicycle)
+        u_nom = np.where(body, (u_law.real + 1j * d * u_law.imag) * np.exp(1j * th), u_law)
+        live = np.isfinite(u_nom) & (codes != Status.ERROR)
+        oz, orad, ov, oco, omv = self._others(floor, own, now)
+        rows = pairwise_rows(
+            p,
+            rad,
+            vmax,
+            others=oz,
+            others_radius=orad,
+            others_velocity=ov,
+            others_cooperative=oco,
+            others_mover=omv,
+            hold_time=self.hold_time,
+            fraction=self.fraction,
+            active=live,
+            horizon=MOVER_HORIZON,
+        )
+        has = (rows.who >= 0).any(axis=1) & live
+        if not has.any():
+            return  # nobody near: the law's commands, bitwise
+        arrived = codes == Status.ARRIVED
+        u0 = np.where(live & ~arrived, u_nom, 0j)
+        if self.side_passing:
+            blocked = self._blocked([e[2].robot_id for e in entries], p, goals, rows, now)
+            u0 = side_pass(u0, rows, blocked=blocked)
+        cap = vmax.copy()
+        for i, e in enumerate(entries):  # the wall hold cap of the robot's own law
+            ctrl = getattr(e[4], "controller", e[4])
+            if has[i] and getattr(ctrl, "uses_clearance", False) and ctrl.hold_time > 0:
+                c = float(np.asarray(ctrl.clearance(np.array([p[i]])))[0])
+                cap[i] = min(cap[i], defaults.HOLD_FRACTION * max(c, 0.0) / ctrl.hold_time)
+        walls = [getattr(getattr(e[4], "controller", e[4]), "safety", None) for e in entries]
+        u, ok = project_with_walls(u0, p, rows, cap, walls)
+        self._count("filtered", int(has.sum()))
+        self._count("infeasible", int((~ok & has).sum()))
+        for i, e in enumerate(entries):
+            if not has[i] or (arrived[i] and u[i] == 0):
+                continue
+            if body[i]:
+                v, om = twist_from_velocity(
+                    u[i], th[i], d[i], vmax[i], getattr(e[4], "omega_max", np.inf)
+                )
+                new = complex(float(v), float(om))
+            else:
+                new = complex(u[i])
+            out[e[0]][1][0][e[1]] = new
+            if arrived[i] and new != 0:  # pushed off its goal by a mover: keep moving
+                out[e[0]][1][1][e[1]] = Status.MOVING
+
+    def _blocked(
+        self, rids: list[str], p: np.ndarray, goals: list[Goal], rows: Rows, now: float
+    ) -> np.ndarray:
+        """:class:`confnav.navigation.fleet.DeadlockMonitor`'s rule, kept per robot id."""
+        dist = np.abs(p - np.array([complex(*g.goal) for g in goals]))
+        engaged = np.any((rows.who >= 0) & (rows.gap < 0.5), axis=1)
+        out = np.zeros(len(rids), dtype=bool)
+        for i, rid in enumerate(rids):
+            best, t_best, until = self._dl.get(rid, (np.inf, now, -np.inf))
+            if dist[i] < best - self.progress or not engaged[i]:
+                best, t_best = float(dist[i]), now
+            if engaged[i] and now - t_best > self.window and until < now:
+                until, t_best = now + 1.0, now
+                self._count("deadlocks")
+            self._dl[rid] = (best, t_best, until)
+            out[i] = until >= now
+        return out
+
+
+def attach(service: Any, **kw: Any) -> Neighbours:
+    """A :class:`Neighbours` subscribed on ``service``'s bus (its handles closed with it)."""
+    nb = Neighbours(service.keys, **kw)
+
+    def served(rid: str) -> bool:
+        r = service._robots.get(rid)
+        return r is not None and r.goal is not None and r.ctrl is not None
+
+    nb.served = served
+    service._handles.extend(nb.subscribe(service.bus))
+    return nb
+
