@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import argparse
 import concurrent.futures as cf
-import hashlib
 import json
 import logging
 import multiprocessing
@@ -49,8 +48,22 @@ from confnav.schemas import (
     decode,
     encode,
 )
-from confnav.services.atlas_transform import AtlasStore, ChartShare, finish_atlas
-from confnav.services.bus import Bus, QueryError
+from confnav.services.atlas_transform import (
+    AtlasStore,
+    ChartShare,
+    finish_atlas,
+    single_or_atlas,
+)
+from confnav.services.bus import Bus, QueryError, key_matches
+from confnav.services.definitions import (
+    definition_hash,
+    definition_of,
+    derived_definition,
+    load_definition,
+    parse_sources,
+    solution_result,
+    workspace_of,
+)
 from confnav.services.keys import KeyError_, Keys
 from confnav.services.runtime import Service, add_zenoh_args, run_until_signal
 
@@ -61,94 +74,12 @@ SolveFn = Callable[[str], dict[str, Any]]
 :func:`solve_definition` (must be picklable for the process pool)."""
 
 
-def definition_hash(defn: WorkspaceDefinition) -> str:
-    """Content hash of what determines the solution: the workspace geometry and ``tol``
-    (not the ws id, not the time stamp). Validates the workspace with the core."""
-    ws = workspace_of(defn)
-    return hashlib.sha256(f"{ws.content_hash}|tol={defn.tol!r}".encode()).hexdigest()
-
-
-def workspace_of(defn: WorkspaceDefinition) -> Any:
-    """The core :class:`confnav.Workspace` of a definition (raises WorkspaceError)."""
-    from confnav.geometry import Workspace
-
-    return Workspace(
-        [tuple(p) for p in defn.outer],
-        [[tuple(p) for p in o] for o in defn.obstacles],
-        anchor=None if defn.anchor is None else complex(*defn.anchor),
-    )
-
-
-def definition_of(ws_id: str, workspace: Any, tol: float = 1e-10) -> WorkspaceDefinition:
-    """A WorkspaceDefinition message for a core Workspace."""
-    d = workspace.to_dict()
-    return WorkspaceDefinition(
-        ws_id=ws_id,
-        outer=[(float(x), float(y)) for x, y in d["outer"]],
-        obstacles=[[(float(x), float(y)) for x, y in o] for o in d["obstacles"]],
-        anchor=None if d.get("anchor") is None else (float(d["anchor"][0]), float(d["anchor"][1])),
-        tol=tol,
-        stamp_ns=time.time_ns(),
-    )
-
-
-def derived_definition(ws_id: str, base: WorkspaceDefinition) -> WorkspaceDefinition:
-    """The definition of ``{base}~r{R}``: ``base`` shrunk by a robot footprint of radius R
-    (:func:`confnav.maps.footprint.inflate`, largest component; raises WorkspaceError)."""
-    from confnav.maps.footprint import inflate, parse_derived_ws_id
-
-    parsed = parse_derived_ws_id(ws_id)
-    assert parsed is not None and parsed[0] == base.ws_id
-    return definition_of(ws_id, inflate(workspace_of(base), parsed[1]), tol=base.tol)
-
-
-def load_definition(ws_id: str, source: str) -> WorkspaceDefinition:
-    """``builtin:default`` or a workspace file (JSON / GeoJSON, see ``Workspace.load``)."""
-    if source == "builtin:default":
-        from confnav.scenes.workspaces import default_workspace
-
-        return definition_of(ws_id, default_workspace())
-    from confnav.geometry import Workspace
-
-    return definition_of(ws_id, Workspace.load(source))
-
-
-def _xy(z: complex) -> tuple[float, float]:
-    return (float(z.real), float(z.imag))
-
-
 def solve_definition(defn_json: str) -> dict[str, Any]:
     """Solve one workspace (runs in a worker process): the map's coefficients and summary,
     or ``{"needs_atlas": why}`` for a workspace too crowded for one map (the service then
     solves its charts, :class:`confnav.services.atlas_transform.ChartShare`)."""
-    from confnav.services.atlas_transform import single_or_atlas
-
     defn = WorkspaceDefinition.model_validate_json(defn_json)
     return single_or_atlas(workspace_of(defn), defn.tol)
-
-
-def solution_result(cmap: Any, tol: float) -> dict[str, Any]:
-    """The solve result dict of one map (what :class:`TransformSolution` is built from)."""
-    diag = cmap.diagnostics
-    nodes = getattr(diag, "nodes", None) or getattr(diag, "nodes_per_boundary", None) or []
-    return {
-        "revision": str(cmap.revision),
-        "anchor": _xy(complex(cmap.anchor)),
-        "centers": [_xy(complex(c)) for c in cmap.centers],
-        "radii": [float(r) for r in cmap.radii],
-        "diagnostics": {
-            "sweeps": int(getattr(diag, "sweeps", 0)),
-            "error_estimate": float(getattr(diag, "error_estimate", 0.0)),
-            "wall_time": float(getattr(diag, "wall_time", 0.0)),
-            "tol": float(getattr(diag, "tol", tol)),
-            "nodes": [int(n) for n in nodes],
-            "boundary_residual": float(diag.boundary_residual),
-            "tol_met": bool(diag.tol_met),
-        },
-        "workspace_hash": str(cmap.workspace_hash),
-        # through JSON so that the result is plain JSON values (lists, not tuples/arrays)
-        "coefficients": json.loads(cmap.to_json()),
-    }
 
 
 def _worker_init(parent: int) -> None:
@@ -584,8 +515,6 @@ class TransformService(Service):
                 raise QueryError(err)
         with self._lock:
             if parsed is None:  # a wildcard query: every solved workspace that matches
-                from confnav.services.bus import key_matches
-
                 found = [
                     (self.keys.ws(w, "transform"), s.solution)
                     for w, s in sorted(self._ws.items())
@@ -669,17 +598,6 @@ class TransformService(Service):
             log.warning("cannot write cache entry %s", path, exc_info=True)
 
 
-def parse_sources(items: list[str]) -> dict[str, str]:
-    """``ID=PATH`` items (PATH may be ``builtin:default``)."""
-    out = {}
-    for item in items:
-        ws_id, sep, path = item.partition("=")
-        if not sep:
-            raise SystemExit(f"--workspace expects ID=PATH, got {item!r}")
-        out[ws_id] = path
-    return out
-
-
 def add_parser(sub: Any) -> None:
     p: argparse.ArgumentParser = sub.add_parser("transform", help="run the transformation service")
     add_zenoh_args(p)
@@ -717,3 +635,18 @@ def main(args: argparse.Namespace) -> int:
         ),
         args,
     )
+
+
+__all__ = [  # the shared helpers stay importable from here (services/definitions.py)
+    "TransformService",
+    "add_parser",
+    "definition_hash",
+    "definition_of",
+    "derived_definition",
+    "load_definition",
+    "main",
+    "parse_sources",
+    "solution_result",
+    "solve_definition",
+    "workspace_of",
+]

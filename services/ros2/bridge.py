@@ -52,11 +52,11 @@ from confnav.schemas import (
     encode,
 )
 from confnav.services.bus import Bus
+from confnav.services.definitions import definition_of
 from confnav.services.keys import KeyError_, Keys, validate_id
 from confnav.services.ros2 import codec, wire
 from confnav.services.ros2.codec import PoseKind
 from confnav.services.runtime import Service, add_zenoh_args, run_until_signal
-from confnav.services.transform import definition_of
 
 from confnav.navigation import defaults
 
