@@ -62,9 +62,11 @@ KEEP_ATLASES = 8
 POLL = 0.5
 
 
-def single_or_atlas(ws: Any, tol: float) -> dict[str, Any]:
+def single_or_atlas(ws: Any, tol: float, max_error: float | None = None) -> dict[str, Any]:
     """Worker: one map's result dict, or ``{"needs_atlas": why}`` (the service then solves
-    the atlas chart by chart, :meth:`ChartShare.solve`)."""
+    the atlas chart by chart, :meth:`ChartShare.solve`): when the a-priori test flags the
+    workspace, and when the single solve raises a crowding error mid-solve. ``max_error``:
+    the largest estimated error accepted (``solve(max_error=...)``, a coarse revision)."""
     from confnav.atlas.charts import atlas_reason
     from confnav.conformal.solver import solve
     from confnav.errors import CrowdingError
@@ -73,7 +75,9 @@ def single_or_atlas(ws: Any, tol: float) -> dict[str, Any]:
     if why:
         return {"needs_atlas": why}
     try:
-        return solution_result(solve(ws, tol), tol)
+        if max_error is None:
+            return solution_result(solve(ws, tol), tol)
+        return solution_result(solve(ws, tol, max_error=max_error), tol)
     except CrowdingError as exc:
         return {"needs_atlas": f"one map crowds: {exc}"}
 

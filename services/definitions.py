@@ -105,3 +105,27 @@ def parse_sources(items: list[str]) -> dict[str, str]:
             raise SystemExit(f"--workspace expects ID=PATH, got {item!r}")
         out[ws_id] = path
     return out
+
+
+#: Progressive maps (docs/SERVICES.md): the tolerances of the revisions a workspace is solved
+#: to before its own ``tol``, coarse first. The first revision is accepted up to
+#: :data:`COARSE_MAX_ERROR` (``solve(max_error=...)``): the controller keeps robots out of the
+#: walls on the exact geometry, so a coarse map costs path quality, not safety.
+LADDER: tuple[float, ...] = (1e-3, 1e-6)
+#: Largest estimated error of the first (coarse) revision that is published.
+COARSE_MAX_ERROR = 1e-2
+#: ``TransformStatus.message`` of a revision that a finer one follows (state ``solved``).
+REFINING = "solved (coarse, refining)"
+
+
+def revision_ladder(tol: float) -> list[float]:
+    """The tolerances a workspace of tolerance ``tol`` is solved to, one revision each: the
+    rungs of :data:`LADDER` above ``tol``, then ``tol`` itself (``tol`` 1e-8: 1e-3, 1e-6,
+    1e-8; ``tol`` 1e-4: 1e-3, 1e-4; ``tol`` 1e-3 or coarser: ``tol`` alone)."""
+    return [t for t in LADDER if t > tol] + [tol]
+
+
+def ahead_radii(robot_radius: float, drive: str, lookahead: float) -> float:
+    """The footprint a robot's map is shrunk by (``confnav.navigation.messages
+    .footprint_radius``): its radius, plus the look-ahead for a unicycle."""
+    return robot_radius + (lookahead if drive == "unicycle" else 0.0)
