@@ -68,6 +68,7 @@ class ControllerService(MapsMixin, GoalsMixin, PosesMixin, WatchdogMixin):
         self._handles.append(self.bus.subscribe(k.any_ws("definition"), self._on_definition))
         self._handles.append(self.bus.subscribe(k.any_ws("delete"), self._on_ws_delete))
         self._handles.append(self.bus.subscribe(k.any_ws("atlas"), self._on_atlas))
+        self._handles.append(self.bus.subscribe(k.any_ws("status"), self._on_ws_status))
         # this process's robots only (scale-out: services/shard.py, docs/SERVICES.md)
         exprs = robot_key_exprs(k, "goal", self.only)
         on_goals = serialized(self._on_goals) if len(exprs) > 1 else self._on_goals

@@ -12,13 +12,14 @@ from confnav.schemas import (
     AtlasIndex,
     DecodeError,
     TransformSolution,
+    TransformStatus,
     WorkspaceDefinition,
     decode,
 )
 from confnav.services.atlas_client import fetch_atlas
 from confnav.services.controller_cache import ControllerCacheMixin
 from confnav.services.controller_state import _Map, _Pending, _Robot
-from confnav.services.definitions import definition_hash, workspace_of
+from confnav.services.definitions import REFINING, definition_hash, workspace_of
 from confnav.services.keys import KeyError_
 
 from confnav.atlas.wire import ATLAS_MARKER, AtlasMap, is_chart_ws_id
@@ -69,7 +70,8 @@ class MapsMixin(ControllerCacheMixin):
             self._map_errors[ws_id] = f"cannot load map: {exc}"
             log.error("workspace %r: cannot load map %s: %s", ws_id, sol.revision[:12], exc)
             return
-        new = _Map(sol.revision, cmap, sol.definition_hash)
+        est = None if isinstance(sol, AtlasMap) else sol.diagnostics.error_estimate
+        new = _Map(sol.revision, cmap, sol.definition_hash, est)
         with self._lock:
             goals = {
                 r.robot_id: r.goal
@@ -85,6 +87,10 @@ class MapsMixin(ControllerCacheMixin):
         late: list[_Robot] = []  # goals that changed or came while the map was being built
         with self._lock:
             self._maps[ws_id] = new
+            if est is not None:
+                live_revs = {m.revision for m in self._maps.values()}
+                self._estimates = {k: v for k, v in self._estimates.items() if k in live_revs}
+                self._estimates[new.revision] = est
             self._map_errors.pop(ws_id, None)
             pending = self._pending.get(ws_id)
             if pending is not None and pending.definition_hash == sol.definition_hash:
@@ -103,6 +109,21 @@ class MapsMixin(ControllerCacheMixin):
         self.count("maps_installed")
         log.info("workspace %r: map %s installed (%d robots)", ws_id, sol.revision[:12], len(goals))
         self.swapped.set()
+
+    def _on_ws_status(self, key: str, payload: bytes) -> None:
+        """A transform status: remember which revision is a coarse one being refined
+        (``REFINING``), for the robots' statuses (progressive maps, docs/SERVICES.md)."""
+        try:
+            self.keys.parse(key)
+            st = decode(TransformStatus, payload)
+        except (KeyError_, DecodeError):
+            self.count("rejected")
+            return
+        if st.state == "solved" and st.revision and st.message.startswith(REFINING):
+            with self._lock:
+                self._refining[st.revision] = None
+                while len(self._refining) > 4096:
+                    self._refining.popitem(last=False)
 
     # definition changes -----------------------------------------------------------------
     def _on_definition(self, key: str, payload: bytes) -> None:

@@ -184,4 +184,8 @@ class PosesMixin(ControllerCore):
             self._stop_robot(r, d.reason, d.message, now, pose)
         else:
             self._publish_cmd(r, d.u, pose)
-            self._status(r, d.state, d.reason, d.message, now)
+            message = d.message
+            if self._refining and d.state == "navigating":  # a coarse revision: say so
+                note = self._map_note(r)
+                message = "; ".join(m for m in (note, message) if m)
+            self._status(r, d.state, d.reason, message, now)

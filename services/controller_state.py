@@ -56,6 +56,7 @@ class _Map:
     revision: str
     cmap: Any
     definition_hash: str = ""
+    error_estimate: float | None = None  # the solution's certificate (None: an atlas)
 
 
 @dataclass
@@ -128,6 +129,10 @@ class ControllerCore(Service):
         self._maps: dict[str, _Map] = {}
         self._map_errors: dict[str, str] = {}
         self._pending: dict[str, _Pending] = {}  # ws id -> definition newer than its map
+        # progressive maps (docs/SERVICES.md): the map revisions the transform services said
+        # are coarse ones being refined (newest last, at most 4096); revision -> its estimate
+        self._refining: OrderedDict[str, None] = OrderedDict()
+        self._estimates: dict[str, float] = {}
         self._out: queue.SimpleQueue[tuple[str, bytes]] = queue.SimpleQueue()
         self._transform_alive: set[str] = set()
         self._wake_fetch = threading.Event()
@@ -238,6 +243,15 @@ class ControllerCore(Service):
             if outdated is not None:
                 return "map_outdated", outdated
         return None
+
+    def _map_note(self, r: _Robot) -> str:
+        """What the robot drives on, when it is a coarse revision of a map being refined."""
+        rev = r.ctrl_revision
+        if rev is None or rev not in self._refining:
+            return ""
+        est = self._estimates.get(rev)
+        tail = "" if est is None else f" (estimated error {est:.1e})"
+        return f"navigating on a coarse map, refining{tail}"
 
     def _stop_robot(
         self, r: _Robot, reason: str, message: str, now: float, pose: Pose | None = None

@@ -7,10 +7,21 @@ from __future__ import annotations
 
 import itertools
 import threading
+import time
 from collections.abc import Callable
 from typing import Any
 
-from confnav.schemas import TransformSolution, TransformStatus, decode, encode
+from confnav.schemas import (
+    Goal,
+    Pose,
+    RobotStatus,
+    TransformSolution,
+    TransformStatus,
+    VelocityCommand,
+    decode,
+    encode,
+)
+from confnav.services.controller import ControllerService
 from confnav.services.definitions import REFINING, revision_ladder
 from confnav.services.keys import Keys
 from confnav.services.transform import TransformService
@@ -85,3 +96,94 @@ def test_transform_publishes_revisions_with_decreasing_error(
         assert decode(TransformSolution, replies[0].payload or b"").revision == sols[-1].revision
     finally:
         svc.stop()
+
+
+class _Robot:
+    """A holonomic robot integrated on the test's side: it publishes its pose at ``rate`` Hz
+    and follows the newest command (real Zenoh, like a simulator or a real robot)."""
+
+    def __init__(self, bus: Any, rid: str, start: tuple[float, float], rate: float = 20.0):
+        self.bus, self.rid, self.z = bus, rid, complex(*start)
+        self.v = 0j
+        self.seq = 0
+        self.period = 1.0 / rate
+        self.stop = threading.Event()
+        self.lock = threading.Lock()
+        bus.subscribe(K.robot(rid, "cmd_vel"), self._on_cmd)
+        self.thread = threading.Thread(target=self._run, daemon=True)
+        self.thread.start()
+
+    def _on_cmd(self, key: str, payload: bytes) -> None:
+        c = decode(VelocityCommand, payload)
+        with self.lock:
+            self.v = complex(*c.linear)
+
+    def _run(self) -> None:
+        while not self.stop.wait(self.period):
+            with self.lock:
+                self.z += self.v * self.period
+                self.seq += 1
+                p = Pose(
+                    robot_id=self.rid,
+                    stamp_ns=time.time_ns(),
+                    seq=self.seq,
+                    x=self.z.real,
+                    y=self.z.imag,
+                )
+            self.bus.publish(K.robot(self.rid, "pose"), encode(p))
+
+
+def test_controller_moves_on_the_coarse_revision_and_across_the_swap(
+    make_bus: Callable[[], Any],
+) -> None:
+    """A robot with a body (its map sq~r0.05 unsolved until its goal asks for it) drives on the
+    coarse revision ('navigating on a coarse map, refining') and keeps navigating across the
+    swap to the refined revisions: no 'stopped' status once it moved, and it arrives."""
+    client = make_bus()
+    statuses: list[RobotStatus] = []
+    lock = threading.Lock()
+
+    def on_status(key: str, payload: bytes) -> None:
+        with lock:
+            statuses.append(decode(RobotStatus, payload))
+
+    client.subscribe(K.robot("r1", "status"), on_status)
+    tr = TransformService(make_bus(), K, executor="thread", health_period=0.2)
+    ctl = ControllerService(make_bus(), K, stale_after=5.0, health_period=0.2)
+    tr.start()
+    ctl.start()
+    robot = _Robot(make_bus(), "r1", (-0.45, -0.45))
+    try:
+        defn = square_definition("sq", [(0.0, 0.1)]).model_copy(update={"tol": 1e-8})
+        client.publish(K.ws("sq", "definition"), encode(defn))
+        wait_for(lambda: tr.state_of("sq") == "solved", timeout=120)
+        assert tr.state_of("sq~r0.05") is None  # solved on first use, below
+        goal = Goal(robot_id="r1", ws_id="sq", goal=(0.45, 0.45), robot_radius=0.05,
+                    v_max=0.08, tolerance=0.03)  # fmt: skip
+        client.publish(K.robot("r1", "goal"), encode(goal))
+
+        def final_revision() -> str | None:
+            return tr._ws["sq~r0.05"].revision if tr.state_of("sq~r0.05") == "solved" else None
+
+        final = wait_for(final_revision, timeout=240)
+        # the robot reports driving on the final revision (or has arrived)
+        wait_for(
+            lambda: any(s.map_revision == final for s in list(statuses) if s.state != "stopped"),
+            timeout=60,
+        )
+        with lock:
+            seen = list(statuses)
+        first = next(i for i, s in enumerate(seen) if s.state == "navigating")
+        after = seen[first:]
+        assert all(s.state in ("navigating", "arrived") for s in after), [
+            (s.state, s.reason, s.message) for s in after if s.state not in ("navigating",)
+        ]
+        revisions = [s.map_revision for s in after if s.state == "navigating"]
+        assert (len(set(revisions)) >= 2 and revisions[-1] == final) or seen[-1].state == "arrived"
+        assert revisions[0] != final  # it moved before the final revision existed
+
+        assert any("navigating on a coarse map, refining" in s.message for s in after)
+    finally:
+        robot.stop.set()
+        ctl.stop()
+        tr.stop()
