@@ -6,11 +6,14 @@ controller drives on the newest revision and swaps revisions without stopping th
 from __future__ import annotations
 
 import itertools
+import subprocess
 import threading
 import time
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
+import pytest
 from confnav.schemas import (
     Goal,
     Pose,
@@ -25,7 +28,14 @@ from confnav.services.controller import ControllerService
 from confnav.services.definitions import REFINING, revision_ladder
 from confnav.services.keys import Keys
 from confnav.services.transform import TransformService
-from conftest import square_definition, wait_for
+from conftest import (
+    RobotWatch,
+    confnav_cmd,
+    launched_system,
+    square_definition,
+    subprocess_env,
+    wait_for,
+)
 
 K = Keys()
 
@@ -187,3 +197,43 @@ def test_controller_moves_on_the_coarse_revision_and_across_the_swap(
         robot.stop.set()
         ctl.stop()
         tr.stop()
+
+
+@pytest.mark.timeout(300)
+def test_confnav_goal_returns_once_the_robot_moves(tmp_path: Path) -> None:
+    """Router, transform, controller and simulator as processes; ``confnav goal`` for a robot
+    with a body whose map is solved on first use: exit 0 once the robot navigates (on the
+    first revision), and the robot arrives."""
+    from confnav.services.launcher import ServiceSpec
+
+    from confnav.geometry import Workspace
+
+    d = square_definition("sq", [(0.0, 0.1)])
+    ws_file = tmp_path / "sq.json"
+    Workspace(d.outer, d.obstacles).save(ws_file)
+    services = [
+        ServiceSpec("transform", ["--workspace", f"sq={ws_file}"]),
+        ServiceSpec("controller", []),
+        ServiceSpec("simulator", ["--workspace", f"sq={ws_file}", "--robot", "r1=sq:-0.45,-0.45"]),
+    ]
+    watch = RobotWatch()
+    with launched_system(services, tmp_path, prefix="cng") as system:
+        watch.attach(system.bus, system.keys)
+        out = subprocess.run(
+            [*confnav_cmd("goal", "r1", "0.45,0.45", "--ws", "sq", "--robot-radius", "0.05",
+                          "--v-max", "0.3", "--timeout", "30"),
+             "--mode", "client", "--connect", system.launcher.config.connect[0]],
+            capture_output=True, text=True, env=subprocess_env(), timeout=240,
+        )  # fmt: skip
+        assert out.returncode == 0, out.stdout + out.stderr
+        assert "navigating" in out.stdout
+
+        def arrived() -> bool:
+            with watch.lock:
+                s = watch.status.get("r1", [])
+                return bool(s) and s[-1].state == "arrived"
+
+        wait_for(arrived, timeout=120, interval=0.2)
+        with watch.lock:
+            assert watch.collisions == []
+            assert all(s.ws_id == "sq~r0.05" for s in watch.status["r1"] if s.ws_id)
