@@ -1,0 +1,284 @@
+"""Benchmark: goal to the first non-zero command for a robot with a body, through the services.
+
+A router, a transform service, a controller and a simulator, each its own process on TCP
+loopback (as ``confnav launch`` starts them); a client spawns a unicycle (``SpawnRequest`` on
+the simulator's spawn key) on the default workspace and sends it a goal with its body
+(``robot_radius``, ``drive="unicycle"``, the library's look-ahead), and measures, from the goal's
+publication:
+
+- ``first_cmd_s``: the first ``cmd_vel`` with a non-zero velocity (the robot moves);
+- ``first_navigating_s``: the first ``navigating`` status, with its message (on a coarse map:
+  "navigating on a coarse map, refining");
+- ``revisions``: the map revisions the robot was commanded on, with the time each was first
+  used, and their estimated errors (from the transform's statuses);
+- ``final_s``: the first command on the final revision (the workspace's tol).
+
+Cases (each with a fresh transform service, so nothing is cached):
+
+- ``first_use``: the robot is spawned without a body; the goal's ``{ws}~r{R}`` map is solved
+  when the controller first asks for it;
+- ``spawned``: the robot is spawned with its body, so the transform service starts solving its
+  ``{ws}~r{R}`` map at the spawn; the goal follows ``--delay`` s later.
+
+Target (issue 23): goal to first non-zero command <= 2 s with a 0.2 m unicycle on the default
+workspace. Prints a table and writes bench/results/firstmove.json (``--quick``: one run of
+each case, ``firstmove.quick.json`` through ``python -m bench firstmove --quick``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import socket
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+from confnav.schemas import (
+    Goal,
+    RobotStatus,
+    SpawnRequest,
+    TransformStatus,
+    VelocityCommand,
+    decode,
+    encode,
+)
+from confnav.services.bus import ZenohBus, zenoh_config
+from confnav.services.keys import Keys
+from confnav.services.launcher import SINGLE_THREAD_BLAS
+from provenance import commit  # script mode: bench/ is on sys.path
+
+HERE = Path(__file__).resolve().parent
+K = Keys()
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def spawn(*args: str, log: Path) -> subprocess.Popen[bytes]:
+    f = open(log, "wb")  # noqa: SIM115 - lives as long as the process
+    env = dict(os.environ)
+    env.update({k: v for k, v in SINGLE_THREAD_BLAS.items() if k not in os.environ})
+    return subprocess.Popen(
+        [sys.executable, "-m", "confnav", *args], stdout=f, stderr=subprocess.STDOUT, env=env
+    )
+
+
+def connect(ep: str) -> ZenohBus:
+    deadline = time.monotonic() + 30
+    while True:
+        try:
+            return ZenohBus(zenoh_config("client", connect=[ep]))
+        except Exception:
+            if time.monotonic() > deadline:
+                raise
+            time.sleep(0.3)
+
+
+def stop(procs: list[subprocess.Popen[bytes]]) -> None:
+    for p in procs:
+        p.terminate()
+    for p in procs:
+        try:
+            p.wait(10)
+        except subprocess.TimeoutExpired:
+            p.kill()
+
+
+class Watch:
+    """Commands, statuses and transform statuses of one robot / workspace, timestamped."""
+
+    def __init__(self, bus: ZenohBus, rid: str) -> None:
+        self.lock = threading.Lock()
+        self.cmds: list[tuple[float, VelocityCommand]] = []
+        self.status: list[tuple[float, RobotStatus]] = []
+        self.ws_status: list[tuple[float, TransformStatus]] = []
+        bus.subscribe(K.robot(rid, "cmd_vel"), self._on(self.cmds, VelocityCommand))
+        bus.subscribe(K.robot(rid, "status"), self._on(self.status, RobotStatus))
+        bus.subscribe(K.any_ws("status"), self._on(self.ws_status, TransformStatus))
+
+    def _on(self, store: list[Any], model: type[Any]) -> Any:
+        def on(key: str, payload: bytes) -> None:
+            msg = decode(model, payload)
+            with self.lock:
+                store.append((time.monotonic(), msg))
+
+        return on
+
+
+def wait(pred: Any, timeout: float) -> Any:
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < timeout:
+        v = pred()
+        if v:
+            return v
+        time.sleep(0.02)
+    return None
+
+
+def run_case(case: str, args: argparse.Namespace, tmp: Path, n: int) -> dict[str, Any]:
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    common = ["--mode", "client", "--connect", ep]
+    logs = tmp / f"{case}{n}"
+    logs.mkdir(parents=True, exist_ok=True)
+    procs = [spawn("serve", "router", "--listen", ep, log=logs / "router.log")]
+    try:
+        time.sleep(1.0)
+        ws = ["--workspace", "default=builtin:default"]
+        procs.append(spawn("serve", "transform", *common, *ws, log=logs / "transform.log"))
+        procs.append(spawn("serve", "controller", *common, log=logs / "controller.log"))
+        procs.append(spawn("serve", "simulator", *common, *ws, log=logs / "simulator.log"))
+        rid = "u1"
+        with connect(ep) as bus:
+            alive = wait(
+                lambda: all(
+                    bus.alive(K.alive_of(s), timeout=0.5)
+                    for s in ("transform", "controller", "simulator")
+                ),
+                60,
+            )
+            if not alive:
+                raise RuntimeError(f"services did not come up (logs in {logs})")
+            watch = Watch(bus, rid)
+            body = case == "spawned"
+            req = SpawnRequest(
+                robot_id=rid,
+                ws_id="default",
+                position=(args.start[0], args.start[1]),
+                theta=0.0,
+                stamp_ns=time.time_ns(),
+                robot_radius=args.radius if body else 0.0,
+                drive="unicycle",
+            )
+            bus.publish(f"{K.prefix}/sim/sim/spawn", encode(req))
+            time.sleep(args.delay if body else 1.0)
+            goal = Goal(
+                robot_id=rid,
+                ws_id="default",
+                goal=(args.goal[0], args.goal[1]),
+                robot_radius=args.radius,
+                drive="unicycle",
+                stamp_ns=time.time_ns(),
+            )
+            t0 = time.monotonic()
+            bus.publish(K.robot(rid, "goal"), encode(goal))
+
+            def moving() -> float | None:
+                with watch.lock:
+                    for t, c in watch.cmds:
+                        if t >= t0 and (c.linear[0] != 0.0 or c.angular != 0.0):
+                            return t - t0
+                return None
+
+            first = wait(moving, args.timeout)
+            final_rev: str | None = None
+
+            def final() -> str | None:
+                with watch.lock:
+                    for _, s in watch.ws_status:
+                        if "~r" in s.ws_id and s.state == "solved" and not s.message:
+                            return s.revision
+                return None
+
+            final_rev = wait(final, args.timeout) if first is not None else None
+            time.sleep(0.5)
+            with watch.lock:
+                cmds = [(t - t0, c) for t, c in watch.cmds if t >= t0]
+                status = [(t - t0, s) for t, s in watch.status if t >= t0]
+                ws_status = [(t - t0, s) for t, s in watch.ws_status]
+        revs: dict[str, float] = {}
+        for t, c in cmds:
+            if c.map_revision and c.map_revision not in revs and (c.linear[0] or c.angular):
+                revs[c.map_revision] = t
+        notes = {s.revision: s.message for _, s in ws_status if s.revision and "~r" in s.ws_id}
+        nav = [(t, s) for t, s in status if s.state == "navigating"]
+        stopped_after_moving = [
+            (round(t, 2), s.reason)
+            for t, s in status
+            if first is not None and t > first and s.state == "stopped"
+        ]
+        return {
+            "case": case,
+            "run": n,
+            "first_cmd_s": first,
+            "first_navigating_s": nav[0][0] if nav else None,
+            "first_navigating_message": nav[0][1].message if nav else None,
+            "revisions": [
+                {"revision": r[:12], "first_used_s": t, "transform_status": notes.get(r, "")}
+                for r, t in revs.items()
+            ],
+            "final_s": revs.get(final_rev) if final_rev else None,
+            "stopped_after_moving": stopped_after_moving,
+            "loadavg": list(os.getloadavg()),
+        }
+    finally:
+        stop(procs[::-1])
+
+
+def report(rows: list[dict[str, Any]]) -> None:
+    print(f"{'case':<10} {'run':>3} {'first cmd s':>11} {'final rev s':>11} {'revs':>4}  load")
+    for r in rows:
+        f = "-" if r["first_cmd_s"] is None else f"{r['first_cmd_s']:.2f}"
+        g = "-" if r["final_s"] is None else f"{r['final_s']:.2f}"
+        load = " ".join(f"{x:.1f}" for x in r["loadavg"])
+        print(f"{r['case']:<10} {r['run']:>3} {f:>11} {g:>11} {len(r['revisions']):>4}  {load}")
+        if r["first_navigating_message"]:
+            print(f"{'':14} first status: navigating ({r['first_navigating_message']})")
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    ap.add_argument("--quick", action="store_true", help="one run of each case")
+    ap.add_argument("--runs", type=int, default=None, help="runs per case (default 3)")
+    ap.add_argument("--cases", nargs="*", default=["first_use", "spawned"])
+    ap.add_argument("--radius", type=float, default=0.2, help="robot radius, m (unicycle)")
+    ap.add_argument("--start", type=float, nargs=2, default=(-1.5, -1.5))
+    ap.add_argument("--goal", type=float, nargs=2, default=(1.5, 1.5))
+    ap.add_argument("--delay", type=float, default=1.0, help="s from spawn to goal (spawned)")
+    ap.add_argument("--timeout", type=float, default=600.0)
+    ap.add_argument("--out", default=None)
+    args = ap.parse_args()
+    runs = args.runs or (1 if args.quick else 3)
+    out = Path(
+        args.out or HERE / "results" / ("firstmove.quick.json" if args.quick else "firstmove.json")
+    )
+    tmp = Path(tempfile.mkdtemp(prefix="confnav-firstmove-"))
+    results: dict[str, Any] = {
+        "commit": commit(),
+        "date": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        "machine": {"cpus": os.cpu_count(), "python": platform.python_version()},
+        "loadavg_start": list(os.getloadavg()),
+        "workspace": "default",
+        "robot": {"radius": args.radius, "drive": "unicycle", "lookahead": "library default"},
+        "start": list(args.start),
+        "goal": list(args.goal),
+        "target_first_cmd_s": 2.0,
+        "rows": [],
+    }
+    for case in args.cases:
+        for n in range(runs):
+            row = run_case(case, args, tmp, n)
+            results["rows"].append(row)
+            report([row])
+    results["loadavg_end"] = list(os.getloadavg())
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(results, indent=1, default=float) + "\n")
+    print()
+    report(results["rows"])
+    print(f"wrote {out} (logs in {tmp})")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
