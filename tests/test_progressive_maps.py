@@ -237,3 +237,29 @@ def test_confnav_goal_returns_once_the_robot_moves(tmp_path: Path) -> None:
         with watch.lock:
             assert watch.collisions == []
             assert all(s.ws_id == "sq~r0.05" for s in watch.status["r1"] if s.ws_id)
+
+
+def test_a_crowding_error_mid_solve_falls_back_to_the_atlas(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Issue 23 item 3: a single-map solve that raises a crowding error mid-solve (not flagged
+    by the a-priori test) makes the worker ask for an atlas, at every revision of the ladder."""
+    from confnav.services import atlas_transform
+    from confnav.services.definitions import workspace_of
+
+    from confnav.conformal import solver
+    from confnav.errors import UnresolvedCrowdingError
+
+    calls: list[tuple[float, float | None]] = []
+
+    def crowding(ws: Any, tol: float, **kw: Any) -> Any:
+        calls.append((tol, kw.get("max_error")))
+        raise UnresolvedCrowdingError("circles crowd in sweep 2")
+
+    monkeypatch.setattr(solver, "solve", crowding)
+    monkeypatch.setattr("confnav.atlas.charts.atlas_reason", lambda ws: "")
+    ws = workspace_of(square_definition("sq", [(0.0, 0.1)]))
+    for tol, max_error in ((1e-3, 1e-2), (1e-8, None)):
+        out = atlas_transform.single_or_atlas(ws, tol, max_error=max_error)
+        assert out == {"needs_atlas": "one map crowds: circles crowd in sweep 2"}
+    assert calls == [(1e-3, 1e-2), (1e-8, None)]
