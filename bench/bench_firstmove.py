@@ -36,6 +36,7 @@ import argparse
 import json
 import os
 import platform
+import signal
 import socket
 import subprocess
 import sys
@@ -276,11 +277,12 @@ def main() -> int:
         help="robot radius, m (unicycle; with the 0.1 m look-ahead the map is the workspace "
         "shrunk by 0.2 m, default~r0.2, as in issue 23's ROS 2 trial)",
     )
-    ap.add_argument("--start", type=float, nargs=2, default=(-1.5, -1.5))
+    ap.add_argument("--start", type=float, nargs=2, default=(-1.5, 1.5))
     ap.add_argument("--goal", type=float, nargs=2, default=(1.5, 1.5))
     ap.add_argument("--timeout", type=float, default=600.0)
     ap.add_argument("--out", default=None)
     args = ap.parse_args()
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(1))  # stop the services (finally)
     runs = args.runs or (1 if args.quick else 3)
     out = Path(
         args.out or HERE / "results" / ("firstmove.quick.json" if args.quick else "firstmove.json")
