@@ -20,7 +20,12 @@ Cases (each with a fresh transform service, so nothing is cached):
 - ``spawned``: the robot is spawned with its body, so the transform service starts solving its
   ``{ws}~r{R}`` map at the spawn (ahead of use); the goal is sent once the first revision of
   that map is out (``spawn_to_first_revision_s``), as for a robot that waits for its first
-  goal a few seconds after it was switched on.
+  goal a few seconds after it was switched on;
+- ``ros2``: no simulator: ``confnav serve ros2 --drive unicycle --robot-radius R --lookahead
+  0.1`` and a stand-in ROS 2 robot speaking rmw_zenoh's wire format (tests/ros2_standin_robot.py:
+  odometry out, ``cmd_vel`` twists in); the goal is a ``geometry_msgs/PoseStamped`` on the
+  robot's ``goal_pose`` and the first move is the first non-zero ``Twist`` on its ``cmd_vel``
+  (decoded from the ROS side); the map is solved on first use, as in issue 23's trial.
 
 ``ahead s`` in the table: spawn to the first revision (``spawned``); ``first cmd s``: goal to
 the first non-zero command; ``final rev s``: goal to the first command on the final revision.
@@ -61,6 +66,7 @@ from confnav.services.launcher import SINGLE_THREAD_BLAS
 from provenance import commit  # script mode: bench/ is on sys.path
 
 HERE = Path(__file__).resolve().parent
+CASES = ("first_use", "spawned", "ros2")
 K = Keys()
 
 
@@ -245,6 +251,87 @@ def run_case(case: str, args: argparse.Namespace, tmp: Path, n: int) -> dict[str
         stop(procs[::-1])
 
 
+def run_ros2(args: argparse.Namespace, tmp: Path, n: int) -> dict[str, Any]:
+    """The ``ros2`` case (see the module docstring)."""
+    import zenoh
+    from confnav.services.ros2 import codec
+
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    common = ["--mode", "client", "--connect", ep]
+    logs = tmp / f"ros2{n}"
+    logs.mkdir(parents=True, exist_ok=True)
+    procs = [spawn("serve", "router", "--listen", ep, log=logs / "router.log")]
+    rid = "u1"
+    try:
+        time.sleep(1.0)
+        ws = ["--workspace", "default=builtin:default"]
+        procs.append(spawn("serve", "transform", *common, *ws, log=logs / "transform.log"))
+        procs.append(spawn("serve", "controller", *common, log=logs / "controller.log"))
+        bridge = ["--robot", f"{rid}=default", "--drive", "unicycle"]
+        bridge += ["--robot-radius", str(args.radius), "--lookahead", "0.1"]
+        procs.append(spawn("serve", "ros2", *common, *bridge, log=logs / "bridge.log"))
+        robot = [sys.executable, str(HERE.parent / "tests" / "ros2_standin_robot.py")]
+        robot += ["--connect", ep, "--ns", f"/{rid}", "--x", str(args.start[0])]
+        robot += ["--y", str(args.start[1]), "--yaw", "0"]
+        with open(logs / "robot.log", "wb") as f:
+            procs.append(subprocess.Popen(robot, stdout=f, stderr=subprocess.STDOUT))
+        with connect(ep) as bus:
+            alive = wait(
+                lambda: all(
+                    bus.alive(K.alive_of(s), timeout=0.5)
+                    for s in ("transform", "controller", "ros2")
+                ),
+                60,
+            )
+            if not alive:
+                raise RuntimeError(f"services did not come up (logs in {logs})")
+            watch = Watch(bus, rid)
+            moves: list[float] = []
+            cmd_key = f"0/{rid}/cmd_vel/geometry_msgs::msg::dds_::Twist_/" + codec.type_hash(
+                codec.TWIST
+            )
+            goal_key = f"0/{rid}/goal_pose/geometry_msgs::msg::dds_::PoseStamped_/"
+            goal_key += codec.type_hash(codec.POSE_STAMPED)
+
+            def on_twist(sample: Any) -> None:
+                vx, _vy, wz = codec.decode_twist(sample.payload.to_bytes())
+                if vx != 0.0 or wz != 0.0:
+                    moves.append(time.monotonic())
+
+            with zenoh.open(zenoh_config("client", connect=[ep])) as ros:
+                ros.declare_subscriber(cmd_key, on_twist)
+                posed: list[bool] = []
+                bus.subscribe(K.robot(rid, "pose"), lambda k, p: posed.append(True))
+                wait(lambda: posed, 30)  # the robot's odometry is on the bus (through the bridge)
+                time.sleep(0.5)
+                t0 = time.monotonic()
+                pose = codec.PlanarPose(args.goal[0], args.goal[1], 0.0, time.time_ns(), "odom")
+                ros.put(goal_key, codec.encode_pose(pose, "pose"))
+                first = wait(lambda: [t - t0 for t in moves if t >= t0][:1], args.timeout)
+                time.sleep(0.5)
+            with watch.lock:
+                status = [(t - t0, s) for t, s in watch.status if t >= t0]
+        nav = [(t, s) for t, s in status if s.state == "navigating"]
+        return {
+            "case": "ros2",
+            "run": n,
+            "spawn_to_first_revision_s": None,
+            "first_cmd_s": first[0] if first else None,
+            "first_navigating_s": nav[0][0] if nav else None,
+            "first_navigating_message": nav[0][1].message if nav else None,
+            "revisions": sorted({s.map_revision[:12] for _, s in nav if s.map_revision}),
+            "final_s": None,
+            "stopped_after_moving": [
+                (round(t, 2), s.reason)
+                for t, s in status
+                if first and t > first[0] and s.state == "stopped"
+            ],
+            "loadavg": list(os.getloadavg()),
+        }
+    finally:
+        stop(procs[::-1])
+
+
 def report(rows: list[dict[str, Any]]) -> None:
     print(
         f"{'case':<10} {'run':>3} {'ahead s':>8} {'first cmd s':>11} {'final rev s':>11} "
@@ -269,7 +356,7 @@ def main() -> int:
     )
     ap.add_argument("--quick", action="store_true", help="one run of each case")
     ap.add_argument("--runs", type=int, default=None, help="runs per case (default 3)")
-    ap.add_argument("--cases", nargs="*", default=["first_use", "spawned"])
+    ap.add_argument("--cases", nargs="*", default=["first_use", "spawned", "ros2"], choices=CASES)
     ap.add_argument(
         "--radius",
         type=float,
@@ -302,7 +389,7 @@ def main() -> int:
     }
     for case in args.cases:
         for n in range(runs):
-            row = run_case(case, args, tmp, n)
+            row = run_ros2(args, tmp, n) if case == "ros2" else run_case(case, args, tmp, n)
             results["rows"].append(row)
             report([row])
     results["loadavg_end"] = list(os.getloadavg())
