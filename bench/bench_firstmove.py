@@ -215,7 +215,7 @@ def run_case(case: str, args: argparse.Namespace, tmp: Path, n: int) -> dict[str
                             return s.revision
                 return None
 
-            final_rev = wait(final, args.timeout) if first is not None else None
+            final_rev = wait(final, args.final_timeout) if first is not None else None
             time.sleep(0.5)
             with watch.lock:
                 cmds = [(t - t0, c) for t, c in watch.cmds if t >= t0]
@@ -366,11 +366,19 @@ def main() -> int:
     )
     ap.add_argument("--start", type=float, nargs=2, default=(-1.5, 1.5))
     ap.add_argument("--goal", type=float, nargs=2, default=(1.5, 1.5))
-    ap.add_argument("--timeout", type=float, default=600.0)
+    ap.add_argument("--timeout", type=float, default=600.0, help="s to wait for the first move")
+    ap.add_argument(
+        "--final-timeout",
+        type=float,
+        default=None,
+        help="s to wait for the final revision (default 900; --quick: 0, not waited for)",
+    )
     ap.add_argument("--out", default=None)
     args = ap.parse_args()
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(1))  # stop the services (finally)
     runs = args.runs or (1 if args.quick else 3)
+    if args.final_timeout is None:
+        args.final_timeout = 0.0 if args.quick else 900.0
     out = Path(
         args.out or HERE / "results" / ("firstmove.quick.json" if args.quick else "firstmove.json")
     )
