@@ -18,6 +18,7 @@ from confnav.schemas import (
     Goal,
     Pose,
     RobotStatus,
+    SpawnRequest,
     TransformSolution,
     TransformStatus,
     VelocityCommand,
@@ -263,3 +264,33 @@ def test_a_crowding_error_mid_solve_falls_back_to_the_atlas(
         out = atlas_transform.single_or_atlas(ws, tol, max_error=max_error)
         assert out == {"needs_atlas": "one map crowds: circles crowd in sweep 2"}
     assert calls == [(1e-3, 1e-2), (1e-8, None)]
+
+
+def test_robot_radius_maps_are_solved_ahead_of_use(mem_net: Any) -> None:
+    """{ws}~r{R} is solved before any goal asks: for the service's --robot-radius values when a
+    workspace is defined, and for a robot spawned with a body (radius, plus the library's
+    look-ahead for a unicycle); a point robot adds nothing."""
+    from conftest import fake_solve
+
+    client = mem_net.bus("client")
+    svc = TransformService(
+        mem_net.bus("tr"), K, executor="thread", solve_fn=fake_solve, robot_radii=(0.05,)
+    )
+    svc.start()
+    try:
+        client.publish(K.ws("sq", "definition"), encode(square_definition("sq", [(0.0, 0.1)])))
+        wait_for(lambda: svc.state_of("sq~r0.05") == "solved")
+        spawn = f"{K.prefix}/sim/sim/spawn"
+        point = SpawnRequest(robot_id="p", ws_id="sq", position=(0.0, 0.0))
+        client.publish(spawn, encode(point))
+        disk = SpawnRequest(robot_id="d", ws_id="sq", position=(0.0, 0.0), robot_radius=0.04)
+        client.publish(spawn, encode(disk))
+        uni = disk.model_copy(update={"robot_id": "u", "drive": "unicycle"})
+        client.publish(spawn, encode(uni))  # 0.04 + the default look-ahead 0.1
+        wait_for(lambda: svc.state_of("sq~r0.04") == "solved")
+        wait_for(lambda: svc.state_of("sq~r0.14") == "solved")
+        client.publish(spawn, b"{not json")  # ignored, never a crash
+        assert svc.counters["spawn_radii"] == 2
+        assert sorted(w for w in svc._ws if "~r" in w) == ["sq~r0.04", "sq~r0.05", "sq~r0.14"]
+    finally:
+        svc.stop()
