@@ -273,8 +273,6 @@ def run_ros2(args: argparse.Namespace, tmp: Path, n: int) -> dict[str, Any]:
         robot = [sys.executable, str(HERE.parent / "tests" / "ros2_standin_robot.py")]
         robot += ["--connect", ep, "--ns", f"/{rid}", "--x", str(args.start[0])]
         robot += ["--y", str(args.start[1]), "--yaw", "0"]
-        with open(logs / "robot.log", "wb") as f:
-            procs.append(subprocess.Popen(robot, stdout=f, stderr=subprocess.STDOUT))
         with connect(ep) as bus:
             alive = wait(
                 lambda: all(
@@ -285,6 +283,8 @@ def run_ros2(args: argparse.Namespace, tmp: Path, n: int) -> dict[str, Any]:
             )
             if not alive:
                 raise RuntimeError(f"services did not come up (logs in {logs})")
+            with open(logs / "robot.log", "wb") as f:  # the router is up: the robot connects
+                procs.append(subprocess.Popen(robot, stdout=f, stderr=subprocess.STDOUT))
             watch = Watch(bus, rid)
             moves: list[float] = []
             cmd_key = f"0/{rid}/cmd_vel/geometry_msgs::msg::dds_::Twist_/" + codec.type_hash(
@@ -302,7 +302,8 @@ def run_ros2(args: argparse.Namespace, tmp: Path, n: int) -> dict[str, Any]:
                 ros.declare_subscriber(cmd_key, on_twist)
                 posed: list[bool] = []
                 bus.subscribe(K.robot(rid, "pose"), lambda k, p: posed.append(True))
-                wait(lambda: posed, 30)  # the robot's odometry is on the bus (through the bridge)
+                if not wait(lambda: posed, 60):  # its odometry on the bus, through the bridge
+                    raise RuntimeError(f"no odometry from the stand-in robot (logs in {logs})")
                 time.sleep(0.5)
                 t0 = time.monotonic()
                 pose = codec.PlanarPose(args.goal[0], args.goal[1], 0.0, time.time_ns(), "odom")
