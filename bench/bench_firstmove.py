@@ -15,6 +15,9 @@ publication:
 
 Cases (each with a fresh transform service, so nothing is cached):
 
+- ``solve``: no services: ``confnav.solve`` of the workspace shrunk by the footprint to the first
+  revision's tol (1e-3, ``max_error`` 1e-2) in this process, twice (the first call includes
+  the solver's warm-up): what the first revision costs;
 - ``first_use``: the robot is spawned as a point (no radius known to the system); the goal's
   ``{ws}~r{R}`` map is solved when the controller first asks for it;
 - ``spawned``: the robot is spawned with its body, so the transform service starts solving its
@@ -66,7 +69,7 @@ from confnav.services.launcher import SINGLE_THREAD_BLAS
 from provenance import commit  # script mode: bench/ is on sys.path
 
 HERE = Path(__file__).resolve().parent
-CASES = ("first_use", "spawned", "ros2")
+CASES = ("solve", "first_use", "spawned", "ros2")
 K = Keys()
 
 
@@ -251,6 +254,42 @@ def run_case(case: str, args: argparse.Namespace, tmp: Path, n: int) -> dict[str
         stop(procs[::-1])
 
 
+def run_solve(args: argparse.Namespace, n: int) -> dict[str, Any]:
+    """The ``solve`` case: the first revision's solve in this process (see the docstring)."""
+    import warnings
+
+    from confnav.services.definitions import COARSE_MAX_ERROR, LADDER
+
+    from confnav.conformal.solver import solve
+    from confnav.maps.footprint import inflate
+    from confnav.scenes.workspaces import default_workspace
+
+    ws = inflate(default_workspace(), args.radius + 0.1)
+    times = []
+    for _ in range(2):
+        t0 = time.perf_counter()
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            m = solve(ws, LADDER[0], max_error=COARSE_MAX_ERROR)
+        times.append(time.perf_counter() - t0)
+    d = m.diagnostics
+    return {
+        "case": "solve",
+        "run": n,
+        "spawn_to_first_revision_s": None,
+        "first_cmd_s": None,
+        "solve_s": times,
+        "tol": LADDER[0],
+        "error_estimate": d.error_estimate,
+        "tol_met": d.tol_met,
+        "nodes": list(d.nodes),
+        "final_s": None,
+        "revisions": [],
+        "first_navigating_message": None,
+        "loadavg": list(os.getloadavg()),
+    }
+
+
 def run_ros2(args: argparse.Namespace, tmp: Path, n: int) -> dict[str, Any]:
     """The ``ros2`` case (see the module docstring)."""
     import zenoh
@@ -344,6 +383,14 @@ def report(rows: list[dict[str, Any]]) -> None:
         load = " ".join(f"{x:.1f}" for x in r["loadavg"])
         ahead = r["spawn_to_first_revision_s"]
         a = "-" if ahead is None else f"{ahead:.2f}"
+        if r["case"] == "solve":
+            print(
+                f"{'solve':<10} {r['run']:>3} tol {r['tol']:.0e}: "
+                + ", ".join(f"{t:.2f} s" for t in r["solve_s"])
+                + f" (cold, warm), estimate {r['error_estimate']:.1e}, tol_met {r['tol_met']}"
+                + f"  {load}"
+            )
+            continue
         print(
             f"{r['case']:<10} {r['run']:>3} {a:>8} {f:>11} {g:>11} {len(r['revisions']):>4}  {load}"
         )
@@ -357,7 +404,7 @@ def main() -> int:
     )
     ap.add_argument("--quick", action="store_true", help="one run of each case")
     ap.add_argument("--runs", type=int, default=None, help="runs per case (default 3)")
-    ap.add_argument("--cases", nargs="*", default=["first_use", "spawned", "ros2"], choices=CASES)
+    ap.add_argument("--cases", nargs="*", default=list(CASES), choices=CASES)
     ap.add_argument(
         "--radius",
         type=float,
@@ -398,7 +445,12 @@ def main() -> int:
     }
     for case in args.cases:
         for n in range(runs):
-            row = run_ros2(args, tmp, n) if case == "ros2" else run_case(case, args, tmp, n)
+            if case == "solve":
+                row = run_solve(args, n)
+            elif case == "ros2":
+                row = run_ros2(args, tmp, n)
+            else:
+                row = run_case(case, args, tmp, n)
             results["rows"].append(row)
             report([row])
     results["loadavg_end"] = list(os.getloadavg())
