@@ -125,7 +125,7 @@ def revision_ladder(tol: float) -> list[float]:
     return [t for t in LADDER if t > tol] + [tol]
 
 
-def ahead_radii(robot_radius: float, drive: str, lookahead: float) -> float:
+def footprint_of(robot_radius: float, drive: str, lookahead: float) -> float:
     """The footprint a robot's map is shrunk by (``confnav.navigation.messages
     .footprint_radius``): its radius, plus the look-ahead for a unicycle."""
     return robot_radius + (lookahead if drive == "unicycle" else 0.0)

@@ -60,10 +60,10 @@ from confnav.services.bus import Bus, QueryError, key_matches
 from confnav.services.definitions import (
     COARSE_MAX_ERROR,
     REFINING,
-    ahead_radii,
     definition_hash,
     definition_of,
     derived_definition,
+    footprint_of,
     load_definition,
     parse_sources,
     revision_ladder,
@@ -273,7 +273,7 @@ class TransformService(Service):
             req = decode(SpawnRequest, payload)
         except DecodeError:
             return  # the simulator answers bad requests; nothing to solve here
-        radius = ahead_radii(
+        radius = footprint_of(
             req.robot_radius, req.drive, float(Goal.model_fields["lookahead"].default)
         )
         if radius > 0:

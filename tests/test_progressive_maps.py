@@ -294,3 +294,25 @@ def test_robot_radius_maps_are_solved_ahead_of_use(mem_net: Any) -> None:
         assert sorted(w for w in svc._ws if "~r" in w) == ["sq~r0.04", "sq~r0.05", "sq~r0.14"]
     finally:
         svc.stop()
+
+
+def test_ros2_bridge_options_solve_the_footprint_map_ahead(make_bus: Callable[[], Any]) -> None:
+    """``serve ros2 --drive unicycle --robot-radius R --lookahead D``: the bridge asks for the
+    map of ``{ws}~r{R+D}`` at start, so the transform service solves it before any goal."""
+    from confnav.services.ros2.bridge import BridgeConfig, RobotSpec, Ros2Bridge
+    from conftest import fake_solve
+
+    tr = TransformService(make_bus(), K, executor="thread", solve_fn=fake_solve)
+    tr.start()
+    bus = make_bus()
+    cfg = BridgeConfig(
+        robots=(RobotSpec("r1", "sq"),), drive="unicycle", robot_radius=0.05, lookahead=0.1
+    )
+    bridge = Ros2Bridge(bus, bus.session, cfg, health_period=0, map_import=None)
+    bridge.start()
+    try:
+        make_bus().publish(K.ws("sq", "definition"), encode(square_definition("sq", [(0.0, 0.1)])))
+        wait_for(lambda: tr.state_of("sq~r0.15") == "solved", timeout=30)
+    finally:
+        bridge.stop()
+        tr.stop()
