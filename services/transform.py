@@ -756,11 +756,11 @@ def add_parser(sub: Any) -> None:
         "in a simulator add theirs)",
     )
     p.add_argument(
-        "--no-progressive",
-        dest="progressive",
-        action="store_false",
-        help="publish only the map at the workspace's tol (default: a coarse revision first, "
-        "then refined ones; docs/SERVICES.md)",
+        "--progressive",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="publish a coarse revision of each map first, then refined ones up to the "
+        "workspace's tol (docs/SERVICES.md); --no-progressive: the final map only",
     )
     p.set_defaults(func=main)
 
