@@ -97,6 +97,11 @@ BENCHMARKS: dict[str, Bench] = {
         measures=NAVIGATION_PATHS,
     ),
     "services": Bench("bench_services.py", "services.json", "latency and CPU over real Zenoh"),
+    "firstmove": Bench(
+        "bench_firstmove.py",
+        "firstmove.json",
+        "goal to first command of a robot with a body (progressive maps), services",
+    ),
     "mapimport": Bench(
         "bench_mapimport.py",
         "mapimport.json",

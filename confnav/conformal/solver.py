@@ -19,8 +19,8 @@ The error estimate covers every error source (issue 8), each measured on its own
 
 ``tol_met`` is true only if all are within ``tol``. A map that misses ``tol`` is returned with
 ``tol_met = False`` and an :class:`AccuracyWarning`; one whose estimate exceeds
-:data:`UNUSABLE_ERROR` raises :class:`~confnav.errors.SolverError` -- a silently wrong map is
-never returned.
+:data:`UNUSABLE_ERROR` (or the caller's ``max_error``) raises
+:class:`~confnav.errors.SolverError` -- a silently wrong map is never returned.
 """
 
 from __future__ import annotations
@@ -167,6 +167,7 @@ def solve(
     *,
     nodes_per_side: int | None = None,
     progress: Callable[[str], None] | None = None,
+    max_error: float = UNUSABLE_ERROR,
 ) -> ConformalMap:
     """Compute the conformal map of ``workspace`` onto a circle domain.
 
@@ -180,6 +181,13 @@ def solve(
         Fix the mesh instead of refining (the error estimate then uses the next coarser level).
     progress
         Called with one-line progress messages.
+    max_error
+        Largest estimated error of a map that is returned (with ``tol_met`` saying whether it
+        meets ``tol``) rather than refused. The default, :data:`UNUSABLE_ERROR`, is for callers
+        whose safety rests on the map; a caller that keeps its robots out of the walls on the
+        exact geometry (the controller's safety filter, docs/NAVIGATION.md) may accept a
+        coarse map (e.g. ``tol=1e-3, max_error=1e-2``): the certificate stays honest, the map
+        then only costs path quality (docs/SERVICES.md, progressive maps).
 
     Raises
     ------
@@ -188,6 +196,8 @@ def solve(
     """
     if not (np.isfinite(tol) and 0 < tol < 1):
         raise SolverError(f"tol must be in (0, 1), got {tol}")
+    if not (np.isfinite(max_error) and max_error > 0):
+        raise SolverError(f"max_error must be positive and finite, got {max_error}")
     t0 = time.perf_counter()
     if nodes_per_side is not None:
         if nodes_per_side < 8:
@@ -271,7 +281,7 @@ def solve(
     if cmap is None:
         cmap = _make_map(workspace, best, tol, caps, refinements, t0)
     diag = cmap.diagnostics
-    if diag.error_estimate > UNUSABLE_ERROR:
+    if diag.error_estimate > max_error:
         where = ""
         if diag.boundary_residual >= diag.error_estimate:  # name the place: a user can see it
             z, name = cmap.worst_boundary_point()
