@@ -6,13 +6,12 @@ from __future__ import annotations
 import logging
 
 from confnav.schemas import Goal
+from confnav.services import navigation
 from confnav.services.controller_state import (
     ControllerCore,
     _Map,
     _Robot,
 )
-
-from confnav.navigation import messages as navigation
 
 log = logging.getLogger(__name__)
 
@@ -45,7 +44,7 @@ class ControllerCacheMixin(ControllerCore):
                 self._ctrl_cache.popitem(last=False)
             search = getattr(getattr(ctrl, "controller", ctrl), "search_critical_points", None)
             if search is not None:  # in the background: STALLED near a saddle once they land
-                search()
+                search(navigation.CRITICAL_SEARCH)
             return ctrl, ""
 
     def _adopt(self, r: _Robot, ws_id: str, m: _Map) -> None:

@@ -12,11 +12,10 @@ from confnav.schemas import (
     GoalCancel,
     decode,
 )
+from confnav.services import navigation
 from confnav.services.controller_cache import ControllerCacheMixin
 from confnav.services.controller_state import _Robot
 from confnav.services.keys import KeyError_
-
-from confnav.navigation import messages as navigation
 
 log = logging.getLogger(__name__)
 

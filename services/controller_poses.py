@@ -11,10 +11,10 @@ from typing import Any
 
 import numpy as np
 from confnav.schemas import DecodeError, Pose, decode
+from confnav.services import navigation
 from confnav.services.controller_state import POSE_BLOCK, ControllerCore, _Robot
 from confnav.services.keys import KeyError_
 
-from confnav.navigation import messages as navigation
 from confnav.navigation.control import Controller
 from confnav.navigation.fleet import fleet_step
 
@@ -34,7 +34,11 @@ class PosesMixin(ControllerCore):
                 self.count("poses_superseded", len(items) - len(newest))
                 items = [items[i] for i in sorted(newest.values())]
         for s in range(0, len(items), POSE_BLOCK):
-            self._pose_block(items[s : s + POSE_BLOCK])
+            self._hold()  # the block's messages go to the publisher in one piece
+            try:
+                self._pose_block(items[s : s + POSE_BLOCK])
+            finally:
+                self._release()
 
     def _rid_of(self, key: str) -> str | None:
         """Robot id of a pose key (cached: the hot path parses each key once)."""

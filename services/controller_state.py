@@ -18,15 +18,14 @@ from confnav.schemas import (
     Pose,
     RobotStatus,
     TransformSolution,
-    VelocityCommand,
     encode,
 )
+from confnav.schemas.fast import velocity_command_json
+from confnav.services import navigation
 from confnav.services.bus import Bus
 from confnav.services.keys import Keys
 from confnav.services.runtime import Service
 from confnav.services.shard import RobotSelector
-
-from confnav.navigation import messages as navigation
 
 if TYPE_CHECKING:
     from confnav.services.neighbours import Neighbours
@@ -36,19 +35,17 @@ log = logging.getLogger(__name__)
 
 log = logging.getLogger(__name__)
 
-POSE_BLOCK = 32
+POSE_BLOCK = 256
 """Most poses per control step: one vectorized block, whose commands go out before the next
-block is computed (pipelining)."""
+block is computed (pipelining). A block has a fixed cost (one map evaluation, the wall safety
+layer, the fleet filter's rows: about 10 ms at 200 robots) besides its per-pose cost, so
+blocks of 32 spent most of the controller's time on that fixed part once 200 robots were
+waiting (docs/SERVICES.md, "Scale")."""
 MAX_BACKLOG = 100_000
 """Most robots with a pose waiting. Of several waiting poses of one robot only the newest is
 answered (the older ones are superseded: counted, never commanded), so an overloaded
 controller falls back to answering every robot's latest pose instead of a growing queue."""
 
-_CMD_HEADER = {
-    name: VelocityCommand.model_fields[name].default for name in ("type", "schema_version")
-}
-"""The constant fields of a command, given to ``model_construct``: it then resolves no
-defaults (20 -> 9 us per command, the same bytes)."""
 
 MapLoader = Callable[[TransformSolution], Any]
 ControllerFactory = Callable[[Any, Goal], navigation.ControllerLike]
@@ -136,7 +133,9 @@ class ControllerCore(Service):
         # are coarse ones being refined (newest last, at most 4096); revision -> its estimate
         self._refining: OrderedDict[str, None] = OrderedDict()
         self._estimates: dict[str, float] = {}
-        self._out: queue.SimpleQueue[tuple[str, bytes]] = queue.SimpleQueue()
+        # (key, payload) or a list of them (one control step's messages, in order)
+        self._out: queue.SimpleQueue[Any] = queue.SimpleQueue()
+        self._held = threading.local()  # .msgs: the messages of the step this thread runs
         self._transform_alive: set[str] = set()
         self._wake_fetch = threading.Event()
         # (map revision, goal key) -> controller: robots with the same goal share one (the
@@ -152,22 +151,39 @@ class ControllerCore(Service):
 
     # publishing (one thread, never under a lock) ---------------------------------------
     def _emit(self, key: str, payload: bytes) -> None:
-        """Queue a message; the publisher thread sends them in this order."""
-        self._out.put((key, payload))
+        """Queue a message; the publisher thread sends them in this order. Inside
+        :meth:`_hold` the messages are queued together when it ends (one queue operation
+        per control step: each one wakes the publisher thread)."""
+        held = getattr(self._held, "msgs", None)
+        if held is not None:
+            held.append((key, payload))
+        else:
+            self._out.put((key, payload))
+
+    def _hold(self) -> None:
+        """Collect this thread's messages until :meth:`_release`."""
+        self._held.msgs = []
+
+    def _release(self) -> None:
+        """Queue the messages collected since :meth:`_hold`, in order."""
+        msgs, self._held.msgs = getattr(self._held, "msgs", None), None
+        if msgs:
+            self._out.put(msgs)
 
     def _publish_loop(self) -> None:
         while True:
             try:
-                key, payload = self._out.get(timeout=0.1)
+                item = self._out.get(timeout=0.1)
             except queue.Empty:
                 if self._stop.is_set():
                     return
                 continue
-            try:
-                self.bus.publish(key, payload)
-            except Exception:
-                self.count("publish_errors")
-                log.exception("publishing on %s failed", key)
+            for key, payload in item if isinstance(item, list) else (item,):
+                try:
+                    self.bus.publish(key, payload)
+                except Exception:
+                    self.count("publish_errors")
+                    log.exception("publishing on %s failed", key)
 
     def _poses_dropped(self, n: int) -> None:
         self.count("poses", n)
@@ -265,25 +281,25 @@ class ControllerCore(Service):
         self._status(r, "stopped", reason, message, now)
 
     def _publish_cmd(self, r: _Robot, u: complex, pose: Pose | None) -> None:
-        # model_construct: our own finite values, no re-validation on the hot path (the
-        # payloads are checked against the schema in the tests and by every reader)
+        # the wire bytes of VelocityCommand written directly (schemas/fast.py: the same bytes
+        # as encode(VelocityCommand(...)), 12 -> 2.5 us); our own finite values, no
+        # re-validation on the hot path (checked against the model in the tests and by readers)
         body = getattr(r.ctrl, "frame", "world") == "body"  # unicycle: u = v + i omega
-        cmd = VelocityCommand.model_construct(
-            **_CMD_HEADER,
-            robot_id=r.robot_id,
-            stamp_ns=time.time_ns(),
-            linear=(u.real, 0.0) if body else (u.real, u.imag),
-            angular=u.imag if body else 0.0,
-            frame="body" if body else "world",
-            pose_seq=pose.seq if pose is not None else -1,
-            pose_stamp_ns=pose.stamp_ns if pose is not None else 0,
-            map_revision=r.ctrl_revision,
-            chart=getattr(r.ctrl, "active_chart", None),
+        payload = velocity_command_json(
+            r.robot_id,
+            time.time_ns(),
+            (u.real, 0.0) if body else (u.real, u.imag),
+            u.imag if body else 0.0,
+            pose.seq if pose is not None else -1,
+            pose.stamp_ns if pose is not None else 0,
+            r.ctrl_revision,
+            "body" if body else "world",
+            getattr(r.ctrl, "active_chart", None),
         )
         key = self._cmd_keys.get(r.robot_id)
         if key is None:
             key = self._cmd_keys[r.robot_id] = self.keys.robot(r.robot_id, "cmd_vel")
-        self._emit(key, encode(cmd))
+        self._emit(key, payload)
         self.count("commands")
 
     def _status(self, r: _Robot, state: str, reason: str, message: str, now: float) -> None:

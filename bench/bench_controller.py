@@ -1,0 +1,271 @@
+"""The controller's hot path, in process (issue 25 item 5): CPU per pose and where it goes.
+
+    python bench/bench_controller.py [--robots 50 100 200 400] [--rate 20] [--seconds 5]
+                                     [--profile] [--out FILE.json]
+
+A Zenoh router and one ``ControllerService`` run in this process, each on its own session, a
+transform service (``confnav serve transform``, the default workspace) in its own process; one
+child process plays the robots exactly as ``bench services`` does (``play_robots``: poses at
+``--rate`` Hz per robot at independent phases, commands received, latency = command receipt -
+the answered pose's stamp). Every robot has its own goal (``own`` mode).
+
+Per row: poses answered, latency p50/p99, and the controller process's CPU time divided by the
+poses it took (``cpu_us_per_pose``) -- less sensitive to the machine's load than latency --
+with the CPU of each Python thread that works on poses (the pose step, the fleet filter's
+pose tracker, the publisher) measured with ``time.thread_time`` around its handler, and the
+rest (Zenoh's own threads, health, watchdog) as the difference. ``--profile`` also runs
+``cProfile`` inside those threads and prints the top functions per pose (inflated by the
+profiler; use its ratios). Writes bench/results/controller.json with the commit and the load
+average before and after each row.
+"""
+
+from __future__ import annotations
+
+import argparse
+import cProfile
+import datetime as dt
+import io
+import json
+import multiprocessing as mp
+import os
+import pstats
+import sys
+import tempfile
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import zenoh
+from bench_services import (
+    K,
+    free_points,
+    make_goal,
+    play_robots,
+    robot_id,
+    spawn,
+    wait,
+)
+from confnav.schemas import encode
+from confnav.services.bus import ZenohBus, zenoh_config
+from provenance import commit  # script mode: bench/ is on sys.path
+
+RESULTS = Path(__file__).resolve().parent / "results" / "controller.json"
+TARGET = {"robots": 200, "rate": 20.0, "p99_ms": 20.0}
+
+
+class _Timed:
+    """CPU seconds (``time.thread_time``) and calls of one handler; optionally profiled."""
+
+    def __init__(self, profile: bool) -> None:
+        self.cpu = 0.0
+        self.calls = 0
+        self.prof = cProfile.Profile() if profile else None
+        self.lock = threading.Lock()
+
+    def wrap(self, fn: Callable[..., Any]) -> Callable[..., Any]:
+        def run(*a: Any) -> Any:
+            t = time.thread_time()
+            if self.prof is not None:
+                self.prof.enable()
+            try:
+                return fn(*a)
+            finally:
+                if self.prof is not None:
+                    self.prof.disable()
+                with self.lock:
+                    self.cpu += time.thread_time() - t
+                    self.calls += 1
+
+        return run
+
+
+def _timed_loop(timer: _Timed, loop: Callable[[], None]) -> Callable[[], None]:
+    """A thread's whole loop (the publisher): its CPU at the end, profiled throughout."""
+
+    def run() -> None:
+        t = time.thread_time()
+        if timer.prof is not None:
+            timer.prof.enable()
+        try:
+            loop()
+        finally:
+            if timer.prof is not None:
+                timer.prof.disable()
+            timer.cpu += time.thread_time() - t
+
+    return run
+
+
+def _settle(svc: Any, quiet: float = 3.0, timeout: float = 30.0) -> None:
+    """Wait until the controller is idle: no controller built for ``quiet`` s (a progressive
+    map's refined revisions installed, every goal rebuilt on it) and under 40% of a core (the
+    critical-point searches of new goals take up to 25%: services/critical_search.py)."""
+    t_end = time.monotonic() + timeout
+    built, since = svc.counters["controllers_built"], time.monotonic()
+    c0, t0 = time.process_time(), time.monotonic()
+    while time.monotonic() < t_end:
+        time.sleep(0.5)
+        now = time.monotonic()
+        if svc.counters["controllers_built"] != built:
+            built, since = svc.counters["controllers_built"], now
+        cpu = (time.process_time() - c0) / (now - t0)
+        c0, t0 = time.process_time(), now
+        if now - since >= quiet and cpu < 0.4:
+            return
+
+
+def row(
+    ep: str, ctl_bus: ZenohBus, n: int, rate: float, seconds: float, profile: bool
+) -> dict[str, Any]:
+    from confnav.services.controller import ControllerService
+    from confnav.services.neighbours import Neighbours
+
+    timers = {k: _Timed(profile) for k in ("pose_step", "fleet_tracker", "publisher")}
+    svc = ControllerService(ctl_bus, K, stale_after=2.0, idle_ttl=600.0)
+    svc._on_poses = timers["pose_step"].wrap(svc._on_poses)  # type: ignore[method-assign]
+    svc._publish_loop = _timed_loop(timers["publisher"], svc._publish_loop)  # type: ignore[method-assign]
+    orig = Neighbours._on_poses
+    wrapped = timers["fleet_tracker"].wrap(orig)
+    Neighbours._on_poses = lambda self, items: wrapped(self, items)  # type: ignore[method-assign]
+    try:
+        svc.start()
+    finally:
+        Neighbours._on_poses = orig  # type: ignore[method-assign]
+    try:
+        with ZenohBus(zenoh_config("client", connect=[ep])) as bus:
+            goals = free_points(n, seed=7)
+            for i in range(n):
+                xy = (goals[i].real, goals[i].imag)
+                bus.publish(K.robot(robot_id(i), "goal"), encode(make_goal(i, xy, "harmonic")))
+            wait(lambda: svc.counters["controllers_built"] >= n, 300, "controllers")
+            _settle(svc)
+            warm = int(rate)
+            ticks = warm + int(seconds * rate)
+            ctx = mp.get_context("spawn")
+            q: Any = ctx.Queue()
+            done = ctx.Event()
+            child = ctx.Process(target=play_robots, args=(ep, n, rate, ticks, warm, q, done, 0, 1))
+            child.start()
+            poses0 = svc.counters["poses"]
+            time.sleep(0.6 + warm / rate)  # the child's session and the warm-up second
+            load0 = os.getloadavg()
+            c0 = {k: (t.cpu, t.calls) for k, t in timers.items()}
+            p0 = os.times()
+            poses_w0, sup0 = svc.counters["poses"], svc.counters["poses_superseded"]
+            cmds0 = svc.counters["commands"]
+            t0 = time.monotonic()
+            late = q.get(timeout=seconds + 120)["late"]
+            wait(lambda: svc.counters["poses"] - poses0 >= n * ticks, 120, "drain")
+            time.sleep(0.3)
+            wall = time.monotonic() - t0
+            p1 = os.times()
+            load1 = os.getloadavg()
+            taken = svc.counters["poses"] - poses_w0
+            superseded = svc.counters["poses_superseded"] - sup0
+            commands = svc.counters["commands"] - cmds0
+            done.set()
+            res = q.get(timeout=60)
+            child.join(30)
+    finally:
+        svc.stop()
+    proc_cpu = (p1.user + p1.system) - (p0.user + p0.system)
+    lat = np.asarray(res["lat_ns"], dtype=float) / 1e6
+    per = {k: (t.cpu - c0[k][0]) / max(commands, 1) * 1e6 for k, t in timers.items()}
+    calls = {k: t.calls - c0[k][1] for k, t in timers.items()}
+    out: dict[str, Any] = {
+        "robots": n,
+        "rate_hz": rate,
+        "seconds": seconds,
+        "sent": n * (ticks - warm),
+        "answered": int(res["answered"]),
+        "poses_taken": taken,
+        "superseded": superseded,
+        "commands": commands,
+        "late_publishes": late,
+        "p50_ms": float(np.percentile(lat, 50)) if lat.size else float("nan"),
+        "p99_ms": float(np.percentile(lat, 99)) if lat.size else float("nan"),
+        "max_ms": float(lat.max()) if lat.size else float("nan"),
+        "process_cpu_pct": 100 * proc_cpu / wall,
+        "cpu_us_per_pose": proc_cpu / max(commands, 1) * 1e6,
+        "thread_cpu_us_per_pose": per,
+        "other_cpu_us_per_pose": proc_cpu / max(commands, 1) * 1e6 - sum(per.values()),
+        "pose_step_calls": calls["pose_step"],
+        "poses_per_step": commands / max(calls["pose_step"], 1),
+        "fleet": {k: v for k, v in svc.neighbours.counters.items()} if svc.neighbours else {},
+        "profiled": profile,
+        "loadavg_start": list(load0),
+        "loadavg_end": list(load1),
+    }
+    if profile:
+        out["profile"] = {}
+        for k, t in timers.items():
+            assert t.prof is not None
+            s = io.StringIO()
+            st = pstats.Stats(t.prof, stream=s)
+            st.sort_stats("tottime").print_stats(18)
+            st.sort_stats("cumulative").print_stats(30)
+            out["profile"][k] = s.getvalue()
+    return out
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    ap.add_argument("--robots", type=int, nargs="*", default=[50, 100, 200, 400])
+    ap.add_argument("--rate", type=float, default=20.0)
+    ap.add_argument("--seconds", type=float, default=5.0)
+    ap.add_argument("--profile", action="store_true", help="cProfile the pose threads")
+    ap.add_argument("--out", default=str(RESULTS))
+    args = ap.parse_args()
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    rows = []
+    with tempfile.TemporaryDirectory(prefix="cnb") as tmp:
+        ep = f"unixsock-stream/{tmp}/r.sock"
+        with zenoh.open(zenoh_config("router", listen=[ep])):
+            tr = spawn("serve", "transform", "--mode", "client", "--connect", ep,
+                       "--workspace", "default=builtin:default",
+                       log=Path(tmp) / "transform.log")  # fmt: skip
+            ctl_bus = ZenohBus(zenoh_config("client", connect=[ep]))
+            try:
+                for n in args.robots:
+                    r = row(ep, ctl_bus, n, args.rate, args.seconds, args.profile)
+                    rows.append(r)
+                    th = r["thread_cpu_us_per_pose"]
+                    print(
+                        f"{n:4d} robots @ {args.rate:g} Hz: answered {r['answered']}/{r['sent']}"
+                        f" superseded {r['superseded']} p50 {r['p50_ms']:.1f} ms p99 "
+                        f"{r['p99_ms']:.1f} ms | CPU {r['process_cpu_pct']:.0f}% "
+                        f"{r['cpu_us_per_pose']:.0f} us/pose (step {th['pose_step']:.0f}, "
+                        f"tracker {th['fleet_tracker']:.0f}, publisher {th['publisher']:.0f}, "
+                        f"other {r['other_cpu_us_per_pose']:.0f}) {r['poses_per_step']:.1f} "
+                        f"poses/step | load {r['loadavg_start'][0]:.1f}",
+                        flush=True,
+                    )
+                    if args.profile:
+                        for k, text in r["profile"].items():
+                            print(f"--- {k} ---\n{text}")
+            finally:
+                ctl_bus.close()
+                tr.terminate()
+                tr.wait(20)
+    doc = {
+        "about": "controller hot path in process: CPU per pose, latency (bench_controller.py)",
+        "commit": commit(),
+        "date": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
+        "cpus": os.cpu_count(),
+        "command": " ".join(sys.argv),
+        "target": TARGET,
+        "rows": rows,
+    }
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.out).write_text(json.dumps(doc, indent=1) + "\n")
+    print(f"wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
