@@ -211,6 +211,20 @@ def row(
     return out
 
 
+def _write(out: str, rows: list[dict[str, Any]]) -> None:
+    doc = {
+        "about": "controller hot path in process: CPU per pose, latency (bench_controller.py)",
+        "commit": commit(),
+        "date": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
+        "cpus": os.cpu_count(),
+        "command": " ".join(sys.argv),
+        "target": TARGET,
+        "rows": rows,
+    }
+    Path(out).parent.mkdir(parents=True, exist_ok=True)
+    Path(out).write_text(json.dumps(doc, indent=1) + "\n")
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -234,6 +248,7 @@ def main() -> int:
                 for n in args.robots:
                     r = row(ep, ctl_bus, n, args.rate, args.seconds, args.profile)
                     rows.append(r)
+                    _write(args.out, rows)  # after every row: a cut run keeps its rows
                     th = r["thread_cpu_us_per_pose"]
                     print(
                         f"{n:4d} robots @ {args.rate:g} Hz: answered {r['answered']}/{r['sent']}"
@@ -252,17 +267,6 @@ def main() -> int:
                 ctl_bus.close()
                 tr.terminate()
                 tr.wait(20)
-    doc = {
-        "about": "controller hot path in process: CPU per pose, latency (bench_controller.py)",
-        "commit": commit(),
-        "date": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
-        "cpus": os.cpu_count(),
-        "command": " ".join(sys.argv),
-        "target": TARGET,
-        "rows": rows,
-    }
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text(json.dumps(doc, indent=1) + "\n")
     print(f"wrote {args.out}")
     return 0
 
