@@ -99,6 +99,25 @@ def _timed_loop(timer: _Timed, loop: Callable[[], None]) -> Callable[[], None]:
     return run
 
 
+def _tasks() -> dict[str, float]:
+    """CPU seconds of every thread of this process by name (Python threads by their
+    ``threading`` name, native ones -- Zenoh's -- by their kernel name; same names summed)."""
+    clk = os.sysconf("SC_CLK_TCK")
+    names = {t.native_id: t.name for t in threading.enumerate()}
+    out: dict[str, float] = {}
+    for task in Path("/proc/self/task").iterdir():
+        try:
+            stat = (task / "stat").read_text()
+        except OSError:
+            continue
+        comm = stat[stat.index("(") + 1 : stat.rindex(")")]
+        f = stat.rsplit(")", 1)[1].split()
+        name = names.get(int(task.name), comm)
+        name = name.split(":", 1)[0] if name.startswith(("latest", "sub", "qbl", "live")) else name
+        out[name] = out.get(name, 0.0) + (int(f[11]) + int(f[12])) / clk
+    return out
+
+
 def _settle(svc: Any, quiet: float = 3.0, timeout: float = 30.0) -> None:
     """Wait until the controller is idle: no controller built for ``quiet`` s (a progressive
     map's refined revisions installed, every goal rebuilt on it) and under 40% of a core (the
@@ -154,6 +173,7 @@ def row(
             load0 = os.getloadavg()
             c0 = {k: (t.cpu, t.calls) for k, t in timers.items()}
             p0 = os.times()
+            k0 = _tasks()
             poses_w0, sup0 = svc.counters["poses"], svc.counters["poses_superseded"]
             cmds0 = svc.counters["commands"]
             t0 = time.monotonic()
@@ -162,6 +182,7 @@ def row(
             time.sleep(0.3)
             wall = time.monotonic() - t0
             p1 = os.times()
+            k1 = _tasks()
             load1 = os.getloadavg()
             taken = svc.counters["poses"] - poses_w0
             superseded = svc.counters["poses_superseded"] - sup0
@@ -192,6 +213,11 @@ def row(
         "cpu_us_per_pose": proc_cpu / max(commands, 1) * 1e6,
         "thread_cpu_us_per_pose": per,
         "other_cpu_us_per_pose": proc_cpu / max(commands, 1) * 1e6 - sum(per.values()),
+        "threads_cpu_us_per_pose": {
+            k: round((v - k0.get(k, 0.0)) / max(commands, 1) * 1e6, 1)
+            for k, v in sorted(k1.items(), key=lambda kv: -(kv[1] - k0.get(kv[0], 0.0)))
+            if v - k0.get(k, 0.0) > 0
+        },
         "pose_step_calls": calls["pose_step"],
         "poses_per_step": commands / max(calls["pose_step"], 1),
         "fleet": {k: v for k, v in svc.neighbours.counters.items()} if svc.neighbours else {},
@@ -260,6 +286,7 @@ def main() -> int:
                         f"poses/step | load {r['loadavg_start'][0]:.1f}",
                         flush=True,
                     )
+                    print("  threads (us/pose):", r["threads_cpu_us_per_pose"], flush=True)
                     if args.profile:
                         for k, text in r["profile"].items():
                             print(f"--- {k} ---\n{text}")

@@ -56,6 +56,8 @@ class PosesMixin(ControllerCore):
         """Decode, one vectorized control-law call per shared controller, publish."""
         now = time.monotonic()
         groups: dict[int, tuple[navigation.ControllerLike, list[tuple[_Robot, Pose]]]] = {}
+        nb = self.neighbours
+        nb_fed = nb is not None and nb.fed
         for key, payload in items:
             rid = self._rid_of(key)
             if rid is None:
@@ -71,6 +73,8 @@ class PosesMixin(ControllerCore):
                 pose = decode(Pose, payload)
                 if pose.robot_id != rid:
                     raise DecodeError("invalid_input", f"pose on {key} names {pose.robot_id!r}")
+                if nb_fed:  # the fleet filter's view of every robot (services/neighbours.py)
+                    nb.note_pose(rid, pose, now)  # type: ignore[union-attr]
             except DecodeError as exc:
                 self.count("rejected")
                 reason = "nan_input" if exc.reason == "nan_input" else "invalid_input"
