@@ -14,9 +14,13 @@ poses it took (``cpu_us_per_pose``) -- less sensitive to the machine's load than
 with the CPU of each Python thread that works on poses (the pose step, the fleet filter's
 pose tracker, the publisher) measured with ``time.thread_time`` around its handler, and the
 rest (Zenoh's own threads, health, watchdog) as the difference. ``--profile`` also runs
-``cProfile`` inside those threads and prints the top functions per pose (inflated by the
-profiler; use its ratios). Writes bench/results/controller.json with the commit and the load
-average before and after each row.
+``cProfile`` (on each thread's CPU clock) inside those threads and prints the top functions
+(inflated by the profiler; use its ratios). Writes bench/results/controller.json with the
+commit and the load average before and after each row (after every row: a cut run keeps them).
+``threads_cpu_us_per_pose`` is every thread of the process by name (``/proc/self/task``, 10 ms
+ticks): ``latest`` the pose step, ``rx-*``/``tx-*``/``acc-*``/``app-*`` Zenoh's, the
+``pyo3-closure`` threads Zenoh's callbacks into Python, ``critical-points`` the background
+searches (services/critical_search.py), ``python`` this harness's main thread.
 """
 
 from __future__ import annotations
@@ -62,7 +66,9 @@ class _Timed:
     def __init__(self, profile: bool) -> None:
         self.cpu = 0.0
         self.calls = 0
-        self.prof = cProfile.Profile() if profile else None
+        # thread CPU time, not wall time: a function that releases the GIL (shapely, numpy)
+        # would otherwise be charged the wait for the GIL after it (other threads' work)
+        self.prof = cProfile.Profile(time.thread_time) if profile else None
         self.lock = threading.Lock()
 
     def wrap(self, fn: Callable[..., Any]) -> Callable[..., Any]:
@@ -119,8 +125,8 @@ def _tasks() -> dict[str, float]:
 
 
 def _settle(svc: Any, quiet: float = 3.0, timeout: float = 30.0) -> None:
-    """Wait until the controller is idle: no controller built for ``quiet`` s (a progressive
-    map's refined revisions installed, every goal rebuilt on it) and under 40% of a core (the
+    """Wait until the controller is idle: the final revision of the progressive map installed,
+    no controller built for ``quiet`` s (every goal rebuilt on it) and under 40% of a core (the
     critical-point searches of new goals take up to 25%: services/critical_search.py)."""
     t_end = time.monotonic() + timeout
     built, since = svc.counters["controllers_built"], time.monotonic()
@@ -132,7 +138,9 @@ def _settle(svc: Any, quiet: float = 3.0, timeout: float = 30.0) -> None:
             built, since = svc.counters["controllers_built"], now
         cpu = (time.process_time() - c0) / (now - t0)
         c0, t0 = time.process_time(), now
-        if now - since >= quiet and cpu < 0.4:
+        m = svc._maps.get("default")
+        refining = m is None or m.revision in svc._refining  # a coarse revision installed
+        if now - since >= quiet and cpu < 0.4 and not refining:
             return
 
 
@@ -229,6 +237,8 @@ def row(
         out["profile"] = {}
         for k, t in timers.items():
             assert t.prof is not None
+            if not t.calls and k != "publisher":  # not called (the tracker, fed)
+                continue
             s = io.StringIO()
             st = pstats.Stats(t.prof, stream=s)
             st.sort_stats("tottime").print_stats(18)

@@ -42,6 +42,11 @@ class ControllerCacheMixin(ControllerCore):
             self._ctrl_cache[key] = ctrl
             while len(self._ctrl_cache) > CTRL_CACHE_SIZE:  # robots keep what they use
                 self._ctrl_cache.popitem(last=False)
+            flt = getattr(getattr(ctrl, "controller", ctrl), "safety", None)
+            try:  # the wall safety layer's grid: built here (0.3-0.5 s once per map, on the
+                getattr(flt, "grid", None)  # map thread), not in the first pose step after it
+            except Exception:  # the pose step meets the same error and reports it
+                log.debug("safety grid", exc_info=True)
             search = getattr(getattr(ctrl, "controller", ctrl), "search_critical_points", None)
             if search is not None:  # in the background: STALLED near a saddle once they land
                 search(navigation.CRITICAL_SEARCH)
