@@ -261,6 +261,35 @@ def _write(out: str, rows: list[dict[str, Any]]) -> None:
     Path(out).write_text(json.dumps(doc, indent=1) + "\n")
 
 
+def codec(n: int = 50_000) -> dict[str, float]:
+    """us per call of the pose decode and the command encode, and of the alternatives."""
+    import timeit
+
+    from confnav.schemas import Pose, VelocityCommand, decode
+    from confnav.schemas.fast import velocity_command_json
+
+    pose = (
+        b'{"type":"confnav.Pose","schema_version":1,"robot_id":"z01r001",'
+        b'"stamp_ns":1764180000000000000,"seq":12,"x":0.123456789,"y":-1.23456789,"theta":0.0}'
+    )
+    d = json.loads(pose)
+    header = {k: VelocityCommand.model_fields[k].default for k in ("type", "schema_version")}
+    fields = dict(robot_id="z01r001", stamp_ns=1764180000000000000, linear=(0.31, -0.12),
+                  angular=0.0, pose_seq=12, pose_stamp_ns=1764180000000000000,
+                  map_revision="5f1c9a0b2e", frame="world", chart=None)  # fmt: skip
+    args = tuple(fields.values())
+    cases: dict[str, Callable[[], object]] = {
+        "decode_pose_pydantic": lambda: decode(Pose, pose),
+        "json_loads_pose": lambda: json.loads(pose),
+        "pose_model_construct": lambda: Pose.model_construct(**d),
+        "encode_command_model_construct": lambda: encode(
+            VelocityCommand.model_construct(**header, **fields)
+        ),
+        "encode_command_fast": lambda: velocity_command_json(*args),  # type: ignore[arg-type]
+    }
+    return {k: min(timeit.repeat(f, number=n, repeat=3)) / n * 1e6 for k, f in cases.items()}
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -270,7 +299,17 @@ def main() -> int:
     ap.add_argument("--seconds", type=float, default=5.0)
     ap.add_argument("--profile", action="store_true", help="cProfile the pose threads")
     ap.add_argument("--out", default=str(RESULTS))
+    ap.add_argument(
+        "--codec", action="store_true", help="only decode/encode costs: controller_codec.json"
+    )
     args = ap.parse_args()
+    if args.codec:
+        out = RESULTS.with_name("controller_codec.json") if args.out == str(RESULTS) else args.out
+        doc = {"about": "pose decode and command encode, us per call (bench_controller.py --codec)",
+               "commit": commit(), "loadavg": list(os.getloadavg()), "us": codec()}  # fmt: skip
+        Path(out).write_text(json.dumps(doc, indent=1) + "\n")
+        print(json.dumps(doc["us"], indent=1))
+        return 0
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     rows = []
     with tempfile.TemporaryDirectory(prefix="cnb") as tmp:
