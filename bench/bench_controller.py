@@ -20,7 +20,8 @@ commit and the load average before and after each row (after every row: a cut ru
 ``threads_cpu_us_per_pose`` is every thread of the process by name (``/proc/self/task``, 10 ms
 ticks): ``latest`` the pose step, ``rx-*``/``tx-*``/``acc-*``/``app-*`` Zenoh's, the
 ``pyo3-closure`` threads Zenoh's callbacks into Python, ``critical-points`` the background
-searches (services/critical_search.py), ``python`` this harness's main thread.
+searches (services/critical_search.py), ``python`` native threads with no name of their own
+(Zenoh's runtime), ``MainThread`` this harness's waiting.
 """
 
 from __future__ import annotations
@@ -28,6 +29,7 @@ from __future__ import annotations
 import argparse
 import cProfile
 import datetime as dt
+import gc
 import io
 import json
 import multiprocessing as mp
@@ -145,13 +147,20 @@ def _settle(svc: Any, quiet: float = 3.0, timeout: float = 30.0) -> None:
 
 
 def row(
-    ep: str, ctl_bus: ZenohBus, n: int, rate: float, seconds: float, profile: bool
+    ep: str,
+    ctl_bus: ZenohBus,
+    n: int,
+    rate: float,
+    seconds: float,
+    profile: bool,
+    linger_ms: float = 0.0,
+    gc_freeze: bool = False,
 ) -> dict[str, Any]:
     from confnav.services.controller import ControllerService
     from confnav.services.neighbours import Neighbours
 
     timers = {k: _Timed(profile) for k in ("pose_step", "fleet_tracker", "publisher")}
-    svc = ControllerService(ctl_bus, K, stale_after=2.0, idle_ttl=600.0)
+    svc = ControllerService(ctl_bus, K, stale_after=2.0, idle_ttl=600.0, linger=linger_ms / 1e3)
     svc._on_poses = timers["pose_step"].wrap(svc._on_poses)  # type: ignore[method-assign]
     svc._publish_loop = _timed_loop(timers["publisher"], svc._publish_loop)  # type: ignore[method-assign]
     orig = Neighbours._on_poses
@@ -169,6 +178,9 @@ def row(
                 bus.publish(K.robot(robot_id(i), "goal"), encode(make_goal(i, xy, "harmonic")))
             wait(lambda: svc.counters["controllers_built"] >= n, 300, "controllers")
             _settle(svc)
+            if gc_freeze:  # everything built so far out of the collector's way
+                gc.collect()
+                gc.freeze()
             warm = int(rate)
             ticks = warm + int(seconds * rate)
             ctx = mp.get_context("spawn")
@@ -230,6 +242,9 @@ def row(
         "poses_per_step": commands / max(calls["pose_step"], 1),
         "fleet": {k: v for k, v in svc.neighbours.counters.items()} if svc.neighbours else {},
         "profiled": profile,
+        "linger_ms": linger_ms,
+        "gc_freeze": gc_freeze,
+        "switch_interval_ms": sys.getswitchinterval() * 1e3,
         "loadavg_start": list(load0),
         "loadavg_end": list(load1),
     }
@@ -299,6 +314,9 @@ def main() -> int:
     ap.add_argument("--seconds", type=float, default=5.0)
     ap.add_argument("--profile", action="store_true", help="cProfile the pose threads")
     ap.add_argument("--out", default=str(RESULTS))
+    ap.add_argument("--linger-ms", type=float, default=0.0, help="controller linger, ms")
+    ap.add_argument("--gc-freeze", action="store_true", help="gc.freeze() once set up")
+    ap.add_argument("--switch-ms", type=float, default=None, help="sys.setswitchinterval, ms")
     ap.add_argument(
         "--codec", action="store_true", help="only decode/encode costs: controller_codec.json"
     )
@@ -311,6 +329,8 @@ def main() -> int:
         print(json.dumps(doc["us"], indent=1))
         return 0
     os.environ.setdefault("OMP_NUM_THREADS", "1")
+    if args.switch_ms is not None:  # how long a thread holds the GIL when others wait
+        sys.setswitchinterval(args.switch_ms / 1e3)
     rows = []
     with tempfile.TemporaryDirectory(prefix="cnb") as tmp:
         ep = f"unixsock-stream/{tmp}/r.sock"
@@ -321,7 +341,8 @@ def main() -> int:
             ctl_bus = ZenohBus(zenoh_config("client", connect=[ep]))
             try:
                 for n in args.robots:
-                    r = row(ep, ctl_bus, n, args.rate, args.seconds, args.profile)
+                    r = row(ep, ctl_bus, n, args.rate, args.seconds, args.profile,
+                            args.linger_ms, args.gc_freeze)  # fmt: skip
                     rows.append(r)
                     _write(args.out, rows)  # after every row: a cut run keeps its rows
                     th = r["thread_cpu_us_per_pose"]
