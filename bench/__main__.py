@@ -106,6 +106,17 @@ BENCHMARKS: dict[str, Bench] = {
         measures=NAVIGATION_PATHS,
     ),
     "services": Bench("bench_services.py", "services.json", "latency and CPU over real Zenoh"),
+    "controller": Bench(
+        "bench_controller.py",
+        "controller.json",
+        "controller hot path: CPU per pose and latency, 50..400 robots at 20 Hz (issue 25)",
+        quick=("--robots", "100", "--seconds", "3"),
+    ),
+    "firstmove": Bench(
+        "bench_firstmove.py",
+        "firstmove.json",
+        "goal to first command of a robot with a body (progressive maps), services",
+    ),
     "mapimport": Bench(
         "bench_mapimport.py",
         "mapimport.json",

@@ -45,6 +45,7 @@ from typing import TYPE_CHECKING, Any
 
 from confnav.schemas import AtlasCell, AtlasIndex, SolveDiagnostics, TransformSolution, encode
 from confnav.services.bus import Closeable, QueryError, key_matches
+from confnav.services.definitions import solution_result, workspace_of
 
 from confnav.atlas.wire import ATLAS_MARKER, atlas_revision, chart_ws_id
 
@@ -61,11 +62,11 @@ KEEP_ATLASES = 8
 POLL = 0.5
 
 
-def single_or_atlas(ws: Any, tol: float) -> dict[str, Any]:
+def single_or_atlas(ws: Any, tol: float, max_error: float | None = None) -> dict[str, Any]:
     """Worker: one map's result dict, or ``{"needs_atlas": why}`` (the service then solves
-    the atlas chart by chart, :meth:`ChartShare.solve`)."""
-    from confnav.services.transform import solution_result
-
+    the atlas chart by chart, :meth:`ChartShare.solve`): when the a-priori test flags the
+    workspace, and when the single solve raises a crowding error mid-solve. ``max_error``:
+    the largest estimated error accepted (``solve(max_error=...)``, a coarse revision)."""
     from confnav.atlas.charts import atlas_reason
     from confnav.conformal.solver import solve
     from confnav.errors import CrowdingError
@@ -74,7 +75,9 @@ def single_or_atlas(ws: Any, tol: float) -> dict[str, Any]:
     if why:
         return {"needs_atlas": why}
     try:
-        return solution_result(solve(ws, tol), tol)
+        if max_error is None:
+            return solution_result(solve(ws, tol), tol)
+        return solution_result(solve(ws, tol, max_error=max_error), tol)
     except CrowdingError as exc:
         return {"needs_atlas": f"one map crowds: {exc}"}
 
@@ -82,8 +85,6 @@ def single_or_atlas(ws: Any, tol: float) -> dict[str, Any]:
 def atlas_result(atlas: Any) -> dict[str, Any]:
     """The result dict of a solved :class:`confnav.atlas.Atlas`: ``{"atlas": index fields,
     "charts": [result dicts]}`` (what :func:`messages_of` turns into messages)."""
-    from confnav.services.transform import solution_result
-
     from confnav.atlas.wire import index_fields
 
     return {
@@ -328,8 +329,6 @@ class ChartShare:
     def solve(self, h: str, defn: Any, abandoned: Callable[[], bool]) -> dict[str, Any]:
         """Solve the atlas of definition ``defn`` (hash ``h``) with the peers (a thread of
         the service); raises :class:`AtlasAbandoned` or what ``solve_atlas`` raises."""
-        from confnav.services.transform import workspace_of
-
         from confnav.atlas.charts import solve_atlas
 
         ex = SharedExecutor(self, h[:32], abandoned)

@@ -95,15 +95,21 @@ class Neighbours:
         self.counters: dict[str, int] = {}
         #: robot id -> whether this controller serves it (set by :func:`attach`)
         self.served: Callable[[str], bool] | None = None
+        #: True: no pose subscription of its own; the host calls :meth:`note_pose` with every
+        #: pose it decodes (a controller that takes every robot's poses anyway: each pose is
+        #: then received and decoded once, not twice -- docs/SERVICES.md, "Scale")
+        self.fed = False
 
     def _count(self, name: str, n: int = 1) -> None:
         self.counters[name] = self.counters.get(name, 0) + n
 
     # inputs ------------------------------------------------------------------------------
-    def subscribe(self, bus: Bus) -> list[Closeable]:
+    def subscribe(self, bus: Bus, poses: bool = True) -> list[Closeable]:
+        """Goals, spawn requests, movers and (``poses``) every robot's poses."""
         k = self.keys
+        self.fed = not poses
         return [
-            bus.subscribe_latest(k.any_robot("pose"), self._on_poses),
+            *([bus.subscribe_latest(k.any_robot("pose"), self._on_poses)] if poses else []),
             bus.subscribe(k.any_robot("goal"), self._on_goal),
             bus.subscribe(k.any_sim("spawn"), self._on_spawn),
             bus.subscribe(k.any_ws("movers"), self._on_movers),
@@ -342,7 +348,9 @@ class Neighbours:
 
 
 def attach(service: Any, **kw: Any) -> Neighbours:
-    """A :class:`Neighbours` subscribed on ``service``'s bus (its handles closed with it)."""
+    """A :class:`Neighbours` subscribed on ``service``'s bus (its handles closed with it). A
+    controller that drives every robot (no ``robots`` selection) receives every pose anyway
+    and feeds them in (:attr:`Neighbours.fed`); a shard subscribes to all poses itself."""
     nb = Neighbours(service.keys, **kw)
 
     def served(rid: str) -> bool:
@@ -350,6 +358,6 @@ def attach(service: Any, **kw: Any) -> Neighbours:
         return r is not None and r.goal is not None and r.ctrl is not None
 
     nb.served = served
-    service._handles.extend(nb.subscribe(service.bus))
+    service._handles.extend(nb.subscribe(service.bus, poses=service.only is not None))
     return nb
 

@@ -45,9 +45,9 @@ from confnav.schemas import (
     encode,
 )
 from confnav.services.bus import Bus
+from confnav.services.definitions import load_definition, parse_sources, workspace_of
 from confnav.services.keys import KeyError_, Keys, validate_id
 from confnav.services.runtime import Service, add_zenoh_args, run_until_signal
-from confnav.services.transform import load_definition, parse_sources, workspace_of
 from scipy.spatial import cKDTree
 
 from confnav.errors import fmt_point

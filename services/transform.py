@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import argparse
 import concurrent.futures as cf
-import hashlib
 import json
 import logging
 import multiprocessing
@@ -42,15 +41,35 @@ from typing import Any
 
 from confnav.schemas import (
     DecodeError,
+    Goal,
     SolveDiagnostics,
+    SpawnRequest,
     TransformSolution,
     TransformStatus,
     WorkspaceDefinition,
     decode,
     encode,
 )
-from confnav.services.atlas_transform import AtlasStore, ChartShare, finish_atlas
-from confnav.services.bus import Bus, QueryError
+from confnav.services.atlas_transform import (
+    AtlasStore,
+    ChartShare,
+    finish_atlas,
+    single_or_atlas,
+)
+from confnav.services.bus import Bus, QueryError, key_matches
+from confnav.services.definitions import (
+    COARSE_MAX_ERROR,
+    REFINING,
+    definition_hash,
+    definition_of,
+    derived_definition,
+    footprint_of,
+    load_definition,
+    parse_sources,
+    revision_ladder,
+    solution_result,
+    workspace_of,
+)
 from confnav.services.keys import KeyError_, Keys
 from confnav.services.runtime import Service, add_zenoh_args, run_until_signal
 
@@ -61,94 +80,18 @@ SolveFn = Callable[[str], dict[str, Any]]
 :func:`solve_definition` (must be picklable for the process pool)."""
 
 
-def definition_hash(defn: WorkspaceDefinition) -> str:
-    """Content hash of what determines the solution: the workspace geometry and ``tol``
-    (not the ws id, not the time stamp). Validates the workspace with the core."""
-    ws = workspace_of(defn)
-    return hashlib.sha256(f"{ws.content_hash}|tol={defn.tol!r}".encode()).hexdigest()
-
-
-def workspace_of(defn: WorkspaceDefinition) -> Any:
-    """The core :class:`confnav.Workspace` of a definition (raises WorkspaceError)."""
-    from confnav.geometry import Workspace
-
-    return Workspace(
-        [tuple(p) for p in defn.outer],
-        [[tuple(p) for p in o] for o in defn.obstacles],
-        anchor=None if defn.anchor is None else complex(*defn.anchor),
-    )
-
-
-def definition_of(ws_id: str, workspace: Any, tol: float = 1e-10) -> WorkspaceDefinition:
-    """A WorkspaceDefinition message for a core Workspace."""
-    d = workspace.to_dict()
-    return WorkspaceDefinition(
-        ws_id=ws_id,
-        outer=[(float(x), float(y)) for x, y in d["outer"]],
-        obstacles=[[(float(x), float(y)) for x, y in o] for o in d["obstacles"]],
-        anchor=None if d.get("anchor") is None else (float(d["anchor"][0]), float(d["anchor"][1])),
-        tol=tol,
-        stamp_ns=time.time_ns(),
-    )
-
-
-def derived_definition(ws_id: str, base: WorkspaceDefinition) -> WorkspaceDefinition:
-    """The definition of ``{base}~r{R}``: ``base`` shrunk by a robot footprint of radius R
-    (:func:`confnav.maps.footprint.inflate`, largest component; raises WorkspaceError)."""
-    from confnav.maps.footprint import inflate, parse_derived_ws_id
-
-    parsed = parse_derived_ws_id(ws_id)
-    assert parsed is not None and parsed[0] == base.ws_id
-    return definition_of(ws_id, inflate(workspace_of(base), parsed[1]), tol=base.tol)
-
-
-def load_definition(ws_id: str, source: str) -> WorkspaceDefinition:
-    """``builtin:default`` or a workspace file (JSON / GeoJSON, see ``Workspace.load``)."""
-    if source == "builtin:default":
-        from confnav.scenes.workspaces import default_workspace
-
-        return definition_of(ws_id, default_workspace())
-    from confnav.geometry import Workspace
-
-    return definition_of(ws_id, Workspace.load(source))
-
-
-def _xy(z: complex) -> tuple[float, float]:
-    return (float(z.real), float(z.imag))
-
-
-def solve_definition(defn_json: str) -> dict[str, Any]:
+def solve_definition(
+    defn_json: str, tol: float | None = None, max_error: float | None = None
+) -> dict[str, Any]:
     """Solve one workspace (runs in a worker process): the map's coefficients and summary,
     or ``{"needs_atlas": why}`` for a workspace too crowded for one map (the service then
-    solves its charts, :class:`confnav.services.atlas_transform.ChartShare`)."""
-    from confnav.services.atlas_transform import single_or_atlas
-
+    solves its charts, :class:`confnav.services.atlas_transform.ChartShare`). ``tol`` and
+    ``max_error`` (a revision of a progressive solve): solved to ``tol`` instead of the
+    definition's, a coarse map accepted up to ``max_error`` (:func:`confnav.solve`)."""
     defn = WorkspaceDefinition.model_validate_json(defn_json)
-    return single_or_atlas(workspace_of(defn), defn.tol)
-
-
-def solution_result(cmap: Any, tol: float) -> dict[str, Any]:
-    """The solve result dict of one map (what :class:`TransformSolution` is built from)."""
-    diag = cmap.diagnostics
-    nodes = getattr(diag, "nodes", None) or getattr(diag, "nodes_per_boundary", None) or []
-    return {
-        "revision": str(cmap.revision),
-        "anchor": _xy(complex(cmap.anchor)),
-        "centers": [_xy(complex(c)) for c in cmap.centers],
-        "radii": [float(r) for r in cmap.radii],
-        "diagnostics": {
-            "sweeps": int(getattr(diag, "sweeps", 0)),
-            "error_estimate": float(getattr(diag, "error_estimate", 0.0)),
-            "wall_time": float(getattr(diag, "wall_time", 0.0)),
-            "tol": float(getattr(diag, "tol", tol)),
-            "nodes": [int(n) for n in nodes],
-            "boundary_residual": float(diag.boundary_residual),
-            "tol_met": bool(diag.tol_met),
-        },
-        "workspace_hash": str(cmap.workspace_hash),
-        # through JSON so that the result is plain JSON values (lists, not tuples/arrays)
-        "coefficients": json.loads(cmap.to_json()),
-    }
+    return single_or_atlas(
+        workspace_of(defn), defn.tol if tol is None else tol, max_error=max_error
+    )
 
 
 def _worker_init(parent: int) -> None:
@@ -175,7 +118,7 @@ def _worker_init(parent: int) -> None:
 class _WsState:
     definition: WorkspaceDefinition
     definition_hash: str
-    state: str  # solving | solved | failed
+    state: str  # solving | refining (a coarse revision published) | solved | failed
     error: str = ""
     solution: bytes | None = None  # last good solution (kept while a new one solves)
     revision: str | None = None
@@ -199,8 +142,15 @@ class TransformService(Service):
         max_attempts: int = 3,
         solve_timeout: float = 900.0,
         max_cached: int = 32,
+        progressive: bool | None = None,
+        robot_radii: tuple[float, ...] = (),
     ) -> None:
         super().__init__(bus, keys, health_period)
+        # revisions coarse to fine (docs/SERVICES.md); None: with the library's solver (a
+        # custom solve_fn takes the definition only and is called once per definition)
+        self.progressive = (solve_fn is solve_definition) if progressive is None else progressive
+        self.robot_radii = tuple(r for r in robot_radii if r > 0)  # {ws}~r{R} solved ahead
+        self._rung: dict[str, int] = {}  # hash -> rung of the ladder its running solve is at
         self.sources = dict(sources or {})
         self._solve_fn = solve_fn
         self._workers = workers
@@ -246,6 +196,8 @@ class TransformService(Service):
             self.bus.subscribe(self.keys.any_ws("definition"), self._on_definition)
         )
         self._handles.append(self.bus.subscribe(self.keys.any_ws("delete"), self._on_delete))
+        # robots spawned in a simulator: their {ws}~r{R} maps are solved ahead of their goals
+        self._handles.append(self.bus.subscribe(f"{self.keys.prefix}/sim/*/spawn", self._on_spawn))
         self._handles.append(self.bus.queryable(self.keys.any_ws("transform"), self._on_query))
         self._handles.append(self.bus.queryable(self.keys.any_ws("atlas"), self._on_query))
         self._handles.extend(self.charts.start())
@@ -260,6 +212,7 @@ class TransformService(Service):
         for defn in defs.values():
             if self.submit(defn):
                 self.bus.publish(self.keys.ws(defn.ws_id, "definition"), encode(defn))
+                self._derive_ahead(defn.ws_id, self.robot_radii)
 
     def stop(self) -> None:
         super().stop()
@@ -271,7 +224,8 @@ class TransformService(Service):
         with self._lock:
             failed = sorted(w for w, s in self._ws.items() if s.state == "failed")
             solving = sorted(w for w, s in self._ws.items() if s.state == "solving")
-        detail = json.dumps({"failed": failed, "solving": solving})
+            refining = sorted(w for w, s in self._ws.items() if s.state == "refining")
+        detail = json.dumps({"failed": failed, "solving": solving, "refining": refining})
         return ("degraded" if failed else "ok"), detail
 
     # inputs ----------------------------------------------------------------------------
@@ -297,6 +251,34 @@ class TransformService(Service):
             err = self._derive(w)
             if err:
                 log.warning("%s", err)
+        self._derive_ahead(ws_id, self.robot_radii)
+
+    def _derive_ahead(self, ws_id: str, radii: tuple[float, ...]) -> None:
+        """Solve ``{ws_id}~r{R}`` for footprint radii the system already knows (spawned
+        robots, ``--robot-radius``) before any goal asks for them."""
+        from confnav.maps.footprint import derived_ws_id
+
+        for radius in radii:
+            w = derived_ws_id(ws_id, radius)
+            with self._lock:
+                known = w in self._ws or w == ws_id
+            if not known:
+                err = self._derive(w)
+                if err:
+                    log.warning("%s", err)
+
+    def _on_spawn(self, key: str, payload: bytes) -> None:
+        """A robot spawned with a body: the map of its footprint is solved ahead of use."""
+        try:
+            req = decode(SpawnRequest, payload)
+        except DecodeError:
+            return  # the simulator answers bad requests; nothing to solve here
+        radius = footprint_of(
+            req.robot_radius, req.drive, float(Goal.model_fields["lookahead"].default)
+        )
+        if radius > 0:
+            self.count("spawn_radii")
+            self._derive_ahead(req.ws_id, (radius,))
 
     def _derive(self, ws_id: str) -> str:
         """Solve ``{base}~r{R}`` (a footprint workspace) from the known base definition;
@@ -352,6 +334,7 @@ class TransformService(Service):
             result = self._cached(h)
             if result is None and h not in self._inflight:
                 self._attempts.pop(h, None)  # a new request: a fresh budget of attempts
+                self._rung.pop(h, None)
         if result is not None:
             self.count("cache_hits")
             self._finish(ws_id, h, result, None)
@@ -387,14 +370,24 @@ class TransformService(Service):
                 self._rebuild_pool()
                 return self._pool.submit(fn, *args)
 
-    def _solve(self, ws_id: str, h: str, defn: WorkspaceDefinition, atlas: bool = False) -> None:
+    def _ladder(self, defn: WorkspaceDefinition) -> list[float]:
+        """The tolerances of the revisions of ``defn`` (one: its ``tol``, unless progressive)."""
+        return revision_ladder(defn.tol) if self.progressive else [defn.tol]
+
+    def _solve(
+        self, ws_id: str, h: str, defn: WorkspaceDefinition, atlas: bool = False, rung: int = 0
+    ) -> None:
         """Attach ``ws_id`` to the running solve of ``h``, starting one if there is none:
-        the worker's solve, or with ``atlas`` the chart by chart solve of an atlas (a thread
-        handing the charts to the pool and the peers, :meth:`ChartShare.solve`)."""
+        the worker's solve of revision ``rung`` of the ladder (:func:`revision_ladder`), or
+        with ``atlas`` the chart by chart solve of an atlas (a thread handing the charts to
+        the pool and the peers, :meth:`ChartShare.solve`)."""
         with self._lock:
             fut = self._inflight.get(h)
             if fut is None:
+                ladder = self._ladder(defn)
+                rung = min(rung, len(ladder) - 1)
                 if atlas:
+                    rung = len(ladder) - 1  # an atlas is solved to the definition's tol
                     box: list[cf.Future[dict[str, Any]]] = []
                     fut = self._atlas_threads.submit(
                         self.charts.solve,
@@ -403,13 +396,20 @@ class TransformService(Service):
                         lambda: self.stopped or (bool(box) and box[0] in self._abandoned),
                     )
                     box.append(fut)
-                else:
+                elif not self.progressive:
                     fut = self.submit_job(self._solve_fn, defn.model_dump_json())
+                else:
+                    max_error = COARSE_MAX_ERROR if rung == 0 and len(ladder) > 1 else None
+                    fut = self.submit_job(
+                        self._solve_fn, defn.model_dump_json(), ladder[rung], max_error
+                    )
                 self._inflight[h] = fut
+                self._rung[h] = rung
                 self._started[h] = time.monotonic()
                 self._attempts[h] = self._attempts.get(h, 0) + 1
                 self.count("solves_started")
-        fut.add_done_callback(lambda f: self._done(ws_id, h, defn, f))
+            rung = self._rung.get(h, 0)
+        fut.add_done_callback(lambda f: self._done(ws_id, h, defn, f, rung))
 
     def _rebuild_pool(self) -> None:
         """Replace a broken pool (lock held)."""
@@ -421,7 +421,12 @@ class TransformService(Service):
             old.shutdown(wait=False, cancel_futures=True)
 
     def _done(
-        self, ws_id: str, h: str, defn: WorkspaceDefinition, fut: cf.Future[dict[str, Any]]
+        self,
+        ws_id: str,
+        h: str,
+        defn: WorkspaceDefinition,
+        fut: cf.Future[dict[str, Any]],
+        rung: int = 0,
     ) -> None:
         with self._lock:
             if self._inflight.get(h) is fut:
@@ -437,28 +442,61 @@ class TransformService(Service):
         except cf.BrokenExecutor as exc:  # the worker died (or was killed for a timeout)
             with self._lock:
                 st = self._ws.get(ws_id)
-                wanted = st is not None and st.definition_hash == h and st.state == "solving"
+                wanted = (
+                    st is not None
+                    and st.definition_hash == h
+                    and st.state in ("solving", "refining")
+                )
             if not wanted:
                 return
             if attempts < self.max_attempts:
                 self.count("solve_retries")
                 log.warning("workspace %r: solver worker died (%s): retrying", ws_id, exc)
-                self._solve(ws_id, h, defn)
+                self._solve(ws_id, h, defn, rung=rung)
                 return
             reason = f"solver worker died {attempts} times ({type(exc).__name__}: {exc})"
             self._finish(ws_id, h, None, reason)
             return
         except Exception as exc:
+            if self._more_rungs(ws_id, h, defn, rung):  # a coarse revision failed: refine
+                log.info("workspace %r: revision %d failed (%s): refining", ws_id, rung, exc)
+                return
             self._finish(ws_id, h, None, f"{type(exc).__name__}: {exc}")
             return
         if "needs_atlas" in result:  # too crowded for one map: solve its charts
             log.info("workspace %r: an atlas (%s)", ws_id, result["needs_atlas"])
             self._solve(ws_id, h, defn, atlas=True)
             return
+        ladder = self._ladder(defn)
+        final = rung >= len(ladder) - 1 or self._meets(result, defn.tol)
+        if not final:
+            self._finish(ws_id, h, result, None, final=False)  # a coarse revision
+            nxt = rung + 1  # the next rung the estimate does not meet already
+            while nxt < len(ladder) - 1 and self._meets(result, ladder[nxt]):
+                nxt += 1
+            self._more_rungs(ws_id, h, defn, nxt - 1)
+            return
         with self._lock:
             self._remember(h, result)
         self._store_cached(h, result)
         self._finish(ws_id, h, result, None)
+
+    @staticmethod
+    def _meets(result: dict[str, Any], tol: float) -> bool:
+        """A revision's result meets ``tol`` already (its certificate: tol_met and estimate)."""
+        d = result.get("diagnostics", {})
+        return bool(d.get("tol_met")) and float(d.get("error_estimate", 1.0)) <= tol
+
+    def _more_rungs(self, ws_id: str, h: str, defn: WorkspaceDefinition, rung: int) -> bool:
+        """Start the revision after ``rung`` if there is one and ``ws_id`` still wants it."""
+        if rung + 1 >= len(self._ladder(defn)) or self.stopped:
+            return False
+        with self._lock:
+            st = self._ws.get(ws_id)
+            if st is None or st.definition_hash != h or st.state not in ("solving", "refining"):
+                return True  # superseded or deleted: nothing more to do, and nothing to fail
+        self._solve(ws_id, h, defn, rung=rung + 1)
+        return True
 
     def _timeout_loop(self) -> None:
         """Fail the solves running longer than ``solve_timeout`` s and kill their workers."""
@@ -473,7 +511,7 @@ class TransformService(Service):
                 victims = [
                     (w, st.definition_hash)
                     for w, st in self._ws.items()
-                    if st.definition_hash in futs and st.state == "solving"
+                    if st.definition_hash in futs and st.state in ("solving", "refining")
                 ]
             if not futs:
                 continue
@@ -484,7 +522,17 @@ class TransformService(Service):
                 for child in multiprocessing.active_children():
                     child.terminate()  # the pool breaks: other solves are retried
 
-    def _finish(self, ws_id: str, h: str, result: dict[str, Any] | None, error: str | None) -> None:
+    def _finish(
+        self,
+        ws_id: str,
+        h: str,
+        result: dict[str, Any] | None,
+        error: str | None,
+        final: bool = True,
+    ) -> None:
+        """Publish a solve's outcome: a failure, an atlas, or a map (with ``final`` False a
+        coarse revision that a finer one follows: state ``refining``, status message
+        :data:`REFINING`)."""
         if self.stopped:
             return
         if error is None and result is not None and "atlas" in result:
@@ -522,18 +570,29 @@ class TransformService(Service):
                 if st.solution is None or st.revision != msg.revision:
                     data = encode(msg)
                     st.solution = data
-                st.state, st.error, st.revision = "solved", "", msg.revision
+                state = "solved" if final else "refining"
+                st.state, st.error, st.revision = state, "", msg.revision
             rev = st.revision
         if msg is None:
             self.count("solves_failed")
             log.error("workspace %r failed: %s", ws_id, error)
             self._publish_status(ws_id, "failed", h, rev, error or "")
             return
+        assert msg is not None
+        d = msg.diagnostics
+        accuracy = f"estimated error {d.error_estimate:.1e} (tol {d.tol:.0e})"
         if data is not None:
             self.bus.publish(self.keys.ws(ws_id, "transform"), data)
-            self.count("solutions_published")
-            log.info("workspace %r solved: revision %s", ws_id, str(rev)[:12])
-        self._publish_status(ws_id, "solved", h, rev, "")
+            self.count("solutions_published" if final else "revisions_published")
+            log.info(
+                "workspace %r %s: revision %s, %s",
+                ws_id,
+                "solved" if final else "coarse revision, refining",
+                str(rev)[:12],
+                accuracy,
+            )
+        note = "" if final else f"{REFINING}: {accuracy}; refining to {st.definition.tol:.0e}"
+        self._publish_status(ws_id, "solved", h, rev, note)
         self.solved.set()
 
     def _fail(self, defn: WorkspaceDefinition, h: str, error: str) -> None:
@@ -584,8 +643,6 @@ class TransformService(Service):
                 raise QueryError(err)
         with self._lock:
             if parsed is None:  # a wildcard query: every solved workspace that matches
-                from confnav.services.bus import key_matches
-
                 found = [
                     (self.keys.ws(w, "transform"), s.solution)
                     for w, s in sorted(self._ws.items())
@@ -669,17 +726,6 @@ class TransformService(Service):
             log.warning("cannot write cache entry %s", path, exc_info=True)
 
 
-def parse_sources(items: list[str]) -> dict[str, str]:
-    """``ID=PATH`` items (PATH may be ``builtin:default``)."""
-    out = {}
-    for item in items:
-        ws_id, sep, path = item.partition("=")
-        if not sep:
-            raise SystemExit(f"--workspace expects ID=PATH, got {item!r}")
-        out[ws_id] = path
-    return out
-
-
 def add_parser(sub: Any) -> None:
     p: argparse.ArgumentParser = sub.add_parser("transform", help="run the transformation service")
     add_zenoh_args(p)
@@ -699,6 +745,23 @@ def add_parser(sub: Any) -> None:
         "--max-attempts", type=int, default=3, help="solves per definition when workers die"
     )
     p.add_argument("--max-cached", type=int, default=32, help="solutions kept in memory (LRU)")
+    p.add_argument(
+        "--robot-radius",
+        type=float,
+        action="append",
+        default=[],
+        metavar="R",
+        help="footprint radius (m; a unicycle's radius + look-ahead) whose shrunk maps "
+        "{ws}~r{R} are solved ahead of use for every workspace (repeatable; robots spawned "
+        "in a simulator add theirs)",
+    )
+    p.add_argument(
+        "--progressive",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="publish a coarse revision of each map first, then refined ones up to the "
+        "workspace's tol (docs/SERVICES.md); --no-progressive: the final map only",
+    )
     p.set_defaults(func=main)
 
 
@@ -714,6 +777,23 @@ def main(args: argparse.Namespace) -> int:
             solve_timeout=args.solve_timeout,
             max_attempts=args.max_attempts,
             max_cached=args.max_cached,
+            progressive=args.progressive,
+            robot_radii=tuple(args.robot_radius),
         ),
         args,
     )
+
+
+__all__ = [  # the shared helpers stay importable from here (services/definitions.py)
+    "TransformService",
+    "add_parser",
+    "definition_hash",
+    "definition_of",
+    "derived_definition",
+    "load_definition",
+    "main",
+    "parse_sources",
+    "solution_result",
+    "solve_definition",
+    "workspace_of",
+]

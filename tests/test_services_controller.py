@@ -22,7 +22,7 @@ from confnav.schemas import (
     decode,
     encode,
 )
-from confnav.services import controller as controller_module
+from confnav.services import controller_cache
 from confnav.services.bus import InMemoryNetwork, QueryError
 from confnav.services.controller import ControllerService
 from confnav.services.keys import Keys
@@ -741,7 +741,7 @@ def test_controller_cache_is_bounded_and_robots_keep_theirs(
     fit): the cache keeps the most recent CTRL_CACHE_SIZE; a robot keeps driving with its own
     controller after it was evicted, and robots with their own goals on one map are answered
     in one fleet step, each as its own controller would."""
-    monkeypatch.setattr(controller_module, "CTRL_CACHE_SIZE", 2)
+    monkeypatch.setattr(controller_cache, "CTRL_CACHE_SIZE", 2)
     ctl, _tr, cl = setup(mem_net, linger=0.2)  # the four poses in one control step
     try:
         goals = {"r1": (-0.5, 0.0), "r2": (-0.5, 0.3), "r3": (0.0, -0.6), "r4": (0.5, 0.5)}

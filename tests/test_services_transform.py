@@ -233,6 +233,8 @@ def test_real_solver_in_process_pool_over_zenoh(make_bus: Callable[[], Any]) -> 
         defn = square_definition("sq", [(0.2, 0.1)])
         client.publish(K.ws("sq", "definition"), encode(defn))
         wait_for(lambda: rec.on(K.ws("sq", "transform")), timeout=90)
+        # progressive: a coarse revision first; the final one (the definition's tol) last
+        wait_for(lambda: svc.state_of("sq") == "solved", timeout=90)
         [r] = client.query(K.ws("sq", "transform"))
         assert r.ok and r.key == K.ws("sq", "transform")
         sol = decode(TransformSolution, r.payload or b"")

@@ -168,12 +168,20 @@ def _goal(args: argparse.Namespace) -> int:
         print(f"goal ({x:g}, {y:g}) in workspace {args.ws} sent to robot {args.robot}")
         deadline = time.monotonic() + args.timeout
         last: RobotStatus | None = None  # newest status since the goal went out
+        solving = False
         while time.monotonic() < deadline:
             s = seen.snapshot().get("s")
             if s is not None and s.stamp_ns >= t_sent:
                 last = s
                 if s.state in ("navigating", "arrived") or s.reason in REJECTED:
                     break
+                if s.reason == "missing_map" and "being solved" in s.message:
+                    # its map is being solved (progressive maps: the robot moves on the first
+                    # revision): the timeout counts from the newest such status
+                    if not solving:
+                        print(f"waiting for the map: {s.message}")
+                        solving = True
+                    deadline = max(deadline, time.monotonic() + args.timeout)
             time.sleep(0.05)
     if last is None:
         raise OpsError(
@@ -384,7 +392,8 @@ def register(subparsers: Any) -> None:
         type=float,
         default=10.0,
         metavar="S",
-        help="seconds to wait for the robot to start navigating",
+        help="seconds to wait for the robot to start navigating (while its map is being "
+        "solved, counted from the newest status saying so)",
     )
     _common(g)
     g.set_defaults(func=_goal)

@@ -46,7 +46,7 @@ solve's 21.4 s after moving one obstacle by 0.2 m, the same map to 6.1e-13
 
 ``tol_met`` is true only if all are within ``tol`` and nothing is ``unverified``. A map that
 misses ``tol`` is returned with ``tol_met = False`` and an :class:`AccuracyWarning`; one whose
-estimate exceeds :data:`UNUSABLE_ERROR` raises :class:`~confnav.errors.SolverError` -- a
+estimate exceeds :data:`UNUSABLE_ERROR` (or the caller's ``max_error``) raises :class:`~confnav.errors.SolverError` -- a
 silently wrong map is never returned.
 """
 
@@ -398,6 +398,7 @@ def solve(
     nodes_per_side: int | None = None,
     progress: Callable[[str], None] | None = None,
     initial: ConformalMap | None = None,
+    max_error: float = UNUSABLE_ERROR,
 ) -> ConformalMap:
     """Compute the conformal map of ``workspace`` onto a circle domain.
 
@@ -420,6 +421,13 @@ def solve(
         ``initial`` needed (:func:`_warm_start_level`), skipping the coarse levels, and keeps
         the full certificate (three levels, residual). Anything that does not fit (another
         tolerance range, a fixed mesh) falls back to a cold solve's levels.
+    max_error
+        Largest estimated error of a map that is returned (with ``tol_met`` saying whether it
+        meets ``tol``) rather than refused. The default, :data:`UNUSABLE_ERROR`, is for callers
+        whose safety rests on the map; a caller that keeps its robots out of the walls on the
+        exact geometry (the controller's safety filter, docs/NAVIGATION.md) may accept a
+        coarse map (e.g. ``tol=1e-3, max_error=1e-2``): the certificate stays honest, the map
+        then only costs path quality (docs/SERVICES.md, progressive maps).
 
     Raises
     ------
@@ -436,6 +444,8 @@ def solve(
         and initial.diagnostics.tol <= tol
     ):
         return initial  # the same workspace, already solved at least as accurately
+    if not (np.isfinite(max_error) and max_error > 0):
+        raise SolverError(f"max_error must be positive and finite, got {max_error}")
     t0 = time.perf_counter()
     if nodes_per_side is not None:
         if nodes_per_side < 8:
@@ -559,7 +569,7 @@ def solve(
     if cmap is None:
         cmap = _make_map(workspace, best, tol, caps, refinements, t0)
     diag = cmap.diagnostics
-    if diag.error_estimate > UNUSABLE_ERROR:
+    if diag.error_estimate > max_error:
         where = ""
         if diag.boundary_residual >= diag.error_estimate:  # name the place: a user can see it
             z, name = cmap.worst_boundary_point()

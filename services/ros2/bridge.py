@@ -52,11 +52,11 @@ from confnav.schemas import (
     encode,
 )
 from confnav.services.bus import Bus
+from confnav.services.definitions import definition_of
 from confnav.services.keys import KeyError_, Keys, validate_id
 from confnav.services.ros2 import codec, wire
 from confnav.services.ros2.codec import PoseKind
 from confnav.services.runtime import Service, add_zenoh_args, run_until_signal
-from confnav.services.transform import definition_of
 
 from confnav.navigation import defaults
 
@@ -260,6 +260,32 @@ class Ros2Bridge(Service):
         self._handles.append(_Closer(self._close_ros))  # closed after the cmd_vel subscription
         self._handles.append(self.bus.subscribe(self.keys.any_robot("cmd_vel"), self._on_cmd))
         self.spawn(self._work, "ros")
+        self.spawn(self._ask_maps, "maps")
+
+    def _ask_maps(self) -> None:
+        """Ask the transform service for the maps of the robots' footprints (``{ws}~r{R}``)
+        once, so that they are solved before the first goal (progressive maps,
+        docs/SERVICES.md); retried every 2 s while no transform service knows the workspace
+        (at most 5 minutes)."""
+        from confnav.services.definitions import footprint_of
+
+        from confnav.maps.footprint import derived_ws_id
+
+        c = self.config
+        radius = footprint_of(c.robot_radius, c.drive, c.lookahead)
+        if radius <= 0:
+            return
+        todo = sorted({derived_ws_id(s.ws_id, radius) for s in c.robots})
+        deadline = time.monotonic() + 300.0
+        while todo and not self._stop.is_set() and time.monotonic() < deadline:
+            for ws in list(todo):
+                try:
+                    replies = self.bus.query(self.keys.ws(ws, "transform"), timeout=2.0)
+                except Exception:
+                    continue
+                if any(r.ok or "unknown workspace" not in (r.error or "") for r in replies):
+                    todo.remove(ws)  # solved, or being solved
+            self._stop.wait(2.0)
 
     def _close_ros(self) -> None:
         """Stop every robot (a base without a cmd_vel timeout keeps its last command), then

@@ -1,0 +1,372 @@
+"""The controller's hot path, in process (issue 25 item 5): CPU per pose and where it goes.
+
+    python bench/bench_controller.py [--robots 50 100 200 400] [--rate 20] [--seconds 5]
+                                     [--profile] [--out FILE.json]
+
+A Zenoh router and one ``ControllerService`` run in this process, each on its own session, a
+transform service (``confnav serve transform``, the default workspace) in its own process; one
+child process plays the robots exactly as ``bench services`` does (``play_robots``: poses at
+``--rate`` Hz per robot at independent phases, commands received, latency = command receipt -
+the answered pose's stamp). Every robot has its own goal (``own`` mode).
+
+Per row: poses answered, latency p50/p99, and the controller process's CPU time divided by the
+poses it took (``cpu_us_per_pose``) -- less sensitive to the machine's load than latency --
+with the CPU of each Python thread that works on poses (the pose step, the fleet filter's
+pose tracker, the publisher) measured with ``time.thread_time`` around its handler, and the
+rest (Zenoh's own threads, health, watchdog) as the difference. ``--profile`` also runs
+``cProfile`` (on each thread's CPU clock) inside those threads and prints the top functions
+(inflated by the profiler; use its ratios). Writes bench/results/controller.json with the
+commit and the load average before and after each row (after every row: a cut run keeps them).
+``threads_cpu_us_per_pose`` is every thread of the process by name (``/proc/self/task``, 10 ms
+ticks): ``latest`` the pose step, ``rx-*``/``tx-*``/``acc-*``/``app-*`` Zenoh's, the
+``pyo3-closure`` threads Zenoh's callbacks into Python, ``critical-points`` the background
+searches (services/critical_search.py), ``python`` native threads with no name of their own
+(Zenoh's runtime), ``MainThread`` this harness's waiting.
+"""
+
+from __future__ import annotations
+
+import argparse
+import cProfile
+import datetime as dt
+import gc
+import io
+import json
+import multiprocessing as mp
+import os
+import pstats
+import sys
+import tempfile
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import zenoh
+from bench_services import (
+    K,
+    free_points,
+    make_goal,
+    play_robots,
+    robot_id,
+    spawn,
+    wait,
+)
+from confnav.schemas import encode
+from confnav.services.bus import ZenohBus, zenoh_config
+from provenance import commit  # script mode: bench/ is on sys.path
+
+RESULTS = Path(__file__).resolve().parent / "results" / "controller.json"
+TARGET = {"robots": 200, "rate": 20.0, "p99_ms": 20.0}
+
+
+class _Timed:
+    """CPU seconds (``time.thread_time``) and calls of one handler; optionally profiled."""
+
+    def __init__(self, profile: bool) -> None:
+        self.cpu = 0.0
+        self.calls = 0
+        # thread CPU time, not wall time: a function that releases the GIL (shapely, numpy)
+        # would otherwise be charged the wait for the GIL after it (other threads' work)
+        self.prof = cProfile.Profile(time.thread_time) if profile else None
+        self.lock = threading.Lock()
+
+    def wrap(self, fn: Callable[..., Any]) -> Callable[..., Any]:
+        def run(*a: Any) -> Any:
+            t = time.thread_time()
+            if self.prof is not None:
+                self.prof.enable()
+            try:
+                return fn(*a)
+            finally:
+                if self.prof is not None:
+                    self.prof.disable()
+                with self.lock:
+                    self.cpu += time.thread_time() - t
+                    self.calls += 1
+
+        return run
+
+
+def _timed_loop(timer: _Timed, loop: Callable[[], None]) -> Callable[[], None]:
+    """A thread's whole loop (the publisher): its CPU at the end, profiled throughout."""
+
+    def run() -> None:
+        t = time.thread_time()
+        if timer.prof is not None:
+            timer.prof.enable()
+        try:
+            loop()
+        finally:
+            if timer.prof is not None:
+                timer.prof.disable()
+            timer.cpu += time.thread_time() - t
+
+    return run
+
+
+def _tasks() -> dict[str, float]:
+    """CPU seconds of every thread of this process by name (Python threads by their
+    ``threading`` name, native ones -- Zenoh's -- by their kernel name; same names summed)."""
+    clk = os.sysconf("SC_CLK_TCK")
+    names = {t.native_id: t.name for t in threading.enumerate()}
+    out: dict[str, float] = {}
+    for task in Path("/proc/self/task").iterdir():
+        try:
+            stat = (task / "stat").read_text()
+        except OSError:
+            continue
+        comm = stat[stat.index("(") + 1 : stat.rindex(")")]
+        f = stat.rsplit(")", 1)[1].split()
+        name = names.get(int(task.name), comm)
+        name = name.split(":", 1)[0] if name.startswith(("latest", "sub", "qbl", "live")) else name
+        out[name] = out.get(name, 0.0) + (int(f[11]) + int(f[12])) / clk
+    return out
+
+
+def _settle(svc: Any, quiet: float = 3.0, timeout: float = 30.0) -> None:
+    """Wait until the controller is idle: the final revision of the progressive map installed,
+    no controller built for ``quiet`` s (every goal rebuilt on it) and under 40% of a core (the
+    critical-point searches of new goals take up to 25%: services/critical_search.py)."""
+    t_end = time.monotonic() + timeout
+    built, since = svc.counters["controllers_built"], time.monotonic()
+    c0, t0 = time.process_time(), time.monotonic()
+    while time.monotonic() < t_end:
+        time.sleep(0.5)
+        now = time.monotonic()
+        if svc.counters["controllers_built"] != built:
+            built, since = svc.counters["controllers_built"], now
+        cpu = (time.process_time() - c0) / (now - t0)
+        c0, t0 = time.process_time(), now
+        m = svc._maps.get("default")
+        refining = m is None or m.revision in svc._refining  # a coarse revision installed
+        if now - since >= quiet and cpu < 0.4 and not refining:
+            return
+
+
+def row(
+    ep: str,
+    ctl_bus: ZenohBus,
+    n: int,
+    rate: float,
+    seconds: float,
+    profile: bool,
+    linger_ms: float = 0.0,
+    gc_freeze: bool = False,
+) -> dict[str, Any]:
+    from confnav.services.controller import ControllerService
+    from confnav.services.neighbours import Neighbours
+
+    timers = {k: _Timed(profile) for k in ("pose_step", "fleet_tracker", "publisher")}
+    svc = ControllerService(ctl_bus, K, stale_after=2.0, idle_ttl=600.0, linger=linger_ms / 1e3)
+    svc._on_poses = timers["pose_step"].wrap(svc._on_poses)  # type: ignore[method-assign]
+    svc._publish_loop = _timed_loop(timers["publisher"], svc._publish_loop)  # type: ignore[method-assign]
+    orig = Neighbours._on_poses
+    wrapped = timers["fleet_tracker"].wrap(orig)
+    Neighbours._on_poses = lambda self, items: wrapped(self, items)  # type: ignore[method-assign]
+    try:
+        svc.start()
+    finally:
+        Neighbours._on_poses = orig  # type: ignore[method-assign]
+    try:
+        with ZenohBus(zenoh_config("client", connect=[ep])) as bus:
+            goals = free_points(n, seed=7)
+            for i in range(n):
+                xy = (goals[i].real, goals[i].imag)
+                bus.publish(K.robot(robot_id(i), "goal"), encode(make_goal(i, xy, "harmonic")))
+            wait(lambda: svc.counters["controllers_built"] >= n, 300, "controllers")
+            _settle(svc)
+            if gc_freeze:  # everything built so far out of the collector's way
+                gc.collect()
+                gc.freeze()
+            warm = int(rate)
+            ticks = warm + int(seconds * rate)
+            ctx = mp.get_context("spawn")
+            q: Any = ctx.Queue()
+            done = ctx.Event()
+            child = ctx.Process(target=play_robots, args=(ep, n, rate, ticks, warm, q, done, 0, 1))
+            child.start()
+            poses0 = svc.counters["poses"]
+            time.sleep(0.6 + warm / rate)  # the child's session and the warm-up second
+            load0 = os.getloadavg()
+            c0 = {k: (t.cpu, t.calls) for k, t in timers.items()}
+            p0 = os.times()
+            k0 = _tasks()
+            poses_w0, sup0 = svc.counters["poses"], svc.counters["poses_superseded"]
+            cmds0 = svc.counters["commands"]
+            t0 = time.monotonic()
+            late = q.get(timeout=seconds + 120)["late"]
+            wait(lambda: svc.counters["poses"] - poses0 >= n * ticks, 120, "drain")
+            time.sleep(0.3)
+            wall = time.monotonic() - t0
+            p1 = os.times()
+            k1 = _tasks()
+            load1 = os.getloadavg()
+            taken = svc.counters["poses"] - poses_w0
+            superseded = svc.counters["poses_superseded"] - sup0
+            commands = svc.counters["commands"] - cmds0
+            done.set()
+            res = q.get(timeout=60)
+            child.join(30)
+    finally:
+        svc.stop()
+    proc_cpu = (p1.user + p1.system) - (p0.user + p0.system)
+    lat = np.asarray(res["lat_ns"], dtype=float) / 1e6
+    per = {k: (t.cpu - c0[k][0]) / max(commands, 1) * 1e6 for k, t in timers.items()}
+    calls = {k: t.calls - c0[k][1] for k, t in timers.items()}
+    out: dict[str, Any] = {
+        "robots": n,
+        "rate_hz": rate,
+        "seconds": seconds,
+        "sent": n * (ticks - warm),
+        "answered": int(res["answered"]),
+        "poses_taken": taken,
+        "superseded": superseded,
+        "commands": commands,
+        "late_publishes": late,
+        "p50_ms": float(np.percentile(lat, 50)) if lat.size else float("nan"),
+        "p99_ms": float(np.percentile(lat, 99)) if lat.size else float("nan"),
+        "max_ms": float(lat.max()) if lat.size else float("nan"),
+        "process_cpu_pct": 100 * proc_cpu / wall,
+        "cpu_us_per_pose": proc_cpu / max(commands, 1) * 1e6,
+        "thread_cpu_us_per_pose": per,
+        "other_cpu_us_per_pose": proc_cpu / max(commands, 1) * 1e6 - sum(per.values()),
+        "threads_cpu_us_per_pose": {
+            k: round((v - k0.get(k, 0.0)) / max(commands, 1) * 1e6, 1)
+            for k, v in sorted(k1.items(), key=lambda kv: -(kv[1] - k0.get(kv[0], 0.0)))
+            if v - k0.get(k, 0.0) > 0
+        },
+        "pose_step_calls": calls["pose_step"],
+        "poses_per_step": commands / max(calls["pose_step"], 1),
+        "fleet": {k: v for k, v in svc.neighbours.counters.items()} if svc.neighbours else {},
+        "profiled": profile,
+        "linger_ms": linger_ms,
+        "gc_freeze": gc_freeze,
+        "switch_interval_ms": sys.getswitchinterval() * 1e3,
+        "loadavg_start": list(load0),
+        "loadavg_end": list(load1),
+    }
+    if profile:
+        out["profile"] = {}
+        for k, t in timers.items():
+            assert t.prof is not None
+            if not t.calls and k != "publisher":  # not called (the tracker, fed)
+                continue
+            s = io.StringIO()
+            st = pstats.Stats(t.prof, stream=s)
+            st.sort_stats("tottime").print_stats(18)
+            st.sort_stats("cumulative").print_stats(30)
+            out["profile"][k] = s.getvalue()
+    return out
+
+
+def _write(out: str, rows: list[dict[str, Any]]) -> None:
+    doc = {
+        "about": "controller hot path in process: CPU per pose, latency (bench_controller.py)",
+        "commit": commit(),
+        "date": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
+        "cpus": os.cpu_count(),
+        "command": " ".join(sys.argv),
+        "target": TARGET,
+        "rows": rows,
+    }
+    Path(out).parent.mkdir(parents=True, exist_ok=True)
+    Path(out).write_text(json.dumps(doc, indent=1) + "\n")
+
+
+def codec(n: int = 50_000) -> dict[str, float]:
+    """us per call of the pose decode and the command encode, and of the alternatives."""
+    import timeit
+
+    from confnav.schemas import Pose, VelocityCommand, decode
+    from confnav.schemas.fast import velocity_command_json
+
+    pose = (
+        b'{"type":"confnav.Pose","schema_version":1,"robot_id":"z01r001",'
+        b'"stamp_ns":1764180000000000000,"seq":12,"x":0.123456789,"y":-1.23456789,"theta":0.0}'
+    )
+    d = json.loads(pose)
+    header = {k: VelocityCommand.model_fields[k].default for k in ("type", "schema_version")}
+    fields = dict(robot_id="z01r001", stamp_ns=1764180000000000000, linear=(0.31, -0.12),
+                  angular=0.0, pose_seq=12, pose_stamp_ns=1764180000000000000,
+                  map_revision="5f1c9a0b2e", frame="world", chart=None)  # fmt: skip
+    args = tuple(fields.values())
+    cases: dict[str, Callable[[], object]] = {
+        "decode_pose_pydantic": lambda: decode(Pose, pose),
+        "json_loads_pose": lambda: json.loads(pose),
+        "pose_model_construct": lambda: Pose.model_construct(**d),
+        "encode_command_model_construct": lambda: encode(
+            VelocityCommand.model_construct(**header, **fields)
+        ),
+        "encode_command_fast": lambda: velocity_command_json(*args),  # type: ignore[arg-type]
+    }
+    return {k: min(timeit.repeat(f, number=n, repeat=3)) / n * 1e6 for k, f in cases.items()}
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    ap.add_argument("--robots", type=int, nargs="*", default=[50, 100, 200, 400])
+    ap.add_argument("--rate", type=float, default=20.0)
+    ap.add_argument("--seconds", type=float, default=5.0)
+    ap.add_argument("--profile", action="store_true", help="cProfile the pose threads")
+    ap.add_argument("--out", default=str(RESULTS))
+    ap.add_argument("--linger-ms", type=float, default=0.0, help="controller linger, ms")
+    ap.add_argument("--gc-freeze", action="store_true", help="gc.freeze() once set up")
+    ap.add_argument("--switch-ms", type=float, default=None, help="sys.setswitchinterval, ms")
+    ap.add_argument(
+        "--codec", action="store_true", help="only decode/encode costs: controller_codec.json"
+    )
+    args = ap.parse_args()
+    if args.codec:
+        out = RESULTS.with_name("controller_codec.json") if args.out == str(RESULTS) else args.out
+        doc = {"about": "pose decode and command encode, us per call (bench_controller.py --codec)",
+               "commit": commit(), "loadavg": list(os.getloadavg()), "us": codec()}  # fmt: skip
+        Path(out).write_text(json.dumps(doc, indent=1) + "\n")
+        print(json.dumps(doc["us"], indent=1))
+        return 0
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    if args.switch_ms is not None:  # how long a thread holds the GIL when others wait
+        sys.setswitchinterval(args.switch_ms / 1e3)
+    rows = []
+    with tempfile.TemporaryDirectory(prefix="cnb") as tmp:
+        ep = f"unixsock-stream/{tmp}/r.sock"
+        with zenoh.open(zenoh_config("router", listen=[ep])):
+            tr = spawn("serve", "transform", "--mode", "client", "--connect", ep,
+                       "--workspace", "default=builtin:default",
+                       log=Path(tmp) / "transform.log")  # fmt: skip
+            ctl_bus = ZenohBus(zenoh_config("client", connect=[ep]))
+            try:
+                for n in args.robots:
+                    r = row(ep, ctl_bus, n, args.rate, args.seconds, args.profile,
+                            args.linger_ms, args.gc_freeze)  # fmt: skip
+                    rows.append(r)
+                    _write(args.out, rows)  # after every row: a cut run keeps its rows
+                    th = r["thread_cpu_us_per_pose"]
+                    print(
+                        f"{n:4d} robots @ {args.rate:g} Hz: answered {r['answered']}/{r['sent']}"
+                        f" superseded {r['superseded']} p50 {r['p50_ms']:.1f} ms p99 "
+                        f"{r['p99_ms']:.1f} ms | CPU {r['process_cpu_pct']:.0f}% "
+                        f"{r['cpu_us_per_pose']:.0f} us/pose (step {th['pose_step']:.0f}, "
+                        f"tracker {th['fleet_tracker']:.0f}, publisher {th['publisher']:.0f}, "
+                        f"other {r['other_cpu_us_per_pose']:.0f}) {r['poses_per_step']:.1f} "
+                        f"poses/step | load {r['loadavg_start'][0]:.1f}",
+                        flush=True,
+                    )
+                    print("  threads (us/pose):", r["threads_cpu_us_per_pose"], flush=True)
+                    if args.profile:
+                        for k, text in r["profile"].items():
+                            print(f"--- {k} ---\n{text}")
+            finally:
+                ctl_bus.close()
+                tr.terminate()
+                tr.wait(20)
+    print(f"wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,466 @@
+"""Benchmark: goal to the first non-zero command for a robot with a body, through the services.
+
+A router, a transform service, a controller and a simulator, each its own process on TCP
+loopback (as ``confnav launch`` starts them); a client spawns a unicycle (``SpawnRequest`` on
+the simulator's spawn key) on the default workspace and sends it a goal with its body
+(``robot_radius``, ``drive="unicycle"``, the library's look-ahead), and measures, from the goal's
+publication:
+
+- ``first_cmd_s``: the first ``cmd_vel`` with a non-zero velocity (the robot moves);
+- ``first_navigating_s``: the first ``navigating`` status, with its message (on a coarse map:
+  "navigating on a coarse map, refining");
+- ``revisions``: the map revisions the robot was commanded on, with the time each was first
+  used, and their estimated errors (from the transform's statuses);
+- ``final_s``: the first command on the final revision (the workspace's tol).
+
+Cases (each with a fresh transform service, so nothing is cached):
+
+- ``solve``: no services: ``confnav.solve`` of the workspace shrunk by the footprint to the first
+  revision's tol (1e-3, ``max_error`` 1e-2) in this process, twice (the first call includes
+  the solver's warm-up): what the first revision costs;
+- ``first_use``: the robot is spawned as a point (no radius known to the system); the goal's
+  ``{ws}~r{R}`` map is solved when the controller first asks for it;
+- ``spawned``: the robot is spawned with its body, so the transform service starts solving its
+  ``{ws}~r{R}`` map at the spawn (ahead of use); the goal is sent once the first revision of
+  that map is out (``spawn_to_first_revision_s``), as for a robot that waits for its first
+  goal a few seconds after it was switched on;
+- ``ros2``: no simulator: ``confnav serve ros2 --drive unicycle --robot-radius R --lookahead
+  0.1`` and a stand-in ROS 2 robot speaking rmw_zenoh's wire format (tests/ros2_standin_robot.py:
+  odometry out, ``cmd_vel`` twists in); the goal is a ``geometry_msgs/PoseStamped`` on the
+  robot's ``goal_pose`` and the first move is the first non-zero ``Twist`` on its ``cmd_vel``
+  (decoded from the ROS side); the map is solved on first use, as in issue 23's trial.
+
+``ahead s`` in the table: spawn to the first revision (``spawned``); ``first cmd s``: goal to
+the first non-zero command; ``final rev s``: goal to the first command on the final revision.
+
+Target (issue 23): goal to first non-zero command <= 2 s with a 0.2 m unicycle on the default
+workspace. Prints a table and writes bench/results/firstmove.json (``--quick``: one run of
+each case, ``firstmove.quick.json`` through ``python -m bench firstmove --quick``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+from confnav.schemas import (
+    Goal,
+    RobotStatus,
+    SpawnRequest,
+    TransformStatus,
+    VelocityCommand,
+    decode,
+    encode,
+)
+from confnav.services.bus import ZenohBus, zenoh_config
+from confnav.services.keys import Keys
+from confnav.services.launcher import SINGLE_THREAD_BLAS
+from provenance import commit  # script mode: bench/ is on sys.path
+
+HERE = Path(__file__).resolve().parent
+CASES = ("solve", "first_use", "spawned", "ros2")
+K = Keys()
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def spawn(*args: str, log: Path) -> subprocess.Popen[bytes]:
+    f = open(log, "wb")  # noqa: SIM115 - lives as long as the process
+    env = dict(os.environ)
+    env.update({k: v for k, v in SINGLE_THREAD_BLAS.items() if k not in os.environ})
+    return subprocess.Popen(
+        [sys.executable, "-m", "confnav", *args], stdout=f, stderr=subprocess.STDOUT, env=env
+    )
+
+
+def connect(ep: str) -> ZenohBus:
+    deadline = time.monotonic() + 30
+    while True:
+        try:
+            return ZenohBus(zenoh_config("client", connect=[ep]))
+        except Exception:
+            if time.monotonic() > deadline:
+                raise
+            time.sleep(0.3)
+
+
+def stop(procs: list[subprocess.Popen[bytes]]) -> None:
+    for p in procs:
+        p.terminate()
+    for p in procs:
+        try:
+            p.wait(10)
+        except subprocess.TimeoutExpired:
+            p.kill()
+
+
+class Watch:
+    """Commands, statuses and transform statuses of one robot / workspace, timestamped."""
+
+    def __init__(self, bus: ZenohBus, rid: str) -> None:
+        self.lock = threading.Lock()
+        self.cmds: list[tuple[float, VelocityCommand]] = []
+        self.status: list[tuple[float, RobotStatus]] = []
+        self.ws_status: list[tuple[float, TransformStatus]] = []
+        bus.subscribe(K.robot(rid, "cmd_vel"), self._on(self.cmds, VelocityCommand))
+        bus.subscribe(K.robot(rid, "status"), self._on(self.status, RobotStatus))
+        bus.subscribe(K.any_ws("status"), self._on(self.ws_status, TransformStatus))
+
+    def _on(self, store: list[Any], model: type[Any]) -> Any:
+        def on(key: str, payload: bytes) -> None:
+            msg = decode(model, payload)
+            with self.lock:
+                store.append((time.monotonic(), msg))
+
+        return on
+
+
+def wait(pred: Any, timeout: float) -> Any:
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < timeout:
+        v = pred()
+        if v:
+            return v
+        time.sleep(0.02)
+    return None
+
+
+def run_case(case: str, args: argparse.Namespace, tmp: Path, n: int) -> dict[str, Any]:
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    common = ["--mode", "client", "--connect", ep]
+    logs = tmp / f"{case}{n}"
+    logs.mkdir(parents=True, exist_ok=True)
+    procs = [spawn("serve", "router", "--listen", ep, log=logs / "router.log")]
+    try:
+        time.sleep(1.0)
+        ws = ["--workspace", "default=builtin:default"]
+        procs.append(spawn("serve", "transform", *common, *ws, log=logs / "transform.log"))
+        procs.append(spawn("serve", "controller", *common, log=logs / "controller.log"))
+        procs.append(spawn("serve", "simulator", *common, *ws, log=logs / "simulator.log"))
+        rid = "u1"
+        with connect(ep) as bus:
+            alive = wait(
+                lambda: all(
+                    bus.alive(K.alive_of(s), timeout=0.5)
+                    for s in ("transform", "controller", "simulator")
+                ),
+                60,
+            )
+            if not alive:
+                raise RuntimeError(f"services did not come up (logs in {logs})")
+            watch = Watch(bus, rid)
+            body = case == "spawned"
+            req = SpawnRequest(
+                robot_id=rid,
+                ws_id="default",
+                position=(args.start[0], args.start[1]),
+                theta=0.0,
+                stamp_ns=time.time_ns(),
+                robot_radius=args.radius if body else 0.0,
+                # first_use: a point (nothing for the transform to solve ahead); the simulator
+                # integrates the controller's body-frame twists either way
+                drive="unicycle" if body else "holonomic",
+            )
+            t_spawn = time.monotonic()
+            bus.publish(f"{K.prefix}/sim/sim/spawn", encode(req))
+            first_rev_s: float | None = None
+            if body:
+
+                def first_revision() -> float | None:
+                    with watch.lock:
+                        for t, s in watch.ws_status:
+                            if "~r" in s.ws_id and s.state == "solved" and s.revision:
+                                return t - t_spawn
+                    return None
+
+                first_rev_s = wait(first_revision, args.timeout)
+            time.sleep(1.0)
+            goal = Goal(
+                robot_id=rid,
+                ws_id="default",
+                goal=(args.goal[0], args.goal[1]),
+                robot_radius=args.radius,
+                drive="unicycle",
+                stamp_ns=time.time_ns(),
+            )
+            t0 = time.monotonic()
+            bus.publish(K.robot(rid, "goal"), encode(goal))
+
+            def moving() -> float | None:
+                with watch.lock:
+                    for t, c in watch.cmds:
+                        if t >= t0 and (c.linear[0] != 0.0 or c.angular != 0.0):
+                            return t - t0
+                return None
+
+            first = wait(moving, args.timeout)
+            final_rev: str | None = None
+
+            def final() -> str | None:
+                with watch.lock:
+                    for _, s in watch.ws_status:
+                        if "~r" in s.ws_id and s.state == "solved" and not s.message:
+                            return s.revision
+                return None
+
+            final_rev = wait(final, args.final_timeout) if first is not None else None
+            time.sleep(0.5)
+            with watch.lock:
+                cmds = [(t - t0, c) for t, c in watch.cmds if t >= t0]
+                status = [(t - t0, s) for t, s in watch.status if t >= t0]
+                ws_status = [(t - t0, s) for t, s in watch.ws_status]
+        revs: dict[str, float] = {}
+        for t, c in cmds:
+            if c.map_revision and c.map_revision not in revs and (c.linear[0] or c.angular):
+                revs[c.map_revision] = t
+        notes = {s.revision: s.message for _, s in ws_status if s.revision and "~r" in s.ws_id}
+        nav = [(t, s) for t, s in status if s.state == "navigating"]
+        stopped_after_moving = [
+            (round(t, 2), s.reason)
+            for t, s in status
+            if first is not None and t > first and s.state == "stopped"
+        ]
+        return {
+            "case": case,
+            "run": n,
+            "spawn_to_first_revision_s": first_rev_s if body else None,
+            "first_cmd_s": first,
+            "first_navigating_s": nav[0][0] if nav else None,
+            "first_navigating_message": nav[0][1].message if nav else None,
+            "revisions": [
+                {"revision": r[:12], "first_used_s": t, "transform_status": notes.get(r, "")}
+                for r, t in revs.items()
+            ],
+            "final_s": revs.get(final_rev) if final_rev else None,
+            "stopped_after_moving": stopped_after_moving,
+            "loadavg": list(os.getloadavg()),
+        }
+    finally:
+        stop(procs[::-1])
+
+
+def run_solve(args: argparse.Namespace, n: int) -> dict[str, Any]:
+    """The ``solve`` case: the first revision's solve in this process (see the docstring)."""
+    import warnings
+
+    from confnav.services.definitions import COARSE_MAX_ERROR, LADDER
+
+    from confnav.conformal.solver import solve
+    from confnav.maps.footprint import inflate
+    from confnav.scenes.workspaces import default_workspace
+
+    ws = inflate(default_workspace(), args.radius + 0.1)
+    times = []
+    for _ in range(2):
+        t0 = time.perf_counter()
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            m = solve(ws, LADDER[0], max_error=COARSE_MAX_ERROR)
+        times.append(time.perf_counter() - t0)
+    d = m.diagnostics
+    return {
+        "case": "solve",
+        "run": n,
+        "spawn_to_first_revision_s": None,
+        "first_cmd_s": None,
+        "solve_s": times,
+        "tol": LADDER[0],
+        "error_estimate": d.error_estimate,
+        "tol_met": d.tol_met,
+        "nodes": list(d.nodes),
+        "final_s": None,
+        "revisions": [],
+        "first_navigating_message": None,
+        "loadavg": list(os.getloadavg()),
+    }
+
+
+def run_ros2(args: argparse.Namespace, tmp: Path, n: int) -> dict[str, Any]:
+    """The ``ros2`` case (see the module docstring)."""
+    import zenoh
+    from confnav.services.ros2 import codec
+
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    common = ["--mode", "client", "--connect", ep]
+    logs = tmp / f"ros2{n}"
+    logs.mkdir(parents=True, exist_ok=True)
+    procs = [spawn("serve", "router", "--listen", ep, log=logs / "router.log")]
+    rid = "u1"
+    try:
+        time.sleep(1.0)
+        ws = ["--workspace", "default=builtin:default"]
+        procs.append(spawn("serve", "transform", *common, *ws, log=logs / "transform.log"))
+        procs.append(spawn("serve", "controller", *common, log=logs / "controller.log"))
+        bridge = ["--robot", f"{rid}=default", "--drive", "unicycle"]
+        bridge += ["--robot-radius", str(args.radius), "--lookahead", "0.1"]
+        procs.append(spawn("serve", "ros2", *common, *bridge, log=logs / "bridge.log"))
+        robot = [sys.executable, str(HERE.parent / "tests" / "ros2_standin_robot.py")]
+        robot += ["--connect", ep, "--ns", f"/{rid}", "--x", str(args.start[0])]
+        robot += ["--y", str(args.start[1]), "--yaw", "0"]
+        with connect(ep) as bus:
+            alive = wait(
+                lambda: all(
+                    bus.alive(K.alive_of(s), timeout=0.5)
+                    for s in ("transform", "controller", "ros2")
+                ),
+                60,
+            )
+            if not alive:
+                raise RuntimeError(f"services did not come up (logs in {logs})")
+            with open(logs / "robot.log", "wb") as f:  # the router is up: the robot connects
+                procs.append(subprocess.Popen(robot, stdout=f, stderr=subprocess.STDOUT))
+            watch = Watch(bus, rid)
+            moves: list[float] = []
+            cmd_key = f"0/{rid}/cmd_vel/geometry_msgs::msg::dds_::Twist_/" + codec.type_hash(
+                codec.TWIST
+            )
+            goal_key = f"0/{rid}/goal_pose/geometry_msgs::msg::dds_::PoseStamped_/"
+            goal_key += codec.type_hash(codec.POSE_STAMPED)
+
+            def on_twist(sample: Any) -> None:
+                vx, _vy, wz = codec.decode_twist(sample.payload.to_bytes())
+                if vx != 0.0 or wz != 0.0:
+                    moves.append(time.monotonic())
+
+            with zenoh.open(zenoh_config("client", connect=[ep])) as ros:
+                ros.declare_subscriber(cmd_key, on_twist)
+                posed: list[bool] = []
+                bus.subscribe(K.robot(rid, "pose"), lambda k, p: posed.append(True))
+                if not wait(lambda: posed, 60):  # its odometry on the bus, through the bridge
+                    raise RuntimeError(f"no odometry from the stand-in robot (logs in {logs})")
+                time.sleep(0.5)
+                t0 = time.monotonic()
+                pose = codec.PlanarPose(args.goal[0], args.goal[1], 0.0, time.time_ns(), "odom")
+                ros.put(goal_key, codec.encode_pose(pose, "pose"))
+                first = wait(lambda: [t - t0 for t in moves if t >= t0][:1], args.timeout)
+                time.sleep(0.5)
+            with watch.lock:
+                status = [(t - t0, s) for t, s in watch.status if t >= t0]
+        nav = [(t, s) for t, s in status if s.state == "navigating"]
+        return {
+            "case": "ros2",
+            "run": n,
+            "spawn_to_first_revision_s": None,
+            "first_cmd_s": first[0] if first else None,
+            "first_navigating_s": nav[0][0] if nav else None,
+            "first_navigating_message": nav[0][1].message if nav else None,
+            "revisions": sorted({s.map_revision[:12] for _, s in nav if s.map_revision}),
+            "final_s": None,
+            "stopped_after_moving": [
+                (round(t, 2), s.reason)
+                for t, s in status
+                if first and t > first[0] and s.state == "stopped"
+            ],
+            "loadavg": list(os.getloadavg()),
+        }
+    finally:
+        stop(procs[::-1])
+
+
+def report(rows: list[dict[str, Any]]) -> None:
+    print(
+        f"{'case':<10} {'run':>3} {'ahead s':>8} {'first cmd s':>11} {'final rev s':>11} "
+        f"{'revs':>4}  load"
+    )
+    for r in rows:
+        f = "-" if r["first_cmd_s"] is None else f"{r['first_cmd_s']:.2f}"
+        g = "-" if r["final_s"] is None else f"{r['final_s']:.2f}"
+        load = " ".join(f"{x:.1f}" for x in r["loadavg"])
+        ahead = r["spawn_to_first_revision_s"]
+        a = "-" if ahead is None else f"{ahead:.2f}"
+        if r["case"] == "solve":
+            print(
+                f"{'solve':<10} {r['run']:>3} tol {r['tol']:.0e}: "
+                + ", ".join(f"{t:.2f} s" for t in r["solve_s"])
+                + f" (cold, warm), estimate {r['error_estimate']:.1e}, tol_met {r['tol_met']}"
+                + f"  {load}"
+            )
+            continue
+        print(
+            f"{r['case']:<10} {r['run']:>3} {a:>8} {f:>11} {g:>11} {len(r['revisions']):>4}  {load}"
+        )
+        if r["first_navigating_message"]:
+            print(f"{'':14} first status: navigating ({r['first_navigating_message']})")
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    ap.add_argument("--quick", action="store_true", help="one run of each case")
+    ap.add_argument("--runs", type=int, default=None, help="runs per case (default 3)")
+    ap.add_argument("--cases", nargs="*", default=list(CASES), choices=CASES)
+    ap.add_argument(
+        "--radius",
+        type=float,
+        default=0.1,
+        help="robot radius, m (unicycle; with the 0.1 m look-ahead the map is the workspace "
+        "shrunk by 0.2 m, default~r0.2, as in issue 23's ROS 2 trial)",
+    )
+    ap.add_argument("--start", type=float, nargs=2, default=(-1.5, 1.5))
+    ap.add_argument("--goal", type=float, nargs=2, default=(1.5, 1.5))
+    ap.add_argument("--timeout", type=float, default=600.0, help="s to wait for the first move")
+    ap.add_argument(
+        "--final-timeout",
+        type=float,
+        default=None,
+        help="s to wait for the final revision (default 900; --quick: 0, not waited for)",
+    )
+    ap.add_argument("--out", default=None)
+    args = ap.parse_args()
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(1))  # stop the services (finally)
+    runs = args.runs or (1 if args.quick else 3)
+    if args.final_timeout is None:
+        args.final_timeout = 0.0 if args.quick else 900.0
+    out = Path(
+        args.out or HERE / "results" / ("firstmove.quick.json" if args.quick else "firstmove.json")
+    )
+    tmp = Path(tempfile.mkdtemp(prefix="confnav-firstmove-"))
+    results: dict[str, Any] = {
+        "commit": commit(),
+        "date": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        "machine": {"cpus": os.cpu_count(), "python": platform.python_version()},
+        "loadavg_start": list(os.getloadavg()),
+        "workspace": "default",
+        "robot": {"radius": args.radius, "drive": "unicycle", "lookahead": "library default"},
+        "start": list(args.start),
+        "goal": list(args.goal),
+        "target_first_cmd_s": 2.0,
+        "rows": [],
+    }
+    for case in args.cases:
+        for n in range(runs):
+            if case == "solve":
+                row = run_solve(args, n)
+            elif case == "ros2":
+                row = run_ros2(args, tmp, n)
+            else:
+                row = run_case(case, args, tmp, n)
+            results["rows"].append(row)
+            report([row])
+    results["loadavg_end"] = list(os.getloadavg())
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(results, indent=1, default=float) + "\n")
+    print()
+    report(results["rows"])
+    print(f"wrote {out} (logs in {tmp})")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

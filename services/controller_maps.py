@@ -1,0 +1,245 @@
+"""The controller service's maps: fetched with a query, received on the bus, installed with a
+hot swap of the robots' controllers; atlases; definition changes and deletes (see
+services/controller.py)."""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections import OrderedDict
+
+from confnav.schemas import (
+    AtlasIndex,
+    DecodeError,
+    TransformSolution,
+    TransformStatus,
+    WorkspaceDefinition,
+    decode,
+)
+from confnav.services.atlas_client import fetch_atlas
+from confnav.services.controller_cache import ControllerCacheMixin
+from confnav.services.controller_state import _Map, _Pending, _Robot
+from confnav.services.definitions import REFINING, definition_hash, workspace_of
+from confnav.services.keys import KeyError_
+
+from confnav.atlas.wire import ATLAS_MARKER, AtlasMap, is_chart_ws_id
+
+log = logging.getLogger(__name__)
+
+
+class MapsMixin(ControllerCacheMixin):
+    """Maps: liveliness of the transform services, solutions and atlases received or fetched,
+    hot swaps, definition changes and deletes."""
+
+    # liveliness and maps -----------------------------------------------------------------
+    def _on_live(self, key: str, alive: bool) -> None:
+        if alive:
+            self._transform_alive.add(key)
+        else:
+            self._transform_alive.discard(key)
+        log.info("transform service %s %s", key, "alive" if alive else "gone")
+        self._wake_fetch.set()
+
+    def _on_transform(self, key: str, payload: bytes) -> None:
+        self.count("transforms_received")
+        try:
+            ws_id = self.keys.parse(key).ident
+            sol = decode(TransformSolution, payload)
+        except (KeyError_, DecodeError) as exc:
+            self.count("rejected")
+            log.warning("rejected transform on %s: %s", key, exc)
+            return
+        if sol.ws_id != ws_id:
+            self.count("rejected")
+            return
+        if is_chart_ws_id(ws_id):  # a chart of an atlas: installed with its atlas
+            return
+        self._install(sol)
+
+    def _install(self, sol: TransformSolution | AtlasMap) -> None:
+        """Load a solution (or take a fetched atlas) and rebuild the controllers of its
+        robots, then swap (hot)."""
+        ws_id = sol.ws_id
+        cur = self._maps.get(ws_id)
+        if cur is not None and cur.revision == sol.revision:
+            return
+        try:
+            cmap = sol if isinstance(sol, AtlasMap) else self._load_map(sol)
+        except Exception as exc:
+            self.count("map_load_errors")
+            self._map_errors[ws_id] = f"cannot load map: {exc}"
+            log.error("workspace %r: cannot load map %s: %s", ws_id, sol.revision[:12], exc)
+            return
+        est = None if isinstance(sol, AtlasMap) else sol.diagnostics.error_estimate
+        new = _Map(sol.revision, cmap, sol.definition_hash, est)
+        with self._lock:
+            goals = {
+                r.robot_id: r.goal
+                for r in self._robots.values()
+                if r.goal and r.goal.ws_id == ws_id
+            }
+        built = {rid: self._build(new, g) for rid, g in goals.items() if g}
+        with self._build_lock:
+            live = {m.revision for w, m in self._maps.items() if w != ws_id} | {new.revision}
+            self._ctrl_cache = OrderedDict(
+                (k, c) for k, c in self._ctrl_cache.items() if k[0] in live
+            )
+        late: list[_Robot] = []  # goals that changed or came while the map was being built
+        with self._lock:
+            self._maps[ws_id] = new
+            if est is not None:
+                live_revs = {m.revision for m in self._maps.values()}
+                self._estimates = {k: v for k, v in self._estimates.items() if k in live_revs}
+                self._estimates[new.revision] = est
+            self._map_errors.pop(ws_id, None)
+            pending = self._pending.get(ws_id)
+            if pending is not None and pending.definition_hash == sol.definition_hash:
+                del self._pending[ws_id]  # the map of the current geometry: robots go on
+            for r in self._robots.values():
+                with r.lock:
+                    if r.goal is None or r.goal.ws_id != ws_id:
+                        continue
+                    if r.goal is not goals.get(r.robot_id):
+                        late.append(r)
+                        continue
+                    ctrl, err = built[r.robot_id]
+                    r.ctrl, r.ctrl_revision, r.ctrl_error = ctrl, new.revision, err
+        for r in late:
+            self._adopt(r, ws_id, new)
+        self.count("maps_installed")
+        log.info("workspace %r: map %s installed (%d robots)", ws_id, sol.revision[:12], len(goals))
+        self.swapped.set()
+
+    def _on_ws_status(self, key: str, payload: bytes) -> None:
+        """A transform status: remember which revision is a coarse one being refined
+        (``REFINING``), for the robots' statuses (progressive maps, docs/SERVICES.md)."""
+        try:
+            self.keys.parse(key)
+            st = decode(TransformStatus, payload)
+        except (KeyError_, DecodeError):
+            self.count("rejected")
+            return
+        if st.state == "solved" and st.revision and st.message.startswith(REFINING):
+            with self._lock:
+                self._refining[st.revision] = None
+                while len(self._refining) > 4096:
+                    self._refining.popitem(last=False)
+
+    # definition changes -----------------------------------------------------------------
+    def _on_definition(self, key: str, payload: bytes) -> None:
+        """A definition unlike the installed map's: stop the robots near the new geometry."""
+        self.count("definitions_received")
+        try:
+            ws_id = self.keys.parse(key).ident
+            defn = decode(WorkspaceDefinition, payload)
+            if defn.ws_id != ws_id:
+                raise DecodeError("invalid_input", f"definition on {key} names {defn.ws_id!r}")
+            h = definition_hash(defn)
+            workspace = workspace_of(defn)
+        except (KeyError_, DecodeError, ValueError) as exc:  # WorkspaceError is a ValueError
+            self.count("rejected")
+            log.warning("rejected definition on %s: %s", key, exc)
+            return
+        self.count("definitions")
+        now = time.monotonic()
+        with self._lock:
+            cur = self._maps.get(ws_id)
+            if cur is not None and cur.definition_hash == h:
+                self._pending.pop(ws_id, None)  # back to the geometry of the installed map
+                return
+            old = self._pending.get(ws_id)
+            if old is not None and old.definition_hash == h:
+                return  # announced again
+            self._pending[ws_id] = _Pending(h, workspace)
+            robots = [r for r in self._robots.values() if r.goal and r.goal.ws_id == ws_id]
+        self.count("definitions_changed")
+        log.warning("workspace %r: definition changed; robots near it stop until its map", ws_id)
+        for r in robots:
+            with r.lock:
+                if r.goal is None or r.goal.ws_id != ws_id or r.position is None:
+                    continue
+                blocker = self._outdated(r)
+                if blocker is not None:
+                    self._stop_robot(r, "map_outdated", blocker, now)
+        self._wake_fetch.set()
+
+    def _on_ws_delete(self, key: str, payload: bytes) -> None:
+        """A deleted workspace: its map is dropped, its robots stop (missing_map)."""
+        ws_id = self.workspace_to_delete(key, payload)
+        if ws_id is None:
+            return
+        now = time.monotonic()
+        with self._lock:
+            self._maps.pop(ws_id, None)
+            self._pending.pop(ws_id, None)
+            self._map_errors[ws_id] = f"workspace {ws_id!r} was deleted"
+            robots = [r for r in self._robots.values() if r.goal and r.goal.ws_id == ws_id]
+        self.count("workspaces_deleted")
+        for r in robots:
+            with r.lock:
+                if r.goal is None or r.goal.ws_id != ws_id:
+                    continue
+                r.ctrl, r.ctrl_revision, r.ctrl_error = None, None, ""
+                self._stop_robot(r, "missing_map", self._map_errors[ws_id], now)
+
+    def _fetch_loop(self) -> None:
+        while not self._stop.is_set():
+            self._wake_fetch.wait(self.fetch_period)
+            self._wake_fetch.clear()
+            if self._stop.is_set():
+                return
+            with self._lock:
+                needed = {
+                    r.goal.ws_id
+                    for r in self._robots.values()
+                    if r.goal is not None and r.goal.ws_id not in self._maps
+                } | set(self._pending)
+            for ws_id in sorted(needed):
+                self._fetch(ws_id)
+
+    def _fetch(self, ws_id: str) -> None:
+        self.count("queries")
+        try:
+            replies = self.bus.query(self.keys.ws(ws_id, "transform"), timeout=2.0)
+        except Exception as exc:
+            self._map_errors[ws_id] = f"query failed: {exc}"
+            return
+        if not replies:
+            self._map_errors[ws_id] = "no transform service answered"
+            return
+        for rep in replies:
+            if not rep.ok or rep.payload is None:
+                self._map_errors[ws_id] = rep.error or "error"
+                if (rep.error or "").startswith(ATLAS_MARKER):  # solved as an atlas
+                    self._fetch_atlas(ws_id)
+                    return
+                continue
+            try:
+                sol = decode(TransformSolution, rep.payload)
+            except DecodeError as exc:
+                self._map_errors[ws_id] = str(exc)
+                continue
+            self._install(sol)
+            return
+
+    def _fetch_atlas(self, ws_id: str, index: AtlasIndex | None = None) -> None:
+        """Fetch and install the atlas of ``ws_id`` (services/atlas_client.py)."""
+        try:
+            self._install(fetch_atlas(self.bus, self.keys, ws_id, index))
+        except Exception as exc:
+            self._map_errors[ws_id] = f"cannot fetch atlas: {exc}"
+            log.warning("workspace %r: cannot fetch atlas: %s", ws_id, exc)
+
+    def _on_atlas(self, key: str, payload: bytes) -> None:
+        """A (re)solved atlas: fetched and installed off the subscriber thread."""
+        try:
+            index = decode(AtlasIndex, payload)
+            if index.ws_id != self.keys.parse(key).ident:
+                raise DecodeError("invalid_input", f"atlas on {key} names {index.ws_id!r}")
+        except (KeyError_, DecodeError) as exc:
+            self.count("rejected")
+            log.warning("rejected atlas on %s: %s", key, exc)
+            return
+        cur = self._maps.get(index.ws_id)
+        if cur is None or cur.revision != index.revision:
+            self.spawn(lambda: self._fetch_atlas(index.ws_id, index), "atlas-fetch")

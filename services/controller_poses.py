@@ -1,0 +1,204 @@
+"""The controller service's hot path: the batched pose step. Poses arrive in batches (the newest
+per robot), are decoded in blocks of ``POSE_BLOCK``, grouped by controller and evaluated with one
+vectorized control-law call per group (``fleet_step`` for the world-frame robots of one map),
+and their commands published in order."""
+
+from __future__ import annotations
+
+import logging
+import time
+from typing import Any
+
+import numpy as np
+from confnav.schemas import DecodeError, Pose, decode
+from confnav.services import navigation
+from confnav.services.controller_state import POSE_BLOCK, ControllerCore, _Robot
+from confnav.services.keys import KeyError_
+
+from confnav.navigation.control import Controller
+from confnav.navigation.fleet import fleet_step
+
+log = logging.getLogger(__name__)
+
+
+class PosesMixin(ControllerCore):
+    """The batched pose step (hot path)."""
+
+    # poses (hot path) -------------------------------------------------------------------------
+    def _on_poses(self, items: list[tuple[str, bytes]]) -> None:
+        """Every waiting pose: the newest per robot, in blocks of :data:`POSE_BLOCK`."""
+        self.count("poses", len(items))
+        if len(items) > 1:
+            newest = {key: i for i, (key, _) in enumerate(items)}
+            if len(newest) < len(items):
+                self.count("poses_superseded", len(items) - len(newest))
+                items = [items[i] for i in sorted(newest.values())]
+        for s in range(0, len(items), POSE_BLOCK):
+            self._hold()  # the block's messages go to the publisher in one piece
+            try:
+                self._pose_block(items[s : s + POSE_BLOCK])
+            finally:
+                self._release()
+
+    def _rid_of(self, key: str) -> str | None:
+        """Robot id of a pose key (cached: the hot path parses each key once)."""
+        rid = self._rids.get(key)
+        if rid is None:
+            try:
+                rid = self.keys.parse(key).ident
+            except KeyError_:
+                return None
+            if len(self._rids) < 100_000:
+                self._rids[key] = rid
+        return rid
+
+    def _pose_block(self, items: list[tuple[str, bytes]]) -> None:
+        """Decode, one vectorized control-law call per shared controller, publish."""
+        now = time.monotonic()
+        groups: dict[int, tuple[navigation.ControllerLike, list[tuple[_Robot, Pose]]]] = {}
+        nb = self.neighbours
+        nb_fed = nb is not None and nb.fed
+        for key, payload in items:
+            rid = self._rid_of(key)
+            if rid is None:
+                self.count("rejected")
+                continue
+            with self._lock:
+                r = self._robots.get(rid)
+            if r is None:  # remembered before its goal (the watchdog must not miss it)
+                r = self._robot(rid)
+                if r is None:
+                    continue
+            try:
+                pose = decode(Pose, payload)
+                if pose.robot_id != rid:
+                    raise DecodeError("invalid_input", f"pose on {key} names {pose.robot_id!r}")
+                if nb_fed:  # the fleet filter's view of every robot (services/neighbours.py)
+                    nb.note_pose(rid, pose, now)  # type: ignore[union-attr]
+            except DecodeError as exc:
+                self.count("rejected")
+                reason = "nan_input" if exc.reason == "nan_input" else "invalid_input"
+                with r.lock:
+                    r.seen_t = now
+                    if r.goal is not None:
+                        r.last_pose_t = now  # the robot is alive, but its input is unusable
+                        self._stop_robot(r, reason, str(exc), now)
+                continue
+            with r.lock:
+                r.seen_t = now
+                stamp = (pose.stamp_ns, pose.seq)
+                if stamp <= r.last_stamp:  # replayed or reordered: not fresh, not answered
+                    self.count("poses_out_of_order")
+                    continue
+                r.last_stamp = stamp
+                r.last_pose_t = now
+                r.position = (pose.x, pose.y)
+                r.stale_reported = False
+                if r.goal is None:
+                    continue
+                blocker = self._blocker(r)
+                if blocker is not None:
+                    self._stop_robot(r, blocker[0], blocker[1], now, pose)
+                    continue
+                ctrl = r.ctrl
+            assert ctrl is not None
+            groups.setdefault(id(ctrl), (ctrl, []))[1].append((r, pose))
+        members_of = list(groups.values())
+        results = list(zip(members_of, self._control(members_of), strict=True))
+        # --- fleet hook (services/neighbours.py): keep robots off each other and movers ---
+        if self.neighbours is not None:
+            results = self.neighbours.filter_block(results, now)
+        # --- end fleet hook ---
+        for (ctrl, members), res in results:
+            if isinstance(res, Exception):
+                self.count("navigation_errors")
+                for r, pose in members:
+                    with r.lock:
+                        self._stop_robot(
+                            r, "navigation_error", f"{type(res).__name__}: {res}", now, pose
+                        )
+                continue
+            u, codes = res
+            for (r, pose), ui, code in zip(members, u.tolist(), codes.tolist(), strict=True):
+                with r.lock:
+                    self._act(r, pose, navigation.decide(ctrl, complex(ui), int(code)), now)
+
+    def _control(
+        self, groups: list[tuple[navigation.ControllerLike, list[tuple[_Robot, Pose]]]]
+    ) -> list[tuple[np.ndarray, np.ndarray] | Exception]:
+        """``(u, codes)`` (or the error) of each controller group of a pose block, in order.
+
+        The map does not depend on the goal: the groups of world-frame controllers on one map
+        (robots with their own goals) get ``T``, ``T'`` and the clearance from one evaluation
+        for all their poses and each group's law from ``Controller.from_map_values``; the others one
+        control-law call per group (:func:`navigation.commands`).
+        """
+        zs = [np.array([complex(p.x, p.y) for _, p in members]) for _, members in groups]
+        out: list[tuple[np.ndarray, np.ndarray] | Exception | None] = [None] * len(groups)
+        laws: list[Any] = [ctrl for ctrl, _ in groups]
+        by_map: dict[int, list[int]] = {}
+        for i, law in enumerate(laws):
+            if hasattr(law, "from_map_values") and hasattr(law, "cmap"):
+                by_map.setdefault(id(law.cmap), []).append(i)
+        for idx in by_map.values():
+            if len(idx) < 2:  # one goal on this map: the plain call below
+                continue
+            try:
+                zall = np.concatenate([zs[i] for i in idx])
+                w, dw = laws[idx[0]].cmap.T_and_dT(zall)
+                use = [i for i in idx if getattr(laws[i], "uses_clearance", False)]
+                c = laws[use[0]].clearance(zall) if use else None
+            except Exception as exc:
+                for i in idx:
+                    out[i] = exc
+                continue
+            if all(isinstance(laws[i], Controller) for i in idx):
+                try:  # every goal's law in one vectorized pass (navigation.fleet)
+                    fleet = [laws[i] for i in idx for _ in range(zs[i].size)]
+                    o = fleet_step(fleet, zall, w, dw, c)
+                    self.count("fleet_steps")
+                except Exception:  # a bug there must not stop the fleet: one by one below
+                    log.exception("fleet step failed; evaluating each goal on its own")
+                else:
+                    s = 0
+                    for i in idx:
+                        n = zs[i].size
+                        out[i] = (np.asarray(o.u[s : s + n]), np.asarray(o.status[s : s + n]))
+                        s += n
+                    continue
+            s = 0
+            for i in idx:
+                n = zs[i].size
+                try:
+                    ci = None if c is None else c[s : s + n]
+                    o = laws[i].from_map_values(zs[i], w[s : s + n], dw[s : s + n], ci)
+                    out[i] = (np.asarray(o.u, dtype=complex), np.asarray(o.status, dtype=int))
+                except Exception as exc:
+                    out[i] = exc
+                s += n
+        for i, (ctrl, members) in enumerate(groups):
+            if out[i] is not None:
+                continue
+            th = np.array([p.theta for _, p in members])
+            try:
+                out[i] = navigation.commands(ctrl, zs[i], th)
+            except Exception as exc:
+                out[i] = exc
+        return [o for o in out if o is not None]
+
+    def _act(self, r: _Robot, pose: Pose, d: navigation.Decision, now: float) -> None:
+        """Publish what :func:`navigation.decide` made of the control law's output."""
+        if r.goal is None or r.last_stamp != (pose.stamp_ns, pose.seq):
+            return  # cancelled, or a newer pose came meanwhile: it gets the answer
+        blocker = self._blocker(r)  # again: the geometry may have changed meanwhile
+        if blocker is not None:
+            self._stop_robot(r, blocker[0], blocker[1], now, pose)
+        elif d.state == "stopped":
+            self._stop_robot(r, d.reason, d.message, now, pose)
+        else:
+            self._publish_cmd(r, d.u, pose)
+            message = d.message
+            if self._refining and d.state == "navigating":  # a coarse revision: say so
+                note = self._map_note(r)
+                message = "; ".join(m for m in (note, message) if m)
+            self._status(r, d.state, d.reason, message, now)

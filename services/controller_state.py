@@ -1,0 +1,336 @@
+"""The controller service's shared state: robot records, maps, the publisher thread,
+commands, statuses and the reasons a robot stops (services/controller.py puts the jobs
+together)."""
+
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+import time
+from collections import OrderedDict
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
+
+from confnav.schemas import (
+    Goal,
+    Pose,
+    RobotStatus,
+    TransformSolution,
+    encode,
+)
+from confnav.schemas.fast import velocity_command_json
+from confnav.services import navigation
+from confnav.services.bus import Bus
+from confnav.services.keys import Keys
+from confnav.services.runtime import Service
+from confnav.services.shard import RobotSelector
+
+if TYPE_CHECKING:
+    from confnav.services.neighbours import Neighbours
+
+log = logging.getLogger(__name__)
+
+
+log = logging.getLogger(__name__)
+
+POSE_BLOCK = 256
+"""Most poses per control step: one vectorized block, whose commands go out before the next
+block is computed (pipelining). A block has a fixed cost (one map evaluation, the wall safety
+layer, the fleet filter's rows: about 10 ms at 200 robots) besides its per-pose cost, so
+blocks of 32 spent most of the controller's time on that fixed part once 200 robots were
+waiting (docs/SERVICES.md, "Scale")."""
+MAX_BACKLOG = 100_000
+"""Most robots with a pose waiting. Of several waiting poses of one robot only the newest is
+answered (the older ones are superseded: counted, never commanded), so an overloaded
+controller falls back to answering every robot's latest pose instead of a growing queue."""
+
+
+MapLoader = Callable[[TransformSolution], Any]
+ControllerFactory = Callable[[Any, Goal], navigation.ControllerLike]
+
+
+@dataclass
+class _Map:
+    revision: str
+    cmap: Any
+    definition_hash: str = ""
+    error_estimate: float | None = None  # the solution's certificate (None: an atlas)
+
+
+@dataclass
+class _Pending:
+    """A definition newer than the installed map: its geometry, until its map is installed."""
+
+    definition_hash: str
+    workspace: Any  # confnav.geometry.Workspace
+
+
+@dataclass
+class _Robot:
+    robot_id: str
+    goal: Goal | None = None
+    ctrl: navigation.ControllerLike | None = None
+    ctrl_revision: str | None = None
+    ctrl_error: str = ""
+    last_pose_t: float | None = None  # monotonic receive time of the last fresh pose
+    last_stamp: tuple[int, int] = (-1, -1)  # (stamp_ns, seq) of the last fresh pose
+    goal_t: float = 0.0  # monotonic time the goal was set
+    seen_t: float = 0.0  # monotonic time of the last pose or goal (idle TTL)
+    position: tuple[float, float] | None = None
+    status_key: tuple[str, str, str | None, str] = ("", "", None, "")
+    status_t: float = 0.0
+    stale_reported: bool = False
+    lock: threading.Lock = field(default_factory=threading.Lock)
+
+
+class ControllerCore(Service):
+    """The controller service's state and what every job uses: robot records, the publisher
+    thread, commands and statuses, why a robot must stop (services/controller.py)."""
+
+    name = "controller"
+
+    def __init__(
+        self,
+        bus: Bus,
+        keys: Keys | None = None,
+        robots: set[str] | RobotSelector | None = None,
+        stale_after: float = 0.5,
+        status_period: float = 0.25,
+        fetch_period: float = 0.5,
+        require_transform: bool = True,
+        map_loader: MapLoader = navigation.load_map,
+        controller_factory: ControllerFactory = navigation.make_controller,
+        health_period: float = 1.0,
+        linger: float = 0.0,
+        margin: float = 0.25,
+        max_gain: float = 1000.0,
+        max_speed: float = 2.0,
+        idle_ttl: float = 60.0,
+        max_robots: int = 100_000,
+    ) -> None:
+        super().__init__(bus, keys, health_period)
+        self.only = robots
+        self.stale_after = stale_after
+        self.status_period = status_period
+        self.fetch_period = fetch_period
+        self.require_transform = require_transform
+        self.linger = linger  # s to wait for more poses before a control step (throughput)
+        self.margin = margin  # m from a changed geometry within which robots stop
+        self.max_gain = max_gain
+        self.max_speed = max_speed
+        self.idle_ttl = idle_ttl  # s without pose or goal after which a robot is forgotten
+        self.max_robots = max_robots
+        self._load_map = map_loader
+        self._make_ctrl = controller_factory
+        self._lock = threading.Lock()
+        self._robots: dict[str, _Robot] = {}
+        self._maps: dict[str, _Map] = {}
+        self._map_errors: dict[str, str] = {}
+        self._pending: dict[str, _Pending] = {}  # ws id -> definition newer than its map
+        # progressive maps (docs/SERVICES.md): the map revisions the transform services said
+        # are coarse ones being refined (newest last, at most 4096); revision -> its estimate
+        self._refining: OrderedDict[str, None] = OrderedDict()
+        self._estimates: dict[str, float] = {}
+        # (key, payload) or a list of them (one control step's messages, in order)
+        self._out: queue.SimpleQueue[Any] = queue.SimpleQueue()
+        self._held = threading.local()  # .msgs: the messages of the step this thread runs
+        self._transform_alive: set[str] = set()
+        self._wake_fetch = threading.Event()
+        # (map revision, goal key) -> controller: robots with the same goal share one (the
+        # navigation function is built once, and their poses are evaluated in one call)
+        # controllers by (map revision, goal and law parameters): robots with one goal share
+        # one; least recently used first, at most CTRL_CACHE_SIZE (goals change all the time)
+        self._ctrl_cache: OrderedDict[tuple[object, ...], navigation.ControllerLike] = OrderedDict()
+        self._build_lock = threading.Lock()
+        self._rids: dict[str, str] = {}  # pose key -> robot id
+        self._cmd_keys: dict[str, str] = {}  # robot id -> cmd_vel key
+        self.swapped = threading.Event()  # set on each hot swap (tests)
+        self.neighbours: Neighbours | None = None  # fleet hook (services/neighbours.py)
+
+    # publishing (one thread, never under a lock) ---------------------------------------
+    def _emit(self, key: str, payload: bytes) -> None:
+        """Queue a message; the publisher thread sends them in this order. Inside
+        :meth:`_hold` the messages are queued together when it ends (one queue operation
+        per control step: each one wakes the publisher thread)."""
+        held = getattr(self._held, "msgs", None)
+        if held is not None:
+            held.append((key, payload))
+        else:
+            self._out.put((key, payload))
+
+    def _hold(self) -> None:
+        """Collect this thread's messages until :meth:`_release`."""
+        self._held.msgs = []
+
+    def _release(self) -> None:
+        """Queue the messages collected since :meth:`_hold`, in order."""
+        msgs, self._held.msgs = getattr(self._held, "msgs", None), None
+        if msgs:
+            self._out.put(msgs)
+
+    def _publish_loop(self) -> None:
+        while True:
+            try:
+                item = self._out.get(timeout=0.1)
+            except queue.Empty:
+                if self._stop.is_set():
+                    return
+                continue
+            for key, payload in item if isinstance(item, list) else (item,):
+                try:
+                    self.bus.publish(key, payload)
+                except Exception:
+                    self.count("publish_errors")
+                    log.exception("publishing on %s failed", key)
+
+    def _poses_dropped(self, n: int) -> None:
+        self.count("poses", n)
+        self.count("poses_superseded", n)
+
+    def _goals_dropped(self, n: int) -> None:
+        self.count("goals_received", n)
+        self.count("goals_superseded", n)
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._wake_fetch.set()
+        super().stop()
+
+    def health_detail(self) -> tuple[str, str]:
+        if self.require_transform and not self.transform_alive:
+            return "degraded", "no transform service alive"
+        return "ok", ""
+
+    @property
+    def transform_alive(self) -> bool:
+        return bool(self._transform_alive)
+
+    def _outdated(self, r: _Robot) -> str | None:
+        """Why the robot's map contradicts the current geometry near it, or None."""
+        assert r.goal is not None
+        pending = self._pending.get(r.goal.ws_id)
+        if pending is None or r.position is None:
+            return None
+        c = float(pending.workspace.clearance(complex(*r.position)))
+        if c >= self.margin:
+            return None
+        return (
+            f"workspace {r.goal.ws_id!r} changed: {c:.3f} m from the new geometry "
+            f"(margin {self.margin:g} m); waiting for its map"
+        )
+
+    def _robot(self, rid: str) -> _Robot | None:
+        """The robot's record (created; None if not driven here or over ``max_robots``)."""
+        if self.only is not None and rid not in self.only:
+            return None
+        with self._lock:
+            r = self._robots.get(rid)
+            if r is None:
+                if len(self._robots) >= self.max_robots:
+                    self.count("robots_over_limit")
+                    return None
+                r = self._robots[rid] = _Robot(rid, seen_t=time.monotonic())
+            return r
+
+    def _forget(self, rid: str, why: str) -> None:
+        with self._lock:
+            r = self._robots.pop(rid, None)
+        if r is None:
+            return
+        with r.lock:
+            if r.goal is not None:
+                self._publish_cmd(r, 0j, None)
+            r.goal = None
+            r.status_key = ("", "", None, "")
+            self._status(r, "idle", "no_goal", why, time.monotonic())
+        self._cmd_keys.pop(rid, None)
+        self.count("robots_forgotten")
+
+    def _blocker(self, r: _Robot) -> tuple[str, str] | None:
+        """Why this robot must not move now, or None."""
+        if self.require_transform and not self._transform_alive:
+            return "transform_service_dead", "no transform service is alive"
+        if r.ctrl is None:
+            assert r.goal is not None
+            if r.ctrl_error:
+                return "navigation_error", r.ctrl_error
+            err = self._map_errors.get(r.goal.ws_id, "waiting for the map")
+            return "missing_map", err
+        if self._pending:
+            outdated = self._outdated(r)
+            if outdated is not None:
+                return "map_outdated", outdated
+        return None
+
+    def _map_note(self, r: _Robot) -> str:
+        """What the robot drives on, when it is a coarse revision of a map being refined."""
+        rev = r.ctrl_revision
+        if rev is None or rev not in self._refining:
+            return ""
+        est = self._estimates.get(rev)
+        tail = "" if est is None else f" (estimated error {est:.1e})"
+        return f"navigating on a coarse map, refining{tail}"
+
+    def _stop_robot(
+        self, r: _Robot, reason: str, message: str, now: float, pose: Pose | None = None
+    ) -> None:
+        self.count(f"stops_{reason}")
+        self._publish_cmd(r, 0j, pose)
+        self._status(r, "stopped", reason, message, now)
+
+    def _publish_cmd(self, r: _Robot, u: complex, pose: Pose | None) -> None:
+        # the wire bytes of VelocityCommand written directly (schemas/fast.py: the same bytes
+        # as encode(VelocityCommand(...)), 12 -> 2.5 us); our own finite values, no
+        # re-validation on the hot path (checked against the model in the tests and by readers)
+        body = getattr(r.ctrl, "frame", "world") == "body"  # unicycle: u = v + i omega
+        payload = velocity_command_json(
+            r.robot_id,
+            time.time_ns(),
+            (u.real, 0.0) if body else (u.real, u.imag),
+            u.imag if body else 0.0,
+            pose.seq if pose is not None else -1,
+            pose.stamp_ns if pose is not None else 0,
+            r.ctrl_revision,
+            "body" if body else "world",
+            getattr(r.ctrl, "active_chart", None),
+        )
+        key = self._cmd_keys.get(r.robot_id)
+        if key is None:
+            key = self._cmd_keys[r.robot_id] = self.keys.robot(r.robot_id, "cmd_vel")
+        self._emit(key, payload)
+        self.count("commands")
+
+    def _status(self, r: _Robot, state: str, reason: str, message: str, now: float) -> None:
+        chart = getattr(r.ctrl, "active_chart", None)
+        skey = (state, reason, r.ctrl_revision, message + f"|{chart}")
+        if skey == r.status_key and now - r.status_t < self.status_period:
+            return
+        if skey[:2] != r.status_key[:2]:  # a new state or reason: worth a line in the log
+            log.info("robot %r: %s (%s)%s", r.robot_id, state, reason,
+                     f": {message}" if message else "")  # fmt: skip
+        r.status_key, r.status_t = skey, now
+        dist = None
+        if r.position is not None and r.goal is not None:
+            dx, dy = r.position[0] - r.goal.goal[0], r.position[1] - r.goal.goal[1]
+            dist = (dx * dx + dy * dy) ** 0.5
+        status = RobotStatus(
+            robot_id=r.robot_id,
+            stamp_ns=time.time_ns(),
+            state=state,  # type: ignore[arg-type]
+            reason=reason,  # type: ignore[arg-type]
+            message=message[:4000],
+            ws_id=r.goal.ws_id if r.goal else None,
+            map_revision=r.ctrl_revision,
+            position=r.position,
+            distance_to_goal=dist,
+            chart=chart,
+        )
+        self._emit(self.keys.robot(r.robot_id, "status"), encode(status))
+
+    def robot_state(self, rid: str) -> tuple[str, str] | None:
+        """(state, reason) last published for a robot (tests)."""
+        with self._lock:
+            r = self._robots.get(rid)
+        return None if r is None else (r.status_key[0], r.status_key[1])
