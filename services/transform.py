@@ -428,6 +428,8 @@ class TransformService(Service):
         fut: cf.Future[dict[str, Any]],
         rung: int = 0,
     ) -> None:
+        if self.stopped:
+            return  # the service stopped (its workers terminated): nothing to retry or publish
         with self._lock:
             if self._inflight.get(h) is fut:
                 del self._inflight[h]
