@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import pytest
 
@@ -52,8 +54,10 @@ def test_sor_reaches_the_plain_fixed_point_honestly(plain: CircleDomainResult) -
     assert np.max(np.abs(r.radii - plain.radii)) <= bound
     assert np.max(np.abs(r.centers - plain.centers)) <= bound
     assert max(np.max(np.abs(a - b)) for a, b in zip(r.W, plain.W, strict=True)) <= 10 * bound
-    # mirror symmetry is exact: the asymmetry is a true error, below the certificate
-    assert _asymmetry(r) <= r.iteration_error + 1e-11
+    # mirror symmetry is exact for the continuous problem; on one coarse mesh level the
+    # discretisation breaks it a little (same for both): the accelerated map is no less
+    # symmetric than the plain one, up to their iteration errors
+    assert _asymmetry(r) <= _asymmetry(plain) + bound
     assert r.circularity <= 10 * TOL  # ends with plain sweeps: the holes are circles
 
 
@@ -66,7 +70,7 @@ def test_overshooting_relaxation_is_halved_and_still_converges(
     assert r.converged
     bound = r.iteration_error + plain.iteration_error
     assert np.max(np.abs(r.radii - plain.radii)) <= bound
-    assert _asymmetry(r) <= r.iteration_error + 1e-11
+    assert _asymmetry(r) <= _asymmetry(plain) + bound
 
 
 def test_optimal_omega_is_young_s_formula() -> None:
@@ -74,6 +78,36 @@ def test_optimal_omega_is_young_s_formula() -> None:
     assert optimal_omega(rho) == pytest.approx(2.0 / (1.0 + np.sqrt(1.0 - rho)))
     assert optimal_omega(0.1) == 1.0  # fast enough: plain sweeps
     assert optimal_omega(float("nan")) == 1.0
+
+
+def test_extrapolation_reaches_the_plain_fixed_point(plain: CircleDomainResult) -> None:
+    r = _run(squares(0.03), "extrapolate")
+    assert r.extrapolations > 0 and r.converged
+    assert r.sweeps < plain.sweeps
+    bound = r.iteration_error + plain.iteration_error
+    assert np.max(np.abs(r.radii - plain.radii)) <= bound
+    assert np.max(np.abs(r.centers - plain.centers)) <= bound
+    assert _asymmetry(r) <= _asymmetry(plain) + bound
+    assert r.circularity <= 10 * TOL
+
+
+def test_a_bad_extrapolation_is_rejected(
+    plain: CircleDomainResult, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # an extrapolation four times too long overshoots: the next sweep's change grows, and
+    # the state before the extrapolation is restored
+    orig = circledomain.extrapolate_curve
+
+    def overshoot(*args: Any) -> Any:
+        *curves, w = args
+        return orig(*curves, 4.0 * w)
+
+    monkeypatch.setattr(circledomain, "extrapolate_curve", overshoot)
+    r = _run(squares(0.03), "extrapolate")
+    assert r.rejected_extrapolations > 0
+    assert r.converged
+    bound = r.iteration_error + plain.iteration_error
+    assert np.max(np.abs(r.radii - plain.radii)) <= bound
 
 
 def test_unknown_acceleration_is_refused() -> None:
