@@ -130,6 +130,7 @@ def _solve_level(
     progress: Callable[[str], None] | None,
     warm: _Warm | None = None,
     plans: list[PanelPlan] | None = None,
+    accel: str | None = None,
 ) -> tuple[CircleDomainResult, list[BoundaryMesh]]:
     if plans is None:
         plans = plan_boundaries(ws, nodes_per_side, tol)
@@ -156,6 +157,7 @@ def _solve_level(
         progress=_p,
         gmres_tol=gmres_rtol(tol),
         first_guess=guess,
+        accel=accel,
     )
     return res, meshes
 
@@ -303,6 +305,7 @@ def _refine_sides(
     caps: list[str],
     refinements: list[dict[str, float]],
     t0: float,
+    accel: str | None = None,
 ) -> tuple[ConformalMap, _Level] | None:
     """Refine only the sides whose boundary residual is above ``tol`` (and their neighbours),
     each to the next level's nodes, up to :data:`LOCAL_ROUNDS` times; None if that does not
@@ -349,7 +352,7 @@ def _refine_sides(
         if progress is not None:
             progress(f"refining {n_ref} sides where the boundary residual asks")
         try:
-            res, meshes = _solve_level(ws, ns, tol, progress, warm, plans)
+            res, meshes = _solve_level(ws, ns, tol, progress, warm, plans, accel)
         except ConvergenceError as exc:
             log.warning("local refinement failed (%s)", exc)
             return None
@@ -398,6 +401,7 @@ def solve(
     nodes_per_side: int | None = None,
     progress: Callable[[str], None] | None = None,
     initial: ConformalMap | None = None,
+    koebe_accel: str | None = None,
 ) -> ConformalMap:
     """Compute the conformal map of ``workspace`` onto a circle domain.
 
@@ -420,6 +424,10 @@ def solve(
         ``initial`` needed (:func:`_warm_start_level`), skipping the coarse levels, and keeps
         the full certificate (three levels, residual). Anything that does not fit (another
         tolerance range, a fixed mesh) falls back to a cold solve's levels.
+    koebe_accel
+        Acceleration of the Koebe sweeps: ``"none"``, ``"sor"`` or ``"extrapolate"``
+        (:mod:`confnav.conformal.acceleration`); None: the default,
+        :data:`confnav.conformal.circledomain.KOEBE_ACCEL`.
 
     Raises
     ------
@@ -463,7 +471,7 @@ def solve(
         if progress is not None:
             progress(f"solving with {ns} nodes per side at the sharpest corners")
         try:
-            res, meshes = _solve_level(workspace, ns, tol, progress, warm)
+            res, meshes = _solve_level(workspace, ns, tol, progress, warm, accel=koebe_accel)
         except GapError as exc:
             if best is None:
                 raise
@@ -545,6 +553,7 @@ def solve(
                         caps,
                         refinements,
                         t0,
+                        koebe_accel,
                     )
                     if local is not None:
                         cmap, best = local
