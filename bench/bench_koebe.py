@@ -9,8 +9,8 @@ error of the map, an exact lower bound the error estimate must not undercut. Eac
 solved by ``confnav.solve(ws, tol, koebe_accel=...)`` with every acceleration
 (:mod:`confnav.conformal.acceleration`): ``none`` (plain sweeps), ``sor`` (over-relaxed hole
 maps), ``extrapolate`` (geometric-tail extrapolation of the sweep map, confirmed by the next
-sweep). Reported per run: sweeps per mesh level (from the progress messages), FMM sums (calls
-of the FMM, counted), GMRES iterations of the final level, CPU time (``time.process_time``,
+sweep). Reported per run: sweeps per mesh level (from the progress messages), Cauchy sums (GNK
+products and map evaluations, counted) and how many of them ran through the FMM, GMRES iterations of the final level, CPU time (``time.process_time``,
 less sensitive to the other processes on a shared machine than the wall time, also given),
 the error estimate, boundary residual, tol_met, the asymmetry (honest when <= estimate) and
 the distance of the centres and radii from the plain sweeps' map (both maps' estimates bound
@@ -32,7 +32,7 @@ from bench_core import code_info, machine_info  # script mode: bench/ is on sys.
 
 import confnav
 from confnav import ConformalMap, Workspace
-from confnav.conformal import cauchy
+from confnav.conformal import cauchy, diskmap, gnk
 from confnav.conformal.acceleration import KOEBE_ACCELS
 
 ROOM = [[-2, -2], [2, -2], [2, 2], [-2, 2]]
@@ -50,14 +50,21 @@ def asymmetry(m: ConformalMap) -> float:
     return float(max(abs(m.radii[0] - m.radii[1]), abs(m.centers[0] + np.conj(m.centers[1]))))
 
 
-class _FmmCounter:
-    def __init__(self) -> None:
+class _Counter:
+    """Counts the calls of a module function (patched in place, restored by ``undo``)."""
+
+    def __init__(self, module: Any, name: str) -> None:
+        self.module, self.name = module, name
+        self.orig = getattr(module, name)
         self.calls = 0
-        self.orig = cauchy._fmm
+        setattr(module, name, self)
 
     def __call__(self, *args: Any, **kw: Any) -> Any:
         self.calls += 1
         return self.orig(*args, **kw)
+
+    def undo(self) -> None:
+        setattr(self.module, self.name, self.orig)
 
 
 def run_one(gap: float, tol: float, accel: str) -> tuple[dict[str, Any], ConformalMap]:
@@ -69,8 +76,11 @@ def run_one(gap: float, tol: float, accel: str) -> tuple[dict[str, Any], Conform
         elif "nodes/side: sweep" in msg and levels:
             levels[-1][1] = int(msg.split("sweep ")[1].split(",")[0])
 
-    counter = _FmmCounter()
-    cauchy._fmm = counter  # type: ignore[assignment]
+    counters = [
+        _Counter(cauchy, "_fmm"),  # FMM calls (above cauchy.FMM_THRESHOLD interactions)
+        _Counter(gnk, "cauchy_self"),  # Cauchy sums of the GNK products (GMRES)
+        _Counter(diskmap, "cauchy_sums"),  # Cauchy sums evaluating the maps
+    ]
     load = os.getloadavg()[0]
     c0, t0 = time.process_time(), time.perf_counter()
     try:
@@ -78,7 +88,8 @@ def run_one(gap: float, tol: float, accel: str) -> tuple[dict[str, Any], Conform
             warnings.simplefilter("ignore", confnav.AccuracyWarning)
             m = confnav.solve(squares(gap), tol=tol, koebe_accel=accel, progress=progress)
     finally:
-        cauchy._fmm = counter.orig  # type: ignore[assignment]
+        for c in counters:
+            c.undo()
     cpu, wall = time.process_time() - c0, time.perf_counter() - t0
     d = m.diagnostics
     row = {
@@ -90,7 +101,8 @@ def run_one(gap: float, tol: float, accel: str) -> tuple[dict[str, Any], Conform
         "load1": load,
         "levels": [{"level": lv, "sweeps": s} for lv, s in levels],
         "sweeps_total": int(sum(s for _, s in levels)),
-        "fmm_sums": counter.calls,
+        "fmm_sums": counters[0].calls,
+        "cauchy_sums": counters[1].calls + counters[2].calls,
         "gmres_iterations_final_level": d.gmres_iterations,
         "error_estimate": d.error_estimate,
         "iteration_error": d.iteration_error,
@@ -106,7 +118,7 @@ def _line(r: dict[str, Any]) -> str:
     sw = " ".join(str(x["sweeps"]) for x in r["levels"])
     return (
         f"  gap {r['gap']:<5g} {r['accel']:<11} sweeps/level [{sw}] total {r['sweeps_total']:4d}  "
-        f"FMM {r['fmm_sums']:5d}  CPU {r['cpu_s']:6.1f} s (wall {r['wall_s']:6.1f}, load "
+        f"sums {r['cauchy_sums']:5d} (FMM {r['fmm_sums']:5d})  CPU {r['cpu_s']:6.1f} s (wall {r['wall_s']:6.1f}, load "
         f"{r['load1']:.1f})  est {r['error_estimate']:.1e} res {r['boundary_residual']:.1e} "
         f"asym {r['asymmetry']:.1e} {'honest' if r['honest'] else 'CLAIMS TOO MUCH'} "
         f"tol_met {r['tol_met']}  vs plain {r.get('distance_from_plain', 0.0):.1e}"
