@@ -10,7 +10,8 @@ solved by ``confnav.solve(ws, tol, koebe_accel=...)`` with every acceleration
 (:mod:`confnav.conformal.acceleration`): ``none`` (plain sweeps), ``sor`` (over-relaxed hole
 maps), ``extrapolate`` (geometric-tail extrapolation of the sweep map, confirmed by the next
 sweep). Reported per run: sweeps per mesh level (from the progress messages), Cauchy sums (GNK
-products and map evaluations, counted) and how many of them ran through the FMM, GMRES iterations of the final level, CPU time (``time.process_time``,
+products and map evaluations, counted) and how many of them ran through the FMM, GMRES
+iterations of the final level, CPU time (``time.process_time``,
 less sensitive to the other processes on a shared machine than the wall time, also given),
 the error estimate, boundary residual, tol_met, the asymmetry (honest when <= estimate) and
 the distance of the centres and radii from the plain sweeps' map (both maps' estimates bound
@@ -117,9 +118,10 @@ def run_one(gap: float, tol: float, accel: str) -> tuple[dict[str, Any], Conform
 def _line(r: dict[str, Any]) -> str:
     sw = " ".join(str(x["sweeps"]) for x in r["levels"])
     return (
-        f"  gap {r['gap']:<5g} {r['accel']:<11} sweeps/level [{sw}] total {r['sweeps_total']:4d}  "
-        f"sums {r['cauchy_sums']:5d} (FMM {r['fmm_sums']:5d})  CPU {r['cpu_s']:6.1f} s (wall {r['wall_s']:6.1f}, load "
-        f"{r['load1']:.1f})  est {r['error_estimate']:.1e} res {r['boundary_residual']:.1e} "
+        f"  gap {r['gap']:<5g} {r['accel']:<11} sweeps/level [{sw}] total {r['sweeps_total']:4d}"
+        f"  sums {r['cauchy_sums']:5d} (FMM {r['fmm_sums']:5d})  CPU {r['cpu_s']:6.1f} s "
+        f"(wall {r['wall_s']:6.1f}, load {r['load1']:.1f})  est {r['error_estimate']:.1e} "
+        f"res {r['boundary_residual']:.1e} "
         f"asym {r['asymmetry']:.1e} {'honest' if r['honest'] else 'CLAIMS TOO MUCH'} "
         f"tol_met {r['tol_met']}  vs plain {r.get('distance_from_plain', 0.0):.1e}"
     )
