@@ -11,7 +11,7 @@ solved by ``confnav.solve(ws, tol, koebe_accel=...)`` with every acceleration
 maps), ``extrapolate`` (geometric-tail extrapolation of the sweep map, confirmed by the next
 sweep). Reported per run: sweeps per mesh level (from the progress messages), Cauchy sums (GNK
 products and map evaluations, counted) and how many of them ran through the FMM, GMRES
-iterations of the final level, CPU time (``time.process_time``,
+iterations (all levels, counted), CPU time (``time.process_time``,
 less sensitive to the other processes on a shared machine than the wall time, also given),
 the error estimate, boundary residual, tol_met, the asymmetry (honest when <= estimate) and
 the distance of the centres and radii from the plain sweeps' map (both maps' estimates bound
@@ -58,11 +58,14 @@ class _Counter:
         self.module, self.name = module, name
         self.orig = getattr(module, name)
         self.calls = 0
+        self.iterations = 0  # GMRES iterations, for solve_gnk
         setattr(module, name, self)
 
     def __call__(self, *args: Any, **kw: Any) -> Any:
         self.calls += 1
-        return self.orig(*args, **kw)
+        out = self.orig(*args, **kw)
+        self.iterations += int(getattr(out, "iterations", 0))
+        return out
 
     def undo(self) -> None:
         setattr(self.module, self.name, self.orig)
@@ -81,6 +84,7 @@ def run_one(gap: float, tol: float, accel: str) -> tuple[dict[str, Any], Conform
         _Counter(cauchy, "_fmm"),  # FMM calls (above cauchy.FMM_THRESHOLD interactions)
         _Counter(gnk, "cauchy_self"),  # Cauchy sums of the GNK products (GMRES)
         _Counter(diskmap, "cauchy_sums"),  # Cauchy sums evaluating the maps
+        _Counter(diskmap, "solve_gnk"),  # GNK solves and their GMRES iterations
     ]
     load = os.getloadavg()[0]
     c0, t0 = time.process_time(), time.perf_counter()
@@ -105,6 +109,8 @@ def run_one(gap: float, tol: float, accel: str) -> tuple[dict[str, Any], Conform
         "fmm_sums": counters[0].calls,
         "cauchy_sums": counters[1].calls + counters[2].calls,
         "gmres_iterations_final_level": d.gmres_iterations,
+        "gnk_solves": counters[3].calls,
+        "gmres_iterations": counters[3].iterations,
         "error_estimate": d.error_estimate,
         "iteration_error": d.iteration_error,
         "boundary_residual": d.boundary_residual,
@@ -119,7 +125,7 @@ def _line(r: dict[str, Any]) -> str:
     sw = " ".join(str(x["sweeps"]) for x in r["levels"])
     return (
         f"  gap {r['gap']:<5g} {r['accel']:<11} sweeps/level [{sw}] total {r['sweeps_total']:4d}"
-        f"  sums {r['cauchy_sums']:5d} (FMM {r['fmm_sums']:5d})  CPU {r['cpu_s']:6.1f} s "
+        f"  GMRES {r['gmres_iterations']:5d}  FMM {r['fmm_sums']:5d}  CPU {r['cpu_s']:6.1f} s "
         f"(wall {r['wall_s']:6.1f}, load {r['load1']:.1f})  est {r['error_estimate']:.1e} "
         f"res {r['boundary_residual']:.1e} "
         f"asym {r['asymmetry']:.1e} {'honest' if r['honest'] else 'CLAIMS TOO MUCH'} "
@@ -144,6 +150,10 @@ def main(argv: list[str] | None = None) -> int:
         f"tol {a.tol:g}",
         flush=True,
     )
+    # untimed warm-up: the first solve of a process pays one-time costs (imports, caches)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", confnav.AccuracyWarning)
+        confnav.solve(squares(0.1), tol=1e-4)
     rows = []
     for gap in gaps:
         plain: ConformalMap | None = None
