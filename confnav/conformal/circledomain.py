@@ -54,6 +54,26 @@ extra product) is 1e-3 relative away, but GMRES gains three digits in about one 
 these smooth grids (~3 iterations per solve for 1e-11 relative), and the start costs one
 product more than a zero start: 2645 FMM sums against 2371 at gap 0.01, 80 nodes per side.
 
+Accelerations (issue 24 item 1; ``accel`` / ``solve(..., koebe_accel=...)``, default
+``"none"``; :mod:`confnav.conformal.acceleration`). Both keep the iterate a *conformal image*
+of the polygon domain -- every change of state is an analytic map applied to all of it (grids,
+their derivatives, passive nodes through their parameters u, the anchor derivative D) -- so
+they only change where the next sweep starts, never the fixed point; and both end with at
+least three plain sweeps whose own history gives the reported iteration error:
+
+* ``"extrapolate"``: when two successive plain contraction ratios agree (rho in (0.2, 0.99)),
+  one sweep keeps every grid (no regrid: each grid point stays the image of the same point,
+  so the sweep map G is known on every grid), then ``z -> z + (G(z) - z)/(1 - rho)`` (the
+  geometric tail, Aitken's delta^2 on the slowest mode) is applied to the whole domain. The
+  next plain sweep confirms it: if its change is not smaller than the extrapolating sweep's,
+  the state before the extrapolation is restored (a tested safeguard).
+* ``"sor"``: over-relaxed hole maps ``(1 - omega) s_k (z - alpha_k) + omega F_k(z)`` with
+  Young's omega from the observed plain contraction, halved when the change grows.
+
+Measured (``python -m bench koebe``, bench/results/koebe.json; two squares ``gap`` apart to
+1e-8, all mesh levels, CPU seconds in one run): see bench/README.md, "Where the targets
+stand". Tried before and not used (full-state Anderson mixing, GMRES warm starts): below.
+
 References
 ----------
 .. [1] M. M. S. Nasser, "Fast computation of the circular map", Comput. Methods Funct. Theory
