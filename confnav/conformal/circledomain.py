@@ -697,7 +697,7 @@ def koebe_iteration(
     else:
         converged = False  # sweep limit: the extrapolated remaining error is reported
     if phase in ("relaxed", "material", "confirm") or (
-        accel != "none" and len(phase_history) < STALL_SWEEPS
+        (extrapolations or relaxed_sweeps) and len(phase_history) < STALL_SWEEPS
     ):
         # sweep limit before the final plain sweeps could certify anything
         remaining, converged = float("inf"), False
