@@ -153,7 +153,7 @@ def _line(r: dict[str, Any]) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--gaps", type=float, nargs="+", default=[0.1, 0.03])
+    ap.add_argument("--gaps", type=float, nargs="*", default=[0.1, 0.03])
     ap.add_argument("--tol", type=float, default=1e-8)
     ap.add_argument(
         "--scenes",
