@@ -36,7 +36,7 @@ from confnav import ConformalMap, Workspace
 from confnav.conformal import cauchy, diskmap, gnk
 from confnav.conformal.acceleration import KOEBE_ACCELS
 from confnav.maps.footprint import inflate
-from confnav.scenes.workspaces import default_workspace
+from confnav.scenes.workspaces import default_workspace, mixed_obstacles
 
 ROOM = [[-2, -2], [2, -2], [2, 2], [-2, 2]]
 
@@ -74,11 +74,14 @@ class _Counter:
 
 
 def scene(name: str) -> Workspace:
-    """The asymmetric cases: the default workspace, and it shrunk for a 0.2 m robot."""
+    """The asymmetric cases: the default workspace, it shrunk for a 0.2 m robot, and
+    ``mixed_obstacles(50, seed=0)``."""
     if name == "default":
         return default_workspace()
     if name == "shrunk":
         return inflate(default_workspace(), 0.2)
+    if name == "mixed50":
+        return mixed_obstacles(50, seed=0)
     raise ValueError(f"unknown scene {name!r}")
 
 
@@ -159,8 +162,8 @@ def main(argv: list[str] | None = None) -> int:
         "--scenes",
         nargs="*",
         default=[],
-        choices=["default", "shrunk"],
-        help="asymmetric cases too: default workspace, it shrunk by 0.2 m (solved to --tol)",
+        choices=["default", "shrunk", "mixed50"],
+        help="asymmetric cases too: default workspace, it shrunk by 0.2 m, 50 mixed obstacles",
     )
     ap.add_argument("--accels", nargs="+", default=list(KOEBE_ACCELS))
     ap.add_argument("--quick", action="store_true", help="gap 0.1 only")
