@@ -531,10 +531,12 @@ def koebe_iteration(
                 (b.S.copy(), b.dS.copy()) for b in bnds if b.S is not None and b.dS is not None
             ]
             D_old = D
-        # with accel "sor" the change is measured on the passive node images themselves (the
-        # relaxed holes keep their parameters u while their curves move, so after relaxed
-        # sweeps a change of u is no change of position); sweep 1 has no images to compare
-        by_position = accel != "none" and sweep > 1
+        # after a sweep that kept its grids (relaxed or extrapolating) a change of u is no
+        # change of position (the holes kept their parameters u while their curves moved): such
+        # sweeps and the plain sweep after them measure the change on the passive node images
+        # themselves; every other sweep measures it as plain sweeps do (so a run in which no
+        # acceleration acts is the plain run)
+        by_position = relaxed or phase == "confirm" or (phase == "final" and not phase_history)
         u_old = [None if b.u is None else b.u.copy() for b in bnds]
         p_old = [b.passive()[0] for b in bnds] if by_position else []
         c_old = c.copy()
