@@ -70,16 +70,17 @@ least three plain sweeps whose own history gives the reported iteration error:
 * ``"sor"``: over-relaxed hole maps ``(1 - omega) s_k (z - alpha_k) + omega F_k(z)`` with
   Young's omega from the observed plain contraction, halved when the change grows.
 
-Measured (bench/bench_koebe.py; two squares ``gap`` apart to 1e-8, all mesh levels, CPU
-seconds; bench/results/koebe*.json, figures in bench/README.md "Where the targets stand"):
-gap 0.01, sweeps per level plain / sor / extrapolate 61 / 43 / 32, 136.8 / 94.0 / 72.5 s,
-asymmetry 2.5e-12 / 1.3e-12 / 4.7e-12 under an estimate of 1.2e-9 (honest), maps within
-2.2e-11 of each other; gap 0.03: 24 / 21 / 18, 10.1 / 9.5 / 8.6 s. Where the plain contraction
-is fast (gap 0.1, the default workspace: ~0.14) nothing triggers and the runs are identical;
-on the default workspace shrunk by 0.2 m an accepted extrapolation saved no sweep (84 = 84,
-38.8 against 36.9 s). So the default stays ``"none"`` (it must win on every measured case);
-``"extrapolate"`` is the candidate. What neither removes: ~4 sweeps per extrapolation cycle
-are plain, so a near-touching level still takes 3x the sweeps of a well-separated one.
+Measured (bench/bench_koebe.py at b80c539; two squares ``gap`` apart to 1e-8, all mesh
+levels, CPU seconds of one run; bench/results/koebe*.json, bench/README.md "Where the targets
+stand"): gap 0.01, sweeps per level plain / sor / extrapolate 61 / 45 / 34, 123.5 / 96.4 /
+83.0 s, asymmetry 2.5e-12 / 1.1e-12 / 3.1e-12 under an estimate of 1.2e-9 (honest), maps
+within 2.7e-11 of each other; gap 0.03: 24 / 21 / 19, 14.6 / 13.6 / 11.2 s. Where the plain
+contraction is fast (gap 0.1, the default workspace, 50 obstacles) nothing triggers and the
+runs are the plain ones; on the default workspace shrunk by 0.2 m an accepted extrapolation
+saved no sweep (14 = 14 per level, 42.7 against 41.3 s). So the default stays ``"none"`` (it
+must win on every measured case); ``"extrapolate"`` is the candidate. What neither removes:
+~4 sweeps per extrapolation cycle are plain, so a near-touching level still takes 3x the
+sweeps of a well-separated one.
 Tried before and not used (full-state Anderson mixing, GMRES warm starts): below.
 
 References
