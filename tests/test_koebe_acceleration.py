@@ -113,3 +113,14 @@ def test_a_bad_extrapolation_is_rejected(
 def test_unknown_acceleration_is_refused() -> None:
     with pytest.raises(ValueError, match="accel"):
         _run(squares(0.1), "anderson", nodes=12)
+
+
+def test_where_nothing_triggers_the_run_is_the_plain_one() -> None:
+    # well separated (plain contraction ~0.14): neither acceleration acts, and the run is the
+    # plain run bit for bit (same change measure, same stopping sweep)
+    plain = _run(squares(0.1), "none")
+    for accel in ("extrapolate", "sor"):
+        r = _run(squares(0.1), accel)
+        assert r.extrapolations == 0 and r.relaxed_sweeps == 0
+        assert r.sweeps == plain.sweeps and r.history == plain.history
+        assert np.array_equal(r.radii, plain.radii) and np.array_equal(r.centers, plain.centers)
