@@ -79,6 +79,12 @@ BENCHMARKS: dict[str, Bench] = {
         args=("--resolve",),
         measures=SOLVER_PATHS,
     ),
+    "koebe": Bench(
+        "bench_koebe.py",
+        "koebe.json",
+        "Koebe-sweep accelerations side by side on near-touching squares (issue 24 item 1)",
+        measures=SOLVER_PATHS,
+    ),
     "eval": Bench(
         "bench_eval.py",
         "eval.json",

@@ -54,6 +54,35 @@ extra product) is 1e-3 relative away, but GMRES gains three digits in about one 
 these smooth grids (~3 iterations per solve for 1e-11 relative), and the start costs one
 product more than a zero start: 2645 FMM sums against 2371 at gap 0.01, 80 nodes per side.
 
+Accelerations (issue 24 item 1; ``accel`` / ``solve(..., koebe_accel=...)``, default
+``"none"``; :mod:`confnav.conformal.acceleration`). Both keep the iterate a *conformal image*
+of the polygon domain -- every change of state is an analytic map applied to all of it (grids,
+their derivatives, passive nodes through their parameters u, the anchor derivative D) -- so
+they only change where the next sweep starts, never the fixed point; and both end with at
+least three plain sweeps whose own history gives the reported iteration error:
+
+* ``"extrapolate"``: when two successive plain contraction ratios agree (rho in (0.2, 0.99)),
+  one sweep keeps every grid (no regrid: each grid point stays the image of the same point,
+  so the sweep map G is known on every grid), then ``z -> z + (G(z) - z)/(1 - rho)`` (the
+  geometric tail, Aitken's delta^2 on the slowest mode) is applied to the whole domain. The
+  next plain sweep confirms it: if its change is not smaller than the extrapolating sweep's,
+  the state before the extrapolation is restored (a tested safeguard).
+* ``"sor"``: over-relaxed hole maps ``(1 - omega) s_k (z - alpha_k) + omega F_k(z)`` with
+  Young's omega from the observed plain contraction, halved when the change grows.
+
+Measured (bench/bench_koebe.py at b80c539; two squares ``gap`` apart to 1e-8, all mesh
+levels, CPU seconds of one run; bench/results/koebe*.json, bench/README.md "Where the targets
+stand"): gap 0.01, sweeps per level plain / sor / extrapolate 61 / 45 / 34, 123.5 / 96.4 /
+83.0 s, asymmetry 2.5e-12 / 1.1e-12 / 3.1e-12 under an estimate of 1.2e-9 (honest), maps
+within 2.7e-11 of each other; gap 0.03: 24 / 21 / 19, 14.6 / 13.6 / 11.2 s. Where the plain
+contraction is fast (gap 0.1, the default workspace, 50 obstacles) nothing triggers and the
+runs are the plain ones; on the default workspace shrunk by 0.2 m an accepted extrapolation
+saved no sweep (14 = 14 per level, 42.7 against 41.3 s). So the default stays ``"none"`` (it
+must win on every measured case); ``"extrapolate"`` is the candidate. What neither removes:
+~4 sweeps per extrapolation cycle are plain, so a near-touching level still takes 3x the
+sweeps of a well-separated one.
+Tried before and not used (full-state Anderson mixing, GMRES warm starts): below.
+
 References
 ----------
 .. [1] M. M. S. Nasser, "Fast computation of the circular map", Comput. Methods Funct. Theory
@@ -65,6 +94,7 @@ References
 
 from __future__ import annotations
 
+import copy
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -72,6 +102,13 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial import cKDTree
 
+from confnav.conformal.acceleration import (
+    KOEBE_ACCELS,
+    RHO_MIN,
+    RelaxedMap,
+    extrapolate_curve,
+    optimal_omega,
+)
 from confnav.conformal.boundary import BoundaryMesh
 from confnav.conformal.diskmap import CurveMap, exterior_map, interior_map
 from confnav.conformal.gnk import GMRES_RTOL
@@ -84,6 +121,14 @@ from confnav.types import FArray as FloatArray
 #: the image nodes of such a boundary crowd together below rounding (docs/METHOD.md sec. 6).
 CROWDING_RADIUS = 1e-11
 MAX_SWEEPS = 200
+#: Default acceleration of the sweeps (:mod:`confnav.conformal.acceleration`).
+KOEBE_ACCEL = "none"
+#: Two successive plain contraction ratios agreeing to this (relative) set the over-relaxation.
+RATIO_AGREE = 0.2
+#: Largest contraction extrapolated along (1/(1 - rho) = 20) and plain sweeps between a
+#: rejected extrapolation and the next one.
+RHO_EXTRAPOLATE = 0.95
+EXTRAPOLATE_WAIT = 3
 #: Sweeps without any decrease of the change (below the best of the three before) after which
 #: the iteration counts as stalled: at the rounding floor, or not converging at all.
 STALL_SWEEPS = 3
@@ -125,6 +170,12 @@ class CircleDomainResult:
     first_mu: list[FloatArray | None] = field(default_factory=list)
     #: Largest absolute GNK residual of any solve (:attr:`CurveMap.gmres_residual`).
     gmres_residual: float = 0.0
+    #: Sweeps with over-relaxed hole maps (``accel="sor"``) and the last omega used.
+    relaxed_sweeps: int = 0
+    omega: float = 1.0
+    #: Extrapolations of the sweep map (``accel="extrapolate"``) and how many were rejected.
+    extrapolations: int = 0
+    rejected_extrapolations: int = 0
 
 
 def _winding(curve: ComplexArray, z: complex) -> float:
@@ -171,16 +222,7 @@ class _Boundary:
         than its smooth grid resolves, the grid is refined first (exact FFT upsampling of an
         analytic curve), so that the GNK solve and the Cauchy sums across the gap are accurate.
         """
-        if self.S is not None:
-            assert self.dS is not None
-            m, capped = _local_grid_size(self.S, self.dS, others, self.tail)
-            tail = _tail(self.S)
-            if capped or self.S.size >= SMOOTH_MAX or tail > self.tail:
-                # solved on an under-resolved grid: the aliasing error changes the domain for
-                # good (later sweeps map the changed domain, at every mesh level alike)
-                self.capped_tail = max(self.capped_tail, tail)
-            if m > self.S.size:
-                self.S, self.dS = upsample(np.stack([self.S, self.dS]), m)
+        self._resolve(others)
         if self.S is None:  # first sweep: the polygon, on its graded mesh
             cm = (exterior_map if self.hole else interior_map)(self.P, self.dP, alpha, rtol, x0)
             sgn = -1.0 if self.hole else 1.0
@@ -206,6 +248,40 @@ class _Boundary:
         self.dP = 1j * sgn * self.P * self.du
         self.S = self.dS = None  # the grid is laid by regrid() once the others are mapped
         return cm
+
+    def _resolve(self, others: ComplexArray) -> None:
+        """Refine the smooth grid where other boundaries came close (see :meth:`own_map`)."""
+        if self.S is not None:
+            assert self.dS is not None
+            m, capped = _local_grid_size(self.S, self.dS, others, self.tail)
+            tail = _tail(self.S)
+            if capped or self.S.size >= SMOOTH_MAX or tail > self.tail:
+                # solved on an under-resolved grid: the aliasing error changes the domain for
+                # good (later sweeps map the changed domain, at every mesh level alike)
+                self.capped_tail = max(self.capped_tail, tail)
+            if m > self.S.size:
+                self.S, self.dS = upsample(np.stack([self.S, self.dS]), m)
+
+    def relaxed_map(
+        self, alpha: complex, others: ComplexArray, rtol: float, omega: float
+    ) -> RelaxedMap:
+        """Over-relaxed own map of a hole (:mod:`confnav.conformal.acceleration`).
+
+        The hole's curve is moved by ``F^omega`` on its smooth grid like any other boundary:
+        its grid, grading and the passive parameters u stay (no regrid: the curve is no
+        circle). Only after the first sweep (the hole has a smooth grid). With ``omega = 1``
+        (the outer boundary too: its interior map) the grid points are moved by the plain map,
+        so that every grid point stays the image of the same point (``accel="extrapolate"``).
+        """
+        assert self.S is not None and self.dS is not None
+        assert self.hole or omega == 1.0
+        self._resolve(others)
+        cm = (exterior_map if self.hole else interior_map)(self.S, self.dS, alpha, rtol)
+        rm = RelaxedMap(cm, omega)
+        self.S, self.dS = rm.on_curve()
+        if _tail(self.S) > self.tail:
+            self.m = min(2 * self.S.size, SMOOTH_MAX)
+        return rm
 
     def passive(self) -> tuple[ComplexArray, ComplexArray]:
         """Passive nodes and their t-derivatives: the smooth curve at the parameters u."""
@@ -358,7 +434,9 @@ def _others(bnds: list[_Boundary], skip: int) -> list[ComplexArray]:
     return [b.S if b.S is not None else b.P for j, b in enumerate(bnds) if j != skip]
 
 
-def _apply(cm: CurveMap, bnds: list[_Boundary], skip: int, pts: ComplexArray) -> ComplexArray:
+def _apply(
+    cm: CurveMap | RelaxedMap, bnds: list[_Boundary], skip: int, pts: ComplexArray
+) -> ComplexArray:
     """Apply a curve map to every boundary but ``skip`` (passive and smooth) and to points."""
     z = np.concatenate([*_others(bnds, skip), pts])
     fz, dfz = cm.evaluate(z, derivative=True)
@@ -387,6 +465,7 @@ def koebe_iteration(
     progress: Callable[[int, float], None] | None = None,
     gmres_tol: float = GMRES_RTOL,
     first_guess: list[FloatArray | None] | None = None,
+    accel: str | None = None,
 ) -> CircleDomainResult:
     """Run the iteration on graded meshes (outer counter-clockwise, holes clockwise).
 
@@ -403,7 +482,15 @@ def koebe_iteration(
         (away from vertices) and its observed contraction, is below ``tol``.
     gmres_tol
         Relative residual of every GNK solve (:func:`confnav.conformal.gnk.gmres_rtol`).
+    accel
+        ``"none"`` (plain sweeps) or ``"sor"`` (over-relaxed hole maps,
+        :mod:`confnav.conformal.acceleration`); None: :data:`KOEBE_ACCEL`. With ``"sor"`` the
+        run ends with plain sweeps whose own history (at least three sweeps) gives the
+        reported iteration error, so the certificate never rests on relaxed sweeps.
     """
+    accel = KOEBE_ACCEL if accel is None else accel
+    if accel not in KOEBE_ACCELS:
+        raise ValueError(f"accel must be one of {KOEBE_ACCELS}, got {accel!r}")
     t0 = time.perf_counter()
     bnds = [
         _Boundary(
@@ -425,9 +512,34 @@ def koebe_iteration(
     sweeps = 0
     guess = list(first_guess) if first_guess is not None else [None] * (M + 1)
     first_mu: list[FloatArray | None] = [None] * (M + 1)
+    # "plain": plain sweeps (all of them with accel "none"); "relaxed": over-relaxed hole maps
+    # with omega; "final": plain sweeps after the relaxed ones, their own history certifies
+    phase, omega = "plain", 1.0
+    phase_history: list[float] = []
+    relaxed_sweeps = 0
+    extrapolations = rejected = hold = 0
+    rho_ext = prev_change = 0.0
+    s_old: list[tuple[ComplexArray, ComplexArray]] = []
+    D_old = D
+    snapshot: tuple[list[_Boundary], ComplexArray, complex] = (bnds, c, D)
+    remaining, converged = float("inf"), False
     for sweep in range(1, max_sweeps + 1):
         sweeps = sweep
+        relaxed = phase in ("relaxed", "material")
+        if phase == "material":  # a plain sweep that keeps every grid (no regrid)
+            omega = 1.0
+            s_old = [
+                (b.S.copy(), b.dS.copy()) for b in bnds if b.S is not None and b.dS is not None
+            ]
+            D_old = D
+        # after a sweep that kept its grids (relaxed or extrapolating) a change of u is no
+        # change of position (the holes kept their parameters u while their curves moved): such
+        # sweeps and the plain sweep after them measure the change on the passive node images
+        # themselves; every other sweep measures it as plain sweeps do (so a run in which no
+        # acceleration acts is the plain run)
+        by_position = relaxed or phase == "confirm" or (phase == "final" and not phase_history)
         u_old = [None if b.u is None else b.u.copy() for b in bnds]
+        p_old = [b.passive()[0] for b in bnds] if by_position else []
         c_old = c.copy()
         for k in range(1, M + 1):
             b = bnds[k]
@@ -437,42 +549,79 @@ def koebe_iteration(
                     f"Koebe iteration lost track of obstacle {k - 1} in sweep {sweep} "
                     "(its tracked point left the boundary image)"
                 )
-            F = _own_map(
-                b, c[k - 1], f"obstacle {k - 1}", meshes[k], _curves(bnds, k), gmres_tol, guess[k]
-            )
-            gm_its += F.gmres_iterations
-            gm_res = max(gm_res, F.gmres_residual)
-            if sweep == 1:
-                first_mu[k] = F.mu
             others = np.concatenate([[a], np.delete(c, k - 1)])
-            out = _apply(F, bnds, k, others)
-            _check_images(_curves(bnds, k), out[: others.size], True, f"obstacle {k - 1}", sweep)
-            _regrid(b, _curves(bnds, k), f"obstacle {k - 1}", sweep)
+            if relaxed:
+                R = b.relaxed_map(c[k - 1], _curves(bnds, k), gmres_tol, omega)
+                gm_its += R.gmres_iterations
+                gm_res = max(gm_res, R.gmres_residual)
+                out = _apply(R, bnds, k, others)
+                if omega == 1.0:
+                    _check_images(
+                        _curves(bnds, k), out[: others.size], True, f"obstacle {k - 1}", sweep
+                    )
+                if not (np.all(np.isfinite(out)) and np.all(np.isfinite(_curves(bnds, -1)))):
+                    raise ConvergenceError(
+                        f"the relaxed map of obstacle {k - 1} in sweep {sweep} produced "
+                        "non-finite boundary images"
+                    )
+            else:
+                F = _own_map(
+                    b,
+                    c[k - 1],
+                    f"obstacle {k - 1}",
+                    meshes[k],
+                    _curves(bnds, k),
+                    gmres_tol,
+                    guess[k],
+                )
+                gm_its += F.gmres_iterations
+                gm_res = max(gm_res, F.gmres_residual)
+                if sweep == 1:
+                    first_mu[k] = F.mu
+                out = _apply(F, bnds, k, others)
+                _check_images(
+                    _curves(bnds, k), out[: others.size], True, f"obstacle {k - 1}", sweep
+                )
+                _regrid(b, _curves(bnds, k), f"obstacle {k - 1}", sweep)
             img, dimg = out[: others.size], out[others.size :]
             a, D = complex(img[0]), D * complex(dimg[0])
             c = np.insert(img[1:], k - 1, 0.0)
-        f0 = _own_map(
-            bnds[0], a, "the outer boundary", meshes[0], _curves(bnds, 0), gmres_tol, guess[0]
-        )
+        f0: CurveMap | RelaxedMap
+        if phase == "material":
+            f0 = bnds[0].relaxed_map(a, _curves(bnds, 0), gmres_tol, 1.0)
+        else:
+            f0 = _own_map(
+                bnds[0], a, "the outer boundary", meshes[0], _curves(bnds, 0), gmres_tol, guess[0]
+            )
+            if sweep == 1:
+                first_mu[0] = f0.mu
         gm_its += f0.gmres_iterations
         gm_res = max(gm_res, f0.gmres_residual)
-        if sweep == 1:
-            first_mu[0] = f0.mu
         out = _apply(f0, bnds, 0, c)
         _check_images(_curves(bnds, 0), out[: c.size], False, "the outer boundary", sweep)
-        _regrid(bnds[0], _curves(bnds, 0), "the outer boundary", sweep)
+        if phase != "material":
+            _regrid(bnds[0], _curves(bnds, 0), "the outer boundary", sweep)
         c, D, a = out[: c.size], D * f0.scale, 0j
         # change of the boundary correspondence (arc length moved on each circle, away from the
         # vertices) and of the centres
         radii = np.array([1.0] + [_radius(bnds[j], c[j - 1]) for j in range(1, M + 1)])
-        change = max(
-            (float(np.max(np.abs(b.u[b.mask] - uo[b.mask]))) * r if uo is not None else 1.0)
-            for b, uo, r in zip(bnds, u_old, radii, strict=True)
-            if b.u is not None
-        )
+        if relaxed:
+            relaxed_sweeps += 1
+        if by_position:
+            change = max(
+                float(np.max(np.abs(b.passive()[0][b.mask] - po[b.mask])))
+                for b, po in zip(bnds, p_old, strict=True)
+            )
+        else:
+            change = max(
+                (float(np.max(np.abs(b.u[b.mask] - uo[b.mask]))) * r if uo is not None else 1.0)
+                for b, uo, r in zip(bnds, u_old, radii, strict=True)
+                if b.u is not None
+            )
         if M:
             change = max(change, float(np.max(np.abs(c - c_old))))
         history.append(change)
+        phase_history.append(change)
         if progress is not None:
             progress(sweep, change)
         if not np.isfinite(change):
@@ -491,15 +640,83 @@ def koebe_iteration(
                 f"obstacle {j}'s circle has radius {radii[j]:.1e}: too small to resolve in double "
                 "precision (crowding: a long, narrow passage leads to it)"
             )
-        remaining, converged = _remaining_error(history)
+        if phase == "material":
+            # extrapolate the sweep map G along its geometric tail: z -> z + (w - 1)(G(z) - z),
+            # an analytic map of the domain (acceleration.extrapolate_sweep); the next plain
+            # sweep must confirm it
+            snapshot = (copy.deepcopy(bnds), c.copy(), D)
+            prev_change = change
+            w_ext = 1.0 / (1.0 - rho_ext)
+            for b, (S0, dS0) in zip(bnds, s_old, strict=True):
+                assert b.S is not None and b.dS is not None
+                b.S, b.dS = extrapolate_curve(S0, dS0, b.S, b.dS, w_ext)
+            D = D_old * ((1.0 - w_ext) + w_ext * D / D_old)  # H'(0), H = (1 - w) id + w G
+            extrapolations += 1
+            phase, phase_history = "confirm", []
+            continue
+        if phase == "confirm":
+            if not change < prev_change:  # rejected: back to the state before extrapolating
+                bnds, c, D = snapshot
+                a = 0j
+                rejected += 1
+                phase, phase_history = "plain", []
+                hold = sweep + EXTRAPOLATE_WAIT  # no new extrapolation for a while
+                continue
+            phase = "plain"
+        if (
+            accel == "extrapolate"
+            and phase == "plain"
+            and sweep >= max(4, hold)
+            and len(phase_history) >= 3
+        ):
+            r1 = phase_history[-1] / max(phase_history[-2], 1e-300)
+            r0 = phase_history[-2] / max(phase_history[-3], 1e-300)
+            rem, ok = _remaining_error(phase_history)
+            if RHO_MIN < r1 < RHO_MAX and abs(r1 - r0) <= RATIO_AGREE * r1 and not (
+                ok and rem <= tol
+            ):
+                rho_ext = min(r1, RHO_EXTRAPOLATE)
+                phase = "material"
+                continue
+        if accel == "sor" and phase == "plain" and sweep >= 4:
+            # the plain contraction, once two successive ratios agree (the slowest mode
+            # dominates), sets omega
+            r1 = history[-1] / max(history[-2], 1e-300)
+            r0 = history[-2] / max(history[-3], 1e-300)
+            omega = optimal_omega(r1) if abs(r1 - r0) <= RATIO_AGREE * r1 else 1.0
+            if omega > 1.0:
+                phase, phase_history = "relaxed", []
+                continue
+        if phase == "relaxed":
+            rem, ok = _remaining_error(phase_history)
+            grew = len(phase_history) > 1 and change > phase_history[-2]
+            if grew:  # safeguard: the relaxation overshoots -- halve it towards plain sweeps
+                omega = 1.0 + 0.5 * (omega - 1.0)
+            if (ok and rem <= tol) or omega < 1.05 or not np.isfinite(change):
+                phase, phase_history = "final", []  # plain sweeps certify the result
+            continue
+        if (phase == "final" or extrapolations) and len(phase_history) < STALL_SWEEPS:
+            continue  # at least three plain sweeps: two observed plain contractions
+        remaining, converged = _remaining_error(phase_history)
         if converged and remaining <= tol:
             break
-        if len(history) > STALL_SWEEPS and change >= min(history[-STALL_SWEEPS - 1 : -1]):
+        if len(phase_history) > STALL_SWEEPS and change >= min(
+            phase_history[-STALL_SWEEPS - 1 : -1]
+        ):
             converged = False  # no progress: rounding floor or a true stall -- reported
             break
     else:
         converged = False  # sweep limit: the extrapolated remaining error is reported
-    iteration_error = remaining if converged and remaining <= tol else _stalled_error(history)
+    if phase in ("relaxed", "material", "confirm") or (
+        (extrapolations or relaxed_sweeps) and len(phase_history) < STALL_SWEEPS
+    ):
+        # sweep limit before the final plain sweeps could certify anything
+        remaining, converged = float("inf"), False
+    if len(phase_history) < 2:
+        phase_history = history[-STALL_SWEEPS - 1 :]
+    iteration_error = (
+        remaining if converged and remaining <= tol else _stalled_error(phase_history)
+    )
     rot = complex(np.exp(-1j * np.angle(D)))
     for b in bnds:
         # the final passive nodes are interpolated from each smooth grid as the last sweep left
@@ -535,6 +752,10 @@ def koebe_iteration(
         resolution_error=max(b.capped_tail for b in bnds),
         first_mu=first_mu,
         gmres_residual=gm_res,
+        relaxed_sweeps=relaxed_sweeps,
+        omega=omega,
+        extrapolations=extrapolations,
+        rejected_extrapolations=rejected,
     )
 
 

@@ -130,6 +130,7 @@ def _solve_level(
     progress: Callable[[str], None] | None,
     warm: _Warm | None = None,
     plans: list[PanelPlan] | None = None,
+    accel: str | None = None,
 ) -> tuple[CircleDomainResult, list[BoundaryMesh]]:
     if plans is None:
         plans = plan_boundaries(ws, nodes_per_side, tol)
@@ -156,6 +157,7 @@ def _solve_level(
         progress=_p,
         gmres_tol=gmres_rtol(tol),
         first_guess=guess,
+        accel=accel,
     )
     return res, meshes
 
@@ -303,6 +305,7 @@ def _refine_sides(
     caps: list[str],
     refinements: list[dict[str, float]],
     t0: float,
+    accel: str | None = None,
 ) -> tuple[ConformalMap, _Level] | None:
     """Refine only the sides whose boundary residual is above ``tol`` (and their neighbours),
     each to the next level's nodes, up to :data:`LOCAL_ROUNDS` times; None if that does not
@@ -349,7 +352,7 @@ def _refine_sides(
         if progress is not None:
             progress(f"refining {n_ref} sides where the boundary residual asks")
         try:
-            res, meshes = _solve_level(ws, ns, tol, progress, warm, plans)
+            res, meshes = _solve_level(ws, ns, tol, progress, warm, plans, accel)
         except ConvergenceError as exc:
             log.warning("local refinement failed (%s)", exc)
             return None
@@ -399,6 +402,7 @@ def solve(
     progress: Callable[[str], None] | None = None,
     initial: ConformalMap | None = None,
     max_error: float = UNUSABLE_ERROR,
+    koebe_accel: str | None = None,
 ) -> ConformalMap:
     """Compute the conformal map of ``workspace`` onto a circle domain.
 
@@ -428,6 +432,10 @@ def solve(
         exact geometry (the controller's safety filter, docs/NAVIGATION.md) may accept a
         coarse map (e.g. ``tol=1e-3, max_error=1e-2``): the certificate stays honest, the map
         then only costs path quality (docs/SERVICES.md, progressive maps).
+    koebe_accel
+        Acceleration of the Koebe sweeps: ``"none"``, ``"sor"`` or ``"extrapolate"``
+        (:mod:`confnav.conformal.acceleration`); None: the default,
+        :data:`confnav.conformal.circledomain.KOEBE_ACCEL`.
 
     Raises
     ------
@@ -473,7 +481,7 @@ def solve(
         if progress is not None:
             progress(f"solving with {ns} nodes per side at the sharpest corners")
         try:
-            res, meshes = _solve_level(workspace, ns, tol, progress, warm)
+            res, meshes = _solve_level(workspace, ns, tol, progress, warm, accel=koebe_accel)
         except GapError as exc:
             if best is None:
                 raise
@@ -555,6 +563,7 @@ def solve(
                         caps,
                         refinements,
                         t0,
+                        koebe_accel,
                     )
                     if local is not None:
                         cmap, best = local

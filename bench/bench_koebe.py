@@ -1,0 +1,214 @@
+"""Koebe-sweep accelerations side by side (issue 24 item 1).
+
+    python bench/bench_koebe.py [--gaps 0.1 0.03] [--tol 1e-8] [--out bench/results/koebe.json]
+    python -m bench koebe [--quick]
+
+Two unit squares ``gap`` apart in a 4 x 4 room, mirror images under x -> -x with the anchor on
+the axis: the circle domain is mirror-symmetric, so its asymmetry (radii, centres) is a true
+error of the map, an exact lower bound the error estimate must not undercut. Each case is
+solved by ``confnav.solve(ws, tol, koebe_accel=...)`` with every acceleration
+(:mod:`confnav.conformal.acceleration`): ``none`` (plain sweeps), ``sor`` (over-relaxed hole
+maps), ``extrapolate`` (geometric-tail extrapolation of the sweep map, confirmed by the next
+sweep). Reported per run: sweeps per mesh level (from the progress messages), Cauchy sums (GNK
+products and map evaluations, counted) and how many of them ran through the FMM, GMRES
+iterations (all levels, counted), CPU time (``time.process_time``,
+less sensitive to the other processes on a shared machine than the wall time, also given),
+the error estimate, boundary residual, tol_met, the asymmetry (honest when <= estimate) and
+the distance of the centres and radii from the plain sweeps' map (both maps' estimates bound
+it when both are honest).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import time
+import warnings
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from bench_core import code_info, machine_info  # script mode: bench/ is on sys.path
+
+import confnav
+from confnav import ConformalMap, Workspace
+from confnav.conformal import cauchy, diskmap, gnk
+from confnav.conformal.acceleration import KOEBE_ACCELS
+from confnav.maps.footprint import inflate
+from confnav.scenes.workspaces import default_workspace, mixed_obstacles
+
+ROOM = [[-2, -2], [2, -2], [2, 2], [-2, 2]]
+
+
+def squares(gap: float) -> Workspace:
+    """Two unit squares ``gap`` apart, mirror images under x -> -x, anchor on the axis."""
+    g = gap / 2
+    left = [[-1 - g, -0.5], [-g, -0.5], [-g, 0.5], [-1 - g, 0.5]]
+    right = [[g, -0.5], [1 + g, -0.5], [1 + g, 0.5], [g, 0.5]]
+    return Workspace(ROOM, [left, right], anchor=[0, 1.5])
+
+
+def asymmetry(m: ConformalMap) -> float:
+    return float(max(abs(m.radii[0] - m.radii[1]), abs(m.centers[0] + np.conj(m.centers[1]))))
+
+
+class _Counter:
+    """Counts the calls of a module function (patched in place, restored by ``undo``)."""
+
+    def __init__(self, module: Any, name: str) -> None:
+        self.module, self.name = module, name
+        self.orig = getattr(module, name)
+        self.calls = 0
+        self.iterations = 0  # GMRES iterations, for solve_gnk
+        setattr(module, name, self)
+
+    def __call__(self, *args: Any, **kw: Any) -> Any:
+        self.calls += 1
+        out = self.orig(*args, **kw)
+        self.iterations += int(getattr(out, "iterations", 0))
+        return out
+
+    def undo(self) -> None:
+        setattr(self.module, self.name, self.orig)
+
+
+def scene(name: str) -> Workspace:
+    """The asymmetric cases: the default workspace, it shrunk for a 0.2 m robot, and
+    ``mixed_obstacles(50, seed=0)``."""
+    if name == "default":
+        return default_workspace()
+    if name == "shrunk":
+        return inflate(default_workspace(), 0.2)
+    if name == "mixed50":
+        return mixed_obstacles(50, seed=0)
+    raise ValueError(f"unknown scene {name!r}")
+
+
+def run_one(gap: float | str, tol: float, accel: str) -> tuple[dict[str, Any], ConformalMap]:
+    levels: list[list[Any]] = []  # [label, sweeps]
+
+    def progress(msg: str) -> None:
+        if msg.startswith("solving with") or msg.startswith("refining"):
+            levels.append([msg.split(" at ")[0].replace("solving with ", ""), 0])
+        elif "nodes/side: sweep" in msg and levels:
+            levels[-1][1] = int(msg.split("sweep ")[1].split(",")[0])
+
+    counters = [
+        _Counter(cauchy, "_fmm"),  # FMM calls (above cauchy.FMM_THRESHOLD interactions)
+        _Counter(gnk, "cauchy_self"),  # Cauchy sums of the GNK products (GMRES)
+        _Counter(diskmap, "cauchy_sums"),  # Cauchy sums evaluating the maps
+        _Counter(diskmap, "solve_gnk"),  # GNK solves and their GMRES iterations
+    ]
+    load = os.getloadavg()[0]
+    c0, t0 = time.process_time(), time.perf_counter()
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", confnav.AccuracyWarning)
+            ws = squares(gap) if isinstance(gap, float) else scene(gap)
+            m = confnav.solve(ws, tol=tol, koebe_accel=accel, progress=progress)
+    finally:
+        for c in counters:
+            c.undo()
+    cpu, wall = time.process_time() - c0, time.perf_counter() - t0
+    d = m.diagnostics
+    row = {
+        "gap": gap,
+        "tol": tol,
+        "accel": accel,
+        "cpu_s": cpu,
+        "wall_s": wall,
+        "load1": load,
+        "levels": [{"level": lv, "sweeps": s} for lv, s in levels],
+        "sweeps_total": int(sum(s for _, s in levels)),
+        "fmm_sums": counters[0].calls,
+        "cauchy_sums": counters[1].calls + counters[2].calls,
+        "gmres_iterations_final_level": d.gmres_iterations,
+        "gnk_solves": counters[3].calls,
+        "gmres_iterations": counters[3].iterations,
+        "error_estimate": d.error_estimate,
+        "iteration_error": d.iteration_error,
+        "boundary_residual": d.boundary_residual,
+        "tol_met": d.tol_met,
+    }
+    if isinstance(gap, float):
+        row["asymmetry"] = asymmetry(m)
+        row["honest"] = bool(asymmetry(m) <= max(d.error_estimate, 1e-15))
+    return row, m
+
+
+def _line(r: dict[str, Any]) -> str:
+    sw = " ".join(str(x["sweeps"]) for x in r["levels"])
+    case = f"gap {r['gap']:g}" if isinstance(r["gap"], float) else str(r["gap"])
+    return (
+        f"  {case:<9} {r['accel']:<11} sweeps/level [{sw}] total {r['sweeps_total']:4d}"
+        f"  GMRES {r['gmres_iterations']:5d}  FMM {r['fmm_sums']:5d}  CPU {r['cpu_s']:6.1f} s "
+        f"(wall {r['wall_s']:6.1f}, load {r['load1']:.1f})  est {r['error_estimate']:.1e} "
+        f"res {r['boundary_residual']:.1e} "
+        + (
+            f"asym {r['asymmetry']:.1e} {'honest' if r['honest'] else 'CLAIMS TOO MUCH'} "
+            if "asymmetry" in r
+            else ""
+        )
+        + f"tol_met {r['tol_met']}  vs plain {r.get('distance_from_plain', 0.0):.1e}"
+    )
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--gaps", type=float, nargs="*", default=[0.1, 0.03])
+    ap.add_argument("--tol", type=float, default=1e-8)
+    ap.add_argument(
+        "--scenes",
+        nargs="*",
+        default=[],
+        choices=["default", "shrunk", "mixed50"],
+        help="asymmetric cases too: default workspace, it shrunk by 0.2 m, 50 mixed obstacles",
+    )
+    ap.add_argument("--accels", nargs="+", default=list(KOEBE_ACCELS))
+    ap.add_argument("--quick", action="store_true", help="gap 0.1 only")
+    ap.add_argument(
+        "--out", type=Path, default=Path(__file__).resolve().parent / "results" / "koebe.json"
+    )
+    a = ap.parse_args(argv)
+    gaps = [0.1] if a.quick else a.gaps
+    info, code = machine_info(), code_info()
+    print(
+        f"Koebe accelerations, commit {code['commit'][:12]}, load {os.getloadavg()[0]:.2f}, "
+        f"tol {a.tol:g}",
+        flush=True,
+    )
+    # untimed warm-up: the first solve of a process pays one-time costs (imports, caches)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", confnav.AccuracyWarning)
+        confnav.solve(squares(0.1), tol=1e-4)
+    rows = []
+    cases: list[float | str] = [*gaps, *a.scenes]
+    for gap in cases:
+        plain: ConformalMap | None = None
+        for acc in a.accels:
+            r, m = run_one(gap, a.tol, acc)
+            if acc == "none":
+                plain = m
+            elif plain is not None:
+                r["distance_from_plain"] = float(
+                    max(
+                        np.max(np.abs(m.radii - plain.radii)),
+                        np.max(np.abs(m.centers - plain.centers)),
+                    )
+                )
+                r["distance_bounded"] = bool(
+                    r["distance_from_plain"]
+                    <= m.diagnostics.error_estimate + plain.diagnostics.error_estimate
+                )
+            rows.append(r)
+            print(_line(r), flush=True)
+    info["loadavg_end"] = list(os.getloadavg())
+    a.out.parent.mkdir(parents=True, exist_ok=True)
+    a.out.write_text(json.dumps({"machine": info, "code": code, "rows": rows}, indent=1) + "\n")
+    print(f"wrote {a.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

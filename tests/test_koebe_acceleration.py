@@ -1,0 +1,126 @@
+"""Over-relaxed Koebe sweeps (accel="sor") reach the plain sweeps' fixed point, honestly."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import pytest
+
+from confnav import Workspace
+from confnav.conformal import circledomain
+from confnav.conformal.acceleration import optimal_omega
+from confnav.conformal.boundary import graded_polygon
+from confnav.conformal.circledomain import CircleDomainResult, koebe_iteration
+from confnav.conformal.meshing import plan_boundaries
+from confnav.geometry import interior_point
+
+ROOM = [[-2, -2], [2, -2], [2, 2], [-2, 2]]
+TOL = 1e-9
+
+
+def squares(gap: float) -> Workspace:
+    """Two unit squares ``gap`` apart, mirror images under x -> -x, anchor on the axis."""
+    g = gap / 2
+    left = [[-1 - g, -0.5], [-g, -0.5], [-g, 0.5], [-1 - g, 0.5]]
+    right = [[g, -0.5], [1 + g, -0.5], [1 + g, 0.5], [g, 0.5]]
+    return Workspace(ROOM, [left, right], anchor=[0, 1.5])
+
+
+def _run(ws: Workspace, accel: str, nodes: int = 24) -> CircleDomainResult:
+    plans = plan_boundaries(ws, nodes, TOL)
+    meshes = [graded_polygon(plans[0].vertices, plans[0].nodes)] + [
+        graded_polygon(p.vertices, p.nodes).reversed() for p in plans[1:]
+    ]
+    holes = [interior_point(o) for o in ws.obstacles]
+    return koebe_iteration(meshes, holes, ws.anchor, tol=TOL, accel=accel)
+
+
+def _asymmetry(r: CircleDomainResult) -> float:
+    return float(max(abs(r.radii[0] - r.radii[1]), abs(r.centers[0] + np.conj(r.centers[1]))))
+
+
+@pytest.fixture(scope="module")
+def plain() -> CircleDomainResult:
+    return _run(squares(0.03), "none")
+
+
+def test_sor_reaches_the_plain_fixed_point_honestly(plain: CircleDomainResult) -> None:
+    r = _run(squares(0.03), "sor")
+    assert r.relaxed_sweeps > 0 and r.omega > 1.0  # the acceleration was used
+    assert r.converged and plain.converged
+    # same map on the same mesh: both within their (honest) iteration errors of the limit
+    bound = r.iteration_error + plain.iteration_error
+    assert np.max(np.abs(r.radii - plain.radii)) <= bound
+    assert np.max(np.abs(r.centers - plain.centers)) <= bound
+    assert max(np.max(np.abs(a - b)) for a, b in zip(r.W, plain.W, strict=True)) <= 10 * bound
+    # mirror symmetry is exact for the continuous problem; on one coarse mesh level the
+    # discretisation breaks it a little (same for both): the accelerated map is no less
+    # symmetric than the plain one, up to their iteration errors
+    assert _asymmetry(r) <= _asymmetry(plain) + bound
+    assert r.circularity <= 10 * TOL  # ends with plain sweeps: the holes are circles
+
+
+def test_overshooting_relaxation_is_halved_and_still_converges(
+    plain: CircleDomainResult, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(circledomain, "optimal_omega", lambda rho: 1.95)
+    r = _run(squares(0.03), "sor")
+    assert r.omega < 1.95  # the safeguard acted: the change grew and omega was halved
+    assert r.converged
+    bound = r.iteration_error + plain.iteration_error
+    assert np.max(np.abs(r.radii - plain.radii)) <= bound
+    assert _asymmetry(r) <= _asymmetry(plain) + bound
+
+
+def test_optimal_omega_is_young_s_formula() -> None:
+    rho = 0.79
+    assert optimal_omega(rho) == pytest.approx(2.0 / (1.0 + np.sqrt(1.0 - rho)))
+    assert optimal_omega(0.1) == 1.0  # fast enough: plain sweeps
+    assert optimal_omega(float("nan")) == 1.0
+
+
+def test_extrapolation_reaches_the_plain_fixed_point(plain: CircleDomainResult) -> None:
+    r = _run(squares(0.03), "extrapolate")
+    assert r.extrapolations > 0 and r.converged
+    assert r.sweeps < plain.sweeps
+    bound = r.iteration_error + plain.iteration_error
+    assert np.max(np.abs(r.radii - plain.radii)) <= bound
+    assert np.max(np.abs(r.centers - plain.centers)) <= bound
+    assert _asymmetry(r) <= _asymmetry(plain) + bound
+    assert r.circularity <= 10 * TOL
+
+
+def test_a_bad_extrapolation_is_rejected(
+    plain: CircleDomainResult, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # an extrapolation four times too long overshoots: the next sweep's change grows, and
+    # the state before the extrapolation is restored
+    orig = circledomain.extrapolate_curve
+
+    def overshoot(*args: Any) -> Any:
+        *curves, w = args
+        return orig(*curves, 4.0 * w)
+
+    monkeypatch.setattr(circledomain, "extrapolate_curve", overshoot)
+    r = _run(squares(0.03), "extrapolate")
+    assert r.rejected_extrapolations > 0
+    assert r.converged
+    bound = r.iteration_error + plain.iteration_error
+    assert np.max(np.abs(r.radii - plain.radii)) <= bound
+
+
+def test_unknown_acceleration_is_refused() -> None:
+    with pytest.raises(ValueError, match="accel"):
+        _run(squares(0.1), "anderson", nodes=12)
+
+
+def test_where_nothing_triggers_the_run_is_the_plain_one() -> None:
+    # well separated (plain contraction ~0.14): neither acceleration acts, and the run is the
+    # plain run bit for bit (same change measure, same stopping sweep)
+    plain = _run(squares(0.1), "none")
+    for accel in ("extrapolate", "sor"):
+        r = _run(squares(0.1), accel)
+        assert r.extrapolations == 0 and r.relaxed_sweeps == 0
+        assert r.sweeps == plain.sweeps and r.history == plain.history
+        assert np.array_equal(r.radii, plain.radii) and np.array_equal(r.centers, plain.centers)
