@@ -46,8 +46,8 @@ solve's 21.4 s after moving one obstacle by 0.2 m, the same map to 6.1e-13
 
 ``tol_met`` is true only if all are within ``tol`` and nothing is ``unverified``. A map that
 misses ``tol`` is returned with ``tol_met = False`` and an :class:`AccuracyWarning`; one whose
-estimate exceeds :data:`UNUSABLE_ERROR` (or the caller's ``max_error``) raises :class:`~confnav.errors.SolverError` -- a
-silently wrong map is never returned.
+estimate exceeds :data:`UNUSABLE_ERROR` (or the caller's ``max_error``) raises
+:class:`~confnav.errors.SolverError` -- a silently wrong map is never returned.
 """
 
 from __future__ import annotations
