@@ -98,7 +98,7 @@ def system(tmp_path_factory: pytest.TempPathFactory) -> Iterator[System]:
     services = [
         ServiceSpec("recorder", ["--out", str(out / "system.mcap")]),
         ServiceSpec(
-            "transform", ["--workspace", f"room={room}", "--cache-dir", str(out / "cache")]
+            "transform", ["--workspace", f"room={room}", "--cache-dir", str(out / "cache"), "--no-progressive"]
         ),
         ServiceSpec("controller", []),
         ServiceSpec("simulator", sim_args),
@@ -350,4 +350,4 @@ def test_demo_all_robots_arrive(tmp_path: Path) -> None:
     for rid in ("r1", "r2", "r3", "r4"):
         assert topics[f"confnav/robot/{rid}/goal"] == 1
         assert topics[f"confnav/robot/{rid}/cmd_vel"] > 50
-    assert topics["confnav/ws/default/transform"] == 1
+    assert topics["confnav/ws/default/transform"] >= 1  # progressive maps: a revision ladder
