@@ -98,7 +98,8 @@ def system(tmp_path_factory: pytest.TempPathFactory) -> Iterator[System]:
     services = [
         ServiceSpec("recorder", ["--out", str(out / "system.mcap")]),
         ServiceSpec(
-            "transform", ["--workspace", f"room={room}", "--cache-dir", str(out / "cache"), "--no-progressive"]
+            "transform",
+            ["--workspace", f"room={room}", "--cache-dir", str(out / "cache"), "--no-progressive"],
         ),
         ServiceSpec("controller", []),
         ServiceSpec("simulator", sim_args),
