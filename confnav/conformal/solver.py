@@ -67,6 +67,7 @@ from confnav.conformal.gnk import gmres_rtol
 from confnav.conformal.meshing import NODE_MULTIPLE, PanelPlan, plan_boundaries
 from confnav.errors import (
     ConvergenceError,
+    CrowdingError,
     GapError,
     SolverError,
     UnresolvedCrowdingError,
@@ -260,6 +261,27 @@ def crowding_reason(diag: SolveReport) -> str:
         name = "the outer boundary" if j == 0 else f"obstacle {j - 1}"
         why.append(f"{name} crowded by 10^{worst:.1f}")
     return "; ".join(why)
+
+
+def _check_resolvable(
+    res: CircleDomainResult, ns: int, prev_resolution: float, max_error: float
+) -> None:
+    """Stop refining when a finer mesh cannot make the map usable: a boundary image's smooth
+    grid held at its size cap (:data:`~confnav.conformal.circledomain.SMOOTH_MAX`, which does
+    not grow with the nodes per side) leaves a Fourier tail above ``max_error`` at two levels
+    in a row, the second not halving it. That tail comes from a boundary image crowded
+    against its nearest singularity (docs/METHOD.md, crowding), which an atlas resolves.
+    Measured on a 12 x 8 m lab with a 1 m alcove and a 0.3 m footprint: tail 1.3e-1 at every
+    level from 36 to 576 nodes per side (105 s of levels that could not help)."""
+    tail = res.resolution_error
+    if tail > max_error and prev_resolution > max_error and tail > 0.5 * prev_resolution:
+        radius = float(np.min(res.radii)) if res.radii.size else 1.0
+        raise CrowdingError(
+            f"a boundary image is crowded beyond what one map resolves: its smooth grid is at "
+            f"its size cap with a Fourier tail of {tail:.1e} at {ns} nodes per side (previous "
+            f"level {prev_resolution:.1e}; finer meshes do not lower it; smallest circle "
+            f"radius {radius:.1e}): an atlas resolves it"
+        )
 
 
 #: Refine only the sides whose a-posteriori residual asks (issue 24 item 2) when a level's
@@ -477,6 +499,7 @@ def solve(
     cmap: ConformalMap | None = None
     solved = 0  # levels solved (a skipped level does not count)
     warm: _Warm | None = None
+    prev_resolution = 0.0
     for ns in levels:
         if progress is not None:
             progress(f"solving with {ns} nodes per side at the sharpest corners")
@@ -502,6 +525,8 @@ def solve(
             log.warning("refinement to level %d failed (%s); keeping level %d", ns, exc, best[3])
             break
         warm = (meshes, res.first_mu)  # the next level's first guesses
+        _check_resolvable(res, ns, prev_resolution, max_error)
+        prev_resolution = res.resolution_error
         eta, deta = [m.eta for m in meshes], [m.deta for m in meshes]
         if prev is not None:
             diff = _difference(res, prev)
@@ -583,11 +608,15 @@ def solve(
         if diag.boundary_residual >= diag.error_estimate:  # name the place: a user can see it
             z, name = cmap.worst_boundary_point()
             where = f"; largest on {name} at {fmt_point(z)}"
-        raise SolverError(
+        crowded = crowding_reason(diag)
+        error = CrowdingError if crowded else SolverError  # an atlas resolves crowding
+        raise error(
             f"the map's estimated error {diag.error_estimate:.1e} is too large to navigate "
             f"with (even at {diag.nodes_per_side} nodes per side; discretisation "
             f"{diag.discretisation_error:.1e}, iteration {diag.iteration_error:.1e}, "
-            f"boundary residual {diag.boundary_residual:.1e}{where})"
+            f"boundary residual {diag.boundary_residual:.1e}, smooth-grid resolution "
+            f"{diag.resolution_error:.1e}{where})"
+            + (f"; one map crowds here ({crowded}): an atlas resolves it" if crowded else "")
         )
     if not diag.tol_met:
         why = [
