@@ -258,8 +258,7 @@ def main() -> None:
             f"{r['ghost_robot_contacts'] + r['ghost_mover_contacts']:5d}"
         )
     print(
-        f"batched rows + projection, {cost['robots']} robots: "
-        f"{cost['us_per_robot']:.2f} us/robot"
+        f"batched rows + projection, {cost['robots']} robots: {cost['us_per_robot']:.2f} us/robot"
     )
     if wh is not None:
         print(

@@ -360,4 +360,3 @@ def attach(service: Any, **kw: Any) -> Neighbours:
     nb.served = served
     service._handles.extend(nb.subscribe(service.bus, poses=service.only is not None))
     return nb
-

@@ -55,9 +55,7 @@ def test_rows_far_pair_gives_no_row() -> None:
 def test_rows_mover_full_responsibility_with_its_velocity() -> None:
     # mover at 1 (r 0.3) coming at 1 m/s toward the robot at 0 (r 0.2): gap 0.5, n = -1,
     # b = -alpha h + Re(conj(n) v) = -1 + 1 = 0: the robot may not approach at all
-    rows = pairwise_rows(
-        [0j], 0.2, 0.5, others=[1.0], others_radius=[0.3], others_velocity=[-1.0]
-    )
+    rows = pairwise_rows([0j], 0.2, 0.5, others=[1.0], others_radius=[0.3], others_velocity=[-1.0])
     assert rows.a[0, 0] == pytest.approx(-1.0)
     assert rows.b[0, 0] == pytest.approx(0.0)
     assert rows.who[0, 0] == 1

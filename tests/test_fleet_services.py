@@ -198,9 +198,7 @@ def _block(poses: list[tuple[str, float, float]], u: list[complex], radius: floa
     import numpy as np
     from confnav.schemas import Pose
 
-    members = [
-        (_R(rid, radius), Pose(robot_id=rid, stamp_ns=1, x=x, y=y)) for rid, x, y in poses
-    ]
+    members = [(_R(rid, radius), Pose(robot_id=rid, stamp_ns=1, x=x, y=y)) for rid, x, y in poses]
     return [((_Law(), members), (np.array(u, dtype=complex), np.zeros(len(u), dtype=int)))]
 
 

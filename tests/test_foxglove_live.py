@@ -81,9 +81,7 @@ async def _client(port: int, bus: Any) -> tuple[dict[str, Any], dict[str, Any], 
                         if ch["topic"] == topic:
                             channels[topic] = ch
                             again = {"id": sub_id, "channelId": ch["id"]}
-                            await ws.send(
-                                json.dumps({"op": "subscribe", "subscriptions": [again]})
-                            )
+                            await ws.send(json.dumps({"op": "subscribe", "subscriptions": [again]}))
             if isinstance(msg, bytes) and msg[0] == 0x01:  # MessageData
                 sub_id, _log_time = struct.unpack_from("<IQ", msg, 1)
                 got[sub_id] = json.loads(msg[13:])

@@ -672,8 +672,10 @@ def koebe_iteration(
             r1 = phase_history[-1] / max(phase_history[-2], 1e-300)
             r0 = phase_history[-2] / max(phase_history[-3], 1e-300)
             rem, ok = _remaining_error(phase_history)
-            if RHO_MIN < r1 < RHO_MAX and abs(r1 - r0) <= RATIO_AGREE * r1 and not (
-                ok and rem <= tol
+            if (
+                RHO_MIN < r1 < RHO_MAX
+                and abs(r1 - r0) <= RATIO_AGREE * r1
+                and not (ok and rem <= tol)
             ):
                 rho_ext = min(r1, RHO_EXTRAPOLATE)
                 phase = "material"
@@ -714,9 +716,7 @@ def koebe_iteration(
         remaining, converged = float("inf"), False
     if len(phase_history) < 2:
         phase_history = history[-STALL_SWEEPS - 1 :]
-    iteration_error = (
-        remaining if converged and remaining <= tol else _stalled_error(phase_history)
-    )
+    iteration_error = remaining if converged and remaining <= tol else _stalled_error(phase_history)
     rot = complex(np.exp(-1j * np.angle(D)))
     for b in bnds:
         # the final passive nodes are interpolated from each smooth grid as the last sweep left
