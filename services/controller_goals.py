@@ -76,7 +76,7 @@ class GoalsMixin(ControllerCacheMixin):
             self.count("goals_repeated")
             return
         self.count("goals")
-        m = self._maps.get(goal.ws_id)
+        m = self._maps.get(goal.ws_id) or self._stand_in(goal)
         ctrl, err = self._build(m, goal) if m is not None else (None, "")
         with r.lock:
             r.goal, r.ctrl, r.ctrl_error = goal, ctrl, err
@@ -87,7 +87,7 @@ class GoalsMixin(ControllerCacheMixin):
         current = self._maps.get(goal.ws_id)
         if current is not None and current is not m:  # a map landed while this goal was set
             self._adopt(r, goal.ws_id, current)
-        elif m is None:
+        elif current is None:  # no map yet, or the unshrunk one standing in
             self._wake_fetch.set()
         log.info("robot %r: goal %s on %r", rid, goal.goal, goal.ws_id)
 

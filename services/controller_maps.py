@@ -23,8 +23,15 @@ from confnav.services.definitions import REFINING, definition_hash, workspace_of
 from confnav.services.keys import KeyError_
 
 from confnav.atlas.wire import ATLAS_MARKER, AtlasMap, is_chart_ws_id
+from confnav.maps.footprint import parse_derived_ws_id
 
 log = logging.getLogger(__name__)
+
+
+def _base_of(ws_id: str) -> str | None:
+    """The base workspace of a footprint workspace ``{ws}~r{R}`` (None for another id)."""
+    parsed = parse_derived_ws_id(ws_id)
+    return None if parsed is None else parsed[0]
 
 
 class MapsMixin(ControllerCacheMixin):
@@ -106,6 +113,8 @@ class MapsMixin(ControllerCacheMixin):
                     r.ctrl, r.ctrl_revision, r.ctrl_error = ctrl, new.revision, err
         for r in late:
             self._adopt(r, ws_id, new)
+        if est is not None:  # robots waiting for a footprint map {ws}~r{R} drive on this one
+            self._adopt_stand_in(ws_id, new)
         self.count("maps_installed")
         log.info("workspace %r: map %s installed (%d robots)", ws_id, sol.revision[:12], len(goals))
         self.swapped.set()
@@ -194,6 +203,8 @@ class MapsMixin(ControllerCacheMixin):
                     for r in self._robots.values()
                     if r.goal is not None and r.goal.ws_id not in self._maps
                 } | set(self._pending)
+                # the unshrunk maps that steer robots until their footprint maps come
+                needed |= {b for b in map(_base_of, needed) if b and b not in self._maps}
             for ws_id in sorted(needed):
                 self._fetch(ws_id)
 

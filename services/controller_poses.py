@@ -198,7 +198,8 @@ class PosesMixin(ControllerCore):
         else:
             self._publish_cmd(r, d.u, pose)
             message = d.message
-            if self._refining and d.state == "navigating":  # a coarse revision: say so
+            if d.state == "navigating" and (self._refining or "~r" in (r.goal.ws_id or "")):
+                # a coarse revision, or the unshrunk map standing in: say so
                 note = self._map_note(r)
                 message = "; ".join(m for m in (note, message) if m)
             self._status(r, d.state, d.reason, message, now)

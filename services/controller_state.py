@@ -267,6 +267,13 @@ class ControllerCore(Service):
     def _map_note(self, r: _Robot) -> str:
         """What the robot drives on, when it is a coarse revision of a map being refined."""
         rev = r.ctrl_revision
+        if rev is not None and r.goal is not None and r.goal.ws_id not in self._maps:
+            base = r.goal.ws_id.rpartition("~r")[0]  # a footprint goal on the unshrunk map
+            if base and getattr(self._maps.get(base), "revision", None) == rev:
+                return (
+                    f"navigating on the unshrunk map of {base!r}, kept clear of the walls by "
+                    f"the body's exact safety layer; footprint map {r.goal.ws_id!r} being solved"
+                )
         if rev is None or rev not in self._refining:
             return ""
         est = self._estimates.get(rev)

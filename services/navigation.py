@@ -54,6 +54,8 @@ __all__ = [
     "make_controller",
     "map_ws_id",
     "precompute",
+    "shrunk_workspace",
+    "stands_in",
 ]
 
 
@@ -79,8 +81,40 @@ def load_map(solution: TransformSolution) -> Any:
             f"{cmap.workspace_hash[:12]}"
         )
     nav = cmap.for_navigation(accuracy=NAV_ACCURACY)
+    setattr(nav, "ws_id", solution.ws_id)  # noqa: B010 (a base map can stand in, below)
     precompute(nav)
     return nav
+
+
+def stands_in(cmap: Any, goal: Goal) -> bool:
+    """True if ``cmap`` is the unshrunk map of the workspace of ``goal``, a goal whose robot
+    has a footprint: it steers that robot until the footprint map ``{ws}~r{R}`` is solved,
+    with the safety layer on the exact shrunk workspace keeping the body clear
+    (:func:`make_controller`; docs/NAVIGATION.md, "Driving before the footprint map")."""
+    from confnav.maps.footprint import parse_derived_ws_id
+
+    ws = getattr(cmap, "ws_id", None)
+    return (
+        footprint_radius(goal) > 0
+        and isinstance(ws, str)
+        and not getattr(cmap, "is_atlas", False)
+        and parse_derived_ws_id(ws) is None
+        and ws == (parse_derived_ws_id(goal.ws_id) or (goal.ws_id, 0.0))[0]
+    )
+
+
+def shrunk_workspace(cmap: Any, radius: float) -> Any:
+    """The free space of ``cmap``'s workspace shrunk by the footprint ``radius`` (quantised
+    up as the ``{ws}~r{R}`` maps are): the same geometry the transform service solves for that
+    footprint (``definitions.derived_definition``: the largest component). Kept on the map
+    (a few ms per radius; the safety filter's grid is cached per workspace object)."""
+    from confnav.maps.footprint import inflate, quantize_radius
+
+    r = quantize_radius(radius)
+    cache: dict[float, Any] = cmap.__dict__.setdefault("_shrunk_by", {})
+    if r not in cache:
+        cache[r] = inflate(cmap.workspace, r)
+    return cache[r]
 
 
 def make_controller(cmap: Any, goal: Goal) -> ControllerLike:
@@ -96,16 +130,28 @@ def make_controller(cmap: Any, goal: Goal) -> ControllerLike:
 
     if getattr(cmap, "is_atlas", False):  # confnav.atlas.wire.AtlasMap: per-robot switching
         return cmap.controller(goal)  # type: ignore[no-any-return]
+    g = complex(goal.goal[0], goal.goal[1])
+    safety = None  # the map's own workspace
+    if stands_in(cmap, goal):  # the unshrunk map steers, the exact shrunk geometry keeps safe
+        safety = shrunk_workspace(cmap, footprint_radius(goal))
+        if not bool(safety.contains(g)):
+            raise UnreachableGoalError(
+                f"goal {goal.goal} of robot {goal.robot_id!r} is unreachable: it is not in "
+                f"the largest component of {cmap.ws_id!r} shrunk by the footprint "
+                f"{footprint_radius(goal):g} m (within that distance of an obstacle, or cut "
+                "off by a passage narrower than twice it)"
+            )
     try:
         ctrl = Controller(
             cmap,
-            complex(goal.goal[0], goal.goal[1]),
+            g,
             navfn=goal.navfn,
             k="auto" if goal.k is None else goal.k,
             speed_law=goal.speed_law,
             gain=goal.gain,
             v_max=goal.v_max,
             goal_tol=goal.tolerance,
+            safety=safety,
         )
     except NavigationError as exc:
         if map_ws_id(goal) == goal.ws_id or "not in the free space" not in str(exc):
