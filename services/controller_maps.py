@@ -113,8 +113,7 @@ class MapsMixin(ControllerCacheMixin):
                     r.ctrl, r.ctrl_revision, r.ctrl_error = ctrl, new.revision, err
         for r in late:
             self._adopt(r, ws_id, new)
-        if est is not None:  # robots waiting for a footprint map {ws}~r{R} drive on this one
-            self._adopt_stand_in(ws_id, new)
+        self._adopt_stand_in(ws_id, new)  # robots waiting for a footprint map {ws}~r{R}
         self.count("maps_installed")
         log.info("workspace %r: map %s installed (%d robots)", ws_id, sol.revision[:12], len(goals))
         self.swapped.set()

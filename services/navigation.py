@@ -97,7 +97,6 @@ def stands_in(cmap: Any, goal: Goal) -> bool:
     return (
         footprint_radius(goal) > 0
         and isinstance(ws, str)
-        and not getattr(cmap, "is_atlas", False)
         and parse_derived_ws_id(ws) is None
         and ws == (parse_derived_ws_id(goal.ws_id) or (goal.ws_id, 0.0))[0]
     )
@@ -112,8 +111,9 @@ def shrunk_workspace(cmap: Any, radius: float) -> Any:
 
     r = quantize_radius(radius)
     cache: dict[float, Any] = cmap.__dict__.setdefault("_shrunk_by", {})
-    if r not in cache:
-        cache[r] = inflate(cmap.workspace, r)
+    if r not in cache:  # a ConformalMap's workspace, or an atlas's (the whole free space)
+        ws = cmap.atlas.workspace if getattr(cmap, "is_atlas", False) else cmap.workspace
+        cache[r] = inflate(ws, r)
     return cache[r]
 
 
@@ -128,8 +128,6 @@ def make_controller(cmap: Any, goal: Goal) -> ControllerLike:
     from confnav.maps.footprint import UnreachableGoalError
     from confnav.navigation.control import Controller
 
-    if getattr(cmap, "is_atlas", False):  # confnav.atlas.wire.AtlasMap: per-robot switching
-        return cmap.controller(goal)  # type: ignore[no-any-return]
     g = complex(goal.goal[0], goal.goal[1])
     safety = None  # the map's own workspace
     if stands_in(cmap, goal):  # the unshrunk map steers, the exact shrunk geometry keeps safe
@@ -141,6 +139,8 @@ def make_controller(cmap: Any, goal: Goal) -> ControllerLike:
                 f"{footprint_radius(goal):g} m (within that distance of an obstacle, or cut "
                 "off by a passage narrower than twice it)"
             )
+    if getattr(cmap, "is_atlas", False):  # confnav.atlas.wire.AtlasMap: per-robot switching
+        return cmap.controller(goal, safety)  # type: ignore[no-any-return]
     try:
         ctrl = Controller(
             cmap,

@@ -138,3 +138,24 @@ def test_the_atlas_store_answers_queries(wire: tuple[AtlasIndex, list[TransformS
     assert store.answer(f"p/ws/{cid}/transform", cid, "transform") is None
     with pytest.raises(QueryError):
         store.answer_wildcard("p/ws/*/atlas")
+
+
+def test_an_atlas_stands_in_for_a_body_until_its_footprint_atlas(
+    wire: tuple[AtlasIndex, list[TransformSolution]],
+) -> None:
+    """The unshrunk atlas steers a robot with a body (its ``{ws}~r{R}`` atlas not solved yet),
+    every chart's commands filtered against the exact free space shrunk by the footprint."""
+    from confnav.services.navigation import shrunk_workspace, stands_in
+
+    am = rebuilt(wire)
+    radius = 0.03
+    g = Goal(robot_id="r", ws_id="pc", goal=(GOAL.real, GOAL.imag), v_max=1.0, tolerance=0.02,
+             robot_radius=radius)  # fmt: skip
+    assert stands_in(am, g)
+    ctrl = make_controller(am, g)
+    shrunk = shrunk_workspace(am, radius)
+    path = drive(ctrl, 0.3 + 0.4j)
+    assert abs(path[-1] - GOAL) <= 0.02 + 0.02
+    assert ctrl.nav.controller(ctrl.active_chart).safety.workspace is shrunk  # type: ignore[attr-defined]
+    # the body stays clear of the walls (exact distance, every step); 1e-9: rounding
+    assert float(np.min(am.atlas.workspace.clearance(np.array(path)))) >= radius - 1e-9

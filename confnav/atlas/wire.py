@@ -175,8 +175,13 @@ class AtlasMap:
         if not self.links:
             self.links = overlaps(self.atlas)
 
-    def controller(self, goal: Any) -> AtlasController | UnicycleController:
-        """The switching controller of one robot for a ``Goal`` message.
+    def controller(
+        self, goal: Any, safety: Workspace | None = None
+    ) -> AtlasController | UnicycleController:
+        """The switching controller of one robot for a ``Goal`` message; ``safety``: the
+        workspace every chart's commands are filtered against (default: the atlas's own; the
+        footprint's shrunk workspace when this atlas steers a body before its own atlas is
+        solved, docs/NAVIGATION.md "Driving before the footprint map").
 
         A unicycle (``drive == "unicycle"``) gets the look-ahead law
         (:class:`confnav.navigation.unicycle.UnicycleController`) around its own
@@ -197,6 +202,7 @@ class AtlasMap:
             links=self.links,
             navfn=goal.navfn,
             goal_tol=float(goal.tolerance),
+            **({} if safety is None else {"safety": safety}),
         )
         ctrl = AtlasController(nav)
         if drive == "unicycle":
