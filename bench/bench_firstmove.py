@@ -18,8 +18,16 @@ Cases (each with a fresh transform service, so nothing is cached):
 - ``solve``: no services: ``confnav.solve`` of the workspace shrunk by the footprint to the first
   revision's tol (1e-3, ``max_error`` 1e-2) in this process, twice (the first call includes
   the solver's warm-up): what the first revision costs;
-- ``first_use``: the robot is spawned as a point (no radius known to the system); the goal's
-  ``{ws}~r{R}`` map is solved when the controller first asks for it;
+- ``first_use``: the robot is spawned with its body and gets its goal 1 s later, once the
+  workspace's own (unshrunk) map is out (``base_ready_s``, from the services being up): its
+  ``{ws}~r{R}`` map is still being solved, so the unshrunk map steers it through the safety
+  layer on the exact shrunk workspace (docs/NAVIGATION.md, "Driving before the footprint
+  map") until the footprint map lands. The run lasts until the robot arrives
+  (``arrived_s``) or ``--arrive-timeout``; the simulator's collision events (the body's) are
+  counted (``collisions``);
+- ``office``, ``warehouse``: ``first_use`` on the README's maps (``examples/*.yaml`` through
+  ``confnav import-map``) with a 0.2 m body and the 0.1 m look-ahead (footprint 0.3 m), from a
+  start to a goal drawn in the shrunk free space (seeded: the farthest apart of 40 points);
 - ``spawned``: the robot is spawned with its body, so the transform service starts solving its
   ``{ws}~r{R}`` map at the spawn (ahead of use); the goal is sent once the first revision of
   that map is out (``spawn_to_first_revision_s``), as for a robot that waits for its first
@@ -55,6 +63,7 @@ from pathlib import Path
 from typing import Any
 
 from confnav.schemas import (
+    CollisionEvent,
     Goal,
     RobotStatus,
     SpawnRequest,
@@ -69,7 +78,10 @@ from confnav.services.launcher import SINGLE_THREAD_BLAS
 from provenance import commit  # script mode: bench/ is on sys.path
 
 HERE = Path(__file__).resolve().parent
-CASES = ("solve", "first_use", "spawned", "ros2")
+CASES = ("solve", "standin", "first_use", "spawned", "ros2", "office", "warehouse")
+#: the README's maps: case -> (body radius, m)
+MAP_CASES = {"office": 0.2, "warehouse": 0.2}
+LOOKAHEAD = 0.1
 K = Keys()
 
 
@@ -120,6 +132,13 @@ class Watch:
         bus.subscribe(K.robot(rid, "cmd_vel"), self._on(self.cmds, VelocityCommand))
         bus.subscribe(K.robot(rid, "status"), self._on(self.status, RobotStatus))
         bus.subscribe(K.any_ws("status"), self._on(self.ws_status, TransformStatus))
+        self.collisions: list[tuple[float, str]] = []
+        bus.subscribe(K.robot(rid, "collision"), self._on_collision)
+
+    def _on_collision(self, key: str, payload: bytes) -> None:
+        ev = decode(CollisionEvent, payload)
+        with self.lock:
+            self.collisions.append((time.monotonic(), ev.model_dump_json()[:300]))
 
     def _on(self, store: list[Any], model: type[Any]) -> Any:
         def on(key: str, payload: bytes) -> None:
@@ -140,15 +159,49 @@ def wait(pred: Any, timeout: float) -> Any:
     return None
 
 
+def map_case(case: str, tmp: Path) -> tuple[str, float, tuple[float, float], tuple[float, float]]:
+    """The workspace file, body radius, start and goal of ``office`` / ``warehouse``: the
+    README's map imported with ``confnav import-map``; start and goal the farthest apart of 40
+    seeded points of the free space shrunk by the footprint."""
+    import numpy as np
+
+    from confnav.geometry import Workspace
+    from confnav.maps.footprint import inflate
+    from confnav.scenes.scenarios import random_starts
+
+    path = tmp / f"{case}.json"
+    if not path.exists():
+        src = HERE.parent / "examples" / f"{case}.yaml"
+        if not src.exists():
+            subprocess.run([sys.executable, str(HERE.parent / "examples" / "make_maps.py")],
+                           check=True)  # fmt: skip
+        subprocess.run(
+            [sys.executable, "-m", "confnav", "import-map", str(src), "-o", str(path)],
+            check=True,
+            capture_output=True,
+        )
+    radius = MAP_CASES[case]
+    shrunk = inflate(Workspace.load(path), radius + LOOKAHEAD)
+    pts = random_starts(shrunk, 40, seed=1, margin=0.05)
+    d = np.abs(pts[:, None] - pts[None, :])
+    i, j = np.unravel_index(int(np.argmax(d)), d.shape)
+    return str(path), radius, (pts[i].real, pts[i].imag), (pts[j].real, pts[j].imag)
+
+
 def run_case(case: str, args: argparse.Namespace, tmp: Path, n: int) -> dict[str, Any]:
     ep = f"tcp/127.0.0.1:{free_port()}"
     common = ["--mode", "client", "--connect", ep]
     logs = tmp / f"{case}{n}"
     logs.mkdir(parents=True, exist_ok=True)
+    ws_id, source = "default", "builtin:default"
+    radius, start, goal_xy = args.radius, tuple(args.start), tuple(args.goal)
+    if case in MAP_CASES:
+        ws_id = case
+        source, radius, start, goal_xy = map_case(case, tmp)
     procs = [spawn("serve", "router", "--listen", ep, log=logs / "router.log")]
     try:
         time.sleep(1.0)
-        ws = ["--workspace", "default=builtin:default"]
+        ws = ["--workspace", f"{ws_id}={source}"]
         procs.append(spawn("serve", "transform", *common, *ws, log=logs / "transform.log"))
         procs.append(spawn("serve", "controller", *common, log=logs / "controller.log"))
         procs.append(spawn("serve", "simulator", *common, *ws, log=logs / "simulator.log"))
@@ -163,23 +216,31 @@ def run_case(case: str, args: argparse.Namespace, tmp: Path, n: int) -> dict[str
             )
             if not alive:
                 raise RuntimeError(f"services did not come up (logs in {logs})")
+            t_up = time.monotonic()
             watch = Watch(bus, rid)
-            body = case == "spawned"
+            spawned = case == "spawned"
+
+            def base_ready() -> float | None:  # the workspace's own map (any revision)
+                with watch.lock:
+                    for t, s in watch.ws_status:
+                        if s.ws_id == ws_id and s.state == "solved" and s.revision:
+                            return t - t_up
+                return None
+
+            base_s = wait(base_ready, args.timeout)
             req = SpawnRequest(
                 robot_id=rid,
-                ws_id="default",
-                position=(args.start[0], args.start[1]),
+                ws_id=ws_id,
+                position=(start[0], start[1]),
                 theta=0.0,
                 stamp_ns=time.time_ns(),
-                robot_radius=args.radius if body else 0.0,
-                # first_use: a point (nothing for the transform to solve ahead); the simulator
-                # integrates the controller's body-frame twists either way
-                drive="unicycle" if body else "holonomic",
+                robot_radius=radius,
+                drive="unicycle",
             )
             t_spawn = time.monotonic()
             bus.publish(f"{K.prefix}/sim/sim/spawn", encode(req))
             first_rev_s: float | None = None
-            if body:
+            if spawned:
 
                 def first_revision() -> float | None:
                     with watch.lock:
@@ -192,12 +253,17 @@ def run_case(case: str, args: argparse.Namespace, tmp: Path, n: int) -> dict[str
             time.sleep(1.0)
             goal = Goal(
                 robot_id=rid,
-                ws_id="default",
-                goal=(args.goal[0], args.goal[1]),
-                robot_radius=args.radius,
+                ws_id=ws_id,
+                goal=(goal_xy[0], goal_xy[1]),
+                robot_radius=radius,
                 drive="unicycle",
                 stamp_ns=time.time_ns(),
             )
+            with watch.lock:  # was the footprint map out when the goal was sent?
+                footprint_ready = any(
+                    "~r" in s.ws_id and s.state == "solved" and s.revision
+                    for _, s in watch.ws_status
+                )
             t0 = time.monotonic()
             bus.publish(K.robot(rid, "goal"), encode(goal))
 
@@ -219,6 +285,15 @@ def run_case(case: str, args: argparse.Namespace, tmp: Path, n: int) -> dict[str
                 return None
 
             final_rev = wait(final, args.final_timeout) if first is not None else None
+
+            def arrived() -> float | None:
+                with watch.lock:
+                    for t, st in watch.status:
+                        if t >= t0 and st.state == "arrived":
+                            return t - t0
+                return None
+
+            arrived_s = wait(arrived, args.arrive_timeout) if first is not None else None
             time.sleep(0.5)
             with watch.lock:
                 cmds = [(t - t0, c) for t, c in watch.cmds if t >= t0]
@@ -235,10 +310,21 @@ def run_case(case: str, args: argparse.Namespace, tmp: Path, n: int) -> dict[str
             for t, s in status
             if first is not None and t > first and s.state == "stopped"
         ]
+        with watch.lock:
+            collisions = [(round(t - t0, 2), c) for t, c in watch.collisions]
         return {
             "case": case,
             "run": n,
-            "spawn_to_first_revision_s": first_rev_s if body else None,
+            "workspace": ws_id,
+            "robot_radius": radius,
+            "start": list(start),
+            "goal": list(goal_xy),
+            "base_ready_s": base_s,
+            "footprint_map_ready_at_goal": footprint_ready,
+            "arrived_s": arrived_s,
+            "collisions": len(collisions),
+            "collision_events": collisions[:5],
+            "spawn_to_first_revision_s": first_rev_s if spawned else None,
             "first_cmd_s": first,
             "first_navigating_s": nav[0][0] if nav else None,
             "first_navigating_message": nav[0][1].message if nav else None,
@@ -283,6 +369,57 @@ def run_solve(args: argparse.Namespace, n: int) -> dict[str, Any]:
         "error_estimate": d.error_estimate,
         "tol_met": d.tol_met,
         "nodes": list(d.nodes),
+        "final_s": None,
+        "revisions": [],
+        "first_navigating_message": None,
+        "loadavg": list(os.getloadavg()),
+    }
+
+
+def run_standin_cost(n: int) -> dict[str, Any]:
+    """The ``standin`` case (library, no services): what steering a body on the unshrunk map
+    costs. A 1.4 m square room barred across from x = -0.65 to 0.42 (a 0.05 m slit on the left,
+    closed to the body; a 0.28 m door on the right), a body of 0.1 m from (0, -0.45) to
+    (0, 0.45): the unshrunk map's law without a filter, with the filter on the exact shrunk
+    workspace (the stand-in), and the footprint map's own law. Reports arrival, the body's
+    smallest clearance (negative: it hit the bar) and the time to arrive."""
+    import numpy as np
+
+    from confnav.conformal.solver import solve
+    from confnav.geometry import Workspace
+    from confnav.maps.footprint import inflate
+    from confnav.navigation.control import Controller
+    from confnav.navigation.sim import simulate
+
+    radius = 0.1
+    outer = [(-0.7, -0.7), (0.7, -0.7), (0.7, 0.7), (-0.7, 0.7)]
+    bar = [(-0.65, -0.025), (0.42, -0.025), (0.42, 0.025), (-0.65, 0.025)]
+    ws = Workspace(outer, [bar])
+    shrunk = inflate(ws, radius)
+    base, own = solve(ws, 1e-6), solve(shrunk, 1e-6)
+    runs = {}
+    for name, cmap, safety in (
+        ("unshrunk map, no filter", base, False),
+        ("unshrunk map, filter on the shrunk workspace", base, shrunk),
+        ("footprint map", own, None),
+    ):
+        res = simulate(
+            Controller(cmap, 0.45j, safety=safety), [-0.45j], t_max=300, record_paths=True
+        )
+        assert res.paths is not None
+        runs[name] = {
+            "arrived": bool(res.success[0]),
+            # exact distance of the accepted points to the true walls, minus the body
+            "body_clearance_m": float(np.min(ws.clearance(res.paths[0]))) - radius,
+            "time_s": float(res.time[0]),
+            "reason": res.reasons[0] if res.reasons else "",
+        }
+    return {
+        "case": "standin",
+        "run": n,
+        "runs": runs,
+        "spawn_to_first_revision_s": None,
+        "first_cmd_s": None,
         "final_s": None,
         "revisions": [],
         "first_navigating_message": None,
@@ -421,6 +558,9 @@ def main() -> int:
         default=None,
         help="s to wait for the final revision (default 900; --quick: 0, not waited for)",
     )
+    ap.add_argument(
+        "--arrive-timeout", type=float, default=600.0, help="s to wait for the robot to arrive"
+    )
     ap.add_argument("--out", default=None)
     args = ap.parse_args()
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(1))  # stop the services (finally)
@@ -447,6 +587,8 @@ def main() -> int:
         for n in range(runs):
             if case == "solve":
                 row = run_solve(args, n)
+            elif case == "standin":
+                row = run_standin_cost(n)
             elif case == "ros2":
                 row = run_ros2(args, tmp, n)
             else:

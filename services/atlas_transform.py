@@ -65,21 +65,24 @@ POLL = 0.5
 def single_or_atlas(ws: Any, tol: float, max_error: float | None = None) -> dict[str, Any]:
     """Worker: one map's result dict, or ``{"needs_atlas": why}`` (the service then solves
     the atlas chart by chart, :meth:`ChartShare.solve`): when the a-priori test flags the
-    workspace, and when the single solve raises a crowding error mid-solve. ``max_error``:
+    workspace, when the single solve raises a crowding error mid-solve, and when the solved
+    map measures crowding (:func:`confnav.conformal.solver.crowding_reason`: a boundary
+    crowded by 10^6 or more, where the map's absolute accuracy says nothing of the positions
+    it separates). ``max_error``:
     the largest estimated error accepted (``solve(max_error=...)``, a coarse revision)."""
     from confnav.atlas.charts import atlas_reason
-    from confnav.conformal.solver import solve
+    from confnav.conformal.solver import crowding_reason, solve
     from confnav.errors import CrowdingError
 
     why = atlas_reason(ws)
     if why:
         return {"needs_atlas": why}
     try:
-        if max_error is None:
-            return solution_result(solve(ws, tol), tol)
-        return solution_result(solve(ws, tol, max_error=max_error), tol)
+        m = solve(ws, tol) if max_error is None else solve(ws, tol, max_error=max_error)
     except CrowdingError as exc:
         return {"needs_atlas": f"one map crowds: {exc}"}
+    crowded = crowding_reason(m.diagnostics)  # accurate on the circles, useless where it crowds
+    return {"needs_atlas": f"one map crowds: {crowded}"} if crowded else solution_result(m, tol)
 
 
 def atlas_result(atlas: Any) -> dict[str, Any]:

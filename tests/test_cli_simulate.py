@@ -290,3 +290,27 @@ def test_t_max_help_and_behaviour_agree(
     (run,) = doc["runs"]
     assert run["status"] == "timeout" and run["time"] == pytest.approx(1.5)
     assert run["reason"].startswith("time limit 1.5 s reached")
+
+
+def test_a_solved_map_that_crowds_runs_as_an_atlas(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A room barred across but for a door that a 0.1 m body passes with 4 cm to spare: the
+    shrunk free space solves to its tol, but the room behind the door lands on an arc of the
+    unit circle 10^6.6 times shorter than its wall, where the map's absolute accuracy says
+    nothing (a single map stalled the robot 0.42 m from its goal, 'at a critical point').
+    ``simulate`` measures that crowding on the solved map and runs the atlas: it arrives."""
+    ws_path = tmp_path / "bar.json"
+    ws_path.write_text(
+        json.dumps(
+            {
+                "outer": [[-0.7, -0.7], [0.7, -0.7], [0.7, 0.7], [-0.7, 0.7]],
+                "obstacles": [[[-0.65, -0.025], [0.42, -0.025], [0.42, 0.025], [-0.65, 0.025]]],
+            }
+        )
+    )
+    args = ["simulate", str(ws_path), "--goal=0,0.45", "--starts=0,-0.45", "--robot-radius", "0.1"]
+    assert main(args) == 0
+    cap = capsys.readouterr()
+    assert "the outer boundary crowded by 10^" in cap.err and "navigating it as an atlas" in cap.err
+    assert "1 robots: 1 arrived; collisions 0" in cap.out

@@ -319,7 +319,11 @@ def solve_auto(
     """
     if not needs_atlas(ws):
         try:
-            return solve(ws, tol)
+            m = solve(ws, tol)
+            crowded = crowding_reason(m.diagnostics)
+            if not crowded:
+                return m
+            log.info("the single map crowds (%s); solving an atlas", crowded)
         except (CrowdingError, SolverError) as exc:
             log.info("single map failed (%s); solving an atlas", exc)
     return solve_atlas(ws, tol, workers=workers, **decompose_kw)

@@ -170,6 +170,7 @@ def _law_options(p: argparse.ArgumentParser) -> None:
 
 def _load_map(args: argparse.Namespace, ws: Any) -> Any:
     import confnav
+    from confnav.conformal.solver import crowding_reason
 
     if getattr(args, "map", None):
         cmap = confnav.ConformalMap.from_json(Path(args.map).read_text())
@@ -181,9 +182,12 @@ def _load_map(args: argparse.Namespace, ws: Any) -> Any:
     def progress(msg: str) -> None:
         print(f"  [{time.perf_counter() - t0:6.1f} s] {msg}", file=sys.stderr, flush=True)
 
-    cmap = confnav.solve(ws, progress=progress).for_navigation()
+    solved = confnav.solve(ws, progress=progress)
     print(f"map solved in {time.perf_counter() - t0:.1f} s", file=sys.stderr)
-    return cmap
+    crowded = crowding_reason(solved.diagnostics)
+    if crowded and not args.single_map:  # accurate on the circles, useless where it crowds
+        raise CrowdingError(f"the solved map crowds ({crowded})")
+    return solved.for_navigation()
 
 
 def _as_atlas(args: argparse.Namespace, nav_ws: Any) -> int:
