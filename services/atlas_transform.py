@@ -47,7 +47,10 @@ from confnav.schemas import AtlasCell, AtlasIndex, SolveDiagnostics, TransformSo
 from confnav.services.bus import Closeable, QueryError, key_matches
 from confnav.services.definitions import solution_result, workspace_of
 
-from confnav.atlas.wire import ATLAS_MARKER, atlas_revision, chart_ws_id
+from confnav.atlas.charts import atlas_reason, solve_atlas
+from confnav.atlas.wire import ATLAS_MARKER, atlas_revision, chart_ws_id, index_fields
+from confnav.conformal.solver import crowding_reason, solve
+from confnav.errors import CrowdingError, SolverError
 
 if TYPE_CHECKING:
     from confnav.services.transform import TransformService
@@ -70,10 +73,6 @@ def single_or_atlas(ws: Any, tol: float, max_error: float | None = None) -> dict
     crowded by 10^6 or more, where the map's absolute accuracy says nothing of the positions
     it separates). ``max_error``:
     the largest estimated error accepted (``solve(max_error=...)``, a coarse revision)."""
-    from confnav.atlas.charts import atlas_reason
-    from confnav.conformal.solver import crowding_reason, solve
-    from confnav.errors import CrowdingError
-
     why = atlas_reason(ws)
     if why:
         return {"needs_atlas": why}
@@ -88,8 +87,6 @@ def single_or_atlas(ws: Any, tol: float, max_error: float | None = None) -> dict
 def atlas_result(atlas: Any) -> dict[str, Any]:
     """The result dict of a solved :class:`confnav.atlas.Atlas`: ``{"atlas": index fields,
     "charts": [result dicts]}`` (what :func:`messages_of` turns into messages)."""
-    from confnav.atlas.wire import index_fields
-
     return {
         "atlas": index_fields(atlas),
         "charts": [solution_result(m, atlas.tol) for m in atlas.charts],
@@ -332,8 +329,6 @@ class ChartShare:
     def solve(self, h: str, defn: Any, abandoned: Callable[[], bool]) -> dict[str, Any]:
         """Solve the atlas of definition ``defn`` (hash ``h``) with the peers (a thread of
         the service); raises :class:`AtlasAbandoned` or what ``solve_atlas`` raises."""
-        from confnav.atlas.charts import solve_atlas
-
         ex = SharedExecutor(self, h[:32], abandoned)
         atlas = solve_atlas(workspace_of(defn), defn.tol, workers=self.svc.workers, executor=ex)
         return atlas_result(atlas)
@@ -393,8 +388,6 @@ class ChartShare:
                         failures[i] += 1
                         svc.count("chart_retries")
                         if failures[i] >= svc.max_attempts:
-                            from confnav.errors import SolverError
-
                             raise SolverError(
                                 f"atlas {a}: chart job failed {failures[i]} times ({exc!r})"
                             ) from exc

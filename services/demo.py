@@ -314,16 +314,7 @@ def run_demo(
             bus.subscribe(keys.any_robot("pose"), mon.on_pose)
             bus.subscribe(keys.any_robot("status"), mon.on_status)
             bus.subscribe(keys.any_robot("collision"), mon.on_collision)
-            uid, uz, uth, urad, ud = UNICYCLE
-            spawn = SpawnRequest(
-                robot_id=uid,
-                ws_id=WS_ID,
-                position=(uz.real, uz.imag),
-                theta=uth,
-                robot_radius=urad,
-                drive="unicycle",
-            )
-            bus.publish(keys.sim("sim", "spawn"), encode(spawn))
+            _spawn_unicycle(launcher)
             print(
                 "confnav demo: waiting for the conformal map of the default workspace...",
                 flush=True,
@@ -335,37 +326,18 @@ def run_demo(
                 flush=True,
             )
             mon.t0 = time.monotonic()
-            for rid in starts:
-                goal = Goal(
-                    robot_id=rid,
-                    ws_id=WS_ID,
-                    goal=(DEFAULT_GOAL.real, DEFAULT_GOAL.imag),
-                    navfn=navfn,  # type: ignore[arg-type]
-                    speed_law=speed_law,  # type: ignore[arg-type]
-                    gain=gain,
-                    v_max=v_max,
-                    tolerance=tolerance,
-                    stamp_ns=time.time_ns(),
-                )
-                bus.publish(keys.robot(rid, "goal"), encode(goal))
-            ugoal = goal.model_copy(
-                update={"robot_id": uid, "robot_radius": urad, "drive": "unicycle", "lookahead": ud}
+            base = Goal(
+                robot_id=next(iter(starts)),
+                ws_id=WS_ID,
+                goal=(DEFAULT_GOAL.real, DEFAULT_GOAL.imag),
+                navfn=navfn,  # type: ignore[arg-type]
+                speed_law=speed_law,  # type: ignore[arg-type]
+                gain=gain,
+                v_max=v_max,
+                tolerance=tolerance,
             )
-            bus.publish(keys.robot(uid, "goal"), encode(ugoal))
-            deadline = mon.t0 + timeout
-            next_print = 0.0
-            while not stop.is_set() and time.monotonic() < deadline and not mon.done():
-                launcher.check()
-                now = time.monotonic()
-                if now >= next_print:
-                    next_print = now + 1.0
-                    with mon.lock:
-                        parts = [
-                            f"{t.robot_id}: {t.distance:5.2f} m {_state(t)}"
-                            for t in tracks.values()
-                        ]
-                    print(f"[{now - mon.t0:5.1f} s] " + " | ".join(parts), flush=True)
-                stop.wait(0.1)
+            _send_goals(launcher, list(starts), base)
+            _watch(launcher, mon, tracks, mon.t0 + timeout, stop)
             if stop.is_set():
                 print("confnav demo: interrupted", flush=True)
     finally:
@@ -374,6 +346,63 @@ def run_demo(
     recordings = sorted(
         set(out.glob("demo*.mcap")) - old_recordings, key=lambda p: p.stat().st_mtime
     )
+    return _report(out, recordings, mon, tracks)
+
+
+def _spawn_unicycle(launcher: Launcher) -> None:
+    """Ask the simulator for the demo's unicycle (:data:`UNICYCLE`: id, pose, body)."""
+    assert launcher.bus is not None
+    uid, uz, uth, urad, _ud = UNICYCLE
+    spawn = SpawnRequest(
+        robot_id=uid,
+        ws_id=WS_ID,
+        position=(uz.real, uz.imag),
+        theta=uth,
+        robot_radius=urad,
+        drive="unicycle",
+    )
+    launcher.bus.publish(launcher.keys.sim("sim", "spawn"), encode(spawn))
+
+
+def _send_goals(launcher: Launcher, robots: list[str], base: Goal) -> None:
+    """The goal ``base`` to every point robot (stamped now), then to the unicycle with its
+    body and look-ahead."""
+    assert launcher.bus is not None
+    bus, keys = launcher.bus, launcher.keys
+    for rid in robots:
+        goal = base.model_copy(update={"robot_id": rid, "stamp_ns": time.time_ns()})
+        bus.publish(keys.robot(rid, "goal"), encode(goal))
+    uid, _uz, _uth, urad, ud = UNICYCLE
+    ugoal = goal.model_copy(
+        update={"robot_id": uid, "robot_radius": urad, "drive": "unicycle", "lookahead": ud}
+    )
+    bus.publish(keys.robot(uid, "goal"), encode(ugoal))
+
+
+def _watch(
+    launcher: Launcher,
+    mon: DemoMonitor,
+    tracks: dict[str, Track],
+    deadline: float,
+    stop: threading.Event,
+) -> None:
+    """Until every robot is done, the deadline or a stop: check the services and print each
+    robot's distance to the goal and state once a second."""
+    next_print = 0.0
+    while not stop.is_set() and time.monotonic() < deadline and not mon.done():
+        launcher.check()
+        now = time.monotonic()
+        if now >= next_print:
+            next_print = now + 1.0
+            with mon.lock:
+                parts = [f"{t.robot_id}: {t.distance:5.2f} m {_state(t)}" for t in tracks.values()]
+            print(f"[{now - mon.t0:5.1f} s] " + " | ".join(parts), flush=True)
+        stop.wait(0.1)
+
+
+def _report(out: Path, recordings: list[Path], mon: DemoMonitor, tracks: dict[str, Track]) -> int:
+    """The figure, the summary table and the verdict; 0 if every robot arrived without a
+    collision."""
     png = figure_path(out, recordings)
     with mon.lock:
         plot_demo(tracks, png)

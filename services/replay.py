@@ -235,6 +235,87 @@ REPLAY_PREFIX = "replay"
 """Default: a recording of prefix ``P`` is replayed under ``replay/P``."""
 
 
+def _check_arguments(speed: float | None, live: bool, prefix: str | None) -> None:
+    if speed is not None and not (speed > 0 and speed < float("inf")):
+        raise ReplayError(f"speed must be a positive finite number, got {speed}")
+    if live and prefix is not None:
+        raise ReplayError("live (the recorded keys) and a prefix exclude each other")
+    if prefix is not None:
+        from confnav.services.keys import KeyError_, validate_prefix
+
+        try:
+            validate_prefix(prefix)
+        except KeyError_ as exc:
+            raise ReplayError(f"bad prefix: {exc}") from exc
+
+
+def _serve_maps(session: zenoh.Session, maps: RecordedMaps, served: list[Any]) -> None:
+    """Answer transform and atlas queries from the recording, as a transform service does
+    (its liveliness token too); what is declared goes into ``served`` (undeclared at the
+    end, also after a failure half-way)."""
+    mk = maps.keys
+    for kind in RecordedMaps.KINDS:  # not complete: a live service answers too
+        served.append(session.declare_queryable(mk.any_ws(kind), maps.on_query, complete=False))
+    zid = str(session.zid())
+    served.append(session.liveliness().declare_token(mk.alive("transform", zid)))
+
+
+def _declare_publishers(session: zenoh.Session, keys: list[str]) -> dict[str, zenoh.Publisher]:
+    publishers: dict[str, zenoh.Publisher] = {}
+    for key in keys:
+        try:
+            publishers[key] = session.declare_publisher(
+                key,
+                encoding=zenoh.Encoding.APPLICATION_JSON,
+                congestion_control=zenoh.CongestionControl.BLOCK,
+            )
+        except zenoh.ZError as exc:
+            for pub in publishers.values():
+                pub.undeclare()  # type: ignore[no-untyped-call]
+            raise RecordingError(f"recorded topic {key!r} is not a Zenoh key: {exc}") from None
+    return publishers
+
+
+def _play(
+    rec: Recording,
+    topics: Sequence[str],
+    keys: dict[str, str],
+    publishers: dict[str, zenoh.Publisher],
+    maps: RecordedMaps | None,
+    speed: float | None,
+    stop: threading.Event,
+    on_message: Callable[[str, int], None] | None,
+    report: ReplayReport,
+) -> None:
+    """Put the recorded messages of ``topics`` in log-time order, paced by ``speed`` (None:
+    as fast as possible) from the first one; ``stop`` ends it early (``interrupted``)."""
+    t_start = time.monotonic()
+    t0_ns: int | None = None
+    for msg in rec.iter_messages(topics):
+        if stop.is_set():
+            report.interrupted = True
+            break
+        if t0_ns is None:
+            t0_ns = msg.log_time_ns
+        if speed is not None:
+            due = t_start + (msg.log_time_ns - t0_ns) / NS_PER_S / speed
+            delay = due - time.monotonic()
+            if delay > 0:
+                if stop.wait(delay):
+                    report.interrupted = True
+                    break
+            else:
+                report.max_lateness_s = max(report.max_lateness_s, -delay)
+        key = keys[msg.topic]
+        if maps:
+            maps.sent(key)  # answered from now on (before subscribers query it)
+        publishers[key].put(msg.data)
+        report.published[key] += 1
+        if on_message is not None:
+            on_message(key, msg.log_time_ns)
+    report.wall_time_s = time.monotonic() - t_start
+
+
 def replay(
     path: str | os.PathLike[str],
     conf: zenoh.Config,
@@ -267,17 +348,7 @@ def replay(
     serve_maps : answer transform and atlas queries from the recording while replaying, as
         a transform service (:class:`RecordedMaps`; its liveliness token declared meanwhile).
     """
-    if speed is not None and not (speed > 0 and speed < float("inf")):
-        raise ReplayError(f"speed must be a positive finite number, got {speed}")
-    if live and prefix is not None:
-        raise ReplayError("live (the recorded keys) and a prefix exclude each other")
-    if prefix is not None:
-        from confnav.services.keys import KeyError_, validate_prefix
-
-        try:
-            validate_prefix(prefix)
-        except KeyError_ as exc:
-            raise ReplayError(f"bad prefix: {exc}") from exc
+    _check_arguments(speed, live, prefix)
     stop = stop or threading.Event()
     report = ReplayReport()
     with Recording(path) as rec:
@@ -296,55 +367,13 @@ def replay(
             served: list[Any] = []  # queryables and token, undeclared at the end
             try:
                 if maps:
-                    mk = maps.keys
-                    for kind in RecordedMaps.KINDS:  # not complete: a live service answers too
-                        served.append(
-                            session.declare_queryable(
-                                mk.any_ws(kind), maps.on_query, complete=False
-                            )
-                        )
-                    zid = str(session.zid())
-                    served.append(session.liveliness().declare_token(mk.alive("transform", zid)))
-                for key in sorted(set(keys.values())):
-                    try:
-                        publishers[key] = session.declare_publisher(
-                            key,
-                            encoding=zenoh.Encoding.APPLICATION_JSON,
-                            congestion_control=zenoh.CongestionControl.BLOCK,
-                        )
-                    except zenoh.ZError as exc:
-                        raise RecordingError(
-                            f"recorded topic {key!r} is not a Zenoh key: {exc}"
-                        ) from None
+                    _serve_maps(session, maps, served)
+                publishers = _declare_publishers(session, sorted(set(keys.values())))
                 if wait_subscribers > 0:
                     report.unmatched_keys = _wait_matching(publishers, wait_subscribers, stop)
                     for key in report.unmatched_keys:
                         logger.warning("no subscriber for %s", key)
-                t_start = time.monotonic()
-                t0_ns: int | None = None
-                for msg in rec.iter_messages(topics):
-                    if stop.is_set():
-                        report.interrupted = True
-                        break
-                    if t0_ns is None:
-                        t0_ns = msg.log_time_ns
-                    if speed is not None:
-                        due = t_start + (msg.log_time_ns - t0_ns) / NS_PER_S / speed
-                        delay = due - time.monotonic()
-                        if delay > 0:
-                            if stop.wait(delay):
-                                report.interrupted = True
-                                break
-                        else:
-                            report.max_lateness_s = max(report.max_lateness_s, -delay)
-                    key = keys[msg.topic]
-                    if maps:
-                        maps.sent(key)  # answered from now on (before subscribers query it)
-                    publishers[key].put(msg.data)
-                    report.published[key] += 1
-                    if on_message is not None:
-                        on_message(key, msg.log_time_ns)
-                report.wall_time_s = time.monotonic() - t_start
+                _play(rec, topics, keys, publishers, maps, speed, stop, on_message, report)
                 flush(session)  # closing right after the last put could drop the queued tail
             finally:
                 for pub in publishers.values():

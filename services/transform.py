@@ -73,6 +73,8 @@ from confnav.services.definitions import (
 from confnav.services.keys import KeyError_, Keys
 from confnav.services.runtime import Service, add_zenoh_args, run_until_signal
 
+from confnav.maps.footprint import derived_ws_id, parse_derived_ws_id
+
 log = logging.getLogger(__name__)
 
 SolveFn = Callable[[str], dict[str, Any]]
@@ -256,8 +258,6 @@ class TransformService(Service):
     def _derive_ahead(self, ws_id: str, radii: tuple[float, ...]) -> None:
         """Solve ``{ws_id}~r{R}`` for footprint radii the system already knows (spawned
         robots, ``--robot-radius``) before any goal asks for them."""
-        from confnav.maps.footprint import derived_ws_id
-
         for radius in radii:
             w = derived_ws_id(ws_id, radius)
             with self._lock:
@@ -283,8 +283,6 @@ class TransformService(Service):
     def _derive(self, ws_id: str) -> str:
         """Solve ``{base}~r{R}`` (a footprint workspace) from the known base definition;
         returns why it cannot be derived ("" if it was submitted or is not a derived id)."""
-        from confnav.maps.footprint import parse_derived_ws_id
-
         parsed = parse_derived_ws_id(ws_id)
         with self._lock:
             base = self._ws.get(parsed[0]) if parsed else None

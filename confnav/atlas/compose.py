@@ -113,6 +113,41 @@ def plan(atlas: Atlas, goal: complex, links: list[Overlap] | None = None) -> Cel
     return CellPlan(goal, rank, nxt, local, goal_cells)
 
 
+@dataclass
+class _Robots:
+    """The robots of :meth:`AtlasNavigator.run` between windows: positions, active cells,
+    outcome codes (-1: running) and what is accumulated per robot."""
+
+    z: CArray
+    active: NDArray[np.int64]
+    status: NDArray[np.int8]
+    length: NDArray[np.float64]
+    t: NDArray[np.float64]
+    minclr: NDArray[np.float64]
+    switches: NDArray[np.int64]
+    history: list[list[int]]
+    still: NDArray[np.int64]  # windows in a row without moving
+    pieces: list[list[CArray]]
+
+    @classmethod
+    def at(cls, z: CArray, active: NDArray[np.int64], clearance: NDArray[np.float64]) -> _Robots:
+        n = z.size
+        status = np.full(n, -1, dtype=np.int8)
+        status[active < 0] = ERROR
+        return cls(
+            z=z,
+            active=active,
+            status=status,
+            length=np.zeros(n),
+            t=np.zeros(n),
+            minclr=clearance,
+            switches=np.zeros(n, dtype=np.int64),
+            history=[[int(a)] for a in active],
+            still=np.zeros(n, dtype=np.int64),
+            pieces=[[z[k : k + 1].copy()] for k in range(n)],
+        )
+
+
 @dataclass(frozen=True)
 class AtlasRun(Outcomes):
     """Result of :meth:`AtlasNavigator.run` (per start arrays; status names as in
@@ -301,84 +336,97 @@ class AtlasNavigator:
         t0 = _time.perf_counter()
         ws = self.atlas.workspace
         z = np.atleast_1d(np.asarray(starts, dtype=np.complex128)).copy()
-        n = z.size
         if np.any(~(ws.clearance(z) > 0)):
             raise NavigationError("a start is not in the free space")
         window = float(window) if window is not None else 4 * self.hysteresis / self.speed
         t_max = float(t_max) if t_max is not None else 20 * ws.diameter / self.speed
         max_step = float(max_step) if max_step is not None else 2 * self.hysteresis
-        active = self.initial_cells(z)
-        status = np.full(n, -1, dtype=np.int8)
-        status[active < 0] = ERROR
+        r = _Robots.at(z, self.initial_cells(z), np.asarray(ws.clearance(z), dtype=np.float64))
         reasons = [
-            (self.cut_off(z[k]) or "in no cell of the atlas") if active[k] < 0 else ""
-            for k in range(n)
+            (self.cut_off(z[k]) or "in no cell of the atlas") if r.active[k] < 0 else ""
+            for k in range(z.size)
         ]
-        length = np.zeros(n)
-        t = np.zeros(n)
-        minclr = np.asarray(ws.clearance(z), dtype=np.float64)
-        switches = np.zeros(n, dtype=np.int64)
-        history: list[list[int]] = [[int(a)] for a in active]
-        still = np.zeros(n, dtype=np.int64)
-        pieces: list[list[CArray]] = [[z[k : k + 1].copy()] for k in range(n)]
         while True:
-            run = np.flatnonzero(status < 0)
+            run = np.flatnonzero(r.status < 0)
             if run.size == 0:
                 break
-            for i in np.unique(active[run]):
-                idx = run[active[run] == i]
-                ctrl = self.controller(int(i))
-                res = simulate(
-                    ctrl, z[idx], clearance=ws.clearance, t_max=window, max_step=max_step,
-                    atol=atol, stall_distance=1e-12, stall_steps=10**9,
-                    record_paths=record_paths,
-                )  # fmt: skip
-                if record_paths and res.paths is not None:
-                    for k, piece in zip(idx.tolist(), res.paths, strict=True):
-                        pieces[k].append(piece[1:])  # its first point ends the last window
-                moved = np.abs(res.final - z[idx])
-                z[idx] = res.final
-                length[idx] += res.path_length
-                t[idx] += res.time
-                minclr[idx] = np.minimum(minclr[idx], res.min_clearance)
-                st = res.status
-                status[idx[st == COLLIDED]] = COLLIDED
-                status[idx[st == ERROR]] = ERROR
-                arrived = idx[st == ARRIVED]
-                if self.plan.next[i] < 0:
-                    status[arrived] = ARRIVED
-                else:  # at the local goal: margin deep in the next cell
-                    active[arrived] = self.plan.next[i]
-                    switches[arrived] += 1
-                    for k in arrived:
-                        history[k].append(int(self.plan.next[i]))
-                going = (st == TIMEOUT) | (st == STALLED)
-                # a robot that does not move for 20 windows is stalled (a saddle)
-                still[idx] = np.where(going & (moved < 1e-9), still[idx] + 1, 0)
-                status[idx[going & (still[idx] >= 20)]] = STALLED
-            run = np.flatnonzero(status < 0)
-            over = run[t[run] >= t_max]
-            status[over] = TIMEOUT
-            run = np.flatnonzero(status < 0)
-            if run.size:
-                new = self.switch(z[run], active[run])
-                changed = run[new != active[run]]
-                for k, a in zip(changed.tolist(), new[new != active[run]].tolist(), strict=True):
-                    history[k].append(int(a))
-                switches[changed] += 1
-                active[run] = new
+            for i in np.unique(r.active[run]):
+                self._window(
+                    r, int(i), run[r.active[run] == i], window, max_step, atol, record_paths
+                )
+            self._supervise(r, t_max)
         return AtlasRun(
             starts=np.atleast_1d(np.asarray(starts, dtype=np.complex128)),
-            success=status == ARRIVED,
-            collided=status == COLLIDED,
-            status=status,
-            path_length=length,
-            time=t,
-            min_clearance=minclr,
-            final=z,
-            switches=switches,
-            cells=tuple(tuple(h) for h in history),
+            success=r.status == ARRIVED,
+            collided=r.status == COLLIDED,
+            status=r.status,
+            path_length=r.length,
+            time=r.t,
+            min_clearance=r.minclr,
+            final=r.z,
+            switches=r.switches,
+            cells=tuple(tuple(h) for h in r.history),
             wall_time=_time.perf_counter() - t0,
-            reasons=tuple(r or _REASONS[int(st)] for r, st in zip(reasons, status, strict=True)),
-            paths=tuple(np.concatenate(p) for p in pieces) if record_paths else None,
+            reasons=tuple(
+                rs or _REASONS[int(st)] for rs, st in zip(reasons, r.status, strict=True)
+            ),
+            paths=tuple(np.concatenate(p) for p in r.pieces) if record_paths else None,
         )
+
+    def _window(
+        self,
+        r: _Robots,
+        i: int,
+        idx: NDArray[np.intp],
+        window: float,
+        max_step: float,
+        atol: float,
+        record_paths: bool,
+    ) -> None:
+        """Integrate the robots ``idx`` of cell ``i`` for one window under cell i's chart
+        (collisions against the whole workspace); those at the local goal switch to the next
+        cell (they lie ``margin`` deep there), and one that has not moved for 20 windows is
+        stalled (a saddle)."""
+        ws = self.atlas.workspace
+        res = simulate(
+            self.controller(i), r.z[idx], clearance=ws.clearance, t_max=window,
+            max_step=max_step, atol=atol, stall_distance=1e-12, stall_steps=10**9,
+            record_paths=record_paths,
+        )  # fmt: skip
+        if record_paths and res.paths is not None:
+            for k, piece in zip(idx.tolist(), res.paths, strict=True):
+                r.pieces[k].append(piece[1:])  # its first point ends the last window
+        moved = np.abs(res.final - r.z[idx])
+        r.z[idx] = res.final
+        r.length[idx] += res.path_length
+        r.t[idx] += res.time
+        r.minclr[idx] = np.minimum(r.minclr[idx], res.min_clearance)
+        st = res.status
+        r.status[idx[st == COLLIDED]] = COLLIDED
+        r.status[idx[st == ERROR]] = ERROR
+        arrived = idx[st == ARRIVED]
+        if self.plan.next[i] < 0:
+            r.status[arrived] = ARRIVED
+        else:  # at the local goal: margin deep in the next cell
+            r.active[arrived] = self.plan.next[i]
+            r.switches[arrived] += 1
+            for k in arrived:
+                r.history[k].append(int(self.plan.next[i]))
+        going = (st == TIMEOUT) | (st == STALLED)
+        r.still[idx] = np.where(going & (moved < 1e-9), r.still[idx] + 1, 0)
+        r.status[idx[going & (r.still[idx] >= 20)]] = STALLED
+
+    def _supervise(self, r: _Robots, t_max: float) -> None:
+        """Between windows: time out robots past ``t_max``, then apply the switching rule
+        (:meth:`switch`) to the others."""
+        run = np.flatnonzero(r.status < 0)
+        over = run[r.t[run] >= t_max]
+        r.status[over] = TIMEOUT
+        run = np.flatnonzero(r.status < 0)
+        if run.size:
+            new = self.switch(r.z[run], r.active[run])
+            changed = run[new != r.active[run]]
+            for k, a in zip(changed.tolist(), new[new != r.active[run]].tolist(), strict=True):
+                r.history[k].append(int(a))
+            r.switches[changed] += 1
+            r.active[run] = new

@@ -31,6 +31,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from confnav.argtypes import output_path, positive_float, positive_int
 from confnav.cli.jsonout import write_json
@@ -93,21 +94,18 @@ def register(subparsers: Any) -> None:
     p.set_defaults(func=run_atlas)
 
 
-def run_atlas(args: argparse.Namespace) -> int:
-    from confnav.atlas import AtlasNavigator, solve_atlas
+def _navigation_workspace(args: argparse.Namespace, ws: Any) -> tuple[Any, float]:
+    """The free space the atlas is made for (shrunk by the body: ``--robot-radius`` plus the
+    unicycle's look-ahead) and the body's size; the goal and the starts are checked first
+    (before a solve of minutes)."""
     from confnav.errors import NavigationError, fmt_point
-    from confnav.geometry import Workspace
     from confnav.maps.footprint import inflate
-    from confnav.navigation.shortest_path import ShortestPaths, path_ratio
-    from confnav.navigation.sim import STATUS_NAMES
-    from confnav.scenes.scenarios import random_starts
 
-    ws = Workspace.load(args.workspace)
     if not (np.isfinite(args.robot_radius) and args.robot_radius >= 0):
         raise NavigationError(f"--robot-radius must be >= 0, got {args.robot_radius!r}")
     body = args.robot_radius + (args.unicycle or 0.0)  # the footprint shrinks the free space
     named = {f"start {k}": z for k, z in enumerate(args.starts or [])}
-    for name, z in {"goal": args.goal, **named}.items():  # before a solve of minutes
+    for name, z in {"goal": args.goal, **named}.items():
         if not bool(ws.contains(np.array([z]))[0]):
             raise NavigationError(f"{name} {fmt_point(z)} is not in the workspace's free space")
     shrunk = getattr(args, "shrunk", None)  # simulate's, already inflated (and warned about)
@@ -118,23 +116,19 @@ def run_atlas(args: argparse.Namespace) -> int:
         if body
         else ws
     )
-    kw = {k: getattr(args, k) for k in ("tile", "margin") if getattr(args, k) is not None}
-    t0 = time.perf_counter()
+    return nav_ws, body
 
-    def progress(msg: str) -> None:
-        print(f"  [{time.perf_counter() - t0:6.1f} s] {msg}", file=sys.stderr, flush=True)
 
-    with interruptible_pool(args.workers) as pool:
-        atlas = solve_atlas(
-            nav_ws, args.tol, workers=args.workers, progress=progress, executor=pool, **kw
-        )
+def _print_atlas(atlas: Any, nav_ws: Any, args: argparse.Namespace) -> None:
+    """The cells' table and the thinnest overlap the cells need (the margin's limit)."""
+    from confnav.errors import fmt_point
+
     print(
         f"atlas: {len(atlas.charts)} cells, solved in {atlas.wall_time:.2f} s "
         f"(charts {atlas.cpu_time:.2f} s, speed-up x{atlas.speedup:.2f})"
     )
     print(f"{'cell':>4} {'obst':>4} {'nodes':>6} {'time s':>7} {'error':>8}")
-    ok_records = atlas.chart_records
-    for i, r in enumerate(ok_records):
+    for i, r in enumerate(atlas.chart_records):
         n_obs = atlas.decomposition.cells[i].workspace.n_obstacles
         print(f"{i:>4} {n_obs:>4} {r.n_nodes:>6} {r.wall_time:>7.2f} {r.error_estimate:>8.1e}")
     dec = atlas.decomposition
@@ -149,6 +143,91 @@ def run_atlas(args: argparse.Namespace) -> int:
             f"{thin.depth:.3g} m deep at {fmt_point(thin.point)}, where the free space is "
             f"{w:.3g} m wide"
         )
+
+
+def _run_robots(
+    nav: Any,
+    atlas: Any,
+    ws: Any,
+    nav_ws: Any,
+    starts: NDArray[np.complex128],
+    body: float,
+    args: argparse.Namespace,
+    doc: dict[str, Any],
+) -> int:
+    """Drive robots from ``starts`` on the atlas (points, or unicycles with ``--unicycle``),
+    print the outcome against the shortest paths, record every run in ``doc`` and draw
+    ``--plot``; exit code 0 if all arrive without a collision."""
+    from confnav.errors import fmt_point
+    from confnav.navigation.shortest_path import ShortestPaths, path_ratio
+    from confnav.navigation.sim import STATUS_NAMES
+
+    plot = getattr(args, "plot", None)
+    run = (
+        nav.run(starts, record_paths=plot is not None)
+        if args.unicycle is None
+        else run_unicycles(nav, ws, starts, args, record_paths=plot is not None)
+    )
+    short = ShortestPaths(nav_ws, nav.goal).lengths(starts)
+    ratio = path_ratio(run.path_length, short, nav.controller(nav.plan.goal_cells[0]).goal_tol)
+    ok = run.success & np.isfinite(ratio)
+    med = float(np.median(ratio[ok])) if ok.any() else float("nan")
+    print(
+        f"{starts.size} robots: {run.message}; collisions {int(run.collided.sum())}; "
+        f"switches <= {int(run.switches.max())}; median path x{med:.3f} of shortest; "
+        f"min clearance {float(run.min_clearance.min()):.3g} m"
+        + (
+            ""
+            if not body
+            else " (the body's)"
+            if args.unicycle
+            else " (of the centre in the shrunk space: the body's is at least this)"
+        )
+    )
+    for k in np.flatnonzero(~run.success)[:10]:
+        print(f"  robot {k} at {fmt_point(starts[k])}: {STATUS_NAMES[run.status[k]]}: "
+              f"{run.reasons[k]}")  # fmt: skip
+    doc["runs"] = [
+        {
+            "start": [complex(s).real, complex(s).imag],
+            "status": STATUS_NAMES[int(st)],
+            "reason": why,
+            "path_length": float(pl),
+            "shortest": float(sh),
+            "cells": list(cs),
+        }
+        for s, st, why, pl, sh, cs in zip(
+            starts, run.status, run.reasons, run.path_length, short, run.cells, strict=True
+        )
+    ]
+    if plot is not None:
+        from confnav.plot.atlas import save_atlas_figure
+
+        out = save_atlas_figure(atlas, run, nav.goal, plot, walls=ws if body else None, shrink=body)
+        print(f"plot written to {out}")
+    return 0 if bool(run.success.all()) and not run.collided.any() else 1
+
+
+def run_atlas(args: argparse.Namespace) -> int:
+    """``confnav atlas``: solve the atlas of the (shrunk) workspace, print its cells, drive
+    the robots asked for and write ``--json``."""
+    from confnav.atlas import AtlasNavigator, solve_atlas
+    from confnav.geometry import Workspace
+    from confnav.scenes.scenarios import random_starts
+
+    ws = Workspace.load(args.workspace)
+    nav_ws, body = _navigation_workspace(args, ws)
+    kw = {k: getattr(args, k) for k in ("tile", "margin") if getattr(args, k) is not None}
+    t0 = time.perf_counter()
+
+    def progress(msg: str) -> None:
+        print(f"  [{time.perf_counter() - t0:6.1f} s] {msg}", file=sys.stderr, flush=True)
+
+    with interruptible_pool(args.workers) as pool:
+        atlas = solve_atlas(
+            nav_ws, args.tol, workers=args.workers, progress=progress, executor=pool, **kw
+        )
+    _print_atlas(atlas, nav_ws, args)
     nav = AtlasNavigator(atlas, args.goal, hysteresis=args.hysteresis, speed=args.speed)
     doc: dict[str, Any] = {
         "cells": [
@@ -156,7 +235,7 @@ def run_atlas(args: argparse.Namespace) -> int:
             for i, c in enumerate(atlas.decomposition.cells)
         ],
         "solve_wall_s": atlas.wall_time,
-        "chart_s": [r.wall_time for r in ok_records],
+        "chart_s": [r.wall_time for r in atlas.chart_records],
     }
     starts = (
         np.asarray(args.starts, dtype=np.complex128)
@@ -167,52 +246,7 @@ def run_atlas(args: argparse.Namespace) -> int:
     )
     code = 0
     if starts is not None:
-        plot = getattr(args, "plot", None)
-        run = (
-            nav.run(starts, record_paths=plot is not None)
-            if args.unicycle is None
-            else run_unicycles(nav, ws, starts, args, record_paths=plot is not None)
-        )
-        short = ShortestPaths(nav_ws, nav.goal).lengths(starts)
-        ratio = path_ratio(run.path_length, short, nav.controller(nav.plan.goal_cells[0]).goal_tol)
-        ok = run.success & np.isfinite(ratio)
-        med = float(np.median(ratio[ok])) if ok.any() else float("nan")
-        print(
-            f"{starts.size} robots: {run.message}; collisions {int(run.collided.sum())}; "
-            f"switches <= {int(run.switches.max())}; median path x{med:.3f} of shortest; "
-            f"min clearance {float(run.min_clearance.min()):.3g} m"
-            + (
-                ""
-                if not body
-                else " (the body's)"
-                if args.unicycle
-                else " (of the centre in the shrunk space: the body's is at least this)"
-            )
-        )
-        for k in np.flatnonzero(~run.success)[:10]:
-            print(f"  robot {k} at {fmt_point(starts[k])}: {STATUS_NAMES[run.status[k]]}: "
-                  f"{run.reasons[k]}")  # fmt: skip
-        doc["runs"] = [
-            {
-                "start": [complex(s).real, complex(s).imag],
-                "status": STATUS_NAMES[int(st)],
-                "reason": why,
-                "path_length": float(pl),
-                "shortest": float(sh),
-                "cells": list(cs),
-            }
-            for s, st, why, pl, sh, cs in zip(
-                starts, run.status, run.reasons, run.path_length, short, run.cells, strict=True
-            )
-        ]
-        code = 0 if bool(run.success.all()) and not run.collided.any() else 1
-        if plot is not None:
-            from confnav.plot.atlas import save_atlas_figure
-
-            out = save_atlas_figure(
-                atlas, run, nav.goal, plot, walls=ws if body else None, shrink=body
-            )
-            print(f"plot written to {out}")
+        code = _run_robots(nav, atlas, ws, nav_ws, starts, body, args, doc)
     if args.json:
         write_json(Path(args.json), doc)  # inf/NaN (no path, never measured) as null
     return code

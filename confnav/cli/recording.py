@@ -20,6 +20,13 @@ logger = logging.getLogger(__name__)
 
 def register(subparsers: Any) -> None:
     """Add ``replay``, ``inspect``, ``recover`` and ``viz`` to the ``confnav`` parser."""
+    _add_replay(subparsers)
+    _add_inspect(subparsers)
+    _add_recover(subparsers)
+    _add_viz(subparsers)
+
+
+def _add_replay(subparsers: Any) -> None:
     from confnav.recording.replay_check import DEFAULT_ATOL, DEFAULT_RTOL
     from confnav.services.runtime import add_zenoh_args
 
@@ -101,6 +108,8 @@ def register(subparsers: Any) -> None:
     )
     p.set_defaults(func=cmd_replay)
 
+
+def _add_inspect(subparsers: Any) -> None:
     i = subparsers.add_parser(
         "inspect",
         help="summarise a recording (channels, robots, arrival, clearance), --plot it",
@@ -112,6 +121,8 @@ def register(subparsers: Any) -> None:
     i.add_argument("--json", action="store_true", help="print the summary as JSON")
     i.set_defaults(func=cmd_inspect)
 
+
+def _add_recover(subparsers: Any) -> None:
     r = subparsers.add_parser(
         "recover", help="rewrite a recording left without footer into a valid indexed MCAP"
     )
@@ -126,6 +137,8 @@ def register(subparsers: Any) -> None:
     r.add_argument("--force", action="store_true", help="overwrite OUT if it exists")
     r.set_defaults(func=cmd_recover)
 
+
+def _add_viz(subparsers: Any) -> None:
     v = subparsers.add_parser(
         "viz", help="copy a recording adding the Foxglove scene channels (opens in Foxglove)"
     )

@@ -456,6 +456,449 @@ def _apply(
     return np.asarray(np.concatenate([fz[off:], dfz[off:]]))
 
 
+@dataclass
+class _Iterate:
+    """The iterate of the sweeps: the boundary images, the points c_j tracked inside the
+    holes, the anchor's image ``a`` and the derivative ``D`` of the composed maps there."""
+
+    bnds: list[_Boundary]
+    c: ComplexArray
+    a: complex
+    D: complex
+
+
+@dataclass
+class _Tally:
+    """GMRES work and worst residual over every GNK solve, and the first sweep's solutions."""
+
+    first_mu: list[FloatArray | None]
+    iterations: int = 0
+    residual: float = 0.0
+
+    def add(self, cm: CurveMap | RelaxedMap) -> None:
+        self.iterations += cm.gmres_iterations
+        self.residual = max(self.residual, cm.gmres_residual)
+
+
+def _initial_iterate(
+    meshes: list[BoundaryMesh], hole_points: list[complex], anchor: complex, tol: float
+) -> _Iterate:
+    """The polygon domain itself: passive nodes on the graded meshes, no smooth grids yet;
+    each grid must resolve its curve to ``SMOOTH_PER_TOL * tol`` (never below rounding)."""
+    bnds = [
+        _Boundary(
+            P=m.eta.copy(),
+            dP=m.deta.copy(),
+            mask=m.interior_mask(),
+            hole=j > 0,
+            tail=max(SMOOTH_TAIL, SMOOTH_PER_TOL * tol),
+        )
+        for j, m in enumerate(meshes)
+    ]
+    return _Iterate(bnds, np.array(hole_points, dtype=np.complex128), complex(anchor), 1.0 + 0j)
+
+
+def _check_tracked(b: _Boundary, center: complex, name: str, sweep: int) -> None:
+    """The tracked point c_k must stay inside the image of its hole (winding number 1)."""
+    curve = b.P if b.S is None else b.S
+    if abs(_winding(curve, center)) < 0.5:
+        raise ConvergenceError(
+            f"Koebe iteration lost track of {name} in sweep {sweep} "
+            "(its tracked point left the boundary image)"
+        )
+
+
+def _map_hole(
+    it: _Iterate,
+    k: int,
+    sweep: int,
+    phase: str,
+    omega: float,
+    mesh: BoundaryMesh,
+    guess: FloatArray | None,
+    tally: _Tally,
+    gmres_tol: float,
+) -> None:
+    """Step 1 of a sweep for hole k ([1], sec. 3): the exterior map of its image with
+    alpha = c_k sends it onto the unit circle and every other boundary, the other c_j and the
+    anchor image along (exterior Cauchy formula); c_k becomes 0, D takes the map's derivative
+    at the anchor. Relaxed and extrapolating sweeps move the hole by the over-relaxed map on
+    its smooth grid instead (:meth:`_Boundary.relaxed_map`, no regrid)."""
+    b, name = it.bnds[k], f"obstacle {k - 1}"
+    _check_tracked(b, it.c[k - 1], name, sweep)
+    others = np.concatenate([[it.a], np.delete(it.c, k - 1)])
+    if phase in ("relaxed", "material"):
+        R = b.relaxed_map(it.c[k - 1], _curves(it.bnds, k), gmres_tol, omega)
+        tally.add(R)
+        out = _apply(R, it.bnds, k, others)
+        if omega == 1.0:
+            _check_images(_curves(it.bnds, k), out[: others.size], True, name, sweep)
+        if not (np.all(np.isfinite(out)) and np.all(np.isfinite(_curves(it.bnds, -1)))):
+            raise ConvergenceError(
+                f"the relaxed map of {name} in sweep {sweep} produced non-finite boundary images"
+            )
+    else:
+        F = _own_map(b, it.c[k - 1], name, mesh, _curves(it.bnds, k), gmres_tol, guess)
+        tally.add(F)
+        if sweep == 1:
+            tally.first_mu[k] = F.mu
+        out = _apply(F, it.bnds, k, others)
+        _check_images(_curves(it.bnds, k), out[: others.size], True, name, sweep)
+        _regrid(b, _curves(it.bnds, k), name, sweep)
+    img, dimg = out[: others.size], out[others.size :]
+    it.a, it.D = complex(img[0]), it.D * complex(dimg[0])
+    it.c = np.insert(img[1:], k - 1, 0.0)
+
+
+def _map_outer(
+    it: _Iterate,
+    sweep: int,
+    phase: str,
+    mesh: BoundaryMesh,
+    guess: FloatArray | None,
+    tally: _Tally,
+    gmres_tol: float,
+) -> None:
+    """Step 2 of a sweep ([1], sec. 3): the interior map of the outer image with alpha = the
+    anchor image sends it onto the unit circle, the anchor to 0 and the holes along; D takes
+    its derivative at the anchor. An extrapolating sweep moves the outer grid by the plain
+    map without regridding it."""
+    name = "the outer boundary"
+    b0 = it.bnds[0]
+    f0: CurveMap | RelaxedMap
+    if phase == "material":
+        f0 = b0.relaxed_map(it.a, _curves(it.bnds, 0), gmres_tol, 1.0)
+    else:
+        f0 = _own_map(b0, it.a, name, mesh, _curves(it.bnds, 0), gmres_tol, guess)
+        if sweep == 1:
+            tally.first_mu[0] = f0.mu
+    tally.add(f0)
+    out = _apply(f0, it.bnds, 0, it.c)
+    _check_images(_curves(it.bnds, 0), out[: it.c.size], False, name, sweep)
+    if phase != "material":
+        _regrid(b0, _curves(it.bnds, 0), name, sweep)
+    it.c, it.D, it.a = out[: it.c.size], it.D * f0.scale, 0j
+
+
+def _sweep(
+    it: _Iterate,
+    sweep: int,
+    phase: str,
+    omega: float,
+    meshes: list[BoundaryMesh],
+    guess: list[FloatArray | None],
+    tally: _Tally,
+    gmres_tol: float,
+) -> None:
+    """One sweep of the iteration ([1], secs. 3-4): every hole's map, then the outer one."""
+    for k in range(1, len(it.bnds)):
+        _map_hole(it, k, sweep, phase, omega, meshes[k], guess[k], tally, gmres_tol)
+    _map_outer(it, sweep, phase, meshes[0], guess[0], tally, gmres_tol)
+
+
+@dataclass
+class _Before:
+    """What a sweep's change is measured against: the parameters u, the passive node images
+    (only where positions are compared) and the centres before the sweep."""
+
+    u: list[FloatArray | None]
+    p: list[ComplexArray]
+    c: ComplexArray
+    by_position: bool
+
+    @classmethod
+    def of(cls, it: _Iterate, by_position: bool) -> _Before:
+        u = [None if b.u is None else b.u.copy() for b in it.bnds]
+        p = [b.passive()[0] for b in it.bnds] if by_position else []
+        return cls(u, p, it.c.copy(), by_position)
+
+
+def _circle_radii(it: _Iterate) -> FloatArray:
+    """Radius of every boundary's circle, the outer one's (1) first."""
+    return np.array([1.0] + [_radius(it.bnds[j], it.c[j - 1]) for j in range(1, len(it.bnds))])
+
+
+def _sweep_change(it: _Iterate, before: _Before, radii: FloatArray) -> float:
+    """The convergence measure of a sweep (module docstring): the change of the boundary
+    correspondence (arc length moved on each circle, ``|du| r``) away from the vertices, or of
+    the passive node positions after a sweep that kept its grids, and of the centres."""
+    if before.by_position:
+        change = max(
+            float(np.max(np.abs(b.passive()[0][b.mask] - po[b.mask])))
+            for b, po in zip(it.bnds, before.p, strict=True)
+        )
+    else:
+        change = max(
+            (float(np.max(np.abs(b.u[b.mask] - uo[b.mask]))) * r if uo is not None else 1.0)
+            for b, uo, r in zip(it.bnds, before.u, radii, strict=True)
+            if b.u is not None
+        )
+    if it.c.size:
+        change = max(change, float(np.max(np.abs(it.c - before.c))))
+    return change
+
+
+def _check_crowding(radii: FloatArray) -> None:
+    """A hole circle below :data:`CROWDING_RADIUS` cannot be resolved (docs/METHOD.md sec. 6)."""
+    if radii.size and radii.min() < CROWDING_RADIUS:
+        j = int(np.argmin(radii))
+        raise CrowdingError(
+            f"obstacle {j}'s circle has radius {radii[j]:.1e}: too small to resolve in double "
+            "precision (crowding: a long, narrow passage leads to it)"
+        )
+
+
+def _extrapolate_iterate(
+    it: _Iterate,
+    grids_before: list[tuple[ComplexArray, ComplexArray]],
+    D_before: complex,
+    rho: float,
+) -> None:
+    """Move the whole domain along the geometric tail of the sweep map G:
+    ``z -> z + (w - 1)(G(z) - z)``, w = 1/(1 - rho) (Aitken's delta^2 on the slowest mode,
+    :func:`confnav.conformal.acceleration.extrapolate_curve`); D follows as H'(anchor) of
+    H = (1 - w) id + w G."""
+    w_ext = 1.0 / (1.0 - rho)
+    for b, (S0, dS0) in zip(it.bnds, grids_before, strict=True):
+        assert b.S is not None and b.dS is not None
+        b.S, b.dS = extrapolate_curve(S0, dS0, b.S, b.dS, w_ext)
+    it.D = D_before * ((1.0 - w_ext) + w_ext * it.D / D_before)
+
+
+@dataclass
+class _Schedule:
+    """Which kind of sweep comes next, and when the iteration stops.
+
+    Phases: ``"plain"`` sweeps (all of them with ``accel="none"``); ``"relaxed"``: hole maps
+    over-relaxed by omega (``"sor"``); ``"material"``: a plain sweep keeping every grid, then
+    extrapolated, and ``"confirm"``: the plain sweep that accepts or rejects that
+    (``"extrapolate"``); ``"final"``: plain sweeps after the relaxed ones, whose own history
+    certifies the result. Stopping uses the geometric tail of the changes (module docstring).
+    """
+
+    accel: str
+    tol: float
+    phase: str = "plain"
+    omega: float = 1.0
+    history: list[float] = field(default_factory=list)
+    #: changes since the phase began (the contraction the stopping test trusts)
+    phase_history: list[float] = field(default_factory=list)
+    relaxed_sweeps: int = 0
+    extrapolations: int = 0
+    rejected: int = 0
+    hold: int = 0  # no extrapolation before this sweep (after a rejected one)
+    rho_ext: float = 0.0
+    prev_change: float = 0.0
+    grids_before: list[tuple[ComplexArray, ComplexArray]] = field(default_factory=list)
+    D_before: complex = 1.0 + 0j
+    snapshot: tuple[list[_Boundary], ComplexArray, complex] | None = None
+    remaining: float = float("inf")
+    converged: bool = False
+
+    def before_sweep(self, it: _Iterate) -> _Before:
+        """Prepare a sweep: an extrapolating one keeps its start (grids, D) to extrapolate
+        from. After a sweep that kept its grids a change of u is no change of position (the
+        holes kept their parameters u while their curves moved): such sweeps and the plain
+        sweep after them measure the change on the passive node images themselves; every
+        other sweep measures it as plain sweeps do (a run no acceleration acts on is the
+        plain run)."""
+        if self.phase == "material":
+            self.omega = 1.0
+            self.grids_before = [
+                (b.S.copy(), b.dS.copy()) for b in it.bnds if b.S is not None and b.dS is not None
+            ]
+            self.D_before = it.D
+        by_position = (
+            self.relaxing
+            or self.phase == "confirm"
+            or (self.phase == "final" and not self.phase_history)
+        )
+        return _Before.of(it, by_position)
+
+    @property
+    def relaxing(self) -> bool:
+        """This sweep moves the holes by relaxed maps on their grids (no regrid)."""
+        return self.phase in ("relaxed", "material")
+
+    def record(self, change: float) -> None:
+        if self.relaxing:
+            self.relaxed_sweeps += 1
+        self.history.append(change)
+        self.phase_history.append(change)
+
+    def after_sweep(self, it: _Iterate, sweep: int, change: float) -> bool:
+        """Choose the next sweep's phase; True when the iteration stops."""
+        if self.phase == "material":
+            self._extrapolate(it, change)
+            return False
+        if self.phase == "confirm":
+            if not change < self.prev_change:
+                self._reject(it, sweep)
+                return False
+            self.phase = "plain"
+        if self._start_extrapolation(sweep) or self._start_relaxation(sweep):
+            return False
+        if self.phase == "relaxed":
+            self._relaxation_step(change)
+            return False
+        if (self.phase == "final" or self.extrapolations) and len(
+            self.phase_history
+        ) < STALL_SWEEPS:
+            return False  # at least three plain sweeps: two observed plain contractions
+        return self._converged_or_stalled(change)
+
+    def _extrapolate(self, it: _Iterate, change: float) -> None:
+        """Extrapolate the sweep just done (:func:`_extrapolate_iterate`), keeping the state
+        before it; the next plain sweep must confirm it."""
+        self.snapshot = (copy.deepcopy(it.bnds), it.c.copy(), it.D)
+        self.prev_change = change
+        _extrapolate_iterate(it, self.grids_before, self.D_before, self.rho_ext)
+        self.extrapolations += 1
+        self.phase, self.phase_history = "confirm", []
+
+    def _reject(self, it: _Iterate, sweep: int) -> None:
+        """The confirming sweep did not shrink the change: back to the state before the
+        extrapolation, and no new one for :data:`EXTRAPOLATE_WAIT` sweeps."""
+        assert self.snapshot is not None
+        it.bnds, it.c, it.D = self.snapshot
+        it.a = 0j
+        self.rejected += 1
+        self.phase, self.phase_history = "plain", []
+        self.hold = sweep + EXTRAPOLATE_WAIT
+
+    def _start_extrapolation(self, sweep: int) -> bool:
+        """Extrapolate next when two successive plain contraction ratios agree, rho in
+        (RHO_MIN, RHO_MAX), and the tolerance is not met yet."""
+        h = self.phase_history
+        if not (
+            self.accel == "extrapolate"
+            and self.phase == "plain"
+            and sweep >= max(4, self.hold)
+            and len(h) >= 3
+        ):
+            return False
+        r1 = h[-1] / max(h[-2], 1e-300)
+        r0 = h[-2] / max(h[-3], 1e-300)
+        rem, ok = _remaining_error(h)
+        if (
+            RHO_MIN < r1 < RHO_MAX
+            and abs(r1 - r0) <= RATIO_AGREE * r1
+            and not (ok and rem <= self.tol)
+        ):
+            self.rho_ext = min(r1, RHO_EXTRAPOLATE)
+            self.phase = "material"
+            return True
+        return False
+
+    def _start_relaxation(self, sweep: int) -> bool:
+        """Over-relax next once two successive plain contraction ratios agree (the slowest
+        mode dominates): Young's omega from the observed contraction (``optimal_omega``)."""
+        if not (self.accel == "sor" and self.phase == "plain" and sweep >= 4):
+            return False
+        h = self.history
+        r1 = h[-1] / max(h[-2], 1e-300)
+        r0 = h[-2] / max(h[-3], 1e-300)
+        self.omega = optimal_omega(r1) if abs(r1 - r0) <= RATIO_AGREE * r1 else 1.0
+        if self.omega > 1.0:
+            self.phase, self.phase_history = "relaxed", []
+            return True
+        return False
+
+    def _relaxation_step(self, change: float) -> None:
+        """Halve the over-relaxation when the change grows (it overshoots); end it with plain
+        sweeps once the tolerance is met or omega is nearly 1."""
+        rem, ok = _remaining_error(self.phase_history)
+        grew = len(self.phase_history) > 1 and change > self.phase_history[-2]
+        if grew:
+            self.omega = 1.0 + 0.5 * (self.omega - 1.0)
+        if (ok and rem <= self.tol) or self.omega < 1.05 or not np.isfinite(change):
+            self.phase, self.phase_history = "final", []  # plain sweeps certify the result
+
+    def _converged_or_stalled(self, change: float) -> bool:
+        """Stop when the extrapolated remaining error is below ``tol``, or when the change has
+        not decreased for :data:`STALL_SWEEPS` sweeps (rounding floor or a true stall)."""
+        h = self.phase_history
+        self.remaining, self.converged = _remaining_error(h)
+        if self.converged and self.remaining <= self.tol:
+            return True
+        if len(h) > STALL_SWEEPS and change >= min(h[-STALL_SWEEPS - 1 : -1]):
+            self.converged = False  # no progress: rounding floor or a true stall -- reported
+            return True
+        return False
+
+    def certify(self) -> tuple[float, bool]:
+        """The reported iteration error and whether it meets ``tol``: a run stopped before the
+        final plain sweeps could certify anything counts as unfinished (infinite remaining
+        error); an unconverged run reports :func:`_stalled_error`."""
+        if self.phase in ("relaxed", "material", "confirm") or (
+            (self.extrapolations or self.relaxed_sweeps) and len(self.phase_history) < STALL_SWEEPS
+        ):
+            self.remaining, self.converged = float("inf"), False
+        h = (
+            self.phase_history
+            if len(self.phase_history) >= 2
+            else self.history[-STALL_SWEEPS - 1 :]
+        )
+        if self.converged and self.remaining <= self.tol:
+            error = self.remaining
+        else:
+            error = _stalled_error(h)
+        return error, bool(self.converged and error <= self.tol)
+
+
+def _count_final_tails(bnds: list[_Boundary]) -> None:
+    """The final passive nodes are interpolated from each smooth grid as the last sweep left
+    it (moved by the maps after its own): its Fourier tail there is a resolution error too,
+    whether or not a sweep solved on it."""
+    for b in bnds:
+        if b.S is not None:
+            tail = _tail(b.S)
+            if tail > b.tail:
+                b.capped_tail = max(b.capped_tail, tail)
+
+
+def _circle_domain(
+    it: _Iterate, tally: _Tally, sched: _Schedule, sweeps: int, t0: float
+) -> CircleDomainResult:
+    """The result: the passive nodes as the boundary images W, the centres and radii, all
+    rotated by ``e^{-i arg D}`` so that T'(anchor) > 0 (docs/METHOD.md sec. 2, "Final
+    rotation"), and the circularity of W (its distance from the circles)."""
+    iteration_error, converged = sched.certify()
+    _count_final_tails(it.bnds)
+    M = len(it.bnds) - 1
+    rot = complex(np.exp(-1j * np.angle(it.D)))
+    passive = [b.passive() for b in it.bnds]
+    W = [p[0] * rot for p in passive]
+    dW = [p[1] * rot for p in passive]
+    c = it.c * rot
+    radii = np.array([_radius(it.bnds[j], c[j - 1] / rot) for j in range(1, M + 1)])
+    circ = float(np.max(np.abs(np.abs(W[0]) - 1.0)))
+    for j in range(1, M + 1):
+        circ = max(circ, float(np.max(np.abs(np.abs(W[j] - c[j - 1]) - radii[j - 1]))))
+    return CircleDomainResult(
+        W=W,
+        dW=dW,
+        centers=c,
+        radii=radii,
+        derivative_at_anchor=float(abs(it.D)),
+        sweeps=sweeps,
+        history=sched.history,
+        circularity=circ,
+        gmres_iterations=tally.iterations,
+        smooth_nodes=[b.m for b in it.bnds],
+        wall_time=time.perf_counter() - t0,
+        iteration_error=iteration_error,
+        converged=converged,
+        resolution_error=max(b.capped_tail for b in it.bnds),
+        first_mu=tally.first_mu,
+        gmres_residual=tally.residual,
+        relaxed_sweeps=sched.relaxed_sweeps,
+        omega=sched.omega,
+        extrapolations=sched.extrapolations,
+        rejected_extrapolations=sched.rejected,
+    )
+
+
 def koebe_iteration(
     meshes: list[BoundaryMesh],
     hole_points: list[complex],
@@ -468,6 +911,9 @@ def koebe_iteration(
     accel: str | None = None,
 ) -> CircleDomainResult:
     """Run the iteration on graded meshes (outer counter-clockwise, holes clockwise).
+
+    Sweeps (:func:`_sweep`) until :class:`_Schedule` stops them, measuring each by
+    :func:`_sweep_change`; then :func:`_circle_domain` (final rotation, result).
 
     Parameters
     ----------
@@ -483,145 +929,30 @@ def koebe_iteration(
     gmres_tol
         Relative residual of every GNK solve (:func:`confnav.conformal.gnk.gmres_rtol`).
     accel
-        ``"none"`` (plain sweeps) or ``"sor"`` (over-relaxed hole maps,
-        :mod:`confnav.conformal.acceleration`); None: :data:`KOEBE_ACCEL`. With ``"sor"`` the
-        run ends with plain sweeps whose own history (at least three sweeps) gives the
-        reported iteration error, so the certificate never rests on relaxed sweeps.
+        ``"none"`` (plain sweeps), ``"sor"`` (over-relaxed hole maps) or ``"extrapolate"``
+        (:mod:`confnav.conformal.acceleration`); None: :data:`KOEBE_ACCEL`. Accelerated runs
+        end with plain sweeps whose own history (at least three sweeps) gives the reported
+        iteration error, so the certificate never rests on accelerated sweeps.
     """
     accel = KOEBE_ACCEL if accel is None else accel
     if accel not in KOEBE_ACCELS:
         raise ValueError(f"accel must be one of {KOEBE_ACCELS}, got {accel!r}")
     t0 = time.perf_counter()
-    bnds = [
-        _Boundary(
-            P=m.eta.copy(),
-            dP=m.deta.copy(),
-            mask=m.interior_mask(),
-            hole=j > 0,
-            tail=max(SMOOTH_TAIL, SMOOTH_PER_TOL * tol),
-        )
-        for j, m in enumerate(meshes)
-    ]
+    it = _initial_iterate(meshes, hole_points, anchor, tol)
     M = len(meshes) - 1
-    c = np.array(hole_points, dtype=np.complex128)
-    a = complex(anchor)
-    D = 1.0 + 0j
-    history: list[float] = []
-    gm_its = 0
-    gm_res = 0.0
+    guess: list[FloatArray | None] = (
+        list(first_guess) if first_guess is not None else [None] * (M + 1)
+    )
+    tally = _Tally(first_mu=[None] * (M + 1))
+    sched = _Schedule(accel, tol)
     sweeps = 0
-    guess = list(first_guess) if first_guess is not None else [None] * (M + 1)
-    first_mu: list[FloatArray | None] = [None] * (M + 1)
-    # "plain": plain sweeps (all of them with accel "none"); "relaxed": over-relaxed hole maps
-    # with omega; "final": plain sweeps after the relaxed ones, their own history certifies
-    phase, omega = "plain", 1.0
-    phase_history: list[float] = []
-    relaxed_sweeps = 0
-    extrapolations = rejected = hold = 0
-    rho_ext = prev_change = 0.0
-    s_old: list[tuple[ComplexArray, ComplexArray]] = []
-    D_old = D
-    snapshot: tuple[list[_Boundary], ComplexArray, complex] = (bnds, c, D)
-    remaining, converged = float("inf"), False
     for sweep in range(1, max_sweeps + 1):
         sweeps = sweep
-        relaxed = phase in ("relaxed", "material")
-        if phase == "material":  # a plain sweep that keeps every grid (no regrid)
-            omega = 1.0
-            s_old = [
-                (b.S.copy(), b.dS.copy()) for b in bnds if b.S is not None and b.dS is not None
-            ]
-            D_old = D
-        # after a sweep that kept its grids (relaxed or extrapolating) a change of u is no
-        # change of position (the holes kept their parameters u while their curves moved): such
-        # sweeps and the plain sweep after them measure the change on the passive node images
-        # themselves; every other sweep measures it as plain sweeps do (so a run in which no
-        # acceleration acts is the plain run)
-        by_position = relaxed or phase == "confirm" or (phase == "final" and not phase_history)
-        u_old = [None if b.u is None else b.u.copy() for b in bnds]
-        p_old = [b.passive()[0] for b in bnds] if by_position else []
-        c_old = c.copy()
-        for k in range(1, M + 1):
-            b = bnds[k]
-            curve = b.P if b.S is None else b.S
-            if abs(_winding(curve, c[k - 1])) < 0.5:
-                raise ConvergenceError(
-                    f"Koebe iteration lost track of obstacle {k - 1} in sweep {sweep} "
-                    "(its tracked point left the boundary image)"
-                )
-            others = np.concatenate([[a], np.delete(c, k - 1)])
-            if relaxed:
-                R = b.relaxed_map(c[k - 1], _curves(bnds, k), gmres_tol, omega)
-                gm_its += R.gmres_iterations
-                gm_res = max(gm_res, R.gmres_residual)
-                out = _apply(R, bnds, k, others)
-                if omega == 1.0:
-                    _check_images(
-                        _curves(bnds, k), out[: others.size], True, f"obstacle {k - 1}", sweep
-                    )
-                if not (np.all(np.isfinite(out)) and np.all(np.isfinite(_curves(bnds, -1)))):
-                    raise ConvergenceError(
-                        f"the relaxed map of obstacle {k - 1} in sweep {sweep} produced "
-                        "non-finite boundary images"
-                    )
-            else:
-                F = _own_map(
-                    b,
-                    c[k - 1],
-                    f"obstacle {k - 1}",
-                    meshes[k],
-                    _curves(bnds, k),
-                    gmres_tol,
-                    guess[k],
-                )
-                gm_its += F.gmres_iterations
-                gm_res = max(gm_res, F.gmres_residual)
-                if sweep == 1:
-                    first_mu[k] = F.mu
-                out = _apply(F, bnds, k, others)
-                _check_images(
-                    _curves(bnds, k), out[: others.size], True, f"obstacle {k - 1}", sweep
-                )
-                _regrid(b, _curves(bnds, k), f"obstacle {k - 1}", sweep)
-            img, dimg = out[: others.size], out[others.size :]
-            a, D = complex(img[0]), D * complex(dimg[0])
-            c = np.insert(img[1:], k - 1, 0.0)
-        f0: CurveMap | RelaxedMap
-        if phase == "material":
-            f0 = bnds[0].relaxed_map(a, _curves(bnds, 0), gmres_tol, 1.0)
-        else:
-            f0 = _own_map(
-                bnds[0], a, "the outer boundary", meshes[0], _curves(bnds, 0), gmres_tol, guess[0]
-            )
-            if sweep == 1:
-                first_mu[0] = f0.mu
-        gm_its += f0.gmres_iterations
-        gm_res = max(gm_res, f0.gmres_residual)
-        out = _apply(f0, bnds, 0, c)
-        _check_images(_curves(bnds, 0), out[: c.size], False, "the outer boundary", sweep)
-        if phase != "material":
-            _regrid(bnds[0], _curves(bnds, 0), "the outer boundary", sweep)
-        c, D, a = out[: c.size], D * f0.scale, 0j
-        # change of the boundary correspondence (arc length moved on each circle, away from the
-        # vertices) and of the centres
-        radii = np.array([1.0] + [_radius(bnds[j], c[j - 1]) for j in range(1, M + 1)])
-        if relaxed:
-            relaxed_sweeps += 1
-        if by_position:
-            change = max(
-                float(np.max(np.abs(b.passive()[0][b.mask] - po[b.mask])))
-                for b, po in zip(bnds, p_old, strict=True)
-            )
-        else:
-            change = max(
-                (float(np.max(np.abs(b.u[b.mask] - uo[b.mask]))) * r if uo is not None else 1.0)
-                for b, uo, r in zip(bnds, u_old, radii, strict=True)
-                if b.u is not None
-            )
-        if M:
-            change = max(change, float(np.max(np.abs(c - c_old))))
-        history.append(change)
-        phase_history.append(change)
+        before = sched.before_sweep(it)
+        _sweep(it, sweep, sched.phase, sched.omega, meshes, guess, tally, gmres_tol)
+        radii = _circle_radii(it)
+        change = _sweep_change(it, before, radii)
+        sched.record(change)
         if progress is not None:
             progress(sweep, change)
         if not np.isfinite(change):
@@ -631,132 +962,14 @@ def koebe_iteration(
             # onto the unit disk; the iteration only makes hole images circular ([1], sec. 3),
             # so nothing is left to iterate (a second sweep re-solved the unit circle on its
             # smooth grid: half of every atlas cell's solve, measured)
-            remaining, converged = 0.0, True
+            sched.remaining, sched.converged = 0.0, True
             break
-        radii = radii[1:]
-        if M and radii.min() < CROWDING_RADIUS:
-            j = int(np.argmin(radii))
-            raise CrowdingError(
-                f"obstacle {j}'s circle has radius {radii[j]:.1e}: too small to resolve in double "
-                "precision (crowding: a long, narrow passage leads to it)"
-            )
-        if phase == "material":
-            # extrapolate the sweep map G along its geometric tail: z -> z + (w - 1)(G(z) - z),
-            # an analytic map of the domain (acceleration.extrapolate_sweep); the next plain
-            # sweep must confirm it
-            snapshot = (copy.deepcopy(bnds), c.copy(), D)
-            prev_change = change
-            w_ext = 1.0 / (1.0 - rho_ext)
-            for b, (S0, dS0) in zip(bnds, s_old, strict=True):
-                assert b.S is not None and b.dS is not None
-                b.S, b.dS = extrapolate_curve(S0, dS0, b.S, b.dS, w_ext)
-            D = D_old * ((1.0 - w_ext) + w_ext * D / D_old)  # H'(0), H = (1 - w) id + w G
-            extrapolations += 1
-            phase, phase_history = "confirm", []
-            continue
-        if phase == "confirm":
-            if not change < prev_change:  # rejected: back to the state before extrapolating
-                bnds, c, D = snapshot
-                a = 0j
-                rejected += 1
-                phase, phase_history = "plain", []
-                hold = sweep + EXTRAPOLATE_WAIT  # no new extrapolation for a while
-                continue
-            phase = "plain"
-        if (
-            accel == "extrapolate"
-            and phase == "plain"
-            and sweep >= max(4, hold)
-            and len(phase_history) >= 3
-        ):
-            r1 = phase_history[-1] / max(phase_history[-2], 1e-300)
-            r0 = phase_history[-2] / max(phase_history[-3], 1e-300)
-            rem, ok = _remaining_error(phase_history)
-            if (
-                RHO_MIN < r1 < RHO_MAX
-                and abs(r1 - r0) <= RATIO_AGREE * r1
-                and not (ok and rem <= tol)
-            ):
-                rho_ext = min(r1, RHO_EXTRAPOLATE)
-                phase = "material"
-                continue
-        if accel == "sor" and phase == "plain" and sweep >= 4:
-            # the plain contraction, once two successive ratios agree (the slowest mode
-            # dominates), sets omega
-            r1 = history[-1] / max(history[-2], 1e-300)
-            r0 = history[-2] / max(history[-3], 1e-300)
-            omega = optimal_omega(r1) if abs(r1 - r0) <= RATIO_AGREE * r1 else 1.0
-            if omega > 1.0:
-                phase, phase_history = "relaxed", []
-                continue
-        if phase == "relaxed":
-            rem, ok = _remaining_error(phase_history)
-            grew = len(phase_history) > 1 and change > phase_history[-2]
-            if grew:  # safeguard: the relaxation overshoots -- halve it towards plain sweeps
-                omega = 1.0 + 0.5 * (omega - 1.0)
-            if (ok and rem <= tol) or omega < 1.05 or not np.isfinite(change):
-                phase, phase_history = "final", []  # plain sweeps certify the result
-            continue
-        if (phase == "final" or extrapolations) and len(phase_history) < STALL_SWEEPS:
-            continue  # at least three plain sweeps: two observed plain contractions
-        remaining, converged = _remaining_error(phase_history)
-        if converged and remaining <= tol:
-            break
-        if len(phase_history) > STALL_SWEEPS and change >= min(
-            phase_history[-STALL_SWEEPS - 1 : -1]
-        ):
-            converged = False  # no progress: rounding floor or a true stall -- reported
+        _check_crowding(radii[1:])
+        if sched.after_sweep(it, sweep, change):
             break
     else:
-        converged = False  # sweep limit: the extrapolated remaining error is reported
-    if phase in ("relaxed", "material", "confirm") or (
-        (extrapolations or relaxed_sweeps) and len(phase_history) < STALL_SWEEPS
-    ):
-        # sweep limit before the final plain sweeps could certify anything
-        remaining, converged = float("inf"), False
-    if len(phase_history) < 2:
-        phase_history = history[-STALL_SWEEPS - 1 :]
-    iteration_error = remaining if converged and remaining <= tol else _stalled_error(phase_history)
-    rot = complex(np.exp(-1j * np.angle(D)))
-    for b in bnds:
-        # the final passive nodes are interpolated from each smooth grid as the last sweep left
-        # it (moved by the maps after its own): its Fourier tail there is a resolution error
-        # too, whether or not a sweep solved on it (a final grid above its target tail was
-        # not counted before)
-        if b.S is not None:
-            tail = _tail(b.S)
-            if tail > b.tail:
-                b.capped_tail = max(b.capped_tail, tail)
-    passive = [b.passive() for b in bnds]
-    W = [p[0] * rot for p in passive]
-    dW = [p[1] * rot for p in passive]
-    c = c * rot
-    radii = np.array([_radius(bnds[j], c[j - 1] / rot) for j in range(1, M + 1)])
-    circ = float(np.max(np.abs(np.abs(W[0]) - 1.0)))
-    for j in range(1, M + 1):
-        circ = max(circ, float(np.max(np.abs(np.abs(W[j] - c[j - 1]) - radii[j - 1]))))
-    return CircleDomainResult(
-        W=W,
-        dW=dW,
-        centers=c,
-        radii=radii,
-        derivative_at_anchor=float(abs(D)),
-        sweeps=sweeps,
-        history=history,
-        circularity=circ,
-        gmres_iterations=gm_its,
-        smooth_nodes=[b.m for b in bnds],
-        wall_time=time.perf_counter() - t0,
-        iteration_error=iteration_error,
-        converged=bool(converged and iteration_error <= tol),
-        resolution_error=max(b.capped_tail for b in bnds),
-        first_mu=first_mu,
-        gmres_residual=gm_res,
-        relaxed_sweeps=relaxed_sweeps,
-        omega=omega,
-        extrapolations=extrapolations,
-        rejected_extrapolations=rejected,
-    )
+        sched.converged = False  # sweep limit: the extrapolated remaining error is reported
+    return _circle_domain(it, tally, sched, sweeps, t0)
 
 
 def _remaining_error(history: list[float]) -> tuple[float, bool]:

@@ -72,6 +72,32 @@ _CHILD_DX = np.array([-1, 1, -1, 1])
 _CHILD_DY = np.array([-1, -1, 1, 1])
 
 
+def _split_boxes(
+    split: np.ndarray,
+    ix: np.ndarray,
+    iy: np.ndarray,
+    beta: ComplexArray,
+    bnd: FloatArray,
+    pb: np.ndarray,
+    pk: np.ndarray,
+    shift: ComplexArray,
+) -> tuple[np.ndarray, np.ndarray, ComplexArray, FloatArray, np.ndarray, np.ndarray]:
+    """Split the boxes marked ``split`` into their four children: each child inherits the
+    parent's polynomial re-expanded about its own centre (``shift``), its error bounds and
+    its near (box, node) pairs ``pb``, ``pk``."""
+    idx = np.cumsum(split) - 1
+    ix, iy, beta, bnd = ix[split], iy[split], beta[split], bnd[split]
+    pb = idx[pb]
+    nb = ix.size
+    ix = (2 * ix[None, :] + (_CHILD_DX[:, None] > 0)).ravel()
+    iy = (2 * iy[None, :] + (_CHILD_DY[:, None] > 0)).ravel()
+    beta = np.einsum("bmc,jmi->jbic", beta, shift).reshape(4 * nb, beta.shape[1], beta.shape[2])
+    bnd = np.tile(bnd, (4, 1))
+    pb = (np.arange(4)[:, None] * nb + pb[None, :]).ravel()
+    pk = np.tile(pk, 4)
+    return ix, iy, beta, bnd, pb, pk
+
+
 @dataclass(frozen=True)
 class ExpansionStats:
     """How the evaluator was built: leaves per level, degree, separation, largest truncation
@@ -188,29 +214,8 @@ class LocalExpansions:
             per_level.append(int(leaf.sum()))
             if level == self.max_level:
                 break
-            # split the rest: children inherit the re-expanded polynomial, the bounds and the
-            # near pairs
-            split = ~leaf
-            idx = np.cumsum(split) - 1
-            ix, iy, beta, bnd = ix[split], iy[split], beta[split], bnd[split]
-            pb = idx[pb]
-            nb = ix.size
-            ix = (2 * ix[None, :] + (_CHILD_DX[:, None] > 0)).ravel()
-            iy = (2 * iy[None, :] + (_CHILD_DY[:, None] > 0)).ravel()
-            beta = np.einsum("bmc,jmi->jbic", beta, shift).reshape(4 * nb, p + 1, nsum)
-            bnd = np.tile(bnd, (4, 1))
-            pb = (np.arange(4)[:, None] * nb + pb[None, :]).ravel()
-            pk = np.tile(pk, 4)
-        self._centres = np.concatenate(centres) if centres else np.zeros(0, np.complex128)
-        self._radii = np.concatenate(radii) if radii else np.zeros(0)
-        b = np.concatenate(coefs) if coefs else np.zeros((0, p + 1, nsum), np.complex128)
-        # columns [0, c): beta_m of the sums; [c, 2c): (m+1) beta_(m+1) / R of the derivatives,
-        # so that S = sum beta_m zeta^m and S' = sum gamma_m zeta^m with zeta = (z - c)/R
-        self._coef = np.zeros((b.shape[0], p + 1, 2 * nsum), np.complex128)
-        self._coef[:, :, :nsum] = b
-        self._coef[:, :-1, nsum:] = (
-            b[:, 1:] * np.arange(1, p + 1)[None, :, None] / self._radii[:, None, None]
-        )
+            ix, iy, beta, bnd, pb, pk = _split_boxes(~leaf, ix, iy, beta, bnd, pb, pk, shift)
+        self._store_leaves(centres, radii, coefs)
         worst = np.concatenate(bounds).max(axis=0) if bounds else np.zeros(2)
         self.stats = ExpansionStats(
             leaves=int(self._centres.size),
@@ -222,6 +227,22 @@ class LocalExpansions:
             max_bound_derivative=float(worst[1]),
             finest_box=self._h_fine,
             build_time=time.perf_counter() - t0,
+        )
+
+    def _store_leaves(
+        self, centres: list[ComplexArray], radii: list[FloatArray], coefs: list[ComplexArray]
+    ) -> None:
+        """Keep the leaves' centres, radii and coefficients: columns [0, c) beta_m of the
+        sums, [c, 2c) (m+1) beta_(m+1) / R of their derivatives, so that S = sum beta_m zeta^m
+        and S' = sum gamma_m zeta^m with zeta = (z - c)/R."""
+        p, nsum = self.degree, self._nsum
+        self._centres = np.concatenate(centres) if centres else np.zeros(0, np.complex128)
+        self._radii = np.concatenate(radii) if radii else np.zeros(0)
+        b = np.concatenate(coefs) if coefs else np.zeros((0, p + 1, nsum), np.complex128)
+        self._coef = np.zeros((b.shape[0], p + 1, 2 * nsum), np.complex128)
+        self._coef[:, :, :nsum] = b
+        self._coef[:, :-1, nsum:] = (
+            b[:, 1:] * np.arange(1, p + 1)[None, :, None] / self._radii[:, None, None]
         )
 
     def _add_far(

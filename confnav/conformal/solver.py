@@ -416,6 +416,282 @@ def _difference(a: CircleDomainResult, b: CircleDomainResult) -> float:
     return float(max(np.max(np.abs(a.centers - b.centers)), np.max(np.abs(a.radii - b.radii))))
 
 
+def _already_solved(
+    workspace: Workspace, tol: float, nodes_per_side: int | None, initial: ConformalMap | None
+) -> ConformalMap | None:
+    """``initial`` if it is this very workspace solved to at least ``tol`` (nothing to do)."""
+    if (
+        initial is not None
+        and nodes_per_side is None
+        and initial.workspace.content_hash == workspace.content_hash
+        and initial.diagnostics.tol_met
+        and initial.diagnostics.tol <= tol
+    ):
+        return initial
+    return None
+
+
+def _mesh_levels(tol: float, nodes_per_side: int | None, initial: ConformalMap | None) -> list[int]:
+    """Nodes per side of the levels to solve, coarse to fine: :data:`LEVELS` from a start
+    that the tolerance sets (and a warm start raises, :func:`_warm_start_level`), or a fixed
+    mesh and the two next coarser ones (x1.5 steps), so that an estimate still rests on an
+    observed contraction."""
+    if nodes_per_side is not None:
+        if nodes_per_side < 8:
+            raise SolverError("nodes_per_side must be at least 8")
+        return sorted(
+            {max(8, round(nodes_per_side / 2.25)), max(8, round(nodes_per_side / 1.5))}
+            | {nodes_per_side}
+        )
+    start = 0 if tol >= 1e-7 else (1 if tol >= 1e-9 else 3)
+    if initial is not None:
+        start = max(start, _warm_start_level(initial, tol))
+    return list(LEVELS[start:])
+
+
+def _level_estimate(
+    diff: float, prev_diff: float | None, ns: int, prev_ns: int, noise: float
+) -> tuple[float, float, list[str]]:
+    """Discretisation error of the finer of two levels from their difference ``diff``
+    (docs/METHOD.md sec. 2): ``diff rho / (1 - rho)`` (geometric tail, Aitken), rho the error
+    ratio per level, the slower of the assumed order n^-p and the contraction observed over
+    three levels (``diff / prev_diff``). Returns the estimate, that observed ratio (nan: none)
+    and why the estimate is unverified (no contraction observed; differences above ``noise``
+    that stopped shrinking)."""
+    rho = (prev_ns / ns) ** ASSUMED_ORDER
+    unverified: list[str] = []
+    ratio = float("nan")
+    if prev_diff is not None and prev_diff > 0:
+        ratio = diff / prev_diff
+        rho = max(rho, ratio)
+    else:
+        unverified.append(
+            f"discretisation estimate from two mesh levels ({prev_ns} and {ns} nodes per "
+            f"side) on an assumed order n^-{ASSUMED_ORDER:g}, no contraction observed"
+        )
+    if rho >= RHO_LEVELS_MAX and diff > noise:
+        unverified.append(
+            f"level differences stopped shrinking ({prev_diff:.1e} -> {diff:.1e} at "
+            f"{ns} nodes per side): the extrapolation does not hold"
+        )
+    rho = min(rho, RHO_LEVELS_MAX)  # the figure only; unverified says it is not one
+    return diff * rho / (1 - rho), ratio, unverified
+
+
+class _Refinement:
+    """The refinement over mesh levels (module docstring): solve each level, estimate its
+    discretisation error from the previous one, and stop at the first level whose estimate
+    (over at least :data:`MIN_LEVELS` levels) and boundary residual meet ``tol`` -- refining
+    only the sides the residual names first, where that may suffice."""
+
+    def __init__(
+        self,
+        workspace: Workspace,
+        tol: float,
+        max_error: float,
+        progress: Callable[[str], None] | None,
+        accel: str | None,
+        t0: float,
+    ) -> None:
+        self.workspace, self.tol, self.max_error = workspace, tol, max_error
+        self.progress, self.accel, self.t0 = progress, accel, t0
+        self.refinements: list[dict[str, float]] = []
+        self.caps: list[str] = []
+        self.prev: CircleDomainResult | None = None
+        self.prev_ns = 0
+        self.prev_diff: float | None = None
+        self.prev_resolution = 0.0
+        self.failed: ConvergenceError | None = None
+        self.best: _Level | None = None
+        self.cmap: ConformalMap | None = None
+        self.solved = 0  # levels solved (a skipped level does not count)
+        self.warm: _Warm | None = None
+        self.done = False
+
+    def run(self, levels: list[int]) -> ConformalMap:
+        """Refine through ``levels`` until one is certified or none is left; the best map."""
+        for ns in levels:
+            self.level(ns, levels)
+            if self.done:
+                break
+        return self.result()
+
+    def level(self, ns: int, levels: list[int]) -> None:
+        """Solve level ``ns``, estimate its error, and certify it if the estimate allows."""
+        if self.progress is not None:
+            self.progress(f"solving with {ns} nodes per side at the sharpest corners")
+        solved = self._solve(ns)
+        if solved is None:
+            return
+        res, meshes = solved
+        self.warm = (meshes, res.first_mu)  # the next level's first guesses
+        _check_resolvable(res, ns, self.prev_resolution, self.max_error)
+        self.prev_resolution = res.resolution_error
+        if self.prev is not None:
+            est, unverified = self._estimate(res, meshes, ns)
+            if est <= self.tol and self.solved + 1 >= MIN_LEVELS and not unverified:
+                self.done = self._certify(ns, est, levels)
+                if self.done:
+                    return
+        self.prev, self.prev_ns = res, ns
+        self.solved += 1
+
+    def _solve(self, ns: int) -> tuple[CircleDomainResult, list[BoundaryMesh]] | None:
+        """One level's Koebe iteration; None if it gives nothing (``done`` then says whether
+        the refinement ends): a level past the node limit (:class:`GapError`) or failing once
+        a usable pair of levels exists ends it on the best level; a failing coarse level is
+        skipped (e.g. a needle-like tip, see confnav.conformal.meshing); unresolved crowding
+        at two levels is raised (refining does not resolve it)."""
+        try:
+            return _solve_level(
+                self.workspace, ns, self.tol, self.progress, self.warm, accel=self.accel
+            )
+        except GapError as exc:
+            if self.best is None:
+                raise
+            self.caps.append(f"node limit at {ns} nodes per side: {exc}")
+            log.warning(
+                "refinement to level %d stopped (%s); keeping level %d", ns, exc, self.best[3]
+            )
+            self.done = True
+            return None
+        except ConvergenceError as exc:
+            if isinstance(exc, UnresolvedCrowdingError) and isinstance(
+                self.failed, UnresolvedCrowdingError
+            ):
+                raise  # two levels alike: refining does not resolve crowding
+            if self.best is None:
+                self.failed = exc
+                log.warning("level %d failed (%s); refining", ns, exc)
+                return None
+            log.warning(
+                "refinement to level %d failed (%s); keeping level %d", ns, exc, self.best[3]
+            )
+            self.done = True
+            return None
+
+    def _estimate(
+        self, res: CircleDomainResult, meshes: list[BoundaryMesh], ns: int
+    ) -> tuple[float, list[str]]:
+        """The level's discretisation estimate (:func:`_level_estimate`), recorded in
+        ``refinements``; the level becomes the best one."""
+        assert self.prev is not None
+        diff = _difference(res, self.prev)
+        # a difference within the two levels' own iteration errors is iteration noise
+        noise = max(ROUNDING_DIFFERENCE * self.tol, res.iteration_error + self.prev.iteration_error)
+        est, ratio, unverified = _level_estimate(diff, self.prev_diff, ns, self.prev_ns, noise)
+        self.refinements.append(
+            {
+                "nodes_per_side": ns,
+                "difference": diff,
+                "error_estimate": est,
+                "iteration_error": res.iteration_error,
+                "wall_time": res.wall_time,
+            }
+        )
+        if np.isfinite(ratio):  # difference / previous difference (observed contraction)
+            self.refinements[-1]["ratio"] = ratio
+        eta, deta = [m.eta for m in meshes], [m.deta for m in meshes]
+        self.best = (res, eta, deta, ns, est, unverified)
+        self.cmap = None
+        self.prev_diff = diff
+        return est, unverified
+
+    def _certify(self, ns: int, est: float, levels: list[int]) -> bool:
+        """The discretisation is fine: the a-posteriori boundary residual must agree, else
+        refine the sides it names (:func:`_refine_sides`, if the estimate leaves
+        :data:`LOCAL_HEADROOM`). True if a map meeting ``tol`` came out."""
+        assert self.best is not None
+        cmap = _make_map(self.workspace, self.best, self.tol, self.caps, self.refinements, self.t0)
+        # kept per level: a residual above tol at a level whose discretisation estimate is
+        # below it says what forced the next (costlier) level
+        self.refinements[-1]["boundary_residual"] = cmap.diagnostics.boundary_residual
+        self.cmap = cmap
+        if cmap.diagnostics.boundary_residual <= self.tol:
+            return True
+        finer = levels[levels.index(ns) + 1 :]
+        if LOCAL_REFINEMENT and finer and est <= LOCAL_HEADROOM * self.tol:
+            local = _refine_sides(
+                self.workspace,
+                ns,
+                finer,
+                self.best,
+                cmap,
+                self.tol,
+                self.progress,
+                self.warm,
+                self.caps,
+                self.refinements,
+                self.t0,
+                self.accel,
+            )
+            if local is not None:
+                self.cmap, self.best = local
+                return True
+            self.cmap = None
+        return False
+
+    def result(self) -> ConformalMap:
+        """The map of the best level (its full error budget); the first failure if no pair of
+        levels was solved."""
+        if self.best is None:
+            if self.failed is not None:
+                raise self.failed
+            raise SolverError("refinement needs at least two mesh levels")
+        if self.cmap is None:
+            self.cmap = _make_map(
+                self.workspace, self.best, self.tol, self.caps, self.refinements, self.t0
+            )
+        return self.cmap
+
+
+def _refuse_unusable(cmap: ConformalMap, max_error: float) -> None:
+    """A map whose estimated error exceeds ``max_error`` is never returned: raise, naming the
+    error terms, the worst boundary point and, when the solve measured crowding, the atlas
+    (:class:`~confnav.errors.CrowdingError`)."""
+    diag = cmap.diagnostics
+    if diag.error_estimate <= max_error:
+        return
+    where = ""
+    if diag.boundary_residual >= diag.error_estimate:  # name the place: a user can see it
+        z, name = cmap.worst_boundary_point()
+        where = f"; largest on {name} at {fmt_point(z)}"
+    crowded = crowding_reason(diag)
+    error = CrowdingError if crowded else SolverError  # an atlas resolves crowding
+    raise error(
+        f"the map's estimated error {diag.error_estimate:.1e} is too large to navigate "
+        f"with (even at {diag.nodes_per_side} nodes per side; discretisation "
+        f"{diag.discretisation_error:.1e}, iteration {diag.iteration_error:.1e}, "
+        f"boundary residual {diag.boundary_residual:.1e}, smooth-grid resolution "
+        f"{diag.resolution_error:.1e}{where})"
+        + (f"; one map crowds here ({crowded}): an atlas resolves it" if crowded else "")
+    )
+
+
+def _warn_tol_missed(diag: SolveReport, tol: float) -> None:
+    """An :class:`AccuracyWarning` naming every error term above ``tol`` (raised at the
+    caller of :func:`solve`)."""
+    why = [
+        f"{name} {val:.1e}"
+        for name, val in (
+            ("discretisation", diag.discretisation_error),
+            ("iteration", diag.iteration_error),
+            ("boundary residual", diag.boundary_residual),
+            ("smooth-grid resolution", diag.resolution_error),
+        )
+        if val > tol
+    ]
+    if not diag.iteration_converged:
+        why.append("the Koebe iteration did not converge (stalled or sweep limit)")
+    why += diag.caps + diag.unverified
+    warnings.warn(
+        f"conformal map: estimated error {diag.error_estimate:.1e}, tol {tol:.1e} not met "
+        f"(finest mesh {diag.nodes_per_side} nodes per side): " + "; ".join(why),
+        AccuracyWarning,
+        stacklevel=3,
+    )
+
+
 def solve(
     workspace: Workspace,
     tol: float = 1e-10,
@@ -427,6 +703,12 @@ def solve(
     koebe_accel: str | None = None,
 ) -> ConformalMap:
     """Compute the conformal map of ``workspace`` onto a circle domain.
+
+    The steps: the mesh levels (:func:`_mesh_levels`); the refinement over them
+    (:class:`_Refinement`: each level's Koebe iteration, its discretisation estimate
+    :func:`_level_estimate`, the boundary residual and per-side refinement that certify it);
+    a map too inaccurate to use is refused (:func:`_refuse_unusable`), one missing ``tol``
+    is returned with a warning (:func:`_warn_tol_missed`).
 
     Parameters
     ----------
@@ -466,178 +748,17 @@ def solve(
     """
     if not (np.isfinite(tol) and 0 < tol < 1):
         raise SolverError(f"tol must be in (0, 1), got {tol}")
-    if (
-        initial is not None
-        and nodes_per_side is None
-        and initial.workspace.content_hash == workspace.content_hash
-        and initial.diagnostics.tol_met
-        and initial.diagnostics.tol <= tol
-    ):
-        return initial  # the same workspace, already solved at least as accurately
+    done = _already_solved(workspace, tol, nodes_per_side, initial)
+    if done is not None:
+        return done
     if not (np.isfinite(max_error) and max_error > 0):
         raise SolverError(f"max_error must be positive and finite, got {max_error}")
     t0 = time.perf_counter()
-    if nodes_per_side is not None:
-        if nodes_per_side < 8:
-            raise SolverError("nodes_per_side must be at least 8")
-        levels = sorted(
-            {max(8, round(nodes_per_side / 2.25)), max(8, round(nodes_per_side / 1.5))}
-            | {nodes_per_side}
-        )
-    else:
-        start = 0 if tol >= 1e-7 else (1 if tol >= 1e-9 else 3)
-        if initial is not None:
-            start = max(start, _warm_start_level(initial, tol))
-        levels = list(LEVELS[start:])
-    refinements: list[dict[str, float]] = []
-    caps: list[str] = []
-    prev: CircleDomainResult | None = None
-    prev_ns = 0
-    failed: ConvergenceError | None = None
-    prev_diff: float | None = None
-    best: _Level | None = None
-    cmap: ConformalMap | None = None
-    solved = 0  # levels solved (a skipped level does not count)
-    warm: _Warm | None = None
-    prev_resolution = 0.0
-    for ns in levels:
-        if progress is not None:
-            progress(f"solving with {ns} nodes per side at the sharpest corners")
-        try:
-            res, meshes = _solve_level(workspace, ns, tol, progress, warm, accel=koebe_accel)
-        except GapError as exc:
-            if best is None:
-                raise
-            caps.append(f"node limit at {ns} nodes per side: {exc}")
-            log.warning("refinement to level %d stopped (%s); keeping level %d", ns, exc, best[3])
-            break
-        except ConvergenceError as exc:
-            if isinstance(exc, UnresolvedCrowdingError) and isinstance(
-                failed, UnresolvedCrowdingError
-            ):
-                raise  # two levels alike: refining does not resolve crowding
-            if best is None:
-                # no usable pair of levels yet: a coarse level whose discretisation is unstable
-                # (e.g. a needle-like tip, see confnav.conformal.meshing) is skipped, not fatal
-                failed = exc
-                log.warning("level %d failed (%s); refining", ns, exc)
-                continue
-            log.warning("refinement to level %d failed (%s); keeping level %d", ns, exc, best[3])
-            break
-        warm = (meshes, res.first_mu)  # the next level's first guesses
-        _check_resolvable(res, ns, prev_resolution, max_error)
-        prev_resolution = res.resolution_error
-        eta, deta = [m.eta for m in meshes], [m.deta for m in meshes]
-        if prev is not None:
-            diff = _difference(res, prev)
-            # error of the finer solve ~ diff * rho/(1 - rho), rho = error ratio per level:
-            # the slower of the assumed order and the observed contraction (Aitken).
-            rho = (prev_ns / ns) ** ASSUMED_ORDER
-            unverified: list[str] = []
-            ratio = float("nan")
-            if prev_diff is not None and prev_diff > 0:
-                ratio = diff / prev_diff
-                rho = max(rho, ratio)
-            else:
-                unverified.append(
-                    f"discretisation estimate from two mesh levels ({prev_ns} and {ns} nodes per "
-                    f"side) on an assumed order n^-{ASSUMED_ORDER:g}, no contraction observed"
-                )
-            # a difference within the two levels' own iteration errors is iteration noise
-            noise = max(ROUNDING_DIFFERENCE * tol, res.iteration_error + prev.iteration_error)
-            if rho >= RHO_LEVELS_MAX and diff > noise:
-                unverified.append(
-                    f"level differences stopped shrinking ({prev_diff:.1e} -> {diff:.1e} at "
-                    f"{ns} nodes per side): the extrapolation does not hold"
-                )
-            rho = min(rho, RHO_LEVELS_MAX)  # the figure only; unverified says it is not one
-            est = diff * rho / (1 - rho)
-            refinements.append(
-                {
-                    "nodes_per_side": ns,
-                    "difference": diff,
-                    "error_estimate": est,
-                    "iteration_error": res.iteration_error,
-                    "wall_time": res.wall_time,
-                }
-            )
-            if np.isfinite(ratio):  # difference / previous difference (observed contraction)
-                refinements[-1]["ratio"] = ratio
-            best = (res, eta, deta, ns, est, unverified)
-            cmap = None
-            prev_diff = diff
-            if est <= tol and solved + 1 >= MIN_LEVELS and not unverified:
-                # the discretisation is fine; the a-posteriori residual must agree, else refine
-                cmap = _make_map(workspace, best, tol, caps, refinements, t0)
-                # kept per level: a residual above tol at a level whose discretisation estimate
-                # is below it says what forced the next (costlier) level
-                refinements[-1]["boundary_residual"] = cmap.diagnostics.boundary_residual
-                if cmap.diagnostics.boundary_residual <= tol:
-                    break
-                finer = levels[levels.index(ns) + 1 :]
-                if LOCAL_REFINEMENT and finer and est <= LOCAL_HEADROOM * tol:
-                    local = _refine_sides(
-                        workspace,
-                        ns,
-                        finer,
-                        best,
-                        cmap,
-                        tol,
-                        progress,
-                        warm,
-                        caps,
-                        refinements,
-                        t0,
-                        koebe_accel,
-                    )
-                    if local is not None:
-                        cmap, best = local
-                        break
-                    cmap = None
-        prev, prev_ns = res, ns
-        solved += 1
-    if best is None:
-        if failed is not None:
-            raise failed
-        raise SolverError("refinement needs at least two mesh levels")
-    if cmap is None:
-        cmap = _make_map(workspace, best, tol, caps, refinements, t0)
-    diag = cmap.diagnostics
-    if diag.error_estimate > max_error:
-        where = ""
-        if diag.boundary_residual >= diag.error_estimate:  # name the place: a user can see it
-            z, name = cmap.worst_boundary_point()
-            where = f"; largest on {name} at {fmt_point(z)}"
-        crowded = crowding_reason(diag)
-        error = CrowdingError if crowded else SolverError  # an atlas resolves crowding
-        raise error(
-            f"the map's estimated error {diag.error_estimate:.1e} is too large to navigate "
-            f"with (even at {diag.nodes_per_side} nodes per side; discretisation "
-            f"{diag.discretisation_error:.1e}, iteration {diag.iteration_error:.1e}, "
-            f"boundary residual {diag.boundary_residual:.1e}, smooth-grid resolution "
-            f"{diag.resolution_error:.1e}{where})"
-            + (f"; one map crowds here ({crowded}): an atlas resolves it" if crowded else "")
-        )
-    if not diag.tol_met:
-        why = [
-            f"{name} {val:.1e}"
-            for name, val in (
-                ("discretisation", diag.discretisation_error),
-                ("iteration", diag.iteration_error),
-                ("boundary residual", diag.boundary_residual),
-                ("smooth-grid resolution", diag.resolution_error),
-            )
-            if val > tol
-        ]
-        if not diag.iteration_converged:
-            why.append("the Koebe iteration did not converge (stalled or sweep limit)")
-        why += diag.caps + diag.unverified
-        warnings.warn(
-            f"conformal map: estimated error {diag.error_estimate:.1e}, tol {tol:.1e} not met "
-            f"(finest mesh {diag.nodes_per_side} nodes per side): " + "; ".join(why),
-            AccuracyWarning,
-            stacklevel=2,
-        )
+    levels = _mesh_levels(tol, nodes_per_side, initial)
+    cmap = _Refinement(workspace, tol, max_error, progress, koebe_accel, t0).run(levels)
+    _refuse_unusable(cmap, max_error)
+    if not cmap.diagnostics.tol_met:
+        _warn_tol_missed(cmap.diagnostics, tol)
     return cmap
 
 

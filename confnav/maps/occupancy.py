@@ -238,6 +238,135 @@ def _exact_union(mask: BoolGrid) -> Any:
     return shapely.union_all(boxes)
 
 
+def _merge_gaps(free: BoolGrid, rho: int) -> BoolGrid:
+    """Step 2: close the occupied set with a disk of ``rho`` cells (outside the image is
+    occupied); returns the free cells left."""
+    from scipy import ndimage
+    from skimage import morphology
+
+    if rho <= 0:
+        return free
+    occ = np.pad(~free, rho + 1, constant_values=True)
+    occ = ndimage.binary_closing(occ, morphology.disk(rho))  # type: ignore[no-untyped-call]
+    return np.asarray(~occ[rho + 1 : -rho - 1, rho + 1 : -rho - 1])
+
+
+def _keep_component(
+    closed_free: BoolGrid,
+    keep: complex | None,
+    rho: int,
+    resolution: float,
+    origin: tuple[float, float, float],
+) -> tuple[BoolGrid, int, int]:
+    """Step 3: the 4-connected free component holding ``keep`` (default: the largest), made
+    a simple polygon's cells (:func:`_unpinch`). Returns it, the number of components and the
+    cells that unpinching occupied."""
+    from scipy import ndimage
+
+    h, w = closed_free.shape
+    labels, n_comp = ndimage.label(closed_free)  # default structure: 4-connectivity
+    if n_comp == 0:
+        raise MapError(f"no free space is left after merging gaps narrower than {2 * rho} cells")
+    cell: tuple[int, int] | None = None
+    if keep is not None:
+        i, j = _world_to_cell(complex(keep), h, resolution, origin)
+        if not (0 <= i < h and 0 <= j < w):
+            raise MapError(f"--keep point {fmt_point(keep)} is outside the map")
+        if not closed_free[i, j]:
+            raise MapError(
+                f"--keep point ({keep.real:g}, {keep.imag:g}) is in an occupied or unknown cell "
+                f"(row {i}, col {j})"
+            )
+        k = int(labels[i, j])
+        cell = (i, j)
+    else:
+        sizes = np.bincount(labels.ravel())
+        sizes[0] = 0
+        k = int(np.argmax(sizes))
+    kept, pinched = _unpinch(labels == k, cell)
+    return kept, int(n_comp), pinched
+
+
+def _border_warning(
+    kept: BoolGrid, resolution: float, origin: tuple[float, float, float]
+) -> list[str]:
+    """Step 3: where the kept free space runs into the image border, the border is a wall
+    (the map's extent is the robot's world); said once, with the first such cell."""
+    h, w = kept.shape
+    border = np.concatenate([kept[0], kept[-1], kept[:, 0], kept[:, -1]])
+    if not border.any():
+        return []
+    rows, cols = np.nonzero(kept)
+    on = (rows == 0) | (rows == h - 1) | (cols == 0) | (cols == w - 1)
+    k0 = int(np.flatnonzero(on)[0])
+    zc = complex(
+        _cells_to_world(
+            np.asarray(cols[k0 : k0 + 1] + 0.5, dtype=np.float64),
+            np.asarray(h - rows[k0 : k0 + 1] - 0.5, dtype=np.float64),
+            resolution,
+            origin,
+        )[0]
+    )
+    return [
+        f"the free space runs into the image border ({int(on.sum())} border cells, first "
+        f"at row {rows[k0]}, col {cols[k0]}, x={zc.real:.4g}, y={zc.imag:.4g}): the "
+        "border is taken as a wall (the map's extent is the robot's world)"
+    ]
+
+
+def _specks(
+    kept: BoolGrid, min_obstacle_cells: int, resolution: float
+) -> tuple[BoolGrid, int, list[str]]:
+    """Step 2's optional drop: obstacles (8-connected blocked components inside the kept free
+    space) of at most ``min_obstacle_cells`` cells are freed; with 0 one-cell obstacles are
+    kept (conservative) but named. Returns the mask, the obstacles dropped and warnings."""
+    from scipy import ndimage
+
+    # the image is padded with blocked cells so that everything outside it is one component
+    holes, n_holes = ndimage.label(np.pad(~kept, 1, constant_values=True), np.ones((3, 3)))
+    outside = holes[0, 0]
+    holes = holes[1:-1, 1:-1]
+    sizes = np.bincount(holes.ravel(), minlength=n_holes + 1)
+    if min_obstacle_cells <= 0:
+        ones = np.flatnonzero(sizes == 1)
+        ones = ones[(ones != 0) & (ones != outside)]
+        if ones.size:  # kept (conservative), but said: grown by a robot each blocks a square
+            return (
+                kept,
+                0,
+                [
+                    f"kept {ones.size} one-cell obstacle(s), SLAM specks perhaps: grown by a "
+                    f"robot of radius R each blocks a square of side 2 R + {resolution:g} m and "
+                    "can cut rooms off; --min-obstacle-cells 1 drops them (non-conservative)"
+                ],
+            )
+        return kept, 0, []
+    small = np.flatnonzero(sizes <= min_obstacle_cells)
+    small = small[(small != 0) & (small != outside)]
+    if not small.size:
+        return kept, 0, []
+    return (
+        kept | np.isin(holes, small),
+        int(small.size),
+        [
+            f"dropped {int(small.size)} obstacle(s) of <= {min_obstacle_cells} cells "
+            "(non-conservative: they are gone from the workspace)"
+        ],
+    )
+
+
+def _polygon_workspace(
+    poly: Polygon, resolution: float, origin: tuple[float, float, float]
+) -> Workspace:
+    """Step 6: the traced polygon (cell units) as a workspace in metres in the map frame."""
+
+    def world(coords: Any) -> NDArray[np.complex128]:
+        xy = np.asarray(coords, dtype=np.float64)[:-1]
+        return _cells_to_world(xy[:, 0], xy[:, 1], resolution, origin)
+
+    return Workspace(world(poly.exterior.coords), [world(h.coords) for h in poly.interiors])
+
+
 def workspace_from_grid(
     free: BoolGrid,
     resolution: float,
@@ -249,10 +378,10 @@ def workspace_from_grid(
     merge_cells: int = 0,
     max_error: float = 1.0,
 ) -> ImportResult:
-    """Steps 2-6 of the module docstring on a free-cell mask (row 0 = top)."""
-    from scipy import ndimage
-    from skimage import morphology
-
+    """Steps 2-6 of the module docstring on a free-cell mask (row 0 = top): merge
+    (:func:`_merge_gaps`), keep (:func:`_keep_component`, :func:`_border_warning`), drop
+    specks on request (:func:`_specks`), trace and simplify (:func:`_trace`), write
+    (:func:`_polygon_workspace`, shrunk by ``robot_radius``)."""
     t0 = time.perf_counter()
     free = np.asarray(free, dtype=bool)
     if free.ndim != 2 or free.size == 0:
@@ -261,100 +390,24 @@ def workspace_from_grid(
     n_free = int(free.sum())
     if n_free == 0:
         raise MapError("the map has no free cell (check negate and the thresholds)")
-    # 2. merge: closing of the occupied set (outside the image is occupied)
     rho = max(merge_cells, math.floor(robot_radius / resolution + 1e-9))
-    if rho > 0:
-        occ = np.pad(~free, rho + 1, constant_values=True)
-        occ = ndimage.binary_closing(occ, morphology.disk(rho))  # type: ignore[no-untyped-call]
-        closed_free = ~occ[rho + 1 : -rho - 1, rho + 1 : -rho - 1]
-    else:
-        closed_free = free
-    merged = int(n_free - closed_free.sum())
-    # 3. keep one 4-connected component
-    labels, n_comp = ndimage.label(closed_free)  # default structure: 4-connectivity
-    if n_comp == 0:
-        raise MapError(f"no free space is left after merging gaps narrower than {2 * rho} cells")
-    if keep is not None:
-        i, j = _world_to_cell(complex(keep), h, resolution, origin)
-        if not (0 <= i < h and 0 <= j < w):
-            raise MapError(f"--keep point {fmt_point(keep)} is outside the map")
-        if not closed_free[i, j]:
-            raise MapError(
-                f"--keep point ({keep.real:g}, {keep.imag:g}) is in an occupied or unknown cell "
-                f"(row {i}, col {j})"
-            )
-        k = int(labels[i, j])
-    else:
-        sizes = np.bincount(labels.ravel())
-        sizes[0] = 0
-        k = int(np.argmax(sizes))
-    kept = labels == k
-    kept, pinched = _unpinch(kept, (i, j) if keep is not None else None)
-    merged += pinched
-    dropped = 0
-    warnings: list[str] = []
-    border = np.concatenate([kept[0], kept[-1], kept[:, 0], kept[:, -1]])
-    if border.any():  # the map's extent is the robot's world: its border is a wall
-        rows, cols = np.nonzero(kept)
-        on = (rows == 0) | (rows == h - 1) | (cols == 0) | (cols == w - 1)
-        k0 = int(np.flatnonzero(on)[0])
-        zc = complex(
-            _cells_to_world(
-                np.asarray(cols[k0 : k0 + 1] + 0.5, dtype=np.float64),
-                np.asarray(h - rows[k0 : k0 + 1] - 0.5, dtype=np.float64),
-                resolution,
-                origin,
-            )[0]
-        )
-        warnings.append(
-            f"the free space runs into the image border ({int(on.sum())} border cells, first "
-            f"at row {rows[k0]}, col {cols[k0]}, x={zc.real:.4g}, y={zc.imag:.4g}): the "
-            "border is taken as a wall (the map's extent is the robot's world)"
-        )
-    # specks: obstacles (8-connected blocked components inside the kept free space); the
-    # image is padded with blocked cells so that everything outside it is one component
-    holes, n_holes = ndimage.label(np.pad(~kept, 1, constant_values=True), np.ones((3, 3)))
-    outside = holes[0, 0]
-    holes = holes[1:-1, 1:-1]
-    sizes = np.bincount(holes.ravel(), minlength=n_holes + 1)
-    if min_obstacle_cells <= 0:
-        ones = np.flatnonzero(sizes == 1)
-        ones = ones[(ones != 0) & (ones != outside)]
-        if ones.size:  # kept (conservative), but said: grown by a robot each blocks a square
-            warnings.append(
-                f"kept {ones.size} one-cell obstacle(s), SLAM specks perhaps: grown by a robot "
-                f"of radius R each blocks a square of side 2 R + {resolution:g} m and can cut "
-                "rooms off; --min-obstacle-cells 1 drops them (non-conservative)"
-            )
-    else:
-        small = np.flatnonzero(sizes <= min_obstacle_cells)
-        small = small[(small != 0) & (small != outside)]
-        if small.size:
-            kept = kept | np.isin(holes, small)
-            dropped = int(small.size)
-            warnings.append(
-                f"dropped {dropped} obstacle(s) of <= {min_obstacle_cells} cells "
-                "(non-conservative: they are gone from the workspace)"
-            )
-    exact = _exact_union(kept)
-    poly, hd = _trace(kept, exact, max_error)
+    closed_free = _merge_gaps(free, rho)
+    kept, n_comp, pinched = _keep_component(closed_free, keep, rho, resolution, origin)
+    merged = int(n_free - closed_free.sum()) + pinched
+    warnings = _border_warning(kept, resolution, origin)
+    kept, dropped, speck_warnings = _specks(kept, min_obstacle_cells, resolution)
+    warnings += speck_warnings
+    poly, hd = _trace(kept, _exact_union(kept), max_error)
     if hd > max_error + 1e-9:
         warnings.append(f"Hausdorff error {hd:.3f} cell exceeds {max_error:g} cell")
-    outer = poly.exterior.coords
-    obst = [hole.coords for hole in poly.interiors]
-
-    def world(coords: Any) -> NDArray[np.complex128]:
-        xy = np.asarray(coords, dtype=np.float64)[:-1]
-        return _cells_to_world(xy[:, 0], xy[:, 1], resolution, origin)
-
-    ws = Workspace(world(outer), [world(c) for c in obst])
+    ws = _polygon_workspace(poly, resolution, origin)
     if robot_radius > 0:
         ws = inflate(ws, robot_radius, keep=keep)
     report = ImportReport(
         shape=(h, w),
         resolution=resolution,
         free_cells=n_free,
-        components=int(n_comp),
+        components=n_comp,
         kept_cells=int(kept.sum()),
         obstacles=ws.n_obstacles,
         merged_cells=merged,

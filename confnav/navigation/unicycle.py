@@ -189,6 +189,28 @@ def _lowered(clearance: Any, margin: float) -> Any:
     return f
 
 
+def _held_step(
+    h: FArray, c: FArray, v: FArray, om: FArray, point: CArray, uc: UnicycleController
+) -> FArray:
+    """Step lengths (at most ``h``) over which the command ``(v, om)`` may be held: at most
+    half the body's clearance ``c`` travelled, 0.2 rad turned, and a quarter of the
+    look-ahead point's distance to the goal (no overshoot of the goal by a held command)."""
+    h = np.minimum(h, 0.5 * c / np.maximum(np.abs(v), 1e-300))
+    h = np.minimum(h, 0.2 / np.maximum(np.abs(om), 1e-300))
+    gap = np.abs(point - uc.goal)
+    return np.asarray(np.minimum(h, 0.25 * gap / np.maximum(np.abs(v + 1j * uc.d * om), 1e-300)))
+
+
+def _gather_paths(z0: CArray, chunks: list[tuple[NDArray[np.intp], CArray]]) -> tuple[CArray, ...]:
+    """Each robot's path (its start, then its positions step by step) from the per-step
+    chunks ``(robots moved, their new positions)``."""
+    n = z0.size
+    who = np.concatenate([np.arange(n)] + [ch[0] for ch in chunks])
+    pts = np.concatenate([z0] + [ch[1] for ch in chunks])
+    order = np.argsort(who, kind="stable")
+    return tuple(np.split(pts[order], np.cumsum(np.bincount(who, minlength=n))[:-1]))
+
+
 def simulate_unicycle(
     uc: UnicycleController,
     starts: ArrayLike,
@@ -247,12 +269,7 @@ def simulate_unicycle(
         a, v, om = a[go], out.u.real[go], out.u.imag[go]
         if a.size == 0:
             continue
-        h = np.minimum(dt, t_max - t[a])
-        h = np.minimum(h, 0.5 * c[a] / np.maximum(np.abs(v), 1e-300))
-        h = np.minimum(h, 0.2 / np.maximum(np.abs(om), 1e-300))  # at most 0.2 rad per step
-        # no overshoot of the goal by the held command: p moves at most a quarter of its distance
-        gap = np.abs(out.point[go] - uc.goal)
-        h = np.minimum(h, 0.25 * gap / np.maximum(np.abs(v + 1j * uc.d * om), 1e-300))
+        h = _held_step(np.minimum(dt, t_max - t[a]), c[a], v, om, out.point[go], uc)
         zn, thn = step_exact(z[a], th[a], v, om, h)
         sag = np.abs(v) * h * np.abs(om) * h / 8.0
         cn = body(zn)
@@ -269,12 +286,7 @@ def simulate_unicycle(
         status[a[hit | (cn <= 0)]] = COLLIDED
         late = (status[a] < 0) & ((t[a] >= t_max * (1 - 1e-12)) | (nsteps[a] >= max_steps))
         status[a[late]] = TIMEOUT
-    paths: tuple[CArray, ...] | None = None
-    if record_paths:
-        who = np.concatenate([np.arange(n)] + [ch[0] for ch in chunks])
-        pts = np.concatenate([z0] + [ch[1] for ch in chunks])
-        order = np.argsort(who, kind="stable")
-        paths = tuple(np.split(pts[order], np.cumsum(np.bincount(who, minlength=n))[:-1]))
+    paths = _gather_paths(z0, chunks) if record_paths else None
     return UnicycleResult(
         starts=z0,
         goal=uc.goal,

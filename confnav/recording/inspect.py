@@ -290,134 +290,176 @@ def _core_workspace(wd: WorkspaceDefinition) -> Any:
     return Workspace(wd.outer, wd.obstacles, anchor=wd.anchor)
 
 
+def _unknown_schemas(channels: list[ChannelInfo]) -> list[str]:
+    """Schemas of valid channels that are neither wire models nor the scene schema."""
+    return sorted(
+        {
+            c.schema_name or f"(none, encoding {c.message_encoding})"
+            for c in channels
+            if not c.invalid
+            and c.schema_name not in MODELS_BY_TYPE
+            and c.schema_name != SCENE_SCHEMA_NAME
+        }
+    )
+
+
+@dataclass
+class _Scan:
+    """What one pass over a recording's messages collects (the latest definition, solution
+    and atlas index per workspace; per robot, :class:`RobotSummary`)."""
+
+    workspaces: dict[str, WorkspaceDefinition] = field(default_factory=dict)
+    transforms: dict[str, TransformSolution] = field(default_factory=dict)
+    atlases: dict[str, AtlasIndex] = field(default_factory=dict)
+    #: every recorded atlas revision -> its ws_id
+    atlas_of_revision: dict[str, str] = field(default_factory=dict)
+    robots: dict[str, RobotSummary] = field(default_factory=dict)
+    status_arrival: dict[str, int] = field(default_factory=dict)
+    pose_times: dict[str, list[int]] = field(default_factory=lambda: defaultdict(list))
+    #: messages per channel, counted here: the statistics record is optional
+    counts: Counter[int] = field(default_factory=Counter)
+    first_ns: int | None = None
+    last_ns: int = 0
+
+    def robot(self, rid: str) -> RobotSummary:
+        if rid not in self.robots:
+            self.robots[rid] = RobotSummary(robot_id=rid)
+        return self.robots[rid]
+
+    def add(self, channel_id: int, log_time_ns: int, model: Any) -> None:
+        """Count a message and file its decoded ``model`` (None: not a wire model)."""
+        self.counts[channel_id] += 1
+        self.first_ns = log_time_ns if self.first_ns is None else self.first_ns
+        self.last_ns = max(self.last_ns, log_time_ns)
+        if isinstance(model, WorkspaceDefinition):
+            self.workspaces[model.ws_id] = model
+        elif isinstance(model, TransformSolution):
+            self.transforms[model.ws_id] = model
+        elif isinstance(model, Pose):
+            self._pose(model, log_time_ns)
+        elif isinstance(model, Goal):
+            self._goal(model, log_time_ns)
+        elif isinstance(model, SpawnRequest):
+            r = self.robot(model.robot_id)
+            r.radius = max(r.radius, model.robot_radius)
+        elif isinstance(model, AtlasIndex):
+            self.atlases[model.ws_id] = model
+            self.atlas_of_revision[model.revision] = model.ws_id
+        elif isinstance(model, VelocityCommand):
+            self._command(model)
+        elif isinstance(model, CollisionEvent):
+            self._collision(model, log_time_ns)
+        elif isinstance(model, RobotStatus):
+            self._status(model, log_time_ns)
+
+    def _pose(self, model: Pose, log_time_ns: int) -> None:
+        r = self.robot(model.robot_id)
+        p = (model.x, model.y)
+        if r.trajectory:
+            q = r.trajectory[-1]
+            r.path_length += math.hypot(p[0] - q[0], p[1] - q[1])
+        r.trajectory.append(p)
+        self.pose_times[model.robot_id].append(log_time_ns)
+        r.pose_stamps.append(model.stamp_ns or log_time_ns)
+        r.poses += 1
+
+    def _goal(self, model: Goal, log_time_ns: int) -> None:
+        assert self.first_ns is not None
+        r = self.robot(model.robot_id)
+        r.goal = (model.goal[0], model.goal[1])
+        r.tolerance = model.tolerance
+        r.ws_id = model.ws_id
+        r.map_ws_id = map_ws_id(model)
+        r.goal_time_s = (log_time_ns - self.first_ns) / NS_PER_S
+        r.radius = max(r.radius, model.robot_radius)
+
+    def _command(self, model: VelocityCommand) -> None:
+        r = self.robot(model.robot_id)
+        r.commands += 1
+        if model.chart is not None and (not r.charts or r.charts[-1] != model.chart):
+            r.charts.append(model.chart)
+        r.chart = model.chart
+        r.map_revision = model.map_revision or r.map_revision
+
+    def _collision(self, model: CollisionEvent, log_time_ns: int) -> None:
+        r = self.robot(model.robot_id)
+        if model.other_robot_id is not None:
+            r.robot_contacts.append(model.other_robot_id)
+        if r.collision_at is None:
+            r.collision_at = (model.position[0], model.position[1])
+            r.collision_time_s = (log_time_ns - (self.first_ns or 0)) / NS_PER_S
+
+    def _status(self, model: RobotStatus, log_time_ns: int) -> None:
+        r = self.robot(model.robot_id)
+        r.final_state, r.final_reason = model.state, model.reason
+        r.map_revision = model.map_revision or r.map_revision
+        if model.chart is not None:
+            r.chart = model.chart
+        if model.ws_id and r.ws_id is None:
+            r.ws_id = model.ws_id
+        if model.state == "arrived" and model.robot_id not in self.status_arrival:
+            self.status_arrival[model.robot_id] = log_time_ns
+
+    def finish_robot(self, rid: str, r: RobotSummary, start: int) -> None:
+        """After the pass: start and end, arrival, the atlas driven on, the workspace and the
+        smallest clearance of robot ``rid``."""
+        if r.trajectory:
+            r.start, r.end = r.trajectory[0], r.trajectory[-1]
+        self._arrival(rid, r, start)
+        # the atlas it was driven on: the one its commands name, else its goal's map
+        used = self.atlas_of_revision.get(r.map_revision or "") or r.map_ws_id
+        r.atlas = used if used in self.atlases and (r.charts or r.chart is not None) else None
+        if r.ws_id is None and len(self.workspaces) == 1:
+            r.ws_id = next(iter(self.workspaces))
+        wd = self.workspaces.get(r.ws_id) if r.ws_id else None
+        if wd is not None and r.trajectory:
+            _min_clearance(r, wd)
+
+    def _arrival(self, rid: str, r: RobotSummary, start: int) -> None:
+        """Arrival from the controller's status, else the first pose within the goal's
+        tolerance."""
+        if rid in self.status_arrival:
+            r.arrived = True
+            r.arrival_time_s = (self.status_arrival[rid] - start) / NS_PER_S
+            r.arrival_source = "controller status"
+        elif r.goal is not None and r.tolerance is not None and r.trajectory:
+            for p, t in zip(r.trajectory, self.pose_times[rid], strict=True):
+                if math.hypot(p[0] - r.goal[0], p[1] - r.goal[1]) <= r.tolerance:
+                    r.arrived = True
+                    r.arrival_time_s = (t - start) / NS_PER_S
+                    r.arrival_source = "pose within goal tolerance"
+                    break
+
+
 def inspect_recording(path: str | os.PathLike[str]) -> InspectReport:
-    """Read a recording and summarise it (channels, robots, arrival, clearance)."""
+    """Read a recording and summarise it (channels, robots, arrival, clearance): one pass
+    over the messages (:class:`_Scan`), then each robot's summary is completed."""
     with Recording(path) as rec:
         channels = sorted(rec.channels.values(), key=lambda c: (c.topic, c.id))
-        unknown = sorted(
-            {
-                c.schema_name or f"(none, encoding {c.message_encoding})"
-                for c in channels
-                if not c.invalid
-                and c.schema_name not in MODELS_BY_TYPE
-                and c.schema_name != SCENE_SCHEMA_NAME
-            }
-        )
-        workspaces: dict[str, WorkspaceDefinition] = {}
-        transforms: dict[str, TransformSolution] = {}
-        atlases: dict[str, AtlasIndex] = {}
-        atlas_of_revision: dict[str, str] = {}  # every recorded atlas revision -> its ws_id
-        robots: dict[str, RobotSummary] = {}
-        status_arrival: dict[str, int] = {}
-        pose_times: dict[str, list[int]] = defaultdict(list)
-
-        def robot(rid: str) -> RobotSummary:
-            if rid not in robots:
-                robots[rid] = RobotSummary(robot_id=rid)
-            return robots[rid]
-
-        counts: Counter[int] = Counter()  # counted here: the statistics record is optional
-        first_ns: int | None = None
-        last_ns = 0
+        unknown = _unknown_schemas(channels)
+        scan = _Scan()
         for msg in rec.iter_messages():
-            counts[msg.channel_id] += 1
-            first_ns = msg.log_time_ns if first_ns is None else first_ns
-            last_ns = max(last_ns, msg.log_time_ns)
-            model = decode_message(msg)
-            if model is None:
-                continue
-            if isinstance(model, WorkspaceDefinition):
-                workspaces[model.ws_id] = model
-            elif isinstance(model, TransformSolution):
-                transforms[model.ws_id] = model
-            elif isinstance(model, Pose):
-                r = robot(model.robot_id)
-                p = (model.x, model.y)
-                if r.trajectory:
-                    q = r.trajectory[-1]
-                    r.path_length += math.hypot(p[0] - q[0], p[1] - q[1])
-                r.trajectory.append(p)
-                pose_times[model.robot_id].append(msg.log_time_ns)
-                r.pose_stamps.append(model.stamp_ns or msg.log_time_ns)
-                r.poses += 1
-            elif isinstance(model, Goal):
-                r = robot(model.robot_id)
-                r.goal = (model.goal[0], model.goal[1])
-                r.tolerance = model.tolerance
-                r.ws_id = model.ws_id
-                r.map_ws_id = map_ws_id(model)
-                r.goal_time_s = (msg.log_time_ns - first_ns) / NS_PER_S
-                r.radius = max(r.radius, model.robot_radius)
-            elif isinstance(model, SpawnRequest):
-                r = robot(model.robot_id)
-                r.radius = max(r.radius, model.robot_radius)
-            elif isinstance(model, AtlasIndex):
-                atlases[model.ws_id] = model
-                atlas_of_revision[model.revision] = model.ws_id
-            elif isinstance(model, VelocityCommand):
-                r = robot(model.robot_id)
-                r.commands += 1
-                if model.chart is not None and (not r.charts or r.charts[-1] != model.chart):
-                    r.charts.append(model.chart)
-                r.chart = model.chart
-                r.map_revision = model.map_revision or r.map_revision
-            elif isinstance(model, CollisionEvent):
-                r = robot(model.robot_id)
-                if model.other_robot_id is not None:
-                    r.robot_contacts.append(model.other_robot_id)
-                if r.collision_at is None:
-                    r.collision_at = (model.position[0], model.position[1])
-                    r.collision_time_s = (msg.log_time_ns - (first_ns or 0)) / NS_PER_S
-            elif isinstance(model, RobotStatus):
-                r = robot(model.robot_id)
-                r.final_state, r.final_reason = model.state, model.reason
-                r.map_revision = model.map_revision or r.map_revision
-                if model.chart is not None:
-                    r.chart = model.chart
-                if model.ws_id and r.ws_id is None:
-                    r.ws_id = model.ws_id
-                if model.state == "arrived" and model.robot_id not in status_arrival:
-                    status_arrival[model.robot_id] = msg.log_time_ns
-        start = first_ns if first_ns is not None else 0
-        channels = [replace(c, count=counts[c.id]) for c in channels]
+            scan.add(msg.channel_id, msg.log_time_ns, decode_message(msg))
+        start = scan.first_ns if scan.first_ns is not None else 0
+        channels = [replace(c, count=scan.counts[c.id]) for c in channels]
         invalid = sum(c.count for c in channels if c.invalid)
-        for rid, r in robots.items():
-            if r.trajectory:
-                r.start, r.end = r.trajectory[0], r.trajectory[-1]
-            if rid in status_arrival:
-                r.arrived = True
-                r.arrival_time_s = (status_arrival[rid] - start) / NS_PER_S
-                r.arrival_source = "controller status"
-            elif r.goal is not None and r.tolerance is not None and r.trajectory:
-                for p, t in zip(r.trajectory, pose_times[rid], strict=True):
-                    if math.hypot(p[0] - r.goal[0], p[1] - r.goal[1]) <= r.tolerance:
-                        r.arrived = True
-                        r.arrival_time_s = (t - start) / NS_PER_S
-                        r.arrival_source = "pose within goal tolerance"
-                        break
-            # the atlas it was driven on: the one its commands name, else its goal's map
-            used = atlas_of_revision.get(r.map_revision or "") or r.map_ws_id
-            r.atlas = used if used in atlases and (r.charts or r.chart is not None) else None
-            if r.ws_id is None and len(workspaces) == 1:
-                r.ws_id = next(iter(workspaces))
-            wd = workspaces.get(r.ws_id) if r.ws_id else None
-            if wd is not None and r.trajectory:
-                _min_clearance(r, wd)
+        for rid, r in scan.robots.items():
+            scan.finish_robot(rid, r, start)
         return InspectReport(
-            closest=closest_approach(robots, start),
+            closest=closest_approach(scan.robots, start),
             path=rec.path,
             prefix=rec.prefix,
-            message_count=sum(counts.values()),
+            message_count=sum(scan.counts.values()),
             start_ns=start,
-            end_ns=last_ns,
+            end_ns=scan.last_ns,
             channels=channels,
             metadata=rec.metadata,
-            workspaces=workspaces,
-            transforms=transforms,
-            robots=robots,
+            workspaces=scan.workspaces,
+            transforms=scan.transforms,
+            robots=scan.robots,
             unknown_schemas=unknown,
             invalid_messages=invalid,
-            atlases=atlases,
+            atlases=scan.atlases,
         )
 
 
