@@ -36,21 +36,16 @@ from confnav import ConformalMap, Workspace
 from confnav.conformal import cauchy, diskmap, gnk
 from confnav.conformal.acceleration import KOEBE_ACCELS
 from confnav.maps.footprint import inflate
-from confnav.scenes.workspaces import default_workspace, mixed_obstacles
-
-ROOM = [[-2, -2], [2, -2], [2, 2], [-2, 2]]
-
-
-def squares(gap: float) -> Workspace:
-    """Two unit squares ``gap`` apart, mirror images under x -> -x, anchor on the axis."""
-    g = gap / 2
-    left = [[-1 - g, -0.5], [-g, -0.5], [-g, 0.5], [-1 - g, 0.5]]
-    right = [[g, -0.5], [1 + g, -0.5], [1 + g, 0.5], [g, 0.5]]
-    return Workspace(ROOM, [left, right], anchor=[0, 1.5])
+from confnav.scenes.workspaces import (
+    default_workspace,
+    mirror_asymmetry,
+    mirror_squares,
+    mixed_obstacles,
+)
 
 
 def asymmetry(m: ConformalMap) -> float:
-    return float(max(abs(m.radii[0] - m.radii[1]), abs(m.centers[0] + np.conj(m.centers[1]))))
+    return mirror_asymmetry(m.centers, m.radii)
 
 
 class _Counter:
@@ -105,7 +100,7 @@ def run_one(gap: float | str, tol: float, accel: str) -> tuple[dict[str, Any], C
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", confnav.AccuracyWarning)
-            ws = squares(gap) if isinstance(gap, float) else scene(gap)
+            ws = mirror_squares(gap) if isinstance(gap, float) else scene(gap)
             m = confnav.solve(ws, tol=tol, koebe_accel=accel, progress=progress)
     finally:
         for c in counters:
@@ -181,7 +176,7 @@ def main(argv: list[str] | None = None) -> int:
     # untimed warm-up: the first solve of a process pays one-time costs (imports, caches)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", confnav.AccuracyWarning)
-        confnav.solve(squares(0.1), tol=1e-4)
+        confnav.solve(mirror_squares(0.1), tol=1e-4)
     rows = []
     cases: list[float | str] = [*gaps, *a.scenes]
     for gap in cases:

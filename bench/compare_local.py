@@ -17,29 +17,20 @@ import sys
 import time
 import warnings
 
-import numpy as np
-
-from confnav import Workspace
 from confnav.conformal import solver
 from confnav.maps.footprint import inflate
-from confnav.scenes.workspaces import default_workspace, mixed_obstacles
-
-ROOM = [[-2, -2], [2, -2], [2, 2], [-2, 2]]
-
-
-def squares(gap: float) -> Workspace:
-    """Two unit squares ``gap`` apart, mirror images under x -> -x, anchor on the axis."""
-    g = gap / 2
-    left = [[-1 - g, -0.5], [-g, -0.5], [-g, 0.5], [-1 - g, 0.5]]
-    right = [[g, -0.5], [1 + g, -0.5], [1 + g, 0.5], [g, 0.5]]
-    return Workspace(ROOM, [left, right], anchor=[0, 1.5])
-
+from confnav.scenes.workspaces import (
+    default_workspace,
+    mirror_asymmetry,
+    mirror_squares,
+    mixed_obstacles,
+)
 
 CASES = {
     "mixed10": lambda: mixed_obstacles(10),
     "default": default_workspace,
-    "gap01": lambda: squares(0.1),
-    "gap001": lambda: squares(0.01),
+    "gap01": lambda: mirror_squares(0.1),
+    "gap001": lambda: mirror_squares(0.01),
     "shrunk": lambda: inflate(default_workspace(), 0.2),
 }
 
@@ -69,8 +60,7 @@ def main() -> None:
             "refinements": [{k: float(v) for k, v in r.items()} for r in d.refinements],
         }
         if case.startswith("gap"):
-            asym = max(abs(m.radii[0] - m.radii[1]), abs(m.centers[0] + np.conj(m.centers[1])))
-            out["asymmetry"] = float(asym)
+            out["asymmetry"] = mirror_asymmetry(m.centers, m.radii)
         print(json.dumps(out), flush=True)
 
 

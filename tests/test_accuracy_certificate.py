@@ -22,21 +22,14 @@ from confnav import ConformalMap, GapError, MapMismatchError, SerializationError
 from confnav.cli.app import main
 from confnav.conformal import circledomain, solver
 from confnav.navigation.control import Controller
+from confnav.scenes.workspaces import mirror_asymmetry, mirror_squares
 
 ROOM = [[-2, -2], [2, -2], [2, 2], [-2, 2]]
 
 
-def squares(gap: float) -> Workspace:
-    """Two unit squares ``gap`` apart, mirror images under x -> -x, anchor on the axis."""
-    g = gap / 2
-    left = [[-1 - g, -0.5], [-g, -0.5], [-g, 0.5], [-1 - g, 0.5]]
-    right = [[g, -0.5], [1 + g, -0.5], [1 + g, 0.5], [g, 0.5]]
-    return Workspace(ROOM, [left, right], anchor=[0, 1.5])
-
-
 def asymmetry(m: ConformalMap) -> float:
     """Distance of the circle domain from its mirror image (0 exactly)."""
-    return float(max(abs(m.radii[0] - m.radii[1]), abs(m.centers[0] + np.conj(m.centers[1]))))
+    return mirror_asymmetry(m.centers, m.radii)
 
 
 def _solve(ws: Workspace, tol: float) -> ConformalMap:
@@ -63,7 +56,7 @@ def test_mirror_symmetric_triangles_get_mirrored_circles(tol: float) -> None:
 @pytest.mark.slow
 def test_gap_0_1_is_accurate_and_symmetric() -> None:
     tol = 1e-4
-    m = _solve(squares(0.1), tol)
+    m = _solve(mirror_squares(0.1), tol)
     d = m.diagnostics
     # never claims an accuracy it lacks: the asymmetry is a lower bound of the true error
     assert asymmetry(m) <= max(d.error_estimate, 1e-14), d.table()
@@ -73,7 +66,7 @@ def test_gap_0_1_is_accurate_and_symmetric() -> None:
 
 def test_gap_0_001_is_a_typed_error_naming_both_obstacles() -> None:
     with pytest.raises(GapError, match=r"obstacle 0 .*obstacle 1 .*0\.001 apart"):
-        confnav.solve(squares(0.001), tol=1e-6)
+        confnav.solve(mirror_squares(0.001), tol=1e-6)
 
 
 # ---------------------------------------------------------------- the iteration error

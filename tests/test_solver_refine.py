@@ -14,16 +14,9 @@ import pytest
 import confnav
 from confnav import ConformalMap, Workspace
 from confnav.conformal import solver
+from confnav.scenes.workspaces import mirror_squares
 
 ROOM = [[-2, -2], [2, -2], [2, 2], [-2, 2]]
-
-
-def squares(gap: float) -> Workspace:
-    """Two unit squares ``gap`` apart, mirror images under x -> -x, anchor on the axis."""
-    g = gap / 2
-    left = [[-1 - g, -0.5], [-g, -0.5], [-g, 0.5], [-1 - g, 0.5]]
-    right = [[g, -0.5], [1 + g, -0.5], [1 + g, 0.5], [g, 0.5]]
-    return Workspace(ROOM, [left, right], anchor=[0, 1.5])
 
 
 def _solve(ws: Workspace, tol: float, **kw: object) -> ConformalMap:
@@ -49,7 +42,7 @@ def room(dx: float = 0.0, extra: bool = False) -> Workspace:
 
 # ---------------------------------------------------------------- per-side refinement
 def test_sides_asked_for_by_the_residual_are_the_ones_refined() -> None:
-    ws = squares(0.1)
+    ws = mirror_squares(0.1)
     m = _solve(ws, 1e-6, nodes_per_side=54)
     plans = solver.plan_boundaries(ws, 54, 1e-6)
     z, res, owner = m.boundary_residuals()
@@ -68,7 +61,7 @@ def test_local_refinement_gives_the_full_refinements_map(monkeypatch: pytest.Mon
     """Two squares 0.1 apart at 1e-8: the discretisation is met at 80 nodes per side but the
     residual (1e-6) is not; refining only the sides it names meets tol and gives the circle
     domain of the everywhere-refined solve, mirror symmetric."""
-    ws = squares(0.1)
+    ws = mirror_squares(0.1)
     local = _solve(ws, 1e-8)
     d = local.diagnostics
     assert d.tol_met, d.table()
@@ -87,7 +80,7 @@ def test_local_refinement_gives_the_full_refinements_map(monkeypatch: pytest.Mon
 def test_a_partial_level_never_claims_more_than_its_base_plus_its_change(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    ws = squares(0.1)
+    ws = mirror_squares(0.1)
     m = _solve(ws, 1e-8)
     refs = m.diagnostics.refinements
     k = next(i for i, r in enumerate(refs) if "refined_sides" in r)

@@ -10,6 +10,7 @@ import numpy as np
 
 from confnav.geometry import Workspace
 from confnav.types import CArray as ComplexArray
+from confnav.types import FArray as FloatArray
 
 #: The seed's goal (also the default workspace's anchor).
 DEFAULT_GOAL: complex = 0j
@@ -90,4 +91,33 @@ def mixed_obstacles(n: int, seed: int = 0) -> Workspace:
     return Workspace([[-1, -1], [1, -1], [1, 1], [-1, 1]], obstacles)
 
 
-__all__ = ["DEFAULT_GOAL", "DEFAULT_STARTS", "default_workspace", "mixed_obstacles", "star"]
+#: The 4 x 4 room of :func:`mirror_squares`.
+MIRROR_ROOM = [[-2, -2], [2, -2], [2, 2], [-2, 2]]
+
+
+def mirror_squares(gap: float) -> Workspace:
+    """Two unit squares ``gap`` apart, mirror images under x -> -x, anchor on the axis: its
+    circle domain is mirror-symmetric (docs/METHOD.md section 4), so the
+    :func:`mirror_asymmetry` of a computed map is a true lower bound of its error."""
+    g = gap / 2
+    left = [[-1 - g, -0.5], [-g, -0.5], [-g, 0.5], [-1 - g, 0.5]]
+    right = [[g, -0.5], [1 + g, -0.5], [1 + g, 0.5], [g, 0.5]]
+    return Workspace(MIRROR_ROOM, [left, right], anchor=[0, 1.5])
+
+
+def mirror_asymmetry(centers: ComplexArray, radii: FloatArray) -> float:
+    """Distance of the circle domain of :func:`mirror_squares` from its mirror image (0
+    exactly): the radii differ and the centres fail ``c_0 = -conj(c_1)`` by at most this."""
+    return float(max(abs(radii[0] - radii[1]), abs(centers[0] + np.conj(centers[1]))))
+
+
+__all__ = [
+    "DEFAULT_GOAL",
+    "DEFAULT_STARTS",
+    "MIRROR_ROOM",
+    "default_workspace",
+    "mirror_asymmetry",
+    "mirror_squares",
+    "mixed_obstacles",
+    "star",
+]
