@@ -194,6 +194,7 @@ class AtlasMap:
             raise NavigationError(
                 f"atlas workspaces drive holonomic or unicycle robots, not {drive!r}"
             )
+        extra: dict[str, Any] = {} if safety is None else {"safety": safety}
         nav = AtlasNavigator(
             self.atlas,
             complex(goal.goal[0], goal.goal[1]),
@@ -202,7 +203,7 @@ class AtlasMap:
             links=self.links,
             navfn=goal.navfn,
             goal_tol=float(goal.tolerance),
-            **({} if safety is None else {"safety": safety}),
+            **extra,
         )
         ctrl = AtlasController(nav)
         if drive == "unicycle":
