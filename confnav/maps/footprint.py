@@ -19,9 +19,13 @@ Minkowski sum (the round approximation is outward). The straight offsets move ou
 too; the excess ``r' - r`` is the polygonisation bound (``r * 0.0027`` at ``quad_segs = 16``,
 ``r * 0.044`` at 4). With ``join="mitre"`` the offset edges meet at their intersection (capped
 at ``mitre_limit * r`` from the vertex, which still contains the disk) and no excess is needed.
-Bevel joins cut inside the sum and are refused. The default is mitre: it adds no vertices
-(the solver's graded mesh pays for every vertex: round joins with 8 segments per quadrant made
-the default workspace fail to converge), at the price of a wider margin at sharp corners. That
+Bevel joins cut inside the sum and are refused. A mitre is capped at ``mitre_limit * r``
+(:data:`MITRE_LIMIT`) from its vertex by a cut tangent to or beyond the disk: still conservative,
+and sharp corners no longer grow spikes that nearly touch other obstacles (a near-touch the
+solver must resolve with many nodes, and a topology the true sum does not have).
+The default is mitre: it adds no vertices (the solver's graded mesh pays for every vertex:
+round joins with 8 segments per quadrant made the default workspace fail to converge), at the
+price of a wider margin at sharp corners. That
 margin must not change the topology: two facing corners of imported walls (about 50 degrees)
 grew by about 0.45 m each for a 0.32 m disk and closed a 0.78 m passage the disk passes. So
 wherever the round-join shrink (circumscribed, hence also inside the exact one) connects what
@@ -77,6 +81,17 @@ JoinStyle = Literal["round", "mitre"]
 #: Radii are rounded *up* to this quantum (workspace units) so that close radii share one solve
 #: (cache key) and the rounding is conservative.
 RADIUS_QUANTUM = 1e-4
+
+#: Mitre joins are cut (bevelled perpendicular to the corner's bisector) at this multiple of the
+#: radius from the vertex; the cut is tangent to or beyond the disk, so the result still contains
+#: the Minkowski sum (checked exactly in :func:`shrink_free_space`). 1.5 keeps right angles mitred
+#: (ratio sqrt 2: a square grows to a square) and cuts only corners sharper than about 84
+#: degrees. A far-reaching spike costs the solver: on the default workspace shrunk by 0.2 m the
+#: star's 40-degree tips reached 0.5 m (limit 5) and left a 4.3 mm gap to the square, a wedge
+#: in the outer wall and two reopened round passages; with 1.5 the gap is 0.10 m and the
+#: coarse solve to 1e-3 took 0.70 s instead of 4.66 s in the same run
+#: (bench/results/coarse.json has the figures).
+MITRE_LIMIT = 1.5
 
 #: Components of the shrunk free space smaller than this fraction of the largest are reported
 #: but never kept by default (slivers left by a buffer between two nearly touching obstacles).
@@ -231,7 +246,7 @@ def shrink_free_space(
     *,
     join: JoinStyle = "mitre",
     quad_segs: int = 8,
-    mitre_limit: float = 5.0,
+    mitre_limit: float = MITRE_LIMIT,
 ) -> Inflation:
     """The components of the free space of ``ws`` shrunk by a disk of ``radius``.
 
