@@ -87,19 +87,19 @@ RADIUS_QUANTUM = 1e-4
 #: the Minkowski sum (checked exactly in :func:`shrink_free_space`). 1.5 keeps right angles mitred
 #: (ratio sqrt 2: a square grows to a square) and cuts only corners sharper than about 84
 #: degrees. A far-reaching spike costs the solver: on the default workspace shrunk by 0.2 m the
-#: star's 40-degree tips reached 0.5 m (limit 5) and left a 4.3 mm gap to the square, a wedge
-#: in the outer wall and two reopened round passages; with 1.5 the gap is 0.10 m and the
-#: coarse solve to 1e-3 took 0.70 s instead of 4.66 s in the same run
-#: (bench/results/coarse.json has the figures).
+#: star's 40-degree tips reached 0.5 m at limit 5 and left a 4.3 mm gap to the square (55 polygon
+#: sides); at 1.5 the narrowest gap is 0.10 m (33 sides), and the coarse revision (tol 1e-3)
+#: took 1.8 s CPU instead of 4.4 s in the same run (medians of 3, load 5-7;
+#: bench/results/coarse.json, ``python -m bench coarse``).
 MITRE_LIMIT = 1.5
 
 #: Round-join polygonisations (segments per quadrant) tried, coarse first, for the passages
 #: :func:`_reopen_passages` puts back: each is circumscribed (still inside the exact shrink) and
 #: is used only if it has the same topology as the ``quad_segs`` one (every passage that one
-#: opens stays open). Every arc vertex is a polygon corner the solver's graded mesh pays for:
-#: on the default workspace shrunk by 0.3 m the two reopened passages brought 22 arc sides of
-#: 6 cm at 8 segments per quadrant, each meshed like a corner (bench/results/coarse.json).
-#: The price is a larger excess ``r' - r``: 0.044 r at 4 segments, 0.20 r at 2.
+#: opens stays open). Every arc vertex is a polygon corner the solver's graded mesh pays for
+#: (each side gets at least the nodes of the polygon's worst corner), so fewer, longer arc
+#: sides mean fewer nodes; the price is a larger excess ``r' - r``: 0.044 r at 4 segments,
+#: 0.20 r at 2, in the reopened passages only.
 REOPEN_QUAD_SEGS: tuple[int, ...] = (2, 4)
 
 #: Components of the shrunk free space smaller than this fraction of the largest are reported
