@@ -79,6 +79,12 @@ BENCHMARKS: dict[str, Bench] = {
         args=("--resolve",),
         measures=SOLVER_PATHS,
     ),
+    "coarse": Bench(
+        "bench_coarse.py",
+        "coarse.json",
+        "first (coarse, 1e-3) revision of footprint maps: CPU time and honesty (issue 23 item 2)",
+        measures=(*SOLVER_PATHS, "confnav/maps", "services/definitions.py"),
+    ),
     "koebe": Bench(
         "bench_koebe.py",
         "koebe.json",

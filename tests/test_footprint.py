@@ -312,3 +312,21 @@ def test_a_passage_stays_open_exactly_when_the_true_minkowski_sum_leaves_it_open
     if make is _door:
         with pytest.raises(UnreachableGoalError):
             inflate(make(0.60), r, keep=complex(0, 3), require={"goal": complex(0, -3)})
+
+
+def test_sharp_tip_is_capped_by_the_bounded_mitre_and_still_contains_the_sum() -> None:
+    """A 20-degree tip: a plain mitre would reach r / sin(10 deg) = 5.8 r beyond it; the
+    bounded mitre cuts it at MITRE_LIMIT r (a cut tangent to or beyond the disk), so the grown
+    obstacle still contains the tip's disk and the whole true Minkowski sum."""
+    from confnav.maps.footprint import MITRE_LIMIT
+
+    half = math.radians(10.0)
+    tip = 1.0 + 0j
+    tri = [(tip.real, tip.imag), (-1.0, -2.0 * math.tan(half)), (-1.0, 2.0 * math.tan(half))]
+    r = 0.2
+    out = inflate(Workspace(ROOM, [tri]), r)
+    grown = shapely.Polygon(np.column_stack([out.obstacles[0].real, out.obstacles[0].imag]))
+    reach = grown.bounds[2] - tip.real  # how far the grown obstacle extends beyond the tip
+    assert r * (1 - 1e-9) <= reach <= MITRE_LIMIT * r * (1 + 1e-9)
+    exact = shapely.Polygon(tri).buffer(r, quad_segs=256)  # inscribed: inside the true sum
+    assert grown.buffer(1e-12).contains(exact)

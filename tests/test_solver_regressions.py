@@ -167,6 +167,7 @@ def test_near_touching_shrunk_by_a_diff_drive_footprint_is_circular_between_node
         0.2 + 0.1,
         keep=5.5 + 3.5j,
         require={f"start {k}": z for k, z in enumerate(starts)},
+        mitre_limit=5.0,  # the footprint's mitre limit when the report was made
     )
     assert ws.n_obstacles == 1 and len(ws.boundaries[1]) == 3  # the merged scene of the report
     tol = 1e-10

@@ -19,9 +19,13 @@ Minkowski sum (the round approximation is outward). The straight offsets move ou
 too; the excess ``r' - r`` is the polygonisation bound (``r * 0.0027`` at ``quad_segs = 16``,
 ``r * 0.044`` at 4). With ``join="mitre"`` the offset edges meet at their intersection (capped
 at ``mitre_limit * r`` from the vertex, which still contains the disk) and no excess is needed.
-Bevel joins cut inside the sum and are refused. The default is mitre: it adds no vertices
-(the solver's graded mesh pays for every vertex: round joins with 8 segments per quadrant made
-the default workspace fail to converge), at the price of a wider margin at sharp corners. That
+Bevel joins cut inside the sum and are refused. A mitre is capped at ``mitre_limit * r``
+(:data:`MITRE_LIMIT`) from its vertex by a cut tangent to or beyond the disk: still conservative,
+and sharp corners no longer grow spikes that nearly touch other obstacles (a near-touch the
+solver must resolve with many nodes, and a topology the true sum does not have).
+The default is mitre: it adds no vertices (the solver's graded mesh pays for every vertex:
+round joins with 8 segments per quadrant made the default workspace fail to converge), at the
+price of a wider margin at sharp corners. That
 margin must not change the topology: two facing corners of imported walls (about 50 degrees)
 grew by about 0.45 m each for a 0.32 m disk and closed a 0.78 m passage the disk passes. So
 wherever the round-join shrink (circumscribed, hence also inside the exact one) connects what
@@ -77,6 +81,26 @@ JoinStyle = Literal["round", "mitre"]
 #: Radii are rounded *up* to this quantum (workspace units) so that close radii share one solve
 #: (cache key) and the rounding is conservative.
 RADIUS_QUANTUM = 1e-4
+
+#: Mitre joins are cut (bevelled perpendicular to the corner's bisector) at this multiple of the
+#: radius from the vertex; the cut is tangent to or beyond the disk, so the result still contains
+#: the Minkowski sum (checked exactly in :func:`shrink_free_space`). 1.5 keeps right angles mitred
+#: (ratio sqrt 2: a square grows to a square) and cuts only corners sharper than about 84
+#: degrees. A far-reaching spike costs the solver: on the default workspace shrunk by 0.2 m the
+#: star's 40-degree tips reached 0.5 m at limit 5 and left a 4.3 mm gap to the square (55 polygon
+#: sides); at 1.5 the narrowest gap is 0.10 m (33 sides), and the coarse revision (tol 1e-3)
+#: took 1.8 s CPU instead of 4.4 s in the same run (medians of 3, load 5-7;
+#: bench/results/coarse.json, ``python -m bench coarse``).
+MITRE_LIMIT = 1.5
+
+#: Round-join polygonisations (segments per quadrant) tried, coarse first, for the passages
+#: :func:`_reopen_passages` puts back: each is circumscribed (still inside the exact shrink) and
+#: is used only if it has the same topology as the ``quad_segs`` one (every passage that one
+#: opens stays open). Every arc vertex is a polygon corner the solver's graded mesh pays for
+#: (each side gets at least the nodes of the polygon's worst corner), so fewer, longer arc
+#: sides mean fewer nodes; the price is a larger excess ``r' - r``: 0.044 r at 4 segments,
+#: 0.20 r at 2, in the reopened passages only.
+REOPEN_QUAD_SEGS: tuple[int, ...] = (2, 4)
 
 #: Components of the shrunk free space smaller than this fraction of the largest are reported
 #: but never kept by default (slivers left by a buffer between two nearly touching obstacles).
@@ -231,7 +255,7 @@ def shrink_free_space(
     *,
     join: JoinStyle = "mitre",
     quad_segs: int = 8,
-    mitre_limit: float = 5.0,
+    mitre_limit: float = MITRE_LIMIT,
 ) -> Inflation:
     """The components of the free space of ``ws`` shrunk by a disk of ``radius``.
 
@@ -295,6 +319,14 @@ def _reopen_passages(
     rounded = free.buffer(-_effective_radius(r, "round", quad_segs), quad_segs=quad_segs)
     if _topology(rounded) == _topology(mitred):
         return mitred, 0  # the same components and holes: the mitre's vertices only
+    for coarse_segs in REOPEN_QUAD_SEGS:  # fewer arc vertices, if the topology is kept
+        if coarse_segs < quad_segs:
+            coarse = free.buffer(
+                -_effective_radius(r, "round", coarse_segs), quad_segs=coarse_segs
+            )
+            if _topology(coarse) == _topology(rounded):
+                rounded = coarse
+                break
     extra = shapely.difference(rounded, mitred)
     pieces = [g for g in getattr(extra, "geoms", [extra]) if isinstance(g, Polygon) and g.area > 0]
     if not pieces:
@@ -327,15 +359,16 @@ def inflate(
     require: dict[str, complex] | None = None,
     join: JoinStyle = "mitre",
     quad_segs: int = 8,
+    mitre_limit: float = MITRE_LIMIT,
 ) -> Workspace:
     """The workspace for the centre of a disk robot of ``radius``: ``ws`` shrunk by it.
 
     Keeps the component holding ``keep`` (default: the largest), checks every point of
     ``require`` (e.g. ``{"goal": g}``) lies in it (:class:`UnreachableGoalError` naming the
     point and its component otherwise). The anchor is the original one if it is still free,
-    else the new maximal-clearance point.
+    else the new maximal-clearance point. ``mitre_limit``: see :data:`MITRE_LIMIT`.
     """
-    inf = shrink_free_space(ws, radius, join=join, quad_segs=quad_segs)
+    inf = shrink_free_space(ws, radius, join=join, quad_segs=quad_segs, mitre_limit=mitre_limit)
     if inf.radius == 0:
         return ws
     if keep is None:
