@@ -8,6 +8,7 @@ import logging
 import time
 from collections import OrderedDict
 
+import numpy as np
 from confnav.schemas import (
     AtlasIndex,
     DecodeError,
@@ -32,6 +33,22 @@ def _base_of(ws_id: str) -> str | None:
     """The base workspace of a footprint workspace ``{ws}~r{R}`` (None for another id)."""
     parsed = parse_derived_ws_id(ws_id)
     return None if parsed is None else parsed[0]
+
+
+def _warm(cmap: object) -> None:
+    """Build a map's lazy evaluation structures (the forward map's expansions, built on the
+    first evaluation of ``T``: 1-3 s on the default workspace under load; not for an atlas,
+    whose charts are built when a robot enters them) here, on the map thread, so that the
+    first goal on the map (e.g. a robot driving on the unshrunk map while its footprint map
+    is solved) does not wait for them before its first command."""
+    f = getattr(cmap, "T_and_dT", None)
+    anchor = getattr(cmap, "anchor", None)
+    if f is None or anchor is None or getattr(cmap, "is_atlas", False):
+        return
+    try:
+        f(np.asarray(complex(anchor)))
+    except Exception:  # a map that cannot evaluate its anchor fails the same way for goals
+        log.debug("map warm-up", exc_info=True)
 
 
 class MapsMixin(ControllerCacheMixin):
@@ -72,6 +89,7 @@ class MapsMixin(ControllerCacheMixin):
             return
         try:
             cmap = sol if isinstance(sol, AtlasMap) else self._load_map(sol)
+            _warm(cmap)
         except Exception as exc:
             self.count("map_load_errors")
             self._map_errors[ws_id] = f"cannot load map: {exc}"

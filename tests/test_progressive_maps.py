@@ -248,7 +248,6 @@ def test_a_crowding_error_mid_solve_falls_back_to_the_atlas(
     from confnav.services import atlas_transform
     from confnav.services.definitions import workspace_of
 
-    from confnav.conformal import solver
     from confnav.errors import UnresolvedCrowdingError
 
     calls: list[tuple[float, float | None]] = []
@@ -257,8 +256,8 @@ def test_a_crowding_error_mid_solve_falls_back_to_the_atlas(
         calls.append((tol, kw.get("max_error")))
         raise UnresolvedCrowdingError("circles crowd in sweep 2")
 
-    monkeypatch.setattr(solver, "solve", crowding)
-    monkeypatch.setattr("confnav.atlas.charts.atlas_reason", lambda ws: "")
+    monkeypatch.setattr(atlas_transform, "solve", crowding)  # the worker's own imports
+    monkeypatch.setattr(atlas_transform, "atlas_reason", lambda ws: "")
     ws = workspace_of(square_definition("sq", [(0.0, 0.1)]))
     for tol, max_error in ((1e-3, 1e-2), (1e-8, None)):
         out = atlas_transform.single_or_atlas(ws, tol, max_error=max_error)
