@@ -67,3 +67,4 @@ class ControllerCacheMixin(ControllerCore):
         with r.lock:
             if r.goal is goal and r.ctrl_revision != m.revision:
                 r.ctrl, r.ctrl_revision, r.ctrl_error = ctrl, m.revision, err
+                r.base_ws, r.shrunk = "", None

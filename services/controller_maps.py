@@ -17,7 +17,7 @@ from confnav.schemas import (
     decode,
 )
 from confnav.services.atlas_client import fetch_atlas
-from confnav.services.controller_cache import ControllerCacheMixin
+from confnav.services.controller_footprint import FootprintMixin, base_of
 from confnav.services.controller_state import _Map, _Pending, _Robot
 from confnav.services.definitions import REFINING, definition_hash, workspace_of
 from confnav.services.keys import KeyError_
@@ -27,7 +27,7 @@ from confnav.atlas.wire import ATLAS_MARKER, AtlasMap, is_chart_ws_id
 log = logging.getLogger(__name__)
 
 
-class MapsMixin(ControllerCacheMixin):
+class MapsMixin(FootprintMixin):
     """Maps: liveliness of the transform services, solutions and atlases received or fetched,
     hot swaps, definition changes and deletes."""
 
@@ -104,8 +104,11 @@ class MapsMixin(ControllerCacheMixin):
                         continue
                     ctrl, err = built[r.robot_id]
                     r.ctrl, r.ctrl_revision, r.ctrl_error = ctrl, new.revision, err
+                    r.base_ws, r.shrunk = "", None
         for r in late:
             self._adopt(r, ws_id, new)
+        self._footprint_installed(ws_id, new)
+        self._base_installed(ws_id, new)  # robots whose footprint map {ws_id}~r{R} is unsolved
         self.count("maps_installed")
         log.info("workspace %r: map %s installed (%d robots)", ws_id, sol.revision[:12], len(goals))
         self.swapped.set()
@@ -180,6 +183,7 @@ class MapsMixin(ControllerCacheMixin):
                 if r.goal is None or r.goal.ws_id != ws_id:
                     continue
                 r.ctrl, r.ctrl_revision, r.ctrl_error = None, None, ""
+                r.base_ws, r.shrunk = "", None
                 self._stop_robot(r, "missing_map", self._map_errors[ws_id], now)
 
     def _fetch_loop(self) -> None:
@@ -189,11 +193,14 @@ class MapsMixin(ControllerCacheMixin):
             if self._stop.is_set():
                 return
             with self._lock:
-                needed = {
+                missing = {
                     r.goal.ws_id
                     for r in self._robots.values()
                     if r.goal is not None and r.goal.ws_id not in self._maps
-                } | set(self._pending)
+                }
+                # a footprint map being solved: its base map too (robots drive on it meanwhile)
+                bases = {b for w in missing if (b := base_of(w)) is not None}
+                needed = missing | {b for b in bases if b not in self._maps} | set(self._pending)
             for ws_id in sorted(needed):
                 self._fetch(ws_id)
 

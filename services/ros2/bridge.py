@@ -263,19 +263,21 @@ class Ros2Bridge(Service):
         self.spawn(self._ask_maps, "maps")
 
     def _ask_maps(self) -> None:
-        """Ask the transform service for the maps of the robots' footprints (``{ws}~r{R}``)
-        once, so that they are solved before the first goal (progressive maps,
-        docs/SERVICES.md); retried every 2 s while no transform service knows the workspace
-        (at most 5 minutes)."""
+        """Ask the transform service for the robots' maps once at start-up, so that they are
+        solved before the first goal (progressive maps, docs/SERVICES.md): each robot's
+        workspace ``{ws}`` (a robot with a body drives on it, with the safety layer on the
+        exact shrunk geometry, until its footprint map is solved: docs/ROS2.md) and the map of
+        its footprint ``{ws}~r{R}``; retried every 2 s while no transform service knows the
+        workspace (at most 5 minutes)."""
         from confnav.services.definitions import footprint_of
 
         from confnav.maps.footprint import derived_ws_id
 
         c = self.config
         radius = footprint_of(c.robot_radius, c.drive, c.lookahead)
-        if radius <= 0:
-            return
-        todo = sorted({derived_ws_id(s.ws_id, radius) for s in c.robots})
+        todo = sorted(
+            {s.ws_id for s in c.robots} | {derived_ws_id(s.ws_id, radius) for s in c.robots}
+        )
         deadline = time.monotonic() + 300.0
         while todo and not self._stop.is_set() and time.monotonic() < deadline:
             for ws in list(todo):
