@@ -69,7 +69,9 @@ from confnav.services.launcher import SINGLE_THREAD_BLAS
 from provenance import commit  # script mode: bench/ is on sys.path
 
 HERE = Path(__file__).resolve().parent
-CASES = ("solve", "first_use", "spawned", "ros2")
+CASES = ("build", "solve", "first_use", "spawned", "ros2", "office", "warehouse")
+#: the README's maps (examples/*.yaml, imported as ``confnav import-map`` does): start, goal
+MAPS = {"office": ((8.5, 6.5), (1.5, 1.5)), "warehouse": ((1.2, 3.0), (9.0, 7.0))}
 K = Keys()
 
 
@@ -140,15 +142,38 @@ def wait(pred: Any, timeout: float) -> Any:
     return None
 
 
+def example_workspace(name: str, tmp: Path) -> str:
+    """``examples/{name}.yaml`` imported as ``confnav import-map`` does, as a workspace file."""
+    from confnav.maps.occupancy import import_map
+
+    out = tmp / f"{name}.json"
+    if not out.exists():
+        out.write_text(import_map(HERE.parent / "examples" / f"{name}.yaml").workspace.to_json())
+    return str(out)
+
+
+def base_ready(watch: Watch, ws_id: str) -> Any:
+    """The monotonic time of the workspace's first solved revision (None: not yet)."""
+    with watch.lock:
+        for t, s in watch.ws_status:
+            if s.ws_id == ws_id and s.state == "solved" and s.revision:
+                return t
+    return None
+
+
 def run_case(case: str, args: argparse.Namespace, tmp: Path, n: int) -> dict[str, Any]:
     ep = f"tcp/127.0.0.1:{free_port()}"
     common = ["--mode", "client", "--connect", ep]
     logs = tmp / f"{case}{n}"
     logs.mkdir(parents=True, exist_ok=True)
     procs = [spawn("serve", "router", "--listen", ep, log=logs / "router.log")]
+    ws_id = case if case in MAPS else "default"
+    radius = args.map_radius if case in MAPS else args.radius
+    start, goal_xy = MAPS.get(case, (tuple(args.start), tuple(args.goal)))
     try:
         time.sleep(1.0)
-        ws = ["--workspace", "default=builtin:default"]
+        source = example_workspace(case, tmp) if case in MAPS else "builtin:default"
+        ws = ["--workspace", f"{ws_id}={source}"]
         procs.append(spawn("serve", "transform", *common, *ws, log=logs / "transform.log"))
         procs.append(spawn("serve", "controller", *common, log=logs / "controller.log"))
         procs.append(spawn("serve", "simulator", *common, *ws, log=logs / "simulator.log"))
@@ -164,14 +189,15 @@ def run_case(case: str, args: argparse.Namespace, tmp: Path, n: int) -> dict[str
             if not alive:
                 raise RuntimeError(f"services did not come up (logs in {logs})")
             watch = Watch(bus, rid)
+            t_up = time.monotonic()
             body = case == "spawned"
             req = SpawnRequest(
                 robot_id=rid,
-                ws_id="default",
-                position=(args.start[0], args.start[1]),
+                ws_id=ws_id,
+                position=(start[0], start[1]),
                 theta=0.0,
                 stamp_ns=time.time_ns(),
-                robot_radius=args.radius if body else 0.0,
+                robot_radius=radius if body else 0.0,
                 # first_use: a point (nothing for the transform to solve ahead); the simulator
                 # integrates the controller's body-frame twists either way
                 drive="unicycle" if body else "holonomic",
@@ -189,12 +215,15 @@ def run_case(case: str, args: argparse.Namespace, tmp: Path, n: int) -> dict[str
                     return None
 
                 first_rev_s = wait(first_revision, args.timeout)
+            # the workspace's own map (its first revision) exists before the goal: the system
+            # is up; the goal's footprint map {ws}~r{R} is what is measured
+            t_base = wait(lambda: base_ready(watch, ws_id), args.timeout)
             time.sleep(1.0)
             goal = Goal(
                 robot_id=rid,
-                ws_id="default",
-                goal=(args.goal[0], args.goal[1]),
-                robot_radius=args.radius,
+                ws_id=ws_id,
+                goal=(goal_xy[0], goal_xy[1]),
+                robot_radius=radius,
                 drive="unicycle",
                 stamp_ns=time.time_ns(),
             )
@@ -238,6 +267,11 @@ def run_case(case: str, args: argparse.Namespace, tmp: Path, n: int) -> dict[str
         return {
             "case": case,
             "run": n,
+            "workspace": ws_id,
+            "robot_radius": radius,
+            "start": list(start),
+            "goal": list(goal_xy),
+            "base_first_revision_s": None if t_base is None else t_base - t_up,
             "spawn_to_first_revision_s": first_rev_s if body else None,
             "first_cmd_s": first,
             "first_navigating_s": nav[0][0] if nav else None,
@@ -248,6 +282,7 @@ def run_case(case: str, args: argparse.Namespace, tmp: Path, n: int) -> dict[str
             ],
             "final_s": revs.get(final_rev) if final_rev else None,
             "stopped_after_moving": stopped_after_moving,
+            "on_base_map": any("unshrunk map" in s.message for _, s in nav),
             "loadavg": list(os.getloadavg()),
         }
     finally:
@@ -290,6 +325,42 @@ def run_solve(args: argparse.Namespace, n: int) -> dict[str, Any]:
     }
 
 
+def run_build(args: argparse.Namespace, tmp: Path, n: int) -> dict[str, Any]:
+    """The ``build`` case: what a robot waiting for its footprint map costs the controller
+    before its first command on the base map: the exact shrunk workspace (derived from the
+    base workspace as the transform service derives ``{ws}~r{R}``) and the safety layer's grid
+    on it (both cold: new objects), per workspace."""
+    from confnav.services.controller_footprint import shrunk_workspace
+
+    from confnav.geometry import Workspace
+    from confnav.navigation.safety import SafetyFilter
+    from confnav.scenes.workspaces import default_workspace
+
+    bases = {"default": (default_workspace(), args.radius + 0.1)}
+    for name in MAPS:
+        bases[name] = (Workspace.load(example_workspace(name, tmp)), args.map_radius + 0.1)
+    out: dict[str, Any] = {}
+    for name, (ws, footprint) in bases.items():
+        t0 = time.perf_counter()
+        shrunk = shrunk_workspace(ws, f"{name}~r{footprint:g}")
+        t1 = time.perf_counter()
+        _ = SafetyFilter(shrunk).grid
+        t2 = time.perf_counter()
+        out[name] = {"footprint_m": footprint, "shrink_s": t1 - t0, "grid_s": t2 - t1,
+                     "total_s": t2 - t0}  # fmt: skip
+    return {
+        "case": "build",
+        "run": n,
+        "spawn_to_first_revision_s": None,
+        "first_cmd_s": None,
+        "build": out,
+        "final_s": None,
+        "revisions": [],
+        "first_navigating_message": None,
+        "loadavg": list(os.getloadavg()),
+    }
+
+
 def run_ros2(args: argparse.Namespace, tmp: Path, n: int) -> dict[str, Any]:
     """The ``ros2`` case (see the module docstring)."""
     import zenoh
@@ -325,6 +396,7 @@ def run_ros2(args: argparse.Namespace, tmp: Path, n: int) -> dict[str, Any]:
             with open(logs / "robot.log", "wb") as f:  # the router is up: the robot connects
                 procs.append(subprocess.Popen(robot, stdout=f, stderr=subprocess.STDOUT))
             watch = Watch(bus, rid)
+            t_up = time.monotonic()
             moves: list[float] = []
             cmd_key = f"0/{rid}/cmd_vel/geometry_msgs::msg::dds_::Twist_/" + codec.type_hash(
                 codec.TWIST
@@ -343,6 +415,8 @@ def run_ros2(args: argparse.Namespace, tmp: Path, n: int) -> dict[str, Any]:
                 bus.subscribe(K.robot(rid, "pose"), lambda k, p: posed.append(True))
                 if not wait(lambda: posed, 60):  # its odometry on the bus, through the bridge
                     raise RuntimeError(f"no odometry from the stand-in robot (logs in {logs})")
+                # the workspace's own map exists (its first revision): the system is up
+                t_base = wait(lambda: base_ready(watch, "default"), args.timeout)
                 time.sleep(0.5)
                 t0 = time.monotonic()
                 pose = codec.PlanarPose(args.goal[0], args.goal[1], 0.0, time.time_ns(), "odom")
@@ -355,6 +429,9 @@ def run_ros2(args: argparse.Namespace, tmp: Path, n: int) -> dict[str, Any]:
         return {
             "case": "ros2",
             "run": n,
+            "workspace": "default",
+            "robot_radius": args.radius,
+            "base_first_revision_s": None if t_base is None else t_base - t_up,
             "spawn_to_first_revision_s": None,
             "first_cmd_s": first[0] if first else None,
             "first_navigating_s": nav[0][0] if nav else None,
@@ -366,6 +443,7 @@ def run_ros2(args: argparse.Namespace, tmp: Path, n: int) -> dict[str, Any]:
                 for t, s in status
                 if first and t > first[0] and s.state == "stopped"
             ],
+            "on_base_map": any("unshrunk map" in s.message for _, s in nav),
             "loadavg": list(os.getloadavg()),
         }
     finally:
@@ -383,6 +461,11 @@ def report(rows: list[dict[str, Any]]) -> None:
         load = " ".join(f"{x:.1f}" for x in r["loadavg"])
         ahead = r["spawn_to_first_revision_s"]
         a = "-" if ahead is None else f"{ahead:.2f}"
+        if r["case"] == "build":
+            parts = [f"{w} {b['total_s']:.3f} s (shrink {b['shrink_s']:.3f}, grid "
+                     f"{b['grid_s']:.3f})" for w, b in r["build"].items()]  # fmt: skip
+            print(f"{'build':<10} {r['run']:>3} " + ", ".join(parts) + f"  {load}")
+            continue
         if r["case"] == "solve":
             print(
                 f"{'solve':<10} {r['run']:>3} tol {r['tol']:.0e}: "
@@ -411,6 +494,13 @@ def main() -> int:
         default=0.1,
         help="robot radius, m (unicycle; with the 0.1 m look-ahead the map is the workspace "
         "shrunk by 0.2 m, default~r0.2, as in issue 23's ROS 2 trial)",
+    )
+    ap.add_argument(
+        "--map-radius",
+        type=float,
+        default=0.2,
+        help="robot radius on the README's office and warehouse maps, m (unicycle, 0.1 m "
+        "look-ahead: the README's --robot-radius 0.2 --unicycle 0.1)",
     )
     ap.add_argument("--start", type=float, nargs=2, default=(-1.5, 1.5))
     ap.add_argument("--goal", type=float, nargs=2, default=(1.5, 1.5))
@@ -445,7 +535,9 @@ def main() -> int:
     }
     for case in args.cases:
         for n in range(runs):
-            if case == "solve":
+            if case == "build":
+                row = run_build(args, tmp, n)
+            elif case == "solve":
                 row = run_solve(args, n)
             elif case == "ros2":
                 row = run_ros2(args, tmp, n)

@@ -139,9 +139,16 @@ class FootprintMixin(ControllerCacheMixin):
             self._shrunk: OrderedDict[tuple[str, str], Any] = OrderedDict()
             self._shrunk_lock = threading.Lock()
 
-    def _on_base_available(self) -> bool:
-        """Only with the library's controllers (a test's factory keeps the old behaviour)."""
-        return self._make_ctrl is navigation.make_controller
+    def _on_base_available(self, base: _Map | None = None) -> bool:
+        """Only with the library's controllers (a test's factory keeps the old behaviour) and
+        a single base map with its workspace (an atlas base is not driven on: its robots wait
+        for their footprint map, ``missing_map``)."""
+        if self._make_ctrl is not navigation.make_controller:
+            return False
+        if base is None:
+            return True
+        cmap = base.cmap
+        return not getattr(cmap, "is_atlas", False) and hasattr(cmap, "workspace")
 
     def _shrunk_of(self, base: _Map, ws_id: str) -> Any:
         """The exact shrunk workspace of ``ws_id`` for the geometry of the base map ``base``
@@ -223,7 +230,7 @@ class FootprintMixin(ControllerCacheMixin):
     def _base_installed(self, ws_id: str, m: _Map) -> None:
         """A map of ``ws_id`` was installed: its robots still waiting for a footprint map
         ``{ws_id}~r{R}`` drive on it meanwhile."""
-        if not self._on_base_available() or base_of(ws_id) is not None:
+        if base_of(ws_id) is not None or not self._on_base_available(m):
             return
         with self._lock:
             robots = [
