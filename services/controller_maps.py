@@ -8,6 +8,7 @@ import logging
 import time
 from collections import OrderedDict
 
+import numpy as np
 from confnav.schemas import (
     AtlasIndex,
     DecodeError,
@@ -25,6 +26,21 @@ from confnav.services.keys import KeyError_
 from confnav.atlas.wire import ATLAS_MARKER, AtlasMap, is_chart_ws_id
 
 log = logging.getLogger(__name__)
+
+
+def _warm(cmap: object) -> None:
+    """Build a map's lazy evaluation structures (the forward map's expansions, built on the
+    first evaluation of ``T``: 1-3 s on the default workspace under load) here, on the map
+    thread, so that the first goal on the map (e.g. a robot driving on the base map while its
+    footprint map is solved) does not wait for them before its first command."""
+    f = getattr(cmap, "T_and_dT", None)
+    anchor = getattr(cmap, "anchor", None)
+    if f is None or anchor is None or getattr(cmap, "is_atlas", False):
+        return
+    try:
+        f(np.asarray(complex(anchor)))  # type: ignore[arg-type]
+    except Exception:  # a map that cannot evaluate its anchor fails the same way for goals
+        log.debug("map warm-up", exc_info=True)
 
 
 class MapsMixin(FootprintMixin):
@@ -65,6 +81,7 @@ class MapsMixin(FootprintMixin):
             return
         try:
             cmap = sol if isinstance(sol, AtlasMap) else self._load_map(sol)
+            _warm(cmap)
         except Exception as exc:
             self.count("map_load_errors")
             self._map_errors[ws_id] = f"cannot load map: {exc}"

@@ -23,8 +23,8 @@ from confnav.schemas import (
     decode,
     encode,
 )
-from confnav.services.controller import ControllerService
 from confnav.services import navigation
+from confnav.services.controller import ControllerService
 from confnav.services.controller_footprint import same_geometry, shrunk_workspace
 from confnav.services.definitions import workspace_of
 from confnav.services.keys import Keys
@@ -116,6 +116,7 @@ def system(make_bus: Callable[[], Any]) -> Any:
     client = make_bus()
     client.publish(K.ws("sq", "definition"), encode(defn))
     wait_for(lambda: tr.state_of("sq") == "solved", timeout=120)
+    wait_for(lambda: "sq" in ctl._maps, timeout=60)  # the controller has the base map
     try:
         yield gated, tr, ctl, client, defn
     finally:
@@ -182,16 +183,17 @@ def test_a_goal_outside_the_shrunk_free_space_is_refused_before_the_footprint_ma
 ) -> None:
     """A goal 0.05 m from the wall for a 0.1 m body: the clear error (unreachable) at once,
     not a drive on the base map, and no command that moves."""
-    gated, tr, ctl, client, defn = system
+    gated, _tr, _ctl, client, _defn = system
     statuses = _Statuses(client, "r2")
     robot = _Robot(make_bus(), "r2", (-0.45, -0.45))
     try:
         goal = Goal(robot_id="r2", ws_id="sq", goal=(0.65, 0.0), robot_radius=RADIUS)
         client.publish(K.robot("r2", "goal"), encode(goal))
         st = wait_for(
-            lambda: next((s for s in statuses.all() if s.state == "stopped"), None), timeout=60
+            lambda: next((s for s in statuses.all() if s.reason == "navigation_error"), None),
+            timeout=60,
         )
-        assert st.reason == "navigation_error" and "UnreachableGoalError" in st.message
+        assert st.state == "stopped" and "UnreachableGoalError" in st.message
         assert "sq~r0.1" in st.message and not gated.gate.is_set()
         assert robot.moving_commands() == []
     finally:
