@@ -13,8 +13,15 @@ publication:
   used, and their estimated errors (from the transform's statuses);
 - ``final_s``: the first command on the final revision (the workspace's tol).
 
-Cases (each with a fresh transform service, so nothing is cached):
+Cases (each with a fresh transform service, so nothing is cached; the goal is sent once the
+workspace's own map ``{ws}`` has its first revision, ``base_first_revision_s`` after the
+services are up, so what is measured is the robot's footprint map ``{ws}~r{R}``, which a
+robot with a body drives without, on ``{ws}`` with the safety layer on the exact shrunk
+workspace, until its first revision: docs/NAVIGATION.md, "First move"):
 
+- ``build``: no services: what the controller builds before that first command on the base
+  map, cold, per workspace: the exact shrunk workspace (``shrunk_workspace``, the transform
+  service's derivation) and the safety layer's grid on it;
 - ``solve``: no services: ``confnav.solve`` of the workspace shrunk by the footprint to the first
   revision's tol (1e-3, ``max_error`` 1e-2) in this process, twice (the first call includes
   the solver's warm-up): what the first revision costs;
@@ -28,7 +35,10 @@ Cases (each with a fresh transform service, so nothing is cached):
   0.1`` and a stand-in ROS 2 robot speaking rmw_zenoh's wire format (tests/ros2_standin_robot.py:
   odometry out, ``cmd_vel`` twists in); the goal is a ``geometry_msgs/PoseStamped`` on the
   robot's ``goal_pose`` and the first move is the first non-zero ``Twist`` on its ``cmd_vel``
-  (decoded from the ROS side); the map is solved on first use, as in issue 23's trial.
+  (decoded from the ROS side); the map is solved on first use, as in issue 23's trial;
+- ``office``, ``warehouse``: ``first_use`` on the README's maps (``examples/*.yaml`` imported
+  as ``confnav import-map`` does) with the README's body (radius 0.2 m, unicycle with 0.1 m
+  look-ahead: ``{ws}~r0.3``).
 
 ``ahead s`` in the table: spawn to the first revision (``spawned``); ``first cmd s``: goal to
 the first non-zero command; ``final rev s``: goal to the first command on the final revision.

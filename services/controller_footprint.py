@@ -82,6 +82,8 @@ def make_controller_on_base(cmap: Any, goal: Goal, shrunk: Any) -> navigation.Co
             f"{navigation.footprint_radius(goal):g} m (within that distance of an obstacle, or "
             "cut off by a passage narrower than twice it)"
         )
+    if getattr(cmap, "is_atlas", False):  # an atlas base: its switching law, same filter
+        return _atlas_controller_on_base(cmap, goal, shrunk)
     ctrl = Controller(
         cmap,
         g,
@@ -98,6 +100,39 @@ def make_controller_on_base(cmap: Any, goal: Goal, shrunk: Any) -> navigation.Co
 
         return UnicycleController(ctrl, goal.lookahead, v_max=goal.v_max, omega_max=goal.omega_max)
     return ctrl
+
+
+def _atlas_controller_on_base(amap: Any, goal: Goal, shrunk: Any) -> navigation.ControllerLike:
+    """:meth:`confnav.atlas.wire.AtlasMap.controller` on the base atlas ``amap``, every
+    chart's commands filtered against the exact shrunk workspace instead of the base one."""
+    from confnav.atlas.compose import AtlasNavigator
+    from confnav.atlas.wire import AtlasController
+
+    nav = AtlasNavigator(
+        amap.atlas,
+        complex(goal.goal[0], goal.goal[1]),
+        speed=float(goal.v_max),
+        nav_maps=amap.nav_maps,
+        links=amap.links,
+        navfn=goal.navfn,
+        goal_tol=float(goal.tolerance),
+        safety=shrunk,
+    )
+    ctrl = AtlasController(nav)
+    if goal.drive == "unicycle":
+        from confnav.navigation.unicycle import UnicycleController
+
+        return UnicycleController(
+            ctrl, float(goal.lookahead), v_max=float(goal.v_max), omega_max=float(goal.omega_max)
+        )
+    return ctrl
+
+
+def base_workspace(cmap: Any) -> Any:
+    """The exact workspace of a base map: a single map's, or an atlas's whole workspace."""
+    if getattr(cmap, "is_atlas", False):
+        return cmap.atlas.workspace
+    return cmap.workspace
 
 
 def reference_point(ctrl: Any, x: float, y: float, theta: float) -> complex:
@@ -141,14 +176,15 @@ class FootprintMixin(ControllerCacheMixin):
 
     def _on_base_available(self, base: _Map | None = None) -> bool:
         """Only with the library's controllers (a test's factory keeps the old behaviour) and
-        a single base map with its workspace (an atlas base is not driven on: its robots wait
-        for their footprint map, ``missing_map``)."""
+        a base map with its exact workspace (a single map, or an atlas)."""
         if self._make_ctrl is not navigation.make_controller:
             return False
         if base is None:
             return True
         cmap = base.cmap
-        return not getattr(cmap, "is_atlas", False) and hasattr(cmap, "workspace")
+        return hasattr(cmap, "atlas") if getattr(cmap, "is_atlas", False) else hasattr(
+            cmap, "workspace"
+        )
 
     def _shrunk_of(self, base: _Map, ws_id: str) -> Any:
         """The exact shrunk workspace of ``ws_id`` for the geometry of the base map ``base``
@@ -161,7 +197,7 @@ class FootprintMixin(ControllerCacheMixin):
             if hit is not None:
                 self._shrunk.move_to_end(key)
                 return hit
-        shrunk = shrunk_workspace(base.cmap.workspace, ws_id)
+        shrunk = shrunk_workspace(base_workspace(base.cmap), ws_id)
         self.count("footprint_workspaces_built")
         with self._shrunk_lock:
             self._shrunk[key] = shrunk
@@ -178,7 +214,9 @@ class FootprintMixin(ControllerCacheMixin):
         except Exception as exc:
             self.count("navigation_errors")
             return None, f"{type(exc).__name__}: {exc}", None
-        key = ("base", base.revision, *navigation.goal_key(goal))
+        key: tuple[object, ...] = ("base", base.revision, *navigation.goal_key(goal))
+        if getattr(base.cmap, "per_robot", False):  # an atlas: the controller holds the chart
+            key = (*key, goal.robot_id)
         with self._build_lock:
             ctrl = self._ctrl_cache.get(key)
             if ctrl is not None:

@@ -30,15 +30,16 @@ log = logging.getLogger(__name__)
 
 def _warm(cmap: object) -> None:
     """Build a map's lazy evaluation structures (the forward map's expansions, built on the
-    first evaluation of ``T``: 1-3 s on the default workspace under load) here, on the map
-    thread, so that the first goal on the map (e.g. a robot driving on the base map while its
-    footprint map is solved) does not wait for them before its first command."""
+    first evaluation of ``T``: 1-3 s on the default workspace under load; not for an atlas,
+    whose charts are built when a robot enters them) here, on the map thread, so that the
+    first goal on the map (e.g. a robot driving on the base map while its footprint map is
+    solved) does not wait for them before its first command."""
     f = getattr(cmap, "T_and_dT", None)
     anchor = getattr(cmap, "anchor", None)
     if f is None or anchor is None or getattr(cmap, "is_atlas", False):
-        return
+        return  # an atlas: warming its every chart here delayed the office's install by 15 s
     try:
-        f(np.asarray(complex(anchor)))  # type: ignore[arg-type]
+        f(np.asarray(complex(anchor)))
     except Exception:  # a map that cannot evaluate its anchor fails the same way for goals
         log.debug("map warm-up", exc_info=True)
 
