@@ -13,9 +13,10 @@ publication:
   used, and their estimated errors (from the transform's statuses);
 - ``final_s``: the first command on the final revision (the workspace's tol).
 
-Cases (each with a fresh transform service, so nothing is cached; the goal is sent once the
-workspace's own map ``{ws}`` has its first revision, ``base_first_revision_s`` after the
-services are up, so what is measured is the robot's footprint map ``{ws}~r{R}``, which a
+Cases (each with a fresh transform service, so nothing is cached; the goal is sent 1 s (ros2:
+0.5 s) after the workspace's own map ``{ws}`` has its first revision and the controller has
+installed it (its health's ``maps_installed``), ``base_first_revision_s`` after the services
+are up, so what is measured is the robot's footprint map ``{ws}~r{R}``, which a
 robot with a body drives without, on ``{ws}`` with the safety layer on the exact shrunk
 workspace, until its first revision: docs/NAVIGATION.md, "First move"):
 
@@ -67,6 +68,7 @@ from typing import Any
 from confnav.schemas import (
     Goal,
     RobotStatus,
+    ServiceHealth,
     SpawnRequest,
     TransformStatus,
     VelocityCommand,
@@ -132,6 +134,13 @@ class Watch:
         bus.subscribe(K.robot(rid, "cmd_vel"), self._on(self.cmds, VelocityCommand))
         bus.subscribe(K.robot(rid, "status"), self._on(self.status, RobotStatus))
         bus.subscribe(K.any_ws("status"), self._on(self.ws_status, TransformStatus))
+        self.maps_installed = 0  # the controller's counter, from its health
+        bus.subscribe(f"{K.prefix}/health/controller/*", self._on_health)
+
+    def _on_health(self, key: str, payload: bytes) -> None:
+        h = decode(ServiceHealth, payload)
+        with self.lock:
+            self.maps_installed = max(self.maps_installed, h.counters.get("maps_installed", 0))
 
     def _on(self, store: list[Any], model: type[Any]) -> Any:
         def on(key: str, payload: bytes) -> None:
@@ -163,8 +172,12 @@ def example_workspace(name: str, tmp: Path) -> str:
 
 
 def base_ready(watch: Watch, ws_id: str) -> Any:
-    """The monotonic time of the workspace's first solved revision (None: not yet)."""
+    """The monotonic time of the workspace's first solved revision once the controller has
+    installed a map (its health's ``maps_installed``, published every second): the system is
+    up (None: not yet)."""
     with watch.lock:
+        if watch.maps_installed < 1:
+            return None
         for t, s in watch.ws_status:
             if s.ws_id == ws_id and s.state == "solved" and s.revision:
                 return t
