@@ -91,7 +91,7 @@ class GoalsMixin(FootprintMixin):
         elif m is None:
             base = base_of(goal.ws_id)  # a footprint map being solved: drive on the base map
             bm = self._maps.get(base) if base is not None else None
-            if bm is not None and self._on_base_available(bm):
+            if base is not None and bm is not None and self._on_base_available(bm):
                 self._adopt_base(r, base, bm)
             self._wake_fetch.set()
         log.info("robot %r: goal %s on %r", rid, goal.goal, goal.ws_id)
