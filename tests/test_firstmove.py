@@ -6,9 +6,10 @@ time window."""
 
 from __future__ import annotations
 
+import contextlib
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import numpy as np
@@ -103,8 +104,10 @@ class _Statuses:
             return list(self.seen)
 
 
-@pytest.fixture
-def system(make_bus: Callable[[], Any]) -> Any:
+@contextlib.contextmanager
+def _system(make_bus: Callable[[], Any], defn: WorkspaceDefinition) -> Iterator[Any]:
+    """Transform (footprint maps gated) and controller services; ``defn`` solved and
+    installed in the controller."""
     gated = _GatedSolve()
     tr = TransformService(
         make_bus(), K, executor="thread", solve_fn=gated, progressive=False, health_period=0.2
@@ -112,17 +115,23 @@ def system(make_bus: Callable[[], Any]) -> Any:
     ctl = ControllerService(make_bus(), K, stale_after=5.0, health_period=0.2)
     tr.start()
     ctl.start()
-    defn = square_definition("sq", [(0.0, 0.1)]).model_copy(update={"tol": 1e-6})
     client = make_bus()
-    client.publish(K.ws("sq", "definition"), encode(defn))
-    wait_for(lambda: tr.state_of("sq") == "solved", timeout=120)
-    wait_for(lambda: "sq" in ctl._maps, timeout=60)  # the controller has the base map
+    client.publish(K.ws(defn.ws_id, "definition"), encode(defn))
     try:
+        wait_for(lambda: tr.state_of(defn.ws_id) == "solved", timeout=120)
+        wait_for(lambda: defn.ws_id in ctl._maps, timeout=60)  # the controller has the map
         yield gated, tr, ctl, client, defn
     finally:
         gated.gate.set()
         ctl.stop()
         tr.stop()
+
+
+@pytest.fixture
+def system(make_bus: Callable[[], Any]) -> Iterator[Any]:
+    defn = square_definition("sq", [(0.0, 0.1)]).model_copy(update={"tol": 1e-6})
+    with _system(make_bus, defn) as parts:
+        yield parts
 
 
 def test_a_robot_with_a_body_moves_before_its_footprint_map_and_swaps_to_it(
@@ -198,3 +207,50 @@ def test_a_goal_outside_the_shrunk_free_space_is_refused_before_the_footprint_ma
         assert robot.moving_commands() == []
     finally:
         robot.stop.set()
+
+
+def test_where_the_unshrunk_map_hugs_an_obstacle_the_body_stays_in_the_shrunk_space(
+    make_bus: Callable[[], Any],
+) -> None:
+    """Two thin obstacles, 0.12 m apart, the lower one joined to the wall by the 0.1 m body:
+    the unshrunk map's own path round the upper one passes closer than 0.1 m to it (checked
+    here: it leaves the shrunk free space), the robot driven on that map with the safety
+    layer on the exact shrunk workspace never does, and it arrives with its footprint map
+    still held back."""
+    a = [(-0.05, 0.06), (0.05, 0.06), (0.05, 0.3), (-0.05, 0.3)]
+    b = [(-0.05, -0.45), (0.05, -0.45), (0.05, -0.06), (-0.05, -0.06)]
+    defn = WorkspaceDefinition(ws_id="gap", outer=[(-0.7, -0.7), (0.7, -0.7), (0.7, 0.7),
+                               (-0.7, 0.7)], obstacles=[a, b], tol=1e-4)  # fmt: skip
+    with _system(make_bus, defn) as (gated, tr, ctl, client, _):
+        statuses = _Statuses(client, "r3")
+        robot = _Robot(make_bus(), "r3", (-0.45, 0.0))
+        try:
+            goal = Goal(robot_id="r3", ws_id="gap", goal=(0.45, 0.0), robot_radius=RADIUS,
+                        v_max=0.1, tolerance=0.03)  # fmt: skip
+            client.publish(K.robot("r3", "goal"), encode(goal))
+            wait_for(lambda: statuses.all() and statuses.all()[-1].state == "arrived", timeout=120)
+            assert tr.state_of("gap~r0.1") != "solved" and not gated.gate.is_set()
+            seen = statuses.all()
+            nav = [s for s in seen if s.state == "navigating"]
+            assert nav and all("unshrunk map 'gap'" in s.message for s in nav)
+            assert not any(s.state == "stopped" for s in seen[seen.index(nav[0]) :])
+            with robot.lock:
+                path = np.array(robot.path)
+            shrunk = inflate(workspace_of(defn), RADIUS)
+            assert float(shrunk.clearance(path).min()) >= 0.0
+            assert float(workspace_of(defn).clearance(path).min()) >= RADIUS - 1e-9
+            assert ctl.counters["controllers_built_on_base"] >= 1
+            # the same map with the unshrunk walls' filter only (a point robot's law): its
+            # path leaves the shrunk free space, so the body's filter was needed
+            reply = client.query(K.ws("gap", "transform"))[0].payload or b""
+            free = navigation.make_controller(
+                navigation.load_map(decode(TransformSolution, reply)), goal
+            )
+            z, bare = complex(-0.45, 0.0), []
+            for _ in range(600):
+                u, _code = navigation.command(free, z.real, z.imag)
+                z += 0.05 * u
+                bare.append(z)
+            assert float(shrunk.clearance(np.array(bare)).min()) < 0.0
+        finally:
+            robot.stop.set()
