@@ -200,8 +200,8 @@ def main(argv: list[str] | None = None) -> int:
                         "error_estimate": float(ref.diagnostics.error_estimate),
                         "cpu_s": rrec["cpu_s"],
                         "true_error_of_coarse": err,
-                        "honest": err <= m.diagnostics.error_estimate
-                        + ref.diagnostics.error_estimate,
+                        "honest": err
+                        <= m.diagnostics.error_estimate + ref.diagnostics.error_estimate,
                     }
             row["loadavg_end"] = list(os.getloadavg())
             rows.append(row)

@@ -13,21 +13,21 @@ publication:
   used, and their estimated errors (from the transform's statuses);
 - ``final_s``: the first command on the final revision (the workspace's tol).
 
-Cases (each with a fresh transform service, so nothing is cached):
+Cases (each with a fresh transform service, so nothing is cached; the goal is sent 1 s (ros2:
+0.5 s) after the workspace's own map ``{ws}`` has its first revision and the controller has
+installed it (its health's ``maps_installed``), ``base_first_revision_s`` after the services
+are up, so what is measured is the robot's footprint map ``{ws}~r{R}``, which a
+robot with a body drives without, on ``{ws}`` with the safety layer on the exact shrunk
+workspace, until its first revision: docs/NAVIGATION.md, "First move"):
 
+- ``build``: no services: what the controller builds before that first command on the base
+  map, cold, per workspace: the exact shrunk workspace (``shrunk_workspace``, the transform
+  service's derivation) and the safety layer's grid on it;
 - ``solve``: no services: ``confnav.solve`` of the workspace shrunk by the footprint to the first
   revision's tol (1e-3, ``max_error`` 1e-2) in this process, twice (the first call includes
   the solver's warm-up): what the first revision costs;
-- ``first_use``: the robot is spawned with its body and gets its goal 1 s later, once the
-  workspace's own (unshrunk) map is out (``base_ready_s``, from the services being up): its
-  ``{ws}~r{R}`` map is still being solved, so the unshrunk map steers it through the safety
-  layer on the exact shrunk workspace (docs/NAVIGATION.md, "Driving before the footprint
-  map") until the footprint map lands. The run lasts until the robot arrives
-  (``arrived_s``) or ``--arrive-timeout``; the simulator's collision events (the body's) are
-  counted (``collisions``);
-- ``office``, ``warehouse``: ``first_use`` on the README's maps (``examples/*.yaml`` through
-  ``confnav import-map``) with a 0.2 m body and the 0.1 m look-ahead (footprint 0.3 m), from a
-  start to a goal drawn in the shrunk free space (seeded: the farthest apart of 40 points);
+- ``first_use``: the robot is spawned as a point (no radius known to the system); the goal's
+  ``{ws}~r{R}`` map is solved when the controller first asks for it;
 - ``spawned``: the robot is spawned with its body, so the transform service starts solving its
   ``{ws}~r{R}`` map at the spawn (ahead of use); the goal is sent once the first revision of
   that map is out (``spawn_to_first_revision_s``), as for a robot that waits for its first
@@ -36,7 +36,10 @@ Cases (each with a fresh transform service, so nothing is cached):
   0.1`` and a stand-in ROS 2 robot speaking rmw_zenoh's wire format (tests/ros2_standin_robot.py:
   odometry out, ``cmd_vel`` twists in); the goal is a ``geometry_msgs/PoseStamped`` on the
   robot's ``goal_pose`` and the first move is the first non-zero ``Twist`` on its ``cmd_vel``
-  (decoded from the ROS side); the map is solved on first use, as in issue 23's trial.
+  (decoded from the ROS side); the map is solved on first use, as in issue 23's trial;
+- ``office``, ``warehouse``: ``first_use`` on the README's maps (``examples/*.yaml`` imported
+  as ``confnav import-map`` does) with the README's body (radius 0.2 m, unicycle with 0.1 m
+  look-ahead: ``{ws}~r0.3``).
 
 ``ahead s`` in the table: spawn to the first revision (``spawned``); ``first cmd s``: goal to
 the first non-zero command; ``final rev s``: goal to the first command on the final revision.
@@ -63,9 +66,9 @@ from pathlib import Path
 from typing import Any
 
 from confnav.schemas import (
-    CollisionEvent,
     Goal,
     RobotStatus,
+    ServiceHealth,
     SpawnRequest,
     TransformStatus,
     VelocityCommand,
@@ -78,10 +81,9 @@ from confnav.services.launcher import SINGLE_THREAD_BLAS
 from provenance import commit  # script mode: bench/ is on sys.path
 
 HERE = Path(__file__).resolve().parent
-CASES = ("solve", "standin", "first_use", "spawned", "ros2", "office", "warehouse")
-#: the README's maps: case -> (body radius, m)
-MAP_CASES = {"office": 0.2, "warehouse": 0.2}
-LOOKAHEAD = 0.1
+CASES = ("build", "solve", "first_use", "spawned", "ros2", "office", "warehouse")
+#: the README's maps (examples/*.yaml, imported as ``confnav import-map`` does): start, goal
+MAPS = {"office": ((8.5, 6.5), (1.5, 1.5)), "warehouse": ((1.2, 3.0), (9.0, 7.0))}
 K = Keys()
 
 
@@ -132,13 +134,13 @@ class Watch:
         bus.subscribe(K.robot(rid, "cmd_vel"), self._on(self.cmds, VelocityCommand))
         bus.subscribe(K.robot(rid, "status"), self._on(self.status, RobotStatus))
         bus.subscribe(K.any_ws("status"), self._on(self.ws_status, TransformStatus))
-        self.collisions: list[tuple[float, str]] = []
-        bus.subscribe(K.robot(rid, "collision"), self._on_collision)
+        self.maps_installed = 0  # the controller's counter, from its health
+        bus.subscribe(f"{K.prefix}/health/controller/*", self._on_health)
 
-    def _on_collision(self, key: str, payload: bytes) -> None:
-        ev = decode(CollisionEvent, payload)
+    def _on_health(self, key: str, payload: bytes) -> None:
+        h = decode(ServiceHealth, payload)
         with self.lock:
-            self.collisions.append((time.monotonic(), ev.model_dump_json()[:300]))
+            self.maps_installed = max(self.maps_installed, h.counters.get("maps_installed", 0))
 
     def _on(self, store: list[Any], model: type[Any]) -> Any:
         def on(key: str, payload: bytes) -> None:
@@ -159,33 +161,27 @@ def wait(pred: Any, timeout: float) -> Any:
     return None
 
 
-def map_case(case: str, tmp: Path) -> tuple[str, float, tuple[float, float], tuple[float, float]]:
-    """The workspace file, body radius, start and goal of ``office`` / ``warehouse``: the
-    README's map imported with ``confnav import-map``; start and goal the farthest apart of 40
-    seeded points of the free space shrunk by the footprint."""
-    import numpy as np
+def example_workspace(name: str, tmp: Path) -> str:
+    """``examples/{name}.yaml`` imported as ``confnav import-map`` does, as a workspace file."""
+    from confnav.maps.occupancy import import_map
 
-    from confnav.geometry import Workspace
-    from confnav.maps.footprint import inflate
-    from confnav.scenes.scenarios import random_starts
+    out = tmp / f"{name}.json"
+    if not out.exists():
+        out.write_text(import_map(HERE.parent / "examples" / f"{name}.yaml").workspace.to_json())
+    return str(out)
 
-    path = tmp / f"{case}.json"
-    if not path.exists():
-        src = HERE.parent / "examples" / f"{case}.yaml"
-        if not src.exists():
-            subprocess.run([sys.executable, str(HERE.parent / "examples" / "make_maps.py")],
-                           check=True)  # fmt: skip
-        subprocess.run(
-            [sys.executable, "-m", "confnav", "import-map", str(src), "-o", str(path)],
-            check=True,
-            capture_output=True,
-        )
-    radius = MAP_CASES[case]
-    shrunk = inflate(Workspace.load(path), radius + LOOKAHEAD)
-    pts = random_starts(shrunk, 40, seed=1, margin=0.05)
-    d = np.abs(pts[:, None] - pts[None, :])
-    i, j = np.unravel_index(int(np.argmax(d)), d.shape)
-    return str(path), radius, (pts[i].real, pts[i].imag), (pts[j].real, pts[j].imag)
+
+def base_ready(watch: Watch, ws_id: str) -> Any:
+    """The monotonic time of the workspace's first solved revision once the controller has
+    installed a map (its health's ``maps_installed``, published every second): the system is
+    up (None: not yet)."""
+    with watch.lock:
+        if watch.maps_installed < 1:
+            return None
+        for t, s in watch.ws_status:
+            if s.ws_id == ws_id and s.state == "solved" and s.revision:
+                return t
+    return None
 
 
 def run_case(case: str, args: argparse.Namespace, tmp: Path, n: int) -> dict[str, Any]:
@@ -193,14 +189,13 @@ def run_case(case: str, args: argparse.Namespace, tmp: Path, n: int) -> dict[str
     common = ["--mode", "client", "--connect", ep]
     logs = tmp / f"{case}{n}"
     logs.mkdir(parents=True, exist_ok=True)
-    ws_id, source = "default", "builtin:default"
-    radius, start, goal_xy = args.radius, tuple(args.start), tuple(args.goal)
-    if case in MAP_CASES:
-        ws_id = case
-        source, radius, start, goal_xy = map_case(case, tmp)
     procs = [spawn("serve", "router", "--listen", ep, log=logs / "router.log")]
+    ws_id = case if case in MAPS else "default"
+    radius = args.map_radius if case in MAPS else args.radius
+    start, goal_xy = MAPS.get(case, (tuple(args.start), tuple(args.goal)))
     try:
         time.sleep(1.0)
+        source = example_workspace(case, tmp) if case in MAPS else "builtin:default"
         ws = ["--workspace", f"{ws_id}={source}"]
         procs.append(spawn("serve", "transform", *common, *ws, log=logs / "transform.log"))
         procs.append(spawn("serve", "controller", *common, log=logs / "controller.log"))
@@ -216,31 +211,24 @@ def run_case(case: str, args: argparse.Namespace, tmp: Path, n: int) -> dict[str
             )
             if not alive:
                 raise RuntimeError(f"services did not come up (logs in {logs})")
-            t_up = time.monotonic()
             watch = Watch(bus, rid)
-            spawned = case == "spawned"
-
-            def base_ready() -> float | None:  # the workspace's own map (any revision)
-                with watch.lock:
-                    for t, s in watch.ws_status:
-                        if s.ws_id == ws_id and s.state == "solved" and s.revision:
-                            return t - t_up
-                return None
-
-            base_s = wait(base_ready, args.timeout)
+            t_up = time.monotonic()
+            body = case == "spawned"
             req = SpawnRequest(
                 robot_id=rid,
                 ws_id=ws_id,
                 position=(start[0], start[1]),
                 theta=0.0,
                 stamp_ns=time.time_ns(),
-                robot_radius=radius,
-                drive="unicycle",
+                robot_radius=radius if body else 0.0,
+                # first_use: a point (nothing for the transform to solve ahead); the simulator
+                # integrates the controller's body-frame twists either way
+                drive="unicycle" if body else "holonomic",
             )
             t_spawn = time.monotonic()
             bus.publish(f"{K.prefix}/sim/sim/spawn", encode(req))
             first_rev_s: float | None = None
-            if spawned:
+            if body:
 
                 def first_revision() -> float | None:
                     with watch.lock:
@@ -250,6 +238,9 @@ def run_case(case: str, args: argparse.Namespace, tmp: Path, n: int) -> dict[str
                     return None
 
                 first_rev_s = wait(first_revision, args.timeout)
+            # the workspace's own map (its first revision) exists before the goal: the system
+            # is up; the goal's footprint map {ws}~r{R} is what is measured
+            t_base = wait(lambda: base_ready(watch, ws_id), args.timeout)
             time.sleep(1.0)
             goal = Goal(
                 robot_id=rid,
@@ -259,11 +250,6 @@ def run_case(case: str, args: argparse.Namespace, tmp: Path, n: int) -> dict[str
                 drive="unicycle",
                 stamp_ns=time.time_ns(),
             )
-            with watch.lock:  # was the footprint map out when the goal was sent?
-                footprint_ready = any(
-                    "~r" in s.ws_id and s.state == "solved" and s.revision
-                    for _, s in watch.ws_status
-                )
             t0 = time.monotonic()
             bus.publish(K.robot(rid, "goal"), encode(goal))
 
@@ -285,15 +271,6 @@ def run_case(case: str, args: argparse.Namespace, tmp: Path, n: int) -> dict[str
                 return None
 
             final_rev = wait(final, args.final_timeout) if first is not None else None
-
-            def arrived() -> float | None:
-                with watch.lock:
-                    for t, st in watch.status:
-                        if t >= t0 and st.state == "arrived":
-                            return t - t0
-                return None
-
-            arrived_s = wait(arrived, args.arrive_timeout) if first is not None else None
             time.sleep(0.5)
             with watch.lock:
                 cmds = [(t - t0, c) for t, c in watch.cmds if t >= t0]
@@ -310,8 +287,6 @@ def run_case(case: str, args: argparse.Namespace, tmp: Path, n: int) -> dict[str
             for t, s in status
             if first is not None and t > first and s.state == "stopped"
         ]
-        with watch.lock:
-            collisions = [(round(t - t0, 2), c) for t, c in watch.collisions]
         return {
             "case": case,
             "run": n,
@@ -319,12 +294,8 @@ def run_case(case: str, args: argparse.Namespace, tmp: Path, n: int) -> dict[str
             "robot_radius": radius,
             "start": list(start),
             "goal": list(goal_xy),
-            "base_ready_s": base_s,
-            "footprint_map_ready_at_goal": footprint_ready,
-            "arrived_s": arrived_s,
-            "collisions": len(collisions),
-            "collision_events": collisions[:5],
-            "spawn_to_first_revision_s": first_rev_s if spawned else None,
+            "base_first_revision_s": None if t_base is None else t_base - t_up,
+            "spawn_to_first_revision_s": first_rev_s if body else None,
             "first_cmd_s": first,
             "first_navigating_s": nav[0][0] if nav else None,
             "first_navigating_message": nav[0][1].message if nav else None,
@@ -334,6 +305,7 @@ def run_case(case: str, args: argparse.Namespace, tmp: Path, n: int) -> dict[str
             ],
             "final_s": revs.get(final_rev) if final_rev else None,
             "stopped_after_moving": stopped_after_moving,
+            "on_base_map": any("unshrunk map" in s.message for _, s in nav),
             "loadavg": list(os.getloadavg()),
         }
     finally:
@@ -376,50 +348,35 @@ def run_solve(args: argparse.Namespace, n: int) -> dict[str, Any]:
     }
 
 
-def run_standin_cost(n: int) -> dict[str, Any]:
-    """The ``standin`` case (library, no services): what steering a body on the unshrunk map
-    costs. A 1.4 m square room barred across from x = -0.65 to 0.42 (a 0.05 m slit on the left,
-    closed to the body; a 0.28 m door on the right), a body of 0.1 m from (0, -0.45) to
-    (0, 0.45): the unshrunk map's law without a filter, with the filter on the exact shrunk
-    workspace (the stand-in), and the footprint map's own law. Reports arrival, the body's
-    smallest clearance (negative: it hit the bar) and the time to arrive."""
-    import numpy as np
+def run_build(args: argparse.Namespace, tmp: Path, n: int) -> dict[str, Any]:
+    """The ``build`` case: what a robot waiting for its footprint map costs the controller
+    before its first command on the base map: the exact shrunk workspace (derived from the
+    base workspace as the transform service derives ``{ws}~r{R}``) and the safety layer's grid
+    on it (both cold: new objects), per workspace."""
+    from confnav.services.controller_footprint import shrunk_workspace
 
-    from confnav.conformal.solver import solve
     from confnav.geometry import Workspace
-    from confnav.maps.footprint import inflate
-    from confnav.navigation.control import Controller
-    from confnav.navigation.sim import simulate
+    from confnav.navigation.safety import SafetyFilter
+    from confnav.scenes.workspaces import default_workspace
 
-    radius = 0.1
-    outer = [(-0.7, -0.7), (0.7, -0.7), (0.7, 0.7), (-0.7, 0.7)]
-    bar = [(-0.65, -0.025), (0.42, -0.025), (0.42, 0.025), (-0.65, 0.025)]
-    ws = Workspace(outer, [bar])
-    shrunk = inflate(ws, radius)
-    base, own = solve(ws, 1e-6), solve(shrunk, 1e-6)
-    runs = {}
-    for name, cmap, safety in (
-        ("unshrunk map, no filter", base, False),
-        ("unshrunk map, filter on the shrunk workspace", base, shrunk),
-        ("footprint map", own, None),
-    ):
-        res = simulate(
-            Controller(cmap, 0.45j, safety=safety), [-0.45j], t_max=300, record_paths=True
-        )
-        assert res.paths is not None
-        runs[name] = {
-            "arrived": bool(res.success[0]),
-            # exact distance of the accepted points to the true walls, minus the body
-            "body_clearance_m": float(np.min(ws.clearance(res.paths[0]))) - radius,
-            "time_s": float(res.time[0]),
-            "reason": res.reasons[0] if res.reasons else "",
-        }
+    bases = {"default": (default_workspace(), args.radius + 0.1)}
+    for name in MAPS:
+        bases[name] = (Workspace.load(example_workspace(name, tmp)), args.map_radius + 0.1)
+    out: dict[str, Any] = {}
+    for name, (ws, footprint) in bases.items():
+        t0 = time.perf_counter()
+        shrunk = shrunk_workspace(ws, f"{name}~r{footprint:g}")
+        t1 = time.perf_counter()
+        _ = SafetyFilter(shrunk).grid
+        t2 = time.perf_counter()
+        out[name] = {"footprint_m": footprint, "shrink_s": t1 - t0, "grid_s": t2 - t1,
+                     "total_s": t2 - t0}  # fmt: skip
     return {
-        "case": "standin",
+        "case": "build",
         "run": n,
-        "runs": runs,
         "spawn_to_first_revision_s": None,
         "first_cmd_s": None,
+        "build": out,
         "final_s": None,
         "revisions": [],
         "first_navigating_message": None,
@@ -462,6 +419,7 @@ def run_ros2(args: argparse.Namespace, tmp: Path, n: int) -> dict[str, Any]:
             with open(logs / "robot.log", "wb") as f:  # the router is up: the robot connects
                 procs.append(subprocess.Popen(robot, stdout=f, stderr=subprocess.STDOUT))
             watch = Watch(bus, rid)
+            t_up = time.monotonic()
             moves: list[float] = []
             cmd_key = f"0/{rid}/cmd_vel/geometry_msgs::msg::dds_::Twist_/" + codec.type_hash(
                 codec.TWIST
@@ -480,6 +438,8 @@ def run_ros2(args: argparse.Namespace, tmp: Path, n: int) -> dict[str, Any]:
                 bus.subscribe(K.robot(rid, "pose"), lambda k, p: posed.append(True))
                 if not wait(lambda: posed, 60):  # its odometry on the bus, through the bridge
                     raise RuntimeError(f"no odometry from the stand-in robot (logs in {logs})")
+                # the workspace's own map exists (its first revision): the system is up
+                t_base = wait(lambda: base_ready(watch, "default"), args.timeout)
                 time.sleep(0.5)
                 t0 = time.monotonic()
                 pose = codec.PlanarPose(args.goal[0], args.goal[1], 0.0, time.time_ns(), "odom")
@@ -492,6 +452,9 @@ def run_ros2(args: argparse.Namespace, tmp: Path, n: int) -> dict[str, Any]:
         return {
             "case": "ros2",
             "run": n,
+            "workspace": "default",
+            "robot_radius": args.radius,
+            "base_first_revision_s": None if t_base is None else t_base - t_up,
             "spawn_to_first_revision_s": None,
             "first_cmd_s": first[0] if first else None,
             "first_navigating_s": nav[0][0] if nav else None,
@@ -503,6 +466,7 @@ def run_ros2(args: argparse.Namespace, tmp: Path, n: int) -> dict[str, Any]:
                 for t, s in status
                 if first and t > first[0] and s.state == "stopped"
             ],
+            "on_base_map": any("unshrunk map" in s.message for _, s in nav),
             "loadavg": list(os.getloadavg()),
         }
     finally:
@@ -520,6 +484,11 @@ def report(rows: list[dict[str, Any]]) -> None:
         load = " ".join(f"{x:.1f}" for x in r["loadavg"])
         ahead = r["spawn_to_first_revision_s"]
         a = "-" if ahead is None else f"{ahead:.2f}"
+        if r["case"] == "build":
+            parts = [f"{w} {b['total_s']:.3f} s (shrink {b['shrink_s']:.3f}, grid "
+                     f"{b['grid_s']:.3f})" for w, b in r["build"].items()]  # fmt: skip
+            print(f"{'build':<10} {r['run']:>3} " + ", ".join(parts) + f"  {load}")
+            continue
         if r["case"] == "solve":
             print(
                 f"{'solve':<10} {r['run']:>3} tol {r['tol']:.0e}: "
@@ -549,6 +518,13 @@ def main() -> int:
         help="robot radius, m (unicycle; with the 0.1 m look-ahead the map is the workspace "
         "shrunk by 0.2 m, default~r0.2, as in issue 23's ROS 2 trial)",
     )
+    ap.add_argument(
+        "--map-radius",
+        type=float,
+        default=0.2,
+        help="robot radius on the README's office and warehouse maps, m (unicycle, 0.1 m "
+        "look-ahead: the README's --robot-radius 0.2 --unicycle 0.1)",
+    )
     ap.add_argument("--start", type=float, nargs=2, default=(-1.5, 1.5))
     ap.add_argument("--goal", type=float, nargs=2, default=(1.5, 1.5))
     ap.add_argument("--timeout", type=float, default=600.0, help="s to wait for the first move")
@@ -557,9 +533,6 @@ def main() -> int:
         type=float,
         default=None,
         help="s to wait for the final revision (default 900; --quick: 0, not waited for)",
-    )
-    ap.add_argument(
-        "--arrive-timeout", type=float, default=600.0, help="s to wait for the robot to arrive"
     )
     ap.add_argument("--out", default=None)
     args = ap.parse_args()
@@ -585,10 +558,10 @@ def main() -> int:
     }
     for case in args.cases:
         for n in range(runs):
-            if case == "solve":
+            if case == "build":
+                row = run_build(args, tmp, n)
+            elif case == "solve":
                 row = run_solve(args, n)
-            elif case == "standin":
-                row = run_standin_cost(n)
             elif case == "ros2":
                 row = run_ros2(args, tmp, n)
             else:

@@ -13,8 +13,6 @@ from confnav.services.controller_state import (
     _Robot,
 )
 
-from confnav.maps.footprint import parse_derived_ws_id
-
 log = logging.getLogger(__name__)
 
 CTRL_CACHE_SIZE = 4096
@@ -54,36 +52,6 @@ class ControllerCacheMixin(ControllerCore):
                 search(navigation.CRITICAL_SEARCH)
             return ctrl, ""
 
-    def _stand_in(self, goal: Goal) -> _Map | None:
-        """The installed unshrunk map that steers a robot with a footprint until its
-        ``{ws}~r{R}`` map is installed (:func:`navigation.stands_in`), or None."""
-        parsed = parse_derived_ws_id(goal.ws_id)
-        if parsed is None:
-            return None
-        base = self._maps.get(parsed[0])
-        return base if base is not None and navigation.stands_in(base.cmap, goal) else None
-
-    def _adopt_stand_in(self, base_ws: str, m: _Map) -> None:
-        """Give the robots whose footprint map of ``base_ws`` is not installed yet the
-        controller of the unshrunk map ``m`` (hot swap, as for a revision)."""
-        with self._lock:
-            robots = [
-                r
-                for r in self._robots.values()
-                if r.goal is not None
-                and r.goal.ws_id not in self._maps
-                and (parse_derived_ws_id(r.goal.ws_id) or ("",))[0] == base_ws
-                and r.ctrl_revision != m.revision
-            ]
-        for r in robots:
-            goal = r.goal
-            if goal is None or not navigation.stands_in(m.cmap, goal):
-                continue
-            ctrl, err = self._build(m, goal)
-            with r.lock:
-                if r.goal is goal and goal.ws_id not in self._maps:
-                    r.ctrl, r.ctrl_revision, r.ctrl_error = ctrl, m.revision, err
-
     def _adopt(self, r: _Robot, ws_id: str, m: _Map) -> None:
         """Give ``r`` the controller of workspace ``ws_id``'s map ``m`` for its current goal,
         unless it has one of ``m`` already or its goal moved elsewhere meanwhile.
@@ -99,3 +67,4 @@ class ControllerCacheMixin(ControllerCore):
         with r.lock:
             if r.goal is goal and r.ctrl_revision != m.revision:
                 r.ctrl, r.ctrl_revision, r.ctrl_error = ctrl, m.revision, err
+                r.base_ws, r.shrunk = "", None

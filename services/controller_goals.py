@@ -13,14 +13,14 @@ from confnav.schemas import (
     decode,
 )
 from confnav.services import navigation
-from confnav.services.controller_cache import ControllerCacheMixin
+from confnav.services.controller_footprint import FootprintMixin, base_of
 from confnav.services.controller_state import _Robot
 from confnav.services.keys import KeyError_
 
 log = logging.getLogger(__name__)
 
 
-class GoalsMixin(ControllerCacheMixin):
+class GoalsMixin(FootprintMixin):
     """Goals and cancels: each robot's goal, its controller, and rejected input."""
 
     # goals -------------------------------------------------------------------------------
@@ -76,18 +76,31 @@ class GoalsMixin(ControllerCacheMixin):
             self.count("goals_repeated")
             return
         self.count("goals")
-        m = self._maps.get(goal.ws_id) or self._stand_in(goal)
+        m = self._maps.get(goal.ws_id)
         ctrl, err = self._build(m, goal) if m is not None else (None, "")
+        base = base_of(goal.ws_id)  # a footprint map being solved: drive on the base map
+        bm = self._maps.get(base) if base is not None and m is None else None
+        shrunk = None
+        if bm is not None and self._on_base_available(bm):  # built before the goal is set, so
+            ctrl, err, shrunk = self._build_on_base(bm, goal)  # no pose meets it without one
+        else:
+            bm = None
         with r.lock:
             r.goal, r.ctrl, r.ctrl_error = goal, ctrl, err
             r.ctrl_revision = m.revision if m is not None else None
+            r.base_ws, r.shrunk = "", None
+            if bm is not None and base is not None:
+                r.ctrl_revision, r.base_ws, r.shrunk = bm.revision, base, shrunk
             r.stale_reported = False
             r.status_key = ("", "", None, "")
             r.goal_t = r.seen_t = time.monotonic()
         current = self._maps.get(goal.ws_id)
         if current is not None and current is not m:  # a map landed while this goal was set
             self._adopt(r, goal.ws_id, current)
-        elif current is None:  # no map yet, or the unshrunk one standing in
+        elif m is None:
+            latest = self._maps.get(base) if base is not None else None
+            if base is not None and latest is not None and self._on_base_available(latest):
+                self._adopt_base(r, base, latest)  # a base revision that landed meanwhile
             self._wake_fetch.set()
         log.info("robot %r: goal %s on %r", rid, goal.goal, goal.ws_id)
 
@@ -101,6 +114,7 @@ class GoalsMixin(ControllerCacheMixin):
             if r.goal is not None:
                 self._publish_cmd(r, 0j, None)
             r.goal, r.ctrl, r.ctrl_error, r.ctrl_revision = None, None, "", None
+            r.base_ws, r.shrunk = "", None
             r.seen_t = now
             r.status_key = ("", "", None, "")
             self._status(r, "idle", "invalid_input", f"goal rejected: {message}", now)

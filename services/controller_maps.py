@@ -18,40 +18,33 @@ from confnav.schemas import (
     decode,
 )
 from confnav.services.atlas_client import fetch_atlas
-from confnav.services.controller_cache import ControllerCacheMixin
+from confnav.services.controller_footprint import FootprintMixin, base_of
 from confnav.services.controller_state import _Map, _Pending, _Robot
 from confnav.services.definitions import REFINING, definition_hash, workspace_of
 from confnav.services.keys import KeyError_
 
 from confnav.atlas.wire import ATLAS_MARKER, AtlasMap, is_chart_ws_id
-from confnav.maps.footprint import parse_derived_ws_id
 
 log = logging.getLogger(__name__)
-
-
-def _base_of(ws_id: str) -> str | None:
-    """The base workspace of a footprint workspace ``{ws}~r{R}`` (None for another id)."""
-    parsed = parse_derived_ws_id(ws_id)
-    return None if parsed is None else parsed[0]
 
 
 def _warm(cmap: object) -> None:
     """Build a map's lazy evaluation structures (the forward map's expansions, built on the
     first evaluation of ``T``: 1-3 s on the default workspace under load; not for an atlas,
     whose charts are built when a robot enters them) here, on the map thread, so that the
-    first goal on the map (e.g. a robot driving on the unshrunk map while its footprint map
-    is solved) does not wait for them before its first command."""
+    first goal on the map (e.g. a robot driving on the base map while its footprint map is
+    solved) does not wait for them before its first command."""
     f = getattr(cmap, "T_and_dT", None)
     anchor = getattr(cmap, "anchor", None)
     if f is None or anchor is None or getattr(cmap, "is_atlas", False):
-        return
+        return  # an atlas: warming its every chart here delayed the office's install by 15 s
     try:
         f(np.asarray(complex(anchor)))
     except Exception:  # a map that cannot evaluate its anchor fails the same way for goals
         log.debug("map warm-up", exc_info=True)
 
 
-class MapsMixin(ControllerCacheMixin):
+class MapsMixin(FootprintMixin):
     """Maps: liveliness of the transform services, solutions and atlases received or fetched,
     hot swaps, definition changes and deletes."""
 
@@ -129,9 +122,11 @@ class MapsMixin(ControllerCacheMixin):
                         continue
                     ctrl, err = built[r.robot_id]
                     r.ctrl, r.ctrl_revision, r.ctrl_error = ctrl, new.revision, err
+                    r.base_ws, r.shrunk = "", None
         for r in late:
             self._adopt(r, ws_id, new)
-        self._adopt_stand_in(ws_id, new)  # robots waiting for a footprint map {ws}~r{R}
+        self._footprint_installed(ws_id, new)
+        self._base_installed(ws_id, new)  # robots whose footprint map {ws_id}~r{R} is unsolved
         self.count("maps_installed")
         log.info("workspace %r: map %s installed (%d robots)", ws_id, sol.revision[:12], len(goals))
         self.swapped.set()
@@ -206,6 +201,7 @@ class MapsMixin(ControllerCacheMixin):
                 if r.goal is None or r.goal.ws_id != ws_id:
                     continue
                 r.ctrl, r.ctrl_revision, r.ctrl_error = None, None, ""
+                r.base_ws, r.shrunk = "", None
                 self._stop_robot(r, "missing_map", self._map_errors[ws_id], now)
 
     def _fetch_loop(self) -> None:
@@ -215,13 +211,14 @@ class MapsMixin(ControllerCacheMixin):
             if self._stop.is_set():
                 return
             with self._lock:
-                needed = {
+                missing = {
                     r.goal.ws_id
                     for r in self._robots.values()
                     if r.goal is not None and r.goal.ws_id not in self._maps
-                } | set(self._pending)
-                # the unshrunk maps that steer robots until their footprint maps come
-                needed |= {b for b in map(_base_of, needed) if b and b not in self._maps}
+                }
+                # a footprint map being solved: its base map too (robots drive on it meanwhile)
+                bases = {b for w in missing if (b := base_of(w)) is not None}
+                needed = missing | {b for b in bases if b not in self._maps} | set(self._pending)
             for ws_id in sorted(needed):
                 self._fetch(ws_id)
 

@@ -12,6 +12,7 @@ from typing import Any
 import numpy as np
 from confnav.schemas import DecodeError, Pose, decode
 from confnav.services import navigation
+from confnav.services.controller_footprint import off_shrunk
 from confnav.services.controller_state import POSE_BLOCK, ControllerCore, _Robot
 from confnav.services.keys import KeyError_
 
@@ -195,11 +196,14 @@ class PosesMixin(ControllerCore):
             self._stop_robot(r, blocker[0], blocker[1], now, pose)
         elif d.state == "stopped":
             self._stop_robot(r, d.reason, d.message, now, pose)
+        elif r.shrunk is not None and (off := off_shrunk(r, pose.theta)):
+            # on the base map (footprint map being solved) outside the footprint's free space:
+            # what the footprint map would answer (services/controller_footprint.py)
+            self._stop_robot(r, "outside_workspace", off, now, pose)
         else:
             self._publish_cmd(r, d.u, pose)
             message = d.message
-            if d.state == "navigating" and (self._refining or "~r" in (r.goal.ws_id or "")):
-                # a coarse revision, or the unshrunk map standing in: say so
+            if (self._refining or r.base_ws) and d.state == "navigating":  # say what it is on
                 note = self._map_note(r)
                 message = "; ".join(m for m in (note, message) if m)
             self._status(r, d.state, d.reason, message, now)

@@ -74,6 +74,9 @@ class _Robot:
     ctrl: navigation.ControllerLike | None = None
     ctrl_revision: str | None = None
     ctrl_error: str = ""
+    # on the base map while the footprint map {ws}~r{R} is solved (services/controller_footprint)
+    base_ws: str = ""  # the base workspace driven on ("" when on the goal's own map)
+    shrunk: Any = None  # the exact shrunk workspace its safety layer keeps it in
     last_pose_t: float | None = None  # monotonic receive time of the last fresh pose
     last_stamp: tuple[int, int] = (-1, -1)  # (stamp_ns, seq) of the last fresh pose
     goal_t: float = 0.0  # monotonic time the goal was set
@@ -210,7 +213,7 @@ class ControllerCore(Service):
     def _outdated(self, r: _Robot) -> str | None:
         """Why the robot's map contradicts the current geometry near it, or None."""
         assert r.goal is not None
-        pending = self._pending.get(r.goal.ws_id)
+        pending = self._pending.get(r.goal.ws_id) or self._pending.get(r.base_ws)
         if pending is None or r.position is None:
             return None
         c = float(pending.workspace.clearance(complex(*r.position)))
@@ -265,15 +268,13 @@ class ControllerCore(Service):
         return None
 
     def _map_note(self, r: _Robot) -> str:
-        """What the robot drives on, when it is a coarse revision of a map being refined."""
+        """What the robot drives on, when it is a coarse revision of a map being refined
+        or the base map while its footprint map is being solved."""
+        if r.base_ws:
+            from confnav.services.controller_footprint import base_note
+
+            return base_note(r)
         rev = r.ctrl_revision
-        if rev is not None and r.goal is not None and r.goal.ws_id not in self._maps:
-            base = r.goal.ws_id.rpartition("~r")[0]  # a footprint goal on the unshrunk map
-            if base and getattr(self._maps.get(base), "revision", None) == rev:
-                return (
-                    f"navigating on the unshrunk map of {base!r}, kept clear of the walls by "
-                    f"the body's exact safety layer; footprint map {r.goal.ws_id!r} being solved"
-                )
         if rev is None or rev not in self._refining:
             return ""
         est = self._estimates.get(rev)

@@ -102,19 +102,25 @@ def stands_in(cmap: Any, goal: Goal) -> bool:
     )
 
 
-def shrunk_workspace(cmap: Any, radius: float) -> Any:
-    """The free space of ``cmap``'s workspace shrunk by the footprint ``radius`` (quantised
-    up as the ``{ws}~r{R}`` maps are): the same geometry the transform service solves for that
-    footprint (``definitions.derived_definition``: the largest component). Kept on the map
-    (a few ms per radius; the safety filter's grid is cached per workspace object)."""
-    from confnav.maps.footprint import inflate, quantize_radius
+def _footprint_id(cmap: Any, goal: Goal) -> str:
+    """``{ws}~r{R}`` of ``goal``'s footprint on the workspace of the base map ``cmap``."""
+    return map_ws_id(goal.model_copy(update={"ws_id": cmap.ws_id}))
 
-    r = quantize_radius(radius)
-    cache: dict[float, Any] = cmap.__dict__.setdefault("_shrunk_by", {})
-    if r not in cache:  # a ConformalMap's workspace, or an atlas's (the whole free space)
-        ws = cmap.atlas.workspace if getattr(cmap, "is_atlas", False) else cmap.workspace
-        cache[r] = inflate(ws, r)
-    return cache[r]
+
+def shrunk_workspace(cmap: Any, goal: Goal) -> Any:
+    """The exact free space the safety layer keeps ``goal``'s robot in while the unshrunk map
+    ``cmap`` stands in (:func:`stands_in`): the base workspace shrunk by the footprint, derived
+    as the transform service derives ``{ws}~r{R}``
+    (:func:`confnav.services.controller_footprint.shrunk_workspace`). Kept on the map, one per
+    footprint (the safety filter's grid is cached per workspace object)."""
+    from confnav.services.controller_footprint import base_workspace
+    from confnav.services.controller_footprint import shrunk_workspace as derive
+
+    ws_id = _footprint_id(cmap, goal)
+    cache: dict[str, Any] = cmap.__dict__.setdefault("_shrunk_by", {})
+    if ws_id not in cache:
+        cache[ws_id] = derive(base_workspace(cmap), ws_id)
+    return cache[ws_id]
 
 
 def make_controller(cmap: Any, goal: Goal) -> ControllerLike:
@@ -128,19 +134,14 @@ def make_controller(cmap: Any, goal: Goal) -> ControllerLike:
     from confnav.maps.footprint import UnreachableGoalError
     from confnav.navigation.control import Controller
 
-    g = complex(goal.goal[0], goal.goal[1])
-    safety = None  # the map's own workspace
     if stands_in(cmap, goal):  # the unshrunk map steers, the exact shrunk geometry keeps safe
-        safety = shrunk_workspace(cmap, footprint_radius(goal))
-        if not bool(safety.contains(g)):
-            raise UnreachableGoalError(
-                f"goal {goal.goal} of robot {goal.robot_id!r} is unreachable: it is not in "
-                f"the largest component of {cmap.ws_id!r} shrunk by the footprint "
-                f"{footprint_radius(goal):g} m (within that distance of an obstacle, or cut "
-                "off by a passage narrower than twice it)"
-            )
+        from confnav.services.controller_footprint import make_controller_on_base
+
+        fp = goal.model_copy(update={"ws_id": _footprint_id(cmap, goal)})
+        return make_controller_on_base(cmap, fp, shrunk_workspace(cmap, goal))
     if getattr(cmap, "is_atlas", False):  # confnav.atlas.wire.AtlasMap: per-robot switching
-        return cmap.controller(goal, safety)  # type: ignore[no-any-return]
+        return cmap.controller(goal)  # type: ignore[no-any-return]
+    g = complex(goal.goal[0], goal.goal[1])
     try:
         ctrl = Controller(
             cmap,
@@ -151,7 +152,6 @@ def make_controller(cmap: Any, goal: Goal) -> ControllerLike:
             gain=goal.gain,
             v_max=goal.v_max,
             goal_tol=goal.tolerance,
-            safety=safety,
         )
     except NavigationError as exc:
         if map_ws_id(goal) == goal.ws_id or "not in the free space" not in str(exc):

@@ -153,7 +153,7 @@ def test_an_atlas_stands_in_for_a_body_until_its_footprint_atlas(
              robot_radius=radius)  # fmt: skip
     assert stands_in(am, g)
     ctrl = make_controller(am, g)
-    shrunk = shrunk_workspace(am, radius)
+    shrunk = shrunk_workspace(am, g)
     path = drive(ctrl, 0.3 + 0.4j)
     assert abs(path[-1] - GOAL) <= 0.02 + 0.02
     assert ctrl.nav.controller(ctrl.active_chart).safety.workspace is shrunk  # type: ignore[attr-defined]

@@ -18,7 +18,7 @@ from conftest import square_definition, wait_for
 from test_progressive_maps import _Robot
 
 from confnav.geometry import Workspace
-from confnav.maps.footprint import UnreachableGoalError, inflate
+from confnav.maps.footprint import UnreachableGoalError
 
 K = Keys()
 RADIUS = 0.1
@@ -83,7 +83,7 @@ def test_a_body_moves_on_the_unshrunk_map_until_its_footprint_map_lands(
         with lock:
             early = [s for s in statuses if s.state == "navigating"]
         assert early and all(s.map_revision == base_rev for s in early)
-        assert "unshrunk map of 'sq'" in early[-1].message
+        assert "unshrunk map 'sq'" in early[-1].message
         assert "footprint map 'sq~r0.1' being solved" in early[-1].message
         assert not any(s.state == "stopped" for s in statuses), [
             (s.state, s.reason, s.message) for s in statuses if s.state == "stopped"
@@ -129,10 +129,12 @@ def test_the_stand_in_refuses_a_goal_outside_the_shrunk_free_space() -> None:
     goal = Goal(robot_id="r1", ws_id="sq", goal=(0.65, 0.0), robot_radius=RADIUS)
     assert navigation.stands_in(cmap, goal)
     with pytest.raises(
-        UnreachableGoalError, match=r"unreachable.*largest component of 'sq' shrunk"
+        UnreachableGoalError, match=r"unreachable.*largest component of the workspace shrunk"
     ):
         navigation.make_controller(cmap, goal)
     ok = goal.model_copy(update={"goal": (0.5, 0.0)})
     ctrl = navigation.make_controller(cmap, ok)
-    assert ctrl.safety.workspace == inflate(ws, RADIUS)  # type: ignore[union-attr]
+    shrunk = navigation.shrunk_workspace(cmap, ok)
+    assert ctrl.safety.workspace is shrunk  # type: ignore[union-attr]
+    assert shrunk.boundaries[0].size and not shrunk.contains(0.65 + 0j)
     assert not navigation.stands_in(cmap, ok.model_copy(update={"robot_radius": 0.0}))

@@ -321,9 +321,7 @@ def _reopen_passages(
         return mitred, 0  # the same components and holes: the mitre's vertices only
     for coarse_segs in REOPEN_QUAD_SEGS:  # fewer arc vertices, if the topology is kept
         if coarse_segs < quad_segs:
-            coarse = free.buffer(
-                -_effective_radius(r, "round", coarse_segs), quad_segs=coarse_segs
-            )
+            coarse = free.buffer(-_effective_radius(r, "round", coarse_segs), quad_segs=coarse_segs)
             if _topology(coarse) == _topology(rounded):
                 rounded = coarse
                 break

@@ -1,0 +1,257 @@
+"""First move (issue 23): a robot whose footprint map ``{ws}~r{R}`` has no revision yet drives
+at once on the base map ``{ws}`` with the safety layer on the exact shrunk workspace, never
+leaves that shrunk free space, and swaps to the footprint map when it is installed. Real Zenoh
+sessions; the footprint map's solve is held back by a gate, so "before" is an event, not a
+time window."""
+
+from __future__ import annotations
+
+import contextlib
+import threading
+import time
+from collections.abc import Callable, Iterator
+from typing import Any
+
+import numpy as np
+import pytest
+from confnav.schemas import (
+    Goal,
+    Pose,
+    RobotStatus,
+    TransformSolution,
+    VelocityCommand,
+    WorkspaceDefinition,
+    decode,
+    encode,
+)
+from confnav.services import navigation
+from confnav.services.controller import ControllerService
+from confnav.services.controller_footprint import same_geometry, shrunk_workspace
+from confnav.services.definitions import workspace_of
+from confnav.services.keys import Keys
+from confnav.services.transform import TransformService, solve_definition
+from conftest import square_definition, wait_for
+
+from confnav.maps.footprint import inflate
+
+K = Keys()
+RADIUS = 0.1
+
+
+class _GatedSolve:
+    """The transform's solve, holding back every footprint workspace (``~r`` in its id)
+    until :attr:`gate` is set."""
+
+    def __init__(self) -> None:
+        self.gate = threading.Event()
+
+    def __call__(self, defn_json: str) -> dict[str, Any]:
+        if "~r" in WorkspaceDefinition.model_validate_json(defn_json).ws_id:
+            self.gate.wait(300)
+        return solve_definition(defn_json)
+
+
+class _Robot:
+    """A holonomic robot integrated on the test's side (20 Hz poses, newest command), keeping
+    every position it passed through and every command it received."""
+
+    def __init__(self, bus: Any, rid: str, start: tuple[float, float]) -> None:
+        self.bus, self.rid, self.z = bus, rid, complex(*start)
+        self.v = 0j
+        self.seq = 0
+        self.period = 0.05
+        self.path: list[complex] = [self.z]
+        self.cmds: list[VelocityCommand] = []
+        self.stop = threading.Event()
+        self.lock = threading.Lock()
+        bus.subscribe(K.robot(rid, "cmd_vel"), self._on_cmd)
+        self.thread = threading.Thread(target=self._run, daemon=True)
+        self.thread.start()
+
+    def _on_cmd(self, key: str, payload: bytes) -> None:
+        c = decode(VelocityCommand, payload)
+        with self.lock:
+            self.v = complex(*c.linear)
+            self.cmds.append(c)
+
+    def moving_commands(self) -> list[VelocityCommand]:
+        with self.lock:
+            return [c for c in self.cmds if abs(complex(*c.linear)) > 0]
+
+    def _run(self) -> None:
+        while not self.stop.wait(self.period):
+            with self.lock:
+                self.z += self.v * self.period
+                self.path.append(self.z)
+                self.seq += 1
+                p = Pose(robot_id=self.rid, stamp_ns=time.time_ns(), seq=self.seq,
+                         x=self.z.real, y=self.z.imag)  # fmt: skip
+            self.bus.publish(K.robot(self.rid, "pose"), encode(p))
+
+
+class _Statuses:
+    def __init__(self, bus: Any, rid: str) -> None:
+        self.lock = threading.Lock()
+        self.seen: list[RobotStatus] = []
+        bus.subscribe(K.robot(rid, "status"), self._on)
+
+    def _on(self, key: str, payload: bytes) -> None:
+        with self.lock:
+            self.seen.append(decode(RobotStatus, payload))
+
+    def all(self) -> list[RobotStatus]:
+        with self.lock:
+            return list(self.seen)
+
+
+@contextlib.contextmanager
+def _system(make_bus: Callable[[], Any], defn: WorkspaceDefinition) -> Iterator[Any]:
+    """Transform (footprint maps gated) and controller services; ``defn`` solved and
+    installed in the controller."""
+    gated = _GatedSolve()
+    tr = TransformService(
+        make_bus(), K, executor="thread", solve_fn=gated, progressive=False, health_period=0.2
+    )
+    ctl = ControllerService(make_bus(), K, stale_after=5.0, health_period=0.2)
+    tr.start()
+    ctl.start()
+    client = make_bus()
+    client.publish(K.ws(defn.ws_id, "definition"), encode(defn))
+    try:
+        wait_for(lambda: tr.state_of(defn.ws_id) == "solved", timeout=120)
+        wait_for(lambda: defn.ws_id in ctl._maps, timeout=60)  # the controller has the map
+        yield gated, tr, ctl, client, defn
+    finally:
+        gated.gate.set()
+        ctl.stop()
+        tr.stop()
+
+
+@pytest.fixture
+def system(make_bus: Callable[[], Any]) -> Iterator[Any]:
+    defn = square_definition("sq", [(0.0, 0.1)]).model_copy(update={"tol": 1e-6})
+    with _system(make_bus, defn) as parts:
+        yield parts
+
+
+def test_a_robot_with_a_body_moves_before_its_footprint_map_and_swaps_to_it(
+    system: Any, make_bus: Callable[[], Any]
+) -> None:
+    gated, tr, ctl, client, defn = system
+    did = "sq~r0.1"
+    statuses = _Statuses(client, "r1")
+    robot = _Robot(make_bus(), "r1", (-0.45, -0.45))
+    try:
+        goal = Goal(robot_id="r1", ws_id="sq", goal=(0.45, 0.45), robot_radius=RADIUS,
+                    v_max=0.1, tolerance=0.03)  # fmt: skip
+        client.publish(K.robot("r1", "goal"), encode(goal))
+        # a non-zero command while the footprint map is held back (it has no revision)
+        wait_for(robot.moving_commands, timeout=60)
+        assert tr.state_of(did) != "solved" and not gated.gate.is_set()
+        base_rev = tr._ws["sq"].revision
+        assert {c.map_revision for c in robot.moving_commands()} == {base_rev}
+        wait_for(lambda: any("unshrunk map" in s.message for s in statuses.all()), timeout=30)
+        s0 = next(s for s in statuses.all() if s.state == "navigating")
+        assert s0.reason == "ok" and "footprint map 'sq~r0.1' being solved" in s0.message
+        # the robot drives a while on the base map, then the footprint map is released
+        wait_for(lambda: abs(robot.z - complex(-0.45, -0.45)) > 0.15, timeout=60)
+        gated.gate.set()
+        wait_for(lambda: tr.state_of(did) == "solved", timeout=120)
+        final = tr._ws[did].revision
+        wait_for(lambda: any(s.map_revision == final for s in statuses.all()), timeout=60)
+        wait_for(lambda: statuses.all()[-1].state == "arrived", timeout=120)
+        seen = statuses.all()
+        first = next(i for i, s in enumerate(seen) if s.state == "navigating")
+        after = seen[first:]
+        assert all(s.state in ("navigating", "arrived") for s in after), [
+            (s.state, s.reason, s.message) for s in after if s.state != "navigating"
+        ]
+        revs = [s.map_revision for s in after]
+        assert revs[0] == base_rev and revs[-1] == final
+        # on the footprint map the status no longer says "unshrunk"
+        assert not any("unshrunk" in s.message for s in after if s.map_revision == final)
+        # the shrunk geometry the robot was kept in is the one its map was solved for
+        sol = decode(TransformSolution, client.query(K.ws(did, "transform"))[0].payload or b"")
+        local = shrunk_workspace(workspace_of(defn), did)
+        assert same_geometry(local, navigation.load_map(sol).workspace)
+        assert ctl.counters.get("footprint_mismatch", 0) == 0
+        assert ctl.counters["controllers_built_on_base"] >= 1
+        # the body never touched a wall: every position in the exact shrunk free space
+        with robot.lock:
+            path = np.array(robot.path)
+        exact = workspace_of(defn)
+        assert float(exact.clearance(path).min()) >= RADIUS - 1e-9
+        assert float(inflate(exact, RADIUS).clearance(path).min()) >= 0.0
+        assert abs(path[-1] - complex(0.45, 0.45)) <= 0.03 + 0.01
+    finally:
+        robot.stop.set()
+
+
+def test_a_goal_outside_the_shrunk_free_space_is_refused_before_the_footprint_map(
+    system: Any, make_bus: Callable[[], Any]
+) -> None:
+    """A goal 0.05 m from the wall for a 0.1 m body: the clear error (unreachable) at once,
+    not a drive on the base map, and no command that moves."""
+    gated, _tr, _ctl, client, _defn = system
+    statuses = _Statuses(client, "r2")
+    robot = _Robot(make_bus(), "r2", (-0.45, -0.45))
+    try:
+        goal = Goal(robot_id="r2", ws_id="sq", goal=(0.65, 0.0), robot_radius=RADIUS)
+        client.publish(K.robot("r2", "goal"), encode(goal))
+        st = wait_for(
+            lambda: next((s for s in statuses.all() if s.reason == "navigation_error"), None),
+            timeout=60,
+        )
+        assert st.state == "stopped" and "UnreachableGoalError" in st.message
+        assert "sq~r0.1" in st.message and not gated.gate.is_set()
+        assert robot.moving_commands() == []
+    finally:
+        robot.stop.set()
+
+
+def test_where_the_unshrunk_map_hugs_an_obstacle_the_body_stays_in_the_shrunk_space(
+    make_bus: Callable[[], Any],
+) -> None:
+    """Two thin obstacles, 0.12 m apart, the lower one joined to the wall by the 0.1 m body:
+    the unshrunk map's own path round the upper one passes closer than 0.1 m to it (checked
+    here: it leaves the shrunk free space), the robot driven on that map with the safety
+    layer on the exact shrunk workspace never does, and it arrives with its footprint map
+    still held back."""
+    a = [(-0.05, 0.06), (0.05, 0.06), (0.05, 0.3), (-0.05, 0.3)]
+    b = [(-0.05, -0.45), (0.05, -0.45), (0.05, -0.06), (-0.05, -0.06)]
+    defn = WorkspaceDefinition(ws_id="gap", outer=[(-0.7, -0.7), (0.7, -0.7), (0.7, 0.7),
+                               (-0.7, 0.7)], obstacles=[a, b], tol=1e-4)  # fmt: skip
+    with _system(make_bus, defn) as (gated, tr, ctl, client, _):
+        statuses = _Statuses(client, "r3")
+        robot = _Robot(make_bus(), "r3", (-0.45, 0.0))
+        try:
+            goal = Goal(robot_id="r3", ws_id="gap", goal=(0.45, 0.0), robot_radius=RADIUS,
+                        v_max=0.1, tolerance=0.03)  # fmt: skip
+            client.publish(K.robot("r3", "goal"), encode(goal))
+            wait_for(lambda: statuses.all() and statuses.all()[-1].state == "arrived", timeout=120)
+            assert tr.state_of("gap~r0.1") != "solved" and not gated.gate.is_set()
+            seen = statuses.all()
+            nav = [s for s in seen if s.state == "navigating"]
+            assert nav and all("unshrunk map 'gap'" in s.message for s in nav)
+            assert not any(s.state == "stopped" for s in seen[seen.index(nav[0]) :])
+            with robot.lock:
+                path = np.array(robot.path)
+            shrunk = inflate(workspace_of(defn), RADIUS)
+            assert float(shrunk.clearance(path).min()) >= 0.0
+            assert float(workspace_of(defn).clearance(path).min()) >= RADIUS - 1e-9
+            assert ctl.counters["controllers_built_on_base"] >= 1
+            # the same map with the unshrunk walls' filter only (a point robot's law): its
+            # path leaves the shrunk free space, so the body's filter was needed
+            reply = client.query(K.ws("gap", "transform"))[0].payload or b""
+            point = goal.model_copy(update={"robot_radius": 0.0})  # no body: no stand-in
+            free = navigation.make_controller(
+                navigation.load_map(decode(TransformSolution, reply)), point
+            )
+            z, bare = complex(-0.45, 0.0), []
+            for _ in range(600):
+                u, _code = navigation.command(free, z.real, z.imag)
+                z += 0.05 * u
+                bare.append(z)
+            assert float(shrunk.clearance(np.array(bare)).min()) < 0.0
+        finally:
+            robot.stop.set()
