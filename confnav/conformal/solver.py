@@ -62,6 +62,7 @@ from scipy.spatial import cKDTree
 
 from confnav.conformal.boundary import BoundaryMesh, graded_polygon, resample
 from confnav.conformal.circledomain import CircleDomainResult, koebe_iteration
+from confnav.conformal.circular_map import METHODS, nasser_iteration
 from confnav.conformal.cmap import ConformalMap, SolveReport
 from confnav.conformal.gnk import gmres_rtol
 from confnav.conformal.meshing import NODE_MULTIPLE, PanelPlan, plan_boundaries
@@ -131,6 +132,7 @@ def _solve_level(
     warm: _Warm | None = None,
     plans: list[PanelPlan] | None = None,
     accel: str | None = None,
+    method: str = "koebe",
 ) -> tuple[CircleDomainResult, list[BoundaryMesh]]:
     if plans is None:
         plans = plan_boundaries(ws, nodes_per_side, tol)
@@ -149,7 +151,8 @@ def _solve_level(
         if progress is not None:
             progress(f"  {nodes_per_side} nodes/side: sweep {sweep}, change {change:.1e}")
 
-    res = koebe_iteration(
+    iterate = nasser_iteration if method == "nasser" else koebe_iteration
+    res = iterate(
         meshes,
         holes,
         ws.anchor,
@@ -403,6 +406,7 @@ def solve(
     initial: ConformalMap | None = None,
     max_error: float = UNUSABLE_ERROR,
     koebe_accel: str | None = None,
+    method: str = "koebe",
 ) -> ConformalMap:
     """Compute the conformal map of ``workspace`` onto a circle domain.
 
@@ -436,6 +440,10 @@ def solve(
         Acceleration of the Koebe sweeps: ``"none"``, ``"sor"`` or ``"extrapolate"``
         (:mod:`confnav.conformal.acceleration`); None: the default,
         :data:`confnav.conformal.circledomain.KOEBE_ACCEL`.
+    method
+        ``"koebe"`` (the sweeps, default) or ``"nasser"``: a few sweeps, then Newton steps on
+        the whole circle domain (:mod:`confnav.conformal.circular_map`, which says what was
+        measured).
 
     Raises
     ------
@@ -444,6 +452,8 @@ def solve(
     """
     if not (np.isfinite(tol) and 0 < tol < 1):
         raise SolverError(f"tol must be in (0, 1), got {tol}")
+    if method not in METHODS:
+        raise SolverError(f"method must be one of {METHODS}, got {method!r}")
     if (
         initial is not None
         and nodes_per_side is None
@@ -481,7 +491,9 @@ def solve(
         if progress is not None:
             progress(f"solving with {ns} nodes per side at the sharpest corners")
         try:
-            res, meshes = _solve_level(workspace, ns, tol, progress, warm, accel=koebe_accel)
+            res, meshes = _solve_level(
+                workspace, ns, tol, progress, warm, accel=koebe_accel, method=method
+            )
         except GapError as exc:
             if best is None:
                 raise
