@@ -30,17 +30,46 @@ linearisation of the circle-domain conditions used by Wegmann's Newton-type meth
 analytic in the domain (every pole ``c_j`` inside hole j), with ``Im a_1 = 0`` (the rotation is
 fixed by ``Phi'(0) > 0``). All boundaries' conditions are fitted at once by weighted least
 squares (arc-length weights) in the passive nodes; ``Phi`` is then applied *exactly* to every
-node and to its derivative (``dW <- Phi'(W) dW``), so the iterate stays a conformal image of the
-polygon domain (as in :mod:`confnav.conformal.acceleration`: the fixed point is untouched) and
-its defect is second order in the step: quadratic convergence while the series resolve ``g``.
+node and to its derivative (``dW <- Phi'(W) dW``), so the nodes stay images of the polygon's nodes under
+one analytic map and their defect is second order in the step: quadratic convergence while
+the series resolve ``g``. (Unlike the sweeps' maps, which are solved by the GNK on the grids
+they move, the fitted ``g`` is only constrained *at* the nodes: see "Measured".)
 Each step rescales by the outer radius (``W <- W / R_0``) and multiplies ``Phi'(0)`` into
 the anchor derivative.
 
 Safeguards: a step that does not shrink the defect (largest distance of a node from its
-boundary's circle) is rejected and the Koebe sweeps are run to the tolerance instead (the
-result then *is* the sweeps' result, cost of the Newton attempt included). The reported
-iteration error is the geometric tail ``h rho / (1 - rho)`` of the last two step sizes (as for
-the sweeps; pessimistic for a quadratically converging run) and never below the circularity.
+boundary's circle), or a step whose dense least-squares problem would exceed
+:data:`MAX_UNKNOWNS`, ends the Newton phase; if no step met the tolerance the Koebe sweeps run
+the level to the tolerance from the polygon instead (the result then *is* the sweeps' result,
+the cost of the Newton attempt included). The reported iteration error of a Newton-finished
+level is the largest of the geometric tail ``h rho / (1 - rho)`` of the last two step sizes,
+the circularity and the error of the sweeps' state Newton started from, and the level is not
+reported as converged (below).
+
+Measured (before any bench; ``tests/test_circular_map.py`` and by hand, two squares 0.1
+apart, 48-180 nodes per side):
+
+* on exact data the step is right: the nodes of a circle domain give a zero step (1e-12), and
+  the image of a circle domain under ``z + 2e-3 z^2`` is mapped back onto it (centres and
+  radii to 1e-10) with quadratic decrease of the defect;
+* on the solver's nodes the defect at the nodes falls quadratically (1e-7, 1e-13, 1e-15 in
+  three steps after three sweeps) -- but the map is *not* right to that: with the first
+  sweeps run at a loose tol (1e-3; coarse smooth grids) its circles were 6.5e-6 mirror-
+  asymmetric, run at the final tol for 6 sweeps still 1.6e-8 under a certificate of 2e-9
+  (the boundary residual sees only the nodes, which are on circles by construction; between
+  them the fitted series is not controlled: the graded nodes leave angular gaps of up to 22
+  degrees on the outer boundary of that scene, where a series of 86 terms is not determined
+  by the data; capping the terms by the gaps (4-14 per boundary) stalls at 1e-5 instead).
+  Hence a Newton-finished level is never reported as converged (``converged = False``), and
+  ``solve(method="nasser")`` never reports ``tol_met``: it is kept as a measured, experimental
+  candidate, not as a solver. The side-by-side figures are in bench/README.md ("Where the
+  targets stand", issue 24 item 1) and ``bench/results/koebe_methods.json``.
+
+What a certified Newton step would need (not built): ``g`` found by the GNK itself on the
+nodes (one Riemann-Hilbert problem over all boundaries, ``Re[A_j g] = gamma_j + h_j`` with
+``A_j = e^{-i theta}``-type coefficients whose indices admit the centre shifts; Wegmann [3]),
+so that the step is consistent with the Nystrom discretisation the certificate checks,
+instead of a series fitted to the nodes.
 
 References
 ----------
@@ -72,9 +101,7 @@ from confnav.types import FArray as FloatArray
 
 #: Methods understood by :func:`confnav.solve` (``method=``).
 METHODS = ("koebe", "nasser")
-#: The Koebe sweeps run until their extrapolated error is below this before Newton starts.
-START_TOL = 1e-3
-#: Koebe sweeps at most before the Newton steps (then Newton starts from wherever they are).
+#: Koebe sweeps (at the final tol's grid resolution) before the Newton steps.
 START_SWEEPS = 6
 MAX_STEPS = 12
 #: Series terms per boundary: at least / at most.
@@ -236,7 +263,7 @@ def nasser_iteration(
     first_guess: list[FloatArray | None] | None = None,
     accel: str | None = None,
 ) -> CircularMapResult:
-    """Koebe sweeps to :data:`START_TOL`, then Newton steps on the whole circle domain.
+    """:data:`START_SWEEPS` Koebe sweeps, then Newton steps on the whole circle domain.
 
     Same arguments and result (plus Newton diagnostics) as
     :func:`confnav.conformal.circledomain.koebe_iteration`.
