@@ -32,8 +32,9 @@ fixed by ``Phi'(0) > 0``). All boundaries' conditions are fitted at once by weig
 squares (arc-length weights) in the passive nodes; ``Phi`` is then applied *exactly* to every
 node and to its derivative (``dW <- Phi'(W) dW``), so the nodes stay images of the
 polygon's nodes under one analytic map and their defect is second order in the step:
-quadratic convergence while the series resolve ``g``. (Unlike the sweeps' maps, which are solved by the GNK on the grids
-they move, the fitted ``g`` is only constrained *at* the nodes: see "Measured".)
+quadratic convergence while the series resolve ``g``. (Unlike the sweeps' maps, which are
+solved by the GNK on the grids they move, the fitted ``g`` is only constrained *at* the
+nodes: see "Measured".)
 Each step rescales by the outer radius (``W <- W / R_0``) and multiplies ``Phi'(0)`` into
 the anchor derivative.
 
