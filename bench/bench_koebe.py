@@ -198,9 +198,7 @@ def main(argv: list[str] | None = None) -> int:
         default=None,
         help="cap: a fixed mesh (three levels up to this) instead of refining to tol",
     )
-    ap.add_argument(
-        "--append", action="store_true", help="add the rows to those already in --out"
-    )
+    ap.add_argument("--append", action="store_true", help="add the rows to those already in --out")
     ap.add_argument("--quick", action="store_true", help="gap 0.1 only")
     ap.add_argument(
         "--out", type=Path, default=Path(__file__).resolve().parent / "results" / "koebe.json"
@@ -224,7 +222,22 @@ def main(argv: list[str] | None = None) -> int:
         runs = [(meth, acc) for meth in a.methods for acc in a.accels]
         runs = [(meth, acc) for meth, acc in runs if meth == "koebe" or acc == "none"]
         for meth, acc in runs:
-            r, m = run_one(gap, a.tol, acc, meth, a.nodes_per_side)
+            c0 = time.process_time()
+            try:
+                r, m = run_one(gap, a.tol, acc, meth, a.nodes_per_side)
+            except confnav.ConfnavError as exc:  # a refused map is a result too
+                r = {
+                    "gap": gap,
+                    "tol": a.tol,
+                    "accel": acc,
+                    "method": meth,
+                    "cpu_s": time.process_time() - c0,
+                    "load1": os.getloadavg()[0],
+                    "error": f"{type(exc).__name__}: {exc}",
+                }
+                rows.append(r)
+                print(f"  {gap} {meth} {acc}: {r['error']} (CPU {r['cpu_s']:.1f} s)", flush=True)
+                continue
             if acc == "none" and meth == "koebe":
                 plain = m
             elif plain is not None:
