@@ -68,3 +68,20 @@ def test_unknown_method_is_refused() -> None:
     )
     with pytest.raises(SolverError, match="method"):
         confnav.solve(ws, 1e-4, method="bogus")
+
+
+def test_newton_levels_are_never_certified() -> None:
+    """solve(method="nasser") finishes levels by Newton steps that only the nodes constrain:
+    measured 1.6e-8 mirror asymmetry under a certificate of 2e-9, so it must never report
+    tol_met; its (uncertified) estimate still bounds the mirror asymmetry of its map."""
+    g = 0.05
+    room = [[-2, -2], [2, -2], [2, 2], [-2, 2]]
+    left = [[-1 - g, -0.5], [-g, -0.5], [-g, 0.5], [-1 - g, 0.5]]
+    right = [[g, -0.5], [1 + g, -0.5], [1 + g, 0.5], [g, 0.5]]
+    ws = confnav.Workspace(room, [left, right], anchor=[0, 1.5])
+    with pytest.warns(confnav.AccuracyWarning):
+        m = confnav.solve(ws, 1e-6, nodes_per_side=32, method="nasser", max_error=0.1)
+    d = m.diagnostics
+    assert not d.tol_met and not d.iteration_converged
+    asym = max(abs(m.radii[0] - m.radii[1]), abs(m.centers[0] + np.conj(m.centers[1])))
+    assert asym <= d.error_estimate
