@@ -447,7 +447,8 @@ def solve(
         bench/results/koebe_methods.json, CPU s on the shared machine): two squares 0.1 apart
         to 1e-8 9.7 s sweeps / 21.6 s Newton (asymmetry 2.4e-11 / 1.6e-8); 0.01 apart at a
         fixed 80 nodes per side 83.7 / 190.9 s (Newton rejected, the sweeps redone); default
-        workspace to 1e-10 5.0 / 24.2 s; shrunk by 0.2 m 26.1 s / refused. The sweeps win
+        workspace to 1e-10 5.0 / 24.2 s; shrunk by 0.2 m 26.1 s / refused; 50 obstacles
+        76.0 / 129.6 s (Newton capped, the sweeps redone). The sweeps win
         everywhere measured, so they stay the default.
 
     Raises
