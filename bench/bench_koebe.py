@@ -35,6 +35,7 @@ import confnav
 from confnav import ConformalMap, Workspace
 from confnav.conformal import cauchy, diskmap, gnk
 from confnav.conformal.acceleration import KOEBE_ACCELS
+from confnav.conformal.circular_map import METHODS
 from confnav.maps.footprint import inflate
 from confnav.scenes.workspaces import (
     default_workspace,
@@ -80,13 +81,20 @@ def scene(name: str) -> Workspace:
     raise ValueError(f"unknown scene {name!r}")
 
 
-def run_one(gap: float | str, tol: float, accel: str) -> tuple[dict[str, Any], ConformalMap]:
+def run_one(
+    gap: float | str,
+    tol: float,
+    accel: str,
+    method: str = "koebe",
+    nodes_per_side: int | None = None,
+) -> tuple[dict[str, Any], ConformalMap]:
     levels: list[list[Any]] = []  # [label, sweeps]
 
     def progress(msg: str) -> None:
         if msg.startswith("solving with") or msg.startswith("refining"):
             levels.append([msg.split(" at ")[0].replace("solving with ", ""), 0])
         elif "nodes/side: sweep" in msg and levels:
+            # with method="nasser" the Newton steps are reported as sweeps after the sweeps
             levels[-1][1] = int(msg.split("sweep ")[1].split(",")[0])
 
     counters = [
@@ -101,7 +109,14 @@ def run_one(gap: float | str, tol: float, accel: str) -> tuple[dict[str, Any], C
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", confnav.AccuracyWarning)
             ws = mirror_squares(gap) if isinstance(gap, float) else scene(gap)
-            m = confnav.solve(ws, tol=tol, koebe_accel=accel, progress=progress)
+            m = confnav.solve(
+                ws,
+                tol=tol,
+                koebe_accel=accel,
+                progress=progress,
+                method=method,
+                nodes_per_side=nodes_per_side,
+            )
     finally:
         for c in counters:
             c.undo()
@@ -111,6 +126,8 @@ def run_one(gap: float | str, tol: float, accel: str) -> tuple[dict[str, Any], C
         "gap": gap,
         "tol": tol,
         "accel": accel,
+        "method": method,
+        "nodes_per_side": nodes_per_side,
         "cpu_s": cpu,
         "wall_s": wall,
         "load1": load,
@@ -136,7 +153,8 @@ def _line(r: dict[str, Any]) -> str:
     sw = " ".join(str(x["sweeps"]) for x in r["levels"])
     case = f"gap {r['gap']:g}" if isinstance(r["gap"], float) else str(r["gap"])
     return (
-        f"  {case:<9} {r['accel']:<11} sweeps/level [{sw}] total {r['sweeps_total']:4d}"
+        f"  {case:<9} {r.get('method', 'koebe'):<6} {r['accel']:<11} sweeps/level [{sw}] "
+        f"total {r['sweeps_total']:4d}"
         f"  GMRES {r['gmres_iterations']:5d}  FMM {r['fmm_sums']:5d}  CPU {r['cpu_s']:6.1f} s "
         f"(wall {r['wall_s']:6.1f}, load {r['load1']:.1f})  est {r['error_estimate']:.1e} "
         f"res {r['boundary_residual']:.1e} "
@@ -161,6 +179,21 @@ def main(argv: list[str] | None = None) -> int:
         help="asymmetric cases too: default workspace, it shrunk by 0.2 m, 50 mixed obstacles",
     )
     ap.add_argument("--accels", nargs="+", default=list(KOEBE_ACCELS))
+    ap.add_argument(
+        "--methods",
+        nargs="+",
+        default=["koebe"],
+        choices=list(METHODS),
+        help="iteration: Koebe sweeps, or sweeps then Newton steps (confnav.conformal."
+        "circular_map); 'nasser' runs with accel 'none' only",
+    )
+    ap.add_argument(
+        "--nodes-per-side",
+        type=int,
+        default=None,
+        help="cap: a fixed mesh (three levels up to this) instead of refining to tol",
+    )
+    ap.add_argument("--append", action="store_true", help="add the rows to those already in --out")
     ap.add_argument("--quick", action="store_true", help="gap 0.1 only")
     ap.add_argument(
         "--out", type=Path, default=Path(__file__).resolve().parent / "results" / "koebe.json"
@@ -181,9 +214,26 @@ def main(argv: list[str] | None = None) -> int:
     cases: list[float | str] = [*gaps, *a.scenes]
     for gap in cases:
         plain: ConformalMap | None = None
-        for acc in a.accels:
-            r, m = run_one(gap, a.tol, acc)
-            if acc == "none":
+        runs = [(meth, acc) for meth in a.methods for acc in a.accels]
+        runs = [(meth, acc) for meth, acc in runs if meth == "koebe" or acc == "none"]
+        for meth, acc in runs:
+            c0 = time.process_time()
+            try:
+                r, m = run_one(gap, a.tol, acc, meth, a.nodes_per_side)
+            except confnav.ConfnavError as exc:  # a refused map is a result too
+                r = {
+                    "gap": gap,
+                    "tol": a.tol,
+                    "accel": acc,
+                    "method": meth,
+                    "cpu_s": time.process_time() - c0,
+                    "load1": os.getloadavg()[0],
+                    "error": f"{type(exc).__name__}: {exc}",
+                }
+                rows.append(r)
+                print(f"  {gap} {meth} {acc}: {r['error']} (CPU {r['cpu_s']:.1f} s)", flush=True)
+                continue
+            if acc == "none" and meth == "koebe":
                 plain = m
             elif plain is not None:
                 r["distance_from_plain"] = float(
@@ -200,6 +250,8 @@ def main(argv: list[str] | None = None) -> int:
             print(_line(r), flush=True)
     info["loadavg_end"] = list(os.getloadavg())
     a.out.parent.mkdir(parents=True, exist_ok=True)
+    if a.append and a.out.exists():
+        rows = json.loads(a.out.read_text())["rows"] + rows
     a.out.write_text(json.dumps({"machine": info, "code": code, "rows": rows}, indent=1) + "\n")
     print(f"wrote {a.out}")
     return 0

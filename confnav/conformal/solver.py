@@ -62,6 +62,7 @@ from scipy.spatial import cKDTree
 
 from confnav.conformal.boundary import BoundaryMesh, graded_polygon, resample
 from confnav.conformal.circledomain import CircleDomainResult, koebe_iteration
+from confnav.conformal.circular_map import METHODS, nasser_iteration
 from confnav.conformal.cmap import ConformalMap, SolveReport
 from confnav.conformal.gnk import gmres_rtol
 from confnav.conformal.meshing import NODE_MULTIPLE, PanelPlan, plan_boundaries
@@ -132,6 +133,7 @@ def _solve_level(
     warm: _Warm | None = None,
     plans: list[PanelPlan] | None = None,
     accel: str | None = None,
+    method: str = "koebe",
 ) -> tuple[CircleDomainResult, list[BoundaryMesh]]:
     if plans is None:
         plans = plan_boundaries(ws, nodes_per_side, tol)
@@ -150,7 +152,8 @@ def _solve_level(
         if progress is not None:
             progress(f"  {nodes_per_side} nodes/side: sweep {sweep}, change {change:.1e}")
 
-    res = koebe_iteration(
+    iterate = nasser_iteration if method == "nasser" else koebe_iteration
+    res = iterate(
         meshes,
         holes,
         ws.anchor,
@@ -492,9 +495,11 @@ class _Refinement:
         progress: Callable[[str], None] | None,
         accel: str | None,
         t0: float,
+        method: str = "koebe",
     ) -> None:
         self.workspace, self.tol, self.max_error = workspace, tol, max_error
         self.progress, self.accel, self.t0 = progress, accel, t0
+        self.method = method
         self.refinements: list[dict[str, float]] = []
         self.caps: list[str] = []
         self.prev: CircleDomainResult | None = None
@@ -544,7 +549,13 @@ class _Refinement:
         at two levels is raised (refining does not resolve it)."""
         try:
             return _solve_level(
-                self.workspace, ns, self.tol, self.progress, self.warm, accel=self.accel
+                self.workspace,
+                ns,
+                self.tol,
+                self.progress,
+                self.warm,
+                accel=self.accel,
+                method=self.method,
             )
         except GapError as exc:
             if self.best is None:
@@ -701,6 +712,7 @@ def solve(
     initial: ConformalMap | None = None,
     max_error: float = UNUSABLE_ERROR,
     koebe_accel: str | None = None,
+    method: str = "koebe",
 ) -> ConformalMap:
     """Compute the conformal map of ``workspace`` onto a circle domain.
 
@@ -740,6 +752,16 @@ def solve(
         Acceleration of the Koebe sweeps: ``"none"``, ``"sor"`` or ``"extrapolate"``
         (:mod:`confnav.conformal.acceleration`); None: the default,
         :data:`confnav.conformal.circledomain.KOEBE_ACCEL`.
+    method
+        ``"koebe"`` (the sweeps, default) or ``"nasser"``: a few sweeps, then Newton steps on
+        the whole circle domain (:mod:`confnav.conformal.circular_map`; experimental, its
+        levels are never reported converged). Measured side by side (bench/bench_koebe.py,
+        bench/results/koebe_methods.json, CPU s on the shared machine): two squares 0.1 apart
+        to 1e-8 9.7 s sweeps / 21.6 s Newton (asymmetry 2.4e-11 / 1.6e-8); 0.01 apart at a
+        fixed 80 nodes per side 83.7 / 190.9 s (Newton rejected, the sweeps redone); default
+        workspace to 1e-10 5.0 / 24.2 s; shrunk by 0.2 m 26.1 s / refused; 50 obstacles
+        76.0 / 129.6 s (Newton capped, the sweeps redone). The sweeps win
+        everywhere measured, so they stay the default.
 
     Raises
     ------
@@ -748,6 +770,8 @@ def solve(
     """
     if not (np.isfinite(tol) and 0 < tol < 1):
         raise SolverError(f"tol must be in (0, 1), got {tol}")
+    if method not in METHODS:
+        raise SolverError(f"method must be one of {METHODS}, got {method!r}")
     done = _already_solved(workspace, tol, nodes_per_side, initial)
     if done is not None:
         return done
@@ -755,7 +779,7 @@ def solve(
         raise SolverError(f"max_error must be positive and finite, got {max_error}")
     t0 = time.perf_counter()
     levels = _mesh_levels(tol, nodes_per_side, initial)
-    cmap = _Refinement(workspace, tol, max_error, progress, koebe_accel, t0).run(levels)
+    cmap = _Refinement(workspace, tol, max_error, progress, koebe_accel, t0, method).run(levels)
     _refuse_unusable(cmap, max_error)
     if not cmap.diagnostics.tol_met:
         _warn_tol_missed(cmap.diagnostics, tol)
