@@ -314,3 +314,33 @@ def test_a_solved_map_that_crowds_runs_as_an_atlas(
     cap = capsys.readouterr()
     assert "the outer boundary crowded by 10^" in cap.err and "navigating it as an atlas" in cap.err
     assert "1 robots: 1 arrived; collisions 0" in cap.out
+
+
+def test_starts_where_the_harmonic_function_is_flat_are_named() -> None:
+    """Far along corridors the goal's Green's function falls below double precision: phi is 1
+    to rounding and its gradient is noise (the small warehouse's far aisles: robots crawled to
+    the time limit). ``_flat_starts`` names such starts (simulate then runs the atlas)."""
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from confnav.cli.simulate import FLAT_PHI, _flat_starts
+
+    class Law:
+        def __init__(self, phi: list[float], name: str = "harmonic") -> None:
+            self.navfn = SimpleNamespace(name=name)
+            self.phi = np.array(phi)
+
+        def __call__(self, z: np.ndarray) -> SimpleNamespace:
+            assert z.shape == self.phi.shape
+            return SimpleNamespace(phi=self.phi)
+
+    starts = np.array([1 + 1j, 2 + 1j, 3 + 1j])
+    assert _flat_starts(Law([0.5, 1 - 1e-5, 1 - 10 * FLAT_PHI]), starts) == ""
+    why = _flat_starts(Law([0.5, 1.0 - 4e-16, 1.0]), starts)
+    assert "flat at 2 of 3 starts" in why and "(2, 1)" in why
+    # a unicycle's law wraps the point law; Koditschek-Rimon is not checked
+    assert "flat at 2 of 3" in _flat_starts(
+        SimpleNamespace(controller=Law([0.5, 1.0, 1.0])), starts
+    )
+    assert _flat_starts(Law([1.0, 1.0, 1.0], name="kr"), starts) == ""

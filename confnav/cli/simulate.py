@@ -237,6 +237,11 @@ def run_simulate(args: argparse.Namespace) -> int:
         return _as_atlas(args, nav_ws)
     ctl = _controller(args, cmap)
     starts, headings = _starts(args, nav_ws)
+    flat = _flat_starts(ctl, starts)
+    if flat and not (args.map or args.single_map):
+        print(f"note: {flat}: navigating it as an atlas (confnav atlas; --single-map forces "
+              "one map)", file=sys.stderr)  # fmt: skip
+        return _as_atlas(args, nav_ws)
     res = _drive(args, ctl, ws, starts, headings)
     runs, ratios = _runs(args, ctl, nav_ws, res)
     summary, params = _summary(res, ratios, runs), _params(args, ctl)
@@ -320,6 +325,35 @@ def _controller(args: argparse.Namespace, cmap: Any) -> Any:
                 file=sys.stderr,
             )
     return ctl
+
+
+#: ``1 - phi`` of the harmonic navigation function below which its gradient is rounding noise:
+#: phi = exp(2 G), 1 - phi ~ 2 |G|, with the Green's function G of the goal, which decays
+#: exponentially along corridors (like exp(-pi L / w) for a corridor of length L and width w: Henrici, *Applied and
+#: Computational Complex Analysis* III, sec. 16.9 on crowding), so far from the goal G falls
+#: below double precision. Measured on the small warehouse (three shelf rows grown by 0.3 m):
+#: the 3 of 10 starts with 1 - phi <= 4.4e-16 crawled until the time limit, those with
+#: 1.2e-15 and 2.6e-13 arrived only by luck of the noise, the rest (>= 1.7e-5) at once.
+FLAT_PHI = 1e-12
+
+
+def _flat_starts(ctl: Any, starts: np.ndarray) -> str:
+    """Why the navigation function cannot steer from some of ``starts`` ("" if it can): the
+    harmonic phi = exp(2 G) within :data:`FLAT_PHI` of 1 there (an atlas's charts are short,
+    so their Green's functions stay well above rounding)."""
+    law = getattr(ctl, "controller", ctl)
+    if getattr(getattr(law, "navfn", None), "name", "") != "harmonic":
+        return ""
+    phi = np.asarray(law(np.asarray(starts, dtype=complex)).phi, dtype=float)
+    flat = np.flatnonzero(1.0 - phi < FLAT_PHI)
+    if flat.size == 0:
+        return ""
+    z = complex(starts[flat[0]])
+    return (
+        f"the navigation function is flat at {flat.size} of {len(starts)} starts (1 - phi < "
+        f"{FLAT_PHI:.0e}, e.g. at {fmt_point(z)}: the goal's Green's function decays below "
+        "double precision along the corridors between)"
+    )
 
 
 def _starts(args: argparse.Namespace, nav_ws: Any) -> tuple[np.ndarray, np.ndarray | None]:
