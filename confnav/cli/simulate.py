@@ -329,11 +329,10 @@ def _controller(args: argparse.Namespace, cmap: Any) -> Any:
 
 #: ``1 - phi`` of the harmonic navigation function below which its gradient is rounding noise:
 #: phi = exp(2 G), 1 - phi ~ 2 |G|, with the Green's function G of the goal, which decays
-#: exponentially along corridors (like exp(-pi L / w) for a corridor of length L and width w: Henrici, *Applied and
-#: Computational Complex Analysis* III, sec. 16.9 on crowding), so far from the goal G falls
-#: below double precision. Measured on the small warehouse (three shelf rows grown by 0.3 m):
-#: the 3 of 10 starts with 1 - phi <= 4.4e-16 crawled until the time limit, those with
-#: 1.2e-15 and 2.6e-13 arrived only by luck of the noise, the rest (>= 1.7e-5) at once.
+#: exponentially along corridors (like exp(-pi L / w) for a corridor of length L and width w;
+#: docs/METHOD.md on crowding), so far from the goal G falls below double precision. Seen on a
+#: warehouse whose shelf rows a 0.3 m footprint merges into long aisles: the starts with
+#: 1 - phi at rounding level crawled until the time limit, the others arrived.
 FLAT_PHI = 1e-12
 
 
