@@ -3,9 +3,9 @@
     python bench/bench_controller.py [--robots 50 100 200 400] [--rate 20] [--seconds 5]
                                      [--profile] [--out FILE.json]
 
-A Zenoh router and one ``ControllerService`` run in this process, each on its own session, a
-transform service (``confnav serve transform``, the default workspace) in its own process; one
-child process plays the robots exactly as ``bench services`` does (``play_robots``: poses at
+One ``ControllerService`` runs in this process on its own session; a Zenoh router (``confnav
+serve router``, as deployed: its routing is not the controller's CPU) and a transform service
+(``confnav serve transform``, the default workspace) each in its own process; one child process plays the robots exactly as ``bench services`` does (``play_robots``: poses at
 ``--rate`` Hz per robot at independent phases, commands received, latency = command receipt -
 the answered pose's stamp). Every robot has its own goal (``own`` mode).
 
@@ -44,7 +44,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import zenoh
 from bench_services import (
     K,
     free_points,
@@ -121,7 +120,8 @@ def _tasks() -> dict[str, float]:
         comm = stat[stat.index("(") + 1 : stat.rindex(")")]
         f = stat.rsplit(")", 1)[1].split()
         name = names.get(int(task.name), comm)
-        name = name.split(":", 1)[0] if name.startswith(("latest", "sub", "qbl", "live")) else name
+        if name.startswith(("latest", "qbl", "live")):  # one per key expression: summed
+            name = name.split(":", 1)[0]
         out[name] = out.get(name, 0.0) + (int(f[11]) + int(f[12])) / clk
     return out
 
@@ -240,6 +240,7 @@ def row(
         },
         "pose_step_calls": calls["pose_step"],
         "poses_per_step": commands / max(calls["pose_step"], 1),
+        "counters": {k: v for k, v in svc.counters.items() if k.startswith(("stops_", "def"))},
         "fleet": {k: v for k, v in svc.neighbours.counters.items()} if svc.neighbours else {},
         "profiled": profile,
         "linger_ms": linger_ms,
@@ -334,7 +335,10 @@ def main() -> int:
     rows = []
     with tempfile.TemporaryDirectory(prefix="cnb") as tmp:
         ep = f"unixsock-stream/{tmp}/r.sock"
-        with zenoh.open(zenoh_config("router", listen=[ep])):
+        # the router in its own process (as deployed): this process's CPU is the controller's
+        router = spawn("serve", "router", "--listen", ep, log=Path(tmp) / "router.log")
+        try:
+            wait(lambda: Path(ep.split("/", 1)[1]).exists(), 30, "router socket")
             tr = spawn("serve", "transform", "--mode", "client", "--connect", ep,
                        "--workspace", "default=builtin:default",
                        log=Path(tmp) / "transform.log")  # fmt: skip
@@ -364,6 +368,9 @@ def main() -> int:
                 ctl_bus.close()
                 tr.terminate()
                 tr.wait(20)
+        finally:
+            router.terminate()
+            router.wait(20)
     print(f"wrote {args.out}")
     return 0
 
