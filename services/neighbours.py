@@ -205,9 +205,12 @@ class Neighbours:
         with self._lock:
             return {
                 rid: _Seen(
-                    complex(self._z[i]), float(self._th[i]), float(self._t[i]),
-                    int(self._stamp[i]), complex(self._v[i]),
-                )  # fmt: skip
+                    complex(self._z[i]),
+                    float(self._th[i]),
+                    float(self._t[i]),
+                    int(self._stamp[i]),
+                    complex(self._v[i]),
+                )
                 for i, rid in enumerate(self._rids)
                 if self._t[i] > -np.inf
             }
