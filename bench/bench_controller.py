@@ -6,8 +6,9 @@
 One ``ControllerService`` runs in this process on its own session; a Zenoh router (``confnav
 serve router``, as deployed: its routing is not the controller's CPU) and a transform service
 (``confnav serve transform``, the default workspace) each in its own process; one child process
-plays the robots exactly as ``bench services`` does (``play_robots``: poses at ``--rate`` Hz per robot at independent phases, commands received, latency = command receipt -
-the answered pose's stamp). Every robot has its own goal (``own`` mode).
+plays the robots exactly as ``bench services`` does (``play_robots``: poses at ``--rate`` Hz
+per robot at independent phases, commands received, latency = command receipt - the answered
+pose's stamp). Every robot has its own goal (``own`` mode).
 
 Per row: poses answered, latency p50/p99, and the controller process's CPU time divided by the
 poses it took (``cpu_us_per_pose``) -- less sensitive to the machine's load than latency --
