@@ -277,8 +277,8 @@ class Neighbours:
                 if i is not None:
                     sel[i] = False
             if floor is not None:
-                fl = self._floors.get(floor, -2)
-                sel &= (self._fl[:n] == -1) | (self._fl[:n] == fl)
+                fno = self._floors.get(floor, -2)
+                sel &= (self._fl[:n] == -1) | (self._fl[:n] == fno)
             idx = np.flatnonzero(sel)
             rids = [self._rids[i] for i in idx]
             if self.served_many is not None:
