@@ -18,6 +18,8 @@ rest (Zenoh's own threads, health, watchdog) as the difference. ``--profile`` al
 ``cProfile`` (on each thread's CPU clock) inside those threads and prints the top functions
 (inflated by the profiler; use its ratios). Writes bench/results/controller.json with the
 commit and the load average before and after each row (after every row: a cut run keeps them).
+``pose_path_cpu_us_per_pose`` is the process's CPU per pose without the threads of
+:data:`BACKGROUND` (work that is not the poses': goals' critical-point searches, map installs).
 ``threads_cpu_us_per_pose`` is every thread of the process by name (``/proc/self/task``, 10 ms
 ticks): ``latest`` the pose step, ``rx-*``/``tx-*``/``acc-*``/``app-*`` Zenoh's, the
 ``pyo3-closure`` threads Zenoh's callbacks into Python, ``critical-points`` the background
@@ -60,6 +62,10 @@ from provenance import commit  # script mode: bench/ is on sys.path
 
 RESULTS = Path(__file__).resolve().parent / "results" / "controller.json"
 TARGET = {"robots": 200, "rate": 20.0, "p99_ms": 20.0}
+BACKGROUND = ("critical-points", "sub:", "controller:fetch", "controller:watchdog", "MainThread")
+"""Threads whose work is not the poses' (``pose_path_cpu_us_per_pose`` leaves them out): the
+background critical-point searches of new goals (services/critical_search.py), map installs
+(``sub:``), map fetches, the watchdog and this harness's waiting."""
 
 
 class _Timed:
@@ -239,6 +245,11 @@ def row(
             for k, v in sorted(k1.items(), key=lambda kv: -(kv[1] - k0.get(kv[0], 0.0)))
             if v - k0.get(k, 0.0) > 0
         },
+        "pose_path_cpu_us_per_pose": sum(
+            (v - k0.get(k, 0.0)) / max(commands, 1) * 1e6
+            for k, v in k1.items()
+            if not k.startswith(BACKGROUND)
+        ),
         "pose_step_calls": calls["pose_step"],
         "poses_per_step": commands / max(calls["pose_step"], 1),
         "counters": {k: v for k, v in svc.counters.items() if k.startswith(("stops_", "def"))},
@@ -355,7 +366,8 @@ def main() -> int:
                         f"{n:4d} robots @ {args.rate:g} Hz: answered {r['answered']}/{r['sent']}"
                         f" superseded {r['superseded']} p50 {r['p50_ms']:.1f} ms p99 "
                         f"{r['p99_ms']:.1f} ms | CPU {r['process_cpu_pct']:.0f}% "
-                        f"{r['cpu_us_per_pose']:.0f} us/pose (step {th['pose_step']:.0f}, "
+                        f"{r['cpu_us_per_pose']:.0f} us/pose, pose path "
+                        f"{r['pose_path_cpu_us_per_pose']:.0f} (step {th['pose_step']:.0f}, "
                         f"tracker {th['fleet_tracker']:.0f}, publisher {th['publisher']:.0f}, "
                         f"other {r['other_cpu_us_per_pose']:.0f}) {r['poses_per_step']:.1f} "
                         f"poses/step | load {r['loadavg_start'][0]:.1f}",
