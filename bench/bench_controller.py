@@ -227,10 +227,14 @@ def row(
         "robots": n,
         "rate_hz": rate,
         "seconds": seconds,
-        "sent": n * (ticks - warm),
+        # from sequence numbers (bench_services.account_poses): answered + superseded + lost
+        # == sent exactly, never clamped
+        "sent": int(res["sent"]),
         "answered": int(res["answered"]),
+        "superseded": int(res["superseded"]),
+        "lost": int(res["lost"]),
         "poses_taken": taken,
-        "superseded": superseded,
+        "superseded_counted": superseded,  # the controller's counter over its own window
         "commands": commands,
         "late_publishes": late,
         "p50_ms": float(np.percentile(lat, 50)) if lat.size else float("nan"),
@@ -364,7 +368,8 @@ def main() -> int:
                     th = r["thread_cpu_us_per_pose"]
                     print(
                         f"{n:4d} robots @ {args.rate:g} Hz: answered {r['answered']}/{r['sent']}"
-                        f" superseded {r['superseded']} p50 {r['p50_ms']:.1f} ms p99 "
+                        f" superseded {r['superseded']} lost {r['lost']}"
+                        f" p50 {r['p50_ms']:.1f} ms p99 "
                         f"{r['p99_ms']:.1f} ms | CPU {r['process_cpu_pct']:.0f}% "
                         f"{r['cpu_us_per_pose']:.0f} us/pose, pose path "
                         f"{r['pose_path_cpu_us_per_pose']:.0f} (step {th['pose_step']:.0f}, "

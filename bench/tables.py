@@ -220,9 +220,9 @@ def controller_table(docs: list[dict[str, Any]]) -> str:
     if not isinstance(rows, list):
         raise TableError("not a controller results file (no 'rows')")
     lines = [
-        "| robots | answered | superseded | p50 ms | p99 ms | process CPU | us CPU / pose "
+        "| robots | answered | superseded | lost | p50 ms | p99 ms | process CPU | us CPU / pose "
         "| pose path us / pose | pose step us / pose | poses / step | load |",
-        "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+        "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for r in rows:
         load = r.get("loadavg_start")
@@ -230,7 +230,8 @@ def controller_table(docs: list[dict[str, Any]]) -> str:
         path = "-" if p is None else f"{p:.0f}"
         lines.append(
             f"| {r['robots']} | {r['answered']} / {r['sent']} | {r['superseded']} "
-            f"| {_num(r['p50_ms'])} | {_num(r['p99_ms'])} | {r['process_cpu_pct']:.0f} % "
+            f"| {r.get('lost', '-')} | {_num(r['p50_ms'])} | {_num(r['p99_ms'])} "
+            f"| {r['process_cpu_pct']:.0f} % "
             f"| {r['cpu_us_per_pose']:.0f} | {path} "
             f"| {r['thread_cpu_us_per_pose']['pose_step']:.0f} "
             f"| {r['poses_per_step']:.1f} "
