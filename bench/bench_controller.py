@@ -2,6 +2,7 @@
 
     python bench/bench_controller.py [--robots 50 100 200 400] [--rate 20] [--seconds 5]
                                      [--profile] [--out FILE.json]
+    python bench/bench_controller.py --step [--robots 200]   # the pose step alone, no Zenoh
 
 One ``ControllerService`` runs in this process on its own session; a Zenoh router (``confnav
 serve router``, as deployed: its routing is not the controller's CPU) and a transform service
@@ -322,6 +323,69 @@ def codec(n: int = 50_000) -> dict[str, float]:
     return {k: min(timeit.repeat(f, number=n, repeat=3)) / n * 1e6 for k, f in cases.items()}
 
 
+def step(
+    n: int = 200, blocks: tuple[int, ...] = (5, 20, 50), rounds: int = 20
+) -> list[dict[str, Any]]:
+    """The pose step alone, in process, without Zenoh: a transform service and the controller
+    on an in-memory bus (the real default map, ``n`` robots with their own goals, as in the
+    rows), then ``rounds`` poses of every robot handed to the pose step in blocks of each size
+    of ``blocks``: thread CPU per pose (repeatable; old and new code compare alternately)."""
+    from confnav.schemas import Pose
+    from confnav.services.bus import InMemoryNetwork
+    from confnav.services.controller import ControllerService
+    from confnav.services.transform import TransformService
+
+    net = InMemoryNetwork()
+    with tempfile.TemporaryDirectory(prefix="cnbs") as tmp:
+        tr = TransformService(net.bus("tr"), K, {"default": "builtin:default"}, workers=1,
+                              executor="thread", cache_dir=tmp, progressive=False)  # fmt: skip
+        tr.start()
+        svc = ControllerService(net.bus("ctl"), K, stale_after=600.0, idle_ttl=600.0)
+        svc.start()
+        try:
+            cl = net.bus("cl")
+            goals, starts = free_points(n, seed=7), free_points(n, seed=3)
+            for i in range(n):
+                g = make_goal(i, (goals[i].real, goals[i].imag), "harmonic")
+                cl.publish(K.robot(robot_id(i), "goal"), encode(g))
+            wait(lambda: svc.counters["controllers_built"] >= n, 600, "controllers")
+            _settle(svc)
+            seq = 0
+
+            def poses() -> list[tuple[str, bytes]]:
+                nonlocal seq
+                seq += 1
+                t = time.time_ns()
+                return [
+                    (K.robot(robot_id(i), "pose"),
+                     encode(Pose(robot_id=robot_id(i), stamp_ns=t, seq=seq,
+                                 x=starts[i].real, y=starts[i].imag)))
+                    for i in range(n)
+                ]  # fmt: skip
+
+            out = []
+            for b in blocks:
+                todo = [(ps[s : s + b]) for _ in range(rounds) for ps in [poses()]
+                        for s in range(0, n, b)]  # fmt: skip
+                c0, load0 = svc.counters["commands"], os.getloadavg()
+                t0 = time.thread_time()
+                for items in todo:
+                    svc._on_poses(items)
+                cpu = time.thread_time() - t0
+                done = svc.counters["commands"] - c0
+                out.append({"robots": n, "block": b, "poses": n * rounds, "commands": done,
+                            "step_cpu_us_per_pose": cpu / max(n * rounds, 1) * 1e6,
+                            "loadavg_start": list(load0),
+                            "loadavg_end": list(os.getloadavg())})  # fmt: skip
+                print(f"{n} robots, blocks of {b:3d}: pose step "
+                      f"{out[-1]['step_cpu_us_per_pose']:.1f} us CPU per pose ({done} "
+                      f"commands) | load {load0[0]:.1f}", flush=True)  # fmt: skip
+            return out
+        finally:
+            svc.stop()
+            tr.stop()
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -337,7 +401,21 @@ def main() -> int:
     ap.add_argument(
         "--codec", action="store_true", help="only decode/encode costs: controller_codec.json"
     )
+    ap.add_argument(
+        "--step", action="store_true",
+        help="only the pose step in process, no Zenoh (blocks of 5, 20, 50): controller_step.json",
+    )  # fmt: skip
     args = ap.parse_args()
+    if args.step:
+        out = RESULTS.with_name("controller_step.json") if args.out == str(RESULTS) else args.out
+        os.environ.setdefault("OMP_NUM_THREADS", "1")
+        rows = step(args.robots[0] if len(args.robots) == 1 else 200)
+        doc = {"about": "the pose step alone, in process (bench_controller.py --step)",
+               "commit": commit(), "date": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
+               "command": " ".join(sys.argv), "rows": rows}  # fmt: skip
+        Path(out).write_text(json.dumps(doc, indent=1) + "\n")
+        print(f"wrote {out}")
+        return 0
     if args.codec:
         out = RESULTS.with_name("controller_codec.json") if args.out == str(RESULTS) else args.out
         doc = {"about": "pose decode and command encode, us per call (bench_controller.py --codec)",
