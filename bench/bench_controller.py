@@ -2,12 +2,14 @@
 
     python bench/bench_controller.py [--robots 50 100 200 400] [--rate 20] [--seconds 5]
                                      [--profile] [--out FILE.json]
+    python bench/bench_controller.py --step [--robots 200]   # the pose step alone, no Zenoh
 
-A Zenoh router and one ``ControllerService`` run in this process, each on its own session, a
-transform service (``confnav serve transform``, the default workspace) in its own process; one
-child process plays the robots exactly as ``bench services`` does (``play_robots``: poses at
-``--rate`` Hz per robot at independent phases, commands received, latency = command receipt -
-the answered pose's stamp). Every robot has its own goal (``own`` mode).
+One ``ControllerService`` runs in this process on its own session; a Zenoh router (``confnav
+serve router``, as deployed: its routing is not the controller's CPU) and a transform service
+(``confnav serve transform``, the default workspace) each in its own process; one child process
+plays the robots exactly as ``bench services`` does (``play_robots``: poses at ``--rate`` Hz
+per robot at independent phases, commands received, latency = command receipt - the answered
+pose's stamp). Every robot has its own goal (``own`` mode).
 
 Per row: poses answered, latency p50/p99, and the controller process's CPU time divided by the
 poses it took (``cpu_us_per_pose``) -- less sensitive to the machine's load than latency --
@@ -17,6 +19,8 @@ rest (Zenoh's own threads, health, watchdog) as the difference. ``--profile`` al
 ``cProfile`` (on each thread's CPU clock) inside those threads and prints the top functions
 (inflated by the profiler; use its ratios). Writes bench/results/controller.json with the
 commit and the load average before and after each row (after every row: a cut run keeps them).
+``pose_path_cpu_us_per_pose`` is the process's CPU per pose without the threads of
+:data:`BACKGROUND` (work that is not the poses': goals' critical-point searches, map installs).
 ``threads_cpu_us_per_pose`` is every thread of the process by name (``/proc/self/task``, 10 ms
 ticks): ``latest`` the pose step, ``rx-*``/``tx-*``/``acc-*``/``app-*`` Zenoh's, the
 ``pyo3-closure`` threads Zenoh's callbacks into Python, ``critical-points`` the background
@@ -44,7 +48,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import zenoh
 from bench_services import (
     K,
     free_points,
@@ -60,6 +63,10 @@ from provenance import commit  # script mode: bench/ is on sys.path
 
 RESULTS = Path(__file__).resolve().parent / "results" / "controller.json"
 TARGET = {"robots": 200, "rate": 20.0, "p99_ms": 20.0}
+BACKGROUND = ("critical-points", "sub:", "controller:fetch", "controller:watchdog", "MainThread")
+"""Threads whose work is not the poses' (``pose_path_cpu_us_per_pose`` leaves them out): the
+background critical-point searches of new goals (services/critical_search.py), map installs
+(``sub:``), map fetches, the watchdog and this harness's waiting."""
 
 
 class _Timed:
@@ -121,7 +128,8 @@ def _tasks() -> dict[str, float]:
         comm = stat[stat.index("(") + 1 : stat.rindex(")")]
         f = stat.rsplit(")", 1)[1].split()
         name = names.get(int(task.name), comm)
-        name = name.split(":", 1)[0] if name.startswith(("latest", "sub", "qbl", "live")) else name
+        if name.startswith(("latest", "qbl", "live")):  # one per key expression: summed
+            name = name.split(":", 1)[0]
         out[name] = out.get(name, 0.0) + (int(f[11]) + int(f[12])) / clk
     return out
 
@@ -220,10 +228,14 @@ def row(
         "robots": n,
         "rate_hz": rate,
         "seconds": seconds,
-        "sent": n * (ticks - warm),
+        # from sequence numbers (bench_services.account_poses): answered + superseded + lost
+        # == sent exactly, never clamped
+        "sent": int(res["sent"]),
         "answered": int(res["answered"]),
+        "superseded": int(res["superseded"]),
+        "lost": int(res["lost"]),
         "poses_taken": taken,
-        "superseded": superseded,
+        "superseded_counted": superseded,  # the controller's counter over its own window
         "commands": commands,
         "late_publishes": late,
         "p50_ms": float(np.percentile(lat, 50)) if lat.size else float("nan"),
@@ -238,8 +250,14 @@ def row(
             for k, v in sorted(k1.items(), key=lambda kv: -(kv[1] - k0.get(kv[0], 0.0)))
             if v - k0.get(k, 0.0) > 0
         },
+        "pose_path_cpu_us_per_pose": sum(
+            (v - k0.get(k, 0.0)) / max(commands, 1) * 1e6
+            for k, v in k1.items()
+            if not k.startswith(BACKGROUND)
+        ),
         "pose_step_calls": calls["pose_step"],
         "poses_per_step": commands / max(calls["pose_step"], 1),
+        "counters": {k: v for k, v in svc.counters.items() if k.startswith(("stops_", "def"))},
         "fleet": {k: v for k, v in svc.neighbours.counters.items()} if svc.neighbours else {},
         "profiled": profile,
         "linger_ms": linger_ms,
@@ -305,6 +323,69 @@ def codec(n: int = 50_000) -> dict[str, float]:
     return {k: min(timeit.repeat(f, number=n, repeat=3)) / n * 1e6 for k, f in cases.items()}
 
 
+def step(
+    n: int = 200, blocks: tuple[int, ...] = (5, 20, 50), rounds: int = 20
+) -> list[dict[str, Any]]:
+    """The pose step alone, in process, without Zenoh: a transform service and the controller
+    on an in-memory bus (the real default map, ``n`` robots with their own goals, as in the
+    rows), then ``rounds`` poses of every robot handed to the pose step in blocks of each size
+    of ``blocks``: thread CPU per pose (repeatable; old and new code compare alternately)."""
+    from confnav.schemas import Pose
+    from confnav.services.bus import InMemoryNetwork
+    from confnav.services.controller import ControllerService
+    from confnav.services.transform import TransformService
+
+    net = InMemoryNetwork()
+    with tempfile.TemporaryDirectory(prefix="cnbs") as tmp:
+        tr = TransformService(net.bus("tr"), K, {"default": "builtin:default"}, workers=1,
+                              executor="thread", cache_dir=tmp, progressive=False)  # fmt: skip
+        tr.start()
+        svc = ControllerService(net.bus("ctl"), K, stale_after=600.0, idle_ttl=600.0)
+        svc.start()
+        try:
+            cl = net.bus("cl")
+            goals, starts = free_points(n, seed=7), free_points(n, seed=3)
+            for i in range(n):
+                g = make_goal(i, (goals[i].real, goals[i].imag), "harmonic")
+                cl.publish(K.robot(robot_id(i), "goal"), encode(g))
+            wait(lambda: svc.counters["controllers_built"] >= n, 600, "controllers")
+            _settle(svc)
+            seq = 0
+
+            def poses() -> list[tuple[str, bytes]]:
+                nonlocal seq
+                seq += 1
+                t = time.time_ns()
+                return [
+                    (K.robot(robot_id(i), "pose"),
+                     encode(Pose(robot_id=robot_id(i), stamp_ns=t, seq=seq,
+                                 x=starts[i].real, y=starts[i].imag)))
+                    for i in range(n)
+                ]  # fmt: skip
+
+            out = []
+            for b in blocks:
+                todo = [(ps[s : s + b]) for _ in range(rounds) for ps in [poses()]
+                        for s in range(0, n, b)]  # fmt: skip
+                c0, load0 = svc.counters["commands"], os.getloadavg()
+                t0 = time.thread_time()
+                for items in todo:
+                    svc._on_poses(items)
+                cpu = time.thread_time() - t0
+                done = svc.counters["commands"] - c0
+                out.append({"robots": n, "block": b, "poses": n * rounds, "commands": done,
+                            "step_cpu_us_per_pose": cpu / max(n * rounds, 1) * 1e6,
+                            "loadavg_start": list(load0),
+                            "loadavg_end": list(os.getloadavg())})  # fmt: skip
+                print(f"{n} robots, blocks of {b:3d}: pose step "
+                      f"{out[-1]['step_cpu_us_per_pose']:.1f} us CPU per pose ({done} "
+                      f"commands) | load {load0[0]:.1f}", flush=True)  # fmt: skip
+            return out
+        finally:
+            svc.stop()
+            tr.stop()
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -320,7 +401,21 @@ def main() -> int:
     ap.add_argument(
         "--codec", action="store_true", help="only decode/encode costs: controller_codec.json"
     )
+    ap.add_argument(
+        "--step", action="store_true",
+        help="only the pose step in process, no Zenoh (blocks of 5, 20, 50): controller_step.json",
+    )  # fmt: skip
     args = ap.parse_args()
+    if args.step:
+        out = RESULTS.with_name("controller_step.json") if args.out == str(RESULTS) else args.out
+        os.environ.setdefault("OMP_NUM_THREADS", "1")
+        rows = step(args.robots[0] if len(args.robots) == 1 else 200)
+        doc = {"about": "the pose step alone, in process (bench_controller.py --step)",
+               "commit": commit(), "date": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
+               "command": " ".join(sys.argv), "rows": rows}  # fmt: skip
+        Path(out).write_text(json.dumps(doc, indent=1) + "\n")
+        print(f"wrote {out}")
+        return 0
     if args.codec:
         out = RESULTS.with_name("controller_codec.json") if args.out == str(RESULTS) else args.out
         doc = {"about": "pose decode and command encode, us per call (bench_controller.py --codec)",
@@ -334,7 +429,10 @@ def main() -> int:
     rows = []
     with tempfile.TemporaryDirectory(prefix="cnb") as tmp:
         ep = f"unixsock-stream/{tmp}/r.sock"
-        with zenoh.open(zenoh_config("router", listen=[ep])):
+        # the router in its own process (as deployed): this process's CPU is the controller's
+        router = spawn("serve", "router", "--listen", ep, log=Path(tmp) / "router.log")
+        try:
+            wait(lambda: Path(ep.split("/", 1)[1]).exists(), 30, "router socket")
             tr = spawn("serve", "transform", "--mode", "client", "--connect", ep,
                        "--workspace", "default=builtin:default",
                        log=Path(tmp) / "transform.log")  # fmt: skip
@@ -348,9 +446,11 @@ def main() -> int:
                     th = r["thread_cpu_us_per_pose"]
                     print(
                         f"{n:4d} robots @ {args.rate:g} Hz: answered {r['answered']}/{r['sent']}"
-                        f" superseded {r['superseded']} p50 {r['p50_ms']:.1f} ms p99 "
+                        f" superseded {r['superseded']} lost {r['lost']}"
+                        f" p50 {r['p50_ms']:.1f} ms p99 "
                         f"{r['p99_ms']:.1f} ms | CPU {r['process_cpu_pct']:.0f}% "
-                        f"{r['cpu_us_per_pose']:.0f} us/pose (step {th['pose_step']:.0f}, "
+                        f"{r['cpu_us_per_pose']:.0f} us/pose, pose path "
+                        f"{r['pose_path_cpu_us_per_pose']:.0f} (step {th['pose_step']:.0f}, "
                         f"tracker {th['fleet_tracker']:.0f}, publisher {th['publisher']:.0f}, "
                         f"other {r['other_cpu_us_per_pose']:.0f}) {r['poses_per_step']:.1f} "
                         f"poses/step | load {r['loadavg_start'][0]:.1f}",
@@ -364,6 +464,9 @@ def main() -> int:
                 ctl_bus.close()
                 tr.terminate()
                 tr.wait(20)
+        finally:
+            router.terminate()
+            router.wait(20)
     print(f"wrote {args.out}")
     return 0
 

@@ -211,6 +211,35 @@ def fleet_table(docs: list[dict[str, Any]]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def controller_table(docs: list[dict[str, Any]]) -> str:
+    """``bench_controller.py``'s throughput curve: poses answered, latency, the controller
+    process's CPU per pose, without its background work (pose path: older files have none)
+    and the pose step's, per robot count."""
+    (doc,) = docs
+    rows = doc.get("rows")
+    if not isinstance(rows, list):
+        raise TableError("not a controller results file (no 'rows')")
+    lines = [
+        "| robots | answered | superseded | lost | p50 ms | p99 ms | process CPU | us CPU / pose "
+        "| pose path us / pose | pose step us / pose | poses / step | load |",
+        "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+    ]
+    for r in rows:
+        load = r.get("loadavg_start")
+        p = r.get("pose_path_cpu_us_per_pose")
+        path = "-" if p is None else f"{p:.0f}"
+        lines.append(
+            f"| {r['robots']} | {r['answered']} / {r['sent']} | {r['superseded']} "
+            f"| {r.get('lost', '-')} | {_num(r['p50_ms'])} | {_num(r['p99_ms'])} "
+            f"| {r['process_cpu_pct']:.0f} % "
+            f"| {r['cpu_us_per_pose']:.0f} | {path} "
+            f"| {r['thread_cpu_us_per_pose']['pose_step']:.0f} "
+            f"| {r['poses_per_step']:.1f} "
+            f"| {f'{load[0]:.1f}' if isinstance(load, list) else '-'} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
 def _measured(t: dict[str, Any]) -> str:
     for key, unit in (("measured_s", " s"), ("p99_ms", " ms p99"), ("measured", ""), ("value", "")):
         if key in t:
@@ -257,6 +286,7 @@ TABLES: dict[str, Callable[[list[dict[str, Any]]], str]] = {
     "atlas": atlas_table,
     "navigation": navigation_table,
     "fleet": fleet_table,
+    "controller": controller_table,
     "targets": targets_table,
 }
 

@@ -59,13 +59,13 @@ class PosesMixin(ControllerCore):
         groups: dict[int, tuple[navigation.ControllerLike, list[tuple[_Robot, Pose]]]] = {}
         nb = self.neighbours
         nb_fed = nb is not None and nb.fed
+        robots = self._robots
         for key, payload in items:
             rid = self._rid_of(key)
             if rid is None:
                 self.count("rejected")
                 continue
-            with self._lock:
-                r = self._robots.get(rid)
+            r = robots.get(rid)  # one dict read: atomic, no lock per pose
             if r is None:  # remembered before its goal (the watchdog must not miss it)
                 r = self._robot(rid)
                 if r is None:

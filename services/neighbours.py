@@ -87,7 +87,18 @@ class Neighbours:
         self.window = float(window)
         self.progress = float(progress)
         self._lock = threading.Lock()
-        self._seen: dict[str, _Seen] = {}
+        # every robot's latest pose in one slot of these arrays (the filter of each pose block
+        # selects its neighbours with vectorized masks, no Python loop over the fleet)
+        self._slot: dict[str, int] = {}
+        self._rids: list[str] = []
+        self._z = np.zeros(0, dtype=np.complex128)
+        self._th = np.zeros(0)
+        self._t = np.zeros(0)  # monotonic receive time; -inf: free slot
+        self._stamp = np.zeros(0, dtype=np.int64)
+        self._v = np.zeros(0, dtype=np.complex128)  # estimated from the last two poses (m/s)
+        self._rad = np.zeros(0)  # body radius, NaN: unknown (default_radius)
+        self._fl = np.zeros(0, dtype=np.int64)  # floor number (_floors), -1: unknown
+        self._floors: dict[str, int] = {}
         self._body: dict[str, _Body] = {}
         self._movers: dict[str, tuple[Movers, float]] = {}
         # deadlock monitor per robot: best distance to goal, its time, blocked until
@@ -95,6 +106,8 @@ class Neighbours:
         self.counters: dict[str, int] = {}
         #: robot id -> whether this controller serves it (set by :func:`attach`)
         self.served: Callable[[str], bool] | None = None
+        #: the same for many robots at once (faster; set by :func:`attach`)
+        self.served_many: Callable[[list[str]], list[bool]] | None = None
         #: True: no pose subscription of its own; the host calls :meth:`note_pose` with every
         #: pose it decodes (a controller that takes every robot's poses anyway: each pose is
         #: then received and decoded once, not twice -- docs/SERVICES.md, "Scale")
@@ -130,14 +143,77 @@ class Neighbours:
         now = time.monotonic() if now is None else now
         z = complex(pose.x, pose.y)
         with self._lock:
-            old = self._seen.get(rid)
-            v = 0j
-            if old is not None and pose.stamp_ns > old.stamp_ns:
-                dt = (pose.stamp_ns - old.stamp_ns) * 1e-9
-                v = (z - old.z) / dt if dt > 1e-3 else old.v
-            elif old is not None and pose.stamp_ns <= old.stamp_ns:
-                return  # replayed or reordered
-            self._seen[rid] = _Seen(z, pose.theta, now, pose.stamp_ns, v)
+            i = self._slot.get(rid)
+            if i is None or self._t[i] == -np.inf:
+                i = self._new_slot(rid) if i is None else i
+                v = 0j
+            else:
+                old_stamp = int(self._stamp[i])
+                if pose.stamp_ns <= old_stamp:
+                    return  # replayed or reordered
+                dt = (pose.stamp_ns - old_stamp) * 1e-9
+                v = (z - complex(self._z[i])) / dt if dt > 1e-3 else complex(self._v[i])
+            self._z[i], self._th[i], self._t[i] = z, pose.theta, now
+            self._stamp[i], self._v[i] = pose.stamp_ns, v
+
+    def _new_slot(self, rid: str) -> int:
+        """A slot for ``rid`` (the arrays doubled when full), its body filled in."""
+        i = len(self._rids)
+        if i == self._t.size:
+            n = max(64, 2 * i)
+            for name in ("_z", "_th", "_t", "_stamp", "_v", "_rad", "_fl"):
+                a = getattr(self, name)
+                b = np.zeros(n, dtype=a.dtype)
+                b[:i] = a
+                setattr(self, name, b)
+            self._t[i:] = -np.inf
+        self._slot[rid] = i
+        self._rids.append(rid)
+        self._set_body(rid, i)
+        return i
+
+    def _set_body(self, rid: str, i: int) -> None:
+        b = self._body.get(rid)
+        self._rad[i] = np.nan if b is None else b.radius
+        self._fl[i] = -1 if b is None or b.ws is None else self._floor_no(b.ws)
+
+    def _floor_no(self, floor: str) -> int:
+        n = self._floors.get(floor)
+        if n is None:
+            n = self._floors[floor] = len(self._floors)
+        return n
+
+    def _expire(self, now: float) -> None:
+        """Forget poses older than :data:`POSE_TTL`; compact the slots when most are free."""
+        self._t[(now - self._t > POSE_TTL)] = -np.inf
+        n = len(self._rids)
+        free = int(np.count_nonzero(self._t[:n] == -np.inf))
+        if n >= 256 and 2 * free > n:
+            keep = np.flatnonzero(self._t[:n] > -np.inf)
+            for name in ("_z", "_th", "_t", "_stamp", "_v", "_rad", "_fl"):
+                a = getattr(self, name)
+                b = np.zeros(a.size, dtype=a.dtype)
+                b[: keep.size] = a[keep]
+                setattr(self, name, b)
+            self._t[keep.size :] = -np.inf
+            self._rids = [self._rids[k] for k in keep]
+            self._slot = {rid: k for k, rid in enumerate(self._rids)}
+
+    @property
+    def _seen(self) -> dict[str, _Seen]:
+        """The robots seen within :data:`POSE_TTL` (a copy: inspection and tests)."""
+        with self._lock:
+            return {
+                rid: _Seen(
+                    complex(self._z[i]),
+                    float(self._th[i]),
+                    float(self._t[i]),
+                    int(self._stamp[i]),
+                    complex(self._v[i]),
+                )
+                for i, rid in enumerate(self._rids)
+                if self._t[i] > -np.inf
+            }
 
     def _on_goal(self, key: str, payload: bytes) -> None:
         try:
@@ -148,6 +224,9 @@ class Neighbours:
             b = self._body.setdefault(g.robot_id, _Body())
             b.ws = _floor(g.ws_id)
             b.radius = max(b.radius, g.robot_radius)
+            i = self._slot.get(g.robot_id)
+            if i is not None:
+                self._set_body(g.robot_id, i)
 
     def _on_spawn(self, key: str, payload: bytes) -> None:
         try:
@@ -158,6 +237,9 @@ class Neighbours:
             b = self._body.setdefault(s.robot_id, _Body())
             b.ws = _floor(s.ws_id)
             b.radius = max(b.radius, s.robot_radius)
+            i = self._slot.get(s.robot_id)
+            if i is not None:
+                self._set_body(s.robot_id, i)
 
     def _on_movers(self, key: str, payload: bytes) -> None:
         try:
@@ -187,20 +269,28 @@ class Neighbours:
         mv: list[bool] = []
         wall = time.time_ns()
         with self._lock:
-            for rid in [r for r, s in self._seen.items() if now - s.t > POSE_TTL]:
-                del self._seen[rid]
-            for rid, s in self._seen.items():
-                if rid in exclude:
-                    continue
-                b = self._body.get(rid)
-                if b is not None and floor is not None and b.ws is not None and b.ws != floor:
-                    continue
-                zs.append(s.z)
-                rs.append(b.radius if b is not None else self.default_radius)
-                mine = self.served is not None and self.served(rid)
-                vs.append(0j if mine else s.v)
-                co.append(mine)
-                mv.append(False)
+            self._expire(now)
+            n = len(self._rids)
+            sel = self._t[:n] > -np.inf
+            for rid in exclude:
+                i = self._slot.get(rid)
+                if i is not None:
+                    sel[i] = False
+            if floor is not None:
+                fno = self._floors.get(floor, -2)
+                sel &= (self._fl[:n] == -1) | (self._fl[:n] == fno)
+            idx = np.flatnonzero(sel)
+            rids = [self._rids[i] for i in idx]
+            if self.served_many is not None:
+                mine = np.array(self.served_many(rids), dtype=bool)
+            elif self.served is not None:
+                mine = np.array([self.served(r) for r in rids], dtype=bool)
+            else:
+                mine = np.zeros(idx.size, dtype=bool)
+            rad = self._rad[idx]
+            r_z = self._z[idx]
+            r_r = np.where(np.isnan(rad), self.default_radius, rad)
+            r_v = np.where(mine, 0j, self._v[idx])
             for fl, (m, _) in list(self._movers.items()):
                 age = (wall - m.stamp_ns) * 1e-9
                 if age > MOVERS_TTL:
@@ -216,11 +306,11 @@ class Neighbours:
                     co.append(False)
                     mv.append(True)
         return (
-            np.array(zs, dtype=np.complex128),
-            np.array(rs, dtype=np.float64),
-            np.array(vs, dtype=np.complex128),
-            np.array(co, dtype=bool),
-            np.array(mv, dtype=bool),
+            np.concatenate([r_z, np.array(zs, dtype=np.complex128)]),
+            np.concatenate([r_r, np.array(rs, dtype=np.float64)]),
+            np.concatenate([r_v, np.array(vs, dtype=np.complex128)]),
+            np.concatenate([mine, np.array(co, dtype=bool)]),
+            np.concatenate([np.zeros(idx.size, dtype=bool), np.array(mv, dtype=bool)]),
         )
 
     def filter_block(self, results: list[Any], now: float | None = None) -> list[Any]:
@@ -357,6 +447,16 @@ def attach(service: Any, **kw: Any) -> Neighbours:
         r = service._robots.get(rid)
         return r is not None and r.goal is not None and r.ctrl is not None
 
+    robots = service._robots
+
+    def served_many(rids: list[str]) -> list[bool]:
+        out = []
+        for rid in rids:
+            r = robots.get(rid)
+            out.append(r is not None and r.goal is not None and r.ctrl is not None)
+        return out
+
     nb.served = served
+    nb.served_many = served_many
     service._handles.extend(nb.subscribe(service.bus, poses=service.only is not None))
     return nb
