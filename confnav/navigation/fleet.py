@@ -44,6 +44,7 @@ __all__ = [
     "project_with_walls",
     "side_pass",
     "swept_min_distance",
+    "yield_way",
 ]
 
 
@@ -499,6 +500,79 @@ def side_pass(
     if blocked is not None:
         theta = np.where(np.asarray(blocked, dtype=bool).reshape(-1), blocked_angle, theta)
     return np.asarray(un * np.exp(-1j * theta), dtype=np.complex128)
+
+
+def yield_way(
+    u_nom: ArrayLike,
+    z: ArrayLike,
+    radius: ArrayLike,
+    idle: ArrayLike,
+    rows: Rows,
+    speed: ArrayLike,
+    *,
+    clearance: ArrayLike | None = None,
+    yield_gap: float = 0.6,
+    angle: float = np.pi / 4,
+    wall_band: tuple[float, float] = (0.1, 0.25),
+) -> tuple[CArray, NDArray[np.bool_]]:
+    """Idle robots step out of the way of a moving robot whose path they block: the yield rule.
+
+    An idle robot i (done with its goals, parked at the last one) *blocks* a robot j of its
+    rows that is not idle when j is within ``yield_gap`` m (surface gap), i lies ahead of j
+    (``s = Re(conj(e_j)(z_i - z_j)) > 0`` with ``e_j`` the direction of j's nominal command)
+    and within j's swept width (``|l| < r_i + r_j``, ``l = Im(conj(e_j)(z_i - z_j))``).  Its
+    nominal command becomes ``speed_i e_j exp(+-1j angle) / cos(angle)``: forward along j's
+    motion and to j's left (the side j's keep-right rule of :func:`side_pass` leaves free)
+    unless i is clearly to j's right (``l < -(r_i + r_j) / 2``), then to the right.  The
+    factor ``1 / cos(angle)`` lets the projection keep the full forward speed where a wall
+    stops the sideways part (an aisle); ``|u| <= cap`` still bounds it.
+
+    ``clearance`` (optional, m): each robot's body clearance to the walls; the sideways turn
+    then fades from ``angle`` at ``wall_band[1]`` to 0 at ``wall_band[0]`` (the wall hold cap
+    ``|u| <= fraction c / hold_time`` freezes a robot that hugs a wall, so a yielding robot
+    keeps ``wall_band[0]`` off it and goes on forward, e.g. out of a door, instead of pressing
+    sideways).  Among several blocked robots the nearest one decides.
+
+    Only nominal commands change (the filtered command still obeys every row and wall), and
+    a robot with no neighbour never yields, so a lone robot drives as without the rule.
+    Returns ``(u_nom', yielding)``.  This is a rule chosen on the warehouse bench
+    (docs/NAVIGATION.md, "Fleets"), not a derived one; the literature's counterpart is the
+    perturbations that leave symmetric deadlocks in Wang, Ames, Egerstedt, "Safety barrier
+    certificates for collisions-free multirobot systems", IEEE T-RO 33(3) 2017, sec. VI.
+    """
+    un = np.asarray(u_nom, dtype=np.complex128).reshape(-1)
+    n = un.size
+    zz = np.asarray(z, dtype=np.complex128).reshape(-1)
+    r = _as_f(radius, n)
+    idl = _as_f(idle, n).astype(bool)
+    sp = _as_f(speed, n)
+    out = un.copy()
+    if rows.a.shape[1] == 0 or not idl.any():
+        return out, np.zeros(n, dtype=bool)
+    who = rows.who
+    j = np.where((who >= 0) & (who < n), who, 0)
+    valid = (who >= 0) & (who < n) & idl[:, None] & ~idl[j] & (rows.gap < yield_gap)
+    mag = np.abs(un[j])
+    e = np.where(mag > 0, un[j] / np.where(mag > 0, mag, 1.0), 0j)
+    rel = np.conj(e) * (zz[:, None] - zz[j])
+    s, lat = rel.real, rel.imag
+    width = r[:, None] + r[j]
+    block = valid & (mag > 0) & (s > 0) & (np.abs(lat) < width)
+    gap = np.where(block, rows.gap, np.inf)
+    k = np.argmin(gap, axis=1)
+    yielding = np.isfinite(gap[np.arange(n), k])
+    if not yielding.any():
+        return out, yielding
+    idx = np.flatnonzero(yielding)
+    kk = k[idx]
+    ek = e[idx, kk]
+    sgn = np.where(lat[idx, kk] < -0.5 * width[idx, kk], -1.0, 1.0)
+    turn = np.full(idx.size, angle)
+    if clearance is not None:
+        lo, hi = wall_band
+        turn = angle * np.clip((_as_f(clearance, n)[idx] - lo) / (hi - lo), 0.0, 1.0)
+    out[idx] = sp[idx] * ek * np.exp(1j * sgn * turn) / np.cos(turn)
+    return out, yielding
 
 
 class DeadlockMonitor:
