@@ -474,20 +474,30 @@ def side_pass(
     pass_gap: float = 1.0,
     angle: float = np.pi / 4,
     blocked_angle: float = np.pi / 2,
+    clearance: ArrayLike | None = None,
+    wall_band: tuple[float, float] = (0.1, 0.25),
 ) -> CArray:
     """The nominal commands turned to the right near a neighbour ahead: the side-passing rule.
 
     Every robot applies the same rule (traffic keeps right): its command is rotated clockwise
     by ``angle * e`` with ``e = max_k clip(1 - gap_k / pass_gap, 0, 1) * max(0, cos)`` over the
     neighbours of its rows (``cos`` the cosine between the command and the direction to the
-    neighbour), and by ``blocked_angle`` when :class:`DeadlockMonitor` says it is blocked.
+    neighbour), and by ``blocked_angle`` when :class:`DeadlockMonitor` says it is blocked
+    (counter-clockwise instead when its nearest neighbour is clearly on its right, the sine
+    of its bearing below -0.3: a robot stuck behind another that hugs the right-hand wall
+    goes round it on the free side).
     Two robots meeting head-on both turn right and pass each other on their left (the
     symmetry that freezes a pure safety filter is broken the same way for both; Wang, Ames,
     Egerstedt, IEEE T-RO 2017, sec. VI, use a perturbation for the same purpose).  Only the
     nominal command turns: the rows still bound the filtered one, so safety is unaffected.
+    ``clearance`` (optional, m): each robot's body clearance to the walls; the turn then
+    fades to 0 from ``wall_band[1]`` down to ``wall_band[0]`` (the wall hold cap ``|u| <=
+    fraction c / hold_time`` all but freezes a robot turned into a wall, and the navigation
+    law's own command keeps it off the walls).
     """
     un = np.asarray(u_nom, dtype=np.complex128).reshape(-1)
     n = un.size
+    side = np.ones(n)  # +1: a blocked robot turns right, -1: left
     if rows.a.shape[1] == 0:
         e = np.zeros(n)
     else:
@@ -496,9 +506,19 @@ def side_pass(
         ahead = np.maximum(np.real(np.conj(-rows.a) * dirn[:, None]), 0.0)
         near = np.clip(1.0 - rows.gap / pass_gap, 0.0, 1.0)
         e = np.max(np.where(rows.who >= 0, near * ahead, 0.0), axis=1)
+        # the nearest neighbour clearly to the right (sine of its bearing < -0.3): pass it on
+        # its left (a pair meeting this way both see the other on their right: consistent)
+        k = np.argmin(np.where(rows.who >= 0, rows.gap, np.inf), axis=1)
+        bearing = np.imag(np.conj(dirn) * -rows.a[np.arange(n), k])
+        side = np.where((rows.who[np.arange(n), k] >= 0) & (bearing < -0.3), -1.0, 1.0)
     theta = angle * e
     if blocked is not None:
-        theta = np.where(np.asarray(blocked, dtype=bool).reshape(-1), blocked_angle, theta)
+        theta = np.where(
+            np.asarray(blocked, dtype=bool).reshape(-1), side * blocked_angle, theta
+        )
+    if clearance is not None:
+        lo, hi = wall_band
+        theta = theta * np.clip((_as_f(clearance, n) - lo) / (hi - lo), 0.0, 1.0)
     return np.asarray(un * np.exp(-1j * theta), dtype=np.complex128)
 
 
@@ -580,8 +600,10 @@ class DeadlockMonitor:
     while a robot row is engaged (within ``engage_gap`` m).
 
     Progress is a decrease of the distance to the goal by ``progress`` m below the best so
-    far; while no robot row is engaged the clock restarts (a stall without neighbours is the
-    navigation law's business, not a deadlock).  A blocked robot stays blocked for
+    far, or by a quarter of it within ``4 progress`` m of the goal (where the speed law slows
+    down in proportion to the distance, a robot closing in is not blocked); while no robot
+    row is engaged the clock restarts (a stall without neighbours is the navigation law's
+    business, not a deadlock).  A blocked robot stays blocked for
     ``release`` s after it is detected (a hysteresis: the side step must take it somewhere).
     """
 
@@ -607,7 +629,8 @@ class DeadlockMonitor:
         """The robots blocked at time ``t`` (distances to the goal now, the rows in use)."""
         d = np.asarray(dist_to_goal, dtype=np.float64).reshape(-1)
         engaged = np.any((rows.who >= 0) & (rows.gap < self.engage_gap), axis=1)
-        better = d < self.best - self.progress
+        # near the goal the law slows down (|u| ~ gain d): a quarter of the way left counts
+        better = d < self.best - np.minimum(self.progress, 0.25 * self.best)
         reset = better | ~engaged
         self.best = np.where(reset, d, self.best)
         self.t_best = np.where(reset, t, self.t_best)

@@ -144,6 +144,7 @@ def simulate_fleet(
     yielding: bool = True,
     yield_gap: float = 0.6,
     contact_margin: float = 1e-3,
+    wall_fade: bool = True,
 ) -> FleetResult:
     """Drive robot i from ``starts[i]`` with ``controllers[i]`` until all arrive or ``t_max``.
 
@@ -163,7 +164,9 @@ def simulate_fleet(
     ``arrival_time`` is set, when it reaches its last goal.  ``yielding``: done robots step
     out of the way of a robot whose path they block (:func:`~confnav.navigation.fleet.
     yield_way`, within ``yield_gap`` m) and return to their goal afterwards.
-    ``contact_margin``: the pairwise rows see each disk ``contact_margin / 2`` larger than it
+    ``wall_fade``: the side-passing turn fades out within 0.25 m of a wall
+    (:func:`~confnav.navigation.fleet.side_pass`' ``clearance``).  ``contact_margin``: the
+    pairwise rows see each disk ``contact_margin / 2`` larger than it
     is (the walls do not: a lone robot drives exactly as without it), so the barrier's
     geometric decay in a standoff (``h`` may shrink by ``1 - fraction`` per hold, down to
     rounding) ends ``contact_margin`` m short of contact, not at a round-off "contact".
@@ -223,7 +226,8 @@ def simulate_fleet(
         now_arr = (status == Status.ARRIVED) & np.isnan(arrival)
         reached += now_arr
         nxt = now_arr & np.array([len(q) > 0 for q in queue], dtype=bool)
-        for i in np.flatnonzero(nxt):  # a new goal on arrival (rare: per goal, not per step)
+        for i_ in np.flatnonzero(nxt):  # a new goal on arrival (rare: per goal, not per step)
+            i = int(i_)
             ctrls[i] = queue[i].pop(0)
             goal[i], v_max[i] = ctrls[i].goal, ctrls[i].v_max
             walls[i] = getattr(ctrls[i], "safety", None)
@@ -270,7 +274,13 @@ def simulate_fleet(
             )
             yields += int(yl.sum())
         if side_passing:
-            u_nom = side_pass(u_nom, rows, blocked=blocked, angle=pass_angle)
+            u_nom = side_pass(
+                u_nom,
+                rows,
+                blocked=blocked,
+                angle=pass_angle,
+                clearance=cb if wall_fade else None,
+            )
         if yielding and avoid:
             u_nom = np.where(yl, u_yield, u_nom)
         u, ok = project_with_walls(u_nom, p, rows, cap, walls)
