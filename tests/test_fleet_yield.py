@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from confnav import Controller, Workspace, inflate, solve
-from confnav.navigation.fleet import pairwise_rows, yield_way
+from confnav.navigation.fleet import DeadlockMonitor, Rows, pairwise_rows, side_pass, yield_way
 from confnav.navigation.fleet_sim import simulate_fleet
 
 # two 4 x 4 m rooms joined by a 0.8 m door in a 0.2 m wall: two disks of r 0.2 cannot pass
@@ -81,3 +81,32 @@ def test_goals_on_arrival_and_a_lone_robot_unchanged(corridor_map) -> None:  # t
     assert np.abs(res.paths[:, 0] - c).min() <= 0.05  # it went back to c on the way
     off = simulate_fleet([first], [a], CORRIDOR, next_goals=[rest], yielding=False, **kw)  # type: ignore[arg-type]
     assert np.array_equal(res.paths, off.paths)
+
+
+def test_side_pass_fades_near_walls_and_picks_the_free_side() -> None:
+    rows = pairwise_rows([0j, 0.7], 0.2, 0.5)
+    u = side_pass([0.5 + 0j, -0.5 + 0j], rows, clearance=[0.3, 0.05])
+    assert u[0].imag < 0  # 0.3 m off the walls: the full turn to the right
+    assert u[1] == -0.5  # 0.05 m off a wall: no turn (the hold cap would freeze it)
+    half = side_pass([0.5 + 0j, -0.5 + 0j], rows, blocked=[True, False], clearance=[0.175, 1])
+    assert np.angle(half[0]) == pytest.approx(-np.pi / 4)  # halfway in the band: half of 90
+    # blocked, the nearest neighbour clearly to the right (bearing -45 deg): turn left
+    rows = pairwise_rows([0j, 0.5 - 0.5j], 0.2, 0.5)
+    u = side_pass([0.5 + 0j, 0j], rows, blocked=[True, False])
+    assert u[0] == pytest.approx(0.5j)
+    # straight ahead (a head-on pair): both to the right, as before
+    rows = pairwise_rows([0j, 0.6], 0.2, 0.5)
+    u = side_pass([0.5 + 0j, -0.5 + 0j], rows, blocked=[True, True])
+    assert u[0] == pytest.approx(-0.5j) and u[1] == pytest.approx(0.5j)
+
+
+def test_deadlock_monitor_lets_a_robot_close_in_on_its_goal() -> None:
+    rows = pairwise_rows([0j, 0.5], 0.2, 0.5)  # engaged: gap 0.1
+    one = Rows(rows.a[:1], rows.b[:1], rows.who[:1], rows.gap[:1])
+    closing, still = DeadlockMonitor(1), DeadlockMonitor(1)
+    hit_closing = hit_still = False
+    for k in range(60):  # 0.3 m from the goal, the law's exponential approach (gain 1)
+        t = 0.05 * k
+        hit_closing |= bool(closing.update(t, [0.3 * np.exp(-t)], one)[0])
+        hit_still |= bool(still.update(t, [0.3], one)[0])
+    assert not hit_closing and hit_still
