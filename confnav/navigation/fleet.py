@@ -44,6 +44,7 @@ __all__ = [
     "project_with_walls",
     "side_pass",
     "swept_min_distance",
+    "yield_way",
 ]
 
 
@@ -473,20 +474,30 @@ def side_pass(
     pass_gap: float = 1.0,
     angle: float = np.pi / 4,
     blocked_angle: float = np.pi / 2,
+    clearance: ArrayLike | None = None,
+    wall_band: tuple[float, float] = (0.1, 0.25),
 ) -> CArray:
     """The nominal commands turned to the right near a neighbour ahead: the side-passing rule.
 
     Every robot applies the same rule (traffic keeps right): its command is rotated clockwise
     by ``angle * e`` with ``e = max_k clip(1 - gap_k / pass_gap, 0, 1) * max(0, cos)`` over the
     neighbours of its rows (``cos`` the cosine between the command and the direction to the
-    neighbour), and by ``blocked_angle`` when :class:`DeadlockMonitor` says it is blocked.
+    neighbour), and by ``blocked_angle`` when :class:`DeadlockMonitor` says it is blocked
+    (counter-clockwise instead when its nearest neighbour is clearly on its right, the sine
+    of its bearing below -0.3: a robot stuck behind another that hugs the right-hand wall
+    goes round it on the free side).
     Two robots meeting head-on both turn right and pass each other on their left (the
     symmetry that freezes a pure safety filter is broken the same way for both; Wang, Ames,
     Egerstedt, IEEE T-RO 2017, sec. VI, use a perturbation for the same purpose).  Only the
     nominal command turns: the rows still bound the filtered one, so safety is unaffected.
+    ``clearance`` (optional, m): each robot's body clearance to the walls; the turn then
+    fades to 0 from ``wall_band[1]`` down to ``wall_band[0]`` (the wall hold cap ``|u| <=
+    fraction c / hold_time`` all but freezes a robot turned into a wall, and the navigation
+    law's own command keeps it off the walls).
     """
     un = np.asarray(u_nom, dtype=np.complex128).reshape(-1)
     n = un.size
+    side = np.ones(n)  # +1: a blocked robot turns right, -1: left
     if rows.a.shape[1] == 0:
         e = np.zeros(n)
     else:
@@ -495,10 +506,93 @@ def side_pass(
         ahead = np.maximum(np.real(np.conj(-rows.a) * dirn[:, None]), 0.0)
         near = np.clip(1.0 - rows.gap / pass_gap, 0.0, 1.0)
         e = np.max(np.where(rows.who >= 0, near * ahead, 0.0), axis=1)
+        # the nearest neighbour clearly to the right (sine of its bearing < -0.3): pass it on
+        # its left (a pair meeting this way both see the other on their right: consistent)
+        k = np.argmin(np.where(rows.who >= 0, rows.gap, np.inf), axis=1)
+        bearing = np.imag(np.conj(dirn) * -rows.a[np.arange(n), k])
+        side = np.where((rows.who[np.arange(n), k] >= 0) & (bearing < -0.3), -1.0, 1.0)
     theta = angle * e
     if blocked is not None:
-        theta = np.where(np.asarray(blocked, dtype=bool).reshape(-1), blocked_angle, theta)
+        theta = np.where(
+            np.asarray(blocked, dtype=bool).reshape(-1), side * blocked_angle, theta
+        )
+    if clearance is not None:
+        lo, hi = wall_band
+        theta = theta * np.clip((_as_f(clearance, n) - lo) / (hi - lo), 0.0, 1.0)
     return np.asarray(un * np.exp(-1j * theta), dtype=np.complex128)
+
+
+def yield_way(
+    u_nom: ArrayLike,
+    z: ArrayLike,
+    radius: ArrayLike,
+    idle: ArrayLike,
+    rows: Rows,
+    speed: ArrayLike,
+    *,
+    clearance: ArrayLike | None = None,
+    yield_gap: float = 0.6,
+    angle: float = np.pi / 4,
+    wall_band: tuple[float, float] = (0.1, 0.25),
+) -> tuple[CArray, NDArray[np.bool_]]:
+    """Idle robots step out of the way of a moving robot whose path they block: the yield rule.
+
+    An idle robot i (done with its goals, parked at the last one) *blocks* a robot j of its
+    rows that is not idle when j is within ``yield_gap`` m (surface gap), i lies ahead of j
+    (``s = Re(conj(e_j)(z_i - z_j)) > 0`` with ``e_j`` the direction of j's nominal command)
+    and within j's swept width (``|l| < r_i + r_j``, ``l = Im(conj(e_j)(z_i - z_j))``).  Its
+    nominal command becomes ``speed_i e_j exp(+-1j angle) / cos(angle)``: forward along j's
+    motion and to j's left (the side j's keep-right rule of :func:`side_pass` leaves free)
+    unless i is clearly to j's right (``l < -(r_i + r_j) / 2``), then to the right.  The
+    factor ``1 / cos(angle)`` lets the projection keep the full forward speed where a wall
+    stops the sideways part (an aisle); ``|u| <= cap`` still bounds it.
+
+    ``clearance`` (optional, m): each robot's body clearance to the walls; the sideways turn
+    then fades from ``angle`` at ``wall_band[1]`` to 0 at ``wall_band[0]`` (the wall hold cap
+    ``|u| <= fraction c / hold_time`` freezes a robot that hugs a wall, so a yielding robot
+    keeps ``wall_band[0]`` off it and goes on forward, e.g. out of a door, instead of pressing
+    sideways).  Among several blocked robots the nearest one decides.
+
+    Only nominal commands change (the filtered command still obeys every row and wall), and
+    a robot with no neighbour never yields, so a lone robot drives as without the rule.
+    Returns ``(u_nom', yielding)``.  This is a rule chosen on the warehouse bench
+    (docs/NAVIGATION.md, "Fleets"), not a derived one; the literature's counterpart is the
+    perturbations that leave symmetric deadlocks in Wang, Ames, Egerstedt, "Safety barrier
+    certificates for collisions-free multirobot systems", IEEE T-RO 33(3) 2017, sec. VI.
+    """
+    un = np.asarray(u_nom, dtype=np.complex128).reshape(-1)
+    n = un.size
+    zz = np.asarray(z, dtype=np.complex128).reshape(-1)
+    r = _as_f(radius, n)
+    idl = _as_f(idle, n).astype(bool)
+    sp = _as_f(speed, n)
+    out = un.copy()
+    if rows.a.shape[1] == 0 or not idl.any():
+        return out, np.zeros(n, dtype=bool)
+    who = rows.who
+    j = np.where((who >= 0) & (who < n), who, 0)
+    valid = (who >= 0) & (who < n) & idl[:, None] & ~idl[j] & (rows.gap < yield_gap)
+    mag = np.abs(un[j])
+    e = np.where(mag > 0, un[j] / np.where(mag > 0, mag, 1.0), 0j)
+    rel = np.conj(e) * (zz[:, None] - zz[j])
+    s, lat = rel.real, rel.imag
+    width = r[:, None] + r[j]
+    block = valid & (mag > 0) & (s > 0) & (np.abs(lat) < width)
+    gap = np.where(block, rows.gap, np.inf)
+    k = np.argmin(gap, axis=1)
+    yielding = np.isfinite(gap[np.arange(n), k])
+    if not yielding.any():
+        return out, yielding
+    idx = np.flatnonzero(yielding)
+    kk = k[idx]
+    ek = e[idx, kk]
+    sgn = np.where(lat[idx, kk] < -0.5 * width[idx, kk], -1.0, 1.0)
+    turn = np.full(idx.size, angle)
+    if clearance is not None:
+        lo, hi = wall_band
+        turn = angle * np.clip((_as_f(clearance, n)[idx] - lo) / (hi - lo), 0.0, 1.0)
+    out[idx] = sp[idx] * ek * np.exp(1j * sgn * turn) / np.cos(turn)
+    return out, yielding
 
 
 class DeadlockMonitor:
@@ -506,8 +600,10 @@ class DeadlockMonitor:
     while a robot row is engaged (within ``engage_gap`` m).
 
     Progress is a decrease of the distance to the goal by ``progress`` m below the best so
-    far; while no robot row is engaged the clock restarts (a stall without neighbours is the
-    navigation law's business, not a deadlock).  A blocked robot stays blocked for
+    far, or by a quarter of it within ``4 progress`` m of the goal (where the speed law slows
+    down in proportion to the distance, a robot closing in is not blocked); while no robot
+    row is engaged the clock restarts (a stall without neighbours is the navigation law's
+    business, not a deadlock).  A blocked robot stays blocked for
     ``release`` s after it is detected (a hysteresis: the side step must take it somewhere).
     """
 
@@ -533,7 +629,8 @@ class DeadlockMonitor:
         """The robots blocked at time ``t`` (distances to the goal now, the rows in use)."""
         d = np.asarray(dist_to_goal, dtype=np.float64).reshape(-1)
         engaged = np.any((rows.who >= 0) & (rows.gap < self.engage_gap), axis=1)
-        better = d < self.best - self.progress
+        # near the goal the law slows down (|u| ~ gain d): a quarter of the way left counts
+        better = d < self.best - np.minimum(self.progress, 0.25 * self.best)
         reset = better | ~engaged
         self.best = np.where(reset, d, self.best)
         self.t_best = np.where(reset, t, self.t_best)

@@ -41,6 +41,7 @@ from confnav.navigation.fleet import (
     project_with_walls,
     side_pass,
     swept_min_distance,
+    yield_way,
 )
 from confnav.navigation.sim import _chord_check
 from confnav.navigation.unicycle import step_exact, twist_from_velocity
@@ -94,6 +95,9 @@ class FleetResult:
     paths: CArray | None = None
     final: CArray | None = None  # positions at the end (axles for unicycles)
     final_theta: FArray | None = None
+    reached: NDArray[np.intp] | None = None  # goals reached per robot (with ``next_goals``)
+    goals: int = 0  # goals given in all (first goals and ``next_goals``)
+    yields: int = 0  # robot-steps an idle robot spent yielding
 
     @property
     def arrival_rate(self) -> float:
@@ -136,6 +140,11 @@ def simulate_fleet(
     mover_horizon: float = 2.0,
     pass_angle: float = np.pi / 4,
     deadlock_window: float = 1.0,
+    next_goals: Sequence[Sequence[Controller]] | None = None,
+    yielding: bool = True,
+    yield_gap: float = 0.6,
+    contact_margin: float = 1e-3,
+    wall_fade: bool = True,
 ) -> FleetResult:
     """Drive robot i from ``starts[i]`` with ``controllers[i]`` until all arrive or ``t_max``.
 
@@ -149,12 +158,30 @@ def simulate_fleet(
     the side-passing rule's largest turn and the deadlock monitor's window
     (:func:`~confnav.navigation.fleet.side_pass`,
     :class:`~confnav.navigation.fleet.DeadlockMonitor`).
+
+    ``next_goals[i]``: the controllers of robot i's later goals, taken in order when it
+    reaches the current one (a new goal is issued on arrival); a robot is done, and its
+    ``arrival_time`` is set, when it reaches its last goal.  ``yielding``: done robots step
+    out of the way of a robot whose path they block (:func:`~confnav.navigation.fleet.
+    yield_way`, within ``yield_gap`` m) and return to their goal afterwards.
+    ``wall_fade``: the side-passing turn fades out within 0.25 m of a wall
+    (:func:`~confnav.navigation.fleet.side_pass`' ``clearance``).  ``contact_margin``: the
+    pairwise rows see each disk ``contact_margin / 2`` larger than it
+    is (the walls do not: a lone robot drives exactly as without it), so the barrier's
+    geometric decay in a standoff (``h`` may shrink by ``1 - fraction`` per hold, down to
+    rounding) ends ``contact_margin`` m short of contact, not at a round-off "contact".
     """
     ctrls = list(controllers)
+    queue = [list(q) for q in next_goals] if next_goals is not None else [[] for _ in ctrls]
     x = np.asarray(starts, dtype=np.complex128).reshape(-1).copy()
     n = x.size
     if len(ctrls) != n:
         raise ValueError(f"{len(ctrls)} controllers for {n} starts")
+    if len(queue) != n:
+        raise ValueError(f"next_goals for {len(queue)} robots, {n} starts")
+    n_goals = n + sum(len(q) for q in queue)
+    reached = np.zeros(n, dtype=np.intp)
+    yields = 0
     if not 0 < dt <= hold_time:
         raise ValueError(f"the control period dt must be in (0, hold_time], got {dt}")
     r = np.broadcast_to(np.asarray(radius, dtype=np.float64), (n,)).copy()
@@ -164,10 +191,7 @@ def simulate_fleet(
     rf = r + d  # the filter's disk: around the look-ahead point for a unicycle
     goal = np.array([c.goal for c in ctrls], dtype=np.complex128)
     v_max = np.array([c.v_max for c in ctrls], dtype=np.float64)
-    groups: dict[int, list[int]] = {}
-    for i, c in enumerate(ctrls):
-        groups.setdefault(id(c.cmap), []).append(i)
-    gidx = [np.array(g, dtype=np.intp) for g in groups.values()]
+    gidx = _map_groups(ctrls)
     radii_groups = [(rv, np.flatnonzero(r == rv)) for rv in np.unique(r)]
     clear = workspace.clearance
     # each robot's wall filter (the safety layer on its map's workspace), joined with the rows
@@ -200,7 +224,19 @@ def simulate_fleet(
             out = fleet_step([ctrls[i] for i in g], p[g], w, dw)
             u_nom[g], status[g] = out.u, out.status
         now_arr = (status == Status.ARRIVED) & np.isnan(arrival)
-        arrival[now_arr] = t
+        reached += now_arr
+        nxt = now_arr & np.array([len(q) > 0 for q in queue], dtype=bool)
+        for i_ in np.flatnonzero(nxt):  # a new goal on arrival (rare: per goal, not per step)
+            i = int(i_)
+            ctrls[i] = queue[i].pop(0)
+            goal[i], v_max[i] = ctrls[i].goal, ctrls[i].v_max
+            walls[i] = getattr(ctrls[i], "safety", None)
+            monitor.best[i], monitor.t_best[i] = np.inf, t
+            u_nom[i] = 0j  # it starts toward the new goal at the next step
+            status[i] = Status.MOVING
+        if nxt.any():
+            gidx = _map_groups(ctrls)
+        arrival[now_arr & ~nxt] = t
         bad = (status == Status.ERROR) & ~frozen
         errors += int(bad.sum())
         frozen |= bad
@@ -217,7 +253,7 @@ def simulate_fleet(
         if avoid:
             rows = pairwise_rows(
                 p,
-                rf,
+                rf + 0.5 * contact_margin,
                 v_max,
                 others=mz,
                 others_radius=mr,
@@ -231,8 +267,22 @@ def simulate_fleet(
         else:
             rows = Rows.empty(n)
         blocked = monitor.update(t, np.abs(p - goal), rows) if side_passing else None
+        if yielding and avoid:  # toward the goals, before side passing turns them
+            idle = ~np.isnan(arrival) & ~frozen
+            u_yield, yl = yield_way(
+                u_nom, p, rf, idle, rows, v_max, clearance=cb, yield_gap=yield_gap
+            )
+            yields += int(yl.sum())
         if side_passing:
-            u_nom = side_pass(u_nom, rows, blocked=blocked, angle=pass_angle)
+            u_nom = side_pass(
+                u_nom,
+                rows,
+                blocked=blocked,
+                angle=pass_angle,
+                clearance=cb if wall_fade else None,
+            )
+        if yielding and avoid:
+            u_nom = np.where(yl, u_yield, u_nom)
         u, ok = project_with_walls(u_nom, p, rows, cap, walls)
         filter_time += time.perf_counter() - t0
         infeasible += int((~ok).sum())
@@ -304,4 +354,15 @@ def simulate_fleet(
         paths=np.array(paths) if paths is not None else None,
         final=x.copy(),
         final_theta=th.copy(),
+        reached=reached,
+        goals=n_goals,
+        yields=yields,
     )
+
+
+def _map_groups(ctrls: Sequence[Controller]) -> list[NDArray[np.intp]]:
+    """Robots grouped by their controller's map (one batched fleet step per map)."""
+    groups: dict[int, list[int]] = {}
+    for i, c in enumerate(ctrls):
+        groups.setdefault(id(c.cmap), []).append(i)
+    return [np.array(g, dtype=np.intp) for g in groups.values()]
