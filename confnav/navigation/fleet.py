@@ -513,9 +513,7 @@ def side_pass(
         side = np.where((rows.who[np.arange(n), k] >= 0) & (bearing < -0.3), -1.0, 1.0)
     theta = angle * e
     if blocked is not None:
-        theta = np.where(
-            np.asarray(blocked, dtype=bool).reshape(-1), side * blocked_angle, theta
-        )
+        theta = np.where(np.asarray(blocked, dtype=bool).reshape(-1), side * blocked_angle, theta)
     if clearance is not None:
         lo, hi = wall_band
         theta = theta * np.clip((_as_f(clearance, n) - lo) / (hi - lo), 0.0, 1.0)
