@@ -32,7 +32,8 @@ from confnav.services.keys import Keys
 from confnav.services.transform import TransformService, solve_definition
 from conftest import square_definition, wait_for
 
-from confnav.maps.footprint import inflate
+from confnav.geometry import Workspace
+from confnav.maps.footprint import UnreachableGoalError, inflate
 
 K = Keys()
 RADIUS = 0.1
@@ -143,7 +144,7 @@ def test_a_robot_with_a_body_moves_before_its_footprint_map_and_swaps_to_it(
     robot = _Robot(make_bus(), "r1", (-0.45, -0.45))
     try:
         goal = Goal(robot_id="r1", ws_id="sq", goal=(0.45, 0.45), robot_radius=RADIUS,
-                    v_max=0.1, tolerance=0.03)  # fmt: skip
+                    v_max=0.25, tolerance=0.03)  # fmt: skip
         client.publish(K.robot("r1", "goal"), encode(goal))
         # a non-zero command while the footprint map is held back (it has no revision)
         wait_for(robot.moving_commands, timeout=60)
@@ -226,7 +227,7 @@ def test_where_the_unshrunk_map_hugs_an_obstacle_the_body_stays_in_the_shrunk_sp
         robot = _Robot(make_bus(), "r3", (-0.45, 0.0))
         try:
             goal = Goal(robot_id="r3", ws_id="gap", goal=(0.45, 0.0), robot_radius=RADIUS,
-                        v_max=0.1, tolerance=0.03)  # fmt: skip
+                        v_max=0.25, tolerance=0.03)  # fmt: skip
             client.publish(K.robot("r3", "goal"), encode(goal))
             wait_for(lambda: statuses.all() and statuses.all()[-1].state == "arrived", timeout=120)
             assert tr.state_of("gap~r0.1") != "solved" and not gated.gate.is_set()
@@ -243,7 +244,8 @@ def test_where_the_unshrunk_map_hugs_an_obstacle_the_body_stays_in_the_shrunk_sp
             # the same map with the unshrunk walls' filter only (a point robot's law): its
             # path leaves the shrunk free space, so the body's filter was needed
             reply = client.query(K.ws("gap", "transform"))[0].payload or b""
-            point = goal.model_copy(update={"robot_radius": 0.0})  # no body: no stand-in
+            # no body (no stand-in), at the speed this check's 0.05 s steps were made for
+            point = goal.model_copy(update={"robot_radius": 0.0, "v_max": 0.1})
             free = navigation.make_controller(
                 navigation.load_map(decode(TransformSolution, reply)), point
             )
@@ -255,3 +257,27 @@ def test_where_the_unshrunk_map_hugs_an_obstacle_the_body_stays_in_the_shrunk_sp
             assert float(shrunk.clearance(np.array(bare)).min()) < 0.0
         finally:
             robot.stop.set()
+
+
+def test_make_controller_builds_the_stand_in_as_the_controller_does() -> None:
+    """``navigation.make_controller`` (what ``replay --check`` rebuilds commands with) builds
+    the stand-in from (unshrunk map, goal with a body): the safety layer on the exact shrunk
+    workspace, and a goal the body cannot reach refused at once."""
+    import confnav
+
+    defn = square_definition("sq", [])
+    ws = Workspace(defn.outer, defn.obstacles)
+    cmap = confnav.solve(ws, 1e-4)
+    cmap.ws_id = "sq"  # what load_map records
+    goal = Goal(robot_id="r1", ws_id="sq", goal=(0.65, 0.0), robot_radius=RADIUS)
+    assert navigation.stands_in(cmap, goal)
+    with pytest.raises(
+        UnreachableGoalError, match=r"unreachable.*largest component of the workspace shrunk"
+    ):
+        navigation.make_controller(cmap, goal)
+    ok = goal.model_copy(update={"goal": (0.5, 0.0)})
+    ctrl = navigation.make_controller(cmap, ok)
+    shrunk = navigation.shrunk_workspace(cmap, ok)
+    assert ctrl.safety.workspace is shrunk  # type: ignore[union-attr]
+    assert shrunk.boundaries[0].size and not shrunk.contains(0.65 + 0j)
+    assert not navigation.stands_in(cmap, ok.model_copy(update={"robot_radius": 0.0}))

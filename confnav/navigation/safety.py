@@ -62,7 +62,7 @@ import math
 import threading
 import weakref
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -653,8 +653,10 @@ def safety_filter(workspace: Workspace, **params: float) -> SafetyFilter:
             return hit[1]
         flt = SafetyFilter(workspace, **params)  # type: ignore[arg-type]
 
-        def forget(_ref: weakref.ref[Workspace], k: _Key = key) -> None:
-            _FILTERS.pop(k, None)
+        def forget(
+            _ref: weakref.ref[Workspace], k: _Key = key, filters: dict[_Key, Any] = _FILTERS
+        ) -> None:  # the dict bound here: at interpreter exit the module global is None
+            filters.pop(k, None)
 
         _FILTERS[key] = (weakref.ref(workspace, forget), flt)
         return flt
