@@ -72,8 +72,6 @@ def make_controller_on_base(cmap: Any, goal: Goal, shrunk: Any) -> navigation.Co
     """The goal's feedback law on the base map ``cmap`` with the safety layer on the exact
     shrunk workspace ``shrunk`` (``goal.ws_id`` is the footprint workspace). The goal must be
     in the shrunk free space (the error of :func:`navigation.make_controller` otherwise)."""
-    from confnav.navigation.control import Controller
-
     g = complex(goal.goal[0], goal.goal[1])
     if not bool(shrunk.contains(g)):
         raise UnreachableGoalError(
@@ -83,49 +81,8 @@ def make_controller_on_base(cmap: Any, goal: Goal, shrunk: Any) -> navigation.Co
             "cut off by a passage narrower than twice it)"
         )
     if getattr(cmap, "is_atlas", False):  # an atlas base: its switching law, same filter
-        return _atlas_controller_on_base(cmap, goal, shrunk)
-    ctrl = Controller(
-        cmap,
-        g,
-        navfn=goal.navfn,
-        k="auto" if goal.k is None else goal.k,
-        speed_law=goal.speed_law,
-        gain=goal.gain,
-        v_max=goal.v_max,
-        goal_tol=goal.tolerance,
-        safety=shrunk,
-    )
-    if goal.drive == "unicycle":
-        from confnav.navigation.unicycle import UnicycleController
-
-        return UnicycleController(ctrl, goal.lookahead, v_max=goal.v_max, omega_max=goal.omega_max)
-    return ctrl
-
-
-def _atlas_controller_on_base(amap: Any, goal: Goal, shrunk: Any) -> navigation.ControllerLike:
-    """:meth:`confnav.atlas.wire.AtlasMap.controller` on the base atlas ``amap``, every
-    chart's commands filtered against the exact shrunk workspace instead of the base one."""
-    from confnav.atlas.compose import AtlasNavigator
-    from confnav.atlas.wire import AtlasController
-
-    nav = AtlasNavigator(
-        amap.atlas,
-        complex(goal.goal[0], goal.goal[1]),
-        speed=float(goal.v_max),
-        nav_maps=amap.nav_maps,
-        links=amap.links,
-        navfn=goal.navfn,
-        goal_tol=float(goal.tolerance),
-        safety=shrunk,
-    )
-    ctrl = AtlasController(nav)
-    if goal.drive == "unicycle":
-        from confnav.navigation.unicycle import UnicycleController
-
-        return UnicycleController(
-            ctrl, float(goal.lookahead), v_max=float(goal.v_max), omega_max=float(goal.omega_max)
-        )
-    return ctrl
+        return cmap.controller(goal, shrunk)  # type: ignore[no-any-return]
+    return navigation.point_law(cmap, goal, shrunk)
 
 
 def base_workspace(cmap: Any) -> Any:

@@ -122,6 +122,11 @@ class PosesMixin(ControllerCore):
             u, codes = res
             for (r, pose), ui, code in zip(members, u.tolist(), codes.tolist(), strict=True):
                 with r.lock:
+                    if r.ctrl is not ctrl:  # swapped to another map revision meanwhile: the
+                        # answer is not the current revision's, and replay --check recomputes
+                        # each command from the revision it names; the next pose gets one
+                        self.count("answers_dropped_on_swap")
+                        continue
                     self._act(r, pose, navigation.decide(ctrl, complex(ui), int(code)), now)
 
     def _control(

@@ -53,6 +53,7 @@ __all__ = [
     "load_map",
     "make_controller",
     "map_ws_id",
+    "point_law",
     "precompute",
     "shrunk_workspace",
     "stands_in",
@@ -132,7 +133,6 @@ def make_controller(cmap: Any, goal: Goal) -> ControllerLike:
     """
     from confnav.errors import NavigationError
     from confnav.maps.footprint import UnreachableGoalError
-    from confnav.navigation.control import Controller
 
     if stands_in(cmap, goal):  # the unshrunk map steers, the exact shrunk geometry keeps safe
         from confnav.services.controller_footprint import make_controller_on_base
@@ -141,18 +141,8 @@ def make_controller(cmap: Any, goal: Goal) -> ControllerLike:
         return make_controller_on_base(cmap, fp, shrunk_workspace(cmap, goal))
     if getattr(cmap, "is_atlas", False):  # confnav.atlas.wire.AtlasMap: per-robot switching
         return cmap.controller(goal)  # type: ignore[no-any-return]
-    g = complex(goal.goal[0], goal.goal[1])
     try:
-        ctrl = Controller(
-            cmap,
-            g,
-            navfn=goal.navfn,
-            k="auto" if goal.k is None else goal.k,
-            speed_law=goal.speed_law,
-            gain=goal.gain,
-            v_max=goal.v_max,
-            goal_tol=goal.tolerance,
-        )
+        return point_law(cmap, goal)
     except NavigationError as exc:
         if map_ws_id(goal) == goal.ws_id or "not in the free space" not in str(exc):
             raise
@@ -162,6 +152,25 @@ def make_controller(cmap: Any, goal: Goal) -> ControllerLike:
             f"footprint {footprint_radius(goal):g} m (within that distance of an obstacle, or "
             "cut off by a passage narrower than twice it)"
         ) from exc
+
+
+def point_law(cmap: Any, goal: Goal, safety: Any = None) -> ControllerLike:
+    """The goal's law on the single map ``cmap`` (:class:`confnav.navigation.control
+    .Controller`, wrapped in the look-ahead law for a unicycle); ``safety``: the workspace the
+    safety layer filters against (None: the map's own)."""
+    from confnav.navigation.control import Controller
+
+    ctrl = Controller(
+        cmap,
+        complex(goal.goal[0], goal.goal[1]),
+        navfn=goal.navfn,
+        k="auto" if goal.k is None else goal.k,
+        speed_law=goal.speed_law,
+        gain=goal.gain,
+        v_max=goal.v_max,
+        goal_tol=goal.tolerance,
+        safety=safety,
+    )
     if goal.drive == "unicycle":
         from confnav.navigation.unicycle import UnicycleController
 
