@@ -56,7 +56,6 @@ import json
 import os
 import platform
 import signal
-import socket
 import subprocess
 import sys
 import tempfile
@@ -65,6 +64,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from bench_services import connect, free_port, spawn  # the services bench's process helpers
 from confnav.schemas import (
     Goal,
     RobotStatus,
@@ -77,7 +77,6 @@ from confnav.schemas import (
 )
 from confnav.services.bus import ZenohBus, zenoh_config
 from confnav.services.keys import Keys
-from confnav.services.launcher import SINGLE_THREAD_BLAS
 from provenance import commit  # script mode: bench/ is on sys.path
 
 HERE = Path(__file__).resolve().parent
@@ -85,32 +84,6 @@ CASES = ("build", "solve", "first_use", "spawned", "ros2", "office", "warehouse"
 #: the README's maps (examples/*.yaml, imported as ``confnav import-map`` does): start, goal
 MAPS = {"office": ((8.5, 6.5), (1.5, 1.5)), "warehouse": ((1.2, 3.0), (9.0, 7.0))}
 K = Keys()
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-def spawn(*args: str, log: Path) -> subprocess.Popen[bytes]:
-    f = open(log, "wb")  # noqa: SIM115 - lives as long as the process
-    env = dict(os.environ)
-    env.update({k: v for k, v in SINGLE_THREAD_BLAS.items() if k not in os.environ})
-    return subprocess.Popen(
-        [sys.executable, "-m", "confnav", *args], stdout=f, stderr=subprocess.STDOUT, env=env
-    )
-
-
-def connect(ep: str) -> ZenohBus:
-    deadline = time.monotonic() + 30
-    while True:
-        try:
-            return ZenohBus(zenoh_config("client", connect=[ep]))
-        except Exception:
-            if time.monotonic() > deadline:
-                raise
-            time.sleep(0.3)
 
 
 def stop(procs: list[subprocess.Popen[bytes]]) -> None:

@@ -14,7 +14,6 @@ from confnav.schemas import (
 )
 from confnav.services import navigation
 from confnav.services.controller_footprint import FootprintMixin, base_of
-from confnav.services.controller_state import _Robot
 from confnav.services.keys import KeyError_
 
 log = logging.getLogger(__name__)
@@ -23,20 +22,7 @@ log = logging.getLogger(__name__)
 class GoalsMixin(FootprintMixin):
     """Goals and cancels: each robot's goal, its controller, and rejected input."""
 
-    # goals -------------------------------------------------------------------------------
-    def _robot(self, rid: str) -> _Robot | None:
-        """The robot's record (created; None if not driven here or over ``max_robots``)."""
-        if self.only is not None and rid not in self.only:
-            return None
-        with self._lock:
-            r = self._robots.get(rid)
-            if r is None:
-                if len(self._robots) >= self.max_robots:
-                    self.count("robots_over_limit")
-                    return None
-                r = self._robots[rid] = _Robot(rid, seen_t=time.monotonic())
-            return r
-
+    # goals (records from ControllerCore._robot) ------------------------------------------
     def _on_goals(self, items: list[tuple[str, bytes]]) -> None:
         self.count("goals_received", len(items))
         for key, payload in items:
