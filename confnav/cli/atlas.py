@@ -263,6 +263,7 @@ def interruptible_pool(workers: int) -> Iterator[ProcessPoolExecutor | None]:
         return
     pool = ProcessPoolExecutor(max_workers=workers, initializer=_ignore_sigint)
     try:
+        _start_workers(pool)
         yield pool
     except BaseException:
         procs = list((pool._processes or {}).values())
@@ -274,6 +275,22 @@ def interruptible_pool(workers: int) -> Iterator[ProcessPoolExecutor | None]:
         raise
     else:
         pool.shutdown()
+
+
+def _start_workers(pool: ProcessPoolExecutor) -> None:
+    """Fork the pool's workers now, with SIGINT blocked in this thread while it forks.
+
+    A Ctrl-C that lands while ``os.fork`` runs the parent's at-fork hooks (logging's lock
+    release) raises inside the hook, where CPython reports it as unraisable and drops it: the
+    command then ignored the Ctrl-C and solved on (seen in tests/test_atlas_interrupt.py under
+    load).  Blocked, the signal stays pending and is delivered when the mask is restored, here,
+    as a KeyboardInterrupt.  The workers (and the pool's manager thread) inherit the blocked
+    mask, and ignore SIGINT anyway (:func:`_ignore_sigint`)."""
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        pool.submit(int).result()  # the fork start method spawns every worker on first submit
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
 
 
 def _ignore_sigint() -> None:
