@@ -61,7 +61,12 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from confnav.conformal.boundary import BoundaryMesh, graded_polygon, resample
-from confnav.conformal.circledomain import CircleDomainResult, koebe_iteration
+from confnav.conformal.circledomain import (
+    SMOOTH_PER_TOL,
+    SMOOTH_TAIL,
+    CircleDomainResult,
+    koebe_iteration,
+)
 from confnav.conformal.circular_map import METHODS, nasser_iteration
 from confnav.conformal.cmap import ConformalMap, SolveReport
 from confnav.conformal.gnk import gmres_rtol
@@ -411,6 +416,94 @@ def _warm_start_level(initial: ConformalMap, tol: float) -> int:
     if d.tol > tol or d.nodes_per_side not in LEVELS:
         return 0
     return max(0, LEVELS.index(d.nodes_per_side) - 2)
+
+
+#: Warm re-solves from the previous map's circle domain (issue 24 item 3, :func:`_warm_solve`);
+#: False: ``initial`` only moves the first mesh level up (:func:`_warm_start_level`).
+WARM_RESOLVE = True
+
+
+def _warm_solve(
+    ws: Workspace,
+    tol: float,
+    initial: ConformalMap,
+    progress: Callable[[str], None] | None,
+    accel: str | None,
+    t0: float,
+) -> ConformalMap | None:
+    """A warm re-solve at the finest level of ``initial`` only (issue 24 item 3): the sweeps
+    start from ``initial`` carried over to ``ws`` (:func:`confnav.conformal.warm.warm_state`:
+    the previous meshes, the Cauchy terms of the previous boundary values moved with their
+    obstacles), so that only the changed part of the map is left to the iteration. None if
+    the warm start does not apply or its map does not meet ``tol`` (the caller then refines
+    over the levels as a cold solve does, from :func:`_warm_start_level`).
+
+    Its certificate: the iteration error and the boundary residual are this solve's own; the
+    discretisation estimate is inherited. The boundaries kept the previous graded meshes and
+    the corner singularities of the map are carried by the previous solve's boundary values,
+    whose error the previous map's estimate bounds (its three observed mesh levels, residual
+    and all); what this level's first sweep adds is the graded-mesh error of the disk maps of
+    curves within ``deviation`` (relative) of circles -- zero for a circle (the trapezoidal
+    rule on a smooth periodic integrand converges spectrally; Trefethen & Weideman, SIAM Rev.
+    56 (2014) 385-458, sec. 3) and linear in the non-circular part, which carries the corner
+    singularities at ``deviation`` times their strength in the polygon. So the estimate is the
+    previous map's error estimate times ``1 + deviation`` (an added obstacle counts as
+    deviation 1: its polygon is solved here at the previous level, whose error the previous
+    estimate bounded for its other polygons).
+    """
+    from confnav.conformal.warm import warm_state
+
+    if not WARM_RESOLVE:
+        return None
+    st = warm_state(initial, ws, tol, tail=max(SMOOTH_TAIL, SMOOTH_PER_TOL * ITERATION_SHARE * tol))
+    if st is None:
+        return None
+    ns = initial.diagnostics.nodes_per_side
+    if progress is not None:
+        progress(f"warm re-solve at {ns} nodes per side (start {st.deviation:.1e} from circles)")
+
+    def _p(sweep: int, change: float) -> None:
+        if progress is not None:
+            progress(f"  {ns} nodes/side (warm): sweep {sweep}, change {change:.1e}")
+
+    try:
+        res = koebe_iteration(
+            st.meshes,
+            [],
+            ws.anchor,
+            tol=ITERATION_SHARE * tol,
+            progress=_p,
+            gmres_tol=gmres_rtol(tol),
+            accel=accel,
+            start=st,
+        )
+    except ConvergenceError as exc:
+        log.warning("warm re-solve failed (%s); refining over the levels", exc)
+        return None
+    inherited = float(initial.diagnostics.error_estimate)
+    disc = inherited * (1.0 + st.deviation)
+    eta, deta = [m.eta for m in st.meshes], [m.deta for m in st.meshes]
+    refinements: list[dict[str, float]] = [
+        {
+            "nodes_per_side": ns,
+            "warm_start": 1.0,
+            "inherited_error": inherited,
+            "deviation": st.deviation,
+            "error_estimate": disc,
+            "iteration_error": res.iteration_error,
+            "sweeps": float(res.sweeps),
+            "wall_time": res.wall_time,
+        }
+    ]
+    m = _make_map(ws, (res, eta, deta, ns, disc, []), tol, [], refinements, t0)
+    refinements[-1]["boundary_residual"] = m.diagnostics.boundary_residual
+    if not m.diagnostics.tol_met:
+        log.warning(
+            "warm re-solve missed tol (estimate %.1e); refining over the levels",
+            m.diagnostics.error_estimate,
+        )
+        return None
+    return m
 
 
 def _difference(a: CircleDomainResult, b: CircleDomainResult) -> float:
@@ -778,6 +871,10 @@ def solve(
     if not (np.isfinite(max_error) and max_error > 0):
         raise SolverError(f"max_error must be positive and finite, got {max_error}")
     t0 = time.perf_counter()
+    if initial is not None and nodes_per_side is None and method == "koebe":
+        warm = _warm_solve(workspace, tol, initial, progress, koebe_accel, t0)
+        if warm is not None:
+            return warm
     levels = _mesh_levels(tol, nodes_per_side, initial)
     cmap = _Refinement(workspace, tol, max_error, progress, koebe_accel, t0, method).run(levels)
     _refuse_unusable(cmap, max_error)
