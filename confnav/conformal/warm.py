@@ -89,15 +89,30 @@ def _match(old: Workspace, new: Workspace) -> tuple[list[int], list[complex]] | 
             if i in used or u.shape != v.shape:
                 continue
             d = complex(np.mean(v - u))
-            if np.max(np.abs(v - u - d)) <= MATCH_RTOL * scale:
-                hit, dd = i, d
-                if abs(d) <= MATCH_RTOL * scale:
-                    break  # unchanged beats moved
+            if np.max(np.abs(v - u - d)) <= MATCH_RTOL * scale and (hit < 0 or abs(d) < abs(dd)):
+                hit, dd = i, d  # the nearest copy (congruent obstacles: the one that moved least)
         if hit >= 0:
             used.add(hit)
         source.append(hit)
         shift.append(dd if hit >= 0 else 0j)
     return source, shift
+
+
+def _actual_plan(plan: PanelPlan, eta: ComplexArray, hole: bool) -> PanelPlan:
+    """The plan's sides with the node counts the previous mesh ``eta`` actually has on them
+    (a level refined on some sides only, :func:`confnav.conformal.solver._refine_sides`):
+    graded meshes put a node on every vertex, and a side's nodes run from its first vertex's
+    to the next one's."""
+    n = eta.size
+    e = eta[(-np.arange(n)) % n] if hole else eta  # back to the plan's vertex order
+    v = np.asarray(plan.vertices)
+    at = np.argmin(np.abs(e[:, None] - v[None, :]), axis=0)  # the node on each vertex
+    if at[0] != 0 or np.any(np.diff(at) <= 0):
+        return plan
+    counts = np.diff(np.append(at, n))
+    if np.any(counts < 1):
+        return plan
+    return PanelPlan(vertices=plan.vertices, nodes=counts.astype(plan.nodes.dtype))
 
 
 def _mesh(plan: PanelPlan, hole: bool) -> BoundaryMesh:
@@ -330,11 +345,12 @@ def warm_state(
             meshes.append(_mesh(new_plans[j], j > 0))
             continue
         op, np_ = old_plans[src], new_plans[j]
+        op = _actual_plan(op, eta[src], src > 0)  # sides the previous solve refined locally
         old_mesh = _mesh(op, src > 0)
         if old_mesh.eta.shape != eta[src].shape or not np.allclose(
             old_mesh.eta, eta[src], rtol=0, atol=1e-12 * ws.diameter
         ):
-            return None  # the previous map's mesh is not its plan (sides refined locally)
+            return None  # the previous map's mesh is not on its plan's sides
         if op.vertices.shape != np_.vertices.shape or not np.allclose(
             op.vertices + d, np_.vertices, rtol=0, atol=MATCH_RTOL * ws.diameter
         ):
