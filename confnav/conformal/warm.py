@@ -98,21 +98,34 @@ def _match(old: Workspace, new: Workspace) -> tuple[list[int], list[complex]] | 
     return source, shift
 
 
-def _actual_plan(plan: PanelPlan, eta: ComplexArray, hole: bool) -> PanelPlan:
-    """The plan's sides with the node counts the previous mesh ``eta`` actually has on them
-    (a level refined on some sides only, :func:`confnav.conformal.solver._refine_sides`):
-    graded meshes put a node on every vertex, and a side's nodes run from its first vertex's
-    to the next one's."""
+def _actual_plan(plan: PanelPlan, eta: ComplexArray, hole: bool) -> PanelPlan | None:
+    """The plan whose graded mesh is the previous mesh ``eta``: ``plan`` itself, or its sides
+    with the node counts ``eta`` actually has on them (a level refined on some sides only,
+    :func:`confnav.conformal.solver._refine_sides`), read off the nodes on the vertices --
+    graded meshes put one on every vertex, and the nodes next to it that round onto the vertex
+    too are tried from both ends. None if no such plan reproduces ``eta`` exactly."""
     n = eta.size
+    atol = 1e-12 * float(np.max(np.abs(eta - eta.mean())))
+
+    def same(p: PanelPlan) -> bool:
+        m = _mesh(p, hole)
+        return m.eta.shape == eta.shape and bool(np.allclose(m.eta, eta, rtol=0, atol=atol))
+
+    if same(plan):
+        return plan
     e = eta[(-np.arange(n)) % n] if hole else eta  # back to the plan's vertex order
     v = np.asarray(plan.vertices)
-    at = np.argmin(np.abs(e[:, None] - v[None, :]), axis=0)  # the node on each vertex
-    if at[0] != 0 or np.any(np.diff(at) <= 0):
-        return plan
-    counts = np.diff(np.append(at, n))
-    if np.any(counts < 1):
-        return plan
-    return PanelPlan(vertices=plan.vertices, nodes=counts.astype(plan.nodes.dtype))
+    dist = np.abs(e[:, None] - v[None, :])
+    tied = dist <= dist.min(axis=0, keepdims=True)
+    for pick in (np.argmax, lambda t, axis: t.shape[axis] - 1 - np.argmax(t[::-1], axis=axis)):
+        at = np.asarray(pick(tied, axis=0))
+        at[0] = 0
+        if np.any(np.diff(at) <= 0):
+            continue
+        cand = PanelPlan(vertices=plan.vertices, nodes=np.diff(np.append(at, n)))
+        if same(cand):
+            return cand
+    return None
 
 
 def _mesh(plan: PanelPlan, hole: bool) -> BoundaryMesh:
@@ -345,12 +358,11 @@ def warm_state(
             meshes.append(_mesh(new_plans[j], j > 0))
             continue
         op, np_ = old_plans[src], new_plans[j]
-        op = _actual_plan(op, eta[src], src > 0)  # sides the previous solve refined locally
-        old_mesh = _mesh(op, src > 0)
-        if old_mesh.eta.shape != eta[src].shape or not np.allclose(
-            old_mesh.eta, eta[src], rtol=0, atol=1e-12 * ws.diameter
-        ):
+        actual = _actual_plan(op, eta[src], src > 0)  # sides refined locally, if any
+        if actual is None:
             return None  # the previous map's mesh is not on its plan's sides
+        op = actual
+        old_mesh = _mesh(op, src > 0)
         if op.vertices.shape != np_.vertices.shape or not np.allclose(
             op.vertices + d, np_.vertices, rtol=0, atol=MATCH_RTOL * ws.diameter
         ):
