@@ -38,11 +38,11 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from confnav.conformal.boundary import BoundaryMesh, graded_polygon
-from confnav.conformal.cauchy import cauchy_sums
+from confnav.conformal.cauchy import cauchy_sums2
 from confnav.conformal.circledomain import StartImage
 from confnav.conformal.cmap import ConformalMap
 from confnav.conformal.gnk import alive_nodes
-from confnav.conformal.meshing import PanelPlan, plan_boundaries
+from confnav.conformal.meshing import NODE_MULTIPLE, PanelPlan, plan_boundaries
 from confnav.errors import GapError
 from confnav.geometry import Workspace, interior_point, signed_area
 from confnav.types import CArray as ComplexArray
@@ -115,17 +115,38 @@ def _actual_plan(plan: PanelPlan, eta: ComplexArray, hole: bool) -> PanelPlan | 
         return plan
     e = eta[(-np.arange(n)) % n] if hole else eta  # back to the plan's vertex order
     v = np.asarray(plan.vertices)
+    L = v.size
     dist = np.abs(e[:, None] - v[None, :])
-    tied = dist <= dist.min(axis=0, keepdims=True)
-    for pick in (np.argmax, lambda t, axis: t.shape[axis] - 1 - np.argmax(t[::-1], axis=axis)):
-        at = np.asarray(pick(tied, axis=0))
-        at[0] = 0
-        if np.any(np.diff(at) <= 0):
-            continue
-        cand = PanelPlan(vertices=plan.vertices, nodes=np.diff(np.append(at, n)))
-        if same(cand):
-            return cand
-    return None
+    ties = [np.flatnonzero(dist[:, k] <= dist[:, k].min()) for k in range(L)] + [np.array([n])]
+    if ties[0][0] != 0:
+        return None
+
+    def side_ok(k: int, i0: int, i1: int) -> bool:
+        counts = np.full(L, 4)
+        counts[k] = i1 - i0
+        if counts[k] < 4:
+            return False
+        nodes = graded_polygon(plan.vertices, counts).eta
+        at = int(counts[:k].sum())
+        return bool(np.allclose(nodes[at : at + counts[k]], e[i0:i1], rtol=0, atol=atol))
+
+    # the vertex node of each vertex among the nodes that round onto it: the one whose sides'
+    # graded nodes match (each side's nodes depend on its own count only)
+    reach: list[dict[int, int]] = [{0: -1}]
+    for k in range(L):
+        nxt: dict[int, int] = {}
+        for i0 in reach[-1]:
+            for i1 in ties[k + 1]:
+                if int(i1) > i0 and int(i1) not in nxt and side_ok(k, i0, int(i1)):
+                    nxt[int(i1)] = i0
+        if not nxt:
+            return None
+        reach.append(nxt)
+    at = [n]
+    for k in range(L, 0, -1):
+        at.append(reach[k][at[-1]])
+    cand = PanelPlan(vertices=plan.vertices, nodes=np.diff(np.array(at[::-1])))
+    return cand if same(cand) else None
 
 
 def _mesh(plan: PanelPlan, hole: bool) -> BoundaryMesh:
@@ -245,11 +266,14 @@ def _smooth_image(
 def _term(
     comp: tuple[ComplexArray, ComplexArray, ComplexArray], z: ComplexArray
 ) -> tuple[ComplexArray, ComplexArray]:
-    """C_i and C_i' at points z off Gamma_i."""
+    """C_i and C_i' at points z off Gamma_i: the trapezoidal sum and its exact derivative (the
+    derivative of the same rational function, so that the start's t-derivatives are those of
+    its values even where the sum errs, next to another boundary)."""
     if z.size == 0:
         return np.zeros(0, np.complex128), np.zeros(0, np.complex128)
-    s = cauchy_sums(comp[0], [comp[1], comp[2]], z)
-    return -s[0], -s[1]
+    first, second = cauchy_sums2(comp[0], [comp[1]], z, second=True)
+    assert second is not None
+    return -first[0], np.asarray(second[0])
 
 
 #: Start the matched boundaries from smooth grids (:func:`_smooth_image`) rather than their
@@ -367,7 +391,11 @@ def warm_state(
             op.vertices + d, np_.vertices, rtol=0, atol=MATCH_RTOL * ws.diameter
         ):
             return None  # sides split differently
-        if np.any(np_.nodes > op.nodes):
+        need = np_.nodes.copy()
+        # the first side carries the plan's rounding of the total up to a multiple of
+        # NODE_MULTIPLE (meshing.plan_boundaries), no requirement of the geometry
+        need[0] = max(1, need[0] - (NODE_MULTIPLE - 1))
+        if np.any(need > op.nodes):
             return None  # a gap narrowed: the previous mesh does not resolve it
         meshes.append(BoundaryMesh(eta[src] + d, deta[src].copy(), old_mesh.side, old_mesh.tau))
     comps = _components(eta, deta, W, dW)
