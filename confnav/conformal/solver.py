@@ -38,11 +38,34 @@ after 36, 54, 80; residual 1.17e-9 as with the full 180-node level; 114 s CPU ag
 one process, the same map to 4e-14 in asymmetry). On 10 mixed obstacles the base estimate
 (8.0e-9) left too little of 1e-8 for the change (2.4e-9), hence :data:`LOCAL_HEADROOM`. The
 sweeps themselves (61 per level at a contraction of 0.79 there) are unchanged: a faster
-iteration for near-touching circles (one GNK system over all boundaries per step, or Newton on
-the circle parameters) was not built. ``initial=`` (warm re-solve) starts the refinement two
-levels below the previous map's: on 10 mixed obstacles at 1e-8, 13.4 s CPU against a cold
-solve's 21.4 s after moving one obstacle by 0.2 m, the same map to 6.1e-13
-(``bench/results/core_resolve.json``).
+iteration for near-touching circles (one GNK system over all boundaries per step) was not built.
+
+Designs of the iteration measured side by side (issue 24 item 1; CPU seconds of one run each,
+the machine shared, so compare within a file): the plain sweeps against over-relaxed
+(``koebe_accel="sor"``) and extrapolated (``"extrapolate"``) sweeps
+(``bench/results/koebe_gap001.json``, ``koebe.json``): two squares 0.01 apart to 1e-8, 61 / 45
+/ 34 sweeps per level, 123.5 / 96.4 / 83.0 s, all honest; where the plain contraction is fast
+nothing triggers. Newton on the whole circle domain after 6 sweeps (``method="nasser"``,
+``bench/results/koebe_methods.json``): slower on every case measured and never certified (see
+``method`` below). So the plain sweeps stay the default.
+
+Warm re-solve (issue 24 item 3, ``initial=``, :func:`_warm_solve`): the sweeps start from the
+previous map carried over to the changed workspace (:mod:`confnav.conformal.warm`: the
+previous graded meshes, the Cauchy terms of the previous boundary values moved with their
+obstacles) and run at the previous map's finest level only; the certificate keeps this
+solve's own iteration error and boundary residual and inherits the discretisation estimate.
+A change the warm start does not apply to (another outer boundary, a gap the previous mesh
+does not resolve) or whose map misses ``tol`` is solved over the levels from two below the
+previous map's (:func:`_warm_start_level`). Measured (``bench/results/core_resolve.json`` at
+4f04e55, 10 mixed obstacles at 1e-8, warm and cold in one run, load 5.4-6.6, CPU seconds):
+one obstacle moved by 0.2 m 4.68 s warm (one level, 256 nodes per side) against 19.01 s cold
+(five levels), one removed 3.14 against 15.80 s, one added back 3.50 against 16.01 s; every
+warm map tol_met and within the two estimates of the cold one (7.5e-10, 1.5e-9, 9.8e-10). The
+levels path it replaces took 13.4 s against 21.4 s. The 1 s target is missed: the first
+sweep's GNK solves on the graded meshes (dense, ~14,700 nodes) cost most of it.
+
+The issue-24 target rows at one commit: ``bench/results/core_targets.json``
+(``python bench/bench_core.py --targets``).
 
 ``tol_met`` is true only if all are within ``tol`` and nothing is ``unverified``. A map that
 misses ``tol`` is returned with ``tol_met = False`` and an :class:`AccuracyWarning`; one whose
@@ -830,10 +853,14 @@ def solve(
     initial
         A map of a workspace like this one (an obstacle moved, added or removed; the same
         workspace at another radius): a warm re-solve. The same workspace solved to at least
-        ``tol`` is returned as is; otherwise the refinement starts two levels below the one
-        ``initial`` needed (:func:`_warm_start_level`), skipping the coarse levels, and keeps
-        the full certificate (three levels, residual). Anything that does not fit (another
-        tolerance range, a fixed mesh) falls back to a cold solve's levels.
+        ``tol`` is returned as is; a workspace with the same outer boundary and anchor whose
+        obstacles moved, were added or removed is solved at ``initial``'s finest level only,
+        starting from ``initial`` (:func:`_warm_solve`: its estimate is ``initial``'s times
+        ``1 + deviation``, its iteration error and residual its own); otherwise, or if that
+        misses ``tol``, the refinement starts two levels below the one ``initial`` needed
+        (:func:`_warm_start_level`), skipping the coarse levels, and keeps the full
+        certificate (three levels, residual). Anything that does not fit (another tolerance
+        range, a fixed mesh) falls back to a cold solve's levels.
     max_error
         Largest estimated error of a map that is returned (with ``tol_met`` saying whether it
         meets ``tol``) rather than refused. The default, :data:`UNUSABLE_ERROR`, is for callers
