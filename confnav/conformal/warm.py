@@ -51,6 +51,9 @@ from confnav.types import FArray as FloatArray
 #: Largest deviation of the start's boundaries from the previous circles (relative to each
 #: radius) for which the warm start is used: beyond it the change is not small.
 MAX_DEVIATION = 0.25
+#: Largest share of the obstacles that may be new (unmatched) for a warm start (one is
+#: always allowed): a workspace shrunk by another radius changes every boundary.
+MAX_ADDED_SHARE = 0.25
 #: Two polygons are the same one moved when their vertices differ by one translation to this
 #: (relative to the workspace's diameter).
 MATCH_RTOL = 1e-12
@@ -369,6 +372,8 @@ def warm_state(
     if matched is None or not d0.tol_met or d0.tol > tol:
         return None
     source, shift = matched
+    if sum(1 for src in source if src < 0) > max(1, MAX_ADDED_SHARE * (len(source) - 1)):
+        return None  # mostly new obstacles: not a small change
     ns = d0.nodes_per_side
     try:
         old_plans = plan_boundaries(initial.workspace, ns, d0.tol)
@@ -417,7 +422,10 @@ def warm_state(
         g, dg = _perturbation(comps, kept, src, d, eta[src], MATCH_RTOL * ws.diameter)
         P.append(W[src] + g)
         dP.append(dW[src] + dg * deta[src])
-    poles, beta = _corner_correction(ws, source, shift, comps, kept)
+    try:
+        poles, beta = _corner_correction(ws, source, shift, comps, kept)
+    except np.linalg.LinAlgError:
+        return None  # poles too close to separate the corners' conditions
     for j in range(len(P)):
         lz, dlz = _rational(poles, beta, meshes[j].eta)
         P[j] = P[j] - lz
