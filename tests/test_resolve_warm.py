@@ -155,3 +155,13 @@ def test_without_the_warm_path_the_levels_start_higher(
     m = _solve(room(dx=0.2), 1e-8, initial=cold)
     assert m.diagnostics.tol_met
     assert "ratio" in m.diagnostics.refinements[1]  # three levels observed
+
+
+def test_another_room_or_mostly_new_obstacles_start_cold(cold: ConformalMap) -> None:
+    ws = room()
+    bigger = Workspace([[-2.5, -2], [2, -2], [2, 2], [-2.5, 2]], ws.obstacles, anchor=[0.0, 0.0])
+    assert warm.warm_state(cold, bigger, 1e-8) is None  # the outer boundary changed
+    others = Workspace(ROOM, [box(-1.4, -1.5, 0.3), box(0.6, -1.0, 0.3)], anchor=[0.0, 0.0])
+    assert warm.warm_state(cold, others, 1e-8) is None  # no obstacle kept
+    m = _solve(others, 1e-8, initial=cold)
+    assert m.diagnostics.tol_met and "ratio" in m.diagnostics.refinements[1]
