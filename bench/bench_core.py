@@ -916,6 +916,7 @@ def run_resolve(out_path: Path, n_obstacles: int, tol: float) -> int:
     print(f"load average at end {info['loadavg_end'][0]:.2f}; wrote {out_path}")
     return 0
 
+
 # --------------------------------------------------------------------------------------------
 # 8. the issue-24 target rows at HEAD (``--targets``)
 # --------------------------------------------------------------------------------------------
@@ -1132,6 +1133,10 @@ def run_targets(out_path: Path, groups: list[str], append: bool) -> int:
                     "note": "issue 24 target rows; one group per run entry (groups may come "
                     "from separate commands, see each entry's code and machine); cpu_s = "
                     "process_time, the machine is shared",
+                    # the commit every group ran at (None if they differ), for python -m bench
+                    "code": runs[0]["code"]
+                    if all(r["code"]["commit"] == runs[0]["code"]["commit"] for r in runs)
+                    else None,
                     "runs": runs,
                 },
                 indent=1,
