@@ -194,6 +194,51 @@ def _crowded_nodes(W: ComplexArray, dW: ComplexArray) -> np.ndarray:
     return np.asarray(out)
 
 
+#: One Cauchy term to evaluate: (boundary, points, sign).
+_Request = tuple[int, ComplexArray, float]
+
+
+def _requests(
+    kept: dict[int, complex], n: int, src: int, d: complex, z: ComplexArray, atol: float
+) -> list[_Request]:
+    """The terms of ``G - T`` at points ``z`` of previous boundary ``src``, which moved by
+    ``d`` (module docstring): the terms of the boundaries that moved relative to it at their
+    new place (+) and at their old one (-; removed ones: - only)."""
+    out: list[_Request] = []
+    for i in range(n):
+        if i == src:
+            continue
+        di = kept.get(i)
+        if di is not None and abs(di - d) <= atol:
+            continue  # moved together (or both stayed): the two terms cancel
+        out.append((i, z, -1.0))
+        if di is not None:
+            out.append((i, z + d - di, 1.0))
+    return out
+
+
+def _evaluate(
+    comps: list[tuple[ComplexArray, ComplexArray, ComplexArray]], groups: list[list[_Request]]
+) -> list[tuple[ComplexArray, ComplexArray]]:
+    """The signed sums of each group of terms and their derivatives, one Cauchy sum per
+    boundary over all the points asked of it (the expansions are set up once)."""
+    out = []
+    for g in groups:
+        size = g[0][1].size if g else 0
+        out.append((np.zeros(size, np.complex128), np.zeros(size, np.complex128)))
+    for i in range(len(comps)):
+        asks = [(k, z, sg) for k, g in enumerate(groups) for (ii, z, sg) in g if ii == i]
+        if not asks:
+            continue
+        t, dt = _term(comps[i], np.concatenate([z for _, z, _ in asks]))
+        off = 0
+        for k, z, sg in asks:
+            out[k][0][:] += sg * t[off : off + z.size]
+            out[k][1][:] += sg * dt[off : off + z.size]
+            off += z.size
+    return out
+
+
 def _perturbation(
     comps: list[tuple[ComplexArray, ComplexArray, ComplexArray]],
     kept: dict[int, complex],
@@ -202,25 +247,12 @@ def _perturbation(
     z: ComplexArray,
     atol: float,
 ) -> tuple[ComplexArray, ComplexArray]:
-    """``G - T`` (and its derivative) at points ``z`` of previous boundary ``src``, which
-    moved by ``d`` (module docstring): the terms of the boundaries that moved relative to it
-    at their new place minus at their old one (removed ones: minus only)."""
-    g = np.zeros(z.size, np.complex128)
-    dg = np.zeros(z.size, np.complex128)
-    for i in range(len(comps)):
-        if i == src:
-            continue
-        di = kept.get(i)
-        if di is not None and abs(di - d) <= atol:
-            continue  # moved together (or both stayed): the two terms cancel
-        t0, dt0 = _term(comps[i], z)
-        g -= t0
-        dg -= dt0
-        if di is not None:
-            t1, dt1 = _term(comps[i], z + d - di)
-            g += t1
-            dg += dt1
-    return g, dg
+    """``G - T`` (and its derivative) at points ``z`` of previous boundary ``src``, which moved
+    by ``d`` (:func:`_requests`)."""
+    g = _requests(kept, len(comps), src, d, z, atol)
+    if not g:
+        return np.zeros(z.size, np.complex128), np.zeros(z.size, np.complex128)
+    return _evaluate(comps, [g])[0]
 
 
 def _smooth_image(
@@ -407,21 +439,23 @@ def warm_state(
     kept = {src: d for src, d in zip(source, shift, strict=True) if src >= 0}
     P: list[ComplexArray] = []
     dP: list[ComplexArray] = []
+    groups: list[list[_Request]] = []
     for j, (src, d) in enumerate(zip(source, shift, strict=True)):
-        z = meshes[j].eta
+        if src < 0:  # an added obstacle: the sum of the kept terms
+            z = meshes[j].eta
+            groups.append([(i, z - di, 1.0) for i, di in kept.items()])
+        else:
+            groups.append(_requests(kept, len(comps), src, d, eta[src], MATCH_RTOL * ws.diameter))
+    sums = _evaluate(comps, groups)
+    for j, (src, (g, dg)) in enumerate(zip(source, sums, strict=True)):
         if src < 0:
-            g = np.zeros(z.size, np.complex128)
-            dg = np.zeros(z.size, np.complex128)
-            for i, di in kept.items():
-                t, dt = _term(comps[i], z - di)
-                g += t
-                dg += dt
             P.append(g)
             dP.append(dg * meshes[j].deta)
-            continue
-        g, dg = _perturbation(comps, kept, src, d, eta[src], MATCH_RTOL * ws.diameter)
-        P.append(W[src] + g)
-        dP.append(dW[src] + dg * deta[src])
+        else:
+            if g.size == 0:  # nothing moved relative to it
+                g = dg = np.zeros(eta[src].size, np.complex128)
+            P.append(W[src] + g)
+            dP.append(dW[src] + dg * deta[src])
     try:
         poles, beta = _corner_correction(ws, source, shift, comps, kept)
     except np.linalg.LinAlgError:
