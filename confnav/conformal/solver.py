@@ -57,9 +57,9 @@ solve's own iteration error and boundary residual and inherits the discretisatio
 A change the warm start does not apply to (another outer boundary, a gap the previous mesh
 does not resolve) or whose map misses ``tol`` is solved over the levels from two below the
 previous map's (:func:`_warm_start_level`). Measured (``bench/results/core_resolve.json`` at
-4f04e55, 10 mixed obstacles at 1e-8, warm and cold in one run, load 5.4-6.6, CPU seconds):
-one obstacle moved by 0.2 m 4.68 s warm (one level, 256 nodes per side) against 19.01 s cold
-(five levels), one removed 3.14 against 15.80 s, one added back 3.50 against 16.01 s; every
+939ec99, 10 mixed obstacles at 1e-8, warm and cold in one run, load 6.3-7.7, CPU seconds):
+one obstacle moved by 0.2 m 3.88 s warm (one level, 256 nodes per side) against 19.25 s cold
+(five levels), one removed 3.85 against 18.82 s, one added back 4.74 against 20.41 s; every
 warm map tol_met and within the two estimates of the cold one (7.5e-10, 1.5e-9, 9.8e-10). The
 levels path it replaces took 13.4 s against 21.4 s. The 1 s target is missed: the first
 sweep's GNK solves on the graded meshes (dense, ~14,700 nodes) cost most of it.
