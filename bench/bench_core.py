@@ -917,6 +917,236 @@ def run_resolve(out_path: Path, n_obstacles: int, tol: float) -> int:
     return 0
 
 
+# --------------------------------------------------------------------------------------------
+# 8. the issue-24 target rows at HEAD (``--targets``)
+# --------------------------------------------------------------------------------------------
+TARGETS_RESULTS = RESULTS.parent / "core_targets.json"
+#: Row groups of ``--targets`` (each may run in its own command; ``--append`` merges them).
+TARGET_ROWS = ("default", "shrunk", "mixed50", "gap001")
+
+
+def _target_solve(name: str, ws: Any, tol: float) -> tuple[Any, dict[str, Any]]:
+    """One cold solve: CPU (``process_time``) and wall seconds, load, certificate."""
+    from confnav.scenes.workspaces import mirror_asymmetry
+
+    load = load1()
+    c0, t0 = time.process_time(), time.perf_counter()
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", AccuracyWarning)
+            m = confnav.solve(ws, tol=tol)
+    except ConfnavError as exc:
+        return None, {
+            "case": name,
+            "tol": tol,
+            "error": f"{type(exc).__name__}: {exc}",
+            "cpu_s": time.process_time() - c0,
+            "wall_s": time.perf_counter() - t0,
+            "load1": load,
+        }
+    d = m.diagnostics
+    row: dict[str, Any] = {
+        "case": name,
+        "tol": tol,
+        "cpu_s": time.process_time() - c0,
+        "wall_s": time.perf_counter() - t0,
+        "load1": load,
+        "load1_end": load1(),
+        "tol_met": bool(d.tol_met),
+        "error_estimate": float(d.error_estimate),
+        "boundary_residual": float(d.boundary_residual),
+        "levels": [int(r["nodes_per_side"]) for r in d.refinements],
+        "nodes": int(sum(d.nodes)),
+        "sweeps_final_level": int(d.sweeps),
+    }
+    if name.startswith("two squares"):
+        row["asymmetry"] = float(mirror_asymmetry(m.centers, m.radii))
+    return m, row
+
+
+def _dense_row(tol: float, out: Any) -> None:
+    """Child process: the default workspace with every Cauchy sum direct and every GNK matrix
+    dense (bench/bench_scale.py's dense reference), one cold solve."""
+    import confnav.conformal.cauchy as cy
+    import confnav.conformal.gnk as gnk
+
+    cy.HAVE_FMM = False
+    cy.EXPANSION_MIN = sys.maxsize
+    gnk.DENSE_MAX_NODES = sys.maxsize
+    out.send(_target_solve("default, dense sums (reference)", default_workspace(), tol)[1])
+
+
+def target_rows(group: str) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+    """The rows of one group and the targets they decide (issue 24, "Targets")."""
+    from confnav.maps.footprint import inflate
+    from confnav.scenes.workspaces import mirror_squares
+
+    rows: list[dict[str, Any]] = []
+    tg: list[dict[str, Any]] = []
+
+    def status(ok: bool) -> str:
+        return "met" if ok else "missed"
+
+    if group == "default":
+        fast = _target_solve("default", default_workspace(), 1e-10)[1]
+        rows.append(fast)
+        import multiprocessing as mp
+
+        ctx = mp.get_context("spawn")
+        a, b = ctx.Pipe(duplex=False)
+        p = ctx.Process(target=_dense_row, args=(1e-10, b))
+        p.start()
+        dense = a.recv() if a.poll(570) else {"case": "dense", "error": "no result"}
+        p.join(5)
+        rows.append(dense)
+        ref = reference()
+        rows.append(
+            {
+                "case": f"reference: one Koebe iteration at {ref['level']} nodes per side, "
+                f"tol {ref['tol']:.0e}",
+                "cpu_s": ref["cpu_time"],
+                "wall_s": ref["wall_time"],
+                "load1": ref["loadavg1"],
+                "accuracy": ref["accuracy"],
+            }
+        )
+        tg.append(
+            {
+                "name": "default workspace to 1e-10 <= 0.5 s",
+                "cpu_s": fast.get("cpu_s"),
+                "wall_s": fast.get("wall_s"),
+                "status": status(fast.get("tol_met", False) and fast["cpu_s"] <= 0.5),
+            }
+        )
+        if "cpu_s" in dense and "cpu_s" in fast:
+            tg.append(
+                {
+                    "name": ">= 20x the dense reference (dense sums, same run, CPU)",
+                    "ratio": dense["cpu_s"] / fast["cpu_s"],
+                    "status": status(dense["cpu_s"] / fast["cpu_s"] >= 20),
+                }
+            )
+        tg.append(
+            {
+                "name": ">= 20x the level-576 reference solve (same run, CPU)",
+                "ratio": ref["cpu_time"] / fast["cpu_s"],
+                "status": status(ref["cpu_time"] / fast["cpu_s"] >= 20),
+            }
+        )
+    elif group == "shrunk":
+        plain = _target_solve("default", default_workspace(), 1e-8)[1]
+        shrunk = _target_solve("default shrunk by 0.2 m", inflate(default_workspace(), 0.2), 1e-8)[
+            1
+        ]
+        rows += [plain, shrunk]
+        ok = shrunk.get("tol_met", False)
+        tg += [
+            {
+                "name": "default shrunk by 0.2 m to 1e-8 <= 5 s",
+                "cpu_s": shrunk["cpu_s"],
+                "wall_s": shrunk["wall_s"],
+                "status": status(ok and shrunk["cpu_s"] <= 5),
+            },
+            {
+                "name": "shrunk <= 3x the unshrunk (same run, CPU)",
+                "ratio": shrunk["cpu_s"] / plain["cpu_s"],
+                "status": status(ok and shrunk["cpu_s"] <= 3 * plain["cpu_s"]),
+            },
+        ]
+    elif group == "mixed50":
+        four = _target_solve("default (4 obstacles)", default_workspace(), 1e-8)[1]
+        fifty = _target_solve("mixed_obstacles(50)", mixed_obstacles(50, seed=0), 1e-8)[1]
+        rows += [four, fifty]
+        ok = fifty.get("tol_met", False)
+        tg += [
+            {
+                "name": "50 obstacles to 1e-8 <= 10 s",
+                "cpu_s": fifty["cpu_s"],
+                "wall_s": fifty["wall_s"],
+                "status": status(ok and fifty["cpu_s"] <= 10),
+            },
+            {
+                "name": "50 obstacles <= 20x the 4-obstacle scene (same run, CPU)",
+                "ratio": fifty["cpu_s"] / four["cpu_s"],
+                "status": status(ok and fifty["cpu_s"] <= 20 * four["cpu_s"]),
+            },
+        ]
+    elif group == "gap001":
+        r = _target_solve("two squares 0.01 apart", mirror_squares(0.01), 1e-8)[1]
+        rows.append(r)
+        ok = r.get("tol_met", False)
+        tg += [
+            {
+                "name": "two squares 0.01 apart to 1e-8 <= 10 s",
+                "cpu_s": r["cpu_s"],
+                "wall_s": r["wall_s"],
+                "status": status(ok and r["cpu_s"] <= 10),
+            },
+            {
+                "name": "mirror asymmetry <= 1e-8 and <= the estimate (honest)",
+                "asymmetry": r.get("asymmetry"),
+                "status": status(
+                    "asymmetry" in r
+                    and r["asymmetry"] <= 1e-8
+                    and r["asymmetry"] <= r["error_estimate"]
+                ),
+            },
+        ]
+    else:
+        raise ValueError(f"unknown target group {group!r}")
+    return rows, tg
+
+
+def run_targets(out_path: Path, groups: list[str], append: bool) -> int:
+    """The issue-24 target rows at HEAD, one group after the other in this process (CPU
+    seconds are what a row costs whatever the load; wall and load beside them)."""
+    info, code = machine_info(), code_info()
+    print(
+        f"confnav issue-24 targets, {info['date']}, commit {code['commit'][:12]}, load "
+        f"{' '.join(f'{x:.2f}' for x in info['loadavg_start'])}",
+        flush=True,
+    )
+    old: dict[str, Any] = {}
+    if append and out_path.exists():
+        old = json.loads(out_path.read_text())
+    runs = list(old.get("runs", []))
+    for g in groups:
+        rows, tg = target_rows(g)
+        for r in rows:
+            print(
+                f"  {r['case']}: cpu {r.get('cpu_s', float('nan')):.2f} s, wall "
+                f"{r.get('wall_s', float('nan')):.2f} s, load {r.get('load1', 0):.1f}, "
+                f"tol_met {r.get('tol_met')}, estimate {r.get('error_estimate', float('nan')):.1e}"
+                + (f", asymmetry {r['asymmetry']:.1e}" if "asymmetry" in r else "")
+                + (f" [{r['error']}]" if "error" in r else ""),
+                flush=True,
+            )
+        for t in tg:
+            print(f"  TARGET {t['name']}: {t['status']}", flush=True)
+        info["loadavg_end"] = list(os.getloadavg())
+        runs = [r for r in runs if r["group"] != g]
+        runs.append({"group": g, "machine": dict(info), "code": code, "rows": rows, "targets": tg})
+        out_path.parent.mkdir(parents=True, exist_ok=True)
+        out_path.write_text(
+            json.dumps(
+                {
+                    "note": "issue 24 target rows; one group per run entry (groups may come "
+                    "from separate commands, see each entry's code and machine); cpu_s = "
+                    "process_time, the machine is shared",
+                    # the commit every group ran at (None if they differ), for python -m bench
+                    "code": runs[0]["code"]
+                    if all(r["code"]["commit"] == runs[0]["code"]["commit"] for r in runs)
+                    else None,
+                    "runs": runs,
+                },
+                indent=1,
+            )
+            + "\n"
+        )
+    print(f"wrote {out_path}")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true", help="fewer tolerances/obstacles, 1 run")
@@ -926,7 +1156,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--limit", type=float, default=300.0, help="--certificate: s per case")
     ap.add_argument("--resolve", action="store_true", help="only the warm re-solve rows")
     ap.add_argument("--obstacles", type=int, default=10, help="--resolve: obstacles in the room")
+    ap.add_argument(
+        "--targets", nargs="*", choices=TARGET_ROWS, help="only the issue-24 target rows (groups)"
+    )
+    ap.add_argument("--append", action="store_true", help="--targets: keep the other groups")
     args = ap.parse_args(argv)
+    if args.targets is not None:
+        groups = list(args.targets) or list(TARGET_ROWS)
+        return run_targets(args.out or TARGETS_RESULTS, groups, args.append)
     if args.resolve:
         n = 5 if args.quick else args.obstacles
         return run_resolve(args.out or RESOLVE_RESULTS, n, OBSTACLE_TOL)

@@ -103,7 +103,12 @@ def test_the_same_workspace_is_not_solved_again(cold: ConformalMap) -> None:
     assert again is not cold and again.diagnostics.tol_met
 
 
-def test_a_moved_obstacle_re_solves_warm_to_the_cold_map(cold: ConformalMap) -> None:
+def test_a_moved_obstacle_re_solves_warm_to_the_cold_map(
+    cold: ConformalMap, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The levels path of a warm re-solve (the fallback of the one-level warm start,
+    tests/test_resolve_warm.py)."""
+    monkeypatch.setattr(solver, "WARM_RESOLVE", False)
     ws = room(dx=0.2)
     warm = _solve(ws, 1e-8, initial=cold)
     ref = _solve(ws, 1e-8)

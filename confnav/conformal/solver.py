@@ -38,11 +38,34 @@ after 36, 54, 80; residual 1.17e-9 as with the full 180-node level; 114 s CPU ag
 one process, the same map to 4e-14 in asymmetry). On 10 mixed obstacles the base estimate
 (8.0e-9) left too little of 1e-8 for the change (2.4e-9), hence :data:`LOCAL_HEADROOM`. The
 sweeps themselves (61 per level at a contraction of 0.79 there) are unchanged: a faster
-iteration for near-touching circles (one GNK system over all boundaries per step, or Newton on
-the circle parameters) was not built. ``initial=`` (warm re-solve) starts the refinement two
-levels below the previous map's: on 10 mixed obstacles at 1e-8, 13.4 s CPU against a cold
-solve's 21.4 s after moving one obstacle by 0.2 m, the same map to 6.1e-13
-(``bench/results/core_resolve.json``).
+iteration for near-touching circles (one GNK system over all boundaries per step) was not built.
+
+Designs of the iteration measured side by side (issue 24 item 1; CPU seconds of one run each,
+the machine shared, so compare within a file): the plain sweeps against over-relaxed
+(``koebe_accel="sor"``) and extrapolated (``"extrapolate"``) sweeps
+(``bench/results/koebe_gap001.json``, ``koebe.json``): two squares 0.01 apart to 1e-8, 61 / 45
+/ 34 sweeps per level, 123.5 / 96.4 / 83.0 s, all honest; where the plain contraction is fast
+nothing triggers. Newton on the whole circle domain after 6 sweeps (``method="nasser"``,
+``bench/results/koebe_methods.json``): slower on every case measured and never certified (see
+``method`` below). So the plain sweeps stay the default.
+
+Warm re-solve (issue 24 item 3, ``initial=``, :func:`_warm_solve`): the sweeps start from the
+previous map carried over to the changed workspace (:mod:`confnav.conformal.warm`: the
+previous graded meshes, the Cauchy terms of the previous boundary values moved with their
+obstacles) and run at the previous map's finest level only; the certificate keeps this
+solve's own iteration error and boundary residual and inherits the discretisation estimate.
+A change the warm start does not apply to (another outer boundary, a gap the previous mesh
+does not resolve) or whose map misses ``tol`` is solved over the levels from two below the
+previous map's (:func:`_warm_start_level`). Measured (``bench/results/core_resolve.json`` at
+939ec99, 10 mixed obstacles at 1e-8, warm and cold in one run, load 6.3-7.7, CPU seconds):
+one obstacle moved by 0.2 m 3.88 s warm (one level, 256 nodes per side) against 19.25 s cold
+(five levels), one removed 3.85 against 18.82 s, one added back 4.74 against 20.41 s; every
+warm map tol_met and within the two estimates of the cold one (7.5e-10, 1.5e-9, 9.8e-10). The
+levels path it replaces took 13.4 s against 21.4 s. The 1 s target is missed: the first
+sweep's GNK solves on the graded meshes (dense, ~14,700 nodes) cost most of it.
+
+The issue-24 target rows at one commit: ``bench/results/core_targets.json``
+(``python bench/bench_core.py --targets``).
 
 ``tol_met`` is true only if all are within ``tol`` and nothing is ``unverified``. A map that
 misses ``tol`` is returned with ``tol_met = False`` and an :class:`AccuracyWarning`; one whose
@@ -61,7 +84,12 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from confnav.conformal.boundary import BoundaryMesh, graded_polygon, resample
-from confnav.conformal.circledomain import CircleDomainResult, koebe_iteration
+from confnav.conformal.circledomain import (
+    SMOOTH_PER_TOL,
+    SMOOTH_TAIL,
+    CircleDomainResult,
+    koebe_iteration,
+)
 from confnav.conformal.circular_map import METHODS, nasser_iteration
 from confnav.conformal.cmap import ConformalMap, SolveReport
 from confnav.conformal.gnk import gmres_rtol
@@ -413,6 +441,94 @@ def _warm_start_level(initial: ConformalMap, tol: float) -> int:
     return max(0, LEVELS.index(d.nodes_per_side) - 2)
 
 
+#: Warm re-solves from the previous map's circle domain (issue 24 item 3, :func:`_warm_solve`);
+#: False: ``initial`` only moves the first mesh level up (:func:`_warm_start_level`).
+WARM_RESOLVE = True
+
+
+def _warm_solve(
+    ws: Workspace,
+    tol: float,
+    initial: ConformalMap,
+    progress: Callable[[str], None] | None,
+    accel: str | None,
+    t0: float,
+) -> ConformalMap | None:
+    """A warm re-solve at the finest level of ``initial`` only (issue 24 item 3): the sweeps
+    start from ``initial`` carried over to ``ws`` (:func:`confnav.conformal.warm.warm_state`:
+    the previous meshes, the Cauchy terms of the previous boundary values moved with their
+    obstacles), so that only the changed part of the map is left to the iteration. None if
+    the warm start does not apply or its map does not meet ``tol`` (the caller then refines
+    over the levels as a cold solve does, from :func:`_warm_start_level`).
+
+    Its certificate: the iteration error and the boundary residual are this solve's own; the
+    discretisation estimate is inherited. The boundaries kept the previous graded meshes and
+    the corner singularities of the map are carried by the previous solve's boundary values,
+    whose error the previous map's estimate bounds (its three observed mesh levels, residual
+    and all); what this level's first sweep adds is the graded-mesh error of the disk maps of
+    curves within ``deviation`` (relative) of circles -- zero for a circle (the trapezoidal
+    rule on a smooth periodic integrand converges spectrally; Trefethen & Weideman, SIAM Rev.
+    56 (2014) 385-458, sec. 3) and linear in the non-circular part, which carries the corner
+    singularities at ``deviation`` times their strength in the polygon. So the estimate is the
+    previous map's error estimate times ``1 + deviation`` (an added obstacle counts as
+    deviation 1: its polygon is solved here at the previous level, whose error the previous
+    estimate bounded for its other polygons).
+    """
+    from confnav.conformal.warm import warm_state
+
+    if not WARM_RESOLVE:
+        return None
+    st = warm_state(initial, ws, tol, tail=max(SMOOTH_TAIL, SMOOTH_PER_TOL * ITERATION_SHARE * tol))
+    if st is None:
+        return None
+    ns = initial.diagnostics.nodes_per_side
+    if progress is not None:
+        progress(f"warm re-solve at {ns} nodes per side (start {st.deviation:.1e} from circles)")
+
+    def _p(sweep: int, change: float) -> None:
+        if progress is not None:
+            progress(f"  {ns} nodes/side (warm): sweep {sweep}, change {change:.1e}")
+
+    try:
+        res = koebe_iteration(
+            st.meshes,
+            [],
+            ws.anchor,
+            tol=ITERATION_SHARE * tol,
+            progress=_p,
+            gmres_tol=gmres_rtol(tol),
+            accel=accel,
+            start=st,
+        )
+    except ConvergenceError as exc:
+        log.warning("warm re-solve failed (%s); refining over the levels", exc)
+        return None
+    inherited = float(initial.diagnostics.error_estimate)
+    disc = inherited * (1.0 + st.deviation)
+    eta, deta = [m.eta for m in st.meshes], [m.deta for m in st.meshes]
+    refinements: list[dict[str, float]] = [
+        {
+            "nodes_per_side": ns,
+            "warm_start": 1.0,
+            "inherited_error": inherited,
+            "deviation": st.deviation,
+            "error_estimate": disc,
+            "iteration_error": res.iteration_error,
+            "sweeps": float(res.sweeps),
+            "wall_time": res.wall_time,
+        }
+    ]
+    m = _make_map(ws, (res, eta, deta, ns, disc, []), tol, [], refinements, t0)
+    refinements[-1]["boundary_residual"] = m.diagnostics.boundary_residual
+    if not m.diagnostics.tol_met:
+        log.warning(
+            "warm re-solve missed tol (estimate %.1e); refining over the levels",
+            m.diagnostics.error_estimate,
+        )
+        return None
+    return m
+
+
 def _difference(a: CircleDomainResult, b: CircleDomainResult) -> float:
     if a.centers.size == 0:
         return float(abs(a.derivative_at_anchor - b.derivative_at_anchor))
@@ -737,10 +853,14 @@ def solve(
     initial
         A map of a workspace like this one (an obstacle moved, added or removed; the same
         workspace at another radius): a warm re-solve. The same workspace solved to at least
-        ``tol`` is returned as is; otherwise the refinement starts two levels below the one
-        ``initial`` needed (:func:`_warm_start_level`), skipping the coarse levels, and keeps
-        the full certificate (three levels, residual). Anything that does not fit (another
-        tolerance range, a fixed mesh) falls back to a cold solve's levels.
+        ``tol`` is returned as is; a workspace with the same outer boundary and anchor whose
+        obstacles moved, were added or removed is solved at ``initial``'s finest level only,
+        starting from ``initial`` (:func:`_warm_solve`: its estimate is ``initial``'s times
+        ``1 + deviation``, its iteration error and residual its own); otherwise, or if that
+        misses ``tol``, the refinement starts two levels below the one ``initial`` needed
+        (:func:`_warm_start_level`), skipping the coarse levels, and keeps the full
+        certificate (three levels, residual). Anything that does not fit (another tolerance
+        range, a fixed mesh) falls back to a cold solve's levels.
     max_error
         Largest estimated error of a map that is returned (with ``tol_met`` saying whether it
         meets ``tol``) rather than refused. The default, :data:`UNUSABLE_ERROR`, is for callers
@@ -778,6 +898,10 @@ def solve(
     if not (np.isfinite(max_error) and max_error > 0):
         raise SolverError(f"max_error must be positive and finite, got {max_error}")
     t0 = time.perf_counter()
+    if initial is not None and nodes_per_side is None and method == "koebe":
+        warm = _warm_solve(workspace, tol, initial, progress, koebe_accel, t0)
+        if warm is not None:
+            return warm
     levels = _mesh_levels(tol, nodes_per_side, initial)
     cmap = _Refinement(workspace, tol, max_error, progress, koebe_accel, t0, method).run(levels)
     _refuse_unusable(cmap, max_error)
