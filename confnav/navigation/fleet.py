@@ -39,6 +39,7 @@ __all__ = [
     "DeadlockMonitor",
     "Rows",
     "fleet_step",
+    "goal_yielders",
     "pairwise_rows",
     "project_rows",
     "project_with_walls",
@@ -591,6 +592,36 @@ def yield_way(
         turn = angle * np.clip((_as_f(clearance, n)[idx] - lo) / (hi - lo), 0.0, 1.0)
     out[idx] = sp[idx] * ek * np.exp(1j * sgn * turn) / np.cos(turn)
     return out, yielding
+
+
+def goal_yielders(
+    z: ArrayLike, goal: ArrayLike, radius: ArrayLike, rows: Rows, active: ArrayLike
+) -> NDArray[np.bool_]:
+    """Robots that sit on a neighbour's goal and should make room: the goal-conflict rule.
+
+    Robot i yields (is treated as idle by :func:`yield_way`) when a robot j of its rows, both
+    ``active`` (moving, not done), has its goal within ``radius[i] + radius[j]`` of ``z[i]``
+    (j cannot arrive while i stays) and j is nearer its goal than i is to its own (ties: the
+    lower index is nearer).  Of two robots whose goals lie within each other's disks, exactly
+    the one farther from its goal yields, so the other arrives (and, with goals issued on
+    arrival, leaves).  A rule chosen on the warehouse bench (docs/NAVIGATION.md, "Fleets"),
+    not derived; only nominal commands change.
+    """
+    zz = np.asarray(z, dtype=np.complex128).reshape(-1)
+    n = zz.size
+    gl = _as_c(goal, n)
+    r = _as_f(radius, n)
+    act = _as_f(active, n).astype(bool)
+    if rows.a.shape[1] == 0:
+        return np.zeros(n, dtype=bool)
+    who = rows.who
+    own = (who >= 0) & (who < n)
+    j = np.where(own, who, 0)
+    dist = np.abs(zz - gl)
+    on_goal = np.abs(zz[:, None] - gl[j]) < r[:, None] + r[j]
+    nearer = (dist[j] < dist[:, None]) | ((dist[j] == dist[:, None]) & (j < np.arange(n)[:, None]))
+    hit = own & act[:, None] & act[j] & on_goal & nearer
+    return np.asarray(hit.any(axis=1))
 
 
 class DeadlockMonitor:
