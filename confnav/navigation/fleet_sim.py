@@ -150,12 +150,13 @@ def simulate_fleet(
     yield_gap: float = 0.6,
     contact_margin: float = 1e-3,
     wall_fade: bool = True,
-    traffic: bool = True,
+    traffic: bool = False,
     gates: Gates | None = None,
     trace_every: int = 5,
     trace_step: float = 0.1,
     trace_points: int = 15,
-    goal_yield: bool = True,
+    goal_yield: bool = False,
+    backoff: float = 0.15,
 ) -> FleetResult:
     """Drive robot i from ``starts[i]`` with ``controllers[i]`` until all arrive or ``t_max``.
 
@@ -187,10 +188,12 @@ def simulate_fleet(
     (:class:`~confnav.navigation.traffic.Traffic`): every ``trace_every`` steps each robot's
     path is traced ``trace_points`` points of ``trace_step`` m ahead along its nominal
     command; a robot whose path enters a gate held the other way waits (nominal command 0
-    within the mutex's ``stop`` distance) and steps aside like an idle robot.  ``goal_yield``:
+    within the mutex's ``stop`` distance; nearer than ``stop - backoff`` it backs away from
+    the gate at half speed) and steps aside like an idle robot.  ``goal_yield``:
     a robot whose disk covers the goal of a neighbour that is nearer its goal than the robot
     is to its own steps aside like an idle robot (:func:`~confnav.navigation.fleet.
-    goal_yielders`).
+    goal_yielders`).  Both are off by default: on the warehouse bench they reached fewer
+    goals than without them (bench/README.md, docs/NAVIGATION.md "Fleets").
     """
     ctrls = list(controllers)
     queue = [list(q) for q in next_goals] if next_goals is not None else [[] for _ in ctrls]
@@ -300,7 +303,10 @@ def simulate_fleet(
                 path_ahead = _trace(ctrls, gidx, p, trace_points, trace_step)
             path_ahead[:, 0] = p
             waiting, _ = mutex.update(p, path_ahead, moving)
-            u_nom = np.where(waiting, 0j, u_nom)
+            # a waiting robot stands still, or backs off to the stop distance if nearer
+            e_away, d_gate = mutex.away(p)
+            back = waiting & (d_gate < mutex.stop - backoff)
+            u_nom = np.where(waiting, np.where(back, 0.5 * v_max * e_away, 0j), u_nom)
         blocked = monitor.update(t, np.abs(p - goal), rows) if side_passing else None
         if waiting.any():  # a waiting robot is not blocked: its clock restarts
             monitor.t_best[waiting] = t

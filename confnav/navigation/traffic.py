@@ -281,19 +281,27 @@ class Traffic:
         self.waits += int(wait.sum())
         return wait, self.granted & (self.gate >= 0)
 
-    def toward(self, p: ArrayLike, u: ArrayLike) -> NDArray[np.bool_]:
-        """Robots with a gate whose command ``u`` brings them closer to its centre line (a
-        waiting robot that steps aside must not step into the gate)."""
+    def away(self, p: ArrayLike) -> tuple[CArray, FArray]:
+        """For robots with a gate: the unit vector from the nearest point of its centre line
+        to ``p`` and the distance (0j and inf for robots without a gate)."""
         pp = np.asarray(p, dtype=np.complex128).reshape(-1)
-        uu = np.asarray(u, dtype=np.complex128).reshape(-1)
         on = self.gate >= 0
         if not on.any():
-            return np.zeros(pp.size, dtype=bool)
+            return np.zeros(pp.size, dtype=np.complex128), np.full(pp.size, np.inf)
         gt = self.gates
         g = np.where(on, self.gate, 0)
         a, d = gt.a[g], gt.b[g] - gt.a[g]
         dd = np.abs(d) ** 2
         t = ((pp - a) * np.conj(d)).real / np.where(dd > 0, dd, 1.0)
         s = np.clip(np.where(dd > 0, t, 0.0), 0.0, 1.0)
-        away = pp - (a + s * d)
-        return np.asarray(on & (np.real(np.conj(away) * uu) < 0))
+        v = pp - (a + s * d)
+        m = np.abs(v)
+        e = np.where(on & (m > 0), v / np.where(m > 0, m, 1.0), 0j)
+        return np.asarray(e), np.asarray(np.where(on, m, np.inf))
+
+    def toward(self, p: ArrayLike, u: ArrayLike) -> NDArray[np.bool_]:
+        """Robots with a gate whose command ``u`` brings them closer to its centre line (a
+        waiting robot that steps aside must not step into the gate)."""
+        e, _ = self.away(p)
+        uu = np.asarray(u, dtype=np.complex128).reshape(-1)
+        return np.asarray((self.gate >= 0) & (np.real(np.conj(e) * uu) < 0))
