@@ -284,7 +284,7 @@ def simulate_fleet(
         if avoid:
             rows = pairwise_rows(
                 p,
-                rf + 0.5 * contact_margin,
+                np.where(rf > 0, rf + 0.5 * contact_margin, rf),  # points stay points
                 v_max,
                 others=mz,
                 others_radius=mr,
