@@ -20,12 +20,19 @@ found: the diagram is between components.  That is a stated limitation, not a gu
 nominal field) enters a gate *requests* it with the direction it will cross it in; a request
 is *granted* when no robot holds the gate in the other direction and no robot waits for it
 in the other direction since an earlier step (first come, first served between directions;
-ties to the robot nearer the gate, then the lower index: deterministic).  A robot inside a
-gate holds it.  A robot that is not granted *waits*: the caller stops its nominal command
-once it is within ``stop`` m of the gate's centre line, and lets it step aside as an idle
-robot (:func:`confnav.navigation.fleet.yield_way`) for the robots coming out.  Only nominal
+ties to the robot nearer the gate, then the lower index: deterministic).  A granted robot
+holds the gate until it is out on the far side (or its path no longer enters it).  A robot
+that is not granted *waits*, also one already inside the gate (pushed in, or its goal is
+there): the caller stops its nominal command once it is within ``stop`` m of the gate's
+centre line, and lets it step aside as an idle robot
+(:func:`confnav.navigation.fleet.yield_way`) for the robots coming out, never toward the
+gate (:meth:`Traffic.toward`).  Guaranteed: granted robots of one gate all cross it in one
+direction.  Not guaranteed: that no robot is in a gate against its holders (an ungranted one
+inside is not removed, only stopped), nor any arrival.  Measured worse than without it on
+the warehouse bench, so :func:`~confnav.navigation.fleet_sim.simulate_fleet` has it off by
+default.  Only nominal
 commands change: the fleet filter's rows bound the filtered command, so the rule never costs
-safety (docs/NAVIGATION.md, "Fleets").  It is a liveness heuristic: no arrival is proven.
+safety (docs/NAVIGATION.md, "Fleets").  It is a liveness heuristic.
 """
 
 from __future__ import annotations
