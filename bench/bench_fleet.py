@@ -151,9 +151,13 @@ def warehouse_map(inflate_by: float) -> tuple[Any, Any, float]:
     return _WAREHOUSE_MAP[inflate_by]
 
 
-def warehouse(rounds: int, seed: int = 0, yielding: bool = True) -> dict[str, Any]:
+def warehouse(
+    rounds: int, seed: int = 0, yielding: bool = True, traffic: bool = False
+) -> dict[str, Any]:
     """20 unicycles, ``rounds`` random goals each in the README's warehouse, a new goal issued
-    on arrival; a robot done with its goals parks at its last one (and yields)."""
+    on arrival; a robot done with its goals parks at its last one (and yields).  ``traffic``:
+    the single-lane passages as mutexes and the goal-conflict rule (``simulate_fleet``'s
+    ``traffic`` and ``goal_yield``)."""
     rd, d, n = 0.2, 0.1, 20
     ws, cmap, solve_s = warehouse_map(rd + d)
     shrunk = cmap.workspace
@@ -190,12 +194,15 @@ def warehouse(rounds: int, seed: int = 0, yielding: bool = True) -> dict[str, An
         t_max=WAREHOUSE_T_MAX,
         next_goals=[c[1:] for c in ctrls],
         yielding=yielding,
+        traffic=traffic,
+        goal_yield=traffic,
     )
     wall = time.perf_counter() - t0
     assert res.reached is not None
     reached = int(res.reached.sum())
     print(
-        f"#   warehouse{'' if yielding else ' (no yield rule)'}: {reached}/{res.goals} goals "
+        f"#   warehouse{'' if yielding else ' (no yield rule)'}{' (gates)' if traffic else ''}: "
+        f"{reached}/{res.goals} goals "
         f"reached, {res.robot_contacts} robot / {res.wall_contacts} wall contacts, "
         f"t {res.t_end:.1f} s, {wall:.0f} s wall (load {loadavg()})",
         flush=True,
@@ -205,6 +212,10 @@ def warehouse(rounds: int, seed: int = 0, yielding: bool = True) -> dict[str, An
         "rounds": rounds,
         "navfn": WAREHOUSE_NAVFN,
         "yield_rule": yielding,
+        "traffic": traffic,
+        "gates": res.gates,
+        "gate_waits": res.waits,
+        "goal_yield_steps": res.goal_yields,
         "solve_s": solve_s,
         "robot_contacts": res.robot_contacts,
         "wall_contacts": res.wall_contacts,
@@ -269,9 +280,10 @@ def main() -> None:
         print(f"# door done (load {loadavg()})", flush=True)
     person = Mover(start=5.0 + 7.6j, end=5.0 + 0.35j, radius=0.3, speed=1.2, t_start=3.25)
     rows["person"] = run(ROOM, room_map, np.array([1.0 + 1.2j]), np.array([8.5 + 1.2j]), [person])
-    wh = None
+    wh = wh_gates = None
     if not (args.no_warehouse or args.quick):
         wh = warehouse(args.rounds)
+        wh_gates = warehouse(args.rounds, traffic=True)
     cost = batched_cost()
     hdr = (
         f"{'scenario':10s} {'N':>3s} {'r-r':>4s} {'mov':>4s} {'wall':>4s} {'arr%':>5s} "
@@ -293,13 +305,15 @@ def main() -> None:
     print(
         f"batched rows + projection, {cost['robots']} robots: {cost['us_per_robot']:.2f} us/robot"
     )
-    if wh is not None:
+    for wname, w in (("warehouse", wh), ("warehouse, gates", wh_gates)):
+        if w is None:
+            continue
         print(
-            f"warehouse: {wh['robots']} unicycles x {wh['rounds']} goals: "
-            f"{wh['robot_contacts']} robot / {wh['wall_contacts']} wall contacts, "
-            f"{wh['reached']}/{wh['goals']} = {wh['arrived_pct']:.1f}% of goals reached, "
-            f"min gap {wh['min_gap_m']:.4f} m, last arrival {wh['last_arrival_s']} s, "
-            f"{wh['yield_steps']} yield steps, map solved in {wh['solve_s']:.1f} s"
+            f"{wname}: {w['robots']} unicycles x {w['rounds']} goals: "
+            f"{w['robot_contacts']} robot / {w['wall_contacts']} wall contacts, "
+            f"{w['reached']}/{w['goals']} = {w['arrived_pct']:.1f}% of goals reached, "
+            f"min gap {w['min_gap_m']:.4f} m, last arrival {w['last_arrival_s']} s, "
+            f"{w['yield_steps']} yield steps, {w['gates']} gates, {w['gate_waits']} wait steps"
         )
     targets = {
         name: {
@@ -309,11 +323,12 @@ def main() -> None:
         }
         for name, r in rows.items()
     }
-    if wh is not None:
-        targets["warehouse"] = {
-            "no contact": wh["robot_contacts"] + wh["wall_contacts"] == 0,
-            "99% arrive": wh["arrived_pct"] >= 99.0,
-        }
+    for wname, w in (("warehouse", wh), ("warehouse, gates", wh_gates)):
+        if w is not None:
+            targets[wname] = {
+                "no contact": w["robot_contacts"] + w["wall_contacts"] == 0,
+                "99% arrive": w["arrived_pct"] >= 99.0,
+            }
     for name, t in targets.items():
         print(f"  {name}: " + ", ".join(f"{k} {'met' if v else 'MISSED'}" for k, v in t.items()))
     doc = {
@@ -332,6 +347,7 @@ def main() -> None:
         "scenarios": rows,
         "batched_cost": cost,
         "warehouse": wh,
+        "warehouse_gates": wh_gates,
         "targets": targets,
     }
     args.out.parent.mkdir(parents=True, exist_ok=True)

@@ -8,8 +8,14 @@ their disks: ``robot_radius``, a unicycle's look-ahead) and to ``{prefix}/ws/*/m
 (:class:`~confnav.schemas.Movers`), and :meth:`Neighbours.filter_block` keeps the commands of
 one pose block off each other (reciprocal rows), off every other robot (full responsibility,
 with its velocity estimated from its last two poses) and off the movers (with their
-velocities), with the side-passing rule and deadlock detection of
-:mod:`confnav.navigation.fleet` (docs/NAVIGATION.md, "Fleets").
+velocities), with the rules of the fleet simulation, shared from
+:mod:`confnav.navigation.fleet` (docs/NAVIGATION.md, "Fleets"): side passing with its wall
+fade, the deadlock monitor (``deadlock_step``, its state kept per robot id), the yield rule
+(``yield_way``: a robot that arrived at its goal, until it gets a new one, steps out of a
+moving robot's way, also of a robot of another pose block of this controller, whose last
+nominal command is kept), optionally the goal-conflict rule (``goal_yielders``), and the
+contact margin of the rows.  The gates' mutex (:mod:`confnav.navigation.traffic`) is not
+applied here (it is off in the fleet simulation too: measured worse on the warehouse).
 
 A robot with no neighbour within reach of a row keeps the control law's command bitwise, so
 a robot alone drives exactly as without this module; so does a robot without a radius (a
@@ -33,7 +39,15 @@ from confnav.services.keys import KeyError_, Keys
 
 from confnav.navigation import defaults
 from confnav.navigation.control import Status
-from confnav.navigation.fleet import Rows, pairwise_rows, project_with_walls, side_pass
+from confnav.navigation.fleet import (
+    Rows,
+    deadlock_step,
+    goal_yielders,
+    pairwise_rows,
+    project_with_walls,
+    side_pass,
+    yield_way,
+)
 from confnav.navigation.unicycle import twist_from_velocity
 
 log = logging.getLogger(__name__)
@@ -75,7 +89,10 @@ class Neighbours:
         default_radius: float = 0.0,
         hold_time: float = defaults.HOLD_TIME,
         fraction: float = defaults.HOLD_FRACTION,
+        contact_margin: float = 1e-3,
         side_passing: bool = True,
+        yielding: bool = True,
+        goal_yield: bool = False,
         window: float = 1.0,
         progress: float = 0.1,
     ) -> None:
@@ -83,7 +100,10 @@ class Neighbours:
         self.default_radius = float(default_radius)
         self.hold_time = float(hold_time)
         self.fraction = float(fraction)
+        self.contact_margin = float(contact_margin)
         self.side_passing = side_passing
+        self.yielding = yielding
+        self.goal_yield = goal_yield
         self.window = float(window)
         self.progress = float(progress)
         self._lock = threading.Lock()
@@ -98,11 +118,14 @@ class Neighbours:
         self._v = np.zeros(0, dtype=np.complex128)  # estimated from the last two poses (m/s)
         self._rad = np.zeros(0)  # body radius, NaN: unknown (default_radius)
         self._fl = np.zeros(0, dtype=np.int64)  # floor number (_floors), -1: unknown
+        self._un = np.zeros(0, dtype=np.complex128)  # a served robot's last nominal command
         self._floors: dict[str, int] = {}
         self._body: dict[str, _Body] = {}
         self._movers: dict[str, tuple[Movers, float]] = {}
         # deadlock monitor per robot: best distance to goal, its time, blocked until
         self._dl: dict[str, tuple[float, float, float]] = {}
+        # robot id -> the goal it arrived at (it counts as idle, and yields, while it keeps it)
+        self._done: dict[str, Goal] = {}
         self.counters: dict[str, int] = {}
         #: robot id -> whether this controller serves it (set by :func:`attach`)
         self.served: Callable[[str], bool] | None = None
@@ -161,7 +184,7 @@ class Neighbours:
         i = len(self._rids)
         if i == self._t.size:
             n = max(64, 2 * i)
-            for name in ("_z", "_th", "_t", "_stamp", "_v", "_rad", "_fl"):
+            for name in ("_z", "_th", "_t", "_stamp", "_v", "_rad", "_fl", "_un"):
                 a = getattr(self, name)
                 b = np.zeros(n, dtype=a.dtype)
                 b[:i] = a
@@ -190,7 +213,7 @@ class Neighbours:
         free = int(np.count_nonzero(self._t[:n] == -np.inf))
         if n >= 256 and 2 * free > n:
             keep = np.flatnonzero(self._t[:n] > -np.inf)
-            for name in ("_z", "_th", "_t", "_stamp", "_v", "_rad", "_fl"):
+            for name in ("_z", "_th", "_t", "_stamp", "_v", "_rad", "_fl", "_un"):
                 a = getattr(self, name)
                 b = np.zeros(a.size, dtype=a.dtype)
                 b[: keep.size] = a[keep]
@@ -260,8 +283,16 @@ class Neighbours:
         self, floor: str | None, exclude: set[str], now: float
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Other robots' and the movers on ``floor``: (positions, radii, velocities,
-        cooperative); a robot this controller serves (``served``) is cooperative: it runs
-        this filter with its own poses."""
+        cooperative, mover); a robot this controller serves (``served``) is cooperative: it
+        runs this filter with its own poses."""
+        return self._select(floor, exclude, now)[:5]
+
+    def _select(
+        self, floor: str | None, exclude: set[str], now: float
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`_others` and each one's heading: a robot this controller serves, its last
+        nominal command (the yield rule across pose blocks); another robot, its velocity; a
+        mover, none."""
         zs: list[complex] = []
         rs: list[float] = []
         vs: list[complex] = []
@@ -291,6 +322,7 @@ class Neighbours:
             r_z = self._z[idx]
             r_r = np.where(np.isnan(rad), self.default_radius, rad)
             r_v = np.where(mine, 0j, self._v[idx])
+            r_h = np.where(mine, self._un[idx], self._v[idx])
             for fl, (m, _) in list(self._movers.items()):
                 age = (wall - m.stamp_ns) * 1e-9
                 if age > MOVERS_TTL:
@@ -311,6 +343,7 @@ class Neighbours:
             np.concatenate([r_v, np.array(vs, dtype=np.complex128)]),
             np.concatenate([mine, np.array(co, dtype=bool)]),
             np.concatenate([np.zeros(idx.size, dtype=bool), np.array(mv, dtype=bool)]),
+            np.concatenate([r_h, np.zeros(len(zs), dtype=np.complex128)]),
         )
 
     def filter_block(self, results: list[Any], now: float | None = None) -> list[Any]:
@@ -371,10 +404,11 @@ class Neighbours:
         # (v + i d omega) e^{i theta} (confnav.navigation.unicycle)
         u_nom = np.where(body, (u_law.real + 1j * d * u_law.imag) * np.exp(1j * th), u_law)
         live = np.isfinite(u_nom) & (codes != Status.ERROR)
-        oz, orad, ov, oco, omv = self._others(floor, own, now)
+        oz, orad, ov, oco, omv, ohead = self._select(floor, own, now)
         rows = pairwise_rows(
             p,
-            rad,
+            # as the fleet simulation: no round-off contact (points stay points: no rows)
+            np.where(rad > 0, rad + 0.5 * self.contact_margin, rad),
             vmax,
             others=oz,
             others_radius=orad,
@@ -387,19 +421,56 @@ class Neighbours:
             horizon=MOVER_HORIZON,
         )
         has = (rows.who >= 0).any(axis=1) & live
-        if not has.any():
-            return  # nobody near: the law's commands, bitwise
         arrived = codes == Status.ARRIVED
         u0 = np.where(live & ~arrived, u_nom, 0j)
-        if self.side_passing:
-            blocked = self._blocked([e[2].robot_id for e in entries], p, goals, rows, now)
-            u0 = side_pass(u0, rows, blocked=blocked)
-        cap = vmax.copy()
-        for i, e in enumerate(entries):  # the wall hold cap of the robot's own law
+        with self._lock:  # the heading other pose blocks yield to
+            for e, u_i in zip(entries, u0, strict=True):
+                k = self._slot.get(e[2].robot_id)
+                if k is not None:
+                    self._un[k] = u_i
+        if not has.any():
+            return  # nobody near: the law's commands, bitwise
+        # the body's clearance where the robot's law uses one (inf: no wall fade, no cap)
+        cb = np.full(len(entries), np.inf)
+        hold = np.ones(len(entries))
+        for i, e in enumerate(entries):
             ctrl = getattr(e[4], "controller", e[4])
             if has[i] and getattr(ctrl, "uses_clearance", False) and ctrl.hold_time > 0:
-                c = float(np.asarray(ctrl.clearance(np.array([p[i]])))[0])
-                cap[i] = min(cap[i], defaults.HOLD_FRACTION * max(c, 0.0) / ctrl.hold_time)
+                cb[i] = float(np.asarray(ctrl.clearance(np.array([p[i]])))[0])
+                hold[i] = ctrl.hold_time
+        # the fleet simulation's rules (confnav.navigation.fleet_sim): a robot parked at its
+        # goal (or, with goal_yield, one on a nearer neighbour's goal) steps out of a moving
+        # robot's way, also one of another pose block (its last nominal command); side passing
+        # with the wall fade; the deadlock monitor (shared code, per robot id here)
+        if self.yielding:
+            gz = np.array([complex(*g.goal) for g in goals])
+            rids = [e[2].robot_id for e in entries]
+            for k in np.flatnonzero(arrived).tolist():  # done with this goal until a new one
+                self._done[rids[k]] = goals[k]
+            done = np.array([self._done.get(r) == g for r, g in zip(rids, goals, strict=True)])
+            idle = live & (arrived | done)
+            if self.goal_yield:  # off by default, as in the fleet simulation
+                idle |= goal_yielders(p, gz, rad, rows, live & ~arrived)
+            u_y, yl = yield_way(
+                u0,
+                p,
+                rad,
+                idle,
+                rows,
+                vmax,
+                clearance=cb,
+                others=oz,
+                others_radius=orad,
+                others_heading=ohead,
+            )
+            self._count("yields", int(yl.sum()))
+        if self.side_passing:
+            blocked = self._blocked([e[2].robot_id for e in entries], p, goals, rows, now)
+            u0 = side_pass(u0, rows, blocked=blocked, clearance=cb)
+        if self.yielding:
+            u0 = np.where(yl, u_y, u0)
+        # the wall hold cap of the robot's own law
+        cap = np.minimum(vmax, defaults.HOLD_FRACTION * np.maximum(cb, 0.0) / hold)
         walls = [getattr(getattr(e[4], "controller", e[4]), "safety", None) for e in entries]
         u, ok = project_with_walls(u0, p, rows, cap, walls)
         self._count("filtered", int(has.sum()))
@@ -423,18 +494,21 @@ class Neighbours:
     ) -> np.ndarray:
         """:class:`confnav.navigation.fleet.DeadlockMonitor`'s rule, kept per robot id."""
         dist = np.abs(p - np.array([complex(*g.goal) for g in goals]))
-        engaged = np.any((rows.who >= 0) & (rows.gap < 0.5), axis=1)
-        out = np.zeros(len(rids), dtype=bool)
+        state = np.array([self._dl.get(rid, (np.inf, now, -np.inf)) for rid in rids])
+        best, t_best, until, new = deadlock_step(
+            state[:, 0],
+            state[:, 1],
+            state[:, 2],
+            now,
+            dist,
+            rows,
+            window=self.window,
+            progress=self.progress,
+        )
+        self._count("deadlocks", int(new.sum()))
         for i, rid in enumerate(rids):
-            best, t_best, until = self._dl.get(rid, (np.inf, now, -np.inf))
-            if dist[i] < best - self.progress or not engaged[i]:
-                best, t_best = float(dist[i]), now
-            if engaged[i] and now - t_best > self.window and until < now:
-                until, t_best = now + 1.0, now
-                self._count("deadlocks")
-            self._dl[rid] = (best, t_best, until)
-            out[i] = until >= now
-        return out
+            self._dl[rid] = (float(best[i]), float(t_best[i]), float(until[i]))
+        return np.asarray(until >= now)
 
 
 def attach(service: Any, **kw: Any) -> Neighbours:

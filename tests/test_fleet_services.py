@@ -241,3 +241,89 @@ def test_hook_avoids_movers_from_the_bus(mem_net: Any) -> None:
     u = out[0][1][0][0]
     # gap 0.5, n = -1: Re(-u) >= -2 * 0.5 + 1 = 0 (plus the 2 s capsule ahead): no approach
     assert u.real <= 1e-9 and abs(u) <= 0.5 + 1e-9
+
+
+@pytest.mark.timeout(240)
+def test_parked_robot_yields_through_the_services(make_bus: Callable[[], Any]) -> None:
+    """Real Zenoh, in-process transform, controller and simulator: robot a is parked at its
+    goal in the middle of a 0.8 m door (two disks of r 0.2 cannot pass there), robot b is
+    sent through it.  The controller's fleet step applies the fleet simulation's yield rule
+    (``fleet.yield_way`` on robots done with their goal): a steps out of the door ahead of b,
+    b arrives, no contact.  Without the rule b is held off a for good (the core twin:
+    tests/test_fleet_yield.py)."""
+    from confnav.schemas import Goal, RobotStatus, WorkspaceDefinition
+    from confnav.services.controller import ControllerService
+    from confnav.services.transform import TransformService
+
+    outer = [
+        (0, 0), (4, 0), (4, 1.6), (4.2, 1.6), (4.2, 0), (8.2, 0), (8.2, 4), (4.2, 4),
+        (4.2, 2.4), (4, 2.4), (4, 4), (0, 4),
+    ]  # fmt: skip
+    room = WorkspaceDefinition(ws_id="door", outer=outer, tol=1e-6)
+    services: list[Any] = [
+        TransformService(make_bus(), K, executor="thread", health_period=0.5),
+        ControllerService(make_bus(), K, health_period=0.5),
+        SimulatorService(make_bus(), K, rate_hz=50, time_scale=2.0, cmd_timeout=1.0),
+    ]
+    sim = services[2]
+    ctl = services[1]
+    client = make_bus()
+    state: dict[str, str] = {}
+    client.subscribe(
+        K.any_robot("status"),
+        lambda k, p: state.__setitem__(
+            decode(RobotStatus, p).robot_id, decode(RobotStatus, p).state
+        ),
+    )
+    for s in services:
+        s.start()
+    try:
+        time.sleep(0.5)
+        client.publish(K.ws("door", "definition"), encode(room))
+        wait_for(lambda: "door" in sim._workspaces, timeout=30)
+
+        def send(rid: str, start: tuple[float, float], goal: tuple[float, float]) -> None:
+            client.publish(
+                K.sim("sim", "spawn"),
+                encode(SpawnRequest(robot_id=rid, ws_id="door", position=start, robot_radius=0.2)),
+            )
+            wait_for(lambda: rid in sim.positions(), timeout=10)
+            client.publish(
+                K.robot(rid, "goal"),
+                encode(Goal(robot_id=rid, ws_id="door", goal=goal, robot_radius=0.2)),
+            )
+
+        send("a", (4.1, 2.0), (4.1, 2.0))
+        wait_for(lambda: state.get("a") == "arrived", timeout=60)
+        send("b", (1.0, 2.0), (7.0, 2.0))
+        wait_for(lambda: state.get("b") == "arrived", timeout=180)
+        assert sim.collisions == []
+        assert abs(sim.positions()["b"] - (7.0 + 2.0j)) < 0.05
+        nb = ctl.neighbours
+        assert nb is not None and nb.counters.get("yields", 0) > 0
+    finally:
+        for s in reversed(services):
+            s.stop()
+
+
+def test_hook_parked_robot_steps_aside() -> None:
+    """The fleet simulation's yield rule in the controller's fleet step: robot a parked at its
+    goal (status arrived) 0.6 m ahead of robot b driving at it steps forward-left along b's
+    motion (``fleet.yield_way``: 0.5 (1 + 1j) / sqrt(2) * sqrt(2)), b keeps right."""
+    import numpy as np
+    from confnav.services.neighbours import Neighbours
+
+    from confnav.navigation.control import Status
+
+    nb = Neighbours(K)
+    block = _block([("a", 0.6, 0.0), ("b", 0.0, 0.0)], [0j, 0.5 + 0j])
+    block[0][1][1][0] = Status.ARRIVED
+    for m in block[0][0][1]:
+        m[0].goal = m[0].goal.model_copy(update={"goal": (m[1].x, m[1].y)})
+    block[0][0][1][1][0].goal = block[0][0][1][1][0].goal.model_copy(update={"goal": (5.0, 0.0)})
+    out = nb.filter_block(block)
+    ua, ub = out[0][1][0]
+    assert nb.counters.get("yields", 0) == 1
+    assert out[0][1][1][0] == Status.MOVING  # off its goal: reported moving
+    assert ua.real > 0 and ua.imag > 0 and abs(np.angle(ua) - np.pi / 4) < 1e-9
+    assert ub.imag < 0  # keeps right

@@ -38,7 +38,9 @@ from confnav.types import CArray, FArray
 __all__ = [
     "DeadlockMonitor",
     "Rows",
+    "deadlock_step",
     "fleet_step",
+    "goal_yielders",
     "pairwise_rows",
     "project_rows",
     "project_with_walls",
@@ -532,6 +534,9 @@ def yield_way(
     yield_gap: float = 0.6,
     angle: float = np.pi / 4,
     wall_band: tuple[float, float] = (0.1, 0.25),
+    others: ArrayLike | None = None,
+    others_radius: ArrayLike | None = None,
+    others_heading: ArrayLike | None = None,
 ) -> tuple[CArray, NDArray[np.bool_]]:
     """Idle robots step out of the way of a moving robot whose path they block: the yield rule.
 
@@ -553,6 +558,10 @@ def yield_way(
 
     Only nominal commands change (the filtered command still obeys every row and wall), and
     a robot with no neighbour never yields, so a lone robot drives as without the rule.
+    ``others``, ``others_radius``, ``others_heading``: the other disks of the rows (index
+    ``N + m`` in ``rows.who``) with the direction they are heading in (e.g. the last nominal
+    command of a robot served in another pose block; 0: none, e.g. a mover): an idle robot
+    yields to them as to the robots of the batch.
     Returns ``(u_nom', yielding)``.  This is a rule chosen on the warehouse bench
     (docs/NAVIGATION.md, "Fleets"), not a derived one; the literature's counterpart is the
     perturbations that leave symmetric deadlocks in Wang, Ames, Egerstedt, "Safety barrier
@@ -568,13 +577,20 @@ def yield_way(
     if rows.a.shape[1] == 0 or not idl.any():
         return out, np.zeros(n, dtype=bool)
     who = rows.who
-    j = np.where((who >= 0) & (who < n), who, 0)
-    valid = (who >= 0) & (who < n) & idl[:, None] & ~idl[j] & (rows.gap < yield_gap)
-    mag = np.abs(un[j])
-    e = np.where(mag > 0, un[j] / np.where(mag > 0, mag, 1.0), 0j)
-    rel = np.conj(e) * (zz[:, None] - zz[j])
+    oz = np.zeros(0, np.complex128) if others is None else np.asarray(others, np.complex128)
+    oz = oz.reshape(-1)
+    n_all = n + oz.size
+    z_all = np.concatenate([zz, oz])
+    r_all = np.concatenate([r, _as_f(others_radius, oz.size)])
+    u_all = np.concatenate([un, _as_c(others_heading, oz.size)])
+    i_all = np.concatenate([idl, np.zeros(oz.size, dtype=bool)])
+    j = np.where((who >= 0) & (who < n_all), who, 0)
+    valid = (who >= 0) & (who < n_all) & idl[:, None] & ~i_all[j] & (rows.gap < yield_gap)
+    mag = np.abs(u_all[j])
+    e = np.where(mag > 0, u_all[j] / np.where(mag > 0, mag, 1.0), 0j)
+    rel = np.conj(e) * (zz[:, None] - z_all[j])
     s, lat = rel.real, rel.imag
-    width = r[:, None] + r[j]
+    width = r[:, None] + r_all[j]
     block = valid & (mag > 0) & (s > 0) & (np.abs(lat) < width)
     gap = np.where(block, rows.gap, np.inf)
     k = np.argmin(gap, axis=1)
@@ -591,6 +607,36 @@ def yield_way(
         turn = angle * np.clip((_as_f(clearance, n)[idx] - lo) / (hi - lo), 0.0, 1.0)
     out[idx] = sp[idx] * ek * np.exp(1j * sgn * turn) / np.cos(turn)
     return out, yielding
+
+
+def goal_yielders(
+    z: ArrayLike, goal: ArrayLike, radius: ArrayLike, rows: Rows, active: ArrayLike
+) -> NDArray[np.bool_]:
+    """Robots that sit on a neighbour's goal and should make room: the goal-conflict rule.
+
+    Robot i yields (is treated as idle by :func:`yield_way`) when a robot j of its rows, both
+    ``active`` (moving, not done), has its goal within ``radius[i] + radius[j]`` of ``z[i]``
+    (j cannot arrive while i stays) and j is nearer its goal than i is to its own (ties: the
+    lower index is nearer).  Of two robots whose goals lie within each other's disks, exactly
+    the one farther from its goal yields, so the other arrives (and, with goals issued on
+    arrival, leaves).  A rule chosen on the warehouse bench (docs/NAVIGATION.md, "Fleets"),
+    not derived; only nominal commands change.
+    """
+    zz = np.asarray(z, dtype=np.complex128).reshape(-1)
+    n = zz.size
+    gl = _as_c(goal, n)
+    r = _as_f(radius, n)
+    act = _as_f(active, n).astype(bool)
+    if rows.a.shape[1] == 0:
+        return np.zeros(n, dtype=bool)
+    who = rows.who
+    own = (who >= 0) & (who < n)
+    j = np.where(own, who, 0)
+    dist = np.abs(zz - gl)
+    on_goal = np.abs(zz[:, None] - gl[j]) < r[:, None] + r[j]
+    nearer = (dist[j] < dist[:, None]) | ((dist[j] == dist[:, None]) & (j < np.arange(n)[:, None]))
+    hit = own & act[:, None] & act[j] & on_goal & nearer
+    return np.asarray(hit.any(axis=1))
 
 
 class DeadlockMonitor:
@@ -625,18 +671,52 @@ class DeadlockMonitor:
 
     def update(self, t: float, dist_to_goal: ArrayLike, rows: Rows) -> NDArray[np.bool_]:
         """The robots blocked at time ``t`` (distances to the goal now, the rows in use)."""
-        d = np.asarray(dist_to_goal, dtype=np.float64).reshape(-1)
-        engaged = np.any((rows.who >= 0) & (rows.gap < self.engage_gap), axis=1)
-        # near the goal the law slows down (|u| ~ gain d): a quarter of the way left counts
-        better = d < self.best - np.minimum(self.progress, 0.25 * self.best)
-        reset = better | ~engaged
-        self.best = np.where(reset, d, self.best)
-        self.t_best = np.where(reset, t, self.t_best)
-        new = engaged & (t - self.t_best > self.window) & (self.until < t)
+        self.best, self.t_best, self.until, new = deadlock_step(
+            self.best,
+            self.t_best,
+            self.until,
+            t,
+            dist_to_goal,
+            rows,
+            window=self.window,
+            progress=self.progress,
+            engage_gap=self.engage_gap,
+            release=self.release,
+        )
         self.detections += int(new.sum())
-        self.until = np.where(new, t + self.release, self.until)
-        self.t_best = np.where(new, t, self.t_best)
         return np.asarray(self.until >= t)
+
+
+def deadlock_step(
+    best: ArrayLike,
+    t_best: ArrayLike,
+    until: ArrayLike,
+    t: float,
+    dist_to_goal: ArrayLike,
+    rows: Rows,
+    *,
+    window: float = 1.0,
+    progress: float = 0.1,
+    engage_gap: float = 0.5,
+    release: float = 1.0,
+) -> tuple[FArray, FArray, FArray, NDArray[np.bool_]]:
+    """:class:`DeadlockMonitor`'s rule on explicit state (the services keep it per robot id):
+    each robot's best distance to its goal, the time of it and the time it stays blocked
+    until; returns the new state and the robots newly detected as blocked at time ``t``."""
+    d = np.asarray(dist_to_goal, dtype=np.float64).reshape(-1)
+    bst = np.asarray(best, dtype=np.float64).reshape(-1)
+    tb = np.asarray(t_best, dtype=np.float64).reshape(-1)
+    unt = np.asarray(until, dtype=np.float64).reshape(-1)
+    engaged = np.any((rows.who >= 0) & (rows.gap < engage_gap), axis=1)
+    # near the goal the law slows down (|u| ~ gain d): a quarter of the way left counts
+    better = d < bst - np.minimum(progress, 0.25 * bst)
+    reset = better | ~engaged
+    bst = np.where(reset, d, bst)
+    tb = np.where(reset, t, tb)
+    new = engaged & (t - tb > window) & (unt < t)
+    unt = np.where(new, t + release, unt)
+    tb = np.where(new, t, tb)
+    return bst, tb, unt, np.asarray(new)
 
 
 def swept_min_distance(

@@ -37,6 +37,7 @@ from confnav.navigation.fleet import (
     DeadlockMonitor,
     Rows,
     fleet_step,
+    goal_yielders,
     pairwise_rows,
     project_with_walls,
     side_pass,
@@ -44,6 +45,7 @@ from confnav.navigation.fleet import (
     yield_way,
 )
 from confnav.navigation.sim import _chord_check
+from confnav.navigation.traffic import Gates, Traffic, find_gates
 from confnav.navigation.unicycle import step_exact, twist_from_velocity
 from confnav.types import CArray, FArray
 
@@ -98,6 +100,9 @@ class FleetResult:
     reached: NDArray[np.intp] | None = None  # goals reached per robot (with ``next_goals``)
     goals: int = 0  # goals given in all (first goals and ``next_goals``)
     yields: int = 0  # robot-steps an idle robot spent yielding
+    gates: int = 0  # single-lane passages used as mutexes
+    waits: int = 0  # robot-steps spent waiting for a gate
+    goal_yields: int = 0  # robot-steps a robot on a neighbour's goal counted as idle
 
     @property
     def arrival_rate(self) -> float:
@@ -145,6 +150,13 @@ def simulate_fleet(
     yield_gap: float = 0.6,
     contact_margin: float = 1e-3,
     wall_fade: bool = True,
+    traffic: bool = False,
+    gates: Gates | None = None,
+    trace_every: int = 5,
+    trace_step: float = 0.1,
+    trace_points: int = 15,
+    goal_yield: bool = False,
+    backoff: float = 0.15,
 ) -> FleetResult:
     """Drive robot i from ``starts[i]`` with ``controllers[i]`` until all arrive or ``t_max``.
 
@@ -170,6 +182,18 @@ def simulate_fleet(
     is (the walls do not: a lone robot drives exactly as without it), so the barrier's
     geometric decay in a standoff (``h`` may shrink by ``1 - fraction`` per hold, down to
     rounding) ends ``contact_margin`` m short of contact, not at a round-off "contact".
+
+    ``traffic``: the single-lane passages of ``workspace`` for the largest filter disk
+    (``gates``, default :func:`~confnav.navigation.traffic.find_gates`) are mutexes
+    (:class:`~confnav.navigation.traffic.Traffic`): every ``trace_every`` steps each robot's
+    path is traced ``trace_points`` points of ``trace_step`` m ahead along its nominal
+    command; a robot whose path enters a gate held the other way waits (nominal command 0
+    within the mutex's ``stop`` distance; nearer than ``stop - backoff`` it backs away from
+    the gate at half speed) and steps aside like an idle robot.  ``goal_yield``:
+    a robot whose disk covers the goal of a neighbour that is nearer its goal than the robot
+    is to its own steps aside like an idle robot (:func:`~confnav.navigation.fleet.
+    goal_yielders`).  Both are off by default: on the warehouse bench they reached fewer
+    goals than without them (bench/README.md, docs/NAVIGATION.md "Fleets").
     """
     ctrls = list(controllers)
     queue = [list(q) for q in next_goals] if next_goals is not None else [[] for _ in ctrls]
@@ -204,6 +228,13 @@ def simulate_fleet(
     arrival = np.full(n, np.nan)
     frozen = np.zeros(n, dtype=bool)  # hit a wall or error: stays put
     monitor = DeadlockMonitor(n, window=deadlock_window)
+    if gates is None:
+        use = traffic and avoid and float(rf.max(initial=0.0)) > 0
+        gates = find_gates(workspace, float(rf.max())) if use else Gates.none()
+    mutex = Traffic(gates, n)
+    path_ahead = np.full((n, trace_points + 1), np.nan + 0j)
+    waiting = np.zeros(n, dtype=bool)
+    goal_yields = 0
     in_contact: set[tuple[int, int]] = set()
     mover_touch = np.zeros((len(movers), n), dtype=bool)
     pairs_out: list[tuple[int, int, float]] = []
@@ -253,7 +284,7 @@ def simulate_fleet(
         if avoid:
             rows = pairwise_rows(
                 p,
-                rf + 0.5 * contact_margin,
+                np.where(rf > 0, rf + 0.5 * contact_margin, rf),  # points stay points
                 v_max,
                 others=mz,
                 others_radius=mr,
@@ -266,9 +297,28 @@ def simulate_fleet(
             )
         else:
             rows = Rows.empty(n)
+        moving = np.isnan(arrival) & ~frozen
+        if gates.count:
+            if steps % trace_every == 0:
+                path_ahead = _trace(ctrls, gidx, p, trace_points, trace_step)
+            path_ahead[:, 0] = p
+            waiting, _ = mutex.update(p, path_ahead, moving)
+            # a waiting robot stands still, or backs off to the stop distance if nearer
+            e_away, d_gate = mutex.away(p)
+            back = waiting & (d_gate < mutex.stop - backoff)
+            u_nom = np.where(waiting, np.where(back, 0.5 * v_max * e_away, 0j), u_nom)
         blocked = monitor.update(t, np.abs(p - goal), rows) if side_passing else None
+        if waiting.any():  # a waiting robot is not blocked: its clock restarts
+            monitor.t_best[waiting] = t
+            if blocked is not None:
+                blocked = blocked & ~waiting
         if yielding and avoid:  # toward the goals, before side passing turns them
             idle = ~np.isnan(arrival) & ~frozen
+            idle |= waiting
+            if goal_yield:
+                gy = goal_yielders(p, goal, rf, rows, moving)
+                goal_yields += int(gy.sum())
+                idle |= gy
             u_yield, yl = yield_way(
                 u_nom, p, rf, idle, rows, v_max, clearance=cb, yield_gap=yield_gap
             )
@@ -283,6 +333,8 @@ def simulate_fleet(
             )
         if yielding and avoid:
             u_nom = np.where(yl, u_yield, u_nom)
+            if waiting.any():  # a waiting robot steps aside, never into its gate
+                u_nom = np.where(waiting & mutex.toward(p, u_nom), 0j, u_nom)
         u, ok = project_with_walls(u_nom, p, rows, cap, walls)
         filter_time += time.perf_counter() - t0
         infeasible += int((~ok).sum())
@@ -357,7 +409,34 @@ def simulate_fleet(
         reached=reached,
         goals=n_goals,
         yields=yields,
+        gates=gates.count,
+        waits=mutex.waits,
+        goal_yields=goal_yields,
     )
+
+
+def _trace(
+    ctrls: Sequence[Controller], gidx: list[NDArray[np.intp]], p: CArray, k: int, h: float
+) -> CArray:
+    """Each robot's path ahead: ``k`` steps of ``h`` m along its nominal command (the
+    batched fleet step per map, safety layer included), NaN after it arrives or stops."""
+    out = np.full((p.size, k + 1), np.nan + 0j)
+    out[:, 0] = p
+    q = p.copy()
+    alive = np.ones(p.size, dtype=bool)
+    for s in range(1, k + 1):
+        for g in gidx:
+            cm = ctrls[int(g[0])].cmap
+            w, dw = cm.T_and_dT(q[g])
+            res = fleet_step([ctrls[i] for i in g], q[g], w, dw)
+            mag = np.abs(res.u)
+            st = res.status
+            go = (st != Status.ARRIVED) & (st != Status.ERROR) & (mag > 0) & np.isfinite(mag)
+            step = np.where(go, res.u / np.where(go, mag, 1.0) * h, 0j)
+            alive[g] &= go
+            q[g] = q[g] + step
+        out[:, s] = np.where(alive, q, np.nan + 0j)
+    return out
 
 
 def _map_groups(ctrls: Sequence[Controller]) -> list[NDArray[np.intp]]:
