@@ -89,6 +89,9 @@ READY_TARGET_S = 2.0
 FINAL_SINGLE_TOL = 1e-10
 FINAL_ATLAS_TOL = 1e-8
 WORKERS = 2
+#: Time limit per pair: this many workspace diameters at v_max (the atlas's own runs allow 20;
+#: the pairs of the first runs arrived within 2 diameters, the rest stood still till 20).
+T_MAX_DIAMETERS = 6.0
 
 
 def _now() -> float:
@@ -101,16 +104,24 @@ def n_vertices(ws: Workspace) -> int:
 
 
 class FirstMap:
-    """The map the robots drive on: one conformal map or an atlas."""
+    """The map the robots drive on: one conformal map or an atlas (with its charts'
+    ``for_navigation`` maps, made once per atlas as the controller's ``AtlasMap`` does)."""
 
     def __init__(self, kind: str, obj: Any, why: str, seconds: float, detail: dict[str, Any]):
         self.kind, self.obj, self.why, self.seconds, self.detail = kind, obj, why, seconds, detail
+        self.nav_maps: list[Any] | None = None
+
+    def prepare(self) -> None:
+        if self.kind == "atlas" and self.nav_maps is None:
+            self.nav_maps = [m.for_navigation() for m in self.obj.charts]
 
     def controller(self, goal: complex, nav_ws: Workspace) -> Any:
         """One robot's law for ``goal`` with the safety layer on the exact ``nav_ws``."""
         if self.kind == "single":
             return Controller(self.obj, goal, safety=nav_ws)
-        nav = AtlasNavigator(self.obj, goal, speed=defaults.V_MAX)  # safety: atlas.workspace
+        self.prepare()
+        # the safety layer: the atlas's workspace (nav_ws), every chart's commands filtered
+        nav = AtlasNavigator(self.obj, goal, speed=defaults.V_MAX, nav_maps=self.nav_maps)
         return AtlasController(nav)
 
 
@@ -160,7 +171,7 @@ def drive(fm: FirstMap, ws: Workspace, nav_ws: Workspace, pairs: list[tuple[comp
           float]]) -> list[dict[str, Any]]:  # fmt: skip
     """Each pair: one unicycle from its start and heading to its goal, safety layer on."""
     out = []
-    t_max = 20 * nav_ws.diameter / defaults.V_MAX
+    t_max = T_MAX_DIAMETERS * nav_ws.diameter / defaults.V_MAX
     for start, goal, heading in pairs:
         t0 = _now()
         try:
@@ -196,7 +207,32 @@ def summary(rows: list[dict[str, Any]]) -> dict[str, Any]:
     }
 
 
-def bench_map(name: str, n_pairs: int, final: bool, pool: Any) -> dict[str, Any]:
+def run_rung(ws: Workspace, nav_ws: Workspace, pairs: list[tuple[complex, complex, float]],
+             tol: float, max_error: float | None, pool: Any) -> dict[str, Any]:  # fmt: skip
+    """Solve the map to ``tol`` (one map or an atlas), build the first robot's controller,
+    drive every pair on it."""
+    try:
+        fm = solve_map(nav_ws, tol, max_error, pool)
+    except ConfnavError as exc:
+        print(f"  tol {tol:g}: failed: {exc}", flush=True)
+        return {"tol": tol, "error": f"{type(exc).__name__}: {exc}"}
+    t0 = _now()
+    fm.prepare()
+    fm.controller(pairs[0][1], nav_ws)
+    t_ctl = _now() - t0
+    out: dict[str, Any] = {"tol": tol, "max_error": max_error, "kind": fm.kind, "why": fm.why,
+                           "seconds": round(fm.seconds, 3), "controller_s": round(t_ctl, 3),
+                           **fm.detail}  # fmt: skip
+    print(f"  tol {tol:g}: {fm.kind} in {fm.seconds:.2f} s ({fm.why or 'one map'}); first "
+          f"controller {t_ctl:.2f} s; load {loadavg()}", flush=True)  # fmt: skip
+    rows = drive(fm, ws, nav_ws, pairs)
+    out["pairs"] = rows
+    out["summary"] = summary(rows)
+    print(f"  tol {tol:g}: {out['summary']}; load {loadavg()}", flush=True)
+    return out
+
+
+def bench_map(name: str, n_pairs: int, rungs: list[float | None], pool: Any) -> dict[str, Any]:
     yaml = MAPS_DIR / f"{name}.yaml"
     row: dict[str, Any] = {"map": name, "load_start": loadavg()}
     t0 = _now()
@@ -227,42 +263,21 @@ def bench_map(name: str, n_pairs: int, final: bool, pool: Any) -> dict[str, Any]
     print(f"{name}: import {t_import:.2f} s ({ws.n_obstacles} obstacles, {n_vertices(ws)} "
           f"vertices), footprint {t_inflate:.2f} s ({nav_ws.n_obstacles} obstacles, "
           f"{n_vertices(nav_ws)} vertices); load {loadavg()}", flush=True)  # fmt: skip
-    try:
-        fm = solve_map(nav_ws, LADDER[0], COARSE_MAX_ERROR, pool)
-    except ConfnavError as exc:
-        row["first_map"] = {"error": f"{type(exc).__name__}: {exc}"}
-        print(f"  first map failed: {exc}", flush=True)
-        return row
-    t0 = _now()
-    fm.controller(pairs[0][1], nav_ws)
-    t_ctl = _now() - t0
-    ready = t_import + t_inflate + fm.seconds + t_ctl
-    row["first_map"] = {"kind": fm.kind, "why": fm.why, "tol": LADDER[0],
-                        "seconds": round(fm.seconds, 3), "controller_s": round(t_ctl, 3),
-                        **fm.detail}  # fmt: skip
-    row["ready_s"] = round(ready, 3)
-    row["ready_target_met"] = ready <= READY_TARGET_S
-    print(f"  first map: {fm.kind} in {fm.seconds:.2f} s ({fm.why or 'one map'}); first "
-          f"controller {t_ctl:.2f} s; ready {ready:.2f} s; load {loadavg()}",
-          flush=True)  # fmt: skip
-    rows = drive(fm, ws, nav_ws, pairs)
-    row["pairs_first"] = rows
-    row["summary_first"] = summary(rows)
-    print(f"  on the first map: {row['summary_first']}; load {loadavg()}", flush=True)
-    if final:
-        tol = FINAL_SINGLE_TOL if fm.kind == "single" else FINAL_ATLAS_TOL
-        try:
-            fin = solve_map(nav_ws, tol, None, pool)
-        except ConfnavError as exc:
-            row["final_map"] = {"error": f"{type(exc).__name__}: {exc}"}
-            return row
-        row["final_map"] = {"kind": fin.kind, "why": fin.why, "tol": tol,
-                            "seconds": round(fin.seconds, 3), **fin.detail}  # fmt: skip
-        rows = drive(fin, ws, nav_ws, pairs)
-        row["pairs_final"] = rows
-        row["summary_final"] = summary(rows)
-        print(f"  final map: {fin.kind} in {fin.seconds:.1f} s; {row['summary_final']}; "
-              f"load {loadavg()}", flush=True)  # fmt: skip
+    row["rungs"] = []
+    kind = None
+    for k, tol in enumerate(rungs):
+        if tol is None:  # the README commands' accuracy, by the first rung's kind
+            tol = FINAL_SINGLE_TOL if kind == "single" else FINAL_ATLAS_TOL
+        rung = run_rung(ws, nav_ws, pairs, tol, COARSE_MAX_ERROR if k == 0 else None, pool)
+        row["rungs"].append(rung)
+        if "error" in rung:
+            break
+        kind = rung["kind"]
+        if k == 0:
+            ready = t_import + t_inflate + rung["seconds"] + rung["controller_s"]
+            row["ready_s"] = round(ready, 3)
+            row["ready_target_met"] = ready <= READY_TARGET_S
+            print(f"  ready to drive {ready:.2f} s (target {READY_TARGET_S:g} s)", flush=True)
     row["load_end"] = loadavg()
     return row
 
@@ -271,12 +286,15 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--maps", nargs="+", choices=MAPS, default=None)
     ap.add_argument("--pairs", type=int, default=PAIRS)
-    ap.add_argument("--no-final", action="store_true", help="skip the README-accuracy map")
+    ap.add_argument(
+        "--rungs", type=int, default=3, choices=(1, 2, 3),
+        help="1: the first rung (1e-3) only; 2: and 1e-6; 3: and the README's accuracy",
+    )
     ap.add_argument("--quick", action="store_true", help=f"{', '.join(QUICK_MAPS)}, no final")
     ap.add_argument("--out", type=Path, default=RESULTS)
     args = ap.parse_args(argv)
     maps = args.maps or (QUICK_MAPS if args.quick else MAPS)
-    final = not (args.no_final or args.quick)
+    rungs: list[float | None] = [LADDER[0], LADDER[1], None][: 1 if args.quick else args.rungs]
     doc: dict[str, Any] = {
         "benchmark": "slam",
         "date": datetime.now(UTC).isoformat(timespec="seconds"),
@@ -287,23 +305,27 @@ def main(argv: list[str] | None = None) -> int:
         "seed": SEED,
         "first_tol": LADDER[0],
         "first_max_error": COARSE_MAX_ERROR,
+        "rungs": [r if r is not None else "readme" for r in rungs],
         "ready_target_s": READY_TARGET_S,
+        "t_max_diameters": T_MAX_DIAMETERS,
         "maps": [],
     }
     with ProcessPoolExecutor(max_workers=WORKERS) as pool:
         for name in maps:
-            doc["maps"].append(bench_map(name, args.pairs, final, pool))
+            doc["maps"].append(bench_map(name, args.pairs, rungs, pool))
             args.out.write_text(json.dumps(doc, indent=1) + "\n")  # partial results survive
     doc["loadavg_end"] = loadavg()
     args.out.write_text(json.dumps(doc, indent=1) + "\n")
-    print(f"{'map':<12}{'obst':>5}{'verts':>6}{'first':>7}{'ready s':>9}{'arrived':>9}"
-          f"{'coll':>5}")  # fmt: skip
+    print(f"{'map':<12}{'obst':>5}{'verts':>6}{'kind':>7}{'ready s':>9}  arrived per rung")
     for r in doc["maps"]:
-        s = r.get("summary_first", {})
-        kind = r.get("first_map", {}).get("kind", "-")
+        kind = r["rungs"][0].get("kind", "-") if r.get("rungs") else "-"
+        per = "  ".join(
+            f"{g['tol']:g}: " + (f"{g['summary']['arrived']}/{g['summary']['pairs']} "
+                                 f"coll {g['summary']['collided']}" if "summary" in g else "error")
+            for g in r.get("rungs", [])
+        )  # fmt: skip
         print(f"{r['map']:<12}{r['import']['obstacles']:>5}{r['import']['vertices']:>6}"
-              f"{kind:>7}{r.get('ready_s', float('nan')):>9.2f}"
-              f"{s.get('arrived', 0):>6}/{s.get('pairs', 0):<2}{s.get('collided', 0):>5}")
+              f"{kind:>7}{r.get('ready_s', float('nan')):>9.2f}  {per}")
     return 0
 
 
