@@ -61,7 +61,7 @@ import confnav  # noqa: E402
 from confnav.atlas import AtlasNavigator, solve_atlas  # noqa: E402
 from confnav.atlas.charts import atlas_reason  # noqa: E402
 from confnav.atlas.wire import AtlasController  # noqa: E402
-from confnav.conformal.solver import crowding_reason  # noqa: E402
+from confnav.conformal.solver import UNUSABLE_ERROR, crowding_reason  # noqa: E402
 from confnav.errors import ConfnavError, CrowdingError  # noqa: E402
 from confnav.geometry import Workspace  # noqa: E402
 from confnav.maps.footprint import inflate  # noqa: E402
@@ -131,10 +131,10 @@ def solve_map(nav_ws: Workspace, tol: float, max_error: float | None, pool: Any)
     why = atlas_reason(nav_ws)
     if not why:
         try:
-            kw = {} if max_error is None else {"max_error": max_error}
+            refuse = UNUSABLE_ERROR if max_error is None else max_error
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
-                m = confnav.solve(nav_ws, tol, **kw)
+                m = confnav.solve(nav_ws, tol, max_error=refuse)
             why = crowding_reason(m.diagnostics)
             if not why:
                 d = m.diagnostics
@@ -287,7 +287,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--maps", nargs="+", choices=MAPS, default=None)
     ap.add_argument("--pairs", type=int, default=PAIRS)
     ap.add_argument(
-        "--rungs", type=int, default=3, choices=(1, 2, 3),
+        "--rungs",
+        type=int,
+        default=3,
+        choices=(1, 2, 3),
         help="1: the first rung (1e-3) only; 2: and 1e-6; 3: and the README's accuracy",
     )
     ap.add_argument("--quick", action="store_true", help=f"{', '.join(QUICK_MAPS)}, no final")
@@ -324,8 +327,10 @@ def main(argv: list[str] | None = None) -> int:
                                  f"coll {g['summary']['collided']}" if "summary" in g else "error")
             for g in r.get("rungs", [])
         )  # fmt: skip
-        print(f"{r['map']:<12}{r['import']['obstacles']:>5}{r['import']['vertices']:>6}"
-              f"{kind:>7}{r.get('ready_s', float('nan')):>9.2f}  {per}")
+        print(
+            f"{r['map']:<12}{r['import']['obstacles']:>5}{r['import']['vertices']:>6}"
+            f"{kind:>7}{r.get('ready_s', float('nan')):>9.2f}  {per}"
+        )
     return 0
 
 
