@@ -136,6 +136,11 @@ BENCHMARKS: dict[str, Bench] = {
         quick=("--runs", "1"),
         measures=("confnav/maps", "confnav/geometry.py", "confnav/errors.py", "confnav/scenes"),
     ),
+    "slam": Bench(
+        "bench_slam.py",
+        "slam.json",
+        "real SLAM maps (ROS map_server): import, first map, TurtleBot pairs (issue 23)",
+    ),
     "atlas": Bench(
         "bench_atlas.py",
         "atlas.json",

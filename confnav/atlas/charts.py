@@ -21,7 +21,7 @@ from shapely.geometry import Polygon
 
 from confnav.atlas.decompose import Decomposition, Tile, bottleneck, decompose, elongation
 from confnav.conformal.cmap import ConformalMap, SolveReport
-from confnav.conformal.solver import AccuracyWarning, crowding_reason, solve
+from confnav.conformal.solver import UNUSABLE_ERROR, AccuracyWarning, crowding_reason, solve
 from confnav.errors import ConfnavError, CrowdingError, SolverError, fmt_point
 from confnav.geometry import Workspace
 
@@ -140,7 +140,9 @@ def _solve_one(ws_json: str, tol: float, accept: float, depth: float) -> tuple[s
         with warnings.catch_warnings():
             # the solver's verdict is read from its diagnostics below, not from the warning
             warnings.simplefilter("ignore", AccuracyWarning)
-            m = solve(ws, tol)
+            # a chart asked for a tolerance coarser than UNUSABLE_ERROR (a first, coarse
+            # revision) is accepted up to it, as solve(max_error=...) does for one map
+            m = solve(ws, tol, max_error=max(UNUSABLE_ERROR, tol, accept))
         diag = m.diagnostics
         if not (diag.tol_met or diag.meets(max(tol, accept))):
             why = [f"estimate {diag.error_estimate:.1e}"]
