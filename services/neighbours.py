@@ -431,39 +431,14 @@ class Neighbours:
         if not has.any():
             return  # nobody near: the law's commands, bitwise
         # the body's clearance where the robot's law uses one (inf: no wall fade, no cap)
-        cb = np.full(len(entries), np.inf)
-        hold = np.ones(len(entries))
-        for i, e in enumerate(entries):
-            ctrl = getattr(e[4], "controller", e[4])
-            if has[i] and getattr(ctrl, "uses_clearance", False) and ctrl.hold_time > 0:
-                cb[i] = float(np.asarray(ctrl.clearance(np.array([p[i]])))[0])
-                hold[i] = ctrl.hold_time
+        cb, hold = _body_clearance(entries, has, p)
         # the fleet simulation's rules (confnav.navigation.fleet_sim): a robot parked at its
         # goal (or, with goal_yield, one on a nearer neighbour's goal) steps out of a moving
         # robot's way, also one of another pose block (its last nominal command); side passing
         # with the wall fade; the deadlock monitor (shared code, per robot id here)
         if self.yielding:
-            gz = np.array([complex(*g.goal) for g in goals])
-            rids = [e[2].robot_id for e in entries]
-            for k in np.flatnonzero(arrived).tolist():  # done with this goal until a new one
-                self._done[rids[k]] = goals[k]
-            done = np.array([self._done.get(r) == g for r, g in zip(rids, goals, strict=True)])
-            idle = live & (arrived | done)
-            if self.goal_yield:  # off by default, as in the fleet simulation
-                idle |= goal_yielders(p, gz, rad, rows, live & ~arrived)
-            u_y, yl = yield_way(
-                u0,
-                p,
-                rad,
-                idle,
-                rows,
-                vmax,
-                clearance=cb,
-                others=oz,
-                others_radius=orad,
-                others_heading=ohead,
-            )
-            self._count("yields", int(yl.sum()))
+            u_y, yl = self._yield_rule(entries, p, rad, rows, vmax, live, arrived, u0, cb, oz,
+                                       orad, ohead)  # fmt: skip
         if self.side_passing:
             blocked = self._blocked([e[2].robot_id for e in entries], p, goals, rows, now)
             u0 = side_pass(u0, rows, blocked=blocked, clearance=cb)
@@ -475,19 +450,49 @@ class Neighbours:
         u, ok = project_with_walls(u0, p, rows, cap, walls)
         self._count("filtered", int(has.sum()))
         self._count("infeasible", int((~ok & has).sum()))
-        for i, e in enumerate(entries):
-            if not has[i] or (arrived[i] and u[i] == 0):
-                continue
-            if body[i]:
-                v, om = twist_from_velocity(
-                    u[i], th[i], d[i], vmax[i], getattr(e[4], "omega_max", np.inf)
-                )
-                new = complex(float(v), float(om))
-            else:
-                new = complex(u[i])
-            out[e[0]][1][0][e[1]] = new
-            if arrived[i] and new != 0:  # pushed off its goal by a mover: keep moving
-                out[e[0]][1][1][e[1]] = Status.MOVING
+        _write_back(entries, out, u, has, arrived, body, th, d, vmax)
+
+    def _yield_rule(
+        self,
+        entries: list[tuple[int, int, Any, Any, Any]],
+        p: np.ndarray,
+        rad: np.ndarray,
+        rows: Rows,
+        vmax: np.ndarray,
+        live: np.ndarray,
+        arrived: np.ndarray,
+        u0: np.ndarray,
+        cb: np.ndarray,
+        oz: np.ndarray,
+        orad: np.ndarray,
+        ohead: np.ndarray,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The fleet simulation's yield rule (:func:`confnav.navigation.fleet.yield_way`): a
+        robot parked at its goal (or, with ``goal_yield``, one on a nearer neighbour's goal)
+        steps out of a moving robot's way; the commands and which robots yield."""
+        goals = [e[2].goal for e in entries]
+        gz = np.array([complex(*g.goal) for g in goals])
+        rids = [e[2].robot_id for e in entries]
+        for k in np.flatnonzero(arrived).tolist():  # done with this goal until a new one
+            self._done[rids[k]] = goals[k]
+        done = np.array([self._done.get(r) == g for r, g in zip(rids, goals, strict=True)])
+        idle = live & (arrived | done)
+        if self.goal_yield:  # off by default, as in the fleet simulation
+            idle |= goal_yielders(p, gz, rad, rows, live & ~arrived)
+        u_y, yl = yield_way(
+            u0,
+            p,
+            rad,
+            idle,
+            rows,
+            vmax,
+            clearance=cb,
+            others=oz,
+            others_radius=orad,
+            others_heading=ohead,
+        )
+        self._count("yields", int(yl.sum()))
+        return u_y, yl
 
     def _blocked(
         self, rids: list[str], p: np.ndarray, goals: list[Goal], rows: Rows, now: float
@@ -534,3 +539,45 @@ def attach(service: Any, **kw: Any) -> Neighbours:
     nb.served_many = served_many
     service._handles.extend(nb.subscribe(service.bus, poses=service.only is not None))
     return nb
+
+
+def _body_clearance(
+    entries: list[tuple[int, int, Any, Any, Any]], has: np.ndarray, p: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The body's clearance and the law's hold time for each robot with neighbours whose law
+    uses a clearance (inf and 1 otherwise: no wall fade, no cap)."""
+    cb = np.full(len(entries), np.inf)
+    hold = np.ones(len(entries))
+    for i, e in enumerate(entries):
+        ctrl = getattr(e[4], "controller", e[4])
+        if has[i] and getattr(ctrl, "uses_clearance", False) and ctrl.hold_time > 0:
+            cb[i] = float(np.asarray(ctrl.clearance(np.array([p[i]])))[0])
+            hold[i] = ctrl.hold_time
+    return cb, hold
+
+
+def _write_back(
+    entries: list[tuple[int, int, Any, Any, Any]],
+    out: list[Any],
+    u: np.ndarray,
+    has: np.ndarray,
+    arrived: np.ndarray,
+    body: np.ndarray,
+    th: np.ndarray,
+    d: np.ndarray,
+    vmax: np.ndarray,
+) -> None:
+    """The filtered velocities into the answers (unicycles as twists of their look-ahead)."""
+    for i, e in enumerate(entries):
+        if not has[i] or (arrived[i] and u[i] == 0):
+            continue
+        if body[i]:
+            v, om = twist_from_velocity(
+                u[i], th[i], d[i], vmax[i], getattr(e[4], "omega_max", np.inf)
+            )
+            new = complex(float(v), float(om))
+        else:
+            new = complex(u[i])
+        out[e[0]][1][0][e[1]] = new
+        if arrived[i] and new != 0:  # pushed off its goal by a mover: keep moving
+            out[e[0]][1][1][e[1]] = Status.MOVING

@@ -34,6 +34,7 @@ outer boundary or anchor.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -406,94 +407,18 @@ def warm_state(
     source, shift = matched
     if sum(1 for src in source if src < 0) > max(1, MAX_ADDED_SHARE * (len(source) - 1)):
         return None  # mostly new obstacles: not a small change
-    ns = d0.nodes_per_side
-    try:
-        old_plans = plan_boundaries(initial.workspace, ns, d0.tol)
-        new_plans = plan_boundaries(ws, ns, tol)
-    except GapError:
+    meshes = _reused_meshes(initial, ws, tol, source, shift)
+    if meshes is None:
         return None
     eta, deta, W, dW = initial._parts
-    meshes: list[BoundaryMesh] = []
-    for j, (src, d) in enumerate(zip(source, shift, strict=True)):
-        if src < 0:
-            meshes.append(_mesh(new_plans[j], j > 0))
-            continue
-        op, np_ = old_plans[src], new_plans[j]
-        actual = _actual_plan(op, eta[src], src > 0)  # sides refined locally, if any
-        if actual is None:
-            return None  # the previous map's mesh is not on its plan's sides
-        op = actual
-        old_mesh = _mesh(op, src > 0)
-        if op.vertices.shape != np_.vertices.shape or not np.allclose(
-            op.vertices + d, np_.vertices, rtol=0, atol=MATCH_RTOL * ws.diameter
-        ):
-            return None  # sides split differently
-        need = np_.nodes.copy()
-        # the first side carries the plan's rounding of the total up to a multiple of
-        # NODE_MULTIPLE (meshing.plan_boundaries), no requirement of the geometry
-        need[0] = max(1, need[0] - (NODE_MULTIPLE - 1))
-        if np.any(need > op.nodes):
-            return None  # a gap narrowed: the previous mesh does not resolve it
-        meshes.append(BoundaryMesh(eta[src] + d, deta[src].copy(), old_mesh.side, old_mesh.tau))
     comps = _components(eta, deta, W, dW)
     kept = {src: d for src, d in zip(source, shift, strict=True) if src >= 0}
-    P: list[ComplexArray] = []
-    dP: list[ComplexArray] = []
-    groups: list[list[_Request]] = []
-    for j, (src, d) in enumerate(zip(source, shift, strict=True)):
-        if src < 0:  # an added obstacle: the sum of the kept terms
-            z = meshes[j].eta
-            groups.append([(i, z - di, 1.0) for i, di in kept.items()])
-        else:
-            groups.append(_requests(kept, len(comps), src, d, eta[src], MATCH_RTOL * ws.diameter))
-    sums = _evaluate(comps, groups)
-    for j, (src, (g, dg)) in enumerate(zip(source, sums, strict=True)):
-        if src < 0:
-            P.append(g)
-            dP.append(dg * meshes[j].deta)
-        else:
-            if g.size == 0:  # nothing moved relative to it
-                g = dg = np.zeros(eta[src].size, np.complex128)
-            P.append(W[src] + g)
-            dP.append(dW[src] + dg * deta[src])
-    try:
-        poles, beta = _corner_correction(ws, source, shift, comps, kept)
-    except np.linalg.LinAlgError:
-        return None  # poles too close to separate the corners' conditions
-    for j in range(len(P)):
-        lz, dlz = _rational(poles, beta, meshes[j].eta)
-        P[j] = P[j] - lz
-        dP[j] = dP[j] - dlz * meshes[j].deta
-        if source[j] >= 0:
-            dP[j][_crowded_nodes(W[source[j]], dW[source[j]])] = 0.0
-    a, D = 0j, 0j
-    anchor = np.array([ws.anchor])
-    la, dla = _rational(poles, beta, anchor)
-    a -= complex(la[0])
-    D -= complex(dla[0])
-    for i, di in kept.items():
-        t, dt = _term(comps[i], anchor - di)
-        a += complex(t[0])
-        D += complex(dt[0])
-    c = np.zeros(len(meshes) - 1, np.complex128)
-    dev = 0.0
-    for j, src in enumerate(source):
-        if src < 0:
-            if j > 0:
-                pt = np.array([interior_point(ws.obstacles[j - 1])])
-                c[j - 1] = sum(
-                    complex(_term(comps[i], pt - di)[0][0]) for i, di in kept.items()
-                ) - complex(_rational(poles, beta, pt)[0][0])
-            continue
-        # the previous circle moved by the mean displacement of its nodes (a moved obstacle's
-        # image moves by about T' d): the start's hole lies around it
-        cc = (0j if src == 0 else complex(initial.centers[src - 1])) + complex(
-            np.mean(P[j] - W[src])
-        )
-        r = float(np.mean(np.abs(P[j] - cc)))
-        if j > 0:
-            c[j - 1] = cc
-        dev = max(dev, float(np.max(np.abs(np.abs(P[j] - cc) - r))) / r)
+    boundary = _start_boundaries(initial, ws, source, shift, comps, kept, meshes)
+    if boundary is None:
+        return None
+    P, dP, poles, beta = boundary
+    a, D = _anchor_start(ws, comps, kept, poles, beta)
+    c, dev = _start_centers(initial, ws, source, comps, kept, poles, beta, P)
     if not (np.all(np.isfinite(np.concatenate(P))) and np.isfinite(a) and np.isfinite(D)):
         return None
     if dev > MAX_DEVIATION:
@@ -517,6 +442,138 @@ def warm_state(
         deviation=max(dev, 1.0) if -1 in source else dev,
         source=source,
     )
+
+
+def _reused_meshes(
+    initial: ConformalMap, ws: Workspace, tol: float, source: Any, shift: Any
+) -> list[BoundaryMesh] | None:
+    """The meshes of the warm level: each kept boundary's previous mesh moved with it (sides
+    refined locally included), an added obstacle's planned anew; None where a previous mesh
+    does not fit (sides split differently, a gap narrowed beyond what it resolves)."""
+    d0 = initial.diagnostics
+    ns = d0.nodes_per_side
+    try:
+        old_plans = plan_boundaries(initial.workspace, ns, d0.tol)
+        new_plans = plan_boundaries(ws, ns, tol)
+    except GapError:
+        return None
+    eta, deta, _, _ = initial._parts
+    meshes: list[BoundaryMesh] = []
+    for j, (src, d) in enumerate(zip(source, shift, strict=True)):
+        if src < 0:
+            meshes.append(_mesh(new_plans[j], j > 0))
+            continue
+        op, np_ = old_plans[src], new_plans[j]
+        actual = _actual_plan(op, eta[src], src > 0)  # sides refined locally, if any
+        if actual is None:
+            return None  # the previous map's mesh is not on its plan's sides
+        op = actual
+        old_mesh = _mesh(op, src > 0)
+        if op.vertices.shape != np_.vertices.shape or not np.allclose(
+            op.vertices + d, np_.vertices, rtol=0, atol=MATCH_RTOL * ws.diameter
+        ):
+            return None  # sides split differently
+        need = np_.nodes.copy()
+        # the first side carries the plan's rounding of the total up to a multiple of
+        # NODE_MULTIPLE (meshing.plan_boundaries), no requirement of the geometry
+        need[0] = max(1, need[0] - (NODE_MULTIPLE - 1))
+        if np.any(need > op.nodes):
+            return None  # a gap narrowed: the previous mesh does not resolve it
+        meshes.append(BoundaryMesh(eta[src] + d, deta[src].copy(), old_mesh.side, old_mesh.tau))
+    return meshes
+
+
+def _start_boundaries(
+    initial: ConformalMap,
+    ws: Workspace,
+    source: Any,
+    shift: Any,
+    comps: Any,
+    kept: dict[int, complex],
+    meshes: list[BoundaryMesh],
+) -> tuple[list[ComplexArray], list[ComplexArray], Any, Any] | None:
+    """The start's boundary values and derivatives on ``meshes`` (previous values plus the
+    moved Cauchy terms, an added obstacle the sum of the kept terms), less the rational
+    corner correction, with the poles and weights of that correction; None where the
+    correction's poles are too close to separate the corners' conditions."""
+    eta, deta, W, dW = initial._parts
+    groups: list[list[_Request]] = []
+    for j, (src, d) in enumerate(zip(source, shift, strict=True)):
+        if src < 0:  # an added obstacle: the sum of the kept terms
+            z = meshes[j].eta
+            groups.append([(i, z - di, 1.0) for i, di in kept.items()])
+        else:
+            groups.append(_requests(kept, len(comps), src, d, eta[src], MATCH_RTOL * ws.diameter))
+    P: list[ComplexArray] = []
+    dP: list[ComplexArray] = []
+    for j, (src, (g, dg)) in enumerate(zip(source, _evaluate(comps, groups), strict=True)):
+        if src < 0:
+            P.append(g)
+            dP.append(dg * meshes[j].deta)
+        else:
+            if g.size == 0:  # nothing moved relative to it
+                g = dg = np.zeros(eta[src].size, np.complex128)
+            P.append(W[src] + g)
+            dP.append(dW[src] + dg * deta[src])
+    try:
+        poles, beta = _corner_correction(ws, source, shift, comps, kept)
+    except np.linalg.LinAlgError:
+        return None
+    for j in range(len(P)):
+        lz, dlz = _rational(poles, beta, meshes[j].eta)
+        P[j] = P[j] - lz
+        dP[j] = dP[j] - dlz * meshes[j].deta
+        if source[j] >= 0:
+            dP[j][_crowded_nodes(W[source[j]], dW[source[j]])] = 0.0
+    return P, dP, poles, beta
+
+
+def _anchor_start(
+    ws: Workspace, comps: Any, kept: dict[int, complex], poles: Any, beta: Any
+) -> tuple[complex, complex]:
+    """The start's value and derivative at the anchor (the same sum as on the boundaries)."""
+    anchor = np.array([ws.anchor])
+    la, dla = _rational(poles, beta, anchor)
+    a, D = -complex(la[0]), -complex(dla[0])
+    for i, di in kept.items():
+        t, dt = _term(comps[i], anchor - di)
+        a += complex(t[0])
+        D += complex(dt[0])
+    return a, D
+
+
+def _start_centers(
+    initial: ConformalMap,
+    ws: Workspace,
+    source: Any,
+    comps: Any,
+    kept: dict[int, complex],
+    poles: Any,
+    beta: Any,
+    P: list[ComplexArray],
+) -> tuple[ComplexArray, float]:
+    """The start's hole centres and its largest relative deviation from circles."""
+    _, _, W, _ = initial._parts
+    c = np.zeros(len(P) - 1, np.complex128)
+    dev = 0.0
+    for j, src in enumerate(source):
+        if src < 0:
+            if j > 0:
+                pt = np.array([interior_point(ws.obstacles[j - 1])])
+                c[j - 1] = sum(
+                    complex(_term(comps[i], pt - di)[0][0]) for i, di in kept.items()
+                ) - complex(_rational(poles, beta, pt)[0][0])
+            continue
+        # the previous circle moved by the mean displacement of its nodes (a moved obstacle's
+        # image moves by about T' d): the start's hole lies around it
+        cc = (0j if src == 0 else complex(initial.centers[src - 1])) + complex(
+            np.mean(P[j] - W[src])
+        )
+        r = float(np.mean(np.abs(P[j] - cc)))
+        if j > 0:
+            c[j - 1] = cc
+        dev = max(dev, float(np.max(np.abs(np.abs(P[j] - cc) - r))) / r)
+    return c, dev
 
 
 __all__ = ["MAX_DEVIATION", "WarmStart", "warm_state"]
