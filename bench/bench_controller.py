@@ -134,6 +134,25 @@ def _tasks() -> dict[str, float]:
     return out
 
 
+def _run_delay() -> dict[str, float]:
+    """Seconds each thread of this process spent runnable but waiting for a core (kernel
+    schedstat ``run_delay``), by name as in :func:`_tasks`: the machine's contention (other
+    processes, or this process's threads exceeding the cores), not GIL waits (those sleep)."""
+    names = {t.native_id: t.name for t in threading.enumerate()}
+    out: dict[str, float] = {}
+    for task in Path("/proc/self/task").iterdir():
+        try:
+            fields = (task / "schedstat").read_text().split()
+            comm = (task / "comm").read_text().strip()
+        except OSError:
+            continue
+        name = names.get(int(task.name), comm)
+        if name.startswith(("latest", "qbl", "live")):
+            name = name.split(":", 1)[0]
+        out[name] = out.get(name, 0.0) + int(fields[1]) / 1e9
+    return out
+
+
 def _settle(svc: Any, quiet: float = 3.0, timeout: float = 30.0) -> None:
     """Wait until the controller is idle: the final revision of the progressive map installed,
     no controller built for ``quiet`` s (every goal rebuilt on it) and under 40% of a core (the
@@ -202,6 +221,7 @@ def row(
             c0 = {k: (t.cpu, t.calls) for k, t in timers.items()}
             p0 = os.times()
             k0 = _tasks()
+            d0 = _run_delay()
             poses_w0, sup0 = svc.counters["poses"], svc.counters["poses_superseded"]
             cmds0 = svc.counters["commands"]
             t0 = time.monotonic()
@@ -211,6 +231,7 @@ def row(
             wall = time.monotonic() - t0
             p1 = os.times()
             k1 = _tasks()
+            d1 = _run_delay()
             load1 = os.getloadavg()
             taken = svc.counters["poses"] - poses_w0
             superseded = svc.counters["poses_superseded"] - sup0
@@ -255,6 +276,10 @@ def row(
             for k, v in k1.items()
             if not k.startswith(BACKGROUND)
         ),
+        # the pose thread's wait for a core, per s of the window (0.1: runnable but not running
+        # 10 % of the time), and every thread's together: evidence of the machine's load
+        "pose_thread_run_delay_frac": (d1.get("latest", 0.0) - d0.get("latest", 0.0)) / wall,
+        "process_run_delay_frac": (sum(d1.values()) - sum(d0.get(k, 0.0) for k in d1)) / wall,
         "pose_step_calls": calls["pose_step"],
         "poses_per_step": commands / max(calls["pose_step"], 1),
         "counters": {k: v for k, v in svc.counters.items() if k.startswith(("stops_", "def"))},
@@ -453,7 +478,10 @@ def main() -> int:
                         f"{r['pose_path_cpu_us_per_pose']:.0f} (step {th['pose_step']:.0f}, "
                         f"tracker {th['fleet_tracker']:.0f}, publisher {th['publisher']:.0f}, "
                         f"other {r['other_cpu_us_per_pose']:.0f}) {r['poses_per_step']:.1f} "
-                        f"poses/step | load {r['loadavg_start'][0]:.1f}",
+                        f"poses/step | run delay: pose thread "
+                        f"{r['pose_thread_run_delay_frac']:.0%}, process "
+                        f"{r['process_run_delay_frac']:.2f} cores | load "
+                        f"{r['loadavg_start'][0]:.1f}",
                         flush=True,
                     )
                     print("  threads (us/pose):", r["threads_cpu_us_per_pose"], flush=True)
