@@ -63,6 +63,8 @@ from provenance import commit  # script mode: bench/ is on sys.path
 
 RESULTS = Path(__file__).resolve().parent / "results" / "controller.json"
 TARGET = {"robots": 200, "rate": 20.0, "p99_ms": 20.0}
+POSE_THREADS = ("latest", "sub:confnav/sim/")
+"""The pose step's threads: single poses (``latest``), pose batches (``sub:.../sim/*/poses``)."""
 BACKGROUND = ("critical-points", "sub:", "controller:fetch", "controller:watchdog", "MainThread")
 """Threads whose work is not the poses' (``pose_path_cpu_us_per_pose`` leaves them out): the
 background critical-point searches of new goals (services/critical_search.py), map installs
@@ -153,10 +155,13 @@ def _run_delay() -> dict[str, float]:
     return out
 
 
-def _settle(svc: Any, quiet: float = 3.0, timeout: float = 30.0) -> None:
+def _settle(
+    svc: Any, quiet: float = 3.0, timeout: float = 30.0, search_timeout: float = 240.0
+) -> None:
     """Wait until the controller is idle: the final revision of the progressive map installed,
-    no controller built for ``quiet`` s (every goal rebuilt on it) and under 40% of a core (the
-    critical-point searches of new goals take up to 25%: services/critical_search.py)."""
+    no controller built for ``quiet`` s (every goal rebuilt on it) and under 40% of a core, then
+    until the critical-point searches of the goals are done (their worker idle for 1 s, at most
+    ``search_timeout`` s more: services/critical_search.py)."""
     t_end = time.monotonic() + timeout
     built, since = svc.counters["controllers_built"], time.monotonic()
     c0, t0 = time.process_time(), time.monotonic()
@@ -170,7 +175,20 @@ def _settle(svc: Any, quiet: float = 3.0, timeout: float = 30.0) -> None:
         m = svc._maps.get("default")
         refining = m is None or m.revision in svc._refining  # a coarse revision installed
         if now - since >= quiet and cpu < 0.4 and not refining:
+            break
+    # the goals' background critical-point searches (services/critical_search.py) hold the
+    # GIL in turns with the pose step: done before the window (a fleet with fixed goals)
+    from confnav.services.critical_search import CRITICAL_SEARCH
+
+    busy = None
+    while time.monotonic() < t_end + search_timeout:
+        cpu_s = _tasks().get(CRITICAL_SEARCH.name, 0.0)
+        if CRITICAL_SEARCH._jobs.empty() and cpu_s == busy:
             return
+        busy = cpu_s
+        time.sleep(1.0)
+    log_line = "critical-point searches still running after the settle timeout"
+    print(log_line, flush=True)
 
 
 def row(
@@ -182,6 +200,7 @@ def row(
     profile: bool,
     linger_ms: float = 0.0,
     gc_freeze: bool = False,
+    batch: bool = False,
 ) -> dict[str, Any]:
     from confnav.services.controller import ControllerService
     from confnav.services.neighbours import Neighbours
@@ -189,6 +208,7 @@ def row(
     timers = {k: _Timed(profile) for k in ("pose_step", "fleet_tracker", "publisher")}
     svc = ControllerService(ctl_bus, K, stale_after=2.0, idle_ttl=600.0, linger=linger_ms / 1e3)
     svc._on_poses = timers["pose_step"].wrap(svc._on_poses)  # type: ignore[method-assign]
+    svc._on_pose_batches = timers["pose_step"].wrap(svc._on_pose_batches)  # type: ignore[method-assign]
     svc._publish_loop = _timed_loop(timers["publisher"], svc._publish_loop)  # type: ignore[method-assign]
     orig = Neighbours._on_poses
     wrapped = timers["fleet_tracker"].wrap(orig)
@@ -213,7 +233,9 @@ def row(
             ctx = mp.get_context("spawn")
             q: Any = ctx.Queue()
             done = ctx.Event()
-            child = ctx.Process(target=play_robots, args=(ep, n, rate, ticks, warm, q, done, 0, 1))
+            child = ctx.Process(
+                target=play_robots, args=(ep, n, rate, ticks, warm, q, done, 0, 1, batch)
+            )
             child.start()
             poses0 = svc.counters["poses"]
             time.sleep(0.6 + warm / rate)  # the child's session and the warm-up second
@@ -248,6 +270,9 @@ def row(
     out: dict[str, Any] = {
         "robots": n,
         "rate_hz": rate,
+        # single: a Pose per robot at its own phase, a VelocityCommand each; batch: one
+        # PoseBatch per tick, answered with one CommandBatch (bench_services.play_robots)
+        "wire": "batch" if batch else "single",
         "seconds": seconds,
         # from sequence numbers (bench_services.account_poses): answered + superseded + lost
         # == sent exactly, never clamped
@@ -278,7 +303,9 @@ def row(
         ),
         # the pose thread's wait for a core, per s of the window (0.1: runnable but not running
         # 10 % of the time), and every thread's together: evidence of the machine's load
-        "pose_thread_run_delay_frac": (d1.get("latest", 0.0) - d0.get("latest", 0.0)) / wall,
+        "pose_thread_run_delay_frac": sum(
+            d1[k] - d0.get(k, 0.0) for k in d1 if k.startswith(POSE_THREADS)
+        ) / wall,
         "process_run_delay_frac": (sum(d1.values()) - sum(d0.get(k, 0.0) for k in d1)) / wall,
         "pose_step_calls": calls["pose_step"],
         "poses_per_step": commands / max(calls["pose_step"], 1),
@@ -422,6 +449,10 @@ def main() -> int:
     ap.add_argument("--out", default=str(RESULTS))
     ap.add_argument("--linger-ms", type=float, default=0.0, help="controller linger, ms")
     ap.add_argument("--gc-freeze", action="store_true", help="gc.freeze() once set up")
+    ap.add_argument(
+        "--wire", nargs="*", default=["single"], choices=["single", "batch"],
+        help="single: a Pose per robot; batch: one PoseBatch per tick (both: each row twice)",
+    )  # fmt: skip
     ap.add_argument("--switch-ms", type=float, default=None, help="sys.setswitchinterval, ms")
     ap.add_argument(
         "--codec", action="store_true", help="only decode/encode costs: controller_codec.json"
@@ -463,14 +494,15 @@ def main() -> int:
                        log=Path(tmp) / "transform.log")  # fmt: skip
             ctl_bus = ZenohBus(zenoh_config("client", connect=[ep]))
             try:
-                for n in args.robots:
+                for n, wire in [(n, w) for n in args.robots for w in args.wire]:
                     r = row(ep, ctl_bus, n, args.rate, args.seconds, args.profile,
-                            args.linger_ms, args.gc_freeze)  # fmt: skip
+                            args.linger_ms, args.gc_freeze, wire == "batch")  # fmt: skip
                     rows.append(r)
                     _write(args.out, rows)  # after every row: a cut run keeps its rows
                     th = r["thread_cpu_us_per_pose"]
                     print(
-                        f"{n:4d} robots @ {args.rate:g} Hz: answered {r['answered']}/{r['sent']}"
+                        f"{n:4d} robots @ {args.rate:g} Hz ({wire}): answered "
+                        f"{r['answered']}/{r['sent']}"
                         f" superseded {r['superseded']} lost {r['lost']}"
                         f" p50 {r['p50_ms']:.1f} ms p99 "
                         f"{r['p99_ms']:.1f} ms | CPU {r['process_cpu_pct']:.0f}% "
