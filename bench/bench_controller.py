@@ -155,6 +155,19 @@ def _run_delay() -> dict[str, float]:
     return out
 
 
+def wake_probe(seconds: float, period: float, out: Any) -> None:
+    """Child process: sleep ``period`` s again and again for ``seconds`` s and put how late
+    each wake-up came (ms): the scheduling delay every waking thread on this machine sees
+    (a pose arriving at the controller, a command at the robots), from the machine's load."""
+    late = []
+    t_end = time.monotonic() + seconds
+    while time.monotonic() < t_end:
+        t0 = time.monotonic()
+        time.sleep(period)
+        late.append((time.monotonic() - t0 - period) * 1e3)
+    out.put(late)
+
+
 def _settle(
     svc: Any, quiet: float = 3.0, timeout: float = 30.0, search_timeout: float = 240.0
 ) -> None:
@@ -232,6 +245,7 @@ def row(
             ticks = warm + int(seconds * rate)
             ctx = mp.get_context("spawn")
             q: Any = ctx.Queue()
+            q_probe: Any = ctx.Queue()
             done = ctx.Event()
             child = ctx.Process(
                 target=play_robots, args=(ep, n, rate, ticks, warm, q, done, 0, 1, batch)
@@ -244,6 +258,8 @@ def row(
             p0 = os.times()
             k0 = _tasks()
             d0 = _run_delay()
+            probe = ctx.Process(target=wake_probe, args=(seconds, 0.005, q_probe))
+            probe.start()
             poses_w0, sup0 = svc.counters["poses"], svc.counters["poses_superseded"]
             cmds0 = svc.counters["commands"]
             t0 = time.monotonic()
@@ -254,6 +270,8 @@ def row(
             p1 = os.times()
             k1 = _tasks()
             d1 = _run_delay()
+            wakes = np.asarray(q_probe.get(timeout=60))
+            probe.join(10)
             load1 = os.getloadavg()
             taken = svc.counters["poses"] - poses_w0
             superseded = svc.counters["poses_superseded"] - sup0
@@ -299,13 +317,16 @@ def row(
         "pose_path_cpu_us_per_pose": sum(
             (v - k0.get(k, 0.0)) / max(commands, 1) * 1e6
             for k, v in k1.items()
-            if not k.startswith(BACKGROUND)
+            if k.startswith(POSE_THREADS) or not k.startswith(BACKGROUND)
         ),
         # the pose thread's wait for a core, per s of the window (0.1: runnable but not running
         # 10 % of the time), and every thread's together: evidence of the machine's load
         "pose_thread_run_delay_frac": sum(
             d1[k] - d0.get(k, 0.0) for k in d1 if k.startswith(POSE_THREADS)
         ) / wall,
+        # how late a 5 ms sleep wakes up in a process of its own, during the window (ms)
+        "wake_late_p50_ms": float(np.percentile(wakes, 50)),
+        "wake_late_p99_ms": float(np.percentile(wakes, 99)),
         "process_run_delay_frac": (sum(d1.values()) - sum(d0.get(k, 0.0) for k in d1)) / wall,
         "pose_step_calls": calls["pose_step"],
         "poses_per_step": commands / max(calls["pose_step"], 1),
@@ -512,7 +533,9 @@ def main() -> int:
                         f"other {r['other_cpu_us_per_pose']:.0f}) {r['poses_per_step']:.1f} "
                         f"poses/step | run delay: pose thread "
                         f"{r['pose_thread_run_delay_frac']:.0%}, process "
-                        f"{r['process_run_delay_frac']:.2f} cores | load "
+                        f"{r['process_run_delay_frac']:.2f} cores; a 5 ms sleep wakes "
+                        f"{r['wake_late_p50_ms']:.1f}/{r['wake_late_p99_ms']:.1f} ms late "
+                        f"(p50/p99) | load "
                         f"{r['loadavg_start'][0]:.1f}",
                         flush=True,
                     )

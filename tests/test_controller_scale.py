@@ -163,3 +163,39 @@ def test_pose_batch_columns_must_match(change: dict[str, Any]) -> None:
     with pytest.raises(DecodeError) as exc:
         decode(PoseBatch, payload.encode())
     assert exc.value.reason == "invalid_input"
+
+
+def test_simulator_pose_batches_drive_robots_like_single_poses(mem_net: InMemoryNetwork) -> None:
+    """A simulator in ``pose_batch`` mode publishes one PoseBatch per step (no Pose), the
+    controller answers with one CommandBatch, and the simulator holds exactly those commands."""
+    from confnav.services.simulator import SimulatorService
+
+    ctl, _tr, cl = setup(mem_net)
+    robots = [("r1", "cd", 0.2, 0.5), ("r2", "cd", -0.1, -0.6)]
+    sim = SimulatorService(mem_net.bus("sim"), K, "s1", robots, pose_batch=True)
+    batches: list[PoseBatch] = []
+    singles: list[bytes] = []
+    watch = mem_net.bus("watch")
+    watch.subscribe(K.sim("s1", "poses"), lambda k, p: batches.append(decode(PoseBatch, p)))
+    watch.subscribe(K.any_robot("pose"), lambda k, p: singles.append(p))
+    sim._stop.set()  # no background loop: the test steps by hand
+    sim.start()
+    try:
+        goals = {r: cl.goal(r) for r, *_ in robots}
+        wait_for(lambda: ctl.counters["maps_installed"] and ctl.robot_state("r2") is not None)
+        sim.step(0.0)  # poses seq 0 at the spawn points
+        wait_for(lambda: sim.counters["commands"] == 2)
+        assert ctl.counters["pose_batches"] == 1 and ctl.counters["commands"] >= 2
+        with sim._lock:
+            held = {r: sim._robots[r].u for r, *_ in robots}
+        for rid, _ws, x, y in robots:
+            assert same(held[rid], expected_u(goals[rid], complex(x, y)))
+        sim.step(0.1)  # moves by u * dt
+        for rid, _ws, x, y in robots:
+            assert abs(sim.positions()[rid] - (complex(x, y) + 0.1 * held[rid])) < 1e-12
+        wait_for(lambda: len(batches) == 2)
+        assert batches[1].seq == [1, 1] and batches[1].robot_ids == ["r1", "r2"]
+        assert not singles
+    finally:
+        sim.stop()
+        ctl.stop()
