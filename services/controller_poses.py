@@ -82,8 +82,17 @@ class PosesMixin(ControllerCore):
                 self.count("poses_superseded", len(idx))
                 continue
             b = batch
-            rows = [BatchPose(b.robot_ids[j], b.stamps_ns[j], b.seq[j], b.x[j], b.y[j],
-                              b.theta[j]) for j in idx]  # fmt: skip
+            entries = [BatchPose(*e) for e in zip(b.robot_ids, b.stamps_ns, b.seq, b.x, b.y,
+                                                  b.theta, strict=True)]  # fmt: skip
+            rows = [entries[j] for j in idx]
+            nb = self.neighbours
+            if nb is not None:  # every robot of the batch is a neighbour (other shards' too);
+                # a fed tracker gets the driven robots' poses from the step
+                now = time.monotonic()
+                driven = set(idx) if nb.fed else set()
+                for j, e in enumerate(entries):
+                    if j not in driven:
+                        nb.note_pose(e.robot_id, e, now)  # type: ignore[arg-type]
             for s in range(0, len(rows), POSE_BLOCK):
                 with self._step_lock:
                     self._hold(self.keys.sim(sim, "cmd_vel"), sim)

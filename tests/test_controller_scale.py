@@ -199,3 +199,21 @@ def test_simulator_pose_batches_drive_robots_like_single_poses(mem_net: InMemory
     finally:
         sim.stop()
         ctl.stop()
+
+
+def test_every_robot_of_a_batch_is_a_neighbour_of_a_shard(mem_net: InMemoryNetwork) -> None:
+    """A shard answers its own robots, but the fleet filter sees every robot of the batch."""
+    ctl, _tr, cl = setup(mem_net, robots={"a1"})
+    sim = BatchClient(mem_net.bus("sim"))
+    try:
+        cl.goal("a1")
+        wait_for(lambda: ctl.counters["maps_installed"] and ctl.robot_state("a1") is not None)
+        assert ctl.neighbours is not None and not ctl.neighbours.fed
+        sim.poses([("a1", 1, 0.1, 0.5), ("b7", 1, 0.2, -0.4)])
+        assert wait_for(lambda: sim.answering(1)).robot_ids == ["a1"]
+        nb = ctl.neighbours
+        with nb._lock:
+            seen = {rid: complex(nb._z[i]) for rid, i in nb._slot.items()}
+        assert seen == {"a1": 0.1 + 0.5j, "b7": 0.2 - 0.4j}
+    finally:
+        ctl.stop()
