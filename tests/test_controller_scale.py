@@ -217,3 +217,32 @@ def test_every_robot_of_a_batch_is_a_neighbour_of_a_shard(mem_net: InMemoryNetwo
         assert seen == {"a1": 0.1 + 0.5j, "b7": 0.2 - 0.4j}
     finally:
         ctl.stop()
+
+
+def test_batches_are_recorded_with_their_schemas(mem_net: InMemoryNetwork, tmp_path: Any) -> None:
+    from confnav.schemas import schema_bytes
+    from confnav.services.recorder import Recorder
+    from test_services_recorder import read_all
+
+    path = tmp_path / "rec.mcap"
+    rec = Recorder(mem_net.bus("rec"), K, path, health_period=0)
+    rec.start()
+    pub = mem_net.bus("pub")
+    pb = PoseBatch(sim_id="s1", stamp_ns=10, robot_ids=["r1", "r2"], stamps_ns=[10, 10],
+                   seq=[3, 3], x=[0.1, 0.2], y=[0.0, 0.5], theta=[0.0, 1.0])  # fmt: skip
+    cb = CommandBatch(sim_id="s1", stamp_ns=11, robot_ids=["r2"], linear=[(0.1, 0.0)],
+                      angular=[0.0], pose_seq=[3], pose_stamp_ns=[10], map_revision=["x"],
+                      frame=["world"], chart=[None])  # fmt: skip
+    try:
+        pub.publish(K.sim("s1", "poses"), encode(pb))
+        pub.publish(K.sim("s1", "cmd_vel"), encode(cb))
+        wait_for(lambda: rec.recorded == 2)
+    finally:
+        rec.stop()
+    counts, msgs, _meta = read_all(path)
+    assert counts == {K.sim("s1", "poses"): 1, K.sim("s1", "cmd_vel"): 1}
+    got = {ch.topic: (schema, m.data) for schema, ch, m in msgs}
+    for key, msg in ((K.sim("s1", "poses"), pb), (K.sim("s1", "cmd_vel"), cb)):
+        schema, data = got[key]
+        assert schema.name == type(msg).TYPE and schema.data == schema_bytes(type(msg))
+        assert decode(type(msg), data) == msg
