@@ -246,3 +246,27 @@ def test_batches_are_recorded_with_their_schemas(mem_net: InMemoryNetwork, tmp_p
         schema, data = got[key]
         assert schema.name == type(msg).TYPE and schema.data == schema_bytes(type(msg))
         assert decode(type(msg), data) == msg
+
+
+def test_a_recording_of_pose_batches_replays_exactly(tmp_path: Any) -> None:
+    """The services with the simulator in ``pose_batch`` mode, recorded: every entry of every
+    recorded CommandBatch is recomputed by ``replay --check`` from its PoseBatch entry."""
+    from conftest import identity_loader
+    from test_replay_check import _make_golden
+
+    from confnav.recording.reader import Recording
+    from confnav.recording.replay_check import check_recording, parse_overrides
+
+    path = tmp_path / "batch.mcap"
+    _make_golden().run_pipeline(path, solver="fake", time_scale=4.0, pose_batch=True)
+    with Recording(path) as rec:
+        topics = {c.topic for c in rec.channels.values()}
+    assert K.sim("sim", "poses") in topics and K.sim("sim", "cmd_vel") in topics
+    assert not any(t.endswith("/pose") for t in topics)  # no single poses at all
+    report = check_recording(path, load_map=identity_loader)
+    assert report.ok, report.format()
+    assert report.checked >= 50 and set(report.per_robot) == {"r1", "r2"}
+    assert report.max_error <= 1e-12
+    changed = check_recording(path, load_map=identity_loader,
+                              overrides=parse_overrides(["gain=1.2"]))  # fmt: skip
+    assert not changed.ok and changed.mismatch_count > 0
