@@ -155,6 +155,29 @@ def _run_delay() -> dict[str, float]:
     return out
 
 
+class _GcPauses:
+    """Every garbage collection of this process while installed: generation and pause (s);
+    a full (generation 2) collection stops every Python thread, the pose step included."""
+
+    def __init__(self) -> None:
+        self.pauses: list[tuple[int, float]] = []
+        self._t = 0.0
+
+    def __call__(self, phase: str, info: dict[str, Any]) -> None:
+        if phase == "start":
+            self._t = time.perf_counter()
+        else:
+            self.pauses.append((int(info["generation"]), time.perf_counter() - self._t))
+
+    def summary(self) -> dict[str, Any]:
+        out: dict[str, Any] = {}
+        for g in (0, 1, 2):
+            d = [p for gen, p in self.pauses if gen == g]
+            out[f"gen{g}"] = {"count": len(d), "max_ms": max(d, default=0.0) * 1e3,
+                              "total_ms": sum(d) * 1e3}  # fmt: skip
+        return out
+
+
 def wake_probe(seconds: float, period: float, out: Any) -> None:
     """Child process: sleep ``period`` s again and again for ``seconds`` s and put how late
     each wake-up came (ms): the scheduling delay every waking thread on this machine sees
@@ -258,6 +281,8 @@ def row(
             p0 = os.times()
             k0 = _tasks()
             d0 = _run_delay()
+            gcp = _GcPauses()
+            gc.callbacks.append(gcp)
             probe = ctx.Process(target=wake_probe, args=(seconds, 0.005, q_probe))
             probe.start()
             poses_w0, sup0 = svc.counters["poses"], svc.counters["poses_superseded"]
@@ -270,6 +295,7 @@ def row(
             p1 = os.times()
             k1 = _tasks()
             d1 = _run_delay()
+            gc.callbacks.remove(gcp)
             wakes = np.asarray(q_probe.get(timeout=60))
             probe.join(10)
             load1 = os.getloadavg()
@@ -325,6 +351,8 @@ def row(
             d1[k] - d0.get(k, 0.0) for k in d1 if k.startswith(POSE_THREADS)
         ) / wall,
         # how late a 5 ms sleep wakes up in a process of its own, during the window (ms)
+        "gc_pauses": gcp.summary(),  # this process's collections in the window
+        "wake_late_max_ms": float(wakes.max()),
         "wake_late_p50_ms": float(np.percentile(wakes, 50)),
         "wake_late_p99_ms": float(np.percentile(wakes, 99)),
         "process_run_delay_frac": (sum(d1.values()) - sum(d0.get(k, 0.0) for k in d1)) / wall,
@@ -403,7 +431,7 @@ def step(
     on an in-memory bus (the real default map, ``n`` robots with their own goals, as in the
     rows), then ``rounds`` poses of every robot handed to the pose step in blocks of each size
     of ``blocks``: thread CPU per pose (repeatable; old and new code compare alternately)."""
-    from confnav.schemas import Pose
+    from confnav.schemas import Pose, PoseBatch, decode
     from confnav.services.bus import InMemoryNetwork
     from confnav.services.controller import ControllerService
     from confnav.services.transform import TransformService
@@ -453,6 +481,30 @@ def step(
                 print(f"{n} robots, blocks of {b:3d}: pose step "
                       f"{out[-1]['step_cpu_us_per_pose']:.1f} us CPU per pose ({done} "
                       f"commands) | load {load0[0]:.1f}", flush=True)  # fmt: skip
+            # the same poses as one PoseBatch per round (decode included)
+            batches = []
+            for _ in range(rounds):
+                ps = [decode(Pose, p) for _k, p in poses()]
+                batches.append((K.sim("bench", "poses"), encode(PoseBatch(
+                    sim_id="bench", stamp_ns=ps[0].stamp_ns, robot_ids=[p.robot_id for p in ps],
+                    stamps_ns=[p.stamp_ns for p in ps], seq=[p.seq for p in ps],
+                    x=[p.x for p in ps], y=[p.y for p in ps], theta=[p.theta for p in ps]))))
+            c0, load0 = svc.counters["commands"], os.getloadavg()
+            per_step = []
+            for item in batches:
+                t1 = time.thread_time()
+                svc._on_pose_batches([item])
+                per_step.append(time.thread_time() - t1)
+            cpu = sum(per_step)
+            done = svc.counters["commands"] - c0
+            out.append({"robots": n, "block": "batch", "poses": n * rounds, "commands": done,
+                        "step_cpu_us_per_pose": cpu / max(n * rounds, 1) * 1e6,
+                        "step_cpu_ms": [round(t * 1e3, 2) for t in per_step],
+                        "loadavg_start": list(load0), "loadavg_end": list(os.getloadavg())})
+            print(f"{n} robots, one PoseBatch: pose step "
+                  f"{out[-1]['step_cpu_us_per_pose']:.1f} us CPU per pose ({done} "
+                  f"commands), ms per step {out[-1]['step_cpu_ms']} | load {load0[0]:.1f}",
+                  flush=True)
             return out
         finally:
             svc.stop()
@@ -470,6 +522,8 @@ def main() -> int:
     ap.add_argument("--out", default=str(RESULTS))
     ap.add_argument("--linger-ms", type=float, default=0.0, help="controller linger, ms")
     ap.add_argument("--gc-freeze", action="store_true", help="gc.freeze() once set up")
+    ap.add_argument("--blocks", type=int, nargs="*", default=[5, 20, 50],
+                    help="--step: block sizes of single poses (then one PoseBatch)")  # fmt: skip
     ap.add_argument(
         "--wire", nargs="*", default=["single"], choices=["single", "batch"],
         help="single: a Pose per robot; batch: one PoseBatch per tick (both: each row twice)",
@@ -486,7 +540,7 @@ def main() -> int:
     if args.step:
         out = RESULTS.with_name("controller_step.json") if args.out == str(RESULTS) else args.out
         os.environ.setdefault("OMP_NUM_THREADS", "1")
-        rows = step(args.robots[0] if len(args.robots) == 1 else 200)
+        rows = step(args.robots[0] if len(args.robots) == 1 else 200, tuple(args.blocks))
         doc = {"about": "the pose step alone, in process (bench_controller.py --step)",
                "commit": commit(), "date": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
                "command": " ".join(sys.argv), "rows": rows}  # fmt: skip
@@ -540,6 +594,8 @@ def main() -> int:
                         flush=True,
                     )
                     print("  threads (us/pose):", r["threads_cpu_us_per_pose"], flush=True)
+                    print("  gc:", r["gc_pauses"], "| 5 ms sleep late max",
+                          f"{r['wake_late_max_ms']:.1f} ms", flush=True)  # fmt: skip
                     if args.profile:
                         for k, text in r["profile"].items():
                             print(f"--- {k} ---\n{text}")
