@@ -8,6 +8,7 @@ import logging
 import queue
 import threading
 import time
+import zlib
 from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -383,7 +384,12 @@ class ControllerCore(Service):
         if skey[:2] != r.status_key[:2]:  # a new state or reason: worth a line in the log
             log.info("robot %r: %s (%s)%s", r.robot_id, state, reason,
                      f": {message}" if message else "")  # fmt: skip
-        r.status_key, r.status_t = skey, now
+        t = now
+        if skey != r.status_key:  # the periodic repeats of robots that changed state in one
+            # step are spread over the period (each robot at its own phase), so that no step
+            # publishes every robot's status at once (docs/SERVICES.md, "Scale")
+            t -= (zlib.crc32(r.robot_id.encode()) % 1024) / 1024 * self.status_period
+        r.status_key, r.status_t = skey, t
         dist = None
         if r.position is not None and r.goal is not None:
             dx, dy = r.position[0] - r.goal.goal[0], r.position[1] - r.goal.goal[1]
