@@ -155,6 +155,49 @@ def _run_delay() -> dict[str, float]:
     return out
 
 
+def _cpu_ticks() -> tuple[int, int]:
+    """(busy, steal) clock ticks of the whole machine so far (``/proc/stat``, all cores):
+    busy = user + nice + system + irq + softirq; steal = time the hypervisor ran others."""
+    f = [int(v) for v in Path("/proc/stat").read_text().split("\n", 1)[0].split()[1:]]
+    return f[0] + f[1] + f[2] + f[5] + f[6], f[7]
+
+
+class _BatchSteps:
+    """Each pose-batch step: how old the batch was when the step began (its ``stamp_ns`` to the
+    handler: Zenoh, the router, waiting for the thread), the step's wall time and its thread
+    CPU time (ms). Wall minus CPU is the step's wait for a core or the GIL."""
+
+    def __init__(self, fn: Callable[[list[tuple[str, bytes]]], None]) -> None:
+        self.fn = fn
+        self.rows: list[tuple[float, float, float]] = []
+        self.on = False
+
+    def __call__(self, items: list[tuple[str, bytes]]) -> None:
+        t_ns, w0, c0 = time.time_ns(), time.perf_counter(), time.thread_time()
+        self.fn(items)
+        if self.on and items:
+            payload = items[-1][1]
+            i = payload.index(b'"stamp_ns":') + 11
+            stamp = int(payload[i : payload.index(b",", i)])
+            self.rows.append(((t_ns - stamp) / 1e6, (time.perf_counter() - w0) * 1e3,
+                              (time.thread_time() - c0) * 1e3))  # fmt: skip
+
+    def summary(self) -> dict[str, Any]:
+        """Percentiles of each part, and the parts of the slowest 2 % of the steps (by age
+        plus wall time: the latency of their commands up to the publisher)."""
+        if not self.rows:
+            return {}
+        a = np.asarray(self.rows)
+        tot = a[:, 0] + a[:, 1]
+        worst = a[np.argsort(tot)[-max(1, len(tot) // 50) :]]
+        out: dict[str, Any] = {"steps": len(a)}
+        for j, name in enumerate(("age_ms", "wall_ms", "cpu_ms")):
+            out[name] = {"p50": float(np.percentile(a[:, j], 50)),
+                         "p99": float(np.percentile(a[:, j], 99)),
+                         "worst_2pct_mean": float(worst[:, j].mean())}  # fmt: skip
+        return out
+
+
 class _GcPauses:
     """Every garbage collection of this process while installed: generation and pause (s);
     a full (generation 2) collection stops every Python thread, the pose step included."""
@@ -244,7 +287,8 @@ def row(
     timers = {k: _Timed(profile) for k in ("pose_step", "fleet_tracker", "publisher")}
     svc = ControllerService(ctl_bus, K, stale_after=2.0, idle_ttl=600.0, linger=linger_ms / 1e3)
     svc._on_poses = timers["pose_step"].wrap(svc._on_poses)  # type: ignore[method-assign]
-    svc._on_pose_batches = timers["pose_step"].wrap(svc._on_pose_batches)  # type: ignore[method-assign]
+    steps = _BatchSteps(timers["pose_step"].wrap(svc._on_pose_batches))
+    svc._on_pose_batches = steps  # type: ignore[method-assign]
     svc._publish_loop = _timed_loop(timers["publisher"], svc._publish_loop)  # type: ignore[method-assign]
     orig = Neighbours._on_poses
     wrapped = timers["fleet_tracker"].wrap(orig)
@@ -281,8 +325,10 @@ def row(
             p0 = os.times()
             k0 = _tasks()
             d0 = _run_delay()
+            m0 = _cpu_ticks()
             gcp = _GcPauses()
             gc.callbacks.append(gcp)
+            steps.on = True
             probe = ctx.Process(target=wake_probe, args=(seconds, 0.005, q_probe))
             probe.start()
             poses_w0, sup0 = svc.counters["poses"], svc.counters["poses_superseded"]
@@ -295,7 +341,9 @@ def row(
             p1 = os.times()
             k1 = _tasks()
             d1 = _run_delay()
+            m1 = _cpu_ticks()
             gc.callbacks.remove(gcp)
+            steps.on = False
             wakes = np.asarray(q_probe.get(timeout=60))
             probe.join(10)
             load1 = os.getloadavg()
@@ -350,8 +398,12 @@ def row(
         "pose_thread_run_delay_frac": sum(
             d1[k] - d0.get(k, 0.0) for k in d1 if k.startswith(POSE_THREADS)
         ) / wall,
-        # how late a 5 ms sleep wakes up in a process of its own, during the window (ms)
+        # the whole machine's busy cores (every process, this bench's included) and stolen ones
+        "machine_busy_cores": (m1[0] - m0[0]) / os.sysconf("SC_CLK_TCK") / wall,
+        "machine_steal_cores": (m1[1] - m0[1]) / os.sysconf("SC_CLK_TCK") / wall,
         "gc_pauses": gcp.summary(),  # this process's collections in the window
+        "batch_steps": steps.summary(),  # pose batches only
+        # how late a 5 ms sleep wakes up in a process of its own, during the window (ms)
         "wake_late_max_ms": float(wakes.max()),
         "wake_late_p50_ms": float(np.percentile(wakes, 50)),
         "wake_late_p99_ms": float(np.percentile(wakes, 99)),
@@ -590,11 +642,13 @@ def main() -> int:
                         f"{r['pose_thread_run_delay_frac']:.0%}, process "
                         f"{r['process_run_delay_frac']:.2f} cores; a 5 ms sleep wakes "
                         f"{r['wake_late_p50_ms']:.1f}/{r['wake_late_p99_ms']:.1f} ms late "
-                        f"(p50/p99) | load "
+                        f"(p50/p99); machine {r['machine_busy_cores']:.2f} cores busy | load "
                         f"{r['loadavg_start'][0]:.1f}",
                         flush=True,
                     )
                     print("  threads (us/pose):", r["threads_cpu_us_per_pose"], flush=True)
+                    if r["batch_steps"]:
+                        print("  batch steps (ms):", json.dumps(r["batch_steps"]), flush=True)
                     print("  gc:", r["gc_pauses"], "| 5 ms sleep late max",
                           f"{r['wake_late_max_ms']:.1f} ms", flush=True)  # fmt: skip
                     if args.profile:
