@@ -1,7 +1,7 @@
 """The controller's hot path, in process (issue 25 item 5): CPU per pose and where it goes.
 
     python bench/bench_controller.py [--robots 50 100 200 400] [--rate 20] [--seconds 5]
-                                     [--profile] [--out FILE.json]
+                                     [--wire single batch] [--profile] [--out FILE.json]
     python bench/bench_controller.py --step [--robots 200]   # the pose step alone, no Zenoh
 
 One ``ControllerService`` runs in this process on its own session; a Zenoh router (``confnav
@@ -9,7 +9,9 @@ serve router``, as deployed: its routing is not the controller's CPU) and a tran
 (``confnav serve transform``, the default workspace) each in its own process; one child process
 plays the robots exactly as ``bench services`` does (``play_robots``: poses at ``--rate`` Hz
 per robot at independent phases, commands received, latency = command receipt - the answered
-pose's stamp). Every robot has its own goal (``own`` mode).
+pose's stamp). Every robot has its own goal (``own`` mode). ``--wire batch``: the robots are
+played as one simulator stepping them all at once, one ``PoseBatch`` per tick answered by one
+``CommandBatch`` (optional messages, docs/SERVICES.md "Scale"); each row names its wire.
 
 Per row: poses answered, latency p50/p99, and the controller process's CPU time divided by the
 poses it took (``cpu_us_per_pose``) -- less sensitive to the machine's load than latency --
@@ -69,6 +71,10 @@ BACKGROUND = ("critical-points", "sub:", "controller:fetch", "controller:watchdo
 """Threads whose work is not the poses' (``pose_path_cpu_us_per_pose`` leaves them out): the
 background critical-point searches of new goals (services/critical_search.py), map installs
 (``sub:``), map fetches, the watchdog and this harness's waiting."""
+# Besides, per row: the pose threads' and the process's wait for a core (schedstat run delay),
+# the machine's busy and stolen cores (/proc/stat), how late a 5 ms sleep wakes up in a process
+# of its own (wake_probe), this process's GC pauses, and for pose batches each step's age,
+# wall and CPU time (the slowest 2 %: wall far above CPU is waiting for a core).
 
 
 class _Timed:
