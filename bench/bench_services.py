@@ -126,13 +126,28 @@ def robots_of(part: int, parts: int, n: int) -> list[int]:
 
 
 def play_robots(
-    ep: str, n: int, rate: float, ticks: int, warm: int, out: Any, done: Any, part: int, parts: int
+    ep: str,
+    n: int,
+    rate: float,
+    ticks: int,
+    warm: int,
+    out: Any,
+    done: Any,
+    part: int,
+    parts: int,
+    batch: bool = False,
 ) -> None:
     """Child process playing robots ``robots_of(part, parts, n)`` like real robots would: it
     publishes their poses at ``rate`` Hz for ``ticks`` ticks, each robot at its own phase
     (robot i at i/N of the period: independent robots, not one burst), and receives their
     commands (only its zones' ``cmd_vel`` keys) until ``done`` is set. Puts ``{"late"}`` when
-    the poses are out, then the latencies and the answered count."""
+    the poses are out, then the latencies and the answered count. ``batch``: like a simulator
+    that steps all its robots at once, one ``PoseBatch`` per tick on ``{prefix}/sim/{sim}/poses``
+    (simulator ``bench{part}``, every robot stamped at the tick) and the commands as
+    ``CommandBatch`` on ``{prefix}/sim/{sim}/cmd_vel``."""
+    if batch:
+        _play_batch(ep, n, rate, ticks, warm, out, done, part, parts)
+        return
     mine = robots_of(part, parts, n)
     ids = [robot_id(i) for i in mine]
     allpts = free_points(n)
@@ -160,6 +175,46 @@ def play_robots(
                     f'"theta":0.0}}'
                 ).encode()
                 bus.publish(key, payload)
+        out.put({"part": part, "late": late})
+        done.wait(300)
+        with cmds.lock:
+            lat = np.array(cmds.lat_ns, dtype=np.int64)
+            counts = account_poses(set(cmds.seen), ids, warm, ticks)
+        out.put({"part": part, "lat_ns": lat, **counts})
+
+
+def _play_batch(
+    ep: str, n: int, rate: float, ticks: int, warm: int, out: Any, done: Any, part: int, parts: int
+) -> None:
+    """:func:`play_robots` with one ``PoseBatch`` per tick (see there)."""
+    mine = robots_of(part, parts, n)
+    ids = [robot_id(i) for i in mine]
+    allpts = free_points(n)
+    xs = [repr(allpts[i].real) for i in mine]
+    ys = [repr(allpts[i].imag) for i in mine]
+    sim = f"bench{part}"
+    key = K.sim(sim, "poses")
+    period = 1.0 / rate
+    late = 0
+    head = f'{{"type":"confnav.PoseBatch","schema_version":1,"sim_id":"{sim}","stamp_ns":'
+    id_col = ",".join(f'"{r}"' for r in ids)
+    xy = f'"x":[{",".join(xs)}],"y":[{",".join(ys)}],"theta":[{",".join(["0.0"] * len(ids))}]'
+    with connect(ep) as bus:
+        cmds = Commands(bus, warm, [K.sim(sim, "cmd_vel")], batch=True)
+        time.sleep(0.5)
+        t0 = time.monotonic() + 0.1
+        for seq in range(ticks):
+            delay = t0 + seq * period - time.monotonic()
+            if delay > 0:
+                time.sleep(delay)
+            elif delay < -period:
+                late += len(ids)
+            t = time.time_ns()
+            payload = (
+                f'{head}{t},"robot_ids":[{id_col}],"stamps_ns":[{",".join([str(t)] * len(ids))}],'
+                f'"seq":[{",".join([str(seq)] * len(ids))}],{xy}}}'
+            ).encode()
+            bus.publish(key, payload)
         out.put({"part": part, "late": late})
         done.wait(300)
         with cmds.lock:
@@ -196,12 +251,27 @@ def account_poses(
 class Commands:
     """Receives the commands: latency = receipt - the answered pose's own stamp (one clock)."""
 
-    def __init__(self, bus: ZenohBus, first_seq: int, keyexprs: list[str]) -> None:
+    def __init__(
+        self, bus: ZenohBus, first_seq: int, keyexprs: list[str], batch: bool = False
+    ) -> None:
         self.first_seq = first_seq
         self.lock = threading.Lock()
         self.lat_ns: list[int] = []
         self.seen: set[tuple[str, int]] = set()
-        self.subs = [bus.subscribe_batch(e, self._on_cmds) for e in keyexprs]
+        on = self._on_batches if batch else self._on_cmds
+        self.subs = [bus.subscribe_batch(e, on) for e in keyexprs]
+
+    def _on_batches(self, items: list[tuple[str, bytes]]) -> None:
+        """``CommandBatch`` messages: each entry as one command."""
+        now = time.time_ns()
+        with self.lock:
+            for _key, payload in items:
+                c = json.loads(payload)
+                for rid, seq, st in zip(c["robot_ids"], c["pose_seq"], c["pose_stamp_ns"],
+                                        strict=True):  # fmt: skip
+                    if seq >= self.first_seq and rid.startswith("z"):
+                        self.lat_ns.append(now - st)
+                        self.seen.add((rid, seq))
 
     def _on_cmds(self, items: list[tuple[str, bytes]]) -> None:
         now = time.time_ns()

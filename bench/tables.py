@@ -214,27 +214,36 @@ def fleet_table(docs: list[dict[str, Any]]) -> str:
 def controller_table(docs: list[dict[str, Any]]) -> str:
     """``bench_controller.py``'s throughput curve: poses answered, latency, the controller
     process's CPU per pose, without its background work (pose path: older files have none)
-    and the pose step's, per robot count."""
+    and the pose step's, per robot count and wire (a ``Pose`` per robot or one ``PoseBatch``
+    per tick; older files: single), with how late a 5 ms sleep woke up meanwhile (the
+    machine's scheduling delay) and the machine's busy cores, every process's (older files
+    have neither)."""
     (doc,) = docs
     rows = doc.get("rows")
     if not isinstance(rows, list):
         raise TableError("not a controller results file (no 'rows')")
     lines = [
-        "| robots | answered | superseded | lost | p50 ms | p99 ms | process CPU | us CPU / pose "
-        "| pose path us / pose | pose step us / pose | poses / step | load |",
-        "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+        "| robots | wire | answered | superseded | lost | p50 ms | p99 ms | process CPU "
+        "| us CPU / pose | pose path us / pose | pose step us / pose | poses / step "
+        "| 5 ms sleep late p99 ms | machine busy cores | load |",
+        "|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for r in rows:
         load = r.get("loadavg_start")
         p = r.get("pose_path_cpu_us_per_pose")
         path = "-" if p is None else f"{p:.0f}"
+        wake = r.get("wake_late_p99_ms")
+        busy = r.get("machine_busy_cores")
         lines.append(
-            f"| {r['robots']} | {r['answered']} / {r['sent']} | {r['superseded']} "
+            f"| {r['robots']} | {r.get('wire', 'single')} | {r['answered']} / {r['sent']} "
+            f"| {r['superseded']} "
             f"| {r.get('lost', '-')} | {_num(r['p50_ms'])} | {_num(r['p99_ms'])} "
             f"| {r['process_cpu_pct']:.0f} % "
             f"| {r['cpu_us_per_pose']:.0f} | {path} "
             f"| {r['thread_cpu_us_per_pose']['pose_step']:.0f} "
             f"| {r['poses_per_step']:.1f} "
+            f"| {'-' if wake is None else _num(wake)} "
+            f"| {'-' if busy is None else f'{busy:.2f}'} "
             f"| {f'{load[0]:.1f}' if isinstance(load, list) else '-'} |"
         )
     return "\n".join(lines) + "\n"

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 from typing import Annotated, ClassVar, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, JsonValue, StringConstraints
+from pydantic import BaseModel, ConfigDict, Field, JsonValue, StringConstraints, model_validator
 
 from confnav.navigation import defaults
 
@@ -408,3 +408,94 @@ class Movers(Message):
     ws_id: Id
     stamp_ns: TimeNs
     movers: Annotated[list[MoverDisk], Field(max_length=MAX_MOVERS)] = []
+
+
+MAX_BATCH = 4096
+"""Most robots in one :class:`PoseBatch` or :class:`CommandBatch`."""
+Seq = Annotated[int, Field(ge=0)]
+
+
+def _same_lengths(m: BaseModel, columns: tuple[str, ...]) -> None:
+    n = len(getattr(m, columns[0]))
+    bad = [c for c in columns[1:] if len(getattr(m, c)) != n]
+    if bad:
+        raise ValueError(f"columns {', '.join(bad)} do not have {n} entries as {columns[0]}")
+    ids = getattr(m, columns[0])
+    if len(set(ids)) != n:
+        raise ValueError(f"{columns[0]}: a robot appears more than once")
+
+
+class PoseBatch(Message):
+    """The poses of many robots at one instant, on ``{prefix}/sim/{sim}/poses`` (optional: a
+    simulator that steps all its robots at once publishes one message per step instead of one
+    :class:`Pose` per robot; docs/SERVICES.md, "Scale"). Columns of equal length: entry ``i``
+    is ``Pose(robot_id=robot_ids[i], stamp_ns=stamps_ns[i], seq=seq[i], x=x[i], y=y[i],
+    theta=theta[i])``; a robot appears at most once. A controller answers the robots it drives
+    with one :class:`CommandBatch` on ``{prefix}/sim/{sim}/cmd_vel``."""
+
+    TYPE: ClassVar[str] = "confnav.PoseBatch"
+    type: Literal["confnav.PoseBatch"] = "confnav.PoseBatch"
+    schema_version: Literal[1] = 1
+    sim_id: Id
+    stamp_ns: TimeNs
+    robot_ids: Annotated[list[Id], Field(max_length=MAX_BATCH)]
+    stamps_ns: Annotated[list[TimeNs], Field(max_length=MAX_BATCH)]
+    seq: Annotated[list[Seq], Field(max_length=MAX_BATCH)]
+    x: Annotated[list[Finite], Field(max_length=MAX_BATCH)]
+    y: Annotated[list[Finite], Field(max_length=MAX_BATCH)]
+    theta: Annotated[list[Finite], Field(max_length=MAX_BATCH)]
+
+    @model_validator(mode="after")
+    def _columns(self) -> PoseBatch:
+        _same_lengths(self, ("robot_ids", "stamps_ns", "seq", "x", "y", "theta"))
+        return self
+
+    def poses(self) -> list[Pose]:
+        """The batch's entries as :class:`Pose` messages, in order."""
+        return [
+            Pose(robot_id=r, stamp_ns=t, seq=q, x=x, y=y, theta=th)
+            for r, t, q, x, y, th in zip(
+                self.robot_ids, self.stamps_ns, self.seq, self.x, self.y, self.theta, strict=True
+            )
+        ]
+
+
+class CommandBatch(Message):
+    """A controller's answers to one :class:`PoseBatch`, on ``{prefix}/sim/{sim}/cmd_vel``
+    (optional, see :class:`PoseBatch`). Columns of equal length: entry ``i`` is
+    ``VelocityCommand(robot_id=robot_ids[i], stamp_ns=stamp_ns, linear=linear[i],
+    angular=angular[i], pose_seq=pose_seq[i], pose_stamp_ns=pose_stamp_ns[i],
+    map_revision=map_revision[i], frame=frame[i], chart=chart[i])``; a robot appears at most
+    once. Several controllers (shards) each answer their own robots."""
+
+    TYPE: ClassVar[str] = "confnav.CommandBatch"
+    type: Literal["confnav.CommandBatch"] = "confnav.CommandBatch"
+    schema_version: Literal[1] = 1
+    sim_id: Id
+    stamp_ns: TimeNs
+    robot_ids: Annotated[list[Id], Field(max_length=MAX_BATCH)]
+    linear: Annotated[list[Point], Field(max_length=MAX_BATCH)]
+    angular: Annotated[list[Finite], Field(max_length=MAX_BATCH)]
+    pose_seq: Annotated[list[Annotated[int, Field(ge=-1)]], Field(max_length=MAX_BATCH)]
+    pose_stamp_ns: Annotated[list[TimeNs], Field(max_length=MAX_BATCH)]
+    map_revision: Annotated[list[str | None], Field(max_length=MAX_BATCH)]
+    frame: Annotated[list[Literal["world", "body"]], Field(max_length=MAX_BATCH)]
+    chart: Annotated[list[Annotated[int, Field(ge=0)] | None], Field(max_length=MAX_BATCH)]
+
+    @model_validator(mode="after")
+    def _columns(self) -> CommandBatch:
+        cols = ("robot_ids", "linear", "angular", "pose_seq", "pose_stamp_ns", "map_revision",
+                "frame", "chart")  # fmt: skip
+        _same_lengths(self, cols)
+        return self
+
+    def commands(self) -> list[VelocityCommand]:
+        """The batch's entries as :class:`VelocityCommand` messages, in order."""
+        return [
+            VelocityCommand(robot_id=r, stamp_ns=self.stamp_ns, linear=lin, angular=a,
+                            pose_seq=q, pose_stamp_ns=t, map_revision=rev, frame=f, chart=c)
+            for r, lin, a, q, t, rev, f, c in zip(
+                self.robot_ids, self.linear, self.angular, self.pose_seq, self.pose_stamp_ns,
+                self.map_revision, self.frame, self.chart, strict=True,
+            )
+        ]  # fmt: skip

@@ -9,11 +9,13 @@ from typing import Any, TypeVar
 from confnav.schemas.messages import (
     AtlasIndex,
     CollisionEvent,
+    CommandBatch,
     Goal,
     GoalCancel,
     Message,
     Movers,
     Pose,
+    PoseBatch,
     RobotStatus,
     ServiceHealth,
     SimControl,
@@ -44,6 +46,8 @@ MESSAGE_MODELS: tuple[type[Message], ...] = (
     ServiceHealth,
     AtlasIndex,
     Movers,
+    PoseBatch,
+    CommandBatch,
 )
 MODELS_BY_TYPE: dict[str, type[Message]] = {m.TYPE: m for m in MESSAGE_MODELS}
 
@@ -63,6 +67,8 @@ MODEL_BY_KEY_KIND: dict[tuple[str, str], type[Message]] = {
     ("robot", "collision"): CollisionEvent,
     ("sim", "spawn"): SpawnRequest,
     ("sim", "control"): SimControl,
+    ("sim", "poses"): PoseBatch,
+    ("sim", "cmd_vel"): CommandBatch,
     ("health", "*"): ServiceHealth,
 }
 
@@ -72,6 +78,8 @@ MAX_BYTES: dict[type[Message], int] = {
     WorkspaceDefinition: 2 * 1024 * 1024,
     TransformSolution: 64 * 1024 * 1024,
     AtlasIndex: 16 * 1024 * 1024,
+    PoseBatch: 2 * 1024 * 1024,  # MAX_BATCH entries of about 150 bytes
+    CommandBatch: 2 * 1024 * 1024,
 }
 
 

@@ -89,6 +89,8 @@ class ControllerService(MapsMixin, GoalsMixin, PosesMixin, WatchdogMixin):
                     linger=self.linger,
                 )
             )
+        # a simulator's poses all at once (optional PoseBatch; answered with a CommandBatch)
+        self._handles.append(self.bus.subscribe_batch(k.any_sim("poses"), self._on_pose_batches))
         self.neighbours = attach_neighbours(self)  # fleet hook: every robot's pose, movers
         self.spawn(self._fetch_loop, "fetch")
         self.spawn(self._watchdog_loop, "watchdog")

@@ -1,25 +1,43 @@
 """The controller service's hot path: the batched pose step. Poses arrive in batches (the newest
 per robot), are decoded in blocks of ``POSE_BLOCK``, grouped by controller and evaluated with one
 vectorized control-law call per group (``fleet_step`` for the world-frame robots of one map),
-and their commands published in order."""
+and their commands published in order.
+
+A simulator that steps all its robots at once may publish one :class:`~confnav.schemas.PoseBatch`
+per step on ``{prefix}/sim/{sim}/poses`` instead of a ``Pose`` per robot: its poses are decoded
+with one validation, go through the same step, and the commands to them go out as one
+:class:`~confnav.schemas.CommandBatch` on ``{prefix}/sim/{sim}/cmd_vel`` (one message each way
+per step instead of one per robot: docs/SERVICES.md, "Scale")."""
 
 from __future__ import annotations
 
 import logging
 import time
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
-from confnav.schemas import DecodeError, Pose, decode
+from confnav.schemas import DecodeError, Pose, PoseBatch, decode
 from confnav.services import navigation
 from confnav.services.controller_footprint import off_shrunk
-from confnav.services.controller_state import POSE_BLOCK, ControllerCore, _Robot
+from confnav.services.controller_state import POSE_BLOCK, ControllerCore, PoseLike, _Robot
 from confnav.services.keys import KeyError_
 
 from confnav.navigation.control import Controller
 from confnav.navigation.fleet import fleet_step
 
 log = logging.getLogger(__name__)
+
+
+class BatchPose(NamedTuple):
+    """One entry of a :class:`~confnav.schemas.PoseBatch` (the fields of a ``Pose`` the step
+    reads; a tuple, not a validated model: the batch was validated as a whole)."""
+
+    robot_id: str
+    stamp_ns: int
+    seq: int
+    x: float
+    y: float
+    theta: float
 
 
 class PosesMixin(ControllerCore):
@@ -35,11 +53,67 @@ class PosesMixin(ControllerCore):
                 self.count("poses_superseded", len(items) - len(newest))
                 items = [items[i] for i in sorted(newest.values())]
         for s in range(0, len(items), POSE_BLOCK):
-            self._hold()  # the block's messages go to the publisher in one piece
+            with self._step_lock:  # one step at a time (pose batches: another thread)
+                self._hold()  # the block's messages go to the publisher in one piece
+                try:
+                    self._pose_block(items[s : s + POSE_BLOCK])
+                finally:
+                    self._release()
+
+    def _on_pose_batches(self, items: list[tuple[str, bytes]]) -> None:
+        """Waiting :class:`~confnav.schemas.PoseBatch` messages: the newest of each simulator
+        is answered (one step, one ``CommandBatch``), older ones are superseded."""
+        newest = {key: i for i, (key, _) in enumerate(items)}
+        for i, (key, payload) in enumerate(items):
             try:
-                self._pose_block(items[s : s + POSE_BLOCK])
-            finally:
-                self._release()
+                sim = self.keys.parse(key).ident
+                batch = decode(PoseBatch, payload)
+                if batch.sim_id != sim:
+                    raise DecodeError("invalid_input", f"batch on {key} names {batch.sim_id!r}")
+            except (KeyError_, DecodeError) as exc:
+                self.count("rejected")
+                log.debug("rejected pose batch on %s: %s", key, exc)
+                continue
+            only = self.only
+            idx = [j for j, rid in enumerate(batch.robot_ids) if only is None or rid in only]
+            self.count("pose_batches")
+            self.count("poses", len(idx))
+            if newest[key] != i:  # a newer batch of this simulator waits: it is answered
+                self.count("poses_superseded", len(idx))
+                continue
+            b = batch
+            entries = [BatchPose(*e) for e in zip(b.robot_ids, b.stamps_ns, b.seq, b.x, b.y,
+                                                  b.theta, strict=True)]  # fmt: skip
+            rows = [entries[j] for j in idx]
+            nb = self.neighbours
+            if nb is not None:  # every robot of the batch is a neighbour (other shards' too);
+                # a fed tracker gets the driven robots' poses from the step
+                now = time.monotonic()
+                driven = set(idx) if nb.fed else set()
+                for j, e in enumerate(entries):
+                    if j not in driven:
+                        nb.note_pose(e.robot_id, e, now)  # type: ignore[arg-type]
+            for s in range(0, len(rows), POSE_BLOCK):
+                with self._step_lock:
+                    self._hold(self.keys.sim(sim, "cmd_vel"), sim)
+                    try:
+                        self._pose_rows(rows[s : s + POSE_BLOCK])
+                    finally:
+                        self._release()
+
+    def _pose_rows(self, poses: list[BatchPose]) -> None:
+        """The step of a pose batch's entries (decoded already)."""
+        now = time.monotonic()
+        rows: list[tuple[_Robot, PoseLike]] = []
+        robots = self._robots
+        for pose in poses:
+            r = robots.get(pose.robot_id)
+            if r is None:
+                r = self._robot(pose.robot_id)
+                if r is None:
+                    continue
+            rows.append((r, pose))
+        self._step(rows, now)
 
     def _rid_of(self, key: str) -> str | None:
         """Robot id of a pose key (cached: the hot path parses each key once)."""
@@ -56,9 +130,7 @@ class PosesMixin(ControllerCore):
     def _pose_block(self, items: list[tuple[str, bytes]]) -> None:
         """Decode, one vectorized control-law call per shared controller, publish."""
         now = time.monotonic()
-        groups: dict[int, tuple[navigation.ControllerLike, list[tuple[_Robot, Pose]]]] = {}
-        nb = self.neighbours
-        nb_fed = nb is not None and nb.fed
+        rows: list[tuple[_Robot, PoseLike]] = []
         robots = self._robots
         for key, payload in items:
             rid = self._rid_of(key)
@@ -74,8 +146,6 @@ class PosesMixin(ControllerCore):
                 pose = decode(Pose, payload)
                 if pose.robot_id != rid:
                     raise DecodeError("invalid_input", f"pose on {key} names {pose.robot_id!r}")
-                if nb_fed:  # the fleet filter's view of every robot (services/neighbours.py)
-                    nb.note_pose(rid, pose, now)  # type: ignore[union-attr]
             except DecodeError as exc:
                 self.count("rejected")
                 reason = "nan_input" if exc.reason == "nan_input" else "invalid_input"
@@ -85,6 +155,18 @@ class PosesMixin(ControllerCore):
                         r.last_pose_t = now  # the robot is alive, but its input is unusable
                         self._stop_robot(r, reason, str(exc), now)
                 continue
+            rows.append((r, pose))
+        self._step(rows, now)
+
+    def _step(self, rows: list[tuple[_Robot, PoseLike]], now: float) -> None:
+        """The decoded poses of a block: fresh ones of robots with a goal get one vectorized
+        control-law call per shared controller; every command is published."""
+        groups: dict[int, tuple[navigation.ControllerLike, list[tuple[_Robot, PoseLike]]]] = {}
+        nb = self.neighbours
+        nb_fed = nb is not None and nb.fed
+        for r, pose in rows:
+            if nb_fed:  # the fleet filter's view of every robot (services/neighbours.py)
+                nb.note_pose(r.robot_id, pose, now)  # type: ignore[union-attr,arg-type]
             with r.lock:
                 r.seen_t = now
                 stamp = (pose.stamp_ns, pose.seq)
@@ -130,7 +212,7 @@ class PosesMixin(ControllerCore):
                     self._act(r, pose, navigation.decide(ctrl, complex(ui), int(code)), now)
 
     def _control(
-        self, groups: list[tuple[navigation.ControllerLike, list[tuple[_Robot, Pose]]]]
+        self, groups: list[tuple[navigation.ControllerLike, list[tuple[_Robot, PoseLike]]]]
     ) -> list[tuple[np.ndarray, np.ndarray] | Exception]:
         """``(u, codes)`` (or the error) of each controller group of a pose block, in order.
 
@@ -192,7 +274,7 @@ class PosesMixin(ControllerCore):
                 out[i] = exc
         return [o for o in out if o is not None]
 
-    def _act(self, r: _Robot, pose: Pose, d: navigation.Decision, now: float) -> None:
+    def _act(self, r: _Robot, pose: PoseLike, d: navigation.Decision, now: float) -> None:
         """Publish what :func:`navigation.decide` made of the control law's output."""
         if r.goal is None or r.last_stamp != (pose.stamp_ns, pose.seq):
             return  # cancelled, or a newer pose came meanwhile: it gets the answer

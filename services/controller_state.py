@@ -8,14 +8,15 @@ import logging
 import queue
 import threading
 import time
+import zlib
 from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 from confnav.schemas import (
+    CommandBatch,
     Goal,
-    Pose,
     RobotStatus,
     TransformSolution,
     encode,
@@ -32,9 +33,6 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
-
-log = logging.getLogger(__name__)
-
 POSE_BLOCK = 256
 """Most poses per control step: one vectorized block, whose commands go out before the next
 block is computed (pipelining). A block has a fixed cost (one map evaluation, the wall safety
@@ -45,6 +43,53 @@ MAX_BACKLOG = 100_000
 """Most robots with a pose waiting. Of several waiting poses of one robot only the newest is
 answered (the older ones are superseded: counted, never commanded), so an overloaded
 controller falls back to answering every robot's latest pose instead of a growing queue."""
+
+
+class PoseLike(Protocol):
+    """What the pose step reads of a pose: a :class:`~confnav.schemas.Pose` or one entry of a
+    :class:`~confnav.schemas.PoseBatch` (``controller_poses.BatchPose``)."""
+
+    @property
+    def robot_id(self) -> str: ...
+    @property
+    def stamp_ns(self) -> int: ...
+    @property
+    def seq(self) -> int: ...
+    @property
+    def x(self) -> float: ...
+    @property
+    def y(self) -> float: ...
+    @property
+    def theta(self) -> float: ...
+
+
+@dataclass
+class _CmdBatch:
+    """The commands of one step answering a :class:`~confnav.schemas.PoseBatch`: the columns
+    of its :class:`~confnav.schemas.CommandBatch`."""
+
+    key: str
+    sim_id: str
+    robot_ids: list[str] = field(default_factory=list)
+    linear: list[tuple[float, float]] = field(default_factory=list)
+    angular: list[float] = field(default_factory=list)
+    pose_seq: list[int] = field(default_factory=list)
+    pose_stamp_ns: list[int] = field(default_factory=list)
+    map_revision: list[str | None] = field(default_factory=list)
+    frame: list[str] = field(default_factory=list)
+    chart: list[int | None] = field(default_factory=list)
+
+    def payload(self) -> bytes:
+        """The wire bytes (our own valid values: not re-validated, as with the fast path of
+        single commands; tests/test_controller_scale.py decodes them with the model)."""
+        return encode(
+            CommandBatch.model_construct(
+                sim_id=self.sim_id, stamp_ns=time.time_ns(), robot_ids=self.robot_ids,
+                linear=self.linear, angular=self.angular, pose_seq=self.pose_seq,
+                pose_stamp_ns=self.pose_stamp_ns, map_revision=self.map_revision,
+                frame=self.frame, chart=self.chart,
+            )
+        )  # fmt: skip
 
 
 MapLoader = Callable[[TransformSolution], Any]
@@ -139,6 +184,8 @@ class ControllerCore(Service):
         # (key, payload) or a list of them (one control step's messages, in order)
         self._out: queue.SimpleQueue[Any] = queue.SimpleQueue()
         self._held = threading.local()  # .msgs: the messages of the step this thread runs
+        # (.batch: the commands answering a pose batch, published as one CommandBatch)
+        self._step_lock = threading.Lock()  # one pose step at a time (poses, pose batches)
         self._transform_alive: set[str] = set()
         self._wake_fetch = threading.Event()
         # (map revision, goal key) -> controller: robots with the same goal share one (the
@@ -163,13 +210,20 @@ class ControllerCore(Service):
         else:
             self._out.put((key, payload))
 
-    def _hold(self) -> None:
-        """Collect this thread's messages until :meth:`_release`."""
+    def _hold(self, batch_key: str | None = None, sim_id: str = "") -> None:
+        """Collect this thread's messages until :meth:`_release`; with ``batch_key``, the
+        commands that answer poses go into one ``CommandBatch`` of simulator ``sim_id`` on
+        that key (a step of a pose batch)."""
         self._held.msgs = []
+        self._held.batch = None if batch_key is None else _CmdBatch(batch_key, sim_id)
 
     def _release(self) -> None:
-        """Queue the messages collected since :meth:`_hold`, in order."""
+        """Queue the messages collected since :meth:`_hold`, in order (a ``CommandBatch``
+        first: each robot's command before its status, as with single commands)."""
         msgs, self._held.msgs = getattr(self._held, "msgs", None), None
+        batch, self._held.batch = getattr(self._held, "batch", None), None
+        if batch is not None and batch.robot_ids:
+            msgs = [(batch.key, batch.payload()), *(msgs or [])]
         if msgs:
             self._out.put(msgs)
 
@@ -282,17 +336,29 @@ class ControllerCore(Service):
         return f"navigating on a coarse map, refining{tail}"
 
     def _stop_robot(
-        self, r: _Robot, reason: str, message: str, now: float, pose: Pose | None = None
+        self, r: _Robot, reason: str, message: str, now: float, pose: PoseLike | None = None
     ) -> None:
         self.count(f"stops_{reason}")
         self._publish_cmd(r, 0j, pose)
         self._status(r, "stopped", reason, message, now)
 
-    def _publish_cmd(self, r: _Robot, u: complex, pose: Pose | None) -> None:
+    def _publish_cmd(self, r: _Robot, u: complex, pose: PoseLike | None) -> None:
+        body = getattr(r.ctrl, "frame", "world") == "body"  # unicycle: u = v + i omega
+        batch: _CmdBatch | None = getattr(self._held, "batch", None)
+        if batch is not None and pose is not None:  # answers a pose of a pose batch
+            batch.robot_ids.append(r.robot_id)
+            batch.linear.append((u.real, 0.0) if body else (u.real, u.imag))
+            batch.angular.append(u.imag if body else 0.0)
+            batch.pose_seq.append(pose.seq)
+            batch.pose_stamp_ns.append(pose.stamp_ns)
+            batch.map_revision.append(r.ctrl_revision)
+            batch.frame.append("body" if body else "world")
+            batch.chart.append(getattr(r.ctrl, "active_chart", None))
+            self.count("commands")
+            return
         # the wire bytes of VelocityCommand written directly (schemas/fast.py: the same bytes
         # as encode(VelocityCommand(...)), 12 -> 2.5 us); our own finite values, no
         # re-validation on the hot path (checked against the model in the tests and by readers)
-        body = getattr(r.ctrl, "frame", "world") == "body"  # unicycle: u = v + i omega
         payload = velocity_command_json(
             r.robot_id,
             time.time_ns(),
@@ -318,7 +384,12 @@ class ControllerCore(Service):
         if skey[:2] != r.status_key[:2]:  # a new state or reason: worth a line in the log
             log.info("robot %r: %s (%s)%s", r.robot_id, state, reason,
                      f": {message}" if message else "")  # fmt: skip
-        r.status_key, r.status_t = skey, now
+        t = now
+        if skey != r.status_key:  # the periodic repeats of robots that changed state in one
+            # step are spread over the period (each robot at its own phase), so that no step
+            # publishes every robot's status at once (docs/SERVICES.md, "Scale")
+            t -= (zlib.crc32(r.robot_id.encode()) % 1024) / 1024 * self.status_period
+        r.status_key, r.status_t = skey, t
         dist = None
         if r.position is not None and r.goal is not None:
             dx, dy = r.position[0] - r.goal.goal[0], r.position[1] - r.goal.goal[1]

@@ -15,6 +15,8 @@ Every key starts with a configurable prefix (default ``confnav``)::
     {prefix}/robot/{r}/collision       CollisionEvent (simulator)
     {prefix}/sim/{sim}/spawn           SpawnRequest
     {prefix}/sim/{sim}/control         SimControl (pause / resume / reset)
+    {prefix}/sim/{sim}/poses           PoseBatch (optional: all of a simulator's poses at once)
+    {prefix}/sim/{sim}/cmd_vel         CommandBatch (a controller's answers to a PoseBatch)
     {prefix}/health/{service}/{zid}    ServiceHealth
     {prefix}/alive/{service}/{zid}     liveliness token (no payload)
 
@@ -35,7 +37,7 @@ _ID_RE = re.compile(ID_PATTERN)
 
 WS_KINDS: Final = ("definition", "delete", "transform", "status", "atlas", "movers")
 ROBOT_KINDS: Final = ("goal", "cancel", "pose", "cmd_vel", "status", "collision")
-SIM_KINDS: Final = ("spawn", "control")
+SIM_KINDS: Final = ("spawn", "control", "poses", "cmd_vel")
 
 
 class KeyError_(ValueError):

@@ -91,6 +91,7 @@ INPUT_KINDS = (
     "ws/*/atlas",
     "robot/*/goal",
     "robot/*/pose",
+    "sim/*/poses",  # PoseBatch (a simulator's poses all at once)
 )
 """What drives a controller: with ``inputs_only`` a live controller recomputes the rest."""
 

@@ -17,7 +17,10 @@ seconds, and a command that answers a pose (``pose_seq`` >= 0) is applied only u
 ``max_cmd_age`` sim seconds after that pose; a command answering a pose older than that, one
 from before a reset (the robot was moved), or one that was never published is not applied.
 Commands go through a bounded latest-per-robot queue (a backlog of stale commands is
-skipped, counted as ``commands_superseded``). The budget: the plant moves at most
+skipped, counted as ``commands_superseded``). With ``pose_batch`` the poses of a step go out as
+one ``PoseBatch`` on ``{prefix}/sim/{sim}/poses`` instead (controllers answer with one
+``CommandBatch`` on ``{prefix}/sim/{sim}/cmd_vel``, whose entries are judged as the
+``VelocityCommand`` each stands for). The budget: the plant moves at most
 ``max_cmd_age * |u|`` on a command away from the pose it was computed for.
 """
 
@@ -35,8 +38,10 @@ from typing import Any
 import numpy as np
 from confnav.schemas import (
     CollisionEvent,
+    CommandBatch,
     DecodeError,
     Pose,
+    PoseBatch,
     SimControl,
     SpawnRequest,
     VelocityCommand,
@@ -98,9 +103,12 @@ class SimulatorService(Service):
         cmd_timeout: float = 0.25,
         health_period: float = 1.0,
         max_cmd_age: float = defaults.HOLD_TIME,
+        pose_batch: bool = False,
     ) -> None:
         super().__init__(bus, keys, health_period)
         self.sim_id = validate_id(sim_id, "simulator id")
+        # one PoseBatch per step on {prefix}/sim/{sim}/poses instead of a Pose per robot
+        self.pose_batch = pose_batch
         self.rate_hz = rate_hz
         self.time_scale = time_scale
         self.cmd_timeout = cmd_timeout
@@ -152,6 +160,9 @@ class SimulatorService(Service):
         self._handles.append(self.bus.subscribe(k.any_ws("definition"), self._on_definition))
         self._handles.append(
             self.bus.subscribe_latest(k.any_robot("cmd_vel"), self._on_cmds, self._cmds_dropped)
+        )
+        self._handles.append(  # a controller's answers to a PoseBatch (any simulator mode)
+            self.bus.subscribe(k.sim(self.sim_id, "cmd_vel"), self._on_cmd_batch)
         )
         self._handles.append(self.bus.subscribe(k.sim(self.sim_id, "spawn"), self._on_spawn))
         self._handles.append(self.bus.subscribe(k.sim(self.sim_id, "control"), self._on_control))
@@ -220,23 +231,55 @@ class SimulatorService(Service):
             log.debug("rejected command on %s: %s", key, exc)
             return
         with self._lock:
-            r = self._robots.get(rid)
-            if r is None:
-                self.count("commands_unknown_robot")
+            self._apply(rid, cmd.linear, cmd.angular, cmd.frame, cmd.pose_seq, time.monotonic())
+
+    def _on_cmd_batch(self, key: str, payload: bytes) -> None:
+        """A ``CommandBatch`` (a controller's answers to this simulator's ``PoseBatch``): each
+        entry is judged exactly as the ``VelocityCommand`` it stands for."""
+        try:
+            batch = decode(CommandBatch, payload)
+            if batch.sim_id != self.sim_id:
+                raise DecodeError("invalid_input", f"batch on {key} names {batch.sim_id!r}")
+        except DecodeError as exc:
+            self.count("rejected")
+            log.debug("rejected command batch on %s: %s", key, exc)
+            return
+        self.count("commands_received", len(batch.robot_ids))
+        now = time.monotonic()
+        with self._lock:
+            for rid, lin, ang, frame, seq in zip(
+                batch.robot_ids, batch.linear, batch.angular, batch.frame, batch.pose_seq,
+                strict=True,
+            ):  # fmt: skip
+                self._apply(rid, lin, ang, frame, seq, now)
+
+    def _apply(
+        self,
+        rid: str,
+        linear: tuple[float, float],
+        angular: float,
+        frame: str,
+        pose_seq: int,
+        now: float,
+    ) -> None:
+        """Hold a valid command for robot ``rid`` (see the module docstring). Under the lock."""
+        r = self._robots.get(rid)
+        if r is None:
+            self.count("commands_unknown_robot")
+            return
+        u = complex(linear[0], linear[1])
+        if frame == "world" and r.drive == "unicycle" and u != 0j:
+            self.count("rejected")  # a differential drive cannot move sideways
+            return
+        if pose_seq >= 0:
+            age = self.pose_age(r, pose_seq)
+            if age is None or age > self.max_cmd_age or pose_seq < r.cmd_pose_seq:
+                self.count("commands_stale")  # old, from before a reset, or reordered
                 return
-            u = complex(cmd.linear[0], cmd.linear[1])
-            if cmd.frame == "world" and r.drive == "unicycle" and u != 0j:
-                self.count("rejected")  # a differential drive cannot move sideways
-                return
-            if cmd.pose_seq >= 0:
-                age = self.pose_age(r, cmd.pose_seq)
-                if age is None or age > self.max_cmd_age or cmd.pose_seq < r.cmd_pose_seq:
-                    self.count("commands_stale")  # old, from before a reset, or reordered
-                    return
-            r.u = u if cmd.frame == "world" else 0j
-            r.twist = (cmd.linear[0], cmd.angular) if cmd.frame == "body" else None
-            r.cmd_t = time.monotonic()
-            r.cmd_pose_seq = cmd.pose_seq
+        r.u = u if frame == "world" else 0j
+        r.twist = (linear[0], angular) if frame == "body" else None
+        r.cmd_t = now
+        r.cmd_pose_seq = pose_seq
         self.count("commands")
 
     def _on_spawn(self, key: str, payload: bytes) -> None:
@@ -432,8 +475,21 @@ class SimulatorService(Service):
                 )
                 r.seq += 1
                 r.pose_t.append(r.sim_time)
-        for rid, pose in out:
-            self.bus.publish(self.keys.robot(rid, "pose"), encode(pose))
+        if self.pose_batch and out:  # one message for the step (docs/SERVICES.md, "Scale")
+            batch = PoseBatch(
+                sim_id=self.sim_id,
+                stamp_ns=stamp,
+                robot_ids=[p.robot_id for _, p in out],
+                stamps_ns=[p.stamp_ns for _, p in out],
+                seq=[p.seq for _, p in out],
+                x=[p.x for _, p in out],
+                y=[p.y for _, p in out],
+                theta=[p.theta for _, p in out],
+            )
+            self.bus.publish(self.keys.sim(self.sim_id, "poses"), encode(batch))
+        else:
+            for rid, pose in out:
+                self.bus.publish(self.keys.robot(rid, "pose"), encode(pose))
         self.count("poses", len(out))
         for ev in hits:
             log.warning("robot %r collided at %s", ev.robot_id, ev.position)
@@ -491,6 +547,12 @@ def add_parser(sub: Any) -> None:
         default=defaults.HOLD_TIME,
         help="sim s after the pose a command answers -> stop",
     )
+    p.add_argument(
+        "--pose-batch",
+        action="store_true",
+        help="publish one PoseBatch per step on {prefix}/sim/{sim}/poses instead of a Pose per "
+        "robot (controllers answer with one CommandBatch; docs/SERVICES.md, Scale)",
+    )
     p.set_defaults(func=main)
 
 
@@ -508,6 +570,7 @@ def main(args: argparse.Namespace) -> int:
             time_scale=args.time_scale,
             cmd_timeout=args.cmd_timeout,
             max_cmd_age=args.max_cmd_age,
+            pose_batch=args.pose_batch,
         ),
         args,
     )

@@ -3,7 +3,8 @@
 The recorded inputs of the controller (transform solutions, goals, poses) are fed in log-time
 order, without Zenoh, through the same code the live controller service runs
 (:mod:`confnav.services.navigation`: ``load_map``, ``make_controller``, ``command``); each
-recorded ``cmd_vel`` that answers a pose (``pose_seq``/``pose_stamp_ns``) is recomputed from
+recorded ``cmd_vel`` that answers a pose (``pose_seq``/``pose_stamp_ns``; each entry of a
+``CommandBatch`` answering a ``PoseBatch`` counts as one) is recomputed from
 that pose, the goal in force at the command's log time and the map it names
 (``map_revision``), and compared with the recorded one.
 
@@ -39,8 +40,10 @@ from confnav.errors import ConfnavError
 from confnav.recording.reader import Recording, RecordingError, decode_message
 from confnav.schemas import (
     AtlasIndex,
+    CommandBatch,
     Goal,
     Pose,
+    PoseBatch,
     RobotStatus,
     TransformSolution,
     VelocityCommand,
@@ -264,7 +267,7 @@ def check_recording(
                 f"{rec.path}: no transform channel recorded: the maps the controller used are "
                 "missing, commands cannot be recomputed"
             )
-        if "pose" not in kinds or "goal" not in kinds:
+        if not {"pose", "poses"} & kinds or "goal" not in kinds:
             raise RecordingError(f"{rec.path}: no pose or goal channel recorded")
         start = rec.start_ns
         for msg in rec.iter_messages():
@@ -275,20 +278,24 @@ def check_recording(
                 ctrls.add_atlas(model)
             elif isinstance(model, Goal):
                 goals[model.robot_id] = _apply(model, overrides)
-            elif isinstance(model, Pose):
-                memo = poses[model.robot_id]
-                memo[(model.seq, model.stamp_ns)] = model
-                if len(memo) > _POSE_MEMORY:
-                    memo.popitem(last=False)
+            elif isinstance(model, Pose | PoseBatch):  # a batch: each entry is one Pose
+                for pose in model.poses() if isinstance(model, PoseBatch) else (model,):
+                    memo = poses[pose.robot_id]
+                    memo[(pose.seq, pose.stamp_ns)] = pose
+                    if len(memo) > _POSE_MEMORY:
+                        memo.popitem(last=False)
             elif isinstance(model, RobotStatus):
                 if model.reason == "transform_service_dead":
                     dead_since.setdefault(model.robot_id, msg.log_time_ns)
                 else:
                     dead_since.pop(model.robot_id, None)
-            elif isinstance(model, VelocityCommand):
-                _check_one(report, model, msg.log_time_ns, start, goals, poses, ctrls, dead_since)
-                if len(report.mismatches) > max_mismatches:
-                    report.mismatches.pop()
+            elif isinstance(model, VelocityCommand | CommandBatch):  # a batch: each entry
+                cmds = model.commands() if isinstance(model, CommandBatch) else (model,)
+                for cmd in cmds:
+                    t = msg.log_time_ns
+                    _check_one(report, cmd, t, start, goals, poses, ctrls, dead_since)
+                    if len(report.mismatches) > max_mismatches:
+                        report.mismatches.pop()
     return report
 
 

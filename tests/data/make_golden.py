@@ -58,6 +58,7 @@ def run_pipeline(
     rate_hz: float = 50.0,
     timeout: float = 60.0,
     foxglove: bool = True,
+    pose_batch: bool = False,
 ) -> dict[str, Any]:
     """Run the services on an in-memory bus until every robot arrived; record to ``path``.
 
@@ -108,6 +109,7 @@ def run_pipeline(
         rate_hz=rate_hz,
         time_scale=time_scale,
         health_period=0,
+        pose_batch=pose_batch,  # one PoseBatch per step, answered with a CommandBatch
     )
     services = [rec, transform, controller]
     try:
