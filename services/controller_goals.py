@@ -14,6 +14,7 @@ from confnav.schemas import (
 )
 from confnav.services import navigation
 from confnav.services.controller_footprint import FootprintMixin, base_of
+from confnav.services.controller_warm import prime
 from confnav.services.keys import KeyError_
 
 log = logging.getLogger(__name__)
@@ -62,15 +63,17 @@ class GoalsMixin(FootprintMixin):
             self.count("goals_repeated")
             return
         self.count("goals")
-        m = self._maps.get(goal.ws_id)
-        ctrl, err = self._build(m, goal) if m is not None else (None, "")
-        base = base_of(goal.ws_id)  # a footprint map being solved: drive on the base map
-        bm = self._maps.get(base) if base is not None and m is None else None
-        shrunk = None
-        if bm is not None and self._on_base_available(bm):  # built before the goal is set, so
-            ctrl, err, shrunk = self._build_on_base(bm, goal)  # no pose meets it without one
-        else:
-            bm = None
+        with self._goal_building():  # the atlas warm-up waits (services/controller_warm.py)
+            m = self._maps.get(goal.ws_id)
+            ctrl, err = self._build(m, goal) if m is not None else (None, "")
+            base = base_of(goal.ws_id)  # a footprint map being solved: drive on the base map
+            bm = self._maps.get(base) if base is not None and m is None else None
+            shrunk = None
+            if bm is not None and self._on_base_available(bm):  # built before the goal is set,
+                ctrl, err, shrunk = self._build_on_base(bm, goal)  # so no pose meets it without
+            else:
+                bm = None
+            prime(ctrl, r.position)  # an atlas: its starting chart's law and safety grid
         with r.lock:
             r.goal, r.ctrl, r.ctrl_error = goal, ctrl, err
             r.ctrl_revision = m.revision if m is not None else None

@@ -20,6 +20,7 @@ from confnav.schemas import (
 from confnav.services.atlas_client import fetch_atlas
 from confnav.services.controller_footprint import FootprintMixin, base_of
 from confnav.services.controller_state import _Map, _Pending, _Robot
+from confnav.services.controller_warm import prime
 from confnav.services.definitions import REFINING, definition_hash, workspace_of
 from confnav.services.keys import KeyError_
 
@@ -96,7 +97,10 @@ class MapsMixin(FootprintMixin):
                 for r in self._robots.values()
                 if r.goal and r.goal.ws_id == ws_id
             }
-        built = {rid: self._build(new, g) for rid, g in goals.items() if g}
+        with self._goal_building():  # the robots' swap first, the atlas warm-up after
+            built = {rid: self._build(new, g) for rid, g in goals.items() if g}
+            for rid, (ctrl, _) in built.items():
+                prime(ctrl, self._robots[rid].position if rid in self._robots else None)
         with self._build_lock:
             live = {m.revision for w, m in self._maps.items() if w != ws_id} | {new.revision}
             self._ctrl_cache = OrderedDict(
@@ -127,6 +131,8 @@ class MapsMixin(FootprintMixin):
             self._adopt(r, ws_id, new)
         self._footprint_installed(ws_id, new)
         self._base_installed(ws_id, new)  # robots whose footprint map {ws_id}~r{R} is unsolved
+        if isinstance(cmap, AtlasMap):  # its charts are warmed in the background
+            self._warm_atlas(cmap)
         self.count("maps_installed")
         log.info("workspace %r: map %s installed (%d robots)", ws_id, sol.revision[:12], len(goals))
         self.swapped.set()
