@@ -83,6 +83,37 @@ def test_the_wire_rebuilds_the_same_atlas_and_plan(
         atlas_map_of(index, {})
 
 
+def _bent(index: AtlasIndex, offset: float) -> AtlasIndex:
+    """``index`` with a vertex added to cell 0's outer ring: the middle of its longest edge,
+    moved ``offset`` off it (as the simplification of a cell polygon moves its boundary)."""
+    cell = index.cells[0]
+    ring = [complex(*p) for p in cell.outer]
+    k = max(range(len(ring)), key=lambda i: abs(ring[(i + 1) % len(ring)] - ring[i]))
+    a, b = ring[k], ring[(k + 1) % len(ring)]
+    m = (a + b) / 2 + offset * 1j * (b - a) / abs(b - a)
+    outer = [*cell.outer[: k + 1], (m.real, m.imag), *cell.outer[k + 1 :]]
+    cells = [cell.model_copy(update={"outer": outer}), *index.cells[1:]]
+    return index.model_copy(update={"cells": cells})
+
+
+def test_a_cell_polygon_within_the_simplification_of_its_chart_is_its_chart(
+    wire: tuple[AtlasIndex, list[TransformSolution]],
+) -> None:
+    """A chart's workspace is its cell polygon simplified within 1e-9 of the diameter: the
+    rebuilt atlas accepts a boundary that far off its chart's (an area test refused a chart
+    of the README's office shrunk by 0.3 m, at 5.4e-10 of the cell's area), and refuses one
+    a visible distance off."""
+    index, charts = wire
+    maps = {c.revision: ConformalMap.from_dict(c.coefficients) for c in charts}
+    diameter = atlas_map_of(index, maps).atlas.workspace.diameter
+    poly0 = atlas_map_of(index, maps).atlas.decomposition.cells[0].polygon
+    near = _bent(index, 3e-9 * diameter)
+    am = atlas_map_of(near, maps)
+    assert am.atlas.decomposition.cells[0].polygon.symmetric_difference(poly0).area > 0
+    with pytest.raises(Exception, match="not its cell's map"):
+        atlas_map_of(_bent(index, 1e-6 * diameter), maps)
+
+
 def drive(ctrl: object, z: complex, dt: float = 0.02, steps: int = 3000) -> list[complex]:
     path = [z]
     for _ in range(steps):

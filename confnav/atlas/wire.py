@@ -47,6 +47,10 @@ __all__ = [
 #: Start of the error a transform query answers for a workspace solved as an atlas.
 ATLAS_MARKER = "atlas:"
 
+#: Largest distance (relative to the workspace's diameter) between a cell's boundary and its
+#: chart's: 10 times the simplification of :func:`confnav.atlas.decompose` (1e-9).
+CHART_MATCH = 1e-8
+
 
 def chart_ws_id(ws_id: str, index: int) -> str:
     """The workspace id under which chart ``index`` of atlas ``ws_id`` is published."""
@@ -123,10 +127,14 @@ def atlas_from_index(index: Any, charts: Sequence[Any]) -> Atlas:
     dec_d = dict(index.decomposition)
     ws = Workspace.from_dict(dec_d.pop("workspace"))
     cells = []
+    # the chart's workspace is the cell polygon without collinear vertices: simplified within
+    # 1e-9 of the workspace's diameter (confnav.atlas.decompose._cell_workspace), which moves
+    # the boundary by that much and its area by up to that times its length (the README's
+    # office shrunk by 0.3 m: 5.4e-10 of a cell's area, and a chart refused at 1e-9 of it)
+    tol = CHART_MATCH * ws.diameter
     for c, m in zip(index.cells, charts, strict=True):
         poly = Polygon(c.outer, [list(o) for o in c.obstacles])
-        # the chart's workspace is the cell polygon without collinear vertices
-        if poly.symmetric_difference(m.workspace.polygon).area > 1e-9 * poly.area:
+        if poly.boundary.hausdorff_distance(m.workspace.polygon.boundary) > tol:
             raise NavigationError(f"atlas {index.ws_id!r}: chart {c.index} is not its cell's map")
         cut: BaseGeometry = MultiLineString([list(line) for line in c.cut])
         cells.append(Cell(c.index, poly, m.workspace, cut, tuple(c.tile), elongation(poly)))
