@@ -190,3 +190,34 @@ def test_an_atlas_stands_in_for_a_body_until_its_footprint_atlas(
     assert ctrl.nav.controller(ctrl.active_chart).safety.workspace is shrunk  # type: ignore[attr-defined]
     # the body stays clear of the walls (exact distance, every step); 1e-9: rounding
     assert float(np.min(am.atlas.workspace.clearance(np.array(path)))) >= radius - 1e-9
+
+
+def test_charts_start_cold_and_command_what_warm_charts_command(
+    wire: tuple[AtlasIndex, list[TransformSolution]],
+) -> None:
+    """An installed atlas's charts evaluate by the direct formula until warmed (their local
+    expansions built, :meth:`AtlasMap.warm`); a robot's commands are the same either way to
+    1e-9 (the tolerance of ``replay --check``); ``prepare`` builds a robot's starting chart
+    without touching its switching state; the warm-up order is nearest first."""
+    g = Goal(robot_id="r", ws_id="pc", goal=(GOAL.real, GOAL.imag), v_max=1.0, tolerance=0.02)
+    cold, warm = rebuilt(wire), rebuilt(wire)
+    n = len(cold.nav_maps)
+    assert cold.cold_charts() == list(range(n)) and not cold.is_warm(0)
+    assert all(warm.warm(i) for i in range(n)) and warm.cold_charts() == []
+    assert not warm.warm(0)  # built once
+    start = 0.3 + 0.4j
+    ctrl = make_controller(cold, g)
+    first = ctrl.prepare(start)  # type: ignore[attr-defined]
+    assert ctrl.active_chart is None and first  # type: ignore[attr-defined]
+    assert cold.cold_by_distance([start])[0] == (first[0], 0.0)
+    far = cold.cold_by_distance([GOAL])
+    assert far[0][1] == 0.0 and far[-1][1] > 5.0  # the far end of the corridor last
+    path = drive(make_controller(warm, g), start)
+    u_cold, s_cold = commands(ctrl, np.array(path))
+    u_warm, s_warm = commands(make_controller(warm, g), np.array(path))
+    assert np.array_equal(s_cold, s_warm)
+    assert float(np.max(np.abs(u_cold - u_warm))) <= 1e-9
+    assert cold.cold_charts() == list(range(n))  # driving never warmed a chart
+    cold.build_on_first_use()  # the old behaviour: the next evaluation builds them
+    commands(make_controller(cold, g), np.array(path[:1]))
+    assert cold.is_warm(first[0])
