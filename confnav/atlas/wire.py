@@ -34,18 +34,26 @@ from confnav.navigation.unicycle import UnicycleController
 
 __all__ = [
     "ATLAS_MARKER",
+    "ATLAS_SUFFIX",
     "AtlasController",
     "AtlasMap",
     "atlas_from_index",
     "atlas_map_of",
     "atlas_revision",
+    "atlas_ws_id",
     "chart_ws_id",
     "index_fields",
     "is_chart_ws_id",
+    "parse_atlas_ws_id",
 ]
 
 #: Start of the error a transform query answers for a workspace solved as an atlas.
 ATLAS_MARKER = "atlas:"
+
+#: Suffix of the id under which a workspace's atlas is solved on request, whatever one map
+#: of it would be (:func:`atlas_ws_id`): a host whose single map cannot steer a robot (its
+#: navigation function flat to rounding there) asks for it.
+ATLAS_SUFFIX = "~atlas"
 
 #: Largest distance (relative to the workspace's diameter) between a cell's boundary and its
 #: chart's: 10 times the simplification of :func:`confnav.atlas.decompose` (1e-9).
@@ -55,6 +63,17 @@ CHART_MATCH = 1e-8
 def chart_ws_id(ws_id: str, index: int) -> str:
     """The workspace id under which chart ``index`` of atlas ``ws_id`` is published."""
     return f"{ws_id}~c{index}"
+
+
+def atlas_ws_id(ws_id: str) -> str:
+    """The id of ``ws_id`` solved as an atlas (``{ws}~atlas``; itself for such an id)."""
+    return ws_id if parse_atlas_ws_id(ws_id) is not None else ws_id + ATLAS_SUFFIX
+
+
+def parse_atlas_ws_id(ws_id: str) -> str | None:
+    """The workspace of an id from :func:`atlas_ws_id` (None for other ids)."""
+    base = ws_id.removesuffix(ATLAS_SUFFIX)
+    return base if base and base != ws_id else None
 
 
 def is_chart_ws_id(ws_id: str) -> bool:
