@@ -41,8 +41,20 @@ workspace, until its first revision: docs/NAVIGATION.md, "First move"):
   as ``confnav import-map`` does) with the README's body (radius 0.2 m, unicycle with 0.1 m
   look-ahead: ``{ws}~r0.3``).
 
+- ``office_no_warmup``, ``warehouse_no_warmup``: the same with the controller's
+  ``--atlas-warmup first-use`` (each atlas chart builds its local expansions when a robot first
+  uses it, on the goal's path: the behaviour before the background warm-up), for the ratio in
+  one run.
+
+Every service case also records whether the robot arrived (its ``arrived`` status,
+``arrive_s`` after the goal, ``--arrive-timeout``) and its collisions: the simulator's wall
+``CollisionEvent`` s and, from the poses after the goal, how often the body's disk (radius
+``robot_radius`` around the pose) entered a wall or obstacle of the exact workspace
+(``body_collisions``, ``min_body_clearance_m``; :func:`outcome`).
+
 ``ahead s`` in the table: spawn to the first revision (``spawned``); ``first cmd s``: goal to
-the first non-zero command; ``final rev s``: goal to the first command on the final revision.
+the first non-zero command; ``final rev s``: goal to the first command on the final revision;
+``arrive s``: goal to arrival; ``coll``: collisions (events + body).
 
 Target (issue 23): goal to first non-zero command <= 2 s with a 0.2 m unicycle on the default
 workspace. Prints a table and writes bench/results/firstmove.json (``--quick``: one run of
@@ -297,6 +309,13 @@ def run_case(case: str, args: argparse.Namespace, tmp: Path, n: int) -> dict[str
             "stopped_after_moving": stopped_after_moving,
             "on_base_map": any("unshrunk map" in s.message for _, s in nav),
             "controller_atlas_warmup": warmup[1],
+            "footprint_map_statuses": [
+                (round(t, 2), s.state, (s.revision or "")[:12], s.message[:80])
+                for t, s in ws_status
+                if "~r" in s.ws_id
+            ],
+            "last_status": None if not status else (status[-1][1].state, status[-1][1].reason,
+                                                    status[-1][1].message[:160]),
             **outcome(arrived, poses, events, base_ws(name, tmp), radius, goal_xy),
             "loadavg": list(os.getloadavg()),
         }

@@ -10,9 +10,16 @@ builds the expansions, one chart at a time:
 
 1. the cold charts on the cell paths of the robots driving on the atlas (their active or
    starting chart, then the next cells of their plans, in order);
-2. the cold chart nearest to any robot the controller knows (a pose received, with or
-   without a goal);
-3. the rest, in cell order.
+2. the cold charts within :data:`WARM_RADIUS` of a robot the controller knows (a pose
+   received, with or without a goal), nearest first.
+
+Charts no robot is near stay on the direct formula (a robot's step costs about the same on
+either, measured in process on the office; the expansions pay off for many robots on one
+chart), and the thread keeps to a quarter of a core (:data:`WARM_DUTY`): building every
+chart of two atlases back to back (the office and its footprint atlas, 81 charts) kept one
+core busy for minutes and, holding the interpreter lock in its Python loops, starved the
+pose thread (a robot was stopped for stale poses and never swapped to its footprint atlas in
+``bench_firstmove``).
 
 While a goal's controller is being built (:meth:`WarmMixin._goal_building`) the thread does
 not start a chart: a goal for a cold chart never waits for the warm queue (a chart already
@@ -36,6 +43,13 @@ log = logging.getLogger(__name__)
 #: Seconds between checks of the warm queue when nothing woke the thread (new robots and
 #: poses do not wake it; a newly installed atlas does).
 WARM_PERIOD = 1.0
+
+#: Metres: the cold charts whose cells are this close to a known robot are warmed.
+WARM_RADIUS = 1.0
+
+#: Share of one core the warm-up thread may use (it sleeps (1 - duty) / duty times each
+#: chart's build time after it).
+WARM_DUTY = 0.25
 
 
 def _law(ctrl: Any) -> Any:
@@ -138,7 +152,7 @@ class WarmMixin(ControllerCore):
                     return am, i
         best: tuple[float, Any, int] | None = None
         for am in atlases:
-            near = am.cold_by_distance(points)
+            near = [(i, d) for i, d in am.cold_by_distance(points) if d <= WARM_RADIUS]
             if near and (best is None or near[0][1] < best[0]):
                 best = (near[0][1], am, near[0][0])
         return None if best is None else (best[1], best[2])
@@ -168,7 +182,7 @@ class WarmMixin(ControllerCore):
                 am.warm_failed(i)
                 continue
             if built:
+                took = time.perf_counter() - t0
                 self.count("charts_warmed")
-                log.debug(
-                    "atlas %r: chart %d warmed in %.2f s", am.ws_id, i, time.perf_counter() - t0
-                )
+                log.debug("atlas %r: chart %d warmed in %.2f s", am.ws_id, i, took)
+                self._stop.wait(took * (1.0 - WARM_DUTY) / WARM_DUTY)

@@ -26,6 +26,7 @@ from shapely.geometry.base import BaseGeometry
 from confnav.atlas.charts import Atlas
 from confnav.atlas.compose import AtlasNavigator, Overlap, overlaps
 from confnav.atlas.decompose import Cell, Decomposition, elongation
+from confnav.conformal.cmap import EXPANSION_MIN_POINTS
 from confnav.errors import NavigationError
 from confnav.geometry import Workspace
 from confnav.navigation import defaults
@@ -194,9 +195,12 @@ def _defer_expansions(m: Any) -> None:
 
 
 def _build_expansions(m: Any) -> None:
-    """Build a navigation map's local expansions now (``ConformalMap._expansions``)."""
+    """Build a navigation map's local expansions now (``ConformalMap._expansions`` builds
+    them for a batch of ``EXPANSION_MIN_POINTS``), then let every evaluation use them: the
+    flag goes up only after the build, so a robot's step on this chart meanwhile keeps the
+    direct formula instead of building them a second time."""
+    m._expansions(EXPANSION_MIN_POINTS)
     m._fast = True
-    m._expansions(1)
 
 
 @dataclass
