@@ -42,13 +42,16 @@ def flat_here(ctrl: Any, position: tuple[float, float] | None) -> str:
     map's free space): ``1 - phi`` below :func:`flat_phi`, or phi not finite, there."""
     law = getattr(ctrl, "controller", ctrl)
     navfn = getattr(law, "navfn", None)
-    if position is None or getattr(navfn, "name", "") != "harmonic" or not hasattr(law, "lyapunov"):
+    if position is None or getattr(navfn, "name", "") != "harmonic" or not hasattr(law, "cmap"):
         return ""
     ws = getattr(getattr(law, "cmap", None), "workspace", None)
     z = complex(position[0], position[1])
     if ws is None or not bool(ws.contains(z)):
         return ""
-    phi = float(np.asarray(law.lyapunov(np.array([z])), dtype=np.float64)[0])
+    cmap = law.cmap  # phi = navfn(T(z)): T alone (no T'), one point, off the pose path
+    T = getattr(cmap, "T", None)
+    w = T(np.array([z])) if T is not None else cmap.T_and_dT(np.array([z]))[0]
+    phi = float(np.asarray(navfn.value(np.asarray(w)), dtype=np.float64)[0])
     flat = flat_phi()
     if 1.0 - phi >= flat:  # False for NaN: not finite counts as flat
         return ""
