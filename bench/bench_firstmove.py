@@ -41,8 +41,20 @@ workspace, until its first revision: docs/NAVIGATION.md, "First move"):
   as ``confnav import-map`` does) with the README's body (radius 0.2 m, unicycle with 0.1 m
   look-ahead: ``{ws}~r0.3``).
 
+- ``office_no_warmup``, ``warehouse_no_warmup``: the same with the controller's
+  ``--atlas-warmup first-use`` (each atlas chart builds its local expansions when a robot first
+  uses it, on the goal's path: the behaviour before the background warm-up), for the ratio in
+  one run.
+
+Every service case also records whether the robot arrived (its ``arrived`` status,
+``arrive_s`` after the goal, ``--arrive-timeout``) and its collisions: the simulator's wall
+``CollisionEvent`` s and, from the poses after the goal, how often the body's disk (radius
+``robot_radius`` around the pose) entered a wall or obstacle of the exact workspace
+(``body_collisions``, ``min_body_clearance_m``; :func:`outcome`).
+
 ``ahead s`` in the table: spawn to the first revision (``spawned``); ``first cmd s``: goal to
-the first non-zero command; ``final rev s``: goal to the first command on the final revision.
+the first non-zero command; ``final rev s``: goal to the first command on the final revision;
+``arrive s``: goal to arrival; ``coll``: collisions (events + body).
 
 Target (issue 23): goal to first non-zero command <= 2 s with a 0.2 m unicycle on the default
 workspace. Prints a table and writes bench/results/firstmove.json (``--quick``: one run of
@@ -66,7 +78,9 @@ from typing import Any
 
 from bench_services import connect, free_port, spawn  # the services bench's process helpers
 from confnav.schemas import (
+    CollisionEvent,
     Goal,
+    Pose,
     RobotStatus,
     ServiceHealth,
     SpawnRequest,
@@ -80,9 +94,15 @@ from confnav.services.keys import Keys
 from provenance import commit  # script mode: bench/ is on sys.path
 
 HERE = Path(__file__).resolve().parent
-CASES = ("build", "solve", "first_use", "spawned", "ros2", "office", "warehouse")
+CASES = (
+    "build", "solve", "first_use", "spawned", "ros2", "office", "warehouse", "office_no_warmup",
+    "warehouse_no_warmup",
+)  # fmt: skip
 #: the README's maps (examples/*.yaml, imported as ``confnav import-map`` does): start, goal
 MAPS = {"office": ((8.5, 6.5), (1.5, 1.5)), "warehouse": ((1.2, 3.0), (9.0, 7.0))}
+#: ``{map}_no_warmup``: the controller with ``--atlas-warmup first-use`` (each chart builds its
+#: local expansions when a robot first uses it: the behaviour before the background warm-up)
+NO_WARMUP = "_no_warmup"
 K = Keys()
 
 
@@ -107,6 +127,10 @@ class Watch:
         bus.subscribe(K.robot(rid, "cmd_vel"), self._on(self.cmds, VelocityCommand))
         bus.subscribe(K.robot(rid, "status"), self._on(self.status, RobotStatus))
         bus.subscribe(K.any_ws("status"), self._on(self.ws_status, TransformStatus))
+        self.poses: list[tuple[float, Pose]] = []
+        self.collisions: list[tuple[float, CollisionEvent]] = []
+        bus.subscribe(K.robot(rid, "pose"), self._on(self.poses, Pose))
+        bus.subscribe(K.robot(rid, "collision"), self._on(self.collisions, CollisionEvent))
         self.maps_installed = 0  # the controller's counter, from its health
         bus.subscribe(f"{K.prefix}/health/controller/*", self._on_health)
 
@@ -163,15 +187,17 @@ def run_case(case: str, args: argparse.Namespace, tmp: Path, n: int) -> dict[str
     logs = tmp / f"{case}{n}"
     logs.mkdir(parents=True, exist_ok=True)
     procs = [spawn("serve", "router", "--listen", ep, log=logs / "router.log")]
-    ws_id = case if case in MAPS else "default"
-    radius = args.map_radius if case in MAPS else args.radius
-    start, goal_xy = MAPS.get(case, (tuple(args.start), tuple(args.goal)))
+    name = case.removesuffix(NO_WARMUP)
+    ws_id = name if name in MAPS else "default"
+    radius = args.map_radius if name in MAPS else args.radius
+    start, goal_xy = MAPS.get(name, (tuple(args.start), tuple(args.goal)))
+    warmup = ["--atlas-warmup", "first-use" if case.endswith(NO_WARMUP) else "background"]
     try:
         time.sleep(1.0)
-        source = example_workspace(case, tmp) if case in MAPS else "builtin:default"
+        source = example_workspace(name, tmp) if name in MAPS else "builtin:default"
         ws = ["--workspace", f"{ws_id}={source}"]
         procs.append(spawn("serve", "transform", *common, *ws, log=logs / "transform.log"))
-        procs.append(spawn("serve", "controller", *common, log=logs / "controller.log"))
+        procs.append(spawn("serve", "controller", *common, *warmup, log=logs / "controller.log"))
         procs.append(spawn("serve", "simulator", *common, *ws, log=logs / "simulator.log"))
         rid = "u1"
         with connect(ep) as bus:
@@ -243,12 +269,15 @@ def run_case(case: str, args: argparse.Namespace, tmp: Path, n: int) -> dict[str
                             return s.revision
                 return None
 
+            arrived = wait(lambda: arrival(watch, t0), args.arrive_timeout) if first else None
             final_rev = wait(final, args.final_timeout) if first is not None else None
             time.sleep(0.5)
             with watch.lock:
                 cmds = [(t - t0, c) for t, c in watch.cmds if t >= t0]
                 status = [(t - t0, s) for t, s in watch.status if t >= t0]
                 ws_status = [(t - t0, s) for t, s in watch.ws_status]
+                poses = [p for t, p in watch.poses if t >= t0]
+                events = [e for _, e in watch.collisions]
         revs: dict[str, float] = {}
         for t, c in cmds:
             if c.map_revision and c.map_revision not in revs and (c.linear[0] or c.angular):
@@ -279,10 +308,72 @@ def run_case(case: str, args: argparse.Namespace, tmp: Path, n: int) -> dict[str
             "final_s": revs.get(final_rev) if final_rev else None,
             "stopped_after_moving": stopped_after_moving,
             "on_base_map": any("unshrunk map" in s.message for _, s in nav),
+            "controller_atlas_warmup": warmup[1],
+            "footprint_map_statuses": [
+                (round(t, 2), s.state, (s.revision or "")[:12], s.message[:80])
+                for t, s in ws_status
+                if "~r" in s.ws_id
+            ],
+            "last_status": None if not status else (status[-1][1].state, status[-1][1].reason,
+                                                    status[-1][1].message[:160]),
+            **outcome(arrived, poses, events, base_ws(name, tmp), radius, goal_xy),
             "loadavg": list(os.getloadavg()),
         }
     finally:
         stop(procs[::-1])
+
+
+def arrival(watch: Watch, t0: float) -> float | None:
+    """Goal to the first ``arrived`` status (None: not yet)."""
+    with watch.lock:
+        for t, s in watch.status:
+            if t >= t0 and s.state == "arrived":
+                return t - t0
+    return None
+
+
+def base_ws(name: str, tmp: Path) -> Any:
+    """The exact workspace the robot's body must stay in (its walls and obstacles)."""
+    from confnav.geometry import Workspace
+    from confnav.scenes.workspaces import default_workspace
+
+    return Workspace.load(example_workspace(name, tmp)) if name in MAPS else default_workspace()
+
+
+def outcome(
+    arrived_s: float | None,
+    poses: list[Pose],
+    events: list[CollisionEvent],
+    ws: Any,
+    radius: float,
+    goal: tuple[float, float],
+) -> dict[str, Any]:
+    """Whether the robot arrived (its ``arrived`` status, goal to it in s) and its collisions:
+
+    - ``collision_events``: the simulator's ``CollisionEvent`` s against the walls (on the
+      radius it was spawned with: 0 for a robot spawned as a point, ``first_use``);
+    - ``body_collisions``: from the poses after the goal, the times the disk of the body's
+      radius around the robot's position (``base_link``) entered a wall or obstacle of the
+      exact workspace (runs of poses with clearance < radius), and ``min_body_clearance_m``,
+      the smallest clearance of that disk (poses at the simulator's rate; between two poses
+      the simulator's own check applies).
+    """
+    import numpy as np
+
+    z = np.array([complex(p.x, p.y) for p in poses], dtype=np.complex128)
+    gap = np.asarray(ws.clearance(z), dtype=np.float64) - radius if z.size else np.zeros(0)
+    inside = gap < 0
+    runs = int(inside[0]) + int(np.count_nonzero(inside[1:] & ~inside[:-1])) if z.size else 0
+    last = poses[-1] if poses else None
+    return {
+        "arrived": arrived_s is not None,
+        "arrive_s": arrived_s,
+        "collision_events": sum(1 for e in events if e.other_robot_id is None),
+        "body_collisions": runs,
+        "min_body_clearance_m": float(gap.min()) if gap.size else None,
+        "final_distance_m": None if last is None else abs(complex(last.x, last.y) - complex(*goal)),
+        "poses_checked": int(z.size),
+    }
 
 
 def run_solve(args: argparse.Namespace, n: int) -> dict[str, Any]:
@@ -418,9 +509,12 @@ def run_ros2(args: argparse.Namespace, tmp: Path, n: int) -> dict[str, Any]:
                 pose = codec.PlanarPose(args.goal[0], args.goal[1], 0.0, time.time_ns(), "odom")
                 ros.put(goal_key, codec.encode_pose(pose, "pose"))
                 first = wait(lambda: [t - t0 for t in moves if t >= t0][:1], args.timeout)
+                arrived = wait(lambda: arrival(watch, t0), args.arrive_timeout) if first else None
                 time.sleep(0.5)
             with watch.lock:
                 status = [(t - t0, s) for t, s in watch.status if t >= t0]
+                poses = [p for t, p in watch.poses if t >= t0]
+                events = [e for _, e in watch.collisions]
         nav = [(t, s) for t, s in status if s.state == "navigating"]
         return {
             "case": "ros2",
@@ -440,6 +534,9 @@ def run_ros2(args: argparse.Namespace, tmp: Path, n: int) -> dict[str, Any]:
                 if first and t > first[0] and s.state == "stopped"
             ],
             "on_base_map": any("unshrunk map" in s.message for _, s in nav),
+            **outcome(
+                arrived, poses, events, base_ws("default", tmp), args.radius, tuple(args.goal)
+            ),
             "loadavg": list(os.getloadavg()),
         }
     finally:
@@ -448,8 +545,8 @@ def run_ros2(args: argparse.Namespace, tmp: Path, n: int) -> dict[str, Any]:
 
 def report(rows: list[dict[str, Any]]) -> None:
     print(
-        f"{'case':<10} {'run':>3} {'ahead s':>8} {'first cmd s':>11} {'final rev s':>11} "
-        f"{'revs':>4}  load"
+        f"{'case':<19} {'run':>3} {'ahead s':>8} {'first cmd s':>11} {'final rev s':>11} "
+        f"{'revs':>4} {'arrive s':>8} {'coll':>4}  load"
     )
     for r in rows:
         f = "-" if r["first_cmd_s"] is None else f"{r['first_cmd_s']:.2f}"
@@ -460,18 +557,21 @@ def report(rows: list[dict[str, Any]]) -> None:
         if r["case"] == "build":
             parts = [f"{w} {b['total_s']:.3f} s (shrink {b['shrink_s']:.3f}, grid "
                      f"{b['grid_s']:.3f})" for w, b in r["build"].items()]  # fmt: skip
-            print(f"{'build':<10} {r['run']:>3} " + ", ".join(parts) + f"  {load}")
+            print(f"{'build':<19} {r['run']:>3} " + ", ".join(parts) + f"  {load}")
             continue
         if r["case"] == "solve":
             print(
-                f"{'solve':<10} {r['run']:>3} tol {r['tol']:.0e}: "
+                f"{'solve':<19} {r['run']:>3} tol {r['tol']:.0e}: "
                 + ", ".join(f"{t:.2f} s" for t in r["solve_s"])
                 + f" (cold, warm), estimate {r['error_estimate']:.1e}, tol_met {r['tol_met']}"
                 + f"  {load}"
             )
             continue
+        arr = "-" if r.get("arrive_s") is None else f"{r['arrive_s']:.1f}"
+        coll = r.get("body_collisions", 0) + r.get("collision_events", 0)
         print(
-            f"{r['case']:<10} {r['run']:>3} {a:>8} {f:>11} {g:>11} {len(r['revisions']):>4}  {load}"
+            f"{r['case']:<19} {r['run']:>3} {a:>8} {f:>11} {g:>11} {len(r['revisions']):>4} "
+            f"{arr:>8} {coll:>4}  {load}"
         )
         if r["first_navigating_message"]:
             print(f"{'':14} first status: navigating ({r['first_navigating_message']})")
@@ -506,6 +606,12 @@ def main() -> int:
         type=float,
         default=None,
         help="s to wait for the final revision (default 900; --quick: 0, not waited for)",
+    )
+    ap.add_argument(
+        "--arrive-timeout",
+        type=float,
+        default=300.0,
+        help="s after the goal to wait for the robot's 'arrived' status",
     )
     ap.add_argument("--out", default=None)
     args = ap.parse_args()

@@ -125,6 +125,16 @@ def add_parser(sub: Any) -> None:
     p.add_argument(
         "--idle-ttl", type=float, default=60.0, help="s without pose or goal: robot forgotten"
     )
+    p.add_argument(
+        "--atlas-warmup",
+        choices=("background", "first-use"),
+        default="background",
+        help="an atlas's charts: 'background' (default): installed cold, a robot's chart "
+        "evaluates directly until a background thread has built its local expansions, "
+        "nearest the robots first; 'first-use': each chart builds them when a robot first "
+        "uses it, in its goal or pose step (less memory for charts no robot visits; a "
+        "robot's first move then waits about a second per chart, more under load)",
+    )
     p.set_defaults(func=main)
 
 
@@ -134,8 +144,9 @@ def main(args: argparse.Namespace) -> int:
     except KeyError_ as exc:
         print(f"confnav serve controller: --robots: {exc}", file=sys.stderr)
         return 2
-    return run_until_signal(
-        lambda bus, keys: ControllerService(
+
+    def make(bus: Any, keys: Any) -> ControllerService:
+        svc = ControllerService(
             bus,
             keys,
             robots,
@@ -145,9 +156,11 @@ def main(args: argparse.Namespace) -> int:
             max_gain=args.max_gain,
             max_speed=args.max_speed,
             idle_ttl=args.idle_ttl,
-        ),
-        args,
-    )
+        )
+        svc.atlas_warmup = getattr(args, "atlas_warmup", "background")
+        return svc
+
+    return run_until_signal(make, args)
 
 
 __all__ = [

@@ -63,6 +63,8 @@ class ControllerCacheMixin(ControllerCore):
             goal = r.goal
             if goal is None or goal.ws_id != ws_id or r.ctrl_revision == m.revision:
                 return
+            if r.atlas_ws in self._maps:  # on the atlas its flat start asked for
+                return
         ctrl, err = self._build(m, goal)
         with r.lock:
             if r.goal is goal and r.ctrl_revision != m.revision:

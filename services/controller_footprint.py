@@ -30,6 +30,7 @@ from confnav.schemas import Goal
 from confnav.services import navigation
 from confnav.services.controller_cache import ControllerCacheMixin
 from confnav.services.controller_state import _Map, _Robot
+from confnav.services.controller_warm import WarmMixin, prime
 from confnav.services.definitions import definition_of, derived_definition, workspace_of
 
 from confnav.maps.footprint import UnreachableGoalError, parse_derived_ws_id
@@ -123,7 +124,7 @@ def off_shrunk(r: _Robot, theta: float) -> str:
     )
 
 
-class FootprintMixin(ControllerCacheMixin):
+class FootprintMixin(ControllerCacheMixin, WarmMixin):
     """Robots on the base map while their footprint map is being solved (module docstring)."""
 
     def _init_footprint(self) -> None:
@@ -212,7 +213,9 @@ class FootprintMixin(ControllerCacheMixin):
                 or (r.base_ws == base_ws and r.ctrl_revision == base.revision)
             ):
                 return
-        ctrl, err, shrunk = self._build_on_base(base, goal)
+        with self._goal_building():
+            ctrl, err, shrunk = self._build_on_base(base, goal)
+            prime(ctrl, r.position)
         with r.lock:
             if r.goal is not goal or goal.ws_id in self._maps:
                 return  # a new goal, or the footprint map came meanwhile: it wins

@@ -13,13 +13,15 @@ from confnav.schemas import (
     decode,
 )
 from confnav.services import navigation
+from confnav.services.controller_flat import FlatMixin
 from confnav.services.controller_footprint import FootprintMixin, base_of
+from confnav.services.controller_warm import prime
 from confnav.services.keys import KeyError_
 
 log = logging.getLogger(__name__)
 
 
-class GoalsMixin(FootprintMixin):
+class GoalsMixin(FootprintMixin, FlatMixin):
     """Goals and cancels: each robot's goal, its controller, and rejected input."""
 
     # goals (records from ControllerCore._robot) ------------------------------------------
@@ -62,19 +64,22 @@ class GoalsMixin(FootprintMixin):
             self.count("goals_repeated")
             return
         self.count("goals")
-        m = self._maps.get(goal.ws_id)
-        ctrl, err = self._build(m, goal) if m is not None else (None, "")
-        base = base_of(goal.ws_id)  # a footprint map being solved: drive on the base map
-        bm = self._maps.get(base) if base is not None and m is None else None
-        shrunk = None
-        if bm is not None and self._on_base_available(bm):  # built before the goal is set, so
-            ctrl, err, shrunk = self._build_on_base(bm, goal)  # no pose meets it without one
-        else:
-            bm = None
+        with self._goal_building():  # the atlas warm-up waits (services/controller_warm.py)
+            m = self._maps.get(goal.ws_id)
+            ctrl, err = self._build(m, goal) if m is not None else (None, "")
+            base = base_of(goal.ws_id)  # a footprint map being solved: drive on the base map
+            bm = self._maps.get(base) if base is not None and m is None else None
+            shrunk = None
+            if bm is not None and self._on_base_available(bm):  # built before the goal is set,
+                ctrl, err, shrunk = self._build_on_base(bm, goal)  # so no pose meets it without
+            else:
+                bm = None
+            prime(ctrl, r.position)  # an atlas: its starting chart's law and safety grid
         with r.lock:
             r.goal, r.ctrl, r.ctrl_error = goal, ctrl, err
             r.ctrl_revision = m.revision if m is not None else None
             r.base_ws, r.shrunk = "", None
+            r.atlas_ws, r.flat_note, r.flat_checked = "", "", None
             if bm is not None and base is not None:
                 r.ctrl_revision, r.base_ws, r.shrunk = bm.revision, base, shrunk
             r.stale_reported = False
@@ -88,6 +93,7 @@ class GoalsMixin(FootprintMixin):
             if base is not None and latest is not None and self._on_base_available(latest):
                 self._adopt_base(r, base, latest)  # a base revision that landed meanwhile
             self._wake_fetch.set()
+        self._check_flat(r)  # a single map flat where it stands: ask for the atlas
         log.info("robot %r: goal %s on %r", rid, goal.goal, goal.ws_id)
 
     def _reject_goal(self, rid: str, message: str) -> None:
@@ -101,6 +107,7 @@ class GoalsMixin(FootprintMixin):
                 self._publish_cmd(r, 0j, None)
             r.goal, r.ctrl, r.ctrl_error, r.ctrl_revision = None, None, "", None
             r.base_ws, r.shrunk = "", None
+            r.atlas_ws, r.flat_note, r.flat_checked = "", "", None
             r.seen_t = now
             r.status_key = ("", "", None, "")
             self._status(r, "idle", "invalid_input", f"goal rejected: {message}", now)

@@ -18,8 +18,10 @@ from confnav.schemas import (
     decode,
 )
 from confnav.services.atlas_client import fetch_atlas
+from confnav.services.controller_flat import FlatMixin
 from confnav.services.controller_footprint import FootprintMixin, base_of
 from confnav.services.controller_state import _Map, _Pending, _Robot
+from confnav.services.controller_warm import prime
 from confnav.services.definitions import REFINING, definition_hash, workspace_of
 from confnav.services.keys import KeyError_
 
@@ -44,7 +46,7 @@ def _warm(cmap: object) -> None:
         log.debug("map warm-up", exc_info=True)
 
 
-class MapsMixin(FootprintMixin):
+class MapsMixin(FootprintMixin, FlatMixin):
     """Maps: liveliness of the transform services, solutions and atlases received or fetched,
     hot swaps, definition changes and deletes."""
 
@@ -96,7 +98,10 @@ class MapsMixin(FootprintMixin):
                 for r in self._robots.values()
                 if r.goal and r.goal.ws_id == ws_id
             }
-        built = {rid: self._build(new, g) for rid, g in goals.items() if g}
+        with self._goal_building():  # the robots' swap first, the atlas warm-up after
+            built = {rid: self._build(new, g) for rid, g in goals.items() if g}
+            for rid, (ctrl, _) in built.items():
+                prime(ctrl, self._robots[rid].position if rid in self._robots else None)
         with self._build_lock:
             live = {m.revision for w, m in self._maps.items() if w != ws_id} | {new.revision}
             self._ctrl_cache = OrderedDict(
@@ -117,6 +122,8 @@ class MapsMixin(FootprintMixin):
                 with r.lock:
                     if r.goal is None or r.goal.ws_id != ws_id:
                         continue
+                    if r.atlas_ws in self._maps:  # on the atlas its flat start asked for
+                        continue
                     if r.goal is not goals.get(r.robot_id):
                         late.append(r)
                         continue
@@ -127,6 +134,9 @@ class MapsMixin(FootprintMixin):
             self._adopt(r, ws_id, new)
         self._footprint_installed(ws_id, new)
         self._base_installed(ws_id, new)  # robots whose footprint map {ws_id}~r{R} is unsolved
+        self._atlas_installed(ws_id, new)  # robots whose single map is flat where they stood
+        if isinstance(cmap, AtlasMap):  # its charts are warmed in the background
+            self._warm_atlas(cmap)
         self.count("maps_installed")
         log.info("workspace %r: map %s installed (%d robots)", ws_id, sol.revision[:12], len(goals))
         self.swapped.set()
@@ -215,6 +225,8 @@ class MapsMixin(FootprintMixin):
                     r.goal.ws_id
                     for r in self._robots.values()
                     if r.goal is not None and r.goal.ws_id not in self._maps
+                } | {  # atlases asked for by robots whose single map is flat where they stood
+                    r.atlas_ws for r in self._robots.values() if r.atlas_ws not in ("", *self._maps)
                 }
                 # a footprint map being solved: its base map too (robots drive on it meanwhile)
                 bases = {b for w in missing if (b := base_of(w)) is not None}

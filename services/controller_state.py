@@ -122,6 +122,10 @@ class _Robot:
     # on the base map while the footprint map {ws}~r{R} is solved (services/controller_footprint)
     base_ws: str = ""  # the base workspace driven on ("" when on the goal's own map)
     shrunk: Any = None  # the exact shrunk workspace its safety layer keeps it in
+    # its navigation function flat where it stood (services/controller_flat.py)
+    atlas_ws: str = ""  # the atlas {ws}~atlas it asked for ("" if none)
+    flat_note: str = ""  # why
+    flat_checked: Any = None  # the law last checked for flatness
     last_pose_t: float | None = None  # monotonic receive time of the last fresh pose
     last_stamp: tuple[int, int] = (-1, -1)  # (stamp_ns, seq) of the last fresh pose
     goal_t: float = 0.0  # monotonic time the goal was set
@@ -328,6 +332,8 @@ class ControllerCore(Service):
             from confnav.services.controller_footprint import base_note
 
             return base_note(r)
+        if r.atlas_ws:
+            return self._flat_note(r)  # type: ignore[attr-defined,no-any-return]
         rev = r.ctrl_revision
         if rev is None or rev not in self._refining:
             return ""

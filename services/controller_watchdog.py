@@ -27,6 +27,9 @@ class WatchdogMixin(ControllerCore):
                 for r in robots:
                     if now - r.seen_t > self.idle_ttl:
                         self._forget(r.robot_id, f"forgotten after {self.idle_ttl:g} s silent")
+            for r in robots:  # a law not yet checked for a flat navigation function
+                if r.goal is not None and r.ctrl is not None and r.flat_checked is not r.ctrl:
+                    self._check_flat(r)  # type: ignore[attr-defined]
             for r in robots:
                 with r.lock:
                     if r.goal is None:

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import argparse
 import concurrent.futures as cf
+import hashlib
 import json
 import logging
 import multiprocessing
@@ -73,6 +74,7 @@ from confnav.services.definitions import (
 from confnav.services.keys import KeyError_, Keys
 from confnav.services.runtime import Service, add_zenoh_args, run_until_signal
 
+from confnav.atlas.wire import atlas_ws_id, parse_atlas_ws_id
 from confnav.maps.footprint import derived_ws_id, parse_derived_ws_id
 
 log = logging.getLogger(__name__)
@@ -94,6 +96,12 @@ def solve_definition(
     return single_or_atlas(
         workspace_of(defn), defn.tol if tol is None else tol, max_error=max_error
     )
+
+
+def atlas_hash(h: str) -> str:
+    """The key of the atlas solve of the geometry whose definition hash is ``h`` (the
+    ``{ws}~atlas`` id): not the single map's key, so neither is served for the other."""
+    return hashlib.sha256(f"{h}|atlas".encode()).hexdigest()
 
 
 def _worker_init(parent: int) -> None:
@@ -247,8 +255,11 @@ class TransformService(Service):
         if not self.submit(defn):
             return
         self._save_definition(defn)
-        with self._lock:  # re-derive the footprint workspaces of this one ({ws}~r{R})
-            derived = [w for w in self._ws if w.startswith(ws_id + "~r")]
+        with self._lock:  # re-derive the footprint workspaces and atlases of this one
+            derived = sorted(  # a footprint workspace before its atlas ({ws}~r{R}~atlas)
+                (w for w in self._ws if w.startswith(ws_id + "~r") or w == atlas_ws_id(ws_id)),
+                key=len,
+            )
         for w in derived:
             err = self._derive(w)
             if err:
@@ -281,8 +292,22 @@ class TransformService(Service):
             self._derive_ahead(req.ws_id, (radius,))
 
     def _derive(self, ws_id: str) -> str:
-        """Solve ``{base}~r{R}`` (a footprint workspace) from the known base definition;
-        returns why it cannot be derived ("" if it was submitted or is not a derived id)."""
+        """Solve ``{base}~r{R}`` (a footprint workspace) from the known base definition, or
+        ``{base}~atlas`` (the base's geometry as an atlas, whatever one map of it would be:
+        asked for by a controller whose robot's navigation function is flat on the single
+        map, docs/SERVICES.md); returns why it cannot be derived ("" if it was submitted or
+        is not a derived id)."""
+        atlas_of = parse_atlas_ws_id(ws_id)
+        if atlas_of is not None:
+            with self._lock:
+                known = atlas_of in self._ws
+            err = "" if known else self._derive(atlas_of)  # e.g. {ws}~r{R}~atlas
+            with self._lock:
+                base = self._ws.get(atlas_of)
+            if base is None:
+                return err
+            self.submit(base.definition.model_copy(update={"ws_id": ws_id}))
+            return ""
         parsed = parse_derived_ws_id(ws_id)
         with self._lock:
             base = self._ws.get(parsed[0]) if parsed else None
@@ -322,6 +347,8 @@ class TransformService(Service):
         except Exception as exc:  # WorkspaceError and anything the validation raises
             self._fail(defn, "invalid:" + ws_id, f"invalid workspace: {exc}")
             return False
+        if parse_atlas_ws_id(ws_id) is not None:  # the geometry's atlas: its own result
+            h = atlas_hash(h)
         with self._lock:
             cur = self._ws.get(ws_id)
             if cur is not None and cur.definition_hash == h and cur.state != "failed":
@@ -379,6 +406,7 @@ class TransformService(Service):
         the worker's solve of revision ``rung`` of the ladder (:func:`revision_ladder`), or
         with ``atlas`` the chart by chart solve of an atlas (a thread handing the charts to
         the pool and the peers, :meth:`ChartShare.solve`)."""
+        atlas = atlas or parse_atlas_ws_id(ws_id) is not None  # {ws}~atlas: never one map
         with self._lock:
             fut = self._inflight.get(h)
             if fut is None:

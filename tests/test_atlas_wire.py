@@ -83,6 +83,37 @@ def test_the_wire_rebuilds_the_same_atlas_and_plan(
         atlas_map_of(index, {})
 
 
+def _bent(index: AtlasIndex, offset: float) -> AtlasIndex:
+    """``index`` with a vertex added to cell 0's outer ring: the middle of its longest edge,
+    moved ``offset`` off it (as the simplification of a cell polygon moves its boundary)."""
+    cell = index.cells[0]
+    ring = [complex(*p) for p in cell.outer]
+    k = max(range(len(ring)), key=lambda i: abs(ring[(i + 1) % len(ring)] - ring[i]))
+    a, b = ring[k], ring[(k + 1) % len(ring)]
+    m = (a + b) / 2 + offset * 1j * (b - a) / abs(b - a)
+    outer = [*cell.outer[: k + 1], (m.real, m.imag), *cell.outer[k + 1 :]]
+    cells = [cell.model_copy(update={"outer": outer}), *index.cells[1:]]
+    return index.model_copy(update={"cells": cells})
+
+
+def test_a_cell_polygon_within_the_simplification_of_its_chart_is_its_chart(
+    wire: tuple[AtlasIndex, list[TransformSolution]],
+) -> None:
+    """A chart's workspace is its cell polygon simplified within 1e-9 of the diameter: the
+    rebuilt atlas accepts a boundary that far off its chart's (an area test refused a chart
+    of the README's office shrunk by 0.3 m, at 5.4e-10 of the cell's area), and refuses one
+    a visible distance off."""
+    index, charts = wire
+    maps = {c.revision: ConformalMap.from_dict(c.coefficients) for c in charts}
+    diameter = atlas_map_of(index, maps).atlas.workspace.diameter
+    poly0 = atlas_map_of(index, maps).atlas.decomposition.cells[0].polygon
+    near = _bent(index, 3e-9 * diameter)
+    am = atlas_map_of(near, maps)
+    assert am.atlas.decomposition.cells[0].polygon.symmetric_difference(poly0).area > 0
+    with pytest.raises(Exception, match="not its cell's map"):
+        atlas_map_of(_bent(index, 1e-6 * diameter), maps)
+
+
 def drive(ctrl: object, z: complex, dt: float = 0.02, steps: int = 3000) -> list[complex]:
     path = [z]
     for _ in range(steps):
@@ -159,3 +190,34 @@ def test_an_atlas_stands_in_for_a_body_until_its_footprint_atlas(
     assert ctrl.nav.controller(ctrl.active_chart).safety.workspace is shrunk  # type: ignore[attr-defined]
     # the body stays clear of the walls (exact distance, every step); 1e-9: rounding
     assert float(np.min(am.atlas.workspace.clearance(np.array(path)))) >= radius - 1e-9
+
+
+def test_charts_start_cold_and_command_what_warm_charts_command(
+    wire: tuple[AtlasIndex, list[TransformSolution]],
+) -> None:
+    """An installed atlas's charts evaluate by the direct formula until warmed (their local
+    expansions built, :meth:`AtlasMap.warm`); a robot's commands are the same either way to
+    1e-9 (the tolerance of ``replay --check``); ``prepare`` builds a robot's starting chart
+    without touching its switching state; the warm-up order is nearest first."""
+    g = Goal(robot_id="r", ws_id="pc", goal=(GOAL.real, GOAL.imag), v_max=1.0, tolerance=0.02)
+    cold, warm = rebuilt(wire), rebuilt(wire)
+    n = len(cold.nav_maps)
+    assert cold.cold_charts() == list(range(n)) and not cold.is_warm(0)
+    assert all(warm.warm(i) for i in range(n)) and warm.cold_charts() == []
+    assert not warm.warm(0)  # built once
+    start = 0.3 + 0.4j
+    ctrl = make_controller(cold, g)
+    first = ctrl.prepare(start)  # type: ignore[attr-defined]
+    assert ctrl.active_chart is None and first  # type: ignore[attr-defined]
+    assert cold.cold_by_distance([start])[0] == (first[0], 0.0)
+    far = cold.cold_by_distance([GOAL])
+    assert far[0][1] == 0.0 and far[-1][1] > 5.0  # the far end of the corridor last
+    path = drive(make_controller(warm, g), start)
+    u_cold, s_cold = commands(ctrl, np.array(path))
+    u_warm, s_warm = commands(make_controller(warm, g), np.array(path))
+    assert np.array_equal(s_cold, s_warm)
+    assert float(np.max(np.abs(u_cold - u_warm))) <= 1e-9
+    assert cold.cold_charts() == list(range(n))  # driving never warmed a chart
+    cold.build_on_first_use()  # the old behaviour: the next evaluation builds them
+    commands(make_controller(cold, g), np.array(path[:1]))
+    assert cold.is_warm(first[0])

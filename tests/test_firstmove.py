@@ -27,7 +27,7 @@ from confnav.schemas import (
 from confnav.services import navigation
 from confnav.services.controller import ControllerService
 from confnav.services.controller_footprint import same_geometry, shrunk_workspace
-from confnav.services.definitions import workspace_of
+from confnav.services.definitions import definition_of, workspace_of
 from confnav.services.keys import Keys
 from confnav.services.transform import TransformService, solve_definition
 from conftest import square_definition, wait_for
@@ -281,3 +281,80 @@ def test_make_controller_builds_the_stand_in_as_the_controller_does() -> None:
     assert ctrl.safety.workspace is shrunk  # type: ignore[union-attr]
     assert shrunk.boundaries[0].size and not shrunk.contains(0.65 + 0j)
     assert not navigation.stands_in(cmap, ok.model_copy(update={"robot_radius": 0.0}))
+
+
+def _one_map(defn_json: str) -> dict[str, Any]:
+    """The transform's solve forced to one map (no a-priori atlas test, no crowding test):
+    a single map whose navigation function is flat far from the goal. ``{ws}~atlas`` ids are
+    solved chart by chart by the service itself, not by this function."""
+    import warnings
+
+    from confnav.services.definitions import solution_result
+
+    from confnav.conformal.solver import solve
+
+    defn = WorkspaceDefinition.model_validate_json(defn_json)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return solution_result(solve(workspace_of(defn), defn.tol), defn.tol)
+
+
+def test_a_robot_where_the_navigation_function_is_flat_drives_on_the_atlas(
+    make_bus: Callable[[], Any],
+) -> None:
+    """A 1 m x 10.5 m corridor on one map, the goal 0.6 m from one end, the robot 9.4 m away:
+    there the goal's Green's function is below double precision (1 - phi = 5.6e-13). The
+    controller says so in the robot's status, asks for the corridor's atlas (``cor~atlas``),
+    swaps the robot to it (commands carry its active chart) and the robot arrives without
+    touching a wall. Without the check the robot stays on the flat single map forever."""
+    from confnav.services.controller_flat import flat_here
+
+    from confnav.atlas.wire import atlas_ws_id
+
+    # anchored in the middle: each end crowds by exp(-5 pi) only, and phi decays honestly
+    ws = Workspace([(0, 0), (10.5, 0), (10.5, 1), (0, 1)], [], anchor=5.25 + 0.5j)
+    defn = definition_of("cor", ws, tol=1e-6)
+    start, target = (10.0, 0.5), (0.6, 0.5)
+    tr = TransformService(
+        make_bus(), K, executor="thread", solve_fn=_one_map, progressive=False, health_period=0.2
+    )
+    ctl = ControllerService(make_bus(), K, stale_after=5.0, health_period=0.2)
+    tr.start()
+    ctl.start()
+    client = make_bus()
+    robot = None
+    try:
+        client.publish(K.ws("cor", "definition"), encode(defn))
+        wait_for(lambda: "cor" in ctl._maps, timeout=120)
+        goal = Goal(robot_id="f1", ws_id="cor", goal=target, v_max=1.0, tolerance=0.05)
+        # the premise: the single map's law is flat at the start
+        law = navigation.make_controller(ctl._maps["cor"].cmap, goal)
+        assert "flat" in flat_here(law, start) and flat_here(law, (1.5, 0.5)) == ""
+        statuses = _Statuses(client, "f1")
+        robot = _Robot(make_bus(), "f1", start)
+        wait_for(lambda: robot is not None and robot.seq > 2, timeout=30)  # its pose is known
+        client.publish(K.robot("f1", "goal"), encode(goal))
+        aid = atlas_ws_id("cor")
+        wait_for(lambda: any("flat" in s.message for s in statuses.all()), timeout=60)
+        wait_for(lambda: aid in ctl._maps, timeout=300)  # the atlas, solved on request
+        on_atlas = lambda: [c for c in robot.moving_commands() if c.chart is not None]  # noqa: E731
+        wait_for(on_atlas, timeout=60)
+        wait_for(lambda: statuses.all()[-1].state == "arrived", timeout=120)
+        assert ctl.counters["flat_starts"] == 1
+        # the atlas was installed cold and the charts of the robot's path warmed in the
+        # background (services/controller_warm.py): its first chart at least
+        am = ctl._maps[aid].cmap
+        first = on_atlas()[0].chart
+        assert first is not None
+        wait_for(lambda: am.is_warm(first), timeout=120)
+        assert ctl.counters["charts_warmed"] >= 1
+        assert {c.map_revision for c in on_atlas()} == {ctl._maps[aid].revision}
+        with robot.lock:
+            path = np.array(robot.path)
+        assert float(ws.clearance(path).min()) > 0.0
+        assert abs(path[-1] - complex(*target)) <= 0.05 + 0.05
+    finally:
+        if robot is not None:
+            robot.stop.set()
+        ctl.stop()
+        tr.stop()

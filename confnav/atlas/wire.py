@@ -12,11 +12,13 @@ at every pose.  ``replay --check`` rebuilds the same objects from a recording.
 from __future__ import annotations
 
 import hashlib
+import threading
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+import shapely
 from numpy.typing import ArrayLike
 from shapely.geometry import LineString, MultiLineString, Polygon
 from shapely.geometry.base import BaseGeometry
@@ -24,6 +26,7 @@ from shapely.geometry.base import BaseGeometry
 from confnav.atlas.charts import Atlas
 from confnav.atlas.compose import AtlasNavigator, Overlap, overlaps
 from confnav.atlas.decompose import Cell, Decomposition, elongation
+from confnav.conformal.cmap import EXPANSION_MIN_POINTS
 from confnav.errors import NavigationError
 from confnav.geometry import Workspace
 from confnav.navigation import defaults
@@ -32,23 +35,46 @@ from confnav.navigation.unicycle import UnicycleController
 
 __all__ = [
     "ATLAS_MARKER",
+    "ATLAS_SUFFIX",
     "AtlasController",
     "AtlasMap",
     "atlas_from_index",
     "atlas_map_of",
     "atlas_revision",
+    "atlas_ws_id",
     "chart_ws_id",
     "index_fields",
     "is_chart_ws_id",
+    "parse_atlas_ws_id",
 ]
 
 #: Start of the error a transform query answers for a workspace solved as an atlas.
 ATLAS_MARKER = "atlas:"
 
+#: Suffix of the id under which a workspace's atlas is solved on request, whatever one map
+#: of it would be (:func:`atlas_ws_id`): a host whose single map cannot steer a robot (its
+#: navigation function flat to rounding there) asks for it.
+ATLAS_SUFFIX = "~atlas"
+
+#: Largest distance (relative to the workspace's diameter) between a cell's boundary and its
+#: chart's: 10 times the simplification of :func:`confnav.atlas.decompose` (1e-9).
+CHART_MATCH = 1e-8
+
 
 def chart_ws_id(ws_id: str, index: int) -> str:
     """The workspace id under which chart ``index`` of atlas ``ws_id`` is published."""
     return f"{ws_id}~c{index}"
+
+
+def atlas_ws_id(ws_id: str) -> str:
+    """The id of ``ws_id`` solved as an atlas (``{ws}~atlas``; itself for such an id)."""
+    return ws_id if parse_atlas_ws_id(ws_id) is not None else ws_id + ATLAS_SUFFIX
+
+
+def parse_atlas_ws_id(ws_id: str) -> str | None:
+    """The workspace of an id from :func:`atlas_ws_id` (None for other ids)."""
+    base = ws_id.removesuffix(ATLAS_SUFFIX)
+    return base if base and base != ws_id else None
 
 
 def is_chart_ws_id(ws_id: str) -> bool:
@@ -121,10 +147,14 @@ def atlas_from_index(index: Any, charts: Sequence[Any]) -> Atlas:
     dec_d = dict(index.decomposition)
     ws = Workspace.from_dict(dec_d.pop("workspace"))
     cells = []
+    # the chart's workspace is the cell polygon without collinear vertices: simplified within
+    # 1e-9 of the workspace's diameter (confnav.atlas.decompose._cell_workspace), which moves
+    # the boundary by that much and its area by up to that times its length (the README's
+    # office shrunk by 0.3 m: 5.4e-10 of a cell's area, and a chart refused at 1e-9 of it)
+    tol = CHART_MATCH * ws.diameter
     for c, m in zip(index.cells, charts, strict=True):
         poly = Polygon(c.outer, [list(o) for o in c.obstacles])
-        # the chart's workspace is the cell polygon without collinear vertices
-        if poly.symmetric_difference(m.workspace.polygon).area > 1e-9 * poly.area:
+        if poly.boundary.hausdorff_distance(m.workspace.polygon.boundary) > tol:
             raise NavigationError(f"atlas {index.ws_id!r}: chart {c.index} is not its cell's map")
         cut: BaseGeometry = MultiLineString([list(line) for line in c.cut])
         cells.append(Cell(c.index, poly, m.workspace, cut, tuple(c.tile), elongation(poly)))
@@ -152,6 +182,27 @@ def atlas_map_of(index: Any, maps: Mapping[str, Any]) -> AtlasMap:
     return AtlasMap(index.ws_id, index.revision, index.definition_hash, atlas, nav_maps=charts)
 
 
+def _expansions_built(m: Any) -> bool:
+    """Whether a navigation map has its local expansions (True for a map without any)."""
+    return getattr(m, "_expansion", True) is not None
+
+
+def _defer_expansions(m: Any) -> None:
+    """A ``for_navigation`` map evaluates by the direct formula until :func:`_build_expansions`
+    (its ``_fast`` flag builds the expansions on the first evaluation otherwise)."""
+    if not _expansions_built(m):
+        m._fast = False
+
+
+def _build_expansions(m: Any) -> None:
+    """Build a navigation map's local expansions now (``ConformalMap._expansions`` builds
+    them for a batch of ``EXPANSION_MIN_POINTS``), then let every evaluation use them: the
+    flag goes up only after the build, so a robot's step on this chart meanwhile keeps the
+    direct formula instead of building them a second time."""
+    m._expansions(EXPANSION_MIN_POINTS)
+    m._fast = True
+
+
 @dataclass
 class AtlasMap:
     """What the controller service installs for a workspace solved as an atlas: the atlas,
@@ -168,12 +219,77 @@ class AtlasMap:
     links: list[Overlap] = field(default_factory=list)
     is_atlas: bool = True
     per_robot: bool = True
+    _warm_locks: list[threading.Lock] = field(default_factory=list, init=False, repr=False)
+    _warm_failed: set[int] = field(default_factory=set, init=False, repr=False)
 
     def __post_init__(self) -> None:
         if not self.nav_maps:
             self.nav_maps = [m.for_navigation() for m in self.atlas.charts]
         if not self.links:
             self.links = overlaps(self.atlas)
+        # charts start cold (module docstring of :meth:`warm`): a robot's first command on a
+        # chart never waits for that chart's local expansions
+        self._warm_locks = [threading.Lock() for _ in self.nav_maps]
+        for m in self.nav_maps:
+            _defer_expansions(m)
+
+    def is_warm(self, i: int) -> bool:
+        """Whether chart ``i`` evaluates through its local expansions (see :meth:`warm`)."""
+        return i in self._warm_failed or _expansions_built(self.nav_maps[i])
+
+    def cold_charts(self) -> list[int]:
+        """The charts not warmed yet, in cell order."""
+        return [i for i in range(len(self.nav_maps)) if not self.is_warm(i)]
+
+    def warm(self, i: int) -> bool:
+        """Build chart ``i``'s local expansions (True if built by this call).
+
+        A chart's navigation map (``ConformalMap.for_navigation``) evaluates T and T' either by
+        the barycentric Cauchy formula over its boundary nodes (O(nodes) per point, exact to
+        rounding) or through local expansions (O(1) per point, within 1e-12 of the former:
+        docs/METHOD.md, barycentric Cauchy sums; tests/test_expansion.py), which cost about a
+        second per chart to build (measured on the README's office map: 1.2 s of a robot's
+        first command on an idle machine, 3-4 s under load). An atlas installed here starts
+        with every chart on the direct formula, so a goal costs its plan and the first
+        chart's law only; a host (the controller service's warm-up thread) calls this for
+        the charts its robots will need first, and each chart switches to its expansions as
+        soon as they exist. Thread-safe: one build per chart; concurrent callers of the same
+        chart wait for it rather than build it twice."""
+        m = self.nav_maps[i]
+        if self.is_warm(i):
+            return False
+        with self._warm_locks[i]:
+            if self.is_warm(i):
+                return False
+            _build_expansions(m)
+            return True
+
+    def build_on_first_use(self) -> None:
+        """Every cold chart builds its expansions on its first evaluation instead (the
+        behaviour of a plain ``for_navigation`` map: no warm-up thread needed, but the first
+        command on each chart waits for them)."""
+        for i in self.cold_charts():
+            self.nav_maps[i]._fast = True
+
+    def warm_failed(self, i: int) -> None:
+        """Chart ``i``'s expansions could not be built: it stays on the direct formula and
+        counts as warm (nothing left to do for it)."""
+        self._warm_failed.add(i)
+
+    def cold_by_distance(self, points: ArrayLike) -> list[tuple[int, float]]:
+        """The cold charts with the distance of their cells to the nearest of ``points``,
+        nearest first (with no points: in cell order, distance ``inf``)."""
+        cold = self.cold_charts()
+        pts = np.atleast_1d(np.asarray(points, dtype=np.complex128)).ravel()
+        pts = pts[np.isfinite(pts)]
+        if not cold or pts.size == 0:
+            return [(i, float("inf")) for i in cold]
+        cells = self.atlas.decomposition.cells
+        polys = np.array([cells[i].polygon for i in cold], dtype=object)
+        geoms = shapely.points(pts.real, pts.imag)
+        d = np.asarray(shapely.distance(polys[:, None], geoms[None, :]), dtype=np.float64)
+        near = d.min(axis=1)
+        return [(cold[int(k)], float(near[k])) for k in np.argsort(near, kind="stable")]
 
     def controller(
         self, goal: Any, safety: Workspace | None = None
@@ -239,6 +355,21 @@ class AtlasController:
         #: (status reason, message) of the last call's stop when it is no bare ERROR: a
         #: robot in a cell cut off from the goal's is "unreachable", not outside the space
         self.stop_reason: tuple[str, str] | None = None
+
+    def prepare(self, z: complex) -> list[int]:
+        """Build, ahead of the robot's first pose at ``z``, what its first command needs: the
+        laws of the charts it would start on (every lowest-ranked cell holding ``z``) and
+        their safety layers' grids. Changes no state of the switching rule (the host calls
+        this off the pose path, e.g. when a goal arrives); returns those charts."""
+        nav = self.nav
+        a = int(nav.initial_cells(np.array([complex(z)]))[0])
+        if a < 0:
+            return []
+        law = nav.controller(a)
+        flt = getattr(law, "safety", None)
+        if flt is not None:
+            _ = flt.grid  # the exact geometry's grid (shared by the charts' filters)
+        return [a]
 
     def _set(self, i: int) -> None:
         self.active_chart = i
