@@ -403,7 +403,8 @@ def row(
         # 10 % of the time), and every thread's together: evidence of the machine's load
         "pose_thread_run_delay_frac": sum(
             d1[k] - d0.get(k, 0.0) for k in d1 if k.startswith(POSE_THREADS)
-        ) / wall,
+        )
+        / wall,
         # the whole machine's busy cores (every process, this bench's included) and stolen ones
         "machine_busy_cores": (m1[0] - m0[0]) / os.sysconf("SC_CLK_TCK") / wall,
         "machine_steal_cores": (m1[1] - m0[1]) / os.sysconf("SC_CLK_TCK") / wall,
@@ -543,10 +544,23 @@ def step(
             batches = []
             for _ in range(rounds):
                 ps = [decode(Pose, p) for _k, p in poses()]
-                batches.append((K.sim("bench", "poses"), encode(PoseBatch(
-                    sim_id="bench", stamp_ns=ps[0].stamp_ns, robot_ids=[p.robot_id for p in ps],
-                    stamps_ns=[p.stamp_ns for p in ps], seq=[p.seq for p in ps],
-                    x=[p.x for p in ps], y=[p.y for p in ps], theta=[p.theta for p in ps]))))
+                batches.append(
+                    (
+                        K.sim("bench", "poses"),
+                        encode(
+                            PoseBatch(
+                                sim_id="bench",
+                                stamp_ns=ps[0].stamp_ns,
+                                robot_ids=[p.robot_id for p in ps],
+                                stamps_ns=[p.stamp_ns for p in ps],
+                                seq=[p.seq for p in ps],
+                                x=[p.x for p in ps],
+                                y=[p.y for p in ps],
+                                theta=[p.theta for p in ps],
+                            )
+                        ),
+                    )
+                )
             c0, load0 = svc.counters["commands"], os.getloadavg()
             per_step = []
             for item in batches:  # at 20 Hz: the statuses' periodic repeats fall due
@@ -556,14 +570,24 @@ def step(
                 time.sleep(0.05)
             cpu = sum(per_step)
             done = svc.counters["commands"] - c0
-            out.append({"robots": n, "block": "batch", "poses": n * rounds, "commands": done,
-                        "step_cpu_us_per_pose": cpu / max(n * rounds, 1) * 1e6,
-                        "step_cpu_ms": [round(t * 1e3, 2) for t in per_step],
-                        "loadavg_start": list(load0), "loadavg_end": list(os.getloadavg())})
-            print(f"{n} robots, one PoseBatch: pose step "
-                  f"{out[-1]['step_cpu_us_per_pose']:.1f} us CPU per pose ({done} "
-                  f"commands), ms per step {out[-1]['step_cpu_ms']} | load {load0[0]:.1f}",
-                  flush=True)
+            out.append(
+                {
+                    "robots": n,
+                    "block": "batch",
+                    "poses": n * rounds,
+                    "commands": done,
+                    "step_cpu_us_per_pose": cpu / max(n * rounds, 1) * 1e6,
+                    "step_cpu_ms": [round(t * 1e3, 2) for t in per_step],
+                    "loadavg_start": list(load0),
+                    "loadavg_end": list(os.getloadavg()),
+                }
+            )
+            print(
+                f"{n} robots, one PoseBatch: pose step "
+                f"{out[-1]['step_cpu_us_per_pose']:.1f} us CPU per pose ({done} "
+                f"commands), ms per step {out[-1]['step_cpu_ms']} | load {load0[0]:.1f}",
+                flush=True,
+            )
             return out
         finally:
             svc.stop()

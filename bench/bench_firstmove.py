@@ -314,8 +314,9 @@ def run_case(case: str, args: argparse.Namespace, tmp: Path, n: int) -> dict[str
                 for t, s in ws_status
                 if "~r" in s.ws_id
             ],
-            "last_status": None if not status else (status[-1][1].state, status[-1][1].reason,
-                                                    status[-1][1].message[:160]),
+            "last_status": None
+            if not status
+            else (status[-1][1].state, status[-1][1].reason, status[-1][1].message[:160]),
             **outcome(arrived, poses, events, base_ws(name, tmp), radius, goal_xy),
             "loadavg": list(os.getloadavg()),
         }

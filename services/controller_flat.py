@@ -42,7 +42,12 @@ def flat_here(ctrl: Any, position: tuple[float, float] | None) -> str:
     map's free space): ``1 - phi`` below :func:`flat_phi`, or phi not finite, there."""
     law = getattr(ctrl, "controller", ctrl)
     navfn = getattr(law, "navfn", None)
-    if position is None or getattr(navfn, "name", "") != "harmonic" or not hasattr(law, "cmap"):
+    if (
+        navfn is None
+        or position is None
+        or getattr(navfn, "name", "") != "harmonic"
+        or not hasattr(law, "cmap")
+    ):
         return ""
     ws = getattr(getattr(law, "cmap", None), "workspace", None)
     z = complex(position[0], position[1])
