@@ -44,6 +44,10 @@ def _children(pid: int) -> list[int]:
     return out
 
 
+def _default_sigint() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 @pytest.mark.slow
 @pytest.mark.timeout(120)
 def test_ctrl_c_stops_the_atlas_and_its_workers_at_once(tmp_path: Path) -> None:
@@ -57,6 +61,10 @@ def test_ctrl_c_stops_the_atlas_and_its_workers_at_once(tmp_path: Path) -> None:
         stderr=subprocess.PIPE,
         text=True,
         start_new_session=True,  # its own process group, as a terminal's foreground job
+        # as a terminal's job: Ctrl-C not ignored (a shell without job control starts its
+        # background jobs, e.g. a pytest run with '&', with SIGINT ignored, and a child
+        # inherits that: Python then leaves SIGINT ignored and the command rightly solves on)
+        preexec_fn=_default_sigint,
     )
     workers: list[int] = []
     try:

@@ -67,7 +67,7 @@ def test_a_chart_is_accepted_on_the_solvers_certificate_only(
 ) -> None:
     m = _with(small_map, **changes)
     assert m.diagnostics.error_estimate <= 1e-6 or not accepted
-    monkeypatch.setattr(charts, "solve", lambda ws, tol: m)
+    monkeypatch.setattr(charts, "solve", lambda ws, tol, **kw: m)
     text, _, err = charts._solve_one(_ws().to_json(), 1e-8, 1e-6, 0.05)
     assert bool(text) == accepted, err
     if not accepted:

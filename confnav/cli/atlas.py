@@ -282,9 +282,8 @@ def _start_workers(pool: ProcessPoolExecutor) -> None:
 
     A Ctrl-C that lands while ``os.fork`` runs the parent's at-fork hooks (logging's lock
     release) raises inside the hook, where CPython reports it as unraisable and drops it: the
-    command then ignored the Ctrl-C and solved on (seen in tests/test_atlas_interrupt.py under
-    load).  Blocked, the signal stays pending and is delivered when the mask is restored, here,
-    as a KeyboardInterrupt.  The workers (and the pool's manager thread) inherit the blocked
+    command would then ignore the Ctrl-C and solve on.  Blocked, the signal stays pending and
+    is delivered when the mask is restored, here, as a KeyboardInterrupt.  The workers (and the pool's manager thread) inherit the blocked
     mask, and ignore SIGINT anyway (:func:`_ignore_sigint`)."""
     old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
     try:
