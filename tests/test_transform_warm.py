@@ -39,15 +39,15 @@ def room(dx: float) -> WorkspaceDefinition:
     )
 
 
-def _final(msgs: list[bytes], n_obstacles_x: float) -> TransformSolution | None:
-    """The last published solution whose map is of the room with its box at ``n_obstacles_x``
+def _final(msgs: list[bytes], box_x: float) -> TransformSolution | None:
+    """The last published solution whose map is of the room with its box at ``box_x``
     and meets its tol (the final revision)."""
     for p in reversed(msgs):
         sol = decode(TransformSolution, p)
         m = ConformalMap.from_json(json.dumps(sol.coefficients))
         if m.diagnostics.tol_met and m.diagnostics.tol <= 1e-8:
             x0 = float(np.min(np.real(m.workspace.obstacles[1])))
-            if abs(x0 - n_obstacles_x) < 1e-12:
+            if abs(x0 - box_x) < 1e-12:
                 return sol
     return None
 
