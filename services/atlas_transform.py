@@ -65,19 +65,23 @@ KEEP_ATLASES = 8
 POLL = 0.5
 
 
-def single_or_atlas(ws: Any, tol: float, max_error: float | None = None) -> dict[str, Any]:
+def single_or_atlas(
+    ws: Any, tol: float, max_error: float | None = None, initial: Any = None
+) -> dict[str, Any]:
     """Worker: one map's result dict, or ``{"needs_atlas": why}`` (the service then solves
     the atlas chart by chart, :meth:`ChartShare.solve`): when the a-priori test flags the
     workspace, when the single solve raises a crowding error mid-solve, and when the solved
     map measures crowding (:func:`confnav.conformal.solver.crowding_reason`: a boundary
     crowded by 10^6 or more, where the map's absolute accuracy says nothing of the positions
     it separates). ``max_error``:
-    the largest estimated error accepted (``solve(max_error=...)``, a coarse revision)."""
+    the largest estimated error accepted (``solve(max_error=...)``, a coarse revision);
+    ``initial``: a previous map to re-solve from (``solve(initial=...)``)."""
     why = atlas_reason(ws)
     if why:
         return {"needs_atlas": why}
     try:
-        m = solve(ws, tol) if max_error is None else solve(ws, tol, max_error=max_error)
+        kw: dict[str, Any] = {} if max_error is None else {"max_error": max_error}
+        m = solve(ws, tol, initial=initial, **kw)
     except CrowdingError as exc:
         return {"needs_atlas": f"one map crowds: {exc}"}
     crowded = crowding_reason(m.diagnostics)  # accurate on the circles, useless where it crowds

@@ -75,6 +75,7 @@ from confnav.services.keys import KeyError_, Keys
 from confnav.services.runtime import Service, add_zenoh_args, run_until_signal
 
 from confnav.atlas.wire import atlas_ws_id, parse_atlas_ws_id
+from confnav.conformal.cmap import ConformalMap
 from confnav.maps.footprint import derived_ws_id, parse_derived_ws_id
 
 log = logging.getLogger(__name__)
@@ -85,16 +86,22 @@ SolveFn = Callable[[str], dict[str, Any]]
 
 
 def solve_definition(
-    defn_json: str, tol: float | None = None, max_error: float | None = None
+    defn_json: str,
+    tol: float | None = None,
+    max_error: float | None = None,
+    previous: str | None = None,
 ) -> dict[str, Any]:
     """Solve one workspace (runs in a worker process): the map's coefficients and summary,
     or ``{"needs_atlas": why}`` for a workspace too crowded for one map (the service then
     solves its charts, :class:`confnav.services.atlas_transform.ChartShare`). ``tol`` and
     ``max_error`` (a revision of a progressive solve): solved to ``tol`` instead of the
-    definition's, a coarse map accepted up to ``max_error`` (:func:`confnav.solve`)."""
+    definition's, a coarse map accepted up to ``max_error`` (:func:`confnav.solve`).
+    ``previous``: the map JSON of the workspace's previous definition, the start of a warm
+    re-solve (``solve(initial=...)``, docs/METHOD.md: a moved, added or removed obstacle)."""
     defn = WorkspaceDefinition.model_validate_json(defn_json)
+    initial = ConformalMap.from_json(previous) if previous else None
     return single_or_atlas(
-        workspace_of(defn), defn.tol if tol is None else tol, max_error=max_error
+        workspace_of(defn), defn.tol if tol is None else tol, max_error=max_error, initial=initial
     )
 
 
@@ -161,6 +168,8 @@ class TransformService(Service):
         self.progressive = (solve_fn is solve_definition) if progressive is None else progressive
         self.robot_radii = tuple(r for r in robot_radii if r > 0)  # {ws}~r{R} solved ahead
         self._rung: dict[str, int] = {}  # hash -> rung of the ladder its running solve is at
+        # ws id -> (definition hash, map coefficients) of its last final single map
+        self._last_map: dict[str, tuple[str, Any]] = {}
         self.sources = dict(sources or {})
         self._solve_fn = solve_fn
         self._workers = workers
@@ -423,11 +432,19 @@ class TransformService(Service):
                     )
                     box.append(fut)
                 elif not self.progressive:
-                    fut = self.submit_job(self._solve_fn, defn.model_dump_json())
+                    prev = self._previous_map(ws_id, h)
+                    args = (None, None, prev) if prev else ()
+                    fut = self.submit_job(self._solve_fn, defn.model_dump_json(), *args)
                 else:
                     max_error = COARSE_MAX_ERROR if rung == 0 and len(ladder) > 1 else None
+                    # the last rung starts from the previous definition's map, if any
+                    prev = self._previous_map(ws_id, h) if rung == len(ladder) - 1 else None
                     fut = self.submit_job(
-                        self._solve_fn, defn.model_dump_json(), ladder[rung], max_error
+                        self._solve_fn,
+                        defn.model_dump_json(),
+                        ladder[rung],
+                        max_error,
+                        *((prev,) if prev else ()),
                     )
                 self._inflight[h] = fut
                 self._rung[h] = rung
@@ -506,8 +523,21 @@ class TransformService(Service):
             return
         with self._lock:
             self._remember(h, result)
+            if "coefficients" in result:
+                self._last_map[ws_id] = (h, result["coefficients"])
         self._store_cached(h, result)
         self._finish(ws_id, h, result, None)
+
+    def _previous_map(self, ws_id: str, h: str) -> str | None:
+        """The map JSON of ``ws_id``'s last solved definition if it is another than ``h``
+        and the library's solver runs (a warm re-solve's start), else None."""
+        if self._solve_fn is not solve_definition:
+            return None  # a custom solve_fn takes the definition (and rung) only
+        with self._lock:
+            last = self._last_map.get(ws_id)
+        if last is None or last[0] == h:
+            return None
+        return json.dumps(last[1])
 
     @staticmethod
     def _meets(result: dict[str, Any], tol: float) -> bool:
