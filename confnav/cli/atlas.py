@@ -283,8 +283,9 @@ def _start_workers(pool: ProcessPoolExecutor) -> None:
     A Ctrl-C that lands while ``os.fork`` runs the parent's at-fork hooks (logging's lock
     release) raises inside the hook, where CPython reports it as unraisable and drops it: the
     command would then ignore the Ctrl-C and solve on.  Blocked, the signal stays pending and
-    is delivered when the mask is restored, here, as a KeyboardInterrupt.  The workers (and the pool's manager thread) inherit the blocked
-    mask, and ignore SIGINT anyway (:func:`_ignore_sigint`)."""
+    is delivered when the mask is restored, here, as a KeyboardInterrupt.  The workers (and
+    the pool's manager thread) inherit the blocked mask, and ignore SIGINT anyway
+    (:func:`_ignore_sigint`)."""
     old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
     try:
         pool.submit(int).result()  # the fork start method spawns every worker on first submit
