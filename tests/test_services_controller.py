@@ -614,6 +614,11 @@ class WalledIdentityMap(IdentityMap):
         self.sizes.append(np.asarray(z).size)
         return super().T_and_dT(z)
 
+    def T(self, z: Any) -> np.ndarray:
+        """T alone, as a solved map has it: what the controller's flat-phi check evaluates
+        (one point, off the pose path: services/controller_flat.py), not counted in sizes."""
+        return np.asarray(z, dtype=np.complex128)
+
 
 def walled_loader(sol: Any) -> WalledIdentityMap:
     c = sol.coefficients
