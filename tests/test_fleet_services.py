@@ -4,7 +4,8 @@
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from typing import Any
 
 import pytest
@@ -102,23 +103,21 @@ def test_simulator_step_end_only_robots_apart_no_event(mem_net: Any) -> None:
     assert sim.collisions == [] and sim.positions()["r1"] == pytest.approx(0.1)
 
 
-@pytest.mark.timeout(180)
-def test_two_robots_swap_through_the_services(make_bus: Callable[[], Any]) -> None:
-    """Real Zenoh, in-process transform, controller and simulator: two disk robots (r 0.2)
-    swap head-on along one line in a 4 x 2 m room (the symmetric case a pure safety filter
-    freezes in): the simulator reports no contact and both arrive."""
-    from confnav.schemas import Goal, RobotStatus, WorkspaceDefinition
+@contextmanager
+def _services(
+    make_bus: Callable[[], Any], room: Any
+) -> Iterator[tuple[Any, Any, Any, dict[str, str]]]:
+    """In-process transform, controller and simulator on real Zenoh, ``room`` published and
+    known to the simulator: (simulator, controller, client bus, each robot's last state)."""
+    from confnav.schemas import RobotStatus
     from confnav.services.controller import ControllerService
     from confnav.services.transform import TransformService
 
-    room = WorkspaceDefinition(ws_id="hall", outer=[(0, 0), (4, 0), (4, 2), (0, 2)], tol=1e-6)
     services: list[Any] = [
         TransformService(make_bus(), K, executor="thread", health_period=0.5),
         ControllerService(make_bus(), K, health_period=0.5),
         SimulatorService(make_bus(), K, rate_hz=50, time_scale=2.0, cmd_timeout=1.0),
     ]
-    sim = services[2]
-    ctl = services[1]
     client = make_bus()
     state: dict[str, str] = {}
     client.subscribe(
@@ -131,8 +130,23 @@ def test_two_robots_swap_through_the_services(make_bus: Callable[[], Any]) -> No
         s.start()
     try:
         time.sleep(0.5)
-        client.publish(K.ws("hall", "definition"), encode(room))
-        wait_for(lambda: "hall" in sim._workspaces, timeout=30)
+        client.publish(K.ws(room.ws_id, "definition"), encode(room))
+        wait_for(lambda: room.ws_id in services[2]._workspaces, timeout=30)
+        yield services[2], services[1], client, state
+    finally:
+        for s in reversed(services):
+            s.stop()
+
+
+@pytest.mark.timeout(180)
+def test_two_robots_swap_through_the_services(make_bus: Callable[[], Any]) -> None:
+    """Real Zenoh, in-process transform, controller and simulator: two disk robots (r 0.2)
+    swap head-on along one line in a 4 x 2 m room (the symmetric case a pure safety filter
+    freezes in): the simulator reports no contact and both arrive."""
+    from confnav.schemas import Goal, WorkspaceDefinition
+
+    room = WorkspaceDefinition(ws_id="hall", outer=[(0, 0), (4, 0), (4, 2), (0, 2)], tol=1e-6)
+    with _services(make_bus, room) as (sim, ctl, client, state):
         starts = {"a": (0.6, 1.0), "b": (3.4, 1.0)}
         for rid, (x, y) in starts.items():
             client.publish(
@@ -151,9 +165,6 @@ def test_two_robots_swap_through_the_services(make_bus: Callable[[], Any]) -> No
         pos = sim.positions()
         assert abs(pos["a"] - (3.4 + 1.0j)) < 0.05 and abs(pos["b"] - (0.6 + 1.0j)) < 0.05
         assert ctl.neighbours is not None and ctl.neighbours.counters.get("filtered", 0) > 0
-    finally:
-        for s in reversed(services):
-            s.stop()
 
 
 def test_recorder_records_movers(mem_net: Any, tmp_path: Any) -> None:
@@ -251,36 +262,14 @@ def test_parked_robot_yields_through_the_services(make_bus: Callable[[], Any]) -
     (``fleet.yield_way`` on robots done with their goal): a steps out of the door ahead of b,
     b arrives, no contact.  Without the rule b is held off a for good (the core twin:
     tests/test_fleet_yield.py)."""
-    from confnav.schemas import Goal, RobotStatus, WorkspaceDefinition
-    from confnav.services.controller import ControllerService
-    from confnav.services.transform import TransformService
+    from confnav.schemas import Goal, WorkspaceDefinition
 
     outer = [
         (0, 0), (4, 0), (4, 1.6), (4.2, 1.6), (4.2, 0), (8.2, 0), (8.2, 4), (4.2, 4),
         (4.2, 2.4), (4, 2.4), (4, 4), (0, 4),
     ]  # fmt: skip
     room = WorkspaceDefinition(ws_id="door", outer=outer, tol=1e-6)
-    services: list[Any] = [
-        TransformService(make_bus(), K, executor="thread", health_period=0.5),
-        ControllerService(make_bus(), K, health_period=0.5),
-        SimulatorService(make_bus(), K, rate_hz=50, time_scale=2.0, cmd_timeout=1.0),
-    ]
-    sim = services[2]
-    ctl = services[1]
-    client = make_bus()
-    state: dict[str, str] = {}
-    client.subscribe(
-        K.any_robot("status"),
-        lambda k, p: state.__setitem__(
-            decode(RobotStatus, p).robot_id, decode(RobotStatus, p).state
-        ),
-    )
-    for s in services:
-        s.start()
-    try:
-        time.sleep(0.5)
-        client.publish(K.ws("door", "definition"), encode(room))
-        wait_for(lambda: "door" in sim._workspaces, timeout=30)
+    with _services(make_bus, room) as (sim, ctl, client, state):
 
         def send(rid: str, start: tuple[float, float], goal: tuple[float, float]) -> None:
             client.publish(
@@ -301,9 +290,6 @@ def test_parked_robot_yields_through_the_services(make_bus: Callable[[], Any]) -
         assert abs(sim.positions()["b"] - (7.0 + 2.0j)) < 0.05
         nb = ctl.neighbours
         assert nb is not None and nb.counters.get("yields", 0) > 0
-    finally:
-        for s in reversed(services):
-            s.stop()
 
 
 def test_hook_parked_robot_steps_aside() -> None:
