@@ -154,12 +154,29 @@ def test_controller_moves_on_the_coarse_revision_and_across_the_swap(
     statuses: list[RobotStatus] = []
     lock = threading.Lock()
 
+    tr = TransformService(make_bus(), K, executor="thread", health_period=0.2)
+    # The final revision of the robot's map waits until the robot has reported driving on a
+    # coarse one: without this gate a fast refinement (or a slow controller under load) may
+    # swap before any coarse status is published, and the test would check nothing.
+    coarse_seen = threading.Event()
+    gate_on = threading.Event()
+    solve_fn = tr._solve_fn
+
+    def gated_solve(defn_json: str, tol: float, *rest: Any) -> Any:
+        if gate_on.is_set() and tol <= 1e-8:
+            coarse_seen.wait(timeout=120)
+        return solve_fn(defn_json, tol, *rest)
+
+    tr._solve_fn = gated_solve
+
     def on_status(key: str, payload: bytes) -> None:
+        s = decode(RobotStatus, payload)
         with lock:
-            statuses.append(decode(RobotStatus, payload))
+            statuses.append(s)
+        if s.state == "navigating" and "navigating on a coarse map, refining" in s.message:
+            coarse_seen.set()
 
     client.subscribe(K.robot("r1", "status"), on_status)
-    tr = TransformService(make_bus(), K, executor="thread", health_period=0.2)
     ctl = ControllerService(make_bus(), K, stale_after=5.0, health_period=0.2)
     tr.start()
     ctl.start()
@@ -169,6 +186,7 @@ def test_controller_moves_on_the_coarse_revision_and_across_the_swap(
         client.publish(K.ws("sq", "definition"), encode(defn))
         wait_for(lambda: tr.state_of("sq") == "solved", timeout=120)
         assert tr.state_of("sq~r0.05") is None  # solved on first use, below
+        gate_on.set()  # from here on, a solve to 1e-8 is the robot's map's final revision
         goal = Goal(robot_id="r1", ws_id="sq", goal=(0.45, 0.45), robot_radius=0.05,
                     v_max=0.08, tolerance=0.03)  # fmt: skip
         client.publish(K.robot("r1", "goal"), encode(goal))
