@@ -270,3 +270,44 @@ def test_a_recording_of_pose_batches_replays_exactly(tmp_path: Any) -> None:
     changed = check_recording(path, load_map=identity_loader,
                               overrides=parse_overrides(["gain=1.2"]))  # fmt: skip
     assert not changed.ok and changed.mismatch_count > 0
+
+
+def test_inspect_and_the_scene_read_pose_batches(tmp_path: Any) -> None:
+    """A recording with PoseBatch / CommandBatch instead of single poses and commands: ``confnav
+    inspect`` counts every batch entry as that robot's pose or command (trajectory, path,
+    arrival), and the Foxglove scene builder places each robot at its last batch entry."""
+    from confnav.schemas import TransformSolution
+    from test_replay_check import _make_golden
+
+    from confnav.recording.inspect import inspect_recording
+    from confnav.recording.reader import Recording, decode_message
+    from confnav.recording.scene_builder import SceneBuilder
+
+    path = tmp_path / "batch.mcap"
+    _make_golden().run_pipeline(path, solver="fake", time_scale=4.0, pose_batch=True)
+    entries: dict[str, list[tuple[float, float]]] = {}
+    commands: dict[str, int] = {}
+    builder = SceneBuilder(K.prefix)
+    with Recording(path) as rec:
+        for msg in rec.iter_messages():
+            model = decode_message(msg)
+            if isinstance(model, PoseBatch):
+                for p in model.poses():
+                    entries.setdefault(p.robot_id, []).append((p.x, p.y))
+            elif isinstance(model, CommandBatch):
+                for rid in model.robot_ids:
+                    commands[rid] = commands.get(rid, 0) + 1
+            if model is not None and not isinstance(model, TransformSolution):
+                builder.observe(model, msg.log_time_ns)  # the fake solver's maps do not load
+    assert set(entries) == {"r1", "r2"} and all(len(v) >= 20 for v in entries.values())
+
+    report = inspect_recording(path)
+    for rid, points in entries.items():
+        r = report.robots[rid]
+        assert r.poses == len(points) and r.trajectory == points
+        assert r.start == points[0] and r.end == points[-1]
+        assert r.commands == commands[rid] > 0
+        assert r.path_length > 0.1
+        robot = builder._robots[rid]
+        assert robot.position == points[-1]
+    assert report.closest is not None and set(report.closest["robots"]) == {"r1", "r2"}

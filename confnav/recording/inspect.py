@@ -29,8 +29,10 @@ from confnav.schemas import (
     MODELS_BY_TYPE,
     AtlasIndex,
     CollisionEvent,
+    CommandBatch,
     Goal,
     Pose,
+    PoseBatch,
     RobotStatus,
     SpawnRequest,
     TransformSolution,
@@ -337,6 +339,12 @@ class _Scan:
             self.transforms[model.ws_id] = model
         elif isinstance(model, Pose):
             self._pose(model, log_time_ns)
+        elif isinstance(model, PoseBatch):  # a simulator's poses of one step: each is a Pose
+            for pose in model.poses():
+                self._pose(pose, log_time_ns)
+        elif isinstance(model, CommandBatch):  # a controller's answers to a PoseBatch
+            for command in model.commands():
+                self._command(command)
         elif isinstance(model, Goal):
             self._goal(model, log_time_ns)
         elif isinstance(model, SpawnRequest):

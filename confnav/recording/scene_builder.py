@@ -31,10 +31,12 @@ from confnav.recording.scene import (
 )
 from confnav.schemas import (
     AtlasIndex,
+    CommandBatch,
     Goal,
     Message,
     Movers,
     Pose,
+    PoseBatch,
     RobotStatus,
     TransformSolution,
     VelocityCommand,
@@ -230,16 +232,22 @@ class SceneBuilder:
             robot.map_ws = derived_ws_id(message.ws_id, message.robot_radius + robot.lookahead)
             for ws in self._ws.values():
                 ws.dirty = True
-        elif isinstance(message, Pose):
-            robot = self._robot(message.robot_id)
-            robot.position, robot.theta = (message.x, message.y), message.theta
-            self._extend_trail(robot)
+        elif isinstance(message, Pose | PoseBatch):  # a batch: a simulator's poses of one step
+            for pose in message.poses() if isinstance(message, PoseBatch) else (message,):
+                robot = self._robot(pose.robot_id)
+                robot.position, robot.theta = (pose.x, pose.y), pose.theta
+                self._extend_trail(robot)
         elif isinstance(message, RobotStatus) and message.ws_id is not None:
             self._robot(message.robot_id).ws = message.ws_id
         elif isinstance(message, Movers):
             self._movers[message.ws_id.split("~", 1)[0]] = message
         elif isinstance(message, VelocityCommand) and message.chart is not None:
             self._robot(message.robot_id).chart = message.chart
+            return []
+        elif isinstance(message, CommandBatch):  # a controller's answers to a PoseBatch
+            for rid, chart in zip(message.robot_ids, message.chart, strict=True):
+                if chart is not None:
+                    self._robot(rid).chart = chart
             return []
         else:
             return []
