@@ -26,7 +26,16 @@ from typing import Any
 
 import numpy as np
 import pytest
-from confnav.schemas import CollisionEvent, RobotStatus, WorkspaceDefinition, decode
+from confnav.schemas import (
+    CollisionEvent,
+    Pose,
+    RobotStatus,
+    VelocityCommand,
+    WorkspaceDefinition,
+    decode,
+    encode,
+)
+from confnav.services.keys import Keys
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -172,6 +181,48 @@ def subprocess_env() -> dict[str, str]:
     env = dict(os.environ)
     env["PYTHONUNBUFFERED"] = "1"
     return env
+
+
+class HolonomicRobot:
+    """A holonomic robot integrated on the test's side, as a simulator or a real robot would be:
+    it publishes its pose at 20 Hz on real Zenoh and follows the newest command, keeping every
+    position it passed through and every command it received."""
+
+    def __init__(
+        self, bus: Any, rid: str, start: tuple[float, float], keys: Keys | None = None
+    ) -> None:
+        self.keys = keys if keys is not None else Keys()
+        self.bus, self.rid, self.z = bus, rid, complex(*start)
+        self.v = 0j
+        self.seq = 0
+        self.period = 0.05
+        self.path: list[complex] = [self.z]
+        self.cmds: list[VelocityCommand] = []
+        self.stop = threading.Event()
+        self.lock = threading.Lock()
+        bus.subscribe(self.keys.robot(rid, "cmd_vel"), self._on_cmd)
+        self.thread = threading.Thread(target=self._run, daemon=True)
+        self.thread.start()
+
+    def _on_cmd(self, key: str, payload: bytes) -> None:
+        c = decode(VelocityCommand, payload)
+        with self.lock:
+            self.v = complex(*c.linear)
+            self.cmds.append(c)
+
+    def moving_commands(self) -> list[VelocityCommand]:
+        with self.lock:
+            return [c for c in self.cmds if abs(complex(*c.linear)) > 0]
+
+    def _run(self) -> None:
+        while not self.stop.wait(self.period):
+            with self.lock:
+                self.z += self.v * self.period
+                self.path.append(self.z)
+                self.seq += 1
+                p = Pose(robot_id=self.rid, stamp_ns=time.time_ns(), seq=self.seq,
+                         x=self.z.real, y=self.z.imag)  # fmt: skip
+            self.bus.publish(self.keys.robot(self.rid, "pose"), encode(p))
 
 
 class RobotWatch:

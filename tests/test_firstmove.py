@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import contextlib
 import threading
-import time
 from collections.abc import Callable, Iterator
 from typing import Any
 
@@ -16,10 +15,8 @@ import numpy as np
 import pytest
 from confnav.schemas import (
     Goal,
-    Pose,
     RobotStatus,
     TransformSolution,
-    VelocityCommand,
     WorkspaceDefinition,
     decode,
     encode,
@@ -30,7 +27,7 @@ from confnav.services.controller_footprint import same_geometry, shrunk_workspac
 from confnav.services.definitions import definition_of, workspace_of
 from confnav.services.keys import Keys
 from confnav.services.transform import TransformService, solve_definition
-from conftest import square_definition, wait_for
+from conftest import HolonomicRobot, square_definition, wait_for
 
 from confnav.geometry import Workspace
 from confnav.maps.footprint import UnreachableGoalError, inflate
@@ -50,44 +47,6 @@ class _GatedSolve:
         if "~r" in WorkspaceDefinition.model_validate_json(defn_json).ws_id:
             self.gate.wait(300)
         return solve_definition(defn_json)
-
-
-class _Robot:
-    """A holonomic robot integrated on the test's side (20 Hz poses, newest command), keeping
-    every position it passed through and every command it received."""
-
-    def __init__(self, bus: Any, rid: str, start: tuple[float, float]) -> None:
-        self.bus, self.rid, self.z = bus, rid, complex(*start)
-        self.v = 0j
-        self.seq = 0
-        self.period = 0.05
-        self.path: list[complex] = [self.z]
-        self.cmds: list[VelocityCommand] = []
-        self.stop = threading.Event()
-        self.lock = threading.Lock()
-        bus.subscribe(K.robot(rid, "cmd_vel"), self._on_cmd)
-        self.thread = threading.Thread(target=self._run, daemon=True)
-        self.thread.start()
-
-    def _on_cmd(self, key: str, payload: bytes) -> None:
-        c = decode(VelocityCommand, payload)
-        with self.lock:
-            self.v = complex(*c.linear)
-            self.cmds.append(c)
-
-    def moving_commands(self) -> list[VelocityCommand]:
-        with self.lock:
-            return [c for c in self.cmds if abs(complex(*c.linear)) > 0]
-
-    def _run(self) -> None:
-        while not self.stop.wait(self.period):
-            with self.lock:
-                self.z += self.v * self.period
-                self.path.append(self.z)
-                self.seq += 1
-                p = Pose(robot_id=self.rid, stamp_ns=time.time_ns(), seq=self.seq,
-                         x=self.z.real, y=self.z.imag)  # fmt: skip
-            self.bus.publish(K.robot(self.rid, "pose"), encode(p))
 
 
 class _Statuses:
@@ -141,7 +100,7 @@ def test_a_robot_with_a_body_moves_before_its_footprint_map_and_swaps_to_it(
     gated, tr, ctl, client, defn = system
     did = "sq~r0.1"
     statuses = _Statuses(client, "r1")
-    robot = _Robot(make_bus(), "r1", (-0.45, -0.45))
+    robot = HolonomicRobot(make_bus(), "r1", (-0.45, -0.45))
     try:
         goal = Goal(robot_id="r1", ws_id="sq", goal=(0.45, 0.45), robot_radius=RADIUS,
                     v_max=0.25, tolerance=0.03)  # fmt: skip
@@ -195,7 +154,7 @@ def test_a_goal_outside_the_shrunk_free_space_is_refused_before_the_footprint_ma
     not a drive on the base map, and no command that moves."""
     gated, _tr, _ctl, client, _defn = system
     statuses = _Statuses(client, "r2")
-    robot = _Robot(make_bus(), "r2", (-0.45, -0.45))
+    robot = HolonomicRobot(make_bus(), "r2", (-0.45, -0.45))
     try:
         goal = Goal(robot_id="r2", ws_id="sq", goal=(0.65, 0.0), robot_radius=RADIUS)
         client.publish(K.robot("r2", "goal"), encode(goal))
@@ -224,7 +183,7 @@ def test_where_the_unshrunk_map_hugs_an_obstacle_the_body_stays_in_the_shrunk_sp
                                (-0.7, 0.7)], obstacles=[a, b], tol=1e-4)  # fmt: skip
     with _system(make_bus, defn) as (gated, tr, ctl, client, _):
         statuses = _Statuses(client, "r3")
-        robot = _Robot(make_bus(), "r3", (-0.45, 0.0))
+        robot = HolonomicRobot(make_bus(), "r3", (-0.45, 0.0))
         try:
             goal = Goal(robot_id="r3", ws_id="gap", goal=(0.45, 0.0), robot_radius=RADIUS,
                         v_max=0.25, tolerance=0.03)  # fmt: skip
@@ -331,7 +290,7 @@ def test_a_robot_where_the_navigation_function_is_flat_drives_on_the_atlas(
         law = navigation.make_controller(ctl._maps["cor"].cmap, goal)
         assert "flat" in flat_here(law, start) and flat_here(law, (1.5, 0.5)) == ""
         statuses = _Statuses(client, "f1")
-        robot = _Robot(make_bus(), "f1", start)
+        robot = HolonomicRobot(make_bus(), "f1", start)
         wait_for(lambda: robot is not None and robot.seq > 2, timeout=30)  # its pose is known
         client.publish(K.robot("f1", "goal"), encode(goal))
         aid = atlas_ws_id("cor")

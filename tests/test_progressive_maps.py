@@ -8,7 +8,6 @@ from __future__ import annotations
 import itertools
 import subprocess
 import threading
-import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -16,12 +15,10 @@ from typing import Any
 import pytest
 from confnav.schemas import (
     Goal,
-    Pose,
     RobotStatus,
     SpawnRequest,
     TransformSolution,
     TransformStatus,
-    VelocityCommand,
     decode,
     encode,
 )
@@ -30,6 +27,7 @@ from confnav.services.definitions import REFINING, revision_ladder
 from confnav.services.keys import Keys
 from confnav.services.transform import TransformService
 from conftest import (
+    HolonomicRobot,
     RobotWatch,
     confnav_cmd,
     launched_system,
@@ -109,41 +107,6 @@ def test_transform_publishes_revisions_with_decreasing_error(
         svc.stop()
 
 
-class _Robot:
-    """A holonomic robot integrated on the test's side: it publishes its pose at ``rate`` Hz
-    and follows the newest command (real Zenoh, like a simulator or a real robot)."""
-
-    def __init__(self, bus: Any, rid: str, start: tuple[float, float], rate: float = 20.0):
-        self.bus, self.rid, self.z = bus, rid, complex(*start)
-        self.v = 0j
-        self.seq = 0
-        self.period = 1.0 / rate
-        self.stop = threading.Event()
-        self.lock = threading.Lock()
-        bus.subscribe(K.robot(rid, "cmd_vel"), self._on_cmd)
-        self.thread = threading.Thread(target=self._run, daemon=True)
-        self.thread.start()
-
-    def _on_cmd(self, key: str, payload: bytes) -> None:
-        c = decode(VelocityCommand, payload)
-        with self.lock:
-            self.v = complex(*c.linear)
-
-    def _run(self) -> None:
-        while not self.stop.wait(self.period):
-            with self.lock:
-                self.z += self.v * self.period
-                self.seq += 1
-                p = Pose(
-                    robot_id=self.rid,
-                    stamp_ns=time.time_ns(),
-                    seq=self.seq,
-                    x=self.z.real,
-                    y=self.z.imag,
-                )
-            self.bus.publish(K.robot(self.rid, "pose"), encode(p))
-
-
 def test_controller_moves_on_the_coarse_revision_and_across_the_swap(
     make_bus: Callable[[], Any],
 ) -> None:
@@ -180,7 +143,7 @@ def test_controller_moves_on_the_coarse_revision_and_across_the_swap(
     ctl = ControllerService(make_bus(), K, stale_after=5.0, health_period=0.2)
     tr.start()
     ctl.start()
-    robot = _Robot(make_bus(), "r1", (-0.45, -0.45))
+    robot = HolonomicRobot(make_bus(), "r1", (-0.45, -0.45))
     try:
         defn = square_definition("sq", [(0.0, 0.1)]).model_copy(update={"tol": 1e-8})
         client.publish(K.ws("sq", "definition"), encode(defn))
