@@ -10,7 +10,7 @@ from __future__ import annotations
 import logging
 import time
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from concurrent.futures import Executor, ProcessPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any
@@ -28,6 +28,7 @@ from confnav.geometry import Workspace
 __all__ = [
     "Atlas",
     "ChartRecord",
+    "PartialAtlas",
     "atlas_reason",
     "needs_atlas",
     "single_map_or_atlas",
@@ -125,6 +126,74 @@ class Atlas:
         return self.cpu_time / self.wall_time if self.wall_time > 0 else float("nan")
 
 
+@dataclass(frozen=True)
+class PartialAtlas:
+    """An atlas while its charts are being solved: the decomposition of one round of
+    :func:`solve_atlas` and the charts solved so far (``None``: not yet, or failed and to be
+    split in the next round). What :func:`solve_atlas`'s ``on_partial`` receives; an
+    :class:`confnav.atlas.compose.AtlasNavigator` drives on its installed charts
+    (docs/ATLAS.md "Progressive atlas")."""
+
+    decomposition: Decomposition
+    charts: tuple[ConformalMap | None, ...]
+    tol: float
+    #: the round of :func:`solve_atlas` (0: the first decomposition; a later round's cells
+    #: are the former ones with failed tiles split)
+    round: int = 0
+    #: seconds since :func:`solve_atlas` started
+    wall_time: float = 0.0
+
+    @property
+    def workspace(self) -> Workspace:
+        return self.decomposition.workspace
+
+    @property
+    def installed(self) -> tuple[int, ...]:
+        """The cells whose charts are solved."""
+        return tuple(i for i, m in enumerate(self.charts) if m is not None)
+
+    @property
+    def complete(self) -> bool:
+        return all(m is not None for m in self.charts)
+
+
+def route_order(
+    dec: Decomposition, pairs: Sequence[tuple[complex, complex]], links: Any = None
+) -> list[int]:
+    """The cells the robots of ``pairs`` (start, goal) need, in the order they need them:
+    every robot's start cell first (the lowest-ranked cell holding the start, as
+    :meth:`confnav.atlas.compose.AtlasNavigator.initial_cells` picks it), then the second
+    cells of their cell routes (:func:`confnav.atlas.compose.plan`), and so on. A pair whose
+    goal or start lies in no cell adds nothing."""
+    from confnav.atlas.compose import plan  # compose imports this module
+
+    stub = PartialAtlas(dec, (None,) * len(dec.cells), 0.0)
+    routes: list[list[int]] = []
+    for start, goal in pairs:
+        try:
+            p = plan(stub, complex(goal), links)
+        except ConfnavError:
+            continue
+        pt = np.array([complex(start)])
+        held = [
+            i for i, c in enumerate(dec.cells) if c.depth(pt)[0] > 0 and np.isfinite(p.rank[i])
+        ]
+        if not held:
+            continue
+        a = min(held, key=lambda i: p.rank[i])
+        route: list[int] = []
+        while a >= 0 and a not in route:
+            route.append(a)
+            a = int(p.next[a])
+        routes.append(route)
+    out: list[int] = []
+    for k in range(max((len(r) for r in routes), default=0)):
+        for r in routes:
+            if k < len(r) and r[k] not in out:
+                out.append(r[k])
+    return out
+
+
 def _solve_one(ws_json: str, tol: float, accept: float, depth: float) -> tuple[str, float, str]:
     """Worker: (map JSON or "", wall time, error message).  Runs in a child process.
 
@@ -214,6 +283,42 @@ def needs_atlas(ws: Workspace) -> bool:
     return bool(atlas_reason(ws))
 
 
+def _collect(
+    dec: Decomposition,
+    keys: list[str],
+    batch: list[int],
+    results: list[tuple[str, float, str]],
+    done: dict[str, ConformalMap],
+    records: list[ChartRecord],
+) -> list[Tile]:
+    """Record a batch of cell solves: the maps into ``done`` (by cell key), one
+    :class:`ChartRecord` each into ``records``; returns the tiles of the failed cells."""
+    failed: list[Tile] = []
+    for i, (text, wall, err) in zip(batch, results, strict=True):
+        cell = dec.cells[i]
+        if err:
+            records.append(ChartRecord(i, wall, 0, np.nan, np.nan, cell.tile, err, key=keys[i]))
+            log.info("cell %d (tile %s) failed: %s", i, cell.tile, err)
+            failed.append(cell.tile)
+            continue
+        m = ConformalMap.from_json(text)
+        done[keys[i]] = m
+        radii = np.asarray(m.radii)
+        records.append(
+            ChartRecord(
+                i,
+                wall,
+                m.n_nodes,
+                float(m.diagnostics.error_estimate),
+                float(radii.min()) if radii.size else 1.0,
+                cell.tile,
+                tol_met=bool(m.diagnostics.tol_met),
+                key=keys[i],
+            )
+        )
+    return failed
+
+
 def solve_atlas(
     ws: Workspace,
     tol: float = 1e-8,
@@ -223,6 +328,8 @@ def solve_atlas(
     max_rounds: int = 8,
     progress: Callable[[str], None] | None = None,
     executor: Executor | None = None,
+    priority: Sequence[tuple[complex, complex]] = (),
+    on_partial: Callable[[PartialAtlas], None] | None = None,
     **decompose_kw: Any,
 ) -> Atlas:
     """Decompose ``ws`` (:func:`confnav.atlas.decompose`) and solve every cell's map.
@@ -235,6 +342,14 @@ def solve_atlas(
     False: splitting does not help a chart whose error comes from one re-entrant corner).
     A failed cell's tile is split and the decomposition redone (at most ``max_rounds``
     times); unchanged cells keep their maps.
+
+    Progressive (docs/ATLAS.md "Progressive atlas"): with ``priority`` (robots' (start,
+    goal) pairs) the cells their routes need are solved first, in the order they need them
+    (:func:`route_order`: every start cell, then the next cells of the routes), ``workers``
+    at a time, and the others after; ``on_partial`` receives a :class:`PartialAtlas` after
+    each such batch (``workers`` priority cells, or ``4 workers`` others), at the start of a
+    round that reuses charts, and once complete, so that a controller drives on the charts
+    solved so far. The result is the same atlas as without them.
 
     Raises
     ------
@@ -254,41 +369,39 @@ def solve_atlas(
             todo = [i for i, k in enumerate(keys) if k not in done]
             # largest first: the pool's tail is then short
             todo.sort(key=lambda i: -dec.cells[i].polygon.length)
+            first = [i for i in route_order(dec, priority) if i in set(todo)] if priority else []
+            todo = first + [i for i in todo if i not in set(first)]
             if progress is not None:
                 progress(f"atlas: {len(dec.cells)} cells, solving {len(todo)}")
-            jobs = [dec.cells[i].workspace.to_json() for i in todo]
-            n = len(jobs)
-            if pool is not None:
-                results = list(
-                    pool.map(_solve_one, jobs, [tol] * n, [accept] * n, [dec.margin] * n)
-                )
-            else:
-                results = [_solve_one(j, tol, accept, dec.margin) for j in jobs]
+
+            def partial(
+                dec: Decomposition = dec, keys: list[str] = keys, rnd: int = _round
+            ) -> None:
+                if on_partial is not None:
+                    charts = tuple(done.get(k) for k in keys)
+                    on_partial(PartialAtlas(dec, charts, tol, rnd, time.perf_counter() - t0))
+
+            if on_partial is not None and len(todo) < len(keys):
+                partial()  # the charts this round reuses
+            # batches: the routes' cells ``workers`` at a time, then the others
+            size = max(1, workers)
+            batches = [todo[k : k + size] for k in range(0, len(first), size)]
+            rest = todo[len(first) :]
+            batches += [rest[k : k + 4 * size] for k in range(0, len(rest), 4 * size)]
+            if on_partial is None:
+                batches = [todo]
             failed: list[Tile] = []
-            for i, (text, wall, err) in zip(todo, results, strict=True):
-                cell = dec.cells[i]
-                if err:
-                    records.append(
-                        ChartRecord(i, wall, 0, np.nan, np.nan, cell.tile, err, key=keys[i])
+            for batch in batches:
+                jobs = [dec.cells[i].workspace.to_json() for i in batch]
+                n = len(jobs)
+                if pool is not None:
+                    got = list(
+                        pool.map(_solve_one, jobs, [tol] * n, [accept] * n, [dec.margin] * n)
                     )
-                    log.info("cell %d (tile %s) failed: %s", i, cell.tile, err)
-                    failed.append(cell.tile)
-                    continue
-                m = ConformalMap.from_json(text)
-                done[keys[i]] = m
-                radii = np.asarray(m.radii)
-                records.append(
-                    ChartRecord(
-                        i,
-                        wall,
-                        m.n_nodes,
-                        float(m.diagnostics.error_estimate),
-                        float(radii.min()) if radii.size else 1.0,
-                        cell.tile,
-                        tol_met=bool(m.diagnostics.tol_met),
-                        key=keys[i],
-                    )
-                )
+                else:
+                    got = [_solve_one(j, tol, accept, dec.margin) for j in jobs]
+                failed += _collect(dec, keys, batch, got, done, records)
+                partial()
             if not failed:
                 charts = tuple(done[k] for k in keys)
                 return Atlas(dec, charts, tol, tuple(records), time.perf_counter() - t0, workers)

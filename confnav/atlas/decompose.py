@@ -256,6 +256,12 @@ class Decomposition:
         return float(self.workspace.polygon.difference(union).area)
 
     @cached_property
+    def centres(self) -> np.ndarray:
+        """Each cell's deepest point (pole of inaccessibility; computed once: every goal's
+        plan uses them)."""
+        return np.array([inscribed(c.polygon)[0] for c in self.cells], dtype=np.complex128)
+
+    @cached_property
     def links(self) -> tuple[Overlap, ...]:
         """Every pair of overlapping cells, however thin the overlap (computed once)."""
         return _links(self.cells)

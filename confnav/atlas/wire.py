@@ -23,7 +23,7 @@ from numpy.typing import ArrayLike
 from shapely.geometry import LineString, MultiLineString, Polygon
 from shapely.geometry.base import BaseGeometry
 
-from confnav.atlas.charts import Atlas
+from confnav.atlas.charts import Atlas, PartialAtlas
 from confnav.atlas.compose import AtlasNavigator, Overlap, overlaps
 from confnav.atlas.decompose import Cell, Decomposition, elongation
 from confnav.conformal.cmap import EXPANSION_MIN_POINTS
@@ -38,6 +38,8 @@ __all__ = [
     "ATLAS_SUFFIX",
     "AtlasController",
     "AtlasMap",
+    "NavMaps",
+    "ProgressiveController",
     "atlas_from_index",
     "atlas_map_of",
     "atlas_revision",
@@ -355,6 +357,9 @@ class AtlasController:
         #: (status reason, message) of the last call's stop when it is no bare ERROR: a
         #: robot in a cell cut off from the goal's is "unreachable", not outside the space
         self.stop_reason: tuple[str, str] | None = None
+        #: on a partial atlas: the cell whose chart the robot holds for (zero command,
+        #: status MOVING), None when it drives
+        self.waiting: int | None = None
 
     def prepare(self, z: complex) -> list[int]:
         """Build, ahead of the robot's first pose at ``z``, what its first command needs: the
@@ -376,16 +381,32 @@ class AtlasController:
         if not self.history or self.history[-1] != i:
             self.history.append(i)
 
+    def _uninstalled_here(self, pt: np.ndarray) -> int | None:
+        """A reachable cell holding ``pt`` whose chart is not installed (lowest rank), or
+        None: on a partial atlas the robot holds there until that chart comes."""
+        nav = self.nav
+        held = [
+            i
+            for i in nav.missing()
+            if np.isfinite(nav.plan.rank[i]) and nav.cells[i].depth(pt)[0] > 0
+        ]
+        return min(held, key=lambda i: nav.plan.rank[i]) if held else None
+
     def _one(self, z: complex) -> tuple[complex, int]:
         nav = self.nav
         pt = np.array([z])
         self.stop_reason = None
+        self.waiting = None
         if not np.isfinite(z):
             return 0j, int(Status.ERROR)
         a = self.active_chart
         if a is None or not nav.cells[a].depth(pt)[0] > 0:
             a = int(nav.initial_cells(pt)[0])  # first pose, or left the cell: re-enter
             if a < 0:
+                wait = self._uninstalled_here(pt)
+                if wait is not None:  # a partial atlas: hold until its chart is installed
+                    self.waiting = wait
+                    return 0j, int(Status.MOVING)
                 why = nav.cut_off(z)
                 if why:
                     self.stop_reason = ("unreachable", why)
@@ -395,7 +416,11 @@ class AtlasController:
         out = nav.controller(a)(pt)
         code = int(out.status[0])
         if code == Status.ARRIVED and nav.plan.next[a] >= 0:  # local goal: next cell
-            a = int(nav.plan.next[a])
+            nxt = int(nav.plan.next[a])
+            if not nav.installed(nxt):  # a partial atlas: hold at the local goal
+                self.waiting = nxt
+                return 0j, int(Status.MOVING)
+            a = nxt
             self._set(a)
             out = nav.controller(a)(pt)
             code = int(out.status[0])
@@ -409,3 +434,95 @@ class AtlasController:
         nan = np.full(zz.shape, np.nan)
         sat = np.zeros(zz.shape, dtype=bool)
         return ControlOutput(u=u, status=st, phi=nan, w=nan + 0j, saturated=sat)
+
+
+class NavMaps:
+    """The charts' navigation maps (``ConformalMap.for_navigation``) of the revisions of a
+    progressive atlas, each made once (keyed by the chart object) and shared by every robot."""
+
+    def __init__(self) -> None:
+        self._maps: dict[int, tuple[Any, Any]] = {}  # id(chart) -> (chart, its map)
+
+    def of(self, atlas: Atlas | PartialAtlas) -> list[Any]:
+        """One navigation map per cell of ``atlas`` (None where its chart is missing)."""
+        out: list[Any] = []
+        for m in atlas.charts:
+            if m is None:
+                out.append(None)
+                continue
+            got = self._maps.get(id(m))
+            if got is None or got[0] is not m:
+                got = (m, m.for_navigation())
+                self._maps[id(m)] = got
+            out.append(got[1])
+        return out
+
+
+def _cell_keys(atlas: Atlas | PartialAtlas) -> tuple[str, ...]:
+    return tuple(c.workspace.content_hash for c in atlas.decomposition.cells)
+
+
+class ProgressiveController:
+    """One robot's law on an atlas that is being solved (docs/ATLAS.md "Progressive atlas"):
+    it drives on the newest revision offered (:meth:`offer`), a :class:`PartialAtlas` or a
+    complete :class:`Atlas`, through an :class:`AtlasController`.
+
+    A revision with the same cells whose charts extend the current ones (the next batch of
+    :func:`confnav.atlas.charts.solve_atlas`) is installed into the running law (its plan,
+    active chart and built laws stay); any other (a round that split cells, a refined atlas)
+    gets a new law, swapped in between two commands: the robot re-enters it at its pose,
+    without stopping. Before any chart holding the robot is installed the command is zero
+    with status MOVING (``waiting`` says for which cell). ``controller_kw``: those of
+    :class:`confnav.atlas.compose.AtlasNavigator` (``speed``, ``safety``, ``navfn``,
+    ``goal_tol``...)."""
+
+    def __init__(self, goal: complex, *, nav_maps: NavMaps | None = None, **controller_kw: Any):
+        self.goal = complex(goal)
+        self.controller_kw = controller_kw
+        self.v_max = float(controller_kw.get("speed", 1.0))
+        self.goal_tol = float(controller_kw.get("goal_tol", defaults.GOAL_TOL))
+        self.nav_maps = nav_maps if nav_maps is not None else NavMaps()
+        self.law: AtlasController | None = None
+        self.revision: Atlas | PartialAtlas | None = None
+        self._keys: tuple[str, ...] = ()
+        self._maps: list[Any] = []
+        #: how many revisions were offered; how many of them replaced the law (new cells
+        #: or refined charts) rather than extending it
+        self.offers = 0
+        self.swaps = 0
+
+    def offer(self, atlas: Atlas | PartialAtlas) -> None:
+        """Drive on ``atlas`` from the next command on (module docstring)."""
+        maps = self.nav_maps.of(atlas)
+        keys = _cell_keys(atlas)
+        self.offers += 1
+        law = self.law
+        if law is not None and keys == self._keys and all(
+            old is None or new is old for old, new in zip(self._maps, maps, strict=True)
+        ):
+            for i, (old, new) in enumerate(zip(self._maps, maps, strict=True)):
+                if old is None and new is not None:
+                    law.nav.install(i, new)
+        else:
+            nav = AtlasNavigator(atlas, self.goal, nav_maps=maps, **self.controller_kw)
+            self.law = AtlasController(nav)
+            self.swaps += law is not None
+        self.revision, self._keys, self._maps = atlas, keys, maps
+
+    @property
+    def waiting(self) -> int | None:
+        """The cell whose chart the robot holds for (None: it drives, or no revision yet)."""
+        return None if self.law is None else self.law.waiting
+
+    def __call__(self, z: ArrayLike) -> ControlOutput:
+        if self.law is None:  # no revision yet: hold
+            zz = np.atleast_1d(np.asarray(z, dtype=np.complex128))
+            nan = np.full(zz.shape, np.nan)
+            return ControlOutput(
+                u=np.zeros(zz.shape, dtype=np.complex128),
+                status=np.full(zz.shape, int(Status.MOVING), dtype=np.int8),
+                phi=nan,
+                w=nan + 0j,
+                saturated=np.zeros(zz.shape, dtype=bool),
+            )
+        return self.law(z)
