@@ -6,6 +6,8 @@ stopping."""
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import pytest
 
@@ -69,7 +71,7 @@ def test_route_cells_come_first_and_the_result_is_the_plain_atlas(
     for k in range(1, len(route)):
         assert set(first[k].installed) == set(route[: k + 1])
     # each revision extends the former one (within a round); the last one is complete
-    for a, b in zip(first, first[1:], strict=False):
+    for a, b in itertools.pairwise(first):
         assert set(a.installed) <= set(b.installed)
     assert revisions[-1].complete
     # the same atlas as the plain solve: same cells, charts with the same coefficients
@@ -175,6 +177,6 @@ def test_on_a_process_pool_revisions_come_chart_by_chart_route_first() -> None:
     first = [r for r in revisions if r.round == 0]
     # one chart more per revision while the route's cells come in, the route's cells first
     assert len(first[0].installed) == 1 and set(first[0].installed) <= set(route)
-    for a, b in zip(first, first[1 : len(route)], strict=False):
+    for a, b in itertools.pairwise(first[: len(route)]):
         assert len(b.installed) == len(a.installed) + 1
     assert revisions[-1].complete
