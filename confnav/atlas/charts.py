@@ -132,7 +132,7 @@ class PartialAtlas:
     :func:`solve_atlas` and the charts solved so far (``None``: not yet, or failed and to be
     split in the next round). What :func:`solve_atlas`'s ``on_partial`` receives; an
     :class:`confnav.atlas.compose.AtlasNavigator` drives on its installed charts
-    (docs/ATLAS.md "Progressive atlas")."""
+    (docs/SLAM.md "Progressive atlas")."""
 
     decomposition: Decomposition
     charts: tuple[ConformalMap | None, ...]
@@ -375,6 +375,7 @@ def solve_atlas(
     priority: Sequence[tuple[complex, complex]] = (),
     on_partial: Callable[[PartialAtlas], None] | None = None,
     split_early: bool = False,
+    batch: int | None = None,
     **decompose_kw: Any,
 ) -> Atlas:
     """Decompose ``ws`` (:func:`confnav.atlas.decompose`) and solve every cell's map.
@@ -388,7 +389,7 @@ def solve_atlas(
     A failed cell's tile is split and the decomposition redone (at most ``max_rounds``
     times); unchanged cells keep their maps.
 
-    Progressive (docs/ATLAS.md "Progressive atlas"): with ``priority`` (robots' (start,
+    Progressive (docs/SLAM.md "Progressive atlas"): with ``priority`` (robots' (start,
     goal) pairs) the cells their routes need are solved first, in the order they need them
     (:func:`route_order`: every start cell, then the next cells of the routes), ``workers``
     at a time, and the others after; ``on_partial`` receives a :class:`PartialAtlas` after
@@ -396,10 +397,11 @@ def solve_atlas(
     round that reuses charts, and once complete, so that a controller drives on the charts
     solved so far. The result is the same atlas as without them. With a process pool the
     partial revisions come chart by chart (each route cell as soon as it is solved);
-    ``split_early``: a failed route cell ends its round at once (its tile split, the other
-    solves kept pending) -- measured on tb3_world under load 5 it delayed the first robot
-    (6.1 s against 3.7 s) because the redone decomposition's margin changed every cell,
-    so it is off by default.
+    ``batch``: how many non-route cells a partial revision waits for (default ``4
+    workers``). ``split_early``: a failed route cell ends its round at once (its tile
+    split, the other solves kept pending) -- measured on tb3_world under load 5 it
+    delayed the first robot (6.1 s against 3.7 s): the redone decomposition's margin
+    changed every cell, so it is off by default.
 
     Raises
     ------
@@ -439,23 +441,24 @@ def solve_atlas(
                 partial()  # the charts this round reuses
             # batches: the routes' cells ``workers`` at a time, then the others
             size = max(1, workers)
+            every = max(1, batch if batch is not None else 4 * size)
             batches = [todo[k : k + size] for k in range(0, len(first), size)]
             rest = todo[len(first) :]
-            batches += [rest[k : k + 4 * size] for k in range(0, len(rest), 4 * size)]
+            batches += [rest[k : k + every] for k in range(0, len(rest), every)]
             if on_partial is None:
                 batches = [todo]
             failed: list[Tile] = []
             if on_partial is not None and isinstance(pool, ProcessPoolExecutor):
                 failed, early = _round_by_chart(
                     pool, dec, keys, todo, set(first), (tol, accept), pending, done, records,
-                    partial, 4 * size, split_early and eager_left > 0,
+                    partial, every, split_early and eager_left > 0,
                 )  # fmt: skip
                 if early:  # a route's cell failed: split it now, the other solves pending
                     eager_left -= 1
                     rounds -= 1
                 batches = []
-            for batch in batches:
-                jobs = [dec.cells[i].workspace.to_json() for i in batch]
+            for chunk in batches:
+                jobs = [dec.cells[i].workspace.to_json() for i in chunk]
                 n = len(jobs)
                 if pool is not None:
                     got = list(
@@ -463,7 +466,7 @@ def solve_atlas(
                     )
                 else:
                     got = [_solve_one(j, tol, accept, dec.margin) for j in jobs]
-                failed += _collect(dec, keys, batch, got, done, records)
+                failed += _collect(dec, keys, chunk, got, done, records)
                 partial()
             if not failed:
                 charts = tuple(done[k] for k in keys)

@@ -180,7 +180,7 @@ class AtlasNavigator:
     Parameters
     ----------
     atlas : a solved :class:`Atlas`, or a :class:`PartialAtlas` whose missing charts
-        (``None``) are installed later (:meth:`install`, docs/ATLAS.md "Progressive atlas").
+        (``None``) are installed later (:meth:`install`, docs/SLAM.md "Progressive atlas").
         The plan is made on the whole cell graph (it needs the decomposition only); a robot
         drives on installed charts only, holds (zero command) where its cell's chart or the
         next cell's is missing, and moves on when it is installed.

@@ -25,7 +25,7 @@ from shapely.geometry.base import BaseGeometry
 
 from confnav.atlas.charts import Atlas, PartialAtlas
 from confnav.atlas.compose import AtlasNavigator, Overlap, overlaps
-from confnav.atlas.decompose import Cell, Decomposition, elongation
+from confnav.atlas.decompose import Cell, Decomposition, _cell_workspace, elongation
 from confnav.conformal.cmap import EXPANSION_MIN_POINTS
 from confnav.errors import NavigationError
 from confnav.geometry import Workspace
@@ -105,11 +105,13 @@ def _ring(coords: Any) -> list[tuple[float, float]]:
     return [(float(x), float(y)) for x, y in list(coords)[:-1]]
 
 
-def index_fields(atlas: Atlas) -> dict[str, Any]:
+def index_fields(atlas: Atlas | PartialAtlas) -> dict[str, Any]:
     """The JSON-able description of an atlas's cells and decomposition (no charts): the
-    fields of :class:`confnav.schemas.AtlasIndex` but the ids, revisions and stamp."""
+    fields of :class:`confnav.schemas.AtlasIndex` but the ids, revisions and stamp (of a
+    partial revision: no solve times, ``pending`` cells)."""
     dec = atlas.decomposition
-    times = {i: r.wall_time for i, r in enumerate(atlas.chart_records)}
+    full = atlas if isinstance(atlas, Atlas) else None
+    times = {i: r.wall_time for i, r in enumerate(full.chart_records)} if full else {}
     cells = []
     for c in dec.cells:
         cells.append(
@@ -120,6 +122,7 @@ def index_fields(atlas: Atlas) -> dict[str, Any]:
                 "cut": _lines(c.cut),
                 "tile": tuple(float(v) for v in c.tile),
                 "solve_time": float(times.get(c.index, 0.0)),
+                "pending": atlas.charts[c.index] is None,
             }
         )
     return {
@@ -127,7 +130,7 @@ def index_fields(atlas: Atlas) -> dict[str, Any]:
         "tol": float(atlas.tol),
         "cells": cells,
         "wall_time": float(atlas.wall_time),
-        "cpu_time": float(atlas.cpu_time),
+        "cpu_time": float(full.cpu_time) if full else 0.0,
         "decomposition": {
             "workspace": dec.workspace.to_dict(),
             "tile": dec.tile,
@@ -139,9 +142,11 @@ def index_fields(atlas: Atlas) -> dict[str, Any]:
     }
 
 
-def atlas_from_index(index: Any, charts: Sequence[Any]) -> Atlas:
+def atlas_from_index(index: Any, charts: Sequence[Any]) -> Atlas | PartialAtlas:
     """Rebuild an :class:`Atlas` from an ``AtlasIndex`` message and its charts' maps (cell
-    order).  Cell polygons and cut edges exactly as published (the plan is then the same)."""
+    order).  Cell polygons and cut edges exactly as published (the plan is then the same).
+    A partial revision (cells ``pending``, their charts ``None``) gives a
+    :class:`PartialAtlas` whose pending cells get their workspace from the cell polygon."""
     if len(charts) != len(index.cells):
         raise NavigationError(
             f"atlas {index.ws_id!r}: {len(charts)} charts for {len(index.cells)} cells"
@@ -156,10 +161,18 @@ def atlas_from_index(index: Any, charts: Sequence[Any]) -> Atlas:
     tol = CHART_MATCH * ws.diameter
     for c, m in zip(index.cells, charts, strict=True):
         poly = Polygon(c.outer, [list(o) for o in c.obstacles])
-        if poly.boundary.hausdorff_distance(m.workspace.polygon.boundary) > tol:
-            raise NavigationError(f"atlas {index.ws_id!r}: chart {c.index} is not its cell's map")
+        if m is None:  # pending: the cell as published, its chart to come
+            if not getattr(c, "pending", False):
+                raise NavigationError(f"atlas {index.ws_id!r}: chart {c.index} missing")
+            cell_ws = _cell_workspace(poly, ws.diameter)
+        else:
+            if poly.boundary.hausdorff_distance(m.workspace.polygon.boundary) > tol:
+                raise NavigationError(
+                    f"atlas {index.ws_id!r}: chart {c.index} is not its cell's map"
+                )
+            cell_ws = m.workspace
         cut: BaseGeometry = MultiLineString([list(line) for line in c.cut])
-        cells.append(Cell(c.index, poly, m.workspace, cut, tuple(c.tile), elongation(poly)))
+        cells.append(Cell(c.index, poly, cell_ws, cut, tuple(c.tile), elongation(poly)))
     dec = Decomposition(
         ws,
         tuple(cells),
@@ -170,18 +183,32 @@ def atlas_from_index(index: Any, charts: Sequence[Any]) -> Atlas:
         float(dec_d["max_ratio_holes"]),
         int(dec_d["max_obstacles"]),
     )
+    if any(m is None for m in charts):
+        return PartialAtlas(dec, tuple(charts), float(index.tol), 0, float(index.wall_time))
     return Atlas(dec, tuple(charts), float(index.tol), (), index.wall_time, 1)
+
+
+def is_pending(cell: Any) -> bool:
+    """Whether an ``AtlasCell`` of a partial revision has no chart yet."""
+    return bool(getattr(cell, "pending", False))
 
 
 def atlas_map_of(index: Any, maps: Mapping[str, Any]) -> AtlasMap:
     """The :class:`AtlasMap` of an ``AtlasIndex`` whose charts' navigation maps are in ``maps``
-    (by revision): what the controller installs and ``replay --check`` rebuilds."""
-    missing = [c.chart_ws_id for c in index.cells if c.chart_revision not in maps]
+    (by revision): what the controller installs and ``replay --check`` rebuilds. A partial
+    revision's pending cells have no chart (robots hold there until a later revision)."""
+    missing = [
+        c.chart_ws_id
+        for c in index.cells
+        if not is_pending(c) and c.chart_revision not in maps
+    ]
     if missing:
         raise NavigationError(f"atlas {index.ws_id!r}: charts {missing[:5]} missing")
-    charts = [maps[c.chart_revision] for c in index.cells]
+    charts = [None if is_pending(c) else maps[c.chart_revision] for c in index.cells]
     atlas = atlas_from_index(index, charts)  # the navigation maps serve as the charts
-    return AtlasMap(index.ws_id, index.revision, index.definition_hash, atlas, nav_maps=charts)
+    am = AtlasMap(index.ws_id, index.revision, index.definition_hash, atlas, nav_maps=charts)
+    am.chart_revisions = [c.chart_revision for c in index.cells]
+    return am
 
 
 def _expansions_built(m: Any) -> bool:
@@ -216,28 +243,47 @@ class AtlasMap:
     ws_id: str
     revision: str
     definition_hash: str
-    atlas: Atlas
+    atlas: Atlas | PartialAtlas
     nav_maps: list[Any] = field(default_factory=list)
     links: list[Overlap] = field(default_factory=list)
     is_atlas: bool = True
     per_robot: bool = True
+    #: the charts' revisions in cell order (from the index; "" unknown): a later revision of
+    #: a progressive atlas reuses the charts it shares with this one
+    chart_revisions: list[str] = field(default_factory=list)
     _warm_locks: list[threading.Lock] = field(default_factory=list, init=False, repr=False)
     _warm_failed: set[int] = field(default_factory=set, init=False, repr=False)
 
     def __post_init__(self) -> None:
         if not self.nav_maps:
-            self.nav_maps = [m.for_navigation() for m in self.atlas.charts]
+            self.nav_maps = [None if m is None else m.for_navigation() for m in self.atlas.charts]
         if not self.links:
             self.links = overlaps(self.atlas)
         # charts start cold (module docstring of :meth:`warm`): a robot's first command on a
         # chart never waits for that chart's local expansions
         self._warm_locks = [threading.Lock() for _ in self.nav_maps]
         for m in self.nav_maps:
-            _defer_expansions(m)
+            if m is not None:
+                _defer_expansions(m)
+
+    @property
+    def pending(self) -> list[int]:
+        """The cells whose charts a later revision brings (a partial revision; else [])."""
+        return [i for i, m in enumerate(self.nav_maps) if m is None]
 
     def is_warm(self, i: int) -> bool:
-        """Whether chart ``i`` evaluates through its local expansions (see :meth:`warm`)."""
-        return i in self._warm_failed or _expansions_built(self.nav_maps[i])
+        """Whether chart ``i`` evaluates through its local expansions (see :meth:`warm`; a
+        pending cell counts as warm: nothing to build)."""
+        m = self.nav_maps[i]
+        return m is None or i in self._warm_failed or _expansions_built(m)
+
+    def known_charts(self) -> dict[str, Any]:
+        """The installed charts' navigation maps by chart revision (pending cells left out)."""
+        return {
+            r: m
+            for r, m in zip(self.chart_revisions, self.nav_maps, strict=False)
+            if r and m is not None
+        }
 
     def cold_charts(self) -> list[int]:
         """The charts not warmed yet, in cell order."""
@@ -463,7 +509,7 @@ def _cell_keys(atlas: Atlas | PartialAtlas) -> tuple[str, ...]:
 
 
 class ProgressiveController:
-    """One robot's law on an atlas that is being solved (docs/ATLAS.md "Progressive atlas"):
+    """One robot's law on an atlas that is being solved (docs/SLAM.md "Progressive atlas"):
     it drives on the newest revision offered (:meth:`offer`), a :class:`PartialAtlas` or a
     complete :class:`Atlas`, through an :class:`AtlasController`.
 
