@@ -43,6 +43,7 @@ import argparse
 import json
 import os
 import sys
+import threading
 import time
 import warnings
 from concurrent.futures import ProcessPoolExecutor
@@ -68,6 +69,7 @@ from confnav.maps.footprint import inflate  # noqa: E402
 from confnav.maps.occupancy import import_map  # noqa: E402
 from confnav.navigation import defaults  # noqa: E402
 from confnav.navigation.control import Controller  # noqa: E402
+from confnav.navigation.safety import safety_filter  # noqa: E402
 from confnav.navigation.sim import STATUS_NAMES  # noqa: E402
 from confnav.navigation.unicycle import UnicycleController, simulate_unicycle  # noqa: E402
 from confnav.scenes.scenarios import random_starts  # noqa: E402
@@ -260,7 +262,14 @@ def progressive(nav_ws: Workspace, pairs: list[tuple[complex, complex, float]], 
     Returns the figures and the schedule ``[(seconds after t_goal, revision)]`` the drive
     installs at those times."""
     first_tol = LADDER[0]
-    maps = NavMaps()
+    # the exact geometry's safety grid depends on the workspace only: built from the goal's
+    # time on, beside the decomposition and the chart solves (as a controller can when a
+    # workspace arrives); the charts' local expansions are built after the first commands
+    # (a chart evaluates by the direct formula meanwhile, docs/NAVIGATION.md)
+    flt = safety_filter(nav_ws, hold_time=defaults.HOLD_TIME)
+    grid = threading.Thread(target=lambda: flt.grid, daemon=True)
+    grid.start()
+    maps = NavMaps(defer_expansions=True)
     laws = [ProgressiveController(g, nav_maps=maps, speed=defaults.V_MAX, safety=nav_ws)
             for _, g, _ in pairs]  # fmt: skip
     ucs = [UnicycleController(law, LOOKAHEAD, v_max=defaults.V_MAX) for law in laws]

@@ -1,4 +1,4 @@
-"""Progressive atlas (issue 23, docs/ATLAS.md "Progressive atlas"): the charts a robot's route
+"""Progressive atlas (issue 23, docs/SLAM.md "Progressive atlas"): the charts a robot's route
 needs are solved first and handed out as partial revisions; a robot drives through the cells
 whose charts are installed, holds (zero command, not an error) where the next chart is
 missing, continues when it is installed, and swaps to a complete or refined atlas without

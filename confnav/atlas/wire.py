@@ -486,8 +486,11 @@ class NavMaps:
     """The charts' navigation maps (``ConformalMap.for_navigation``) of the revisions of a
     progressive atlas, each made once (keyed by the chart object) and shared by every robot."""
 
-    def __init__(self) -> None:
+    def __init__(self, *, defer_expansions: bool = False) -> None:
         self._maps: dict[int, tuple[Any, Any]] = {}  # id(chart) -> (chart, its map)
+        #: new maps evaluate by the direct formula until :meth:`warm` builds their local
+        #: expansions (:meth:`AtlasMap.warm`): a first command does not wait for them
+        self.defer_expansions = defer_expansions
 
     def of(self, atlas: Atlas | PartialAtlas) -> list[Any]:
         """One navigation map per cell of ``atlas`` (None where its chart is missing)."""
@@ -499,9 +502,20 @@ class NavMaps:
             got = self._maps.get(id(m))
             if got is None or got[0] is not m:
                 got = (m, m.for_navigation())
+                if self.defer_expansions:
+                    _defer_expansions(got[1])
                 self._maps[id(m)] = got
             out.append(got[1])
         return out
+
+    def warm(self) -> int:
+        """Build the local expansions of every map still on the direct formula (how many)."""
+        n = 0
+        for _, nm in list(self._maps.values()):
+            if not _expansions_built(nm):
+                _build_expansions(nm)
+                n += 1
+        return n
 
 
 def _cell_keys(atlas: Atlas | PartialAtlas) -> tuple[str, ...]:
