@@ -157,14 +157,21 @@ class PartialAtlas:
         return all(m is not None for m in self.charts)
 
 
+def _corners(poly: Polygon) -> int:
+    """Vertices of a polygon, holes included."""
+    return len(poly.exterior.coords) - 1 + sum(len(h.coords) - 1 for h in poly.interiors)
+
+
 def route_order(
     dec: Decomposition, pairs: Sequence[tuple[complex, complex]], links: Any = None
 ) -> list[int]:
     """The cells the robots of ``pairs`` (start, goal) need, in the order they need them:
-    every robot's start cell first (the lowest-ranked cell holding the start, as
-    :meth:`confnav.atlas.compose.AtlasNavigator.initial_cells` picks it), then the second
-    cells of their cell routes (:func:`confnav.atlas.compose.plan`), and so on. A pair whose
-    goal or start lies in no cell adds nothing."""
+    every robot's start cell first, then the second cells of their cell routes
+    (:func:`confnav.atlas.compose.plan`), and so on. A start cell is the cell holding the
+    start (and leading to the goal) with the fewest vertices, the quickest to solve (the
+    cell of the start's own tile after :func:`decompose`'s ``fine`` split; ties: the lowest
+    rank); a robot drives on it while it is the only chart installed that holds it. A pair
+    whose goal or start lies in no cell adds nothing."""
     from confnav.atlas.compose import plan  # compose imports this module
 
     stub = PartialAtlas(dec, (None,) * len(dec.cells), 0.0)
@@ -180,7 +187,7 @@ def route_order(
         ]
         if not held:
             continue
-        a = min(held, key=lambda i: p.rank[i])
+        a = min(held, key=lambda i: (_corners(dec.cells[i].polygon), p.rank[i]))
         route: list[int] = []
         while a >= 0 and a not in route:
             route.append(a)
