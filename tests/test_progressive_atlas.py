@@ -10,10 +10,13 @@ import itertools
 
 import numpy as np
 import pytest
+import shapely
 
 from confnav.atlas import Atlas, solve_atlas
 from confnav.atlas.charts import PartialAtlas, route_order
 from confnav.atlas.compose import AtlasNavigator
+from confnav.atlas.decompose import decompose
+from confnav.atlas.scenes import office
 from confnav.atlas.wire import AtlasController, NavMaps, ProgressiveController
 from confnav.errors import NavigationError
 from confnav.geometry import Workspace
@@ -180,3 +183,33 @@ def test_on_a_process_pool_revisions_come_chart_by_chart_route_first() -> None:
     for a, b in itertools.pairwise(first[: len(route)]):
         assert len(b.installed) == len(a.installed) + 1
     assert revisions[-1].complete
+
+
+def test_fine_splits_a_starts_tile_until_its_cell_is_small_and_the_cells_still_cover() -> None:
+    ws = office().workspace
+    plain = decompose(ws)
+    corners = {i: len(c.polygon.exterior.coords) - 1 for i, c in enumerate(plain.cells)}
+    # a start in the plain decomposition's cell with the most vertices
+    big = max(corners, key=lambda i: corners[i])
+    assert corners[big] > 12
+    tile = plain.cells[big].tile
+    core = shapely.box(*tile).intersection(plain.cells[big].polygon)
+    p = core.representative_point()
+    start = complex(p.x, p.y)
+    fine = decompose(ws, fine=[start], fine_vertices=12, margin=plain.margin)
+    assert fine.uncovered_area() < 1e-9 * ws.polygon.area
+    assert len(fine.cells) > len(plain.cells)
+    # the cell holding the start in its core tile: at most 12 vertices, or its tile at the
+    # smallest side (min_tile = tile / 16)
+    pt = np.array([start])
+    own = [c for c in fine.cells
+           if c.tile[0] <= start.real < c.tile[2] and c.tile[1] <= start.imag < c.tile[3]
+           and c.depth(pt)[0] > 0]  # fmt: skip
+    assert own
+    for c in own:
+        n = len(c.polygon.exterior.coords) - 1 + sum(len(h.coords) - 1 for h in c.polygon.interiors)
+        assert n <= 12 or (c.tile[2] - c.tile[0]) < 2 * fine.tile / 16 + 1e-9
+    # cells far from the start are the plain ones
+    far = {c.workspace.content_hash for c in plain.cells if c.polygon.distance(
+        plain.cells[big].polygon) > 2 * plain.tile}  # fmt: skip
+    assert far <= {c.workspace.content_hash for c in fine.cells}

@@ -23,7 +23,7 @@ SCENE = corridor(12.0)
 STARTS = {"p1": (0.5, 0.5), "p2": (1.2, 0.3)}
 
 
-@pytest.mark.timeout(400)
+@pytest.mark.timeout(700)
 def test_robots_drive_on_partial_atlas_revisions_and_arrive(tmp_path: Path) -> None:
     ws_file = tmp_path / "corr.json"
     SCENE.workspace.save(ws_file)
@@ -78,7 +78,7 @@ def test_robots_drive_on_partial_atlas_revisions_and_arrive(tmp_path: Path) -> N
             with lock:
                 return any(s.state == "solved" for s in statuses)
 
-        wait_for(solved, timeout=240, interval=0.2)
+        wait_for(solved, timeout=480, interval=0.5)  # the final atlas: tol 1e-10, 1-3 min
         with watch.lock:
             assert watch.collisions == []
     with lock:
