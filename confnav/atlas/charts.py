@@ -166,8 +166,9 @@ def route_order(
     dec: Decomposition, pairs: Sequence[tuple[complex, complex]], links: Any = None
 ) -> list[int]:
     """The cells the robots of ``pairs`` (start, goal) need, in the order they need them:
-    every robot's start cell first, then the second cells of their cell routes
-    (:func:`confnav.atlas.compose.plan`), and so on. A start cell is the cell holding the
+    every robot's start cell first, then a second cell holding each start (if any: a start
+    cell whose chart fails leaves its robot another), then the second cells of their cell
+    routes (:func:`confnav.atlas.compose.plan`), and so on. A start cell is the cell holding the
     start (and leading to the goal) with the fewest vertices, the quickest to solve (the
     cell of the start's own tile after :func:`decompose`'s ``fine`` split; ties: the lowest
     rank); a robot drives on it while it is the only chart installed that holds it. A pair
@@ -176,6 +177,7 @@ def route_order(
 
     stub = PartialAtlas(dec, (None,) * len(dec.cells), 0.0)
     routes: list[list[int]] = []
+    others: list[list[int]] = []  # the other cells holding each start, fewest vertices first
     for start, goal in pairs:
         try:
             p = plan(stub, complex(goal), links)
@@ -187,14 +189,22 @@ def route_order(
         ]
         if not held:
             continue
-        a = min(held, key=lambda i: (_corners(dec.cells[i].polygon), p.rank[i]))
+        held.sort(key=lambda i: (_corners(dec.cells[i].polygon), p.rank[i]))
+        a = held[0]
+        others.append(held[1:])
         route: list[int] = []
         while a >= 0 and a not in route:
             route.append(a)
             a = int(p.next[a])
         routes.append(route)
     out: list[int] = []
-    for k in range(max((len(r) for r in routes), default=0)):
+    for r in routes:  # every start cell first
+        if r[0] not in out:
+            out.append(r[0])
+    for o in others:  # then one more cell holding each start: a start cell whose chart
+        if o and o[0] not in out:  # fails (crowded) leaves its robot another way to start
+            out.append(o[0])
+    for k in range(1, max((len(r) for r in routes), default=0)):
         for r in routes:
             if k < len(r) and r[k] not in out:
                 out.append(r[k])
