@@ -1,7 +1,7 @@
-"""Real SLAM maps (issue 23, target "Real SLAM maps"): import, first map, robots arriving.
+"""Real SLAM maps (issue 23, target "Real SLAM maps"): import, first command, robots arriving.
 
-    python bench/bench_slam.py [--quick] [--maps depot ...] [--pairs 10] [--no-final]
-                               [--out bench/results/slam.json]
+    python bench/bench_slam.py [--quick] [--maps depot ...] [--pairs 10] [--refine 1e-6 1e-8]
+                               [--rungwise [--rungs 1|2|3]] [--out bench/results/slam.json]
     python -m bench slam [--quick]
 
 The maps are ROS ``map_server`` occupancy grids from public Apache-2.0 repositories
@@ -10,29 +10,34 @@ ROBOTIS's TurtleBot3 world). The body is a TurtleBot's: a disk of radius 0.22 m 
 unicycle through a look-ahead point 0.1 m ahead of its axle (the README's ``--robot-radius 0.22
 --unicycle 0.1``), so the steered point navigates the free space shrunk by 0.32 m
 (:func:`confnav.maps.footprint.inflate`, as ``confnav simulate`` and the services'
-``{ws}~r{R}`` do). For each map:
+``{ws}~r{R}`` do). ``--pairs`` random start/goal pairs per map (seed ``SEED``; both at least
+0.05 m + the look-ahead inside the shrunk free space, random headings). For each map
+(default, the progressive atlas, docs/SLAM.md "Progressive atlas"):
 
 1. **import**: :func:`confnav.maps.occupancy.import_map` with the defaults of ``confnav
    import-map`` (wall time; obstacles, vertices, Hausdorff error, border closed or not);
 2. **footprint**: the shrunk free space (wall time; obstacles, vertices);
-3. **first map** (the map a robot can drive on first): the transform service's first rung of
-   a progressive solve (``services/definitions.py``: ``LADDER[0]`` = 1e-3, accepted up to
-   ``COARSE_MAX_ERROR``), one conformal map unless the service's test before solving
-   (:func:`confnav.atlas.charts.atlas_reason`) or the solve itself says one map crowds; then
-   an atlas whose charts are solved to that same first-rung tolerance with 2 worker processes
-   (the service solves an atlas's charts to the definition's ``tol`` at once: the figure here
-   is what the first rung of an atlas costs, not what the service does today);
-4. **ready**: import + footprint + first map + the first robot's controller (navigation
-   function for its goal and the safety layer's grid on the exact shrunk free space): the
-   time from the YAML file to the first command. Target: <= 2 s (``READY_TARGET_S``);
-5. **pairs**: ``--pairs`` random start/goal pairs (seed ``SEED``; both at least 0.05 m + the
-   look-ahead inside the shrunk free space, random headings) driven on the first map with
-   the safety layer against the exact shrunk free space (:mod:`confnav.navigation.safety`),
+3. **goals**: every robot's goal is given at once; the atlas is solved progressively
+   (:func:`confnav.atlas.solve_atlas` with ``priority`` = the pairs, ``on_partial``, ``fine``
+   = the starts; ``LADDER[0]`` = 1e-3 accepted up to ``COARSE_MAX_ERROR``) on a pool of 2
+   worker processes started before the clocks; the safety layer's grid of the exact shrunk
+   free space is built in a worker meanwhile. At each partial revision every robot that has
+   not moved yet gets its law on it and its command at its start is evaluated: **ready** is
+   the wall time of a robot's first non-zero command, measured, not simulated, from the
+   YAML file (``ready_s``, the first robot's; import + footprint included) and from the goal
+   (``ready_after_goal_s`` per robot, what the services see: their workspace is imported
+   already). Target: <= 2 s (``READY_TARGET_S``);
+4. **refined**: then complete atlases to each ``--refine`` tolerance (default 1e-6), one
+   after the other, each a revision at the wall time it is complete;
+5. **drive**: each pair driven from the goal's time on, the revisions installed at their
+   wall times (simulated time = the robot's real time: windows cut at every installation),
+   the safety layer on the exact shrunk free space (:mod:`confnav.navigation.safety`),
    collisions and clearances those of the 0.22 m body against the imported walls; per pair:
-   arrived, collided, the reason of a failure, simulated time, wall time;
-6. **final** (not with ``--no-final`` / ``--quick``): the map at the README commands'
-   accuracy (one map: ``confnav.solve``'s default tol; an atlas: ``confnav atlas``'s default
-   1e-8) and the same pairs driven on it.
+   arrived, collided, the reason of a failure, simulated time of the first move and of the
+   end, revisions offered and swaps, wall time.
+
+``--rungwise`` runs the former bench instead: each rung (1e-3, 1e-6, the README's accuracy)
+solved whole, its first robot's controller built, every pair driven on it alone.
 
 Wall times on a shared machine: the load average is recorded beside every map's figures.
 """
