@@ -427,11 +427,11 @@ class ChartShare:
         first = LADDER[0]
         if defn.tol < first:
             try:
-                coarse = solve_atlas(
+                # its complete revision is the last partial one
+                solve_atlas(
                     ws, first, workers=workers, executor=ex, on_partial=publish, batch=workers,
                     accept=max(first, COARSE_MAX_ERROR),
                 )  # fmt: skip
-                publish(coarse)
             except SolverError as exc:  # the final atlas may still solve: go on to it
                 log.info("atlas %s: no coarse revision (%s)", h[:12], exc)
             atlas = solve_atlas(ws, defn.tol, workers=workers, executor=ex)
