@@ -354,6 +354,9 @@ class AtlasCell(Message):
     cut: list[Annotated[list[Point], Field(min_length=2, max_length=MAX_VERTICES)]] = []
     tile: tuple[Finite, Finite, Finite, Finite]
     solve_time: Annotated[float, Field(ge=0.0)] = 0.0
+    #: the chart is not solved yet (a progressive atlas's partial revision): no
+    #: ``TransformSolution`` to fetch for it; ``chart_revision`` is a placeholder
+    pending: bool = False
 
 
 class AtlasIndex(Message):

@@ -8,12 +8,15 @@ returns the :class:`confnav.atlas.wire.AtlasMap` the controller installs like a 
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+from typing import Any
+
 from confnav.schemas import AtlasIndex, TransformSolution, decode
 from confnav.services.bus import Bus
 from confnav.services.keys import Keys
 from confnav.services.navigation import load_map
 
-from confnav.atlas.wire import AtlasMap, atlas_map_of
+from confnav.atlas.wire import AtlasMap, atlas_map_of, is_pending
 from confnav.errors import ConfnavError
 
 
@@ -39,12 +42,26 @@ def fetch_index(bus: Bus, keys: Keys, ws_id: str, timeout: float = 2.0) -> Atlas
 
 
 def fetch_atlas(
-    bus: Bus, keys: Keys, ws_id: str, index: AtlasIndex | None = None, timeout: float = 5.0
+    bus: Bus,
+    keys: Keys,
+    ws_id: str,
+    index: AtlasIndex | None = None,
+    timeout: float = 5.0,
+    known: Mapping[str, Any] | None = None,
 ) -> AtlasMap:
-    """Every chart of ``ws_id``'s atlas, loaded for control (raises AtlasFetchError)."""
+    """Every chart of ``ws_id``'s atlas, loaded for control (raises AtlasFetchError).
+
+    A partial revision of a progressive atlas (cells ``pending``) gives an atlas whose
+    pending cells have no chart; ``known``: charts already loaded (by revision, e.g. those
+    of the installed revision), not fetched again."""
     index = index if index is not None else fetch_index(bus, keys, ws_id, timeout)
     maps = {}
     for cell in index.cells:
+        if is_pending(cell):  # a progressive atlas's partial revision: no chart yet
+            continue
+        if known is not None and cell.chart_revision in known:  # loaded for an earlier revision
+            maps[cell.chart_revision] = known[cell.chart_revision]
+            continue
         sol = decode(
             TransformSolution, _query_one(bus, keys.ws(cell.chart_ws_id, "transform"), timeout)
         )

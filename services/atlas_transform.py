@@ -45,7 +45,12 @@ from typing import TYPE_CHECKING, Any
 
 from confnav.schemas import AtlasCell, AtlasIndex, SolveDiagnostics, TransformSolution, encode
 from confnav.services.bus import Closeable, QueryError, key_matches
-from confnav.services.definitions import solution_result, workspace_of
+from confnav.services.definitions import (
+    COARSE_MAX_ERROR,
+    LADDER,
+    solution_result,
+    workspace_of,
+)
 
 from confnav.atlas.charts import atlas_reason, solve_atlas
 from confnav.atlas.wire import ATLAS_MARKER, atlas_revision, chart_ws_id, index_fields
@@ -89,11 +94,13 @@ def single_or_atlas(
 
 
 def atlas_result(atlas: Any) -> dict[str, Any]:
-    """The result dict of a solved :class:`confnav.atlas.Atlas`: ``{"atlas": index fields,
-    "charts": [result dicts]}`` (what :func:`messages_of` turns into messages)."""
+    """The result dict of a solved :class:`confnav.atlas.Atlas` (or of a
+    :class:`confnav.atlas.charts.PartialAtlas`, its pending charts ``None``): ``{"atlas":
+    index fields, "charts": [result dicts]}`` (what :func:`messages_of` turns into
+    messages)."""
     return {
         "atlas": index_fields(atlas),
-        "charts": [solution_result(m, atlas.tol) for m in atlas.charts],
+        "charts": [None if m is None else solution_result(m, atlas.tol) for m in atlas.charts],
     }
 
 
@@ -111,13 +118,20 @@ def _pt(p: Any) -> tuple[float, float]:
     return (float(p[0]), float(p[1]))
 
 
+#: ``chart_revision`` of a pending cell of a partial revision (``AtlasCell.pending``)
+PENDING = "pending"
+
+
 def messages_of(
     ws_id: str, h: str, result: dict[str, Any]
 ) -> tuple[AtlasIndex, list[TransformSolution]]:
-    """The index and chart messages of an atlas result (tuples restored after JSON)."""
+    """The index and chart messages of an atlas result (tuples restored after JSON); a
+    partial revision's pending cells are marked ``pending`` and have no chart message."""
     now = time.time_ns()
     charts = [
-        TransformSolution(
+        None
+        if c is None  # a partial revision's pending chart
+        else TransformSolution(
             ws_id=chart_ws_id(ws_id, i),
             revision=c["revision"],
             definition_hash=h,
@@ -132,11 +146,17 @@ def messages_of(
         for i, c in enumerate(result["charts"])
     ]
     a = result["atlas"]
+
+    def rev(i: int) -> str:
+        m = charts[i]
+        return PENDING if m is None else m.revision
+
     cells = [
         AtlasCell(
             index=int(c["index"]),
             chart_ws_id=chart_ws_id(ws_id, int(c["index"])),
-            chart_revision=charts[int(c["index"])].revision,
+            chart_revision=rev(int(c["index"])),
+            pending=charts[int(c["index"])] is None,
             outer=[_pt(p) for p in c["outer"]],
             obstacles=[[_pt(p) for p in o] for o in c["obstacles"]],
             cut=[[_pt(p) for p in line] for line in c["cut"]],
@@ -147,7 +167,7 @@ def messages_of(
     ]
     index = AtlasIndex(
         ws_id=ws_id,
-        revision=atlas_revision([c.revision for c in charts]),
+        revision=atlas_revision([rev(i) for i in range(len(charts))]),
         definition_hash=h,
         stamp_ns=now,
         margin=float(a["margin"]),
@@ -157,7 +177,7 @@ def messages_of(
         wall_time=float(a["wall_time"]),
         cpu_time=float(a["cpu_time"]),
     )
-    return index, charts
+    return index, [c for c in charts if c is not None]
 
 
 class AtlasStore:
@@ -243,6 +263,54 @@ def finish_atlas(svc: TransformService, ws_id: str, h: str, result: dict[str, An
     return None
 
 
+def publish_partial(svc: TransformService, h: str, atlas: Any, sent: set[str]) -> None:
+    """Publish a revision of an atlas being solved (a :class:`PartialAtlas`, or a complete
+    coarse atlas a finer one follows) for every workspace waiting for definition ``h``: its
+    new charts, then its index (cells without a chart ``pending``), and a ``solving`` status
+    saying how many charts robots can drive on. ``sent``: the chart revisions published
+    already (updated). The state stays ``solving`` until :func:`finish_atlas`."""
+    n = len(atlas.charts)
+    k = sum(m is not None for m in atlas.charts)
+    if k == 0:
+        return
+    with svc._lock:
+        targets = [
+            w
+            for w, st in svc._ws.items()
+            if st.definition_hash == h and st.state in ("solving", "refining")
+        ]
+    if not targets:
+        return
+    result = atlas_result(atlas)
+    for ws_id in targets:
+        try:
+            index, charts = messages_of(ws_id, h, result)
+        except Exception as exc:  # a bad revision is skipped; the final atlas follows
+            log.warning("workspace %r: partial atlas not published: %s", ws_id, exc)
+            continue
+        encoded = {c.ws_id: encode(c) for c in charts}
+        with svc._lock:
+            st = svc._ws.get(ws_id)
+            if st is None or st.definition_hash != h or st.state not in ("solving", "refining"):
+                continue
+            svc.atlases.put(ws_id, encode(index), encoded)
+        for c in charts:
+            key = f"{ws_id}|{c.revision}"
+            if key not in sent:
+                svc.bus.publish(svc.keys.ws(c.ws_id, "transform"), encoded[c.ws_id])
+                sent.add(key)
+        svc.bus.publish(svc.keys.ws(ws_id, "atlas"), encode(index))
+        svc.count("atlas_revisions_published")
+        what = "complete, refining" if k == n else "robots drive on them, the rest follow"
+        svc._publish_status(
+            ws_id,
+            "solving",
+            h,
+            None,
+            f"atlas: {k} of {n} charts solved to {atlas.tol:g} ({what})",
+        )
+
+
 ChartResult = tuple[str, float, str]
 """What a cell solve returns (:func:`confnav.atlas.charts._solve_one`): the map's JSON (""
 if it failed), the solve's wall time, the failure message."""
@@ -260,6 +328,10 @@ class ChartShare:
         # atlas key -> job key -> encoded ChartResult (least recently used atlas first)
         self._results: OrderedDict[str, dict[str, bytes]] = OrderedDict()
         self._claims: defaultdict[tuple[str, str], set[str]] = defaultdict(set)
+        #: publish an atlas's charts as they come (:meth:`solve`); ``serve transform
+        #: --progressive-atlas``. Off by default: a consumer then sees one complete atlas
+        #: revision per definition, as before
+        self.progressive = False
 
     def start(self) -> list[Closeable]:
         """Declare the chart queryable and the claim subscriber (the handles to close)."""
@@ -332,9 +404,41 @@ class ChartShare:
     # solving -------------------------------------------------------------------------
     def solve(self, h: str, defn: Any, abandoned: Callable[[], bool]) -> dict[str, Any]:
         """Solve the atlas of definition ``defn`` (hash ``h``) with the peers (a thread of
-        the service); raises :class:`AtlasAbandoned` or what ``solve_atlas`` raises."""
+        the service); raises :class:`AtlasAbandoned` or what ``solve_atlas`` raises.
+
+        Progressive (:attr:`progressive` and the service's ``progressive``, docs/SLAM.md
+        "Progressive atlas"): the
+        charts are published as they come, a partial revision per ``workers`` charts
+        (:func:`publish_partial`), first to the ladder's first tolerance (accepted up to
+        ``COARSE_MAX_ERROR``) when the definition asks for a finer one, whose complete
+        atlas is a revision too; then the atlas to the definition's ``tol``, returned (the
+        final revision, :func:`finish_atlas`)."""
         ex = SharedExecutor(self, h[:32], abandoned)
-        atlas = solve_atlas(workspace_of(defn), defn.tol, workers=self.svc.workers, executor=ex)
+        ws = workspace_of(defn)
+        workers = self.svc.workers
+        if not (self.progressive and getattr(self.svc, "progressive", False)):
+            return atlas_result(solve_atlas(ws, defn.tol, workers=workers, executor=ex))
+        sent: set[str] = set()
+
+        def publish(pa: Any) -> None:
+            if not abandoned():
+                publish_partial(self.svc, h, pa, sent)
+
+        first = LADDER[0]
+        if defn.tol < first:
+            try:
+                # its complete revision is the last partial one
+                solve_atlas(
+                    ws, first, workers=workers, executor=ex, on_partial=publish, batch=workers,
+                    accept=max(first, COARSE_MAX_ERROR),
+                )  # fmt: skip
+            except SolverError as exc:  # the final atlas may still solve: go on to it
+                log.info("atlas %s: no coarse revision (%s)", h[:12], exc)
+            atlas = solve_atlas(ws, defn.tol, workers=workers, executor=ex)
+        else:
+            atlas = solve_atlas(
+                ws, defn.tol, workers=workers, executor=ex, on_partial=publish, batch=workers
+            )
         return atlas_result(atlas)
 
     def run(

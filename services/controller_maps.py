@@ -262,7 +262,11 @@ class MapsMixin(FootprintMixin, FlatMixin):
     def _fetch_atlas(self, ws_id: str, index: AtlasIndex | None = None) -> None:
         """Fetch and install the atlas of ``ws_id`` (services/atlas_client.py)."""
         try:
-            self._install(fetch_atlas(self.bus, self.keys, ws_id, index))
+            cur = self._maps.get(ws_id)  # a progressive atlas: its charts loaded already
+            known = getattr(cur.cmap, "known_charts", None) if cur is not None else None
+            self._install(
+                fetch_atlas(self.bus, self.keys, ws_id, index, known=known() if known else None)
+            )
         except Exception as exc:
             self._map_errors[ws_id] = f"cannot fetch atlas: {exc}"
             log.warning("workspace %r: cannot fetch atlas: %s", ws_id, exc)

@@ -820,23 +820,37 @@ def add_parser(sub: Any) -> None:
         help="publish a coarse revision of each map first, then refined ones up to the "
         "workspace's tol (docs/SERVICES.md); --no-progressive: the final map only",
     )
+    p.add_argument(
+        "--progressive-atlas",
+        action=argparse.BooleanOptionalAction,
+        default=False,
+        help="with --progressive: publish an atlas's charts as they are solved (partial "
+        "revisions, a coarse atlas first; docs/SLAM.md)",
+    )
     p.set_defaults(func=main)
 
 
 def main(args: argparse.Namespace) -> int:
     sources = parse_sources(args.workspace)
+
+    def make(svc: TransformService) -> TransformService:
+        svc.charts.progressive = bool(getattr(args, "progressive_atlas", False))
+        return svc
+
     return run_until_signal(
-        lambda bus, keys: TransformService(
-            bus,
-            keys,
-            sources,
-            workers=args.workers,
-            cache_dir=args.cache_dir,
-            solve_timeout=args.solve_timeout,
-            max_attempts=args.max_attempts,
-            max_cached=args.max_cached,
-            progressive=args.progressive,
-            robot_radii=tuple(args.robot_radius),
+        lambda bus, keys: make(
+            TransformService(
+                bus,
+                keys,
+                sources,
+                workers=args.workers,
+                cache_dir=args.cache_dir,
+                solve_timeout=args.solve_timeout,
+                max_attempts=args.max_attempts,
+                max_cached=args.max_cached,
+                progressive=args.progressive,
+                robot_radii=tuple(args.robot_radius),
+            )
         ),
         args,
     )

@@ -25,8 +25,8 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import dijkstra
 
-from confnav.atlas.charts import Atlas
-from confnav.atlas.decompose import Overlap, inscribed
+from confnav.atlas.charts import Atlas, PartialAtlas
+from confnav.atlas.decompose import Overlap
 from confnav.errors import NavigationError, fmt_point
 from confnav.navigation.control import Controller
 from confnav.navigation.sim import ARRIVED, COLLIDED, ERROR, STALLED, TIMEOUT, Outcomes, simulate
@@ -44,7 +44,7 @@ _REASONS = (
 )
 
 
-def overlaps(atlas: Atlas) -> list[Overlap]:
+def overlaps(atlas: Atlas | PartialAtlas) -> list[Overlap]:
     """Every pair of cells whose intersection holds a disk of radius ``margin``.
 
     Thinner overlaps are no edges of the cell graph (a local goal needs that depth); the
@@ -66,7 +66,9 @@ class CellPlan:
     goal_cells: tuple[int, ...]
 
 
-def plan(atlas: Atlas, goal: complex, links: list[Overlap] | None = None) -> CellPlan:
+def plan(
+    atlas: Atlas | PartialAtlas, goal: complex, links: list[Overlap] | None = None
+) -> CellPlan:
     """Shortest cell paths to ``goal`` (Dijkstra on the cell graph).
 
     Edge weight between cells i and j: ``|c_i - p_ij| + |p_ij - c_j|`` with ``c`` the cells'
@@ -78,7 +80,7 @@ def plan(atlas: Atlas, goal: complex, links: list[Overlap] | None = None) -> Cel
     n = len(cells)
     links = overlaps(atlas) if links is None else links
     goal = complex(goal)
-    centre = np.array([inscribed(c.polygon)[0] for c in cells])
+    centre = atlas.decomposition.centres
     # goal cells: the goal at least a margin from their cut edges (some tile's core holds
     # it, that deep); a cell that merely touches it would put its chart's goal on its boundary
     depth = np.array([c.depth(np.array([goal]))[0] for c in cells])
@@ -177,7 +179,11 @@ class AtlasNavigator:
 
     Parameters
     ----------
-    atlas : a solved :class:`Atlas`.
+    atlas : a solved :class:`Atlas`, or a :class:`PartialAtlas` whose missing charts
+        (``None``) are installed later (:meth:`install`, docs/SLAM.md "Progressive atlas").
+        The plan is made on the whole cell graph (it needs the decomposition only); a robot
+        drives on installed charts only, holds (zero command) where its cell's chart or the
+        next cell's is missing, and moves on when it is installed.
     goal : the goal (in the free space).
     hysteresis : depth inside a lower-ranked cell (distance to its cut edges) at which a
         robot switches to it; default ``margin / 2``.  Must be below ``margin`` (local goals
@@ -196,7 +202,7 @@ class AtlasNavigator:
 
     def __init__(
         self,
-        atlas: Atlas,
+        atlas: Atlas | PartialAtlas,
         goal: complex,
         *,
         hysteresis: float | None = None,
@@ -218,8 +224,10 @@ class AtlasNavigator:
         self.floor_radius = float(floor_radius) if floor_radius is not None else margin
         self.controller_kw = controller_kw
         self._controllers: dict[int, Controller] = {}
-        self._nav_maps = (
-            list(nav_maps) if nav_maps is not None else [m.for_navigation() for m in atlas.charts]
+        self._nav_maps: list[Any] = (
+            list(nav_maps)
+            if nav_maps is not None
+            else [None if m is None else m.for_navigation() for m in atlas.charts]
         )
         tree = shapely.STRtree([c.polygon for c in self.cells])
         a, b = tree.query([c.polygon for c in self.cells], predicate="intersects")
@@ -232,8 +240,27 @@ class AtlasNavigator:
         for lst in self.lower:
             lst.sort(key=lambda j: rank[j])
 
+    def installed(self, i: int) -> bool:
+        """Whether cell ``i`` has its chart (always, on a complete atlas)."""
+        return self._nav_maps[i] is not None
+
+    def install(self, i: int, nav_map: Any) -> None:
+        """Install cell ``i``'s chart (its ``for_navigation`` map) into a partial atlas; the
+        plan, the switching order and the laws already built stay as they are."""
+        if not 0 <= i < len(self._nav_maps):
+            raise NavigationError(f"no cell {i} in this atlas ({len(self._nav_maps)} cells)")
+        if nav_map is None:
+            raise NavigationError(f"cell {i}: no chart to install")
+        self._nav_maps[i] = nav_map
+
+    def missing(self) -> list[int]:
+        """The cells whose charts are not installed (empty on a complete atlas)."""
+        return [i for i, m in enumerate(self._nav_maps) if m is None]
+
     def controller(self, i: int) -> Controller:
         """The Theorem 2 law of cell ``i``'s chart towards its local goal (built on demand)."""
+        if self._nav_maps[i] is None:
+            raise NavigationError(f"cell {i}: its chart is not installed yet")
         if i not in self._controllers:
             kw = dict(self.controller_kw)
             kw.setdefault("safety", self.atlas.workspace)  # the walls, not the chart's cuts
@@ -281,13 +308,14 @@ class AtlasNavigator:
         return msg
 
     def initial_cells(self, z: ArrayLike) -> NDArray[np.int64]:
-        """For each point, the lowest-ranked reachable cell containing it (-1: none)."""
+        """For each point, the lowest-ranked reachable cell containing it whose chart is
+        installed (-1: none)."""
         z = np.atleast_1d(np.asarray(z, dtype=np.complex128))
         best = np.full(z.shape, -1, dtype=np.int64)
         best_rank = np.full(z.shape, np.inf)
         for i, c in enumerate(self.cells):
             r = self.plan.rank[i]
-            if not np.isfinite(r):
+            if not np.isfinite(r) or self._nav_maps[i] is None:
                 continue
             inside = c.depth(z) > 0
             take = inside & (r < best_rank)
@@ -296,7 +324,8 @@ class AtlasNavigator:
 
     def switch(self, z: ArrayLike, active: NDArray[np.int64]) -> NDArray[np.int64]:
         """The active cells after the switching rule: the lowest-ranked cell of strictly lower
-        rank than the active one in which the point lies deeper than ``hysteresis``."""
+        rank than the active one, its chart installed, in which the point lies deeper than
+        ``hysteresis``."""
         z = np.atleast_1d(np.asarray(z, dtype=np.complex128))
         out = active.copy()
         for i in np.unique(active):
@@ -305,6 +334,8 @@ class AtlasNavigator:
             idx = np.flatnonzero(active == i)
             pending = np.ones(idx.size, dtype=bool)
             for j in self.lower[int(i)]:  # ascending rank: the first hit is the lowest
+                if self._nav_maps[j] is None:
+                    continue
                 deep = pending & (self.cells[j].depth(z[idx]) > self.hysteresis)
                 out[idx[deep]] = j
                 pending &= ~deep
@@ -334,6 +365,11 @@ class AtlasNavigator:
         import time as _time
 
         t0 = _time.perf_counter()
+        if self.missing():
+            raise NavigationError(
+                f"run needs every chart; cells {self.missing()[:8]} have none yet (drive a "
+                "partial atlas pose by pose, confnav.atlas.wire.AtlasController)"
+            )
         ws = self.atlas.workspace
         z = np.atleast_1d(np.asarray(starts, dtype=np.complex128)).copy()
         if np.any(~(ws.clearance(z) > 0)):

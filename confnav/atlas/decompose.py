@@ -256,6 +256,12 @@ class Decomposition:
         return float(self.workspace.polygon.difference(union).area)
 
     @cached_property
+    def centres(self) -> np.ndarray:
+        """Each cell's deepest point (pole of inaccessibility; computed once: every goal's
+        plan uses them)."""
+        return np.array([inscribed(c.polygon)[0] for c in self.cells], dtype=np.complex128)
+
+    @cached_property
     def links(self) -> tuple[Overlap, ...]:
         """Every pair of overlapping cells, however thin the overlap (computed once)."""
         return _links(self.cells)
@@ -424,6 +430,8 @@ def decompose(
     max_obstacles: int = 12,
     min_tile: float | None = None,
     split: Iterable[Tile] = (),
+    fine: Iterable[complex] = (),
+    fine_vertices: int = 24,
 ) -> Decomposition:
     """Overlapping cells covering the free space of ``ws`` (module docstring).
 
@@ -447,6 +455,12 @@ def decompose(
     min_tile : smallest tile side (default ``tile / 16``).
     split : core tiles to split regardless (used when a cell's solve failed), even below
         ``min_tile`` (down to a side of ``FORCED_MIN_MARGINS * margin``).
+    fine, fine_vertices : points (robots' starts) whose cells should be quick to solve: a
+        tile whose core holds one and whose piece holding it has more than
+        ``fine_vertices`` vertices is split, down to ``min_tile`` (a chart's solve time grows
+        with its corners: measured on the nav2 warehouse shrunk by 0.32 m, cells of 55-129
+        vertices took 3.5-10 s at tol 1e-2 against a median of 0.45 s; a progressive atlas
+        solves the start cells first, docs/SLAM.md "Progressive atlas").
 
     Raises
     ------
@@ -466,7 +480,10 @@ def decompose(
             f"atlas needs tile > 0, margin > 0 and overlap in (0, 1] "
             f"(tile {tile:g}, overlap {overlap:g}, margin {margin:g})"
         )
-    params = _Params(tile, overlap, max_ratio, max_ratio_holes, max_obstacles, min_tile)
+    params = _Params(
+        tile, overlap, max_ratio, max_ratio_holes, max_obstacles, min_tile,
+        tuple(complex(z) for z in fine), int(fine_vertices),
+    )  # fmt: skip
     forced = frozenset(split)
     floor = 1e-3 * 0.1 * r  # below this an automatic margin is a hairline, not a passage
     for _ in range(4):
@@ -503,6 +520,23 @@ class _Params:
     max_ratio_holes: float
     max_obstacles: int
     min_tile: float
+    fine: tuple[complex, ...] = ()
+    fine_vertices: int = 24
+
+
+def _too_many_corners(pieces: list[Polygon], core: Tile, p: _Params) -> bool:
+    """A piece holding one of ``p.fine`` (in the tile's core) has more than
+    ``p.fine_vertices`` vertices (:func:`decompose`'s ``fine``)."""
+    pts = [z for z in p.fine if core[0] <= z.real < core[2] and core[1] <= z.imag < core[3]]
+    if not pts:
+        return False
+    xy = shapely.points([z.real for z in pts], [z.imag for z in pts])
+    for piece in pieces:
+        if np.any(shapely.contains(piece, xy)):
+            n = len(piece.exterior.coords) - 1 + sum(len(h.coords) - 1 for h in piece.interiors)
+            if n > p.fine_vertices:
+                return True
+    return False
 
 
 def _decompose(ws: Workspace, p: _Params, margin: float, forced: frozenset[Tile]) -> Decomposition:
@@ -541,6 +575,8 @@ def _decompose(ws: Workspace, p: _Params, margin: float, forced: frozenset[Tile]
         # cell cut across it maps well; down to a side of 2 margin, where the cell's extent
         # (side + 2 band, band >= 2 margin) is about 1.5 passage widths (margin <= w / 4)
         floor = FORCED_MIN_MARGINS * margin if core in forced else min_tile
+        if not bad and p.fine and side / 2 >= min_tile - 1e-12:
+            bad = _too_many_corners(pieces, core, p)
         if (bad or core in forced) and side / 2 >= floor - 1e-12:
             cx, cy = (core[0] + core[2]) / 2, (core[1] + core[3]) / 2
             todo += [

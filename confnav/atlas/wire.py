@@ -23,9 +23,9 @@ from numpy.typing import ArrayLike
 from shapely.geometry import LineString, MultiLineString, Polygon
 from shapely.geometry.base import BaseGeometry
 
-from confnav.atlas.charts import Atlas
+from confnav.atlas.charts import Atlas, PartialAtlas
 from confnav.atlas.compose import AtlasNavigator, Overlap, overlaps
-from confnav.atlas.decompose import Cell, Decomposition, elongation
+from confnav.atlas.decompose import Cell, Decomposition, _cell_workspace, elongation
 from confnav.conformal.cmap import EXPANSION_MIN_POINTS
 from confnav.errors import NavigationError
 from confnav.geometry import Workspace
@@ -38,6 +38,8 @@ __all__ = [
     "ATLAS_SUFFIX",
     "AtlasController",
     "AtlasMap",
+    "NavMaps",
+    "ProgressiveController",
     "atlas_from_index",
     "atlas_map_of",
     "atlas_revision",
@@ -103,11 +105,13 @@ def _ring(coords: Any) -> list[tuple[float, float]]:
     return [(float(x), float(y)) for x, y in list(coords)[:-1]]
 
 
-def index_fields(atlas: Atlas) -> dict[str, Any]:
+def index_fields(atlas: Atlas | PartialAtlas) -> dict[str, Any]:
     """The JSON-able description of an atlas's cells and decomposition (no charts): the
-    fields of :class:`confnav.schemas.AtlasIndex` but the ids, revisions and stamp."""
+    fields of :class:`confnav.schemas.AtlasIndex` but the ids, revisions and stamp (of a
+    partial revision: no solve times, ``pending`` cells)."""
     dec = atlas.decomposition
-    times = {i: r.wall_time for i, r in enumerate(atlas.chart_records)}
+    full = atlas if isinstance(atlas, Atlas) else None
+    times = {i: r.wall_time for i, r in enumerate(full.chart_records)} if full else {}
     cells = []
     for c in dec.cells:
         cells.append(
@@ -118,6 +122,7 @@ def index_fields(atlas: Atlas) -> dict[str, Any]:
                 "cut": _lines(c.cut),
                 "tile": tuple(float(v) for v in c.tile),
                 "solve_time": float(times.get(c.index, 0.0)),
+                "pending": atlas.charts[c.index] is None,
             }
         )
     return {
@@ -125,7 +130,7 @@ def index_fields(atlas: Atlas) -> dict[str, Any]:
         "tol": float(atlas.tol),
         "cells": cells,
         "wall_time": float(atlas.wall_time),
-        "cpu_time": float(atlas.cpu_time),
+        "cpu_time": float(full.cpu_time) if full else 0.0,
         "decomposition": {
             "workspace": dec.workspace.to_dict(),
             "tile": dec.tile,
@@ -137,9 +142,11 @@ def index_fields(atlas: Atlas) -> dict[str, Any]:
     }
 
 
-def atlas_from_index(index: Any, charts: Sequence[Any]) -> Atlas:
+def atlas_from_index(index: Any, charts: Sequence[Any]) -> Atlas | PartialAtlas:
     """Rebuild an :class:`Atlas` from an ``AtlasIndex`` message and its charts' maps (cell
-    order).  Cell polygons and cut edges exactly as published (the plan is then the same)."""
+    order).  Cell polygons and cut edges exactly as published (the plan is then the same).
+    A partial revision (cells ``pending``, their charts ``None``) gives a
+    :class:`PartialAtlas` whose pending cells get their workspace from the cell polygon."""
     if len(charts) != len(index.cells):
         raise NavigationError(
             f"atlas {index.ws_id!r}: {len(charts)} charts for {len(index.cells)} cells"
@@ -154,10 +161,18 @@ def atlas_from_index(index: Any, charts: Sequence[Any]) -> Atlas:
     tol = CHART_MATCH * ws.diameter
     for c, m in zip(index.cells, charts, strict=True):
         poly = Polygon(c.outer, [list(o) for o in c.obstacles])
-        if poly.boundary.hausdorff_distance(m.workspace.polygon.boundary) > tol:
-            raise NavigationError(f"atlas {index.ws_id!r}: chart {c.index} is not its cell's map")
+        if m is None:  # pending: the cell as published, its chart to come
+            if not getattr(c, "pending", False):
+                raise NavigationError(f"atlas {index.ws_id!r}: chart {c.index} missing")
+            cell_ws = _cell_workspace(poly, ws.diameter)
+        else:
+            if poly.boundary.hausdorff_distance(m.workspace.polygon.boundary) > tol:
+                raise NavigationError(
+                    f"atlas {index.ws_id!r}: chart {c.index} is not its cell's map"
+                )
+            cell_ws = m.workspace
         cut: BaseGeometry = MultiLineString([list(line) for line in c.cut])
-        cells.append(Cell(c.index, poly, m.workspace, cut, tuple(c.tile), elongation(poly)))
+        cells.append(Cell(c.index, poly, cell_ws, cut, tuple(c.tile), elongation(poly)))
     dec = Decomposition(
         ws,
         tuple(cells),
@@ -168,18 +183,32 @@ def atlas_from_index(index: Any, charts: Sequence[Any]) -> Atlas:
         float(dec_d["max_ratio_holes"]),
         int(dec_d["max_obstacles"]),
     )
+    if any(m is None for m in charts):
+        return PartialAtlas(dec, tuple(charts), float(index.tol), 0, float(index.wall_time))
     return Atlas(dec, tuple(charts), float(index.tol), (), index.wall_time, 1)
+
+
+def is_pending(cell: Any) -> bool:
+    """Whether an ``AtlasCell`` of a partial revision has no chart yet."""
+    return bool(getattr(cell, "pending", False))
 
 
 def atlas_map_of(index: Any, maps: Mapping[str, Any]) -> AtlasMap:
     """The :class:`AtlasMap` of an ``AtlasIndex`` whose charts' navigation maps are in ``maps``
-    (by revision): what the controller installs and ``replay --check`` rebuilds."""
-    missing = [c.chart_ws_id for c in index.cells if c.chart_revision not in maps]
+    (by revision): what the controller installs and ``replay --check`` rebuilds. A partial
+    revision's pending cells have no chart (robots hold there until a later revision)."""
+    missing = [
+        c.chart_ws_id
+        for c in index.cells
+        if not is_pending(c) and c.chart_revision not in maps
+    ]
     if missing:
         raise NavigationError(f"atlas {index.ws_id!r}: charts {missing[:5]} missing")
-    charts = [maps[c.chart_revision] for c in index.cells]
+    charts = [None if is_pending(c) else maps[c.chart_revision] for c in index.cells]
     atlas = atlas_from_index(index, charts)  # the navigation maps serve as the charts
-    return AtlasMap(index.ws_id, index.revision, index.definition_hash, atlas, nav_maps=charts)
+    am = AtlasMap(index.ws_id, index.revision, index.definition_hash, atlas, nav_maps=charts)
+    am.chart_revisions = [c.chart_revision for c in index.cells]
+    return am
 
 
 def _expansions_built(m: Any) -> bool:
@@ -214,28 +243,47 @@ class AtlasMap:
     ws_id: str
     revision: str
     definition_hash: str
-    atlas: Atlas
+    atlas: Atlas | PartialAtlas
     nav_maps: list[Any] = field(default_factory=list)
     links: list[Overlap] = field(default_factory=list)
     is_atlas: bool = True
     per_robot: bool = True
+    #: the charts' revisions in cell order (from the index; "" unknown): a later revision of
+    #: a progressive atlas reuses the charts it shares with this one
+    chart_revisions: list[str] = field(default_factory=list)
     _warm_locks: list[threading.Lock] = field(default_factory=list, init=False, repr=False)
     _warm_failed: set[int] = field(default_factory=set, init=False, repr=False)
 
     def __post_init__(self) -> None:
         if not self.nav_maps:
-            self.nav_maps = [m.for_navigation() for m in self.atlas.charts]
+            self.nav_maps = [None if m is None else m.for_navigation() for m in self.atlas.charts]
         if not self.links:
             self.links = overlaps(self.atlas)
         # charts start cold (module docstring of :meth:`warm`): a robot's first command on a
         # chart never waits for that chart's local expansions
         self._warm_locks = [threading.Lock() for _ in self.nav_maps]
         for m in self.nav_maps:
-            _defer_expansions(m)
+            if m is not None:
+                _defer_expansions(m)
+
+    @property
+    def pending(self) -> list[int]:
+        """The cells whose charts a later revision brings (a partial revision; else [])."""
+        return [i for i, m in enumerate(self.nav_maps) if m is None]
 
     def is_warm(self, i: int) -> bool:
-        """Whether chart ``i`` evaluates through its local expansions (see :meth:`warm`)."""
-        return i in self._warm_failed or _expansions_built(self.nav_maps[i])
+        """Whether chart ``i`` evaluates through its local expansions (see :meth:`warm`; a
+        pending cell counts as warm: nothing to build)."""
+        m = self.nav_maps[i]
+        return m is None or i in self._warm_failed or _expansions_built(m)
+
+    def known_charts(self) -> dict[str, Any]:
+        """The installed charts' navigation maps by chart revision (pending cells left out)."""
+        return {
+            r: m
+            for r, m in zip(self.chart_revisions, self.nav_maps, strict=False)
+            if r and m is not None
+        }
 
     def cold_charts(self) -> list[int]:
         """The charts not warmed yet, in cell order."""
@@ -355,6 +403,9 @@ class AtlasController:
         #: (status reason, message) of the last call's stop when it is no bare ERROR: a
         #: robot in a cell cut off from the goal's is "unreachable", not outside the space
         self.stop_reason: tuple[str, str] | None = None
+        #: on a partial atlas: the cell whose chart the robot holds for (zero command,
+        #: status MOVING), None when it drives
+        self.waiting: int | None = None
 
     def prepare(self, z: complex) -> list[int]:
         """Build, ahead of the robot's first pose at ``z``, what its first command needs: the
@@ -376,16 +427,32 @@ class AtlasController:
         if not self.history or self.history[-1] != i:
             self.history.append(i)
 
+    def _uninstalled_here(self, pt: np.ndarray) -> int | None:
+        """A reachable cell holding ``pt`` whose chart is not installed (lowest rank), or
+        None: on a partial atlas the robot holds there until that chart comes."""
+        nav = self.nav
+        held = [
+            i
+            for i in nav.missing()
+            if np.isfinite(nav.plan.rank[i]) and nav.cells[i].depth(pt)[0] > 0
+        ]
+        return min(held, key=lambda i: nav.plan.rank[i]) if held else None
+
     def _one(self, z: complex) -> tuple[complex, int]:
         nav = self.nav
         pt = np.array([z])
         self.stop_reason = None
+        self.waiting = None
         if not np.isfinite(z):
             return 0j, int(Status.ERROR)
         a = self.active_chart
         if a is None or not nav.cells[a].depth(pt)[0] > 0:
             a = int(nav.initial_cells(pt)[0])  # first pose, or left the cell: re-enter
             if a < 0:
+                wait = self._uninstalled_here(pt)
+                if wait is not None:  # a partial atlas: hold until its chart is installed
+                    self.waiting = wait
+                    return 0j, int(Status.MOVING)
                 why = nav.cut_off(z)
                 if why:
                     self.stop_reason = ("unreachable", why)
@@ -395,7 +462,11 @@ class AtlasController:
         out = nav.controller(a)(pt)
         code = int(out.status[0])
         if code == Status.ARRIVED and nav.plan.next[a] >= 0:  # local goal: next cell
-            a = int(nav.plan.next[a])
+            nxt = int(nav.plan.next[a])
+            if not nav.installed(nxt):  # a partial atlas: hold at the local goal
+                self.waiting = nxt
+                return 0j, int(Status.MOVING)
+            a = nxt
             self._set(a)
             out = nav.controller(a)(pt)
             code = int(out.status[0])
@@ -409,3 +480,109 @@ class AtlasController:
         nan = np.full(zz.shape, np.nan)
         sat = np.zeros(zz.shape, dtype=bool)
         return ControlOutput(u=u, status=st, phi=nan, w=nan + 0j, saturated=sat)
+
+
+class NavMaps:
+    """The charts' navigation maps (``ConformalMap.for_navigation``) of the revisions of a
+    progressive atlas, each made once (keyed by the chart object) and shared by every robot."""
+
+    def __init__(self, *, defer_expansions: bool = False) -> None:
+        self._maps: dict[int, tuple[Any, Any]] = {}  # id(chart) -> (chart, its map)
+        #: new maps evaluate by the direct formula until :meth:`warm` builds their local
+        #: expansions (:meth:`AtlasMap.warm`): a first command does not wait for them
+        self.defer_expansions = defer_expansions
+
+    def of(self, atlas: Atlas | PartialAtlas) -> list[Any]:
+        """One navigation map per cell of ``atlas`` (None where its chart is missing)."""
+        out: list[Any] = []
+        for m in atlas.charts:
+            if m is None:
+                out.append(None)
+                continue
+            got = self._maps.get(id(m))
+            if got is None or got[0] is not m:
+                got = (m, m.for_navigation())
+                if self.defer_expansions:
+                    _defer_expansions(got[1])
+                self._maps[id(m)] = got
+            out.append(got[1])
+        return out
+
+    def warm(self) -> int:
+        """Build the local expansions of every map still on the direct formula (how many)."""
+        n = 0
+        for _, nm in list(self._maps.values()):
+            if not _expansions_built(nm):
+                _build_expansions(nm)
+                n += 1
+        return n
+
+
+def _cell_keys(atlas: Atlas | PartialAtlas) -> tuple[str, ...]:
+    return tuple(c.workspace.content_hash for c in atlas.decomposition.cells)
+
+
+class ProgressiveController:
+    """One robot's law on an atlas that is being solved (docs/SLAM.md "Progressive atlas"):
+    it drives on the newest revision offered (:meth:`offer`), a :class:`PartialAtlas` or a
+    complete :class:`Atlas`, through an :class:`AtlasController`.
+
+    A revision with the same cells whose charts extend the current ones (the next batch of
+    :func:`confnav.atlas.charts.solve_atlas`) is installed into the running law (its plan,
+    active chart and built laws stay); any other (a round that split cells, a refined atlas)
+    gets a new law, swapped in between two commands: the robot re-enters it at its pose,
+    without stopping. Before any chart holding the robot is installed the command is zero
+    with status MOVING (``waiting`` says for which cell). ``controller_kw``: those of
+    :class:`confnav.atlas.compose.AtlasNavigator` (``speed``, ``safety``, ``navfn``,
+    ``goal_tol``...)."""
+
+    def __init__(self, goal: complex, *, nav_maps: NavMaps | None = None, **controller_kw: Any):
+        self.goal = complex(goal)
+        self.controller_kw = controller_kw
+        self.v_max = float(controller_kw.get("speed", 1.0))
+        self.goal_tol = float(controller_kw.get("goal_tol", defaults.GOAL_TOL))
+        self.nav_maps = nav_maps if nav_maps is not None else NavMaps()
+        self.law: AtlasController | None = None
+        self.revision: Atlas | PartialAtlas | None = None
+        self._keys: tuple[str, ...] = ()
+        self._maps: list[Any] = []
+        #: how many revisions were offered; how many of them replaced the law (new cells
+        #: or refined charts) rather than extending it
+        self.offers = 0
+        self.swaps = 0
+
+    def offer(self, atlas: Atlas | PartialAtlas) -> None:
+        """Drive on ``atlas`` from the next command on (module docstring)."""
+        maps = self.nav_maps.of(atlas)
+        keys = _cell_keys(atlas)
+        self.offers += 1
+        law = self.law
+        if law is not None and keys == self._keys and all(
+            old is None or new is old for old, new in zip(self._maps, maps, strict=True)
+        ):
+            for i, (old, new) in enumerate(zip(self._maps, maps, strict=True)):
+                if old is None and new is not None:
+                    law.nav.install(i, new)
+        else:
+            nav = AtlasNavigator(atlas, self.goal, nav_maps=maps, **self.controller_kw)
+            self.law = AtlasController(nav)
+            self.swaps += law is not None
+        self.revision, self._keys, self._maps = atlas, keys, maps
+
+    @property
+    def waiting(self) -> int | None:
+        """The cell whose chart the robot holds for (None: it drives, or no revision yet)."""
+        return None if self.law is None else self.law.waiting
+
+    def __call__(self, z: ArrayLike) -> ControlOutput:
+        if self.law is None:  # no revision yet: hold
+            zz = np.atleast_1d(np.asarray(z, dtype=np.complex128))
+            nan = np.full(zz.shape, np.nan)
+            return ControlOutput(
+                u=np.zeros(zz.shape, dtype=np.complex128),
+                status=np.full(zz.shape, int(Status.MOVING), dtype=np.int8),
+                phi=nan,
+                w=nan + 0j,
+                saturated=np.zeros(zz.shape, dtype=bool),
+            )
+        return self.law(z)
