@@ -431,10 +431,13 @@ def bench_map(name: str, n_pairs: int, rungs: list[float | None], pool: Any,
         )
         row["ready_target_met"] = bool(row["ready_s"] is not None
                                        and row["ready_s"] <= READY_TARGET_S)  # fmt: skip
-        print(f"  progressive: first robot ready {row['ready_s']} s from the YAML "
-              f"({row['ready_after_import_s']} s after import; all robots "
-              f"{prog['ready_after_goal_s']}); first atlas {prog['first_atlas_s']} s "
-              f"({prog['charts']} charts); {prog['summary']}; load {loadavg()}", flush=True)
+        print(
+            f"  progressive: first robot ready {row['ready_s']} s from the YAML "
+            f"({row['ready_after_import_s']} s after import; all robots "
+            f"{prog['ready_after_goal_s']}); first atlas {prog['first_atlas_s']} s "
+            f"({prog['charts']} charts); {prog['summary']}; load {loadavg()}",
+            flush=True,
+        )
         row["load_end"] = loadavg()
         return row
     row["rungs"] = []
@@ -479,10 +482,18 @@ def main(argv: list[str] | None = None) -> int:
         help="1: the first rung (1e-3) only; 2: and 1e-6; 3: and the README's accuracy",
     )
     ap.add_argument("--quick", action="store_true", help=f"{', '.join(QUICK_MAPS)}, no final")
-    ap.add_argument("--rungwise", action="store_true",
-                    help="the former bench: each rung solved whole, then driven (--rungs)")
-    ap.add_argument("--refine", type=float, nargs="*", default=list(PROGRESSIVE_REFINE),
-                    help="the progressive atlas's refined revisions (default: 1e-6)")
+    ap.add_argument(
+        "--rungwise",
+        action="store_true",
+        help="the former bench: each rung solved whole, then driven (--rungs)",
+    )
+    ap.add_argument(
+        "--refine",
+        type=float,
+        nargs="*",
+        default=list(PROGRESSIVE_REFINE),
+        help="the progressive atlas's refined revisions (default: 1e-6)",
+    )
     ap.add_argument("--out", type=Path, default=RESULTS)
     args = ap.parse_args(argv)
     maps = args.maps or (QUICK_MAPS if args.quick else MAPS)

@@ -184,9 +184,7 @@ def route_order(
         except ConfnavError:
             continue
         pt = np.array([complex(start)])
-        held = [
-            i for i, c in enumerate(dec.cells) if c.depth(pt)[0] > 0 and np.isfinite(p.rank[i])
-        ]
+        held = [i for i, c in enumerate(dec.cells) if c.depth(pt)[0] > 0 and np.isfinite(p.rank[i])]
         if not held:
             continue
         held.sort(key=lambda i: (_corners(dec.cells[i].polygon), p.rank[i]))

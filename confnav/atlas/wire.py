@@ -198,9 +198,7 @@ def atlas_map_of(index: Any, maps: Mapping[str, Any]) -> AtlasMap:
     (by revision): what the controller installs and ``replay --check`` rebuilds. A partial
     revision's pending cells have no chart (robots hold there until a later revision)."""
     missing = [
-        c.chart_ws_id
-        for c in index.cells
-        if not is_pending(c) and c.chart_revision not in maps
+        c.chart_ws_id for c in index.cells if not is_pending(c) and c.chart_revision not in maps
     ]
     if missing:
         raise NavigationError(f"atlas {index.ws_id!r}: charts {missing[:5]} missing")
@@ -557,8 +555,10 @@ class ProgressiveController:
         keys = _cell_keys(atlas)
         self.offers += 1
         law = self.law
-        if law is not None and keys == self._keys and all(
-            old is None or new is old for old, new in zip(self._maps, maps, strict=True)
+        if (
+            law is not None
+            and keys == self._keys
+            and all(old is None or new is old for old, new in zip(self._maps, maps, strict=True))
         ):
             for i, (old, new) in enumerate(zip(self._maps, maps, strict=True)):
                 if old is None and new is not None:
