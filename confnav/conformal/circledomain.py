@@ -231,7 +231,9 @@ class _Boundary:
             self.du = sgn * (cm.df / cm.f).imag
         else:
             assert self.dS is not None and self.u is not None and self.du is not None
-            cm = (exterior_map if self.hole else interior_map)(self.S, self.dS, alpha, rtol)
+            cm = (exterior_map if self.hole else interior_map)(
+                self.S, self.dS, alpha, rtol, smooth=True
+            )
             sgn = -1.0 if self.hole else 1.0
             s_grid = 2 * np.pi * np.arange(self.S.size) / self.S.size
             grid = _mobius_grid(self.c, sgn, s_grid)[2]  # angle of each grid point when laid
@@ -276,7 +278,9 @@ class _Boundary:
         assert self.S is not None and self.dS is not None
         assert self.hole or omega == 1.0
         self._resolve(others)
-        cm = (exterior_map if self.hole else interior_map)(self.S, self.dS, alpha, rtol)
+        cm = (exterior_map if self.hole else interior_map)(
+            self.S, self.dS, alpha, rtol, smooth=True
+        )
         rm = RelaxedMap(cm, omega)
         self.S, self.dS = rm.on_curve()
         if _tail(self.S) > self.tail:
