@@ -88,6 +88,7 @@ from confnav.conformal.circledomain import (
     SMOOTH_PER_TOL,
     SMOOTH_TAIL,
     CircleDomainResult,
+    LevelCarry,
     koebe_iteration,
 )
 from confnav.conformal.circular_map import METHODS, nasser_iteration
@@ -143,6 +144,14 @@ ITERATION_SHARE = 0.1
 #: the corners, and GMRES on the second-kind operator gains about a digit per 4-5 iterations);
 #: the map is the same to the GMRES tolerance (tests/test_solver_warm_start.py).
 WARM_START = True
+#: Start each mesh level's sweeps after the first from the previous level's converged map
+#: (:class:`confnav.conformal.circledomain.LevelCarry`, issue 24 item 2: "start each mesh
+#: level from the previous level's circle domain and boundary correspondence"). The first
+#: sweep stays this level's own (its polygon GNK solves on its graded meshes carry the whole
+#: discretisation), so each level's fixed point, its level difference and the estimate are as
+#: before; only the sweeps that follow start near the circle domain. Measured: module
+#: docstring.
+LEVEL_CARRY = True
 
 
 class AccuracyWarning(UserWarning):
@@ -162,6 +171,7 @@ def _solve_level(
     plans: list[PanelPlan] | None = None,
     accel: str | None = None,
     method: str = "koebe",
+    carry: LevelCarry | None = None,
 ) -> tuple[CircleDomainResult, list[BoundaryMesh]]:
     if plans is None:
         plans = plan_boundaries(ws, nodes_per_side, tol)
@@ -180,17 +190,31 @@ def _solve_level(
         if progress is not None:
             progress(f"  {nodes_per_side} nodes/side: sweep {sweep}, change {change:.1e}")
 
-    iterate = nasser_iteration if method == "nasser" else koebe_iteration
-    res = iterate(
-        meshes,
-        holes,
-        ws.anchor,
-        tol=ITERATION_SHARE * tol,
-        progress=_p,
-        gmres_tol=gmres_rtol(tol),
-        first_guess=guess,
-        accel=accel,
-    )
+    res: CircleDomainResult
+    if method == "nasser":
+        res = nasser_iteration(
+            meshes,
+            holes,
+            ws.anchor,
+            tol=ITERATION_SHARE * tol,
+            progress=_p,
+            gmres_tol=gmres_rtol(tol),
+            first_guess=guess,
+            accel=accel,
+        )
+    else:
+        res = koebe_iteration(
+            meshes,
+            holes,
+            ws.anchor,
+            tol=ITERATION_SHARE * tol,
+            progress=_p,
+            gmres_tol=gmres_rtol(tol),
+            first_guess=guess,
+            accel=accel,
+            carry=carry if LEVEL_CARRY else None,
+            trace=LEVEL_CARRY,
+        )
     return res, meshes
 
 
@@ -405,7 +429,9 @@ def _refine_sides(
         if progress is not None:
             progress(f"refining {n_ref} sides where the boundary residual asks")
         try:
-            res, meshes = _solve_level(ws, ns, tol, progress, warm, plans, accel)
+            res, meshes = _solve_level(
+                ws, ns, tol, progress, warm, plans, accel, carry=base[0].carry
+            )
         except ConvergenceError as exc:
             log.warning("local refinement failed (%s)", exc)
             return None
@@ -627,6 +653,7 @@ class _Refinement:
         self.cmap: ConformalMap | None = None
         self.solved = 0  # levels solved (a skipped level does not count)
         self.warm: _Warm | None = None
+        self.carry: LevelCarry | None = None
         self.done = False
 
     def run(self, levels: list[int]) -> ConformalMap:
@@ -646,6 +673,7 @@ class _Refinement:
             return
         res, meshes = solved
         self.warm = (meshes, res.first_mu)  # the next level's first guesses
+        self.carry = res.carry  # and start of its later sweeps
         _check_resolvable(res, ns, self.prev_resolution, self.max_error)
         self.prev_resolution = res.resolution_error
         if self.prev is not None:
@@ -672,6 +700,7 @@ class _Refinement:
                 self.warm,
                 accel=self.accel,
                 method=self.method,
+                carry=self.carry,
             )
         except GapError as exc:
             if self.best is None:
