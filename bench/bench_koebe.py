@@ -248,9 +248,7 @@ def main(argv: list[str] | None = None) -> int:
     cases: list[float | str] = [*gaps, *a.scenes]
     for gap in cases:
         plain: ConformalMap | None = None
-        runs = [
-            (des, meth, acc) for des in a.designs for meth in a.methods for acc in a.accels
-        ]
+        runs = [(des, meth, acc) for des in a.designs for meth in a.methods for acc in a.accels]
         runs = [(des, meth, acc) for des, meth, acc in runs if meth == "koebe" or acc == "none"]
         for i, (des, meth, acc) in enumerate(runs):
             c0 = time.process_time()
