@@ -747,6 +747,9 @@ class _Schedule:
     #: Smallest contraction assumed: after a transplant (:func:`_transplant`), the one the
     #: previous levels observed (:attr:`LevelCarry.rho`).
     rho_floor: float = 0.0
+    #: The next sweep follows a transplant: the passive nodes moved with their curves while
+    #: keeping their parameters u, so its change is measured on their positions.
+    after_transplant: bool = False
 
     def before_sweep(self, it: _Iterate) -> _Before:
         """Prepare a sweep: an extrapolating one keeps its start (grids, D) to extrapolate
@@ -765,7 +768,9 @@ class _Schedule:
             self.relaxing
             or self.phase == "confirm"
             or (self.phase == "final" and not self.phase_history)
+            or self.after_transplant
         )
+        self.after_transplant = False
         return _Before.of(it, by_position)
 
     @property
@@ -1226,18 +1231,17 @@ def koebe_iteration(
             traced = _lay_tracers(it)
             if carry is not None and _transplant(it, carry):
                 # as from a warm start, the first sweep's change says nothing about the sweeps
-                # after the transplant, nor does the second's: it reads the transplant's
-                # boundary correspondence off (u moves by Phi's, ~0.3 measured). The
-                # contraction is measured from the third sweep on, and never taken below the
-                # one the cold first level observed over its whole run (carry.rho): the first
-                # changes after a transplant may shrink faster than the slowest mode does
+                # after the transplant. The next one's is measured on the passive nodes'
+                # positions (their parameters u have not followed the transplant: u moves by
+                # Phi's correspondence in that sweep, ~0.3 measured), the contraction from
+                # there on, never taken below the one the cold first level observed over its
+                # whole run (carry.rho): the first changes after a transplant may shrink
+                # faster than the slowest mode does
                 transplanted = True
                 sched.phase_history = []
                 sched.rho_floor = carry.rho
+                sched.after_transplant = True
                 continue
-        if transplanted and sweep == 2:
-            sched.phase_history = []
-            continue
         if sched.after_sweep(it, sweep, change):
             break
     else:
