@@ -83,6 +83,30 @@ must win on every measured case); ``"extrapolate"`` is the candidate. What neith
 sweeps of a well-separated one.
 Tried before and not used (full-state Anderson mixing, GMRES warm starts): below.
 
+Carried levels (issue 24; ``carry=`` / ``trace=``, :class:`LevelCarry`, used by
+:mod:`confnav.conformal.solver` between mesh levels). After a level's first sweep every
+boundary is a smooth analytic curve, and the sweeps after it compose a conformal map Phi of
+that domain onto the circle domain; they depend on the mesh only through the first sweep, so
+every level repeated them (the same history to two digits). A traced level lays tracers on
+each boundary's smooth grid after its first sweep (TRACER_FACTOR per grid point, parameters u
+like the passive nodes', so they follow every map, regrid, relaxation and extrapolation as
+those do) and records where they end: Phi on each curve as a trigonometric interpolant. The
+next level, after its own first sweep (its own polygon GNK solves: its discretisation),
+finds each point of its smooth grids on the recorded curves at a complex parameter (Newton's
+method on a Taylor expansion about a real one; the interpolant of an analytic periodic
+function is analytic in a strip, Henrici Vol. 3 sec. 13.3) and applies Phi there: the
+analytic continuation of one map across its curves, so the fixed point is unchanged, as for
+the accelerations; the anchor's image and the derivative there follow from the same boundary
+values (Cauchy formula). Points not found to TRANSPLANT_RTOL, a Taylor term above it or a
+tracked centre outside its image refuse the transplant (the level runs cold). Certification:
+the sweep after the transplant is measured on the passive nodes' positions, and the
+contraction is never taken below the one observed by the cold first level over its whole run
+(``LevelCarry.rho``). The tracers' interpolation error is carried into every later level
+instead of being recomputed there, so a traced level's grids resolve their curves
+CARRY_TAIL finer (measured on a 24.7-degree triangle at tol 1e-7: T(anchor) 5e-10 with the
+usual grids, 7.7e-12 with them; 1.2e-12 cold). Measured: :mod:`confnav.conformal.solver`
+module docstring and bench/README.md ("Where the time goes").
+
 References
 ----------
 .. [1] M. M. S. Nasser, "Fast computation of the circular map", Comput. Methods Funct. Theory
@@ -1178,16 +1202,16 @@ def koebe_iteration(
         The previous mesh level's converged map (its result's ``carry``): applied after the
         first sweep (:func:`_transplant`).
     trace
-        Record this level's map for the next level (the result's ``carry``; with plain sweeps,
-        ``accel="none"``, and no ``start`` only). Its grids then resolve their curves
-        :data:`CARRY_TAIL` finer, so a traced run is not the untraced one bit for bit.
+        Record this level's map for the next level (the result's ``carry``; not with
+        ``start``). Its grids then resolve their curves :data:`CARRY_TAIL` finer, so a traced
+        run is not the untraced one bit for bit.
     """
     accel = KOEBE_ACCEL if accel is None else accel
     if accel not in KOEBE_ACCELS:
         raise ValueError(f"accel must be one of {KOEBE_ACCELS}, got {accel!r}")
     t0 = time.perf_counter()
     M = len(meshes) - 1
-    trace = trace and accel == "none" and start is None and M > 0
+    trace = trace and start is None and M > 0
     # traced (its map becomes the next level's start): the grids resolve their curves
     # CARRY_TAIL finer, since the tracers' interpolation error is carried into every later
     # level instead of being recomputed there (measured: a triangle at tol 1e-7, T(anchor)

@@ -36,9 +36,26 @@ level's plus the change this causes (triangle inequality, no order assumed). Mea
 two squares 0.01 apart to 1e-8 take four level solves instead of five (8 sides at 120 nodes
 after 36, 54, 80; residual 1.17e-9 as with the full 180-node level; 114 s CPU against 141 s in
 one process, the same map to 4e-14 in asymmetry). On 10 mixed obstacles the base estimate
-(8.0e-9) left too little of 1e-8 for the change (2.4e-9), hence :data:`LOCAL_HEADROOM`. The
-sweeps themselves (61 per level at a contraction of 0.79 there) are unchanged: a faster
-iteration for near-touching circles (one GNK system over all boundaries per step) was not built.
+(8.0e-9) left too little of 1e-8 for the change (2.4e-9), hence :data:`LOCAL_HEADROOM`.
+
+Carried levels (issue 24 items 1-2, :data:`LEVEL_CARRY`): a level's sweeps after its first
+start from the previous level's converged map (:class:`~confnav.conformal.circledomain.
+LevelCarry`). Where the time went before (``bench/bench_core.py --profile``,
+``bench/results/core_profile.json``; bench/README.md "Where the time goes"): every level
+repeated the same sweeps from scratch -- the history of the changes was the same to two
+digits at every level (default shrunk by 0.2 m: 15 sweeps at each of 5 level solves; two
+squares 0.01 apart: 61 at each of 4), as only the first sweep's polygon GNK solves depend on
+the mesh -- and the outer boundary's 2048-point smooth grid built a dense GNK matrix in every
+sweep for ~3 GMRES iterations (7.5 of 21 s CPU on the shrunk workspace; now FMM products,
+:data:`confnav.conformal.gnk.SMOOTH_DENSE_MAX_NODES`). Now each level's first sweep is its
+own (its discretisation, hence its fixed point, level difference and estimate are as
+before), and the rest start within the level difference of the circle domain. Measured side
+by side in one run (``bench/bench_koebe.py --designs before carry``,
+``bench/results/koebe_designs.json`` at 3591380, load 4.9-8.5, CPU seconds): two squares 0.01
+apart to 1e-8, sweeps per level 61/61/61/61 -> 61/7/3/3, 109.7 -> 34.6 s, asymmetry 2.5e-12
+-> 3.2e-12 under the same estimate 1.2e-9, the two maps 4.0e-11 apart; default shrunk by
+0.2 m, 15/15/15/15/15 -> 15/7/4/3/3, 19.1 -> 9.4 s, estimates 8.1e-9 and 7.6e-9, maps 7.6e-10
+apart. The first (cold) level's sweeps are now most of what is left there.
 
 Designs of the iteration measured side by side (issue 24 item 1; CPU seconds of one run each,
 the machine shared, so compare within a file): the plain sweeps against over-relaxed
@@ -47,7 +64,8 @@ the machine shared, so compare within a file): the plain sweeps against over-rel
 / 34 sweeps per level, 123.5 / 96.4 / 83.0 s, all honest; where the plain contraction is fast
 nothing triggers. Newton on the whole circle domain after 6 sweeps (``method="nasser"``,
 ``bench/results/koebe_methods.json``): slower on every case measured and never certified (see
-``method`` below). So the plain sweeps stay the default.
+``method`` below). So the plain sweeps stay the default; the carried levels (above) remove
+the sweeps of every level after the first instead.
 
 Warm re-solve (issue 24 item 3, ``initial=``, :func:`_warm_solve`): the sweeps start from the
 previous map carried over to the changed workspace (:mod:`confnav.conformal.warm`: the
