@@ -93,9 +93,10 @@ DENSE_MAX_NODES = 3200
 #: parameter): GMRES needs ~3 iterations there (a second-kind operator on an analytic curve),
 #: so a solve costs ~6 products, and building the n x n matrix (~10 passes over n^2 complex
 #: entries) costs more than the products it serves. Profiled on the default workspace shrunk
-#: by 0.2 m (bench/README.md, "Where the time goes"): the outer boundary's 2048-point grid
-#: took 60 dense builds of ~0.12 s for 2.9 GMRES iterations each (7.5 s of 21 s CPU); an FMM
-#: product there takes ~10 ms. Below ~1400 nodes the matrix-free product is a direct sum
+#: by 0.2 m (bench/README.md, "Where the time goes"; bench/results/core_profile.json): the
+#: assembly of the GNK matrices, mostly the outer boundary's 2048-point grid rebuilt in every
+#: sweep, took 7.8 of 21.8 s CPU for 225-270 GMRES iterations per level over 60 solves.
+#: Below ~1400 nodes the matrix-free product is a direct sum
 #: (:func:`confnav.conformal.cauchy.cauchy_self`), which rebuilds the kernel per product: the
 #: dense build wins there, hence the limit.
 SMOOTH_DENSE_MAX_NODES = 1024
