@@ -1097,6 +1097,175 @@ def target_rows(group: str) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]
     return rows, tg
 
 
+# --------------------------------------------------------------------------------------------
+# 9. where the time goes (``--profile``): per mesh level, by solver stage
+# --------------------------------------------------------------------------------------------
+PROFILE_RESULTS = RESULTS.parent / "core_profile.json"
+PROFILE_CASES = ("shrunk", "mixed50", "default", "gap001")
+#: Solver designs profiled side by side (module switches, as bench/bench_koebe.py DESIGNS).
+PROFILE_DESIGNS = ("before", "carry")
+
+
+def _profile_ws(case: str) -> tuple[Any, float]:
+    from confnav.maps.footprint import inflate
+    from confnav.scenes.workspaces import mirror_squares
+
+    if case == "shrunk":
+        return inflate(default_workspace(), 0.2), 1e-8
+    if case == "mixed50":
+        return mixed_obstacles(50, seed=0), 1e-8
+    if case == "default":
+        return default_workspace(), 1e-10
+    if case == "gap001":
+        return mirror_squares(0.01), 1e-8
+    raise ValueError(f"unknown profile case {case!r}")
+
+
+def profile_case(case: str, design: str) -> dict[str, Any]:
+    """One cold solve with CPU timers (``process_time``) around the solver's stages, per mesh
+    level: GNK matrix assembly (``gnk._Operator``: the dense matrix, or the FMM path's row
+    sums), the rest of the GNK solves (GMRES products, right-hand side, h), map evaluations
+    on the other boundaries (``circledomain._apply``), the carried level's transplant, the
+    certificate (``solver._make_map``: boundary residual, estimate) and meshing
+    (``meshing.plan_boundaries``); nodes, sweeps, GNK solves and GMRES iterations."""
+    from bench_koebe import use_design  # script mode: bench/ is on sys.path
+
+    import confnav.conformal.circledomain as cd
+    import confnav.conformal.diskmap as dm
+    import confnav.conformal.gnk as gnk
+    import confnav.conformal.solver as so
+
+    use_design(design)
+    ws, tol = _profile_ws(case)
+    levels: list[dict[str, Any]] = []
+    cur: dict[str, Any] = {"level": "setup"}
+    levels.append(cur)
+    patched: list[tuple[Any, str, Any]] = []
+
+    def timed(module: Any, name: str, key: str, count: str | None = None) -> None:
+        real = getattr(module, name)
+
+        def wrapper(*args: Any, **kw: Any) -> Any:
+            c0 = time.process_time()
+            try:
+                out = real(*args, **kw)
+            finally:
+                levels[-1][key] = levels[-1].get(key, 0.0) + time.process_time() - c0
+            if count is not None:
+                levels[-1][count] = levels[-1].get(count, 0) + 1
+                levels[-1]["gmres_iterations"] = levels[-1].get("gmres_iterations", 0) + int(
+                    getattr(out, "iterations", 0)
+                )
+                n = int(np.asarray(args[0]).size)
+                levels[-1]["gnk_nodes_max"] = max(levels[-1].get("gnk_nodes_max", 0), n)
+            return out
+
+        patched.append((module, name, real))
+        setattr(module, name, wrapper)
+
+    real_init = gnk._Operator.__init__
+
+    def init(self: Any, *args: Any, **kw: Any) -> None:
+        c0 = time.process_time()
+        real_init(self, *args, **kw)
+        levels[-1]["gnk_assembly_s"] = (
+            levels[-1].get("gnk_assembly_s", 0.0) + time.process_time() - c0
+        )
+        key = "gnk_dense" if self.dense else "gnk_matrix_free"
+        levels[-1][key] = levels[-1].get(key, 0) + 1
+
+    gnk._Operator.__init__ = init  # type: ignore[method-assign]
+    timed(dm, "solve_gnk", "gnk_total_s", count="gnk_solves")
+    timed(cd, "_apply", "map_evaluation_s")
+    timed(cd, "_transplant", "transplant_s")
+    timed(so, "_make_map", "certificate_s")
+    timed(so, "plan_boundaries", "meshing_s")
+
+    def progress(msg: str) -> None:
+        if msg.startswith("solving with") or msg.startswith("refining"):
+            label = msg.split(" at ")[0].replace("solving with ", "")
+            levels.append({"level": label, "cpu_start": time.process_time()})
+        elif "nodes/side: sweep" in msg:
+            levels[-1]["sweeps"] = int(msg.split("sweep ")[1].split(",")[0])
+
+    load = load1()
+    c0, t0 = time.process_time(), time.perf_counter()
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", AccuracyWarning)
+            m = confnav.solve(ws, tol=tol, progress=progress)
+    finally:
+        gnk._Operator.__init__ = real_init  # type: ignore[method-assign]
+        for module, name, real in patched:
+            setattr(module, name, real)
+    cpu = time.process_time() - c0
+    ends = [lv.get("cpu_start", c0) for lv in levels[1:]] + [c0 + cpu]
+    for lv, end in zip(levels, ends, strict=True):
+        start = lv.pop("cpu_start", c0)
+        lv["cpu_s"] = end - start
+        if "gnk_total_s" in lv:
+            lv["gnk_solve_s"] = lv["gnk_total_s"] - lv.get("gnk_assembly_s", 0.0)
+    d = m.diagnostics
+    return {
+        "case": case,
+        "design": design,
+        "tol": tol,
+        "cpu_s": cpu,
+        "wall_s": time.perf_counter() - t0,
+        "load1": load,
+        "load1_end": load1(),
+        "tol_met": bool(d.tol_met),
+        "error_estimate": float(d.error_estimate),
+        "boundary_residual": float(d.boundary_residual),
+        "nodes_final": [int(x) for x in d.nodes],
+        "levels": levels,
+    }
+
+
+def run_profile(out_path: Path, cases: list[str], designs: list[str], append: bool) -> int:
+    """``--profile``: :func:`profile_case` for each case and design, one process."""
+    info, code = machine_info(), code_info()
+    print(f"confnav solver profile, commit {code['commit'][:12]}, load {load1():.2f}", flush=True)
+    rows: list[dict[str, Any]] = []
+    if append and out_path.exists():
+        rows = json.loads(out_path.read_text())["rows"]
+    keys = ("sweeps", "gnk_solves", "gmres_iterations", "gnk_dense", "gnk_matrix_free")
+    secs = ("gnk_assembly_s", "gnk_solve_s", "map_evaluation_s", "transplant_s", "certificate_s")
+    for case in cases:
+        for design in designs:
+            r = profile_case(case, design)
+            rows = [x for x in rows if (x["case"], x["design"]) != (case, design)] + [r]
+            print(
+                f"{case} / {design}: CPU {r['cpu_s']:.2f} s (wall {r['wall_s']:.1f}, load "
+                f"{r['load1']:.1f}), tol_met {r['tol_met']}, estimate {r['error_estimate']:.1e}",
+                flush=True,
+            )
+            for lv in r["levels"]:
+                print(
+                    f"  {lv['level']:<22} cpu {lv['cpu_s']:6.2f}  "
+                    + "  ".join(f"{k} {lv.get(k, 0)}" for k in keys)
+                    + "  "
+                    + "  ".join(f"{k[:-2]} {lv.get(k, 0.0):.2f}" for k in secs),
+                    flush=True,
+                )
+            info["loadavg_end"] = list(os.getloadavg())
+            out_path.write_text(
+                json.dumps(
+                    {
+                        "note": "CPU seconds (process_time) per mesh level and solver stage; "
+                        "gnk_total = assembly + solve; the machine is shared",
+                        "machine": info,
+                        "code": code,
+                        "rows": rows,
+                    },
+                    indent=1,
+                )
+                + "\n"
+            )
+    print(f"wrote {out_path}")
+    return 0
+
+
 def run_targets(out_path: Path, groups: list[str], append: bool) -> int:
     """The issue-24 target rows at HEAD, one group after the other in this process (CPU
     seconds are what a row costs whatever the load; wall and load beside them)."""
@@ -1160,7 +1329,16 @@ def main(argv: list[str] | None = None) -> int:
         "--targets", nargs="*", choices=TARGET_ROWS, help="only the issue-24 target rows (groups)"
     )
     ap.add_argument("--append", action="store_true", help="--targets: keep the other groups")
+    ap.add_argument(
+        "--profile", nargs="*", choices=PROFILE_CASES, help="where the time goes, per level"
+    )
+    ap.add_argument(
+        "--designs", nargs="+", default=list(PROFILE_DESIGNS), help="--profile: solver designs"
+    )
     args = ap.parse_args(argv)
+    if args.profile is not None:
+        cases = list(args.profile) or ["shrunk", "mixed50"]
+        return run_profile(args.out or PROFILE_RESULTS, cases, args.designs, args.append)
     if args.targets is not None:
         groups = list(args.targets) or list(TARGET_ROWS)
         return run_targets(args.out or TARGETS_RESULTS, groups, args.append)

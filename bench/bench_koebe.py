@@ -44,6 +44,29 @@ from confnav.scenes.workspaces import (
     mixed_obstacles,
 )
 
+#: Solver designs (issue 24, measured side by side with ``--designs``): module settings.
+#: ``before``: dense GNK matrices on every smooth grid up to gnk.DENSE_MAX_NODES and every mesh
+#: level's sweeps started from the polygon (the solver up to a1fd614); ``fmm_smooth``: smooth
+#: grids above gnk.SMOOTH_DENSE_MAX_NODES through FMM products; ``carry``: that and each
+#: level's sweeps after the first started from the previous level's map (the default).
+DESIGNS: dict[str, dict[str, bool]] = {
+    "before": {"smooth_fmm": False, "carry": False},
+    "fmm_smooth": {"smooth_fmm": True, "carry": False},
+    "carry": {"smooth_fmm": True, "carry": True},
+}
+
+
+def use_design(name: str) -> None:
+    """Set the module switches of a design (:data:`DESIGNS`)."""
+    from confnav.conformal import solver
+
+    d = DESIGNS[name]
+    gnk.SMOOTH_DENSE_MAX_NODES = _SMOOTH_DEFAULT if d["smooth_fmm"] else gnk.DENSE_MAX_NODES
+    solver.LEVEL_CARRY = d["carry"]
+
+
+_SMOOTH_DEFAULT = gnk.SMOOTH_DENSE_MAX_NODES
+
 
 def asymmetry(m: ConformalMap) -> float:
     return mirror_asymmetry(m.centers, m.radii)
@@ -87,7 +110,9 @@ def run_one(
     accel: str,
     method: str = "koebe",
     nodes_per_side: int | None = None,
+    design: str = "carry",
 ) -> tuple[dict[str, Any], ConformalMap]:
+    use_design(design)
     levels: list[list[Any]] = []  # [label, sweeps]
 
     def progress(msg: str) -> None:
@@ -127,6 +152,7 @@ def run_one(
         "tol": tol,
         "accel": accel,
         "method": method,
+        "design": design,
         "nodes_per_side": nodes_per_side,
         "cpu_s": cpu,
         "wall_s": wall,
@@ -153,7 +179,8 @@ def _line(r: dict[str, Any]) -> str:
     sw = " ".join(str(x["sweeps"]) for x in r["levels"])
     case = f"gap {r['gap']:g}" if isinstance(r["gap"], float) else str(r["gap"])
     return (
-        f"  {case:<9} {r.get('method', 'koebe'):<6} {r['accel']:<11} sweeps/level [{sw}] "
+        f"  {case:<9} {r.get('design', ''):<10} {r.get('method', 'koebe'):<6} {r['accel']:<11} "
+        f"sweeps/level [{sw}] "
         f"total {r['sweeps_total']:4d}"
         f"  GMRES {r['gmres_iterations']:5d}  FMM {r['fmm_sums']:5d}  CPU {r['cpu_s']:6.1f} s "
         f"(wall {r['wall_s']:6.1f}, load {r['load1']:.1f})  est {r['error_estimate']:.1e} "
@@ -193,6 +220,13 @@ def main(argv: list[str] | None = None) -> int:
         default=None,
         help="cap: a fixed mesh (three levels up to this) instead of refining to tol",
     )
+    ap.add_argument(
+        "--designs",
+        nargs="+",
+        default=["carry"],
+        choices=list(DESIGNS),
+        help="solver designs side by side (DESIGNS); the first is the reference for distances",
+    )
     ap.add_argument("--append", action="store_true", help="add the rows to those already in --out")
     ap.add_argument("--quick", action="store_true", help="gap 0.1 only")
     ap.add_argument(
@@ -214,18 +248,19 @@ def main(argv: list[str] | None = None) -> int:
     cases: list[float | str] = [*gaps, *a.scenes]
     for gap in cases:
         plain: ConformalMap | None = None
-        runs = [(meth, acc) for meth in a.methods for acc in a.accels]
-        runs = [(meth, acc) for meth, acc in runs if meth == "koebe" or acc == "none"]
-        for meth, acc in runs:
+        runs = [(des, meth, acc) for des in a.designs for meth in a.methods for acc in a.accels]
+        runs = [(des, meth, acc) for des, meth, acc in runs if meth == "koebe" or acc == "none"]
+        for i, (des, meth, acc) in enumerate(runs):
             c0 = time.process_time()
             try:
-                r, m = run_one(gap, a.tol, acc, meth, a.nodes_per_side)
+                r, m = run_one(gap, a.tol, acc, meth, a.nodes_per_side, des)
             except confnav.ConfnavError as exc:  # a refused map is a result too
                 r = {
                     "gap": gap,
                     "tol": a.tol,
                     "accel": acc,
                     "method": meth,
+                    "design": des,
                     "cpu_s": time.process_time() - c0,
                     "load1": os.getloadavg()[0],
                     "error": f"{type(exc).__name__}: {exc}",
@@ -233,7 +268,7 @@ def main(argv: list[str] | None = None) -> int:
                 rows.append(r)
                 print(f"  {gap} {meth} {acc}: {r['error']} (CPU {r['cpu_s']:.1f} s)", flush=True)
                 continue
-            if acc == "none" and meth == "koebe":
+            if i == 0:  # the reference run of the case (first design, method and accel)
                 plain = m
             elif plain is not None:
                 r["distance_from_plain"] = float(

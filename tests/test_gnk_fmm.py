@@ -70,3 +70,27 @@ def test_fmm_and_dense_paths_agree(monkeypatch: pytest.MonkeyPatch) -> None:
     fmm = interior_map(eta, deta, 0.3 + 0.2j)
     assert abs(fmm.scale - dense.scale) <= 1e-13 * dense.scale
     assert np.max(np.abs(fmm.f - dense.f)) <= 1e-12
+
+
+def test_smooth_grid_takes_the_matrix_free_path_and_agrees(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A smooth grid above SMOOTH_DENSE_MAX_NODES (but below DENSE_MAX_NODES) is solved with
+    FMM products, not a dense matrix, and gives the dense map: the same operator."""
+    monkeypatch.setattr(gnk, "SMOOTH_DENSE_MAX_NODES", 512)
+    monkeypatch.setattr(cauchy, "FMM_THRESHOLD", 1000)
+    _, eta, deta = _ellipse_cw()
+    eta, deta = eta[::-1], -deta[::-1]
+    built: list[bool] = []
+    real_init = gnk._Operator.__init__
+
+    def spy(self: gnk._Operator, *args: object, **kwargs: object) -> None:
+        real_init(self, *args, **kwargs)  # type: ignore[arg-type]
+        built.append(self.dense)
+
+    monkeypatch.setattr(gnk._Operator, "__init__", spy)
+    dense = interior_map(eta, deta, 0.3 + 0.2j)
+    smooth = interior_map(eta, deta, 0.3 + 0.2j, smooth=True)
+    assert built == [True, False]
+    assert abs(smooth.scale - dense.scale) <= 1e-13 * dense.scale
+    assert np.max(np.abs(smooth.f - dense.f)) <= 1e-12

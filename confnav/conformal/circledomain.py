@@ -83,6 +83,30 @@ must win on every measured case); ``"extrapolate"`` is the candidate. What neith
 sweeps of a well-separated one.
 Tried before and not used (full-state Anderson mixing, GMRES warm starts): below.
 
+Carried levels (issue 24; ``carry=`` / ``trace=``, :class:`LevelCarry`, used by
+:mod:`confnav.conformal.solver` between mesh levels). After a level's first sweep every
+boundary is a smooth analytic curve, and the sweeps after it compose a conformal map Phi of
+that domain onto the circle domain; they depend on the mesh only through the first sweep, so
+every level repeated them (the same history to two digits). A traced level lays tracers on
+each boundary's smooth grid after its first sweep (TRACER_FACTOR per grid point, parameters u
+like the passive nodes', so they follow every map, regrid, relaxation and extrapolation as
+those do) and records where they end: Phi on each curve as a trigonometric interpolant. The
+next level, after its own first sweep (its own polygon GNK solves: its discretisation),
+finds each point of its smooth grids on the recorded curves at a complex parameter (Newton's
+method on a Taylor expansion about a real one; the interpolant of an analytic periodic
+function is analytic in a strip, Henrici Vol. 3 sec. 13.3) and applies Phi there: the
+analytic continuation of one map across its curves, so the fixed point is unchanged, as for
+the accelerations; the anchor's image and the derivative there follow from the same boundary
+values (Cauchy formula). Points not found to TRANSPLANT_RTOL, a Taylor term above it or a
+tracked centre outside its image refuse the transplant (the level runs cold). Certification:
+the sweep after the transplant is measured on the passive nodes' positions, and the
+contraction is never taken below the one observed by the cold first level over its whole run
+(``LevelCarry.rho``). The tracers' interpolation error is carried into every later level
+instead of being recomputed there, so a traced level's grids resolve their curves
+CARRY_TAIL finer (measured on a 24.7-degree triangle at tol 1e-7: T(anchor) 5e-10 with the
+usual grids, 7.7e-12 with them; 1.2e-12 cold). Measured: :mod:`confnav.conformal.solver`
+module docstring and bench/README.md ("Where the time goes").
+
 References
 ----------
 .. [1] M. M. S. Nasser, "Fast computation of the circular map", Comput. Methods Funct. Theory
@@ -98,6 +122,7 @@ import copy
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from math import factorial
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -111,7 +136,7 @@ from confnav.conformal.acceleration import (
 )
 from confnav.conformal.boundary import BoundaryMesh
 from confnav.conformal.diskmap import CurveMap, exterior_map, interior_map
-from confnav.conformal.gnk import GMRES_RTOL
+from confnav.conformal.gnk import GMRES_RTOL, spectral_derivative_complex
 from confnav.conformal.triginterp import trig_eval, upsample
 from confnav.errors import ConvergenceError, CrowdingError, UnresolvedCrowdingError
 from confnav.types import CArray as ComplexArray
@@ -176,6 +201,10 @@ class CircleDomainResult:
     #: Extrapolations of the sweep map (``accel="extrapolate"``) and how many were rejected.
     extrapolations: int = 0
     rejected_extrapolations: int = 0
+    #: The converged map of the sweeps after the first (the next level's start), if traced.
+    carry: LevelCarry | None = None
+    #: This level's sweeps started from the previous level's map (:func:`_transplant`).
+    transplanted: bool = False
 
 
 def _winding(curve: ComplexArray, z: complex) -> float:
@@ -209,6 +238,9 @@ class _Boundary:
     c: complex = 0j  # Moebius grading of the smooth grid (0: uniform in angle)
     tail: float = SMOOTH_TAIL  # Fourier tail (relative) the smooth grid must reach
     capped_tail: float = 0.0  # Fourier tail of the grid while it is at SMOOTH_MAX (0: not)
+    #: Tracers (:class:`LevelCarry`): parameters u, like the passive nodes', of the points of
+    #: the smooth grid as the first sweep left it; None: not traced.
+    tu: FloatArray | None = None
 
     def own_map(
         self, alpha: complex, others: ComplexArray, rtol: float, x0: FloatArray | None = None
@@ -231,14 +263,22 @@ class _Boundary:
             self.du = sgn * (cm.df / cm.f).imag
         else:
             assert self.dS is not None and self.u is not None and self.du is not None
-            cm = (exterior_map if self.hole else interior_map)(self.S, self.dS, alpha, rtol)
+            cm = (exterior_map if self.hole else interior_map)(
+                self.S, self.dS, alpha, rtol, smooth=True
+            )
             sgn = -1.0 if self.hole else 1.0
             s_grid = 2 * np.pi * np.arange(self.S.size) / self.S.size
             grid = _mobius_grid(self.c, sgn, s_grid)[2]  # angle of each grid point when laid
             new = sgn * np.unwrap(np.angle(cm.f))
             new = new - 2 * np.pi * np.round((new[0] - grid[0]) / (2 * np.pi))
             s_u, ds_du = _mobius_param(self.c, sgn, self.u)
-            delta, ddelta = trig_eval(new - grid, s_u, derivative=True).real
+            if self.tu is None:
+                delta, ddelta = trig_eval(new - grid, s_u, derivative=True).real
+            else:  # the tracers move with the correspondence as the passive nodes do
+                s_t = _mobius_param(self.c, sgn, self.tu)[0]
+                both = trig_eval(new - grid, np.concatenate([s_u, s_t]), derivative=True).real
+                delta, ddelta = both[0, : s_u.size], both[1, : s_u.size]
+                self.tu = self.tu + both[0, s_u.size :]
             self.du = self.du * (1.0 + ddelta * ds_du)
             self.u = self.u + delta
             if _tail(self.S) > self.tail:
@@ -276,7 +316,9 @@ class _Boundary:
         assert self.S is not None and self.dS is not None
         assert self.hole or omega == 1.0
         self._resolve(others)
-        cm = (exterior_map if self.hole else interior_map)(self.S, self.dS, alpha, rtol)
+        cm = (exterior_map if self.hole else interior_map)(
+            self.S, self.dS, alpha, rtol, smooth=True
+        )
         rm = RelaxedMap(cm, omega)
         self.S, self.dS = rm.on_curve()
         if _tail(self.S) > self.tail:
@@ -726,6 +768,12 @@ class _Schedule:
     snapshot: tuple[list[_Boundary], ComplexArray, complex] | None = None
     remaining: float = float("inf")
     converged: bool = False
+    #: Smallest contraction assumed: after a transplant (:func:`_transplant`), the one the
+    #: previous levels observed (:attr:`LevelCarry.rho`).
+    rho_floor: float = 0.0
+    #: The next sweep follows a transplant: the passive nodes moved with their curves while
+    #: keeping their parameters u, so its change is measured on their positions.
+    after_transplant: bool = False
 
     def before_sweep(self, it: _Iterate) -> _Before:
         """Prepare a sweep: an extrapolating one keeps its start (grids, D) to extrapolate
@@ -744,7 +792,9 @@ class _Schedule:
             self.relaxing
             or self.phase == "confirm"
             or (self.phase == "final" and not self.phase_history)
+            or self.after_transplant
         )
+        self.after_transplant = False
         return _Before.of(it, by_position)
 
     @property
@@ -850,7 +900,7 @@ class _Schedule:
         """Stop when the extrapolated remaining error is below ``tol``, or when the change has
         not decreased for :data:`STALL_SWEEPS` sweeps (rounding floor or a true stall)."""
         h = self.phase_history
-        self.remaining, self.converged = _remaining_error(h)
+        self.remaining, self.converged = _remaining_error(h, self.rho_floor)
         if self.converged and self.remaining <= self.tol:
             return True
         if len(h) > STALL_SWEEPS and change >= min(h[-STALL_SWEEPS - 1 : -1]):
@@ -931,6 +981,196 @@ def _circle_domain(
     )
 
 
+#: Taylor order of the transplant's evaluation of a trigonometric interpolant off the real
+#: parameter axis (:func:`_transplant`), and its Newton steps per expansion point.
+TRANSPLANT_ORDER = 8
+TRANSPLANT_NEWTON = 4
+#: A transplant is used only if every point is found on the previous level's curve to this
+#: (relative to the curve's size) and the Taylor term dropped is below it.
+TRANSPLANT_RTOL = 1e-14
+#: The transplant's Cauchy integral for the anchor's image needs the anchor this many local
+#: grid spacings from every curve: ln(1/eps)/pi with eps = 1e-16 (the rule of
+#: :func:`_local_grid_size`: the trapezoid rule's error decays like exp(-pi d/h)).
+ANCHOR_SPACINGS = float(np.log(1e16) / np.pi)
+#: Tracers per smooth-grid point (the interpolant of Phi on a curve needs more modes than the
+#: curve: Phi's singularities lie nearer than the curve's).
+TRACER_FACTOR = 2
+#: A traced level's smooth grids resolve their curves to this fraction of the usual tail
+#: (``SMOOTH_PER_TOL * tol``), see :func:`koebe_iteration`.
+CARRY_TAIL = 1e-2
+
+
+@dataclass
+class LevelCarry:
+    """A converged level's sweeps after its first as boundary data: the next mesh level's
+    start (cross-level warm start, :func:`_transplant`).
+
+    The sweeps after the first map the domain the first sweep left (each boundary a smooth
+    analytic curve) conformally onto the circle domain; this map Phi is recorded on each
+    boundary as the trigonometric interpolant of tracer points: ``curves[j]`` are the first
+    sweep's smooth grid of boundary j (uniform in its parameter s, Moebius grading
+    ``grading[j]``), ``images[j]`` the same points at convergence (before the final rotation).
+    ``dscale`` is Phi'(0) (the anchor sits at 0 after every sweep, Phi(0) = 0) and ``centers``
+    the converged hole centres (points inside the holes' images)."""
+
+    curves: list[ComplexArray]
+    grading: list[complex]
+    images: list[ComplexArray]
+    dscale: complex
+    centers: ComplexArray
+    #: The contraction per sweep observed (the larger of the last two ratios), never below
+    #: the one carried into that level: the cold first level's, over its whole run.
+    rho: float = 0.0
+
+
+def _lay_tracers(it: _Iterate) -> tuple[list[ComplexArray], list[complex], complex]:
+    """Tracers on every boundary's smooth grid after the first sweep (their u: the angle at
+    which each grid point was laid); returns the grids, their gradings and D."""
+    curves, grading = [], []
+    for b in it.bnds:
+        assert b.S is not None
+        m = TRACER_FACTOR * b.S.size
+        s_grid = 2 * np.pi * np.arange(m) / m
+        b.tu = _mobius_grid(b.c, -1.0 if b.hole else 1.0, s_grid)[2]
+        curves.append(upsample(b.S, m) if m > b.S.size else b.S.copy())
+        grading.append(b.c)
+    return curves, grading, it.D
+
+
+def _tracer_images(it: _Iterate) -> list[ComplexArray]:
+    """The tracers' positions: each smooth curve at their parameters (as :meth:`passive`)."""
+    out = []
+    for b in it.bnds:
+        assert b.S is not None and b.tu is not None
+        s_t = _mobius_param(b.c, -1.0 if b.hole else 1.0, b.tu)[0]
+        out.append(trig_eval(np.stack([b.S]), s_t)[0])
+    return out
+
+
+def _derivative_rows(samples: ComplexArray, order: int) -> ComplexArray:
+    """Samples of the trigonometric interpolant and its first ``order`` s-derivatives."""
+    rows = [np.asarray(samples, np.complex128)]
+    for _ in range(order):
+        rows.append(spectral_derivative_complex(rows[-1]))
+    return np.stack(rows)
+
+
+def _taylor(at: ComplexArray, delta: ComplexArray) -> tuple[ComplexArray, ComplexArray]:
+    """f(sigma + delta) and f'(sigma + delta) from f^(n)(sigma), n = 0..Q (rows of ``at``)."""
+    q = at.shape[0] - 1
+    val = at[q] / factorial(q)
+    der = at[q] / factorial(q - 1)
+    for n in range(q - 1, -1, -1):
+        val = val * delta + at[n] / factorial(n)
+        if n >= 1:
+            der = der * delta + at[n] / factorial(n - 1)
+    return val, der
+
+
+def _transplant_curve(
+    b: _Boundary, C: ComplexArray, c_old: complex, X: ComplexArray
+) -> tuple[ComplexArray, ComplexArray] | None:
+    """Phi on boundary b's smooth grid: each grid point z is found on the recorded curve C
+    (the interpolant at a complex parameter sigma + delta, Newton's method on a Taylor
+    expansion about a real sigma), and Phi(z) is X's interpolant there -- its analytic
+    continuation off the curve (Henrici Vol. 3, sec. 13.3; the interpolant of an analytic
+    periodic function is analytic in a strip). None if a point is not found to
+    :data:`TRANSPLANT_RTOL` or the Taylor series does not converge to it."""
+    assert b.S is not None and b.dS is not None
+    sgn = -1.0 if b.hole else 1.0
+    size = float(np.max(np.abs(C)))
+    s_grid = 2 * np.pi * np.arange(b.S.size) / b.S.size
+    # the same laid angle on the recorded grid: the first guess of the parameter
+    sigma = _mobius_param(c_old, sgn, _mobius_grid(b.c, sgn, s_grid)[2])[0]
+    s_of = 2 * np.pi * TRACER_FACTOR / C.size  # parameter spacing of the recorded grid
+    rows_C = _derivative_rows(C, TRANSPLANT_ORDER)
+    rows_X = _derivative_rows(X, TRANSPLANT_ORDER)
+    z = b.S
+    for _round in range(2):  # the second round re-centres the expansion on the real part
+        at = trig_eval(rows_C, sigma)
+        delta = np.zeros(z.size, np.complex128)
+        for _ in range(TRANSPLANT_NEWTON):
+            val, der = _taylor(at, delta)
+            delta = delta - (val - z) / der
+        if not np.all(np.isfinite(delta)) or np.max(np.abs(delta)) > s_of:
+            return None
+        sigma = sigma + delta.real
+    at = trig_eval(rows_C, sigma)
+    delta = np.zeros(z.size, np.complex128)
+    for _ in range(TRANSPLANT_NEWTON):
+        val, der = _taylor(at, delta)
+        delta = delta - (val - z) / der
+    val, der = _taylor(at, delta)
+    q = TRANSPLANT_ORDER
+    dropped = np.max(np.abs(at[q]) * np.abs(delta) ** q) / factorial(q)
+    found = float(np.max(np.abs(val - z)))
+    if not (found <= TRANSPLANT_RTOL * size and dropped <= TRANSPLANT_RTOL * size):
+        return None
+    atX = trig_eval(rows_X, sigma)
+    if np.max(np.abs(atX[q]) * np.abs(delta) ** q) / factorial(q) > TRANSPLANT_RTOL * size:
+        return None
+    Xz, dXz = _taylor(atX, delta)
+    return Xz, dXz / der * b.dS
+
+
+def _transplant(it: _Iterate, carry: LevelCarry) -> bool:
+    """Start the sweeps after the first from the previous mesh level's converged map.
+
+    The first sweep of this level (on its own graded meshes) leaves a domain whose smooth
+    boundary curves lie within the two levels' discretisation difference of the previous
+    level's first-sweep curves; the previous level's map Phi of that domain onto its circle
+    domain (:class:`LevelCarry`) is analytic across them, and applied here, continued by each
+    boundary's interpolant (:func:`_transplant_curve`), it leaves a domain within about that
+    difference of a circle domain, so the sweeps start there instead of ~1 away. Phi is one
+    analytic map applied to the whole domain (grids, their derivatives, the passive nodes
+    through their parameters u, D), so the fixed point -- this level's circle domain -- is
+    unchanged, as for the accelerations (:mod:`confnav.conformal.acceleration`); the
+    interpolants must resolve Phi to the smooth grids' own tail (else no transplant), and the
+    passive nodes follow their curves. False (state untouched) if any boundary fails."""
+    if len(carry.curves) != len(it.bnds):
+        return False
+    new = []
+    for b, C, c_old, X in zip(it.bnds, carry.curves, carry.grading, carry.images, strict=True):
+        if b.S is None or _tail(C) > b.tail or _tail(X) > b.tail:
+            return False
+        moved = _transplant_curve(b, C, c_old, X)
+        if moved is None:
+            return False
+        new.append(moved)
+    for j in range(1, len(it.bnds)):
+        if abs(_winding(new[j][0], complex(carry.centers[j - 1]))) < 0.5:
+            return False
+    # the anchor's image (it.a = 0 after every sweep) and Phi's derivative there from the same
+    # boundary values, by the Cauchy formula over the whole boundary (positively oriented:
+    # outer ccw, holes cw), as every map of a sweep carries the anchor: consistent with the
+    # transplanted curves to their own resolution, not only with carry.dscale
+    # (the trapezoid rule resolves the Cauchy integrand only where the anchor keeps
+    # ANCHOR_SPACINGS local grid spacings from every curve: else no transplant -- measured on
+    # a 0.2 m ring corridor with the anchor 0.1 from the hole, whose map then missed its
+    # boundary residual by 4.7e-4 at every level)
+    num = den = der = 0j
+    for b in it.bnds:
+        assert b.S is not None and b.dS is not None
+        h = np.abs(b.dS) * 2 * np.pi / b.S.size
+        if float(np.min(np.abs(b.S - it.a) / np.maximum(h, 1e-300))) < ANCHOR_SPACINGS:
+            return False
+    for b, (S, _dS) in zip(it.bnds, new, strict=True):
+        assert b.S is not None and b.dS is not None
+        w = b.dS / (b.S - it.a) / b.S.size  # (1/2 pi i) ∮ . dzeta / (zeta - a), trapezoid / i
+        num += complex(np.sum(S * w))
+        den += complex(np.sum(w))
+        der += complex(np.sum(S * w / (b.S - it.a)))
+    a_new, d_new = num / den, der / den
+    if not (np.isfinite(a_new) and np.isfinite(d_new) and abs(d_new) > 0):
+        return False
+    for b, (S, dS) in zip(it.bnds, new, strict=True):
+        b.S, b.dS = S, dS
+    it.c = np.array(carry.centers, dtype=np.complex128)
+    it.a = complex(a_new)
+    it.D = it.D * complex(d_new)
+    return True
+
+
 def koebe_iteration(
     meshes: list[BoundaryMesh],
     hole_points: list[complex],
@@ -942,6 +1182,8 @@ def koebe_iteration(
     first_guess: list[FloatArray | None] | None = None,
     accel: str | None = None,
     start: StartImage | None = None,
+    carry: LevelCarry | None = None,
+    trace: bool = False,
 ) -> CircleDomainResult:
     """Run the iteration on graded meshes (outer counter-clockwise, holes clockwise).
 
@@ -969,19 +1211,33 @@ def koebe_iteration(
     start
         Start from this conformal image of the domain (:class:`StartImage`) instead of the
         polygon domain (a warm re-solve); ``hole_points`` and ``anchor`` are then unused.
+    carry
+        The previous mesh level's converged map (its result's ``carry``): applied after the
+        first sweep (:func:`_transplant`).
+    trace
+        Record this level's map for the next level (the result's ``carry``; not with
+        ``start``). Its grids then resolve their curves :data:`CARRY_TAIL` finer, so a traced
+        run is not the untraced one bit for bit.
     """
     accel = KOEBE_ACCEL if accel is None else accel
     if accel not in KOEBE_ACCELS:
         raise ValueError(f"accel must be one of {KOEBE_ACCELS}, got {accel!r}")
     t0 = time.perf_counter()
-    it = _initial_iterate(meshes, hole_points, anchor, tol, start)
     M = len(meshes) - 1
+    trace = trace and start is None and M > 0
+    # traced (its map becomes the next level's start): the grids resolve their curves
+    # CARRY_TAIL finer, since the tracers' interpolation error is carried into every later
+    # level instead of being recomputed there (measured: a triangle at tol 1e-7, T(anchor)
+    # 5e-10 with the plain grids, 7.7e-12 with 100x finer tails; 1.2e-12 without the carry)
+    it = _initial_iterate(meshes, hole_points, anchor, tol * (CARRY_TAIL if trace else 1.0), start)
     guess: list[FloatArray | None] = (
         list(first_guess) if first_guess is not None else [None] * (M + 1)
     )
     tally = _Tally(first_mu=[None] * (M + 1))
     sched = _Schedule(accel, tol)
     sweeps = 0
+    traced: tuple[list[ComplexArray], list[complex], complex] | None = None
+    transplanted = False
     for sweep in range(1, max_sweeps + 1):
         sweeps = sweep
         before = sched.before_sweep(it)
@@ -1008,27 +1264,65 @@ def koebe_iteration(
             # while ~1e-8 are left (measured: boundary residual 1.0e-8 after 2 sweeps)
             sched.phase_history = []
             continue
+        if sweep == 1 and trace:
+            traced = _lay_tracers(it)
+            if carry is not None and _transplant(it, carry):
+                # as from a warm start, the first sweep's change says nothing about the sweeps
+                # after the transplant. The next one's is measured on the passive nodes'
+                # positions (their parameters u have not followed the transplant: u moves by
+                # Phi's correspondence in that sweep, ~0.3 measured), the contraction from
+                # there on, never taken below the one the cold first level observed over its
+                # whole run (carry.rho): the first changes after a transplant may shrink
+                # faster than the slowest mode does
+                transplanted = True
+                sched.phase_history = []
+                sched.rho_floor = carry.rho
+                sched.after_transplant = True
+                continue
         if sched.after_sweep(it, sweep, change):
             break
     else:
         sched.converged = False  # sweep limit: the extrapolated remaining error is reported
-    return _circle_domain(it, tally, sched, sweeps, t0)
+    result = _circle_domain(it, tally, sched, sweeps, t0)
+    result.transplanted = transplanted
+    if traced is not None and result.converged:
+        curves, grading, D1 = traced
+        result.carry = LevelCarry(
+            curves=curves,
+            grading=grading,
+            images=_tracer_images(it),
+            dscale=it.D / D1,
+            centers=it.c.copy(),
+            rho=max(_observed_rho(sched.phase_history), sched.rho_floor),
+        )
+    return result
 
 
-def _remaining_error(history: list[float]) -> tuple[float, bool]:
+def _remaining_error(history: list[float], rho_floor: float = 0.0) -> tuple[float, bool]:
     """Error left after the last sweep, from the observed linear contraction.
 
     With changes h_n shrinking by rho per sweep the iterate is h_n rho / (1 - rho) from the
     limit (geometric tail; Aitken's delta^2 estimate). rho is the larger of the last two
-    observed ratios (the safe side; one after two sweeps); a single sweep gives no estimate.
+    observed ratios (the safe side; one after two sweeps) and ``rho_floor`` (after a
+    transplant: the contraction the previous level observed over its longer run); a single
+    sweep gives no estimate.
     """
     if len(history) < 2:
         return float("inf"), False
     h = history
     rho = max(h[i] / max(h[i - 1], 1e-300) for i in range(max(1, len(h) - 2), len(h)))
+    rho = max(rho, rho_floor)
     if rho >= RHO_MAX:
         return float("inf"), False
     return h[-1] * rho / (1 - rho), True
+
+
+def _observed_rho(history: list[float]) -> float:
+    """The larger of the last two contraction ratios of a history (0: fewer than two)."""
+    h = history
+    if len(h) < 2:
+        return 0.0
+    return float(max(h[i] / max(h[i - 1], 1e-300) for i in range(max(1, len(h) - 2), len(h))))
 
 
 def _stalled_error(history: list[float]) -> float:

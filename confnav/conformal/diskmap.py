@@ -133,14 +133,16 @@ def interior_map(
     alpha: complex,
     rtol: float = GMRES_RTOL,
     x0: FloatArray | None = None,
+    smooth: bool = False,
 ) -> CurveMap:
     """Map the inside of a counter-clockwise curve onto the unit disk (docs/METHOD.md sec. 2).
 
     ``rtol``: relative GMRES residual of the GNK solve
-    (:func:`confnav.conformal.gnk.gmres_rtol`); ``x0``: a first guess of its ``mu``."""
+    (:func:`confnav.conformal.gnk.gmres_rtol`); ``x0``: a first guess of its ``mu``;
+    ``smooth``: a smooth grid (see :func:`confnav.conformal.gnk.solve_gnk`)."""
     A = eta - alpha
     gamma = -np.log(np.abs(A))
-    sol = solve_gnk(eta, deta, A, gamma, rtol, x0)
+    sol = solve_gnk(eta, deta, A, gamma, rtol, x0, smooth)
     theta_dot = (deta / A).imag + spectral_derivative(sol.mu)
     f = A / np.abs(A) * np.exp(1j * sol.mu)
     return CurveMap(
@@ -163,14 +165,16 @@ def exterior_map(
     alpha: complex,
     rtol: float = GMRES_RTOL,
     x0: FloatArray | None = None,
+    smooth: bool = False,
 ) -> CurveMap:
     """Map the outside of a clockwise curve onto |w| > 1 with F'(inf) > 0 (docs/METHOD.md sec. 2).
 
     ``rtol``: relative GMRES residual of the GNK solve
-    (:func:`confnav.conformal.gnk.gmres_rtol`); ``x0``: a first guess of its ``mu``."""
+    (:func:`confnav.conformal.gnk.gmres_rtol`); ``x0``: a first guess of its ``mu``;
+    ``smooth``: a smooth grid (see :func:`confnav.conformal.gnk.solve_gnk`)."""
     A = np.ones_like(eta)
     gamma = np.log(np.abs(eta - alpha))
-    sol = solve_gnk(eta, deta, A, gamma, rtol, x0)
+    sol = solve_gnk(eta, deta, A, gamma, rtol, x0, smooth)
     phi = gamma + sol.h + 1j * sol.mu
     # Phi_inf = (1/2pi i) oint_ccw Phi/(zeta - alpha) dzeta; eta runs clockwise -> minus sign.
     phi_inf = -(2 * np.pi / eta.size) / (2j * np.pi) * np.sum(phi * deta / (eta - alpha))

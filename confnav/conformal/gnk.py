@@ -37,7 +37,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.sparse.linalg import LinearOperator, gmres
 
-from confnav.conformal.cauchy import HAVE_FMM, cauchy_self
+import confnav.conformal.cauchy as _cauchy
+from confnav.conformal.cauchy import cauchy_self
 from confnav.errors import ConvergenceError
 from confnav.types import CArray as ComplexArray
 from confnav.types import FArray as FloatArray
@@ -88,6 +89,17 @@ class GNKSolution:
 #: Up to this many nodes the GNK matrix is built densely (O(n^2) memory, fast BLAS matvecs);
 #: above it every matrix-vector product is an FMM Cauchy sum (O(n)).
 DENSE_MAX_NODES = 3200
+#: The same limit for a *smooth* curve (a Koebe sweep's smooth grid, uniform in an analytic
+#: parameter): GMRES needs ~3 iterations there (a second-kind operator on an analytic curve),
+#: so a solve costs ~6 products, and building the n x n matrix (~10 passes over n^2 complex
+#: entries) costs more than the products it serves. Profiled on the default workspace shrunk
+#: by 0.2 m (bench/README.md, "Where the time goes"; bench/results/core_profile.json): the
+#: assembly of the GNK matrices, mostly the outer boundary's 2048-point grid rebuilt in every
+#: sweep, took 7.8 of 21.8 s CPU for 225-270 GMRES iterations per level over 60 solves.
+#: Below ~1400 nodes the matrix-free product is a direct sum
+#: (:func:`confnav.conformal.cauchy.cauchy_self`), which rebuilds the kernel per product: the
+#: dense build wins there, hence the limit.
+SMOOTH_DENSE_MAX_NODES = 1024
 
 #: A node whose quadrature weight |eta'| 2pi/n is below this fraction of the curve's size lies
 #: within rounding of its neighbours (graded nodes next to a corner, and their images under maps
@@ -120,12 +132,15 @@ def alive_nodes(eta: ComplexArray, deta: ComplexArray) -> np.ndarray:
 class _Operator:
     """Discrete GNK operators for one curve: S(x) = sum_{k!=i} K_ik (x_k - x_i) etc."""
 
-    def __init__(self, eta: ComplexArray, deta: ComplexArray, A: ComplexArray) -> None:
+    def __init__(
+        self, eta: ComplexArray, deta: ComplexArray, A: ComplexArray, smooth: bool = False
+    ) -> None:
         self.n = n = eta.size
         self.eta, self.A = eta, A
         self.alive = alive_nodes(eta, deta)
         self.q0 = np.where(self.alive, deta / A, 0.0)
-        self.dense = not (HAVE_FMM and n > DENSE_MAX_NODES)
+        limit = min(DENSE_MAX_NODES, SMOOTH_DENSE_MAX_NODES) if smooth else DENSE_MAX_NODES
+        self.dense = not (_cauchy.HAVE_FMM and n > limit)
         if self.dense:
             # K_ik = (2/n) A_i q0_k / (eta_k - eta_i), built in place (in-place reciprocal and
             # products: 3-5x faster than a complex division over n^2 entries, measured)
@@ -192,6 +207,7 @@ def solve_gnk(
     gamma: FloatArray,
     rtol: float = GMRES_RTOL,
     x0: FloatArray | None = None,
+    smooth: bool = False,
 ) -> GNKSolution:
     """Solve ``(I - N) mu = -M gamma`` and return ``mu`` and ``h`` (see module docstring).
 
@@ -199,8 +215,10 @@ def solve_gnk(
     its iteration limit is accepted only within :data:`GMRES_ACCEPT` of it. ``x0``: a first
     guess of ``mu`` (e.g. the previous mesh level's solution); the residual asked for is
     relative to the right-hand side either way, so it changes the work, not the accuracy.
+    ``smooth``: the curve is a smooth grid (few GMRES iterations): matrix-free products above
+    :data:`SMOOTH_DENSE_MAX_NODES` instead of a dense matrix (the same operator either way).
     """
-    op = _Operator(eta, deta, A)
+    op = _Operator(eta, deta, A, smooth)
     n = eta.size
     rhs = -op.M(gamma)
     imn_gamma = op.I_minus_N(gamma)  # for h; the same FMM sum as M gamma (memo in S)

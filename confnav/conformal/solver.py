@@ -36,9 +36,26 @@ level's plus the change this causes (triangle inequality, no order assumed). Mea
 two squares 0.01 apart to 1e-8 take four level solves instead of five (8 sides at 120 nodes
 after 36, 54, 80; residual 1.17e-9 as with the full 180-node level; 114 s CPU against 141 s in
 one process, the same map to 4e-14 in asymmetry). On 10 mixed obstacles the base estimate
-(8.0e-9) left too little of 1e-8 for the change (2.4e-9), hence :data:`LOCAL_HEADROOM`. The
-sweeps themselves (61 per level at a contraction of 0.79 there) are unchanged: a faster
-iteration for near-touching circles (one GNK system over all boundaries per step) was not built.
+(8.0e-9) left too little of 1e-8 for the change (2.4e-9), hence :data:`LOCAL_HEADROOM`.
+
+Carried levels (issue 24 items 1-2, :data:`LEVEL_CARRY`): a level's sweeps after its first
+start from the previous level's converged map (:class:`~confnav.conformal.circledomain.
+LevelCarry`). Where the time went before (``bench/bench_core.py --profile``,
+``bench/results/core_profile.json``; bench/README.md "Where the time goes"): every level
+repeated the same sweeps from scratch -- the history of the changes was the same to two
+digits at every level (default shrunk by 0.2 m: 15 sweeps at each of 5 level solves; two
+squares 0.01 apart: 61 at each of 4), as only the first sweep's polygon GNK solves depend on
+the mesh -- and the outer boundary's 2048-point smooth grid built a dense GNK matrix in every
+sweep for ~3 GMRES iterations (7.5 of 21 s CPU on the shrunk workspace; now FMM products,
+:data:`confnav.conformal.gnk.SMOOTH_DENSE_MAX_NODES`). Now each level's first sweep is its
+own (its discretisation, hence its fixed point, level difference and estimate are as
+before), and the rest start within the level difference of the circle domain. Measured side
+by side in one run (``bench/bench_koebe.py --designs before carry``,
+``bench/results/koebe_designs.json`` at 3591380, load 4.9-8.5, CPU seconds): two squares 0.01
+apart to 1e-8, sweeps per level 61/61/61/61 -> 61/7/3/3, 109.7 -> 34.6 s, asymmetry 2.5e-12
+-> 3.2e-12 under the same estimate 1.2e-9, the two maps 4.0e-11 apart; default shrunk by
+0.2 m, 15/15/15/15/15 -> 15/7/4/3/3, 19.1 -> 9.4 s, estimates 8.1e-9 and 7.6e-9, maps 7.6e-10
+apart. The first (cold) level's sweeps are now most of what is left there.
 
 Designs of the iteration measured side by side (issue 24 item 1; CPU seconds of one run each,
 the machine shared, so compare within a file): the plain sweeps against over-relaxed
@@ -47,7 +64,8 @@ the machine shared, so compare within a file): the plain sweeps against over-rel
 / 34 sweeps per level, 123.5 / 96.4 / 83.0 s, all honest; where the plain contraction is fast
 nothing triggers. Newton on the whole circle domain after 6 sweeps (``method="nasser"``,
 ``bench/results/koebe_methods.json``): slower on every case measured and never certified (see
-``method`` below). So the plain sweeps stay the default.
+``method`` below). So the plain sweeps stay the default; the carried levels (above) remove
+the sweeps of every level after the first instead.
 
 Warm re-solve (issue 24 item 3, ``initial=``, :func:`_warm_solve`): the sweeps start from the
 previous map carried over to the changed workspace (:mod:`confnav.conformal.warm`: the
@@ -88,6 +106,7 @@ from confnav.conformal.circledomain import (
     SMOOTH_PER_TOL,
     SMOOTH_TAIL,
     CircleDomainResult,
+    LevelCarry,
     koebe_iteration,
 )
 from confnav.conformal.circular_map import METHODS, nasser_iteration
@@ -143,6 +162,14 @@ ITERATION_SHARE = 0.1
 #: the corners, and GMRES on the second-kind operator gains about a digit per 4-5 iterations);
 #: the map is the same to the GMRES tolerance (tests/test_solver_warm_start.py).
 WARM_START = True
+#: Start each mesh level's sweeps after the first from the previous level's converged map
+#: (:class:`confnav.conformal.circledomain.LevelCarry`, issue 24 item 2: "start each mesh
+#: level from the previous level's circle domain and boundary correspondence"). The first
+#: sweep stays this level's own (its polygon GNK solves on its graded meshes carry the whole
+#: discretisation), so each level's fixed point, its level difference and the estimate are as
+#: before; only the sweeps that follow start near the circle domain. Measured: module
+#: docstring.
+LEVEL_CARRY = True
 
 
 class AccuracyWarning(UserWarning):
@@ -162,6 +189,7 @@ def _solve_level(
     plans: list[PanelPlan] | None = None,
     accel: str | None = None,
     method: str = "koebe",
+    carry: LevelCarry | None = None,
 ) -> tuple[CircleDomainResult, list[BoundaryMesh]]:
     if plans is None:
         plans = plan_boundaries(ws, nodes_per_side, tol)
@@ -180,17 +208,31 @@ def _solve_level(
         if progress is not None:
             progress(f"  {nodes_per_side} nodes/side: sweep {sweep}, change {change:.1e}")
 
-    iterate = nasser_iteration if method == "nasser" else koebe_iteration
-    res = iterate(
-        meshes,
-        holes,
-        ws.anchor,
-        tol=ITERATION_SHARE * tol,
-        progress=_p,
-        gmres_tol=gmres_rtol(tol),
-        first_guess=guess,
-        accel=accel,
-    )
+    res: CircleDomainResult
+    if method == "nasser":
+        res = nasser_iteration(
+            meshes,
+            holes,
+            ws.anchor,
+            tol=ITERATION_SHARE * tol,
+            progress=_p,
+            gmres_tol=gmres_rtol(tol),
+            first_guess=guess,
+            accel=accel,
+        )
+    else:
+        res = koebe_iteration(
+            meshes,
+            holes,
+            ws.anchor,
+            tol=ITERATION_SHARE * tol,
+            progress=_p,
+            gmres_tol=gmres_rtol(tol),
+            first_guess=guess,
+            accel=accel,
+            carry=carry if LEVEL_CARRY else None,
+            trace=LEVEL_CARRY,
+        )
     return res, meshes
 
 
@@ -405,7 +447,9 @@ def _refine_sides(
         if progress is not None:
             progress(f"refining {n_ref} sides where the boundary residual asks")
         try:
-            res, meshes = _solve_level(ws, ns, tol, progress, warm, plans, accel)
+            res, meshes = _solve_level(
+                ws, ns, tol, progress, warm, plans, accel, carry=base[0].carry
+            )
         except ConvergenceError as exc:
             log.warning("local refinement failed (%s)", exc)
             return None
@@ -627,6 +671,7 @@ class _Refinement:
         self.cmap: ConformalMap | None = None
         self.solved = 0  # levels solved (a skipped level does not count)
         self.warm: _Warm | None = None
+        self.carry: LevelCarry | None = None
         self.done = False
 
     def run(self, levels: list[int]) -> ConformalMap:
@@ -646,6 +691,7 @@ class _Refinement:
             return
         res, meshes = solved
         self.warm = (meshes, res.first_mu)  # the next level's first guesses
+        self.carry = res.carry  # and start of its later sweeps
         _check_resolvable(res, ns, self.prev_resolution, self.max_error)
         self.prev_resolution = res.resolution_error
         if self.prev is not None:
@@ -672,6 +718,7 @@ class _Refinement:
                 self.warm,
                 accel=self.accel,
                 method=self.method,
+                carry=self.carry,
             )
         except GapError as exc:
             if self.best is None:
