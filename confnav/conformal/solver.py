@@ -55,7 +55,9 @@ by side in one run (``bench/bench_koebe.py --designs before carry``,
 apart to 1e-8, sweeps per level 61/61/61/61 -> 61/7/3/3, 109.7 -> 34.6 s, asymmetry 2.5e-12
 -> 3.2e-12 under the same estimate 1.2e-9, the two maps 4.0e-11 apart; default shrunk by
 0.2 m, 15/15/15/15/15 -> 15/7/4/3/3, 19.1 -> 9.4 s, estimates 8.1e-9 and 7.6e-9, maps 7.6e-10
-apart. The first (cold) level's sweeps are now most of what is left there.
+apart. The first (cold) level's sweeps are now most of what is left there. **Off by default**
+(:data:`LEVEL_CARRY`): on a room with a pillar the carried levels kept a 9.2e-8 boundary
+residual that the cold levels do not have, so the figures above are not the defaults'.
 
 Designs of the iteration measured side by side (issue 24 item 1; CPU seconds of one run each,
 the machine shared, so compare within a file): the plain sweeps against over-relaxed
@@ -168,8 +170,13 @@ WARM_START = True
 #: sweep stays this level's own (its polygon GNK solves on its graded meshes carry the whole
 #: discretisation), so each level's fixed point, its level difference and the estimate are as
 #: before; only the sweeps that follow start near the circle domain. Measured: module
-#: docstring.
-LEVEL_CARRY = True
+#: docstring. Off by default: on a 2 x 1 m room with a square pillar to 1e-8 the carried
+#: levels kept a boundary residual of 9.2e-8 at every level from the locally refined 120 on,
+#: while the level differences fell to 1e-13 (so the level estimate did not see it; the
+#: residual check did, and the solve missed tol), where the cold levels give 8.6e-11 and meet
+#: tol in 0.9 s: a carried level can keep its predecessor's boundary error instead of
+#: converging to its own fixed point (tests/test_level_carry.py, strict xfail).
+LEVEL_CARRY = False
 
 
 class AccuracyWarning(UserWarning):
