@@ -405,18 +405,12 @@ def solve_atlas(
     times); unchanged cells keep their maps.
 
     Progressive (docs/SLAM.md "Progressive atlas"): with ``priority`` (robots' (start,
-    goal) pairs) the cells their routes need are solved first, in the order they need them
-    (:func:`route_order`: every start cell, then the next cells of the routes), ``workers``
-    at a time, and the others after; ``on_partial`` receives a :class:`PartialAtlas` after
-    each such batch (``workers`` priority cells, or ``4 workers`` others), at the start of a
-    round that reuses charts, and once complete, so that a controller drives on the charts
-    solved so far. The result is the same atlas as without them. With a process pool the
-    partial revisions come chart by chart (each route cell as soon as it is solved);
-    ``batch``: how many non-route cells a partial revision waits for (default ``4
-    workers``). ``split_early``: a failed route cell ends its round at once (its tile
-    split, the other solves kept pending) -- measured on tb3_world under load 5 it
-    delayed the first robot (6.1 s against 3.7 s): the redone decomposition's margin
-    changed every cell, so it is off by default.
+    goal) pairs) the cells their routes need are solved first (:func:`route_order`), and
+    ``on_partial`` receives a :class:`PartialAtlas` after each batch (``workers`` route
+    cells, or ``batch`` others, default ``4 workers``; chart by chart on a process pool),
+    at the start of a round that reuses charts, and once complete: a controller drives on
+    the charts solved so far. The result is the same atlas. ``split_early``: a failed route
+    cell ends its round at once (off: it delayed the first robot on tb3_world).
 
     Raises
     ------
@@ -437,11 +431,7 @@ def solve_atlas(
             _round, rounds = _round + 1, rounds + 1
             dec = decompose(ws, split=split, **decompose_kw)
             keys = [c.workspace.content_hash for c in dec.cells]
-            todo = [i for i, k in enumerate(keys) if k not in done]
-            # largest first: the pool's tail is then short
-            todo.sort(key=lambda i: -dec.cells[i].polygon.length)
-            first = [i for i in route_order(dec, priority) if i in set(todo)] if priority else []
-            todo = first + [i for i in todo if i not in set(first)]
+            todo, first = _round_order(dec, keys, done, priority)
             if progress is not None:
                 progress(f"atlas: {len(dec.cells)} cells, solving {len(todo)}")
 
@@ -454,14 +444,10 @@ def solve_atlas(
 
             if on_partial is not None and len(todo) < len(keys):
                 partial()  # the charts this round reuses
-            # batches: the routes' cells ``workers`` at a time, then the others
-            size = max(1, workers)
-            every = max(1, batch if batch is not None else 4 * size)
-            batches = [todo[k : k + size] for k in range(0, len(first), size)]
-            rest = todo[len(first) :]
-            batches += [rest[k : k + every] for k in range(0, len(rest), every)]
-            if on_partial is None:
-                batches = [todo]
+            every = max(1, batch if batch is not None else 4 * max(1, workers))
+            batches = (
+                _batches(todo, len(first), workers, every) if on_partial is not None else [todo]
+            )
             failed: list[Tile] = []
             if on_partial is not None and isinstance(pool, ProcessPoolExecutor):
                 failed, early = _round_by_chart(
@@ -473,26 +459,13 @@ def solve_atlas(
                     rounds -= 1
                 batches = []
             for chunk in batches:
-                jobs = [dec.cells[i].workspace.to_json() for i in chunk]
-                n = len(jobs)
-                if pool is not None:
-                    got = list(
-                        pool.map(_solve_one, jobs, [tol] * n, [accept] * n, [dec.margin] * n)
-                    )
-                else:
-                    got = [_solve_one(j, tol, accept, dec.margin) for j in jobs]
+                got = _solve_chunk(pool, dec, chunk, tol, accept)
                 failed += _collect(dec, keys, chunk, got, done, records)
                 partial()
             if not failed:
                 charts = tuple(done[k] for k in keys)
                 return Atlas(dec, charts, tol, tuple(records), time.perf_counter() - t0, workers)
-            if set(failed) <= split:  # forced before and not split: at the smallest side
-                bad = [r for r in records if r.error][-1]
-                side = bad.tile[2] - bad.tile[0]
-                raise SolverError(
-                    f"atlas: cell of tile {fmt_tile(bad.tile)} fails and its tile ({side:.3g} m) "
-                    f"is at the smallest split (margin {dec.margin:.3g} m): {bad.error}"
-                )
+            _check_splittable(failed, split, records, dec.margin)
             split |= set(failed)
         bad = [r for r in records if r.error][-1]
         raise SolverError(
@@ -504,6 +477,56 @@ def solve_atlas(
             f.cancel()
         if own and pool is not None:
             pool.shutdown()
+
+
+def _round_order(
+    dec: Decomposition,
+    keys: list[str],
+    done: dict[str, ConformalMap],
+    priority: Sequence[tuple[complex, complex]],
+) -> tuple[list[int], list[int]]:
+    """The cells a round solves (those without a map yet) in the order it solves them, and
+    the routes' cells among them (:func:`route_order`), which come first; the others
+    largest first, so that the pool's tail is short."""
+    todo = [i for i, k in enumerate(keys) if k not in done]
+    todo.sort(key=lambda i: -dec.cells[i].polygon.length)
+    first = [i for i in route_order(dec, priority) if i in set(todo)] if priority else []
+    return first + [i for i in todo if i not in set(first)], first
+
+
+def _check_splittable(
+    failed: list[Tile], split: set[Tile], records: list[ChartRecord], margin: float
+) -> None:
+    """Raise :class:`SolverError` if every failed tile was split before and still fails (it
+    is at the smallest split)."""
+    if set(failed) <= split:
+        bad = [r for r in records if r.error][-1]
+        side = bad.tile[2] - bad.tile[0]
+        raise SolverError(
+            f"atlas: cell of tile {fmt_tile(bad.tile)} fails and its tile ({side:.3g} m) "
+            f"is at the smallest split (margin {margin:.3g} m): {bad.error}"
+        )
+
+
+def _batches(todo: list[int], n_first: int, workers: int, every: int) -> list[list[int]]:
+    """The cells of ``todo`` in the batches a progressive round solves them in: its first
+    ``n_first`` (the routes' cells) ``workers`` at a time, then the others ``every`` at a
+    time."""
+    size = max(1, workers)
+    out = [todo[k : k + size] for k in range(0, n_first, size)]
+    rest = todo[n_first:]
+    return out + [rest[k : k + every] for k in range(0, len(rest), every)]
+
+
+def _solve_chunk(
+    pool: Executor | None, dec: Decomposition, chunk: list[int], tol: float, accept: float
+) -> list[tuple[str, float, str]]:
+    """Solve the cells ``chunk`` of ``dec`` on ``pool`` (None: in this process)."""
+    jobs = [dec.cells[i].workspace.to_json() for i in chunk]
+    n = len(jobs)
+    if pool is None:
+        return [_solve_one(j, tol, accept, dec.margin) for j in jobs]
+    return list(pool.map(_solve_one, jobs, [tol] * n, [accept] * n, [dec.margin] * n))
 
 
 def solve_auto(

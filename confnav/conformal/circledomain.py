@@ -996,7 +996,9 @@ ANCHOR_SPACINGS = float(np.log(1e16) / np.pi)
 #: curve: Phi's singularities lie nearer than the curve's).
 TRACER_FACTOR = 2
 #: A traced level's smooth grids resolve their curves to this fraction of the usual tail
-#: (``SMOOTH_PER_TOL * tol``), see :func:`koebe_iteration`.
+#: (``SMOOTH_PER_TOL * tol``): the tracers' interpolation error is carried into every later
+#: level instead of being recomputed there (measured: a triangle at tol 1e-7, T(anchor)
+#: 5e-10 with the plain grids, 7.7e-12 with 100x finer tails; 1.2e-12 without the carry).
 CARRY_TAIL = 1e-2
 
 
@@ -1216,8 +1218,7 @@ def koebe_iteration(
         first sweep (:func:`_transplant`).
     trace
         Record this level's map for the next level (the result's ``carry``; not with
-        ``start``). Its grids then resolve their curves :data:`CARRY_TAIL` finer, so a traced
-        run is not the untraced one bit for bit.
+        ``start``), on grids :data:`CARRY_TAIL` finer (not the untraced run bit for bit).
     """
     accel = KOEBE_ACCEL if accel is None else accel
     if accel not in KOEBE_ACCELS:
@@ -1225,10 +1226,7 @@ def koebe_iteration(
     t0 = time.perf_counter()
     M = len(meshes) - 1
     trace = trace and start is None and M > 0
-    # traced (its map becomes the next level's start): the grids resolve their curves
-    # CARRY_TAIL finer, since the tracers' interpolation error is carried into every later
-    # level instead of being recomputed there (measured: a triangle at tol 1e-7, T(anchor)
-    # 5e-10 with the plain grids, 7.7e-12 with 100x finer tails; 1.2e-12 without the carry)
+    # traced (its map becomes the next level's start): grids CARRY_TAIL finer
     it = _initial_iterate(meshes, hole_points, anchor, tol * (CARRY_TAIL if trace else 1.0), start)
     guess: list[FloatArray | None] = (
         list(first_guess) if first_guess is not None else [None] * (M + 1)
@@ -1249,11 +1247,7 @@ def koebe_iteration(
             progress(sweep, change)
         if not np.isfinite(change):
             raise ConvergenceError(f"Koebe iteration produced non-finite values in sweep {sweep}")
-        if M == 0:
-            # no obstacles: the first sweep's interior map of the polygon IS the Riemann map
-            # onto the unit disk; the iteration only makes hole images circular ([1], sec. 3),
-            # so nothing is left to iterate (a second sweep re-solved the unit circle on its
-            # smooth grid: half of every atlas cell's solve, measured)
+        if M == 0:  # the first sweep's interior map IS the Riemann map ([1], sec. 3)
             sched.remaining, sched.converged = 0.0, True
             break
         _check_crowding(radii[1:])
@@ -1266,18 +1260,8 @@ def koebe_iteration(
             continue
         if sweep == 1 and trace:
             traced = _lay_tracers(it)
-            if carry is not None and _transplant(it, carry):
-                # as from a warm start, the first sweep's change says nothing about the sweeps
-                # after the transplant. The next one's is measured on the passive nodes'
-                # positions (their parameters u have not followed the transplant: u moves by
-                # Phi's correspondence in that sweep, ~0.3 measured), the contraction from
-                # there on, never taken below the one the cold first level observed over its
-                # whole run (carry.rho): the first changes after a transplant may shrink
-                # faster than the slowest mode does
+            if carry is not None and _transplant_after_first_sweep(it, sched, carry):
                 transplanted = True
-                sched.phase_history = []
-                sched.rho_floor = carry.rho
-                sched.after_transplant = True
                 continue
         if sched.after_sweep(it, sweep, change):
             break
@@ -1286,16 +1270,39 @@ def koebe_iteration(
     result = _circle_domain(it, tally, sched, sweeps, t0)
     result.transplanted = transplanted
     if traced is not None and result.converged:
-        curves, grading, D1 = traced
-        result.carry = LevelCarry(
-            curves=curves,
-            grading=grading,
-            images=_tracer_images(it),
-            dscale=it.D / D1,
-            centers=it.c.copy(),
-            rho=max(_observed_rho(sched.phase_history), sched.rho_floor),
-        )
+        result.carry = _level_carry(it, sched, traced)
     return result
+
+
+def _transplant_after_first_sweep(it: _Iterate, sched: _Schedule, carry: LevelCarry) -> bool:
+    """Apply the previous level's map after this level's first sweep (:func:`_transplant`);
+    False if it is refused. As from a warm start, the first sweep's change then says nothing
+    about the sweeps after the transplant. The next one's is measured on the passive nodes'
+    positions (their parameters u have not followed the transplant: u moves by Phi's
+    correspondence in that sweep, ~0.3 measured), the contraction from there on, never taken
+    below the one the cold first level observed over its whole run (``carry.rho``): the first
+    changes after a transplant may shrink faster than the slowest mode does."""
+    if not _transplant(it, carry):
+        return False
+    sched.phase_history = []
+    sched.rho_floor = carry.rho
+    sched.after_transplant = True
+    return True
+
+
+def _level_carry(
+    it: _Iterate, sched: _Schedule, traced: tuple[list[ComplexArray], list[complex], complex]
+) -> LevelCarry:
+    """This converged level's map for the next level (:class:`LevelCarry`)."""
+    curves, grading, D1 = traced
+    return LevelCarry(
+        curves=curves,
+        grading=grading,
+        images=_tracer_images(it),
+        dscale=it.D / D1,
+        centers=it.c.copy(),
+        rho=max(_observed_rho(sched.phase_history), sched.rho_floor),
+    )
 
 
 def _remaining_error(history: list[float], rho_floor: float = 0.0) -> tuple[float, bool]:
