@@ -65,7 +65,7 @@ from confnav.navigation.roadmap import (
 )
 from confnav.types import CArray
 
-__all__ = ["ROAD", "GOAL_LEG", "RETURN_LEG", "RoadmapCoordinator", "pibt_step"]
+__all__ = ["GOAL_LEG", "RETURN_LEG", "ROAD", "RoadmapCoordinator", "pibt_step"]
 
 #: modes of a robot
 ROAD, GOAL_LEG, RETURN_LEG = 0, 1, 2
@@ -112,9 +112,7 @@ def pibt_step(
         u = cur[i]
         cands = [int(v) for v in roadmap.neighbours[u]]
         cands = [
-            v
-            for v in cands
-            if v not in closed_nodes and v not in blocked and not closed_edge(u, v)
+            v for v in cands if v not in closed_nodes and v not in blocked and not closed_edge(u, v)
         ]
         if u not in closed_nodes:
             cands.append(u)
@@ -128,9 +126,8 @@ def pibt_step(
             nxt[i] = v
             taken[v] = i
             k = occupant.get(v)
-            if k is not None and k != i and nxt[k] is None:
-                if not plan(k, i):
-                    continue  # k stays on v (it took v itself): try the next candidate
+            if k is not None and k != i and nxt[k] is None and not plan(k, i):
+                continue  # k stays on v (it took v itself): try the next candidate
             return True
         nxt[i] = u
         taken[u] = i
@@ -272,7 +269,8 @@ class RoadmapCoordinator:
             return self._goal_cache[g]
         nodes = self.roadmap.nodes[self.main]
         order = np.argsort(np.abs(nodes - g))[:8]
-        free = segment_clearance(self.node_ctrls[0].cmap.workspace, nodes[order], np.full(order.size, g))  # type: ignore[attr-defined]
+        ws = getattr(self.node_ctrls[0].cmap, "workspace")  # noqa: B009 (typed Any)
+        free = segment_clearance(ws, nodes[order], np.full(order.size, g))
         ok = np.flatnonzero(free > 0.0)
         best = int(self.main[order[ok[0]] if ok.size else order[0]])
         self._goal_cache[g] = best
@@ -298,7 +296,7 @@ class RoadmapCoordinator:
         for i in range(self.n):
             if dn[i]:
                 continue
-            if not (gg[i] == self.goal_pt[i]):
+            if gg[i] != self.goal_pt[i]:
                 self.goal_pt[i] = gg[i]
                 self.goal_node[i] = self.goal_node_of(gg[i])
                 self.eta[i] = 0.0
@@ -403,6 +401,8 @@ class RoadmapCoordinator:
             rng=self._rng,
         )
         self.nxt = np.array(nxt, dtype=np.intp)
+        if np.unique(self.nxt).size != self.n:  # pibt_step's invariant, kept cheaply checked
+            raise NavigationError("roadmap plan gave one node to two robots")
         if np.all(self.nxt == self.at) and not starting:
             self.idle_ticks += 1
         for i in starting:

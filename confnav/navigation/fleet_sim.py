@@ -33,7 +33,6 @@ from scipy.spatial import cKDTree
 from confnav.geometry import Workspace
 from confnav.navigation import defaults
 from confnav.navigation.control import Controller, Status
-from confnav.navigation.fleet_coord import RoadmapCoordinator
 from confnav.navigation.fleet import (
     DeadlockMonitor,
     Rows,
@@ -45,6 +44,7 @@ from confnav.navigation.fleet import (
     swept_min_distance,
     yield_way,
 )
+from confnav.navigation.fleet_coord import RoadmapCoordinator
 from confnav.navigation.sim import _chord_check
 from confnav.navigation.traffic import Gates, Traffic, find_gates
 from confnav.navigation.unicycle import step_exact, twist_from_velocity
@@ -262,17 +262,17 @@ def simulate_fleet(
         p = x + d * np.exp(1j * th)
         u_nom = np.zeros(n, dtype=np.complex128)
         status = np.full(n, Status.MOVING, dtype=np.int8)
-        use: Sequence[Controller] = ctrls
+        driving: Sequence[Controller] = ctrls
         groups = gidx
         leg = None
         if coord is not None:
             drv, leg = coord.update(t, p, goal, ~np.isnan(arrival))
-            use = [ctrls[i] if c is None else c for i, c in enumerate(drv)]
-            groups = _map_groups(use)
+            driving = [ctrls[i] if c is None else c for i, c in enumerate(drv)]
+            groups = _map_groups(driving)
         for g in groups:
-            cm = use[int(g[0])].cmap
+            cm = driving[int(g[0])].cmap
             w, dw = cm.T_and_dT(p[g])
-            out = fleet_step([use[i] for i in g], p[g], w, dw)
+            out = fleet_step([driving[i] for i in g], p[g], w, dw)
             u_nom[g], status[g] = out.u, out.status
         if leg is not None:  # arrival counts on the goal leg only
             status = np.where(leg | (status == Status.ERROR), status, Status.MOVING)
