@@ -23,8 +23,12 @@ and every command still goes through the fleet filter (pairwise barrier rows, wa
 cap: :func:`~confnav.navigation.fleet.project_with_walls`), so the plan costs no safety:
 robots on different nodes are ``spacing >= 2 rho`` apart, and where the continuous motion
 between nodes brings two robots nearer, the filter keeps them apart.  The next tick starts
-when every robot on the roadmap is within ``node_tol`` of its node (or ``settle_timeout`` s
-after the last tick; a robot not there yet then keeps its node and skips the tick).
+when every robot on the roadmap is within ``node_tol`` of its node, or ``settle_timeout`` s
+after the last tick, whichever comes first: a robot not there yet is fixed for that tick
+(it keeps its node) and the node it comes from stays closed to the others until it is
+there, so it holds up only the robots that need one of its two nodes, not the fleet (a
+robot on an edge along a wall is slow: the wall hold cap limits it to ``HOLD_FRACTION c /
+HOLD_TIME``).  With the default 1 s most ticks end that way (measured: bench/README.md).
 
 Goals are off the roadmap.  A robot whose goal node (the node nearest the goal with a free
 straight segment to it) is reached asks for an *excursion*: the nodes within ``gap`` of the
@@ -163,8 +167,8 @@ class RoadmapCoordinator:
     node_ctrls: list[Controller]
     n: int
     gap: float
-    node_tol: float = 0.06
-    settle_timeout: float = 6.0
+    node_tol: float = 0.12
+    settle_timeout: float = 1.0
     seed: int = 0
     patience: int = 4
     at: NDArray[np.intp] = field(init=False)
@@ -174,6 +178,7 @@ class RoadmapCoordinator:
     goal_node: NDArray[np.intp] = field(init=False)
     goal_pt: CArray = field(init=False)
     pending: NDArray[np.intp] = field(init=False)
+    origin: NDArray[np.intp] = field(init=False)  # the node a robot on its way comes from
     excursions: dict[int, _Excursion] = field(init=False)
     ticks: int = 0
     excursions_done: int = 0
@@ -191,6 +196,7 @@ class RoadmapCoordinator:
         self.goal_node = np.zeros(n, dtype=np.intp)
         self.goal_pt = np.full(n, np.nan + 0j)
         self.pending = np.zeros(n, dtype=np.intp)
+        self.origin = np.zeros(n, dtype=np.intp)
         self.excursions = {}
         self._rng = np.random.default_rng(self.seed)
         self._tie = self._rng.random(n) * 1e-3  # fixed random order between equal priorities
@@ -208,7 +214,7 @@ class RoadmapCoordinator:
         *,
         spacing: float | None = None,
         k: float = 40.0,
-        node_gain: float = 2.0,
+        node_gain: float = 4.0,
         margin: float = 0.05,
         edge_clearance: float = 0.03,
         max_edge: float = 2.2,
@@ -259,6 +265,7 @@ class RoadmapCoordinator:
         r, c = linear_sum_assignment(cost)
         self.at[r] = self.main[c]
         self.nxt[:] = self.at
+        self.origin[:] = self.at
         self.goal_node[:] = self.at
         self.mode[:] = RETURN_LEG
 
@@ -327,8 +334,9 @@ class RoadmapCoordinator:
         self.ticks += 1
         self.t_tick = t
         road = self.mode == ROAD
-        late = road & ~settled  # still between two nodes: keeps both this tick
-        blocked = {int(v) for v in self.at[late & (self.at != self.nxt)]}
+        late = road & ~settled  # still between two nodes: keeps both until it is there
+        self.origin = np.where(road & settled, self.nxt, self.origin)
+        blocked = {int(v) for v in self.origin[late & (self.origin != self.nxt)]}
         self.at = np.where(road, self.nxt, self.at)
         fixed = ~road | late
         for i in [j for j in self.excursions if self.mode[j] == ROAD]:
@@ -400,6 +408,7 @@ class RoadmapCoordinator:
             blocked=blocked,
             rng=self._rng,
         )
+        self.origin = np.where(road & ~late, self.at, self.origin)
         self.nxt = np.array(nxt, dtype=np.intp)
         if np.unique(self.nxt).size != self.n:  # pibt_step's invariant, kept cheaply checked
             raise NavigationError("roadmap plan gave one node to two robots")
