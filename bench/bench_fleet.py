@@ -18,6 +18,10 @@ check).  Scenarios (disk robots r = 0.2 m, v_max 0.5 m/s, maps of the free space
   of all robots at least 0.8 m apart), the next one issued when it reaches the current one;
   a robot done with its 10 goals parks at the last (and yields to robots it blocks, the
   rule of ``fleet.yield_way``); 200 goals, time limit 900 s (skip: ``--no-warehouse``).
+  Three designs on the same goals: ``warehouse_roadmap`` (the robots move on a roadmap as
+  planned by PIBT, :mod:`confnav.navigation.fleet_coord`; done robots park on the roadmap
+  and are pushed aside), ``warehouse`` (the local rules that are on by default) and
+  ``warehouse_gates`` (single-lane passages as mutexes); ``--roadmap-only`` runs the first.
 
 Per scenario: robot-robot, mover and wall contacts, arrival %, time to the last arrival
 against the slowest robot's lone run (the same robot alone on the same map; target <= 2x),

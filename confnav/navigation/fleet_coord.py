@@ -23,12 +23,14 @@ and every command still goes through the fleet filter (pairwise barrier rows, wa
 cap: :func:`~confnav.navigation.fleet.project_with_walls`), so the plan costs no safety:
 robots on different nodes are ``spacing >= 2 rho`` apart, and where the continuous motion
 between nodes brings two robots nearer, the filter keeps them apart.  The next tick starts
-when every robot on the roadmap is within ``node_tol`` of its node, or ``settle_timeout`` s
-after the last tick, whichever comes first: a robot not there yet is fixed for that tick
+when every robot on the roadmap is within ``node_tol`` of its node, when a robot has just
+come within ``node_tol`` of its node (``eager``, at most every ``min_tick`` s: a robot need
+not wait for the slowest one), or ``settle_timeout`` s after the last tick, whichever comes
+first: a robot not there yet is fixed for that tick
 (it keeps its node) and the node it comes from stays closed to the others until it is
 there, so it holds up only the robots that need one of its two nodes, not the fleet (a
 robot on an edge along a wall is slow: the wall hold cap limits it to ``HOLD_FRACTION c /
-HOLD_TIME``).  With the default 1 s most ticks end that way (measured: bench/README.md).
+HOLD_TIME``).
 
 Goals are off the roadmap.  A robot whose goal node (the node nearest the goal with a free
 straight segment to it) is reached asks for an *excursion*: the nodes within ``gap`` of the
@@ -37,7 +39,10 @@ standing on them are pushed out first (they plan with those nodes closed, stayin
 allowed), and once they are empty the robot drives to its goal with its own controller and
 back to its node (the *goal leg* and the *return leg*), while the others keep ticking around
 the closed part.  Excursions are granted in order of priority and only when their closed
-parts keep ``gap`` from the other excursions'.
+parts keep ``gap`` from the other excursions'.  A request still waiting for its nodes to
+empty after ``patience`` s is dropped for ``patience`` s (the robot may then be pushed off
+its goal node, and comes back): a robot that cannot leave a closed node does not hold the
+requester forever.
 
 What PIBT guarantees (op. cit., Theorem 1; Theorem 2 for goals given again on arrival): on a
 graph where every two adjacent nodes lie on a simple cycle, the robot of highest priority
@@ -170,14 +175,17 @@ class RoadmapCoordinator:
     node_tol: float = 0.12
     settle_timeout: float = 1.0
     seed: int = 0
-    patience: int = 4
+    patience: float = 4.0
+    eager: bool = True
+    min_tick: float = 0.25
     at: NDArray[np.intp] = field(init=False)
     nxt: NDArray[np.intp] = field(init=False)
     mode: NDArray[np.int8] = field(init=False)
     eta: NDArray[np.float64] = field(init=False)
     goal_node: NDArray[np.intp] = field(init=False)
     goal_pt: CArray = field(init=False)
-    pending: NDArray[np.intp] = field(init=False)
+    pend_since: NDArray[np.float64] = field(init=False)
+    suspend_until: NDArray[np.float64] = field(init=False)
     origin: NDArray[np.intp] = field(init=False)  # the node a robot on its way comes from
     excursions: dict[int, _Excursion] = field(init=False)
     ticks: int = 0
@@ -195,7 +203,9 @@ class RoadmapCoordinator:
         self.eta = np.zeros(n)
         self.goal_node = np.zeros(n, dtype=np.intp)
         self.goal_pt = np.full(n, np.nan + 0j)
-        self.pending = np.zeros(n, dtype=np.intp)
+        self.pend_since = np.full(n, np.nan)
+        self.suspend_until = np.full(n, -np.inf)
+        self._settled = np.zeros(n, dtype=bool)
         self.origin = np.zeros(n, dtype=np.intp)
         self.excursions = {}
         self._rng = np.random.default_rng(self.seed)
@@ -307,15 +317,19 @@ class RoadmapCoordinator:
                 self.goal_pt[i] = gg[i]
                 self.goal_node[i] = self.goal_node_of(gg[i])
                 self.eta[i] = 0.0
-                self.pending[i] = 0
+                self.pend_since[i] = np.nan
+                self.suspend_until[i] = -np.inf
         back = (self.mode == RETURN_LEG) & (np.abs(pp - nodes[self.at]) <= self.node_tol)
         for i in np.flatnonzero(back).tolist():
             self.mode[i] = ROAD
             self.excursions.pop(i, None)
         road = self.mode == ROAD
         settled = np.abs(pp - nodes[self.nxt]) <= self.node_tol
-        if np.all(settled | ~road) or t - self.t_tick >= self.settle_timeout:
-            if not np.all(settled | ~road):
+        newly = road & settled & ~self._settled
+        self._settled = road & settled
+        eager = self.eager and bool(newly.any()) and t - self.t_tick >= self.min_tick
+        if np.all(settled | ~road) or t - self.t_tick >= self.settle_timeout or eager:
+            if not (np.all(settled | ~road) or eager):
                 self.timeouts += 1
             self.tick(t, settled, dn)
         drive: list[Controller | None] = []
@@ -350,10 +364,10 @@ class RoadmapCoordinator:
             closed_nodes |= ex.nodes
             closed_edges |= ex.edges
         # excursion requests: settled robots on their goal node, goal not yet reached, not
-        # suspended (a request pending ``patience`` ticks is dropped for ``patience`` ticks:
+        # suspended (a request pending ``patience`` s is dropped for ``patience`` s:
         # the robot is then an ordinary agent that may be pushed off its goal node)
         req = np.flatnonzero(
-            road & settled & ~done & (self.at == self.goal_node) & (self.pending >= 0)
+            road & settled & ~done & (self.at == self.goal_node) & (t >= self.suspend_until)
         )
         req = req[np.argsort(-(self.eta[req] + self._tie[req]), kind="stable")]
         holders = {int(self.at[j]) for j in np.flatnonzero(~road)}
@@ -370,7 +384,8 @@ class RoadmapCoordinator:
                 continue
             others = {int(self.at[j]) for j in range(self.n) if j != i}
             if ex.nodes & others:  # pending: its nodes are emptied first, its edges stay open
-                self.pending[i] += 1
+                if np.isnan(self.pend_since[i]):
+                    self.pend_since[i] = t
                 closed_nodes |= ex.nodes
             else:
                 starting.append(i)
@@ -379,9 +394,9 @@ class RoadmapCoordinator:
             self.excursions[i] = ex
             fixed[i] = True
             asked.append(i)
-        over = self.pending >= self.patience
-        self.pending[over] = -self.patience  # suspended, counts back up to 0
-        self.pending[(self.pending < 0) & ~over] += 1
+        over = t - self.pend_since >= self.patience  # NaN (not pending): False
+        self.suspend_until[over] = t + self.patience
+        self.pend_since[over] = np.nan
         for i in np.flatnonzero(over).tolist():
             self.excursions.pop(i, None)
             self.eta[i] = 0.0
@@ -416,7 +431,7 @@ class RoadmapCoordinator:
             self.idle_ticks += 1
         for i in starting:
             self.mode[i] = GOAL_LEG
-            self.pending[i] = 0
+            self.pend_since[i] = np.nan
 
     def _excursion(self, i: int) -> _Excursion:
         a = complex(self.roadmap.nodes[int(self.at[i])])
