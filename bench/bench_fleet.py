@@ -299,6 +299,12 @@ def main() -> None:
     ap.add_argument(
         "--roadmap-only", action="store_true", help="only the roadmap row of the warehouse"
     )
+    ap.add_argument(
+        "--extra-seeds",
+        type=int,
+        default=0,
+        help="the roadmap row again on the goals of seeds 1..N (warehouse_roadmap_seeds)",
+    )
     args = ap.parse_args()
     started = datetime.now(UTC).isoformat(timespec="seconds")
     commit = git("rev-parse", "HEAD")
@@ -315,8 +321,11 @@ def main() -> None:
     person = Mover(start=5.0 + 7.6j, end=5.0 + 0.35j, radius=0.3, speed=1.2, t_start=3.25)
     rows["person"] = run(ROOM, room_map, np.array([1.0 + 1.2j]), np.array([8.5 + 1.2j]), [person])
     wh = wh_gates = wh_road = None
+    extra: list[dict[str, Any]] = []
     if not (args.no_warehouse or args.quick):
         wh_road = warehouse(args.rounds, roadmap=True)
+        for k in range(1, args.extra_seeds + 1):
+            extra.append(warehouse(args.rounds, seed=k, roadmap=True) | {"seed": k})
         if not args.roadmap_only:
             wh = warehouse(args.rounds)
             wh_gates = warehouse(args.rounds, traffic=True)
@@ -341,7 +350,12 @@ def main() -> None:
     print(
         f"batched rows + projection, {cost['robots']} robots: {cost['us_per_robot']:.2f} us/robot"
     )
-    whs = (("warehouse", wh), ("warehouse, gates", wh_gates), ("warehouse, roadmap", wh_road))
+    whs = (
+        ("warehouse", wh),
+        ("warehouse, gates", wh_gates),
+        ("warehouse, roadmap", wh_road),
+        *((f"warehouse, roadmap, seed {e['seed']}", e) for e in extra),
+    )
     for wname, w in whs:
         if w is None:
             continue
@@ -386,6 +400,7 @@ def main() -> None:
         "warehouse": wh,
         "warehouse_gates": wh_gates,
         "warehouse_roadmap": wh_road,
+        "warehouse_roadmap_seeds": extra,
         "targets": targets,
     }
     args.out.parent.mkdir(parents=True, exist_ok=True)

@@ -239,7 +239,8 @@ class RoadmapCoordinator:
         node: Koditschek-Rimon with the given ``k`` (one k for all nodes: for k at or above
         the goal's threshold the function is a navigation function, Koditschek and Rimon,
         "Robot navigation functions on manifolds with boundary", Adv. Appl. Math. 11, 1990)
-        and gain ``node_gain``."""
+        and gain ``node_gain``.  ``node_tol`` defaults to ``spacing - 2 rho`` (a robot that
+        near its node clears a robot standing on any other node)."""
         ws = getattr(cmap, "workspace", None)
         if ws is None:
             raise NavigationError("the coordinator needs a map with its workspace")
@@ -259,6 +260,8 @@ class RoadmapCoordinator:
             Controller(cmap, complex(z), navfn=KoditschekRimon(dom, complex(wz), k), gain=node_gain)  # type: ignore[arg-type]
             for z, wz in zip(rm.nodes.tolist(), w.tolist(), strict=True)
         ]
+        # within spacing - 2 rho of its node a robot clears one standing on another node
+        kw.setdefault("node_tol", sp - 2.0 * rho)
         return cls(roadmap=rm, node_ctrls=ctrls, n=n, gap=gap, **kw)  # type: ignore[arg-type]
 
     # -- set-up -----------------------------------------------------------------------------
