@@ -136,3 +136,24 @@ def test_two_robots_swap_through_a_single_lane_door(corridor_map) -> None:  # ty
     assert res.arrived.all()
     assert co.ticks > 0 and co.excursions_done == 2
     assert len(set(co.at.tolist())) == 2
+
+
+def test_a_robot_parked_in_the_door_is_pushed_aside(corridor_map) -> None:  # type: ignore[no-untyped-def]
+    """Robot 0's goal is in the door: done, it parks on the roadmap there with priority 0.
+    Robot 1, given its goal later (its first goal is near its start), must pass through the
+    door: PIBT pushes the parked robot off the door's node, robot 1 arrives, no contact."""
+    starts = np.array([2.0 + 2.0j, 1.0 + 1.0j])
+    first = [Controller(corridor_map, 4.1 + 2.0j), Controller(corridor_map, 1.2 + 0.8j)]
+    later = [[], [Controller(corridor_map, 7.0 + 2.0j)]]
+    co = RoadmapCoordinator.build(corridor_map, 2, R)
+    res = simulate_fleet(
+        first, starts, CORRIDOR, radius=R, t_max=120, next_goals=later, coordinator=co,
+        record_paths=True,
+    )  # fmt: skip
+    assert res.robot_contacts == 0 and res.wall_contacts == 0
+    assert res.reached is not None and res.reached.tolist() == [1, 2] and res.arrived.all()
+    assert res.arrival_time[0] < res.arrival_time[1]  # robot 0 was parked when 1 came by
+    assert res.paths is not None
+    assert (np.abs(res.paths[:, 1] - (4.1 + 2.0j)) < 0.2).any()  # robot 1 went through the door
+    parked = res.paths[int(round(res.arrival_time[0] / 0.05)) :, 0]
+    assert np.abs(parked - (4.1 + 2.0j)).max() > 2 * R  # robot 0 left the door after parking
