@@ -155,5 +155,5 @@ def test_a_robot_parked_in_the_door_is_pushed_aside(corridor_map) -> None:  # ty
     assert res.arrival_time[0] < res.arrival_time[1]  # robot 0 was parked when 1 came by
     assert res.paths is not None
     assert (np.abs(res.paths[:, 1] - (4.1 + 2.0j)) < 0.2).any()  # robot 1 went through the door
-    parked = res.paths[int(round(res.arrival_time[0] / 0.05)) :, 0]
+    parked = res.paths[int(np.rint(res.arrival_time[0] / 0.05)) :, 0]
     assert np.abs(parked - (4.1 + 2.0j)).max() > 2 * R  # robot 0 left the door after parking
