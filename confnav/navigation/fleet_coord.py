@@ -392,12 +392,13 @@ class RoadmapCoordinator:
                 closed_nodes |= ex.nodes
             else:
                 starting.append(i)
+                self.pend_since[i] = np.nan  # started: no longer pending (never dropped)
                 closed_nodes |= ex.nodes
                 closed_edges |= ex.edges
             self.excursions[i] = ex
             fixed[i] = True
             asked.append(i)
-        over = t - self.pend_since >= self.patience  # NaN (not pending): False
+        over = road & (t - self.pend_since >= self.patience)  # NaN (not pending): False
         self.suspend_until[over] = t + self.patience
         self.pend_since[over] = np.nan
         for i in np.flatnonzero(over).tolist():
