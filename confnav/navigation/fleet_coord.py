@@ -177,7 +177,7 @@ class RoadmapCoordinator:
     seed: int = 0
     patience: float = 4.0
     eager: bool = True
-    min_tick: float = 0.25
+    min_tick: float = 0.1
     at: NDArray[np.intp] = field(init=False)
     nxt: NDArray[np.intp] = field(init=False)
     mode: NDArray[np.int8] = field(init=False)
