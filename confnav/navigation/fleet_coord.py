@@ -404,7 +404,7 @@ class RoadmapCoordinator:
         for i in np.flatnonzero(over).tolist():
             self.excursions.pop(i, None)
             self.eta[i] = 0.0
-            fixed[i] = False
+            fixed[i] = bool(late[i])  # a robot still on its way stays fixed regardless
             if i in asked:
                 asked.remove(i)
         closed_nodes = set()
