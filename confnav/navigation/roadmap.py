@@ -145,20 +145,46 @@ def build_roadmap(
         )
     max_edge = 1.6 * spacing if max_edge is None else float(max_edge)
     pass_gap = 0.75 * spacing if pass_gap is None else float(pass_gap)
-    x0, y0, x1, y1 = workspace.bounds
+    nodes = _sample_nodes(workspace, spacing, min_clearance, grid)
+    ec = min_clearance if edge_clearance is None else float(edge_clearance)
+    edges = _free_edges(workspace, nodes, max_edge, ec, pass_gap)
+    n = nodes.size
+    if prune_leaves:
+        nodes, edges = _two_core(nodes, edges)
+        n = nodes.size
+    nb: list[list[int]] = [[] for _ in range(n)]
+    for u, v in edges.tolist():
+        nb[u].append(v)
+        nb[v].append(u)
+    w = np.abs(nodes[edges[:, 1]] - nodes[edges[:, 0]]) if len(edges) else np.zeros(0)
+    g = csr_matrix((w, (edges[:, 0], edges[:, 1])), shape=(n, n))
+    dist = np.asarray(shortest_path(g, method="D", directed=False), dtype=np.float64)
+    return Roadmap(
+        nodes=nodes,
+        edges=edges,
+        neighbours=tuple(np.array(x, dtype=np.intp) for x in nb),
+        dist=dist,
+        spacing=float(spacing),
+        min_clearance=float(min_clearance),
+    )
+
+
+def _sample_nodes(ws: Workspace, spacing: float, min_clearance: float, grid: float) -> CArray:
+    """Grid points with ``min_clearance``, largest clearance first, kept ``spacing`` apart."""
+    x0, y0, x1, y1 = ws.bounds
     # the grid anchored at the bounds' corner: axis-aligned passages of a width that is a
     # multiple of the step get candidates on their centre lines
     xs = np.arange(x0, x1 + 0.5 * grid, grid)
     ys = np.arange(y0, y1 + 0.5 * grid, grid)
     gx, gy = np.meshgrid(xs, ys, indexing="ij")
     z = (gx + 1j * gy).ravel()
-    inside = np.asarray(workspace.contains(z), dtype=bool)
+    inside = np.asarray(ws.contains(z), dtype=bool)
     z = z[inside]
-    c = np.asarray(workspace.clearance(z), dtype=np.float64)
+    c = np.asarray(ws.clearance(z), dtype=np.float64)
     keep = c >= min_clearance - 1e-9
     z, c = z[keep], c[keep]
     if z.size == 0:
-        raise NavigationError(f"no point of the workspace has clearance {min_clearance} m")
+        raise NavigationError(f"no point of the ws has clearance {min_clearance} m")
     # largest clearance first; ties by position (deterministic)
     order = np.lexsort((z.imag, z.real, -np.round(c, 9)))
     cell = spacing / np.sqrt(2.0)  # at most one node per bucket
@@ -179,6 +205,14 @@ def build_roadmap(
             buckets[(bx, by)] = q
             chosen.append(q)
     nodes = np.array(chosen, dtype=np.complex128)
+    return nodes
+
+
+def _free_edges(
+    ws: Workspace, nodes: CArray, max_edge: float, ec: float, pass_gap: float
+) -> NDArray[np.intp]:
+    """Delaunay edges of ``nodes`` no longer than ``max_edge``, ``ec`` from the walls and
+    ``pass_gap`` from every other node."""
     n = nodes.size
     if n >= 3:
         tri = Delaunay(np.column_stack([nodes.real, nodes.imag]))
@@ -193,8 +227,7 @@ def build_roadmap(
         a, b = nodes[cand[:, 0]], nodes[cand[:, 1]]
         ok_len = np.abs(b - a) <= max_edge + 1e-9
         cand, a, b = cand[ok_len], a[ok_len], b[ok_len]
-        ec = min_clearance if edge_clearance is None else float(edge_clearance)
-        ok_c = segment_clearance(workspace, a, b) >= ec
+        ok_c = segment_clearance(ws, a, b) >= ec
         cand, a, b = cand[ok_c], a[ok_c], b[ok_c]
         # no third node near the edge
         tree = cKDTree(np.column_stack([nodes.real, nodes.imag]))
@@ -209,31 +242,19 @@ def build_roadmap(
                 good[e] = bool(dd.min() >= pass_gap - 1e-9)
         cand = cand[good]
     edges = np.asarray(cand, dtype=np.intp).reshape(-1, 2)
-    if prune_leaves:
-        alive = np.ones(n, dtype=bool)
-        while True:
-            deg = np.bincount(edges.ravel(), minlength=n)
-            leaf = alive & (deg <= 1)
-            if not leaf.any():
-                break
-            alive &= ~leaf
-            edges = edges[alive[edges[:, 0]] & alive[edges[:, 1]]]
-        new = np.cumsum(alive) - 1
-        nodes = nodes[alive]
-        edges = new[edges].astype(np.intp).reshape(-1, 2)
-        n = nodes.size
-    nb: list[list[int]] = [[] for _ in range(n)]
-    for u, v in edges.tolist():
-        nb[u].append(v)
-        nb[v].append(u)
-    w = np.abs(nodes[edges[:, 1]] - nodes[edges[:, 0]]) if len(edges) else np.zeros(0)
-    g = csr_matrix((w, (edges[:, 0], edges[:, 1])), shape=(n, n))
-    dist = np.asarray(shortest_path(g, method="D", directed=False), dtype=np.float64)
-    return Roadmap(
-        nodes=nodes,
-        edges=edges,
-        neighbours=tuple(np.array(x, dtype=np.intp) for x in nb),
-        dist=dist,
-        spacing=float(spacing),
-        min_clearance=float(min_clearance),
-    )
+    return edges
+
+
+def _two_core(nodes: CArray, edges: NDArray[np.intp]) -> tuple[CArray, NDArray[np.intp]]:
+    """Nodes of degree <= 1 removed repeatedly; edges renumbered."""
+    n = nodes.size
+    alive = np.ones(n, dtype=bool)
+    while True:
+        deg = np.bincount(edges.ravel(), minlength=n)
+        leaf = alive & (deg <= 1)
+        if not leaf.any():
+            break
+        alive &= ~leaf
+        edges = edges[alive[edges[:, 0]] & alive[edges[:, 1]]]
+    new = np.cumsum(alive) - 1
+    return nodes[alive], new[edges].astype(np.intp).reshape(-1, 2)
