@@ -18,6 +18,10 @@ check).  Scenarios (disk robots r = 0.2 m, v_max 0.5 m/s, maps of the free space
   of all robots at least 0.8 m apart), the next one issued when it reaches the current one;
   a robot done with its 10 goals parks at the last (and yields to robots it blocks, the
   rule of ``fleet.yield_way``); 200 goals, time limit 900 s (skip: ``--no-warehouse``).
+  Three designs on the same goals: ``warehouse_roadmap`` (the robots move on a roadmap as
+  planned by PIBT, :mod:`confnav.navigation.fleet_coord`; done robots park on the roadmap
+  and are pushed aside), ``warehouse`` (the local rules that are on by default) and
+  ``warehouse_gates`` (single-lane passages as mutexes); ``--roadmap-only`` runs the first.
 
 Per scenario: robot-robot, mover and wall contacts, arrival %, time to the last arrival
 against the slowest robot's lone run (the same robot alone on the same map; target <= 2x),
@@ -151,13 +155,22 @@ def warehouse_map(inflate_by: float) -> tuple[Any, Any, float]:
     return _WAREHOUSE_MAP[inflate_by]
 
 
+_WAREHOUSE_CTRLS: dict[tuple[int, int], list[list[Controller]]] = {}
+
+
 def warehouse(
-    rounds: int, seed: int = 0, yielding: bool = True, traffic: bool = False
+    rounds: int,
+    seed: int = 0,
+    yielding: bool = True,
+    traffic: bool = False,
+    roadmap: bool = False,
 ) -> dict[str, Any]:
     """20 unicycles, ``rounds`` random goals each in the README's warehouse, a new goal issued
     on arrival; a robot done with its goals parks at its last one (and yields).  ``traffic``:
     the single-lane passages as mutexes and the goal-conflict rule (``simulate_fleet``'s
-    ``traffic`` and ``goal_yield``)."""
+    ``traffic`` and ``goal_yield``).  ``roadmap``: the robots move on a roadmap as planned by
+    :class:`confnav.navigation.fleet_coord.RoadmapCoordinator` (PIBT; done robots park on
+    the roadmap and are pushed aside)."""
     rd, d, n = 0.2, 0.1, 20
     ws, cmap, solve_s = warehouse_map(rd + d)
     shrunk = cmap.workspace
@@ -181,7 +194,17 @@ def warehouse(
     th = rng.uniform(-np.pi, np.pi, n)
     x = p - d * np.exp(1j * th)
     goals = np.array([spots(n) for _ in range(rounds)])  # round k: n goals 0.8 m apart
-    ctrls = [[Controller(cmap, g, navfn=WAREHOUSE_NAVFN) for g in goals[:, i]] for i in range(n)]
+    key = (rounds, seed)
+    if key not in _WAREHOUSE_CTRLS:  # the same goals in every variant: built once per run
+        _WAREHOUSE_CTRLS[key] = [
+            [Controller(cmap, g, navfn=WAREHOUSE_NAVFN) for g in goals[:, i]] for i in range(n)
+        ]
+    ctrls = _WAREHOUSE_CTRLS[key]
+    coord = None
+    if roadmap:
+        from confnav.navigation.fleet_coord import RoadmapCoordinator
+
+        coord = RoadmapCoordinator.build(cmap, n, rd + d)
     t0 = time.perf_counter()
     res = simulate_fleet(
         [c[0] for c in ctrls],
@@ -196,12 +219,14 @@ def warehouse(
         yielding=yielding,
         traffic=traffic,
         goal_yield=traffic,
+        coordinator=coord,
     )
     wall = time.perf_counter() - t0
     assert res.reached is not None
     reached = int(res.reached.sum())
     print(
-        f"#   warehouse{'' if yielding else ' (no yield rule)'}{' (gates)' if traffic else ''}: "
+        f"#   warehouse{'' if yielding else ' (no yield rule)'}{' (gates)' if traffic else ''}"
+        f"{' (roadmap)' if roadmap else ''}: "
         f"{reached}/{res.goals} goals "
         f"reached, {res.robot_contacts} robot / {res.wall_contacts} wall contacts, "
         f"t {res.t_end:.1f} s, {wall:.0f} s wall (load {loadavg()})",
@@ -213,6 +238,12 @@ def warehouse(
         "navfn": WAREHOUSE_NAVFN,
         "yield_rule": yielding,
         "traffic": traffic,
+        "roadmap": roadmap,
+        "roadmap_nodes": coord.roadmap.size if coord is not None else None,
+        "roadmap_edges": len(coord.roadmap.edges) if coord is not None else None,
+        "ticks": coord.ticks if coord is not None else None,
+        "idle_ticks": coord.idle_ticks if coord is not None else None,
+        "tick_timeouts": coord.timeouts if coord is not None else None,
         "gates": res.gates,
         "gate_waits": res.waits,
         "goal_yield_steps": res.goal_yields,
@@ -265,6 +296,15 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=RESULTS / "fleet.json")
     ap.add_argument("--no-warehouse", action="store_true", help="skip the warehouse rounds")
     ap.add_argument("--rounds", type=int, default=10, help="warehouse goals per robot")
+    ap.add_argument(
+        "--roadmap-only", action="store_true", help="only the roadmap row of the warehouse"
+    )
+    ap.add_argument(
+        "--extra-seeds",
+        type=int,
+        default=0,
+        help="the roadmap row again on the goals of seeds 1..N (warehouse_roadmap_seeds)",
+    )
     args = ap.parse_args()
     started = datetime.now(UTC).isoformat(timespec="seconds")
     commit = git("rev-parse", "HEAD")
@@ -280,10 +320,15 @@ def main() -> None:
         print(f"# door done (load {loadavg()})", flush=True)
     person = Mover(start=5.0 + 7.6j, end=5.0 + 0.35j, radius=0.3, speed=1.2, t_start=3.25)
     rows["person"] = run(ROOM, room_map, np.array([1.0 + 1.2j]), np.array([8.5 + 1.2j]), [person])
-    wh = wh_gates = None
+    wh = wh_gates = wh_road = None
+    extra: list[dict[str, Any]] = []
     if not (args.no_warehouse or args.quick):
-        wh = warehouse(args.rounds)
-        wh_gates = warehouse(args.rounds, traffic=True)
+        wh_road = warehouse(args.rounds, roadmap=True)
+        for k in range(1, args.extra_seeds + 1):
+            extra.append(warehouse(args.rounds, seed=k, roadmap=True) | {"seed": k})
+        if not args.roadmap_only:
+            wh = warehouse(args.rounds)
+            wh_gates = warehouse(args.rounds, traffic=True)
     cost = batched_cost()
     hdr = (
         f"{'scenario':10s} {'N':>3s} {'r-r':>4s} {'mov':>4s} {'wall':>4s} {'arr%':>5s} "
@@ -305,7 +350,13 @@ def main() -> None:
     print(
         f"batched rows + projection, {cost['robots']} robots: {cost['us_per_robot']:.2f} us/robot"
     )
-    for wname, w in (("warehouse", wh), ("warehouse, gates", wh_gates)):
+    whs = (
+        ("warehouse", wh),
+        ("warehouse, gates", wh_gates),
+        ("warehouse, roadmap", wh_road),
+        *((f"warehouse, roadmap, seed {e['seed']}", e) for e in extra),
+    )
+    for wname, w in whs:
         if w is None:
             continue
         print(
@@ -323,7 +374,7 @@ def main() -> None:
         }
         for name, r in rows.items()
     }
-    for wname, w in (("warehouse", wh), ("warehouse, gates", wh_gates)):
+    for wname, w in whs:
         if w is not None:
             targets[wname] = {
                 "no contact": w["robot_contacts"] + w["wall_contacts"] == 0,
@@ -348,6 +399,8 @@ def main() -> None:
         "batched_cost": cost,
         "warehouse": wh,
         "warehouse_gates": wh_gates,
+        "warehouse_roadmap": wh_road,
+        "warehouse_roadmap_seeds": extra,
         "targets": targets,
     }
     args.out.parent.mkdir(parents=True, exist_ok=True)

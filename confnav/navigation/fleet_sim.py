@@ -44,6 +44,7 @@ from confnav.navigation.fleet import (
     swept_min_distance,
     yield_way,
 )
+from confnav.navigation.fleet_coord import RoadmapCoordinator
 from confnav.navigation.sim import _chord_check
 from confnav.navigation.traffic import Gates, Traffic, find_gates
 from confnav.navigation.unicycle import step_exact, twist_from_velocity
@@ -157,6 +158,7 @@ def simulate_fleet(
     trace_points: int = 15,
     goal_yield: bool = False,
     backoff: float = 0.15,
+    coordinator: RoadmapCoordinator | None = None,
 ) -> FleetResult:
     """Drive robot i from ``starts[i]`` with ``controllers[i]`` until all arrive or ``t_max``.
 
@@ -194,6 +196,12 @@ def simulate_fleet(
     is to its own steps aside like an idle robot (:func:`~confnav.navigation.fleet.
     goal_yielders`).  Both are off by default: on the warehouse bench they reached fewer
     goals than without them (bench/README.md, docs/NAVIGATION.md "Fleets").
+
+    ``coordinator``: the robots move on a roadmap as planned by a
+    :class:`~confnav.navigation.fleet_coord.RoadmapCoordinator` (PIBT steps between nodes,
+    excursions to the goals): each step a robot is driven by its current node's controller,
+    or by its goal's controller on the goal leg (arrival counts only there); side passing,
+    yielding and the gates are off (the plan replaces them); the fleet filter stays on.
     """
     ctrls = list(controllers)
     queue = [list(q) for q in next_goals] if next_goals is not None else [[] for _ in ctrls]
@@ -245,16 +253,33 @@ def simulate_fleet(
     paths = [x.copy()] if record_paths else None
     t = 0.0
     steps = 0
+    coord = coordinator
+    if coord is not None:
+        coord.start(x + d * np.exp(1j * th))
+        side_passing = yielding = False
+        gates = Gates.none()
     while t < t_max - 1e-12:
         p = x + d * np.exp(1j * th)
         u_nom = np.zeros(n, dtype=np.complex128)
         status = np.full(n, Status.MOVING, dtype=np.int8)
-        for g in gidx:
-            cm = ctrls[int(g[0])].cmap
+        driving: Sequence[Controller] = ctrls
+        groups = gidx
+        leg = None
+        if coord is not None:
+            drv, leg = coord.update(t, p, goal, ~np.isnan(arrival))
+            driving = [ctrls[i] if c is None else c for i, c in enumerate(drv)]
+            groups = _map_groups(driving)
+        for g in groups:
+            cm = driving[int(g[0])].cmap
             w, dw = cm.T_and_dT(p[g])
-            out = fleet_step([ctrls[i] for i in g], p[g], w, dw)
+            out = fleet_step([driving[i] for i in g], p[g], w, dw)
             u_nom[g], status[g] = out.u, out.status
+        if leg is not None:  # arrival counts on the goal leg only
+            status = np.where(leg | (status == Status.ERROR), status, Status.MOVING)
         now_arr = (status == Status.ARRIVED) & np.isnan(arrival)
+        if coord is not None:
+            for i_ in np.flatnonzero(now_arr):
+                coord.reached(int(i_))
         reached += now_arr
         nxt = now_arr & np.array([len(q) > 0 for q in queue], dtype=bool)
         for i_ in np.flatnonzero(nxt):  # a new goal on arrival (rare: per goal, not per step)

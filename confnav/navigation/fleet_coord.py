@@ -1,0 +1,452 @@
+"""Fleet coordination on a roadmap: PIBT steps on the roadmap's nodes, sub-goals for the
+robots' conformal controllers, excursions from a node to a goal off the roadmap.
+
+Why: a fleet driven by its navigation functions plus a safety filter and local rules (side
+passing, yielding, single-lane mutexes) deadlocks in a warehouse's narrow aisles and at the
+junctions between its pillars (bench/README.md, "Fleets").  Here the robots move on a
+:class:`~confnav.navigation.roadmap.Roadmap` whose nodes are a robot's disk apart, one node at
+a time and all at once (a *tick*), as planned by Priority Inheritance with Backtracking
+(PIBT; Okumura, Machida, Defago and Tamura, "Priority inheritance with backtracking for
+iterative multi-agent path finding", Artificial Intelligence 310, 2022, Algorithm 1): each
+tick, the robots in order of priority pick the neighbouring node (or their own) nearest their
+goal node that no robot has taken for the next tick; a robot whose pick is occupied by a robot
+that has not picked yet hands its priority down to it, which must then move away (or the pick
+fails and the next candidate is tried: backtracking); no two robots swap.  The priority of a
+robot grows by one every tick it is not at its goal node and drops to zero on a new goal, so
+the robot waiting longest leads (ties by a fixed random order).  A robot done with its goals
+is an agent with its current node as goal and priority zero: robots that need its node push
+it aside, and it comes back.
+
+The nodes are the sub-goals: a robot drives to its next node with a conformal controller of
+that node (Koditschek-Rimon on the same map, :class:`~confnav.navigation.control.Controller`),
+and every command still goes through the fleet filter (pairwise barrier rows, walls, the hold
+cap: :func:`~confnav.navigation.fleet.project_with_walls`), so the plan costs no safety:
+robots on different nodes are ``spacing >= 2 rho`` apart, and where the continuous motion
+between nodes brings two robots nearer, the filter keeps them apart.  The next tick starts
+when every robot on the roadmap is within ``node_tol`` of its node, when a robot has just
+come within ``node_tol`` of its node (``eager``, at most every ``min_tick`` s: a robot need
+not wait for the slowest one), or ``settle_timeout`` s after the last tick, whichever comes
+first: a robot not there yet is fixed for that tick
+(it keeps its node) and the node it comes from stays closed to the others until it is
+there, so it holds up only the robots that need one of its two nodes, not the fleet (a
+robot on an edge along a wall is slow: the wall hold cap limits it to ``HOLD_FRACTION c /
+HOLD_TIME``).
+
+Goals are off the roadmap.  A robot whose goal node (the node nearest the goal with a free
+straight segment to it) is reached asks for an *excursion*: the nodes within ``gap`` of the
+segment node-goal and the edges within ``gap`` of it are closed to the other robots; robots
+standing on them are pushed out first (they plan with those nodes closed, staying not
+allowed), and once they are empty the robot drives to its goal with its own controller and
+back to its node (the *goal leg* and the *return leg*), while the others keep ticking around
+the closed part.  Excursions are granted in order of priority and only when their closed
+parts keep ``gap`` from the other excursions'.  A request still waiting for its nodes to
+empty after ``patience`` s is dropped for ``patience`` s (the robot may then be pushed off
+its goal node, and comes back): a robot that cannot leave a closed node does not hold the
+requester forever.
+
+What PIBT guarantees (op. cit., Theorem 1; Theorem 2 for goals given again on arrival): on a
+graph where every two adjacent nodes lie on a simple cycle, the robot of highest priority
+reaches its goal node within ``diam(G)`` ticks, so every robot reaches every goal node.  The
+excursions and the timeout change the graph from tick to tick (closed nodes), so the theorem
+is not claimed for this module: it is the design's rationale, not a guarantee; arrival is
+measured (bench/bench_fleet.py).  What is guaranteed is what the fleet filter guarantees (no
+contact), and that the plan never gives a node to two robots in one tick
+(:meth:`RoadmapCoordinator.tick`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.optimize import linear_sum_assignment
+
+from confnav.errors import NavigationError
+from confnav.navigation.control import Controller
+from confnav.navigation.navfn import CircleDomain, KoditschekRimon
+from confnav.navigation.roadmap import (
+    Roadmap,
+    build_roadmap,
+    segment_clearance,
+    segment_segment_distance,
+)
+from confnav.types import CArray
+
+__all__ = ["GOAL_LEG", "RETURN_LEG", "ROAD", "RoadmapCoordinator", "pibt_step"]
+
+#: modes of a robot
+ROAD, GOAL_LEG, RETURN_LEG = 0, 1, 2
+
+
+def pibt_step(
+    roadmap: Roadmap,
+    at: Sequence[int],
+    goal: Sequence[int],
+    priority: Sequence[float],
+    *,
+    fixed: Sequence[bool] | None = None,
+    closed_nodes: set[int] | frozenset[int] = frozenset(),
+    closed_edges: set[tuple[int, int]] | frozenset[tuple[int, int]] = frozenset(),
+    blocked: set[int] | frozenset[int] = frozenset(),
+    rng: np.random.Generator | None = None,
+) -> list[int]:
+    """One PIBT step (Okumura et al. 2022, Algorithm 1): the node of every robot at the next
+    tick.  ``at``: current nodes (distinct); ``goal``: goal nodes; ``priority``: larger
+    first.  ``fixed`` robots stay.  No robot enters a ``closed_nodes`` node or moves along a
+    ``closed_edges`` edge (either order); a robot standing on a closed node must leave it
+    (staying is its last resort); no robot enters a ``blocked`` node (one standing on it may
+    stay).  The result never gives one node to two robots, and no two
+    robots swap nodes."""
+    n = len(at)
+    cur = [int(a) for a in at]
+    if len(set(cur)) != n:
+        raise NavigationError("pibt_step: two robots on one node")
+    fix = [False] * n if fixed is None else [bool(f) for f in fixed]
+    occupant: dict[int, int] = {v: i for i, v in enumerate(cur)}
+    nxt: list[int | None] = [None] * n
+    taken: dict[int, int] = {}
+    for i in range(n):
+        if fix[i]:
+            nxt[i] = cur[i]
+            taken[cur[i]] = i
+    tie = (rng or np.random.default_rng(0)).random(roadmap.size)
+    dist = roadmap.dist
+
+    def closed_edge(u: int, v: int) -> bool:
+        return (u, v) in closed_edges or (v, u) in closed_edges
+
+    def plan(i: int, parent: int | None) -> bool:
+        u = cur[i]
+        cands = [int(v) for v in roadmap.neighbours[u]]
+        cands = [
+            v for v in cands if v not in closed_nodes and v not in blocked and not closed_edge(u, v)
+        ]
+        if u not in closed_nodes:
+            cands.append(u)
+        g = goal[i]
+        cands.sort(key=lambda v: (dist[v, g], tie[v]))
+        for v in cands:
+            if v in taken:
+                continue
+            if parent is not None and v == cur[parent]:
+                continue  # no swap with the robot that pushed
+            nxt[i] = v
+            taken[v] = i
+            k = occupant.get(v)
+            if k is not None and k != i and nxt[k] is None and not plan(k, i):
+                continue  # k stays on v (it took v itself): try the next candidate
+            return True
+        nxt[i] = u
+        taken[u] = i
+        return False
+
+    must_leave = [i for i in range(n) if not fix[i] and cur[i] in closed_nodes]
+    order = sorted(range(n), key=lambda i: -priority[i])
+    for i in must_leave + order:
+        if nxt[i] is None:
+            plan(i, None)
+    out = [int(v) if v is not None else cur[i] for i, v in enumerate(nxt)]
+    return out
+
+
+@dataclass
+class _Excursion:
+    nodes: frozenset[int]
+    edges: frozenset[tuple[int, int]]
+    a: complex
+    b: complex
+
+
+@dataclass
+class RoadmapCoordinator:
+    """Sub-goals for ``n`` robots on ``roadmap`` (module docstring).
+
+    ``node_ctrls[v]``: the controller that drives a robot to node v; ``gap``: the least
+    distance kept between an excursion and the other robots' nodes and edges (``2 rho`` plus
+    a margin).  Use :meth:`build`, then :meth:`start` with the robots' positions, then call
+    :meth:`update` every control step and :meth:`reached` when a robot reaches its goal."""
+
+    roadmap: Roadmap
+    node_ctrls: list[Controller]
+    n: int
+    gap: float
+    node_tol: float = 0.12
+    settle_timeout: float = 1.0
+    seed: int = 0
+    patience: float = 4.0
+    eager: bool = True
+    min_tick: float = 0.1
+    at: NDArray[np.intp] = field(init=False)
+    nxt: NDArray[np.intp] = field(init=False)
+    mode: NDArray[np.int8] = field(init=False)
+    eta: NDArray[np.float64] = field(init=False)
+    goal_node: NDArray[np.intp] = field(init=False)
+    goal_pt: CArray = field(init=False)
+    pend_since: NDArray[np.float64] = field(init=False)
+    suspend_until: NDArray[np.float64] = field(init=False)
+    origin: NDArray[np.intp] = field(init=False)  # the node a robot on its way comes from
+    excursions: dict[int, _Excursion] = field(init=False)
+    ticks: int = 0
+    excursions_done: int = 0
+    timeouts: int = 0
+    idle_ticks: int = 0
+    t_tick: float = 0.0
+    main: NDArray[np.intp] = field(init=False)  # nodes of the largest component
+
+    def __post_init__(self) -> None:
+        n = self.n
+        self.at = np.zeros(n, dtype=np.intp)
+        self.nxt = np.zeros(n, dtype=np.intp)
+        self.mode = np.full(n, RETURN_LEG, dtype=np.int8)
+        self.eta = np.zeros(n)
+        self.goal_node = np.zeros(n, dtype=np.intp)
+        self.goal_pt = np.full(n, np.nan + 0j)
+        self.pend_since = np.full(n, np.nan)
+        self.suspend_until = np.full(n, -np.inf)
+        self._settled = np.zeros(n, dtype=bool)
+        self.origin = np.zeros(n, dtype=np.intp)
+        self.excursions = {}
+        self._rng = np.random.default_rng(self.seed)
+        self._tie = self._rng.random(n) * 1e-3  # fixed random order between equal priorities
+        lab = self.roadmap.components()
+        big = np.bincount(lab).argmax() if lab.size else 0
+        self.main = np.flatnonzero(lab == big).astype(np.intp)
+        self._goal_cache: dict[complex, int] = {}
+
+    @classmethod
+    def build(
+        cls,
+        cmap: object,
+        n: int,
+        rho: float,
+        *,
+        spacing: float | None = None,
+        k: float = 40.0,
+        node_gain: float = 4.0,
+        margin: float = 0.05,
+        edge_clearance: float = 0.03,
+        max_edge: float = 2.2,
+        **kw: float,
+    ) -> RoadmapCoordinator:
+        """The roadmap of ``cmap.workspace`` (the free space shrunk by the filter radius
+        ``rho``), nodes ``spacing`` apart (default ``gap / sin 60deg`` with ``gap = 2 rho +
+        margin``: an equilateral triangle of that side has its heights ``gap`` long, so its
+        edges pass ``gap`` from the third node) and no edge nearer than ``gap`` to a node
+        other than its ends (a robot moving along an edge keeps clear of the robots standing
+        on nodes), and a controller per
+        node: Koditschek-Rimon with the given ``k`` (one k for all nodes: for k at or above
+        the goal's threshold the function is a navigation function, Koditschek and Rimon,
+        "Robot navigation functions on manifolds with boundary", Adv. Appl. Math. 11, 1990)
+        and gain ``node_gain``.  ``node_tol`` defaults to ``spacing - 2 rho`` (a robot that
+        near its node clears a robot standing on any other node)."""
+        ws = getattr(cmap, "workspace", None)
+        if ws is None:
+            raise NavigationError("the coordinator needs a map with its workspace")
+        gap = 2.0 * rho + margin
+        sp = gap / np.sqrt(0.75) if spacing is None else float(spacing)
+        rm = build_roadmap(
+            ws,
+            sp,
+            pass_gap=gap,
+            edge_clearance=edge_clearance,
+            max_edge=max_edge * sp,
+            prune_leaves=True,
+        )
+        dom = CircleDomain.of(cmap)  # type: ignore[arg-type]
+        w = np.asarray(cmap.T_and_dT(rm.nodes)[0], dtype=np.complex128)  # type: ignore[attr-defined]
+        ctrls = [
+            Controller(cmap, complex(z), navfn=KoditschekRimon(dom, complex(wz), k), gain=node_gain)  # type: ignore[arg-type]
+            for z, wz in zip(rm.nodes.tolist(), w.tolist(), strict=True)
+        ]
+        # within spacing - 2 rho of its node a robot clears one standing on another node
+        kw.setdefault("node_tol", sp - 2.0 * rho)
+        return cls(roadmap=rm, node_ctrls=ctrls, n=n, gap=gap, **kw)  # type: ignore[arg-type]
+
+    # -- set-up -----------------------------------------------------------------------------
+    def start(self, p: ArrayLike) -> None:
+        """Assign each robot (positions ``p``) a distinct node of the main component, nearest
+        in sum (Hungarian method: Kuhn, "The Hungarian method for the assignment problem",
+        Naval Res. Logist. Q. 2, 1955); the robots drive there first (return leg)."""
+        pp = np.asarray(p, dtype=np.complex128).reshape(-1)
+        if pp.size != self.n:
+            raise NavigationError(f"{pp.size} positions for {self.n} robots")
+        if self.main.size < self.n:
+            raise NavigationError(f"{self.n} robots for {self.main.size} roadmap nodes")
+        cost = np.abs(pp[:, None] - self.roadmap.nodes[self.main][None, :])
+        r, c = linear_sum_assignment(cost)
+        self.at[r] = self.main[c]
+        self.nxt[:] = self.at
+        self.origin[:] = self.at
+        self.goal_node[:] = self.at
+        self.mode[:] = RETURN_LEG
+
+    def goal_node_of(self, goal: complex) -> int:
+        """The main-component node nearest ``goal`` whose straight segment to it is free."""
+        g = complex(goal)
+        if g in self._goal_cache:
+            return self._goal_cache[g]
+        nodes = self.roadmap.nodes[self.main]
+        order = np.argsort(np.abs(nodes - g))[:8]
+        ws = getattr(self.node_ctrls[0].cmap, "workspace")  # noqa: B009 (typed Any)
+        free = segment_clearance(ws, nodes[order], np.full(order.size, g))
+        ok = np.flatnonzero(free > 0.0)
+        best = int(self.main[order[ok[0]] if ok.size else order[0]])
+        self._goal_cache[g] = best
+        return best
+
+    # -- per control step -------------------------------------------------------------------
+    def reached(self, i: int) -> None:
+        """Robot ``i`` reached its goal: it returns to its node."""
+        if self.mode[i] == GOAL_LEG:
+            self.mode[i] = RETURN_LEG
+            self.excursions_done += 1
+
+    def update(
+        self, t: float, p: ArrayLike, goals: ArrayLike, done: ArrayLike
+    ) -> tuple[list[Controller | None], NDArray[np.bool_]]:
+        """Each robot's controller for this step (None: its own goal controller, on the goal
+        leg) and the goal-leg mask.  ``p``: controlled points; ``goals``: current goals;
+        ``done``: robots with no goal left (they park on the roadmap)."""
+        pp = np.asarray(p, dtype=np.complex128).reshape(-1)
+        gg = np.asarray(goals, dtype=np.complex128).reshape(-1)
+        dn = np.asarray(done, dtype=bool).reshape(-1)
+        nodes = self.roadmap.nodes
+        for i in range(self.n):
+            if dn[i]:
+                continue
+            if gg[i] != self.goal_pt[i]:
+                self.goal_pt[i] = gg[i]
+                self.goal_node[i] = self.goal_node_of(gg[i])
+                self.eta[i] = 0.0
+                self.pend_since[i] = np.nan
+                self.suspend_until[i] = -np.inf
+        back = (self.mode == RETURN_LEG) & (np.abs(pp - nodes[self.at]) <= self.node_tol)
+        for i in np.flatnonzero(back).tolist():
+            self.mode[i] = ROAD
+            self.excursions.pop(i, None)
+        road = self.mode == ROAD
+        settled = np.abs(pp - nodes[self.nxt]) <= self.node_tol
+        newly = road & settled & ~self._settled
+        self._settled = road & settled
+        eager = self.eager and bool(newly.any()) and t - self.t_tick >= self.min_tick
+        if np.all(settled | ~road) or t - self.t_tick >= self.settle_timeout or eager:
+            if not (np.all(settled | ~road) or eager):
+                self.timeouts += 1
+            self.tick(t, settled, dn)
+        drive: list[Controller | None] = []
+        for i in range(self.n):
+            m = self.mode[i]
+            if m == GOAL_LEG:
+                drive.append(None)
+            elif m == RETURN_LEG:
+                drive.append(self.node_ctrls[int(self.at[i])])
+            else:
+                drive.append(self.node_ctrls[int(self.nxt[i])])
+        return drive, self.mode == GOAL_LEG
+
+    def tick(self, t: float, settled: NDArray[np.bool_], done: NDArray[np.bool_]) -> None:
+        """One PIBT step for the robots on the roadmap; excursions granted and started."""
+        self.ticks += 1
+        self.t_tick = t
+        road = self.mode == ROAD
+        late = road & ~settled  # still between two nodes: keeps both until it is there
+        self.origin = np.where(road & settled, self.nxt, self.origin)
+        blocked = {int(v) for v in self.origin[late & (self.origin != self.nxt)]}
+        self.at = np.where(road, self.nxt, self.at)
+        fixed = ~road | late
+        for i in [j for j in self.excursions if self.mode[j] == ROAD]:
+            self.excursions.pop(i)  # a request not started last tick is asked again
+        goal = np.where(done, self.at, self.goal_node)
+        at_goal = road & (self.at == goal)
+        self.eta = np.where(at_goal | done, 0.0, self.eta + 1.0)
+        closed_nodes: set[int] = set()
+        closed_edges: set[tuple[int, int]] = set()
+        for ex in self.excursions.values():
+            closed_nodes |= ex.nodes
+            closed_edges |= ex.edges
+        # excursion requests: settled robots on their goal node, goal not yet reached, not
+        # suspended (a request pending ``patience`` s is dropped for ``patience`` s:
+        # the robot is then an ordinary agent that may be pushed off its goal node)
+        req = np.flatnonzero(
+            road & settled & ~done & (self.at == self.goal_node) & (t >= self.suspend_until)
+        )
+        req = req[np.argsort(-(self.eta[req] + self._tie[req]), kind="stable")]
+        holders = {int(self.at[j]) for j in np.flatnonzero(~road)}
+        starting: list[int] = []
+        asked: list[int] = []
+        for i in req.tolist():
+            ex = self._excursion(i)
+            if int(self.at[i]) in closed_nodes or ex.nodes & holders:
+                continue
+            if any(
+                float(segment_segment_distance(ex.a, ex.b, o.a, o.b)) < self.gap
+                for o in self.excursions.values()
+            ):
+                continue
+            others = {int(self.at[j]) for j in range(self.n) if j != i}
+            if ex.nodes & others:  # pending: its nodes are emptied first, its edges stay open
+                if np.isnan(self.pend_since[i]):
+                    self.pend_since[i] = t
+                closed_nodes |= ex.nodes
+            else:
+                starting.append(i)
+                self.pend_since[i] = np.nan  # started: no longer pending (never dropped)
+                closed_nodes |= ex.nodes
+                closed_edges |= ex.edges
+            self.excursions[i] = ex
+            fixed[i] = True
+            asked.append(i)
+        over = road & (t - self.pend_since >= self.patience)  # NaN (not pending): False
+        self.suspend_until[over] = t + self.patience
+        self.pend_since[over] = np.nan
+        for i in np.flatnonzero(over).tolist():
+            self.excursions.pop(i, None)
+            self.eta[i] = 0.0
+            fixed[i] = bool(late[i])  # a robot still on its way stays fixed regardless
+            if i in asked:
+                asked.remove(i)
+        closed_nodes = set()
+        closed_edges = set()
+        for ex in self.excursions.values():
+            closed_nodes |= ex.nodes
+        for j, ex in self.excursions.items():
+            if self.mode[j] != ROAD or j in starting:
+                closed_edges |= ex.edges
+        prio = self.eta + self._tie
+        prio = np.where(np.isin(np.arange(self.n), asked), prio + 1e6, prio)  # at goal: hold
+        nxt = pibt_step(
+            self.roadmap,
+            self.at.tolist(),
+            goal.tolist(),
+            prio.tolist(),
+            fixed=fixed.tolist(),
+            closed_nodes=closed_nodes,
+            closed_edges=closed_edges,
+            blocked=blocked,
+            rng=self._rng,
+        )
+        self.origin = np.where(road & ~late, self.at, self.origin)
+        self.nxt = np.array(nxt, dtype=np.intp)
+        if np.unique(self.nxt).size != self.n:  # pibt_step's invariant, kept cheaply checked
+            raise NavigationError("roadmap plan gave one node to two robots")
+        if np.all(self.nxt == self.at) and not starting:
+            self.idle_ticks += 1
+        for i in starting:
+            self.mode[i] = GOAL_LEG
+            self.pend_since[i] = np.nan
+
+    def _excursion(self, i: int) -> _Excursion:
+        a = complex(self.roadmap.nodes[int(self.at[i])])
+        b = complex(self.goal_pt[i])
+        rm = self.roadmap
+        dn = segment_segment_distance(rm.nodes, rm.nodes, a, b)
+        nodes = frozenset(int(v) for v in np.flatnonzero(dn < self.gap)) - {int(self.at[i])}
+        de = segment_segment_distance(rm.nodes[rm.edges[:, 0]], rm.nodes[rm.edges[:, 1]], a, b)
+        edges = frozenset(
+            (int(u), int(v))
+            for u, v in rm.edges[de < self.gap].tolist()
+            if int(self.at[i]) not in (u, v)
+        )
+        return _Excursion(nodes=nodes, edges=edges, a=a, b=b)
