@@ -48,13 +48,22 @@ SCENE = corridor(12.0)
 STARTS = {"a1": (0.5, 0.5), "a2": (1.2, 0.3)}
 
 
-@pytest.mark.timeout(400)
-def test_corridor_atlas_through_the_services(tmp_path: Path) -> None:
+def corridor_files(
+    tmp_path: Path, starts: dict[str, tuple[float, float]]
+) -> tuple[Path, list[str]]:
+    """The 12 m corridor saved as workspace ``corr``, and the simulator's arguments for robots
+    at ``starts`` in it (time scale 2)."""
     ws_file = tmp_path / "corr.json"
     SCENE.workspace.save(ws_file)
     sim_args = ["--workspace", f"corr={ws_file}", "--time-scale", "2"]
-    for rid, (x, y) in STARTS.items():
+    for rid, (x, y) in starts.items():
         sim_args += ["--robot", f"{rid}=corr:{x},{y}"]
+    return ws_file, sim_args
+
+
+@pytest.mark.timeout(400)
+def test_corridor_atlas_through_the_services(tmp_path: Path) -> None:
+    ws_file, sim_args = corridor_files(tmp_path, STARTS)
     mcap_path = tmp_path / "atlas.mcap"
     services = [
         ServiceSpec("recorder", ["--out", str(mcap_path)]),

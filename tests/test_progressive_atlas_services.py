@@ -23,6 +23,7 @@ from confnav.schemas import (
 )
 from confnav.services.launcher import ServiceSpec
 from conftest import RobotWatch, launched_system, wait_for
+from test_atlas_services import corridor_files
 
 from confnav.atlas.scenes import corridor
 
@@ -34,11 +35,7 @@ STARTS = {"p1": (0.5, 0.5), "p2": (1.2, 0.3)}
 
 @pytest.mark.timeout(700)
 def test_robots_drive_on_partial_atlas_revisions_and_arrive(tmp_path: Path) -> None:
-    ws_file = tmp_path / "corr.json"
-    SCENE.workspace.save(ws_file)
-    sim_args = ["--workspace", f"corr={ws_file}", "--time-scale", "2"]
-    for rid, (x, y) in STARTS.items():
-        sim_args += ["--robot", f"{rid}=corr:{x},{y}"]
+    _, sim_args = corridor_files(tmp_path, STARTS)
     services = [
         # the workspace comes over the bus once the test's subscriptions are in place (a
         # file loaded at start is solved before they are routed, and Zenoh drops puts to

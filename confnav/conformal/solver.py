@@ -99,6 +99,7 @@ import logging
 import time
 import warnings
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -215,31 +216,19 @@ def _solve_level(
         if progress is not None:
             progress(f"  {nodes_per_side} nodes/side: sweep {sweep}, change {change:.1e}")
 
+    common: dict[str, Any] = {
+        "tol": ITERATION_SHARE * tol,
+        "progress": _p,
+        "gmres_tol": gmres_rtol(tol),
+        "first_guess": guess,
+        "accel": accel,
+    }
     res: CircleDomainResult
     if method == "nasser":
-        res = nasser_iteration(
-            meshes,
-            holes,
-            ws.anchor,
-            tol=ITERATION_SHARE * tol,
-            progress=_p,
-            gmres_tol=gmres_rtol(tol),
-            first_guess=guess,
-            accel=accel,
-        )
+        res = nasser_iteration(meshes, holes, ws.anchor, **common)
     else:
-        res = koebe_iteration(
-            meshes,
-            holes,
-            ws.anchor,
-            tol=ITERATION_SHARE * tol,
-            progress=_p,
-            gmres_tol=gmres_rtol(tol),
-            first_guess=guess,
-            accel=accel,
-            carry=carry if LEVEL_CARRY else None,
-            trace=LEVEL_CARRY,
-        )
+        carried = carry if LEVEL_CARRY else None
+        res = koebe_iteration(meshes, holes, ws.anchor, **common, carry=carried, trace=LEVEL_CARRY)
     return res, meshes
 
 
