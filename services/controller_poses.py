@@ -290,7 +290,8 @@ class PosesMixin(ControllerCore):
         else:
             self._publish_cmd(r, d.u, pose)
             message = d.message
-            if (self._refining or r.base_ws or r.atlas_ws) and d.state == "navigating":
+            holding = getattr(r.ctrl, "waiting", None) is not None  # a pending atlas chart
+            if (self._refining or r.base_ws or r.atlas_ws or holding) and d.state == "navigating":
                 note = self._map_note(r)
                 message = "; ".join(m for m in (note, message) if m)
             self._status(r, d.state, d.reason, message, now)

@@ -327,7 +327,14 @@ class ControllerCore(Service):
 
     def _map_note(self, r: _Robot) -> str:
         """What the robot drives on, when it is a coarse revision of a map being refined
-        or the base map while its footprint map is being solved."""
+        or the base map while its footprint map is being solved, or an atlas revision whose
+        next chart is still being solved (docs/SLAM.md, "Progressive atlas")."""
+        waiting = getattr(r.ctrl, "waiting", None)
+        if isinstance(waiting, int):
+            return (
+                f"holding for chart {waiting} of the atlas (being solved; the robot goes on "
+                "once it is installed)"
+            )
         if r.base_ws:
             from confnav.services.controller_footprint import base_note
 

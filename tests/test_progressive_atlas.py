@@ -7,10 +7,14 @@ stopping."""
 from __future__ import annotations
 
 import itertools
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 import shapely
+from confnav.services.bus import InMemoryNetwork
+from confnav.services.controller import ControllerService
+from confnav.services.keys import Keys
 
 from confnav.atlas import Atlas, solve_atlas
 from confnav.atlas.charts import PartialAtlas, route_order
@@ -125,12 +129,17 @@ def test_a_robot_holds_at_a_missing_chart_and_goes_on_when_it_is_installed(
     assert out.u[0] == 0 and out.status[0] == Status.MOVING
     assert law.waiting == route[1]
     assert abs(z - complex(law.law.nav.plan.local_goal[route[0]])) < 0.05  # type: ignore[union-attr]
+    # the controller service's status says what the robot holds for
+    svc = ControllerService(InMemoryNetwork().bus("ctl"), Keys())
+    robot = SimpleNamespace(ctrl=law, base_ws=None, atlas_ws=None, ctrl_revision=None)
+    assert f"holding for chart {route[1]} of the atlas (being solved" in svc._map_note(robot)  # type: ignore[arg-type]
     held = law.law
     # the complete atlas extends the revision: installed in place (same law), it goes on
     law.offer(atlas)
     assert law.law is held and law.swaps == 0
     out = law(np.array([z]))
     assert abs(out.u[0]) > 0 and law.waiting is None
+    assert "holding" not in svc._map_note(robot)  # type: ignore[arg-type]
     z, code, clr = _drive(law, z, 2000)
     assert code == Status.ARRIVED and abs(z - GOAL) < 0.05 and clr > 0
 
