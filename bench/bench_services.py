@@ -177,10 +177,7 @@ def play_robots(
                 bus.publish(key, payload)
         out.put({"part": part, "late": late})
         done.wait(300)
-        with cmds.lock:
-            lat = np.array(cmds.lat_ns, dtype=np.int64)
-            counts = account_poses(set(cmds.seen), ids, warm, ticks)
-        out.put({"part": part, "lat_ns": lat, **counts})
+        _report_answers(out, part, cmds, ids, warm, ticks)
 
 
 def _play_batch(
@@ -217,10 +214,15 @@ def _play_batch(
             bus.publish(key, payload)
         out.put({"part": part, "late": late})
         done.wait(300)
-        with cmds.lock:
-            lat = np.array(cmds.lat_ns, dtype=np.int64)
-            counts = account_poses(set(cmds.seen), ids, warm, ticks)
-        out.put({"part": part, "lat_ns": lat, **counts})
+        _report_answers(out, part, cmds, ids, warm, ticks)
+
+
+def _report_answers(out: Any, part: int, cmds: Any, ids: list[str], warm: int, ticks: int) -> None:
+    """Put a publisher part's command latencies and pose accounting (:func:`account_poses`)."""
+    with cmds.lock:
+        lat = np.array(cmds.lat_ns, dtype=np.int64)
+        counts = account_poses(set(cmds.seen), ids, warm, ticks)
+    out.put({"part": part, "lat_ns": lat, **counts})
 
 
 def account_poses(
