@@ -86,8 +86,25 @@ class SimRobot:
     twist: tuple[float, float] | None = None  # (v, omega) of the last body-frame command
 
 
+@dataclass(frozen=True)
+class RobotSpec:
+    """One ``--robot`` item: where a robot starts and what body it has."""
+
+    rid: str
+    ws: str
+    x: float
+    y: float
+    theta: float = 0.0
+    radius: float = 0.0
+    drive: str = "holonomic"
+
+
+ROBOT_SPEC = "ID=WS:X,Y[,THETA][:r=RADIUS][:drive=unicycle]"
+
+
 class SimulatorService(Service):
-    """See the module docstring. ``robots``: (robot id, ws id, x, y) at start."""
+    """See the module docstring. ``robots``: the robots at start (:class:`RobotSpec`, or
+    (robot id, ws id, x, y) tuples: points)."""
 
     name = "simulator"
 
@@ -96,7 +113,7 @@ class SimulatorService(Service):
         bus: Bus,
         keys: Keys | None = None,
         sim_id: str = "sim",
-        robots: list[tuple[str, str, float, float]] | None = None,
+        robots: list[RobotSpec] | list[tuple[str, str, float, float]] | None = None,
         sources: dict[str, str] | None = None,
         rate_hz: float = 50.0,
         time_scale: float = 1.0,
@@ -121,8 +138,16 @@ class SimulatorService(Service):
         self.collisions: list[CollisionEvent] = []
         self._touching: set[tuple[str, str]] = set()  # robot pairs in contact (sorted ids)
         self.ticks = 0
-        for rid, ws, x, y in robots or []:
-            self.spawn_robot(rid, ws, complex(x, y))
+        for item in robots or []:
+            spec = item if isinstance(item, RobotSpec) else RobotSpec(*item)
+            self.spawn_robot(
+                spec.rid,
+                spec.ws,
+                complex(spec.x, spec.y),
+                spec.theta,
+                radius=spec.radius,
+                drive=spec.drive,
+            )
 
     def spawn_robot(
         self,
@@ -518,25 +543,59 @@ class SimulatorService(Service):
             return {rid: r.z for rid, r in self._robots.items()}
 
 
-def parse_robots(items: list[str]) -> list[tuple[str, str, float, float]]:
-    """``ID=WS:X,Y`` items."""
-    out = []
-    for item in items:
-        try:
-            rid, rest = item.split("=", 1)
-            ws, xy = rest.split(":", 1)
-            x, y = (float(v) for v in xy.split(","))
-        except ValueError:
-            raise SystemExit(f"--robot expects ID=WS:X,Y, got {item!r}") from None
-        out.append((rid, ws, x, y))
-    return out
+def parse_robots(items: list[str]) -> list[RobotSpec]:
+    """``ID=WS:X,Y[,THETA][:r=RADIUS][:drive=holonomic|unicycle]`` items (m, rad).
+
+    Without ``r=`` a robot is a point (it touches nothing); a robot spawned by a
+    ``SpawnRequest`` carries the same fields."""
+    return [_parse_robot(item) for item in items]
+
+
+def _parse_robot(item: str) -> RobotSpec:
+    def bad(why: str) -> SystemExit:
+        return SystemExit(f"--robot expects {ROBOT_SPEC}, got {item!r}: {why}")
+
+    rid, eq, rest = item.partition("=")
+    ws, colon, tail = rest.partition(":")
+    if not (eq and colon and rid and ws):
+        raise bad("no ID=WS: part")
+    xy, *options = tail.split(":")
+    try:
+        coords = [float(v) for v in xy.split(",")]
+    except ValueError:
+        raise bad(f"{xy!r} is not X,Y[,THETA]") from None
+    if len(coords) not in (2, 3) or not all(math.isfinite(c) for c in coords):
+        raise bad(f"{xy!r} is not X,Y[,THETA] with finite numbers")
+    radius, drive = 0.0, "holonomic"
+    for opt in options:
+        key, _, value = opt.partition("=")
+        if key == "r":
+            try:
+                radius = float(value)
+            except ValueError:
+                raise bad(f"radius {value!r} is not a number") from None
+            if not (math.isfinite(radius) and radius >= 0.0):
+                raise bad(f"radius {value!r} must be finite and >= 0")
+        elif key == "drive" and value in ("holonomic", "unicycle"):
+            drive = value
+        else:
+            raise bad(f"unknown option {opt!r} (r=RADIUS or drive=holonomic|unicycle)")
+    theta = coords[2] if len(coords) == 3 else 0.0
+    return RobotSpec(rid, ws, coords[0], coords[1], theta, radius, drive)
 
 
 def add_parser(sub: Any) -> None:
     p: argparse.ArgumentParser = sub.add_parser("simulator", help="run the simulator service")
     add_zenoh_args(p)
     p.add_argument("--sim-id", default="sim")
-    p.add_argument("--robot", action="append", default=[], metavar="ID=WS:X,Y")
+    p.add_argument(
+        "--robot",
+        action="append",
+        default=[],
+        metavar=ROBOT_SPEC,
+        help="a robot at start (repeatable): heading THETA in rad (default 0), body radius "
+        "r in m (default 0: a point that touches nothing), drive (default holonomic)",
+    )
     p.add_argument("--workspace", action="append", default=[], metavar="ID=PATH")
     p.add_argument("--rate", type=float, default=50.0, help="simulated steps per second, Hz")
     p.add_argument("--time-scale", type=float, default=1.0, help=">1: faster than real time")

@@ -20,7 +20,7 @@ from confnav.schemas import (
 )
 from confnav.services.bus import InMemoryNetwork
 from confnav.services.keys import Keys
-from confnav.services.simulator import SimulatorService
+from confnav.services.simulator import RobotSpec, SimulatorService, parse_robots
 from conftest import square_definition, wait_for
 
 K = Keys()
@@ -264,5 +264,50 @@ def test_commands_from_before_a_reset_are_not_applied(mem_net: InMemoryNetwork) 
         answer(2, 1.0)
         sim.step(0.02)
         assert sim.positions()["r1"] == pytest.approx(0.02)
+    finally:
+        sim.stop()
+
+
+def test_robot_option_gives_bodies_headings_and_drives() -> None:
+    a, b, c = parse_robots(
+        ["a=room:1.0,0.5", "b=room:2,0.5,3.14:r=0.18:drive=unicycle", "c=room:-1,2:r=0"]
+    )
+    assert a == RobotSpec("a", "room", 1.0, 0.5)  # a point, holonomic, heading 0
+    assert (b.x, b.y, b.theta, b.radius, b.drive) == (2.0, 0.5, 3.14, 0.18, "unicycle")
+    assert (c.radius, c.drive) == (0.0, "holonomic")
+    for item, why in [
+        ("a:room:1,2", "no ID=WS: part"),
+        ("a=room:1", "is not X,Y"),
+        ("a=room:1,nan", "finite"),
+        ("a=room:1,2:r=-0.1", "must be finite and >= 0"),
+        ("a=room:1,2:r=big", "is not a number"),
+        ("a=room:1,2:drive=tank", "unknown option"),
+    ]:
+        with pytest.raises(SystemExit, match=why):
+            parse_robots([item])
+
+
+def test_robots_from_the_option_collide_as_their_bodies(mem_net: InMemoryNetwork) -> None:
+    """Two bodies of radius 0.1 from ``--robot`` specs, centres 0.3 apart, one driving at the
+    other: a robot-robot contact once the centres are 0.2 apart (points would never touch)."""
+    specs = parse_robots(["r1=sq:0,0:r=0.1", "r2=sq:0.3,0:r=0.1"])
+    sim = SimulatorService(mem_net.bus("sim"), K, robots=specs)
+    client = mem_net.bus("client")
+    hits: list[CollisionEvent] = []
+    client.subscribe(
+        K.robot("r1", "collision"), lambda k, p: hits.append(decode(CollisionEvent, p))
+    )
+    sim._stop.set()
+    sim.start()
+    try:
+        client.publish(K.ws("sq", "definition"), encode(square_definition("sq", [])))
+        wait_for(lambda: sim.health_detail()[0] == "ok")
+        client.publish(K.robot("r1", "cmd_vel"), cmd("r1", 1.0, 0.0))
+        wait_for(lambda: sim.counters["commands"] == 1)
+        for _ in range(20):  # r1 would go 0 -> 0.2: contact at 0.1
+            sim.step(0.01)
+        wait_for(lambda: hits)
+        assert hits[0].other_robot_id == "r2" and hits[0].clearance <= 0
+        assert sim.positions()["r1"].real == pytest.approx(0.1, abs=0.011)
     finally:
         sim.stop()
