@@ -370,6 +370,7 @@ def _round_by_chart(
     partial: Callable[[], None],
     every: int,
     eager: bool,
+    depths: dict[str, float] | None = None,
 ) -> tuple[list[Tile], bool]:
     """One round of :func:`solve_atlas` chart by chart: every cell of ``todo`` submitted in
     order (the routes' cells first; a cell whose solve is still pending from an earlier
@@ -378,10 +379,14 @@ def _round_by_chart(
     is split at once; the other solves stay in ``pending`` for the next round). Returns the
     failed tiles and whether the round ended early."""
     tol, accept = tols
+    depths = {} if depths is None else depths
     for i in todo:
-        if keys[i] not in pending:
+        # a solve started before this decomposition (:func:`_early_starts`) counts if it
+        # probed this decomposition's margin
+        if keys[i] not in pending or depths.get(keys[i], dec.margin) != dec.margin:
             job = dec.cells[i].workspace.to_json()
             pending[keys[i]] = pool.submit(_solve_one, job, tol, accept, dec.margin)
+            depths[keys[i]] = dec.margin
     wait = {pending[keys[i]]: i for i in todo}
     failed: list[Tile] = []
     since = 0
@@ -447,12 +452,18 @@ def solve_atlas(
     own = executor is None and workers > 1
     pool = ProcessPoolExecutor(max_workers=workers) if own else executor
     pending: dict[str, Future[tuple[str, float, str]]] = {}  # cell key -> its solve
+    depths: dict[str, float] = {}  # cell key -> the probe depth its pending solve was given
     eager_left = max_rounds  # early splits of a route's failed cell (not counted as rounds)
     try:
         _round, rounds = -1, -1
         while rounds < max_rounds:
             _round, rounds = _round + 1, rounds + 1
-            dec = decompose(ws, split=split, **decompose_kw)
+            early = (
+                _early_starts(pool, priority, (tol, accept), pending, depths)
+                if priority and on_partial is not None and isinstance(pool, ProcessPoolExecutor)
+                else None
+            )
+            dec = decompose(ws, split=split, on_pass=early, **decompose_kw)
             keys = list(dec.keys)
             todo, first = _round_order(dec, keys, done, priority)
             if progress is not None:
@@ -473,11 +484,11 @@ def solve_atlas(
             )
             failed: list[Tile] = []
             if on_partial is not None and isinstance(pool, ProcessPoolExecutor):
-                failed, early = _round_by_chart(
+                failed, ended = _round_by_chart(
                     pool, dec, keys, todo, set(first), (tol, accept), pending, done, records,
-                    partial, every, split_early and eager_left > 0,
+                    partial, every, split_early and eager_left > 0, depths,
                 )  # fmt: skip
-                if early:  # a route's cell failed: split it now, the other solves pending
+                if ended:  # a route's cell failed: split it now, the other solves pending
                     eager_left -= 1
                     rounds -= 1
                 batches = []
@@ -500,6 +511,31 @@ def solve_atlas(
             f.cancel()
         if own and pool is not None:
             pool.shutdown()
+
+
+def _early_starts(
+    pool: ProcessPoolExecutor,
+    priority: Sequence[tuple[complex, complex]],
+    tols: tuple[float, float],
+    pending: dict[str, Future[tuple[str, float, str]]],
+    depths: dict[str, float],
+) -> Callable[[Decomposition, float], None]:
+    """:func:`decompose`'s ``on_pass`` for a progressive atlas: when a pass is redone with a
+    new margin, start solving the robots' start cells of that pass (:func:`route_order`)
+    with the new margin as the probe depth, while the next pass is cut. A cell the next pass
+    leaves unchanged (the same content hash, as a cell whose tile band and pieces do not
+    depend on the margin) takes its solve over; another one is wasted worker time."""
+    tol, accept = tols
+
+    def start(dec: Decomposition, margin: float) -> None:
+        for i in route_order(dec, priority)[: len(priority)]:
+            key = dec.keys[i]
+            if key not in pending:
+                job = dec.cells[i].workspace.to_json()
+                pending[key] = pool.submit(_solve_one, job, tol, accept, margin)
+                depths[key] = margin
+
+    return start
 
 
 def _round_order(

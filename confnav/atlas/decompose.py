@@ -38,7 +38,7 @@ See docs/ATLAS.md.
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from functools import cached_property
 
@@ -466,6 +466,7 @@ def decompose(
     split: Iterable[Tile] = (),
     fine: Iterable[complex] = (),
     fine_vertices: int = 24,
+    on_pass: Callable[[Decomposition, float], None] | None = None,
 ) -> Decomposition:
     """Overlapping cells covering the free space of ``ws`` (module docstring).
 
@@ -495,6 +496,9 @@ def decompose(
         with its corners: measured on the nav2 warehouse shrunk by 0.32 m, cells of 55-129
         vertices took 3.5-10 s at tol 1e-2 against a median of 0.45 s; a progressive atlas
         solves the start cells first, docs/SLAM.md "Progressive atlas").
+    on_pass : called with a pass's decomposition and the margin of the next pass when the
+        derived margin is redone (``auto``); a progressive atlas starts its start cells'
+        solves from it (a cell the next pass leaves unchanged has the same content hash).
 
     Raises
     ------
@@ -528,6 +532,8 @@ def decompose(
         if not auto or AUTO_MARGIN_FRACTION * thin.depth < floor:
             break
         margin = AUTO_MARGIN_FRACTION * thin.depth
+        if on_pass is not None:
+            on_pass(dec, margin)
     assert thin is not None
     z = thin.point
     w = 2 * float(ws.clearance(np.array([z]))[0])
