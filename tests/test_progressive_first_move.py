@@ -5,6 +5,7 @@ the decomposition's last pass. Each test checks the quick path against the slow 
 
 from __future__ import annotations
 
+import threading
 import warnings
 from concurrent.futures import Future
 from pathlib import Path
@@ -201,3 +202,43 @@ def test_the_safety_grid_lists_every_segment_a_cell_needs(depot: Workspace) -> N
             assert g.free_speed[cell] == pytest.approx(
                 min(flt.alpha * min(dq - r, flt.lookahead), flt.slope * (dq - r)), abs=1e-12
             )
+
+
+def test_robots_start_on_the_first_passs_cells_while_the_decomposition_is_cut_again(
+    depot: Workspace,
+) -> None:
+    """While decompose cuts its second pass (the depot's margin is derived again), the start
+    cells' charts solved for the new margin are shown on the first pass's cells with that
+    margin: a robot gets a non-zero command there; the decomposition returned is the
+    settled one."""
+    from confnav.atlas.charts import _decompose_previewing
+    from confnav.atlas.wire import ProgressiveController
+
+    from confnav.scenes.scenarios import random_starts
+
+    start, goal = complex(2.0, 1.0), complex(random_starts(depot, 1, seed=1, margin=0.2)[0])
+    assert depot.clearance(np.array([start, goal])).min() > 0.2
+    pairs = [(start, goal)]
+    pending: dict[str, Future[Any]] = {}
+    shown = threading.Event()
+    previews: list[tuple[Any, tuple[Any, ...]]] = []
+
+    def early(d: Any, margin: float) -> None:
+        i = route_order(d, pairs)[0]
+        f: Future[Any] = Future()
+        f.set_result(_solve_one(d.cells[i].workspace.to_json(), 1e-3, 1e-2, margin))
+        pending[d.keys[i]] = f
+        assert shown.wait(60), "no preview while the second pass waits"
+
+    def preview(d: Any, charts: tuple[Any, ...]) -> None:
+        previews.append((d, charts))
+        shown.set()
+
+    dec = _decompose_previewing(depot, set(), early, pending, preview, {"fine": [start]})
+    assert dec.keys == decompose(depot, fine=[start]).keys  # the settled decomposition
+    d, charts = previews[0]
+    assert d.margin == dec.margin and d.keys != dec.keys  # the first pass's cells
+    assert sum(c is not None for c in charts) == 1
+    law = ProgressiveController(goal, speed=0.5, safety=depot)
+    law.offer(PartialAtlas(d, charts, 1e-3))
+    assert abs(complex(law(np.array([start])).u[0])) > 0

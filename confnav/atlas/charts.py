@@ -8,11 +8,20 @@ maps of cells that did not change are reused (keyed by the cell workspace's cont
 from __future__ import annotations
 
 import logging
+import threading
 import time
 import warnings
 from collections.abc import Callable, Sequence
-from concurrent.futures import Executor, Future, ProcessPoolExecutor, as_completed
-from dataclasses import dataclass, field
+from concurrent.futures import (
+    FIRST_COMPLETED,
+    Executor,
+    Future,
+    ProcessPoolExecutor,
+    ThreadPoolExecutor,
+    as_completed,
+    wait,
+)
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -463,7 +472,20 @@ def solve_atlas(
                 if priority and on_partial is not None and isinstance(pool, ProcessPoolExecutor)
                 else None
             )
-            dec = decompose(ws, split=split, on_pass=early, **decompose_kw)
+            if early is None:
+                dec = decompose(ws, split=split, **decompose_kw)
+            else:
+                assert on_partial is not None  # ``early`` needs it
+
+                def preview(
+                    d: Decomposition,
+                    c: tuple[ConformalMap | None, ...],
+                    r: int = _round,
+                    show: Callable[[PartialAtlas], None] = on_partial,
+                ) -> None:
+                    show(PartialAtlas(d, c, tol, r, time.perf_counter() - t0))
+
+                dec = _decompose_previewing(ws, split, early, pending, preview, decompose_kw)
             keys = list(dec.keys)
             todo, first = _round_order(dec, keys, done, priority)
             if progress is not None:
@@ -536,6 +558,67 @@ def _early_starts(
                 depths[key] = margin
 
     return start
+
+
+def _with_margin(dec: Decomposition, margin: float) -> Decomposition:
+    """A decomposition pass's cells with the margin of the next pass (the cached cell graph
+    kept: it does not depend on the margin). Every invariant of the cell graph holds: the
+    next margin is :data:`confnav.atlas.decompose.AUTO_MARGIN_FRACTION` times the depth of
+    this pass's passage, so the overlaps at least that deep connect every cell."""
+    out = replace(dec, margin=margin)
+    for name in ("links", "passage", "keys", "centres", "touching"):
+        if name in dec.__dict__:
+            out.__dict__[name] = dec.__dict__[name]
+    return out
+
+
+def _decompose_previewing(
+    ws: Workspace,
+    split: set[Tile],
+    early: Callable[[Decomposition, float], None],
+    pending: dict[str, Future[tuple[str, float, str]]],
+    preview: Callable[[Decomposition, tuple[ConformalMap | None, ...]], None],
+    decompose_kw: dict[str, Any],
+) -> Decomposition:
+    """:func:`decompose` with ``on_pass=early`` in a thread; meanwhile this thread shows the
+    start cells' charts as they come (``preview``, a partial revision) on the first pass's
+    cells with the next pass's margin (:func:`_with_margin`), the margin they were solved
+    for: the robots move while the decomposition is cut again. Returns the settled
+    decomposition (the same as :func:`decompose`'s), whose round collects those solves."""
+    got: dict[str, Decomposition] = {}
+    passed = threading.Event()
+
+    def on_pass(d: Decomposition, margin: float) -> None:
+        got["dec"] = _with_margin(d, margin)
+        passed.set()
+        early(d, margin)
+
+    maps: dict[str, ConformalMap | None] = {}
+    with ThreadPoolExecutor(1) as thread:
+        fut = thread.submit(
+            decompose, ws, split=split, on_pass=on_pass, **decompose_kw
+        )  # fmt: skip
+        while not fut.done():
+            if not passed.wait(0.02):
+                continue
+            d = got["dec"]
+            jobs = [pending[k] for k in d.keys if k in pending and k not in maps]
+            if not jobs:
+                wait([fut], timeout=0.05)
+                continue
+            waiting: list[Future[Any]] = [fut, *jobs]
+            wait(waiting, return_when=FIRST_COMPLETED)
+            new = False
+            for k in d.keys:
+                f = pending.get(k)
+                if k in maps or f is None or not f.done() or f.cancelled():
+                    continue
+                text, _, err = f.result()
+                maps[k] = None if err else ConformalMap.from_json(text)
+                new = new or maps[k] is not None
+            if new and not fut.done():
+                preview(d, tuple(maps.get(k) for k in d.keys))
+        return fut.result()
 
 
 def _round_order(
