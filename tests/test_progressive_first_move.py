@@ -18,6 +18,7 @@ import shapely
 import confnav
 from confnav.atlas.charts import (
     PartialAtlas,
+    _decompose_previewing,
     _early_starts,
     _round_by_chart,
     _solve_one,
@@ -27,11 +28,13 @@ from confnav.atlas.charts import (
 from confnav.atlas.compose import AtlasNavigator
 from confnav.atlas.decompose import decompose
 from confnav.atlas.scenes import office
+from confnav.atlas.wire import ProgressiveController
 from confnav.conformal.solver import AccuracyWarning
 from confnav.geometry import Workspace
 from confnav.maps.footprint import inflate
 from confnav.maps.occupancy import import_map
 from confnav.navigation.safety import SafetyFilter
+from confnav.scenes.scenarios import random_starts
 
 SLAM = Path(__file__).parent / "data" / "slam"
 
@@ -211,11 +214,6 @@ def test_robots_start_on_the_first_passs_cells_while_the_decomposition_is_cut_ag
     cells' charts solved for the new margin are shown on the first pass's cells with that
     margin: a robot gets a non-zero command there; the decomposition returned is the
     settled one."""
-    from confnav.atlas.charts import _decompose_previewing
-    from confnav.atlas.wire import ProgressiveController
-
-    from confnav.scenes.scenarios import random_starts
-
     start, goal = complex(2.0, 1.0), complex(random_starts(depot, 1, seed=1, margin=0.2)[0])
     assert depot.clearance(np.array([start, goal])).min() > 0.2
     pairs = [(start, goal)]

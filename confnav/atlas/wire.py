@@ -516,8 +516,6 @@ class NavMaps:
         return n
 
 
-
-
 def _cell_keys(atlas: Atlas | PartialAtlas) -> tuple[str, ...]:
     return atlas.decomposition.keys
 
