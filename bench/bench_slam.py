@@ -44,18 +44,27 @@ Wall times on a shared machine: the load average is recorded beside every map's 
 
 from __future__ import annotations
 
-import argparse
-import json
 import os
-import sys
-import time
-import warnings
-from concurrent.futures import ProcessPoolExecutor
-from datetime import UTC, datetime
-from pathlib import Path
-from typing import Any
 
-import numpy as np
+# one BLAS thread per process, as the services' launcher sets (docs/SERVICES.md, "Performance
+# notes"), before numpy loads; the worker processes inherit it. Measured on the depot at load
+# 4.3-4.8: with OpenBLAS's threads the 10 robots were ready 3.1-10.9 s after the goal (a
+# controller's 256-point sample evaluation took 0.24 s instead of milliseconds, its threads
+# fighting the two chart workers over the 2 cores), with one thread 1.9-2.4 s
+for _v in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_v, "1")
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+import warnings  # noqa: E402
+from concurrent.futures import ProcessPoolExecutor  # noqa: E402
+from datetime import UTC, datetime  # noqa: E402
+from pathlib import Path  # noqa: E402
+from typing import Any  # noqa: E402
+
+import numpy as np  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -504,6 +513,7 @@ def main(argv: list[str] | None = None) -> int:
         "commit": git("rev-parse", "HEAD"),
         "loadavg_start": loadavg(),
         "cpu_count": os.cpu_count(),
+        "blas_threads": os.environ.get("OPENBLAS_NUM_THREADS"),
         "body": {"radius": RADIUS, "lookahead": LOOKAHEAD, "v_max": defaults.V_MAX},
         "seed": SEED,
         "first_tol": LADDER[0],

@@ -8,11 +8,20 @@ maps of cells that did not change are reused (keyed by the cell workspace's cont
 from __future__ import annotations
 
 import logging
+import threading
 import time
 import warnings
 from collections.abc import Callable, Sequence
-from concurrent.futures import Executor, Future, ProcessPoolExecutor, as_completed
-from dataclasses import dataclass, field
+from concurrent.futures import (
+    FIRST_COMPLETED,
+    Executor,
+    Future,
+    ProcessPoolExecutor,
+    ThreadPoolExecutor,
+    as_completed,
+    wait,
+)
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -30,6 +39,7 @@ __all__ = [
     "ChartRecord",
     "PartialAtlas",
     "atlas_reason",
+    "navigation_map",
     "needs_atlas",
     "single_map_or_atlas",
     "solve_atlas",
@@ -155,6 +165,28 @@ class PartialAtlas:
     @property
     def complete(self) -> bool:
         return all(m is not None for m in self.charts)
+
+
+#: The accuracy of a chart's navigation map (``ConformalMap.for_navigation``'s default).
+NAV_ACCURACY = 1e-7
+
+
+def navigation_map(m: Any, accuracy: float = NAV_ACCURACY) -> Any:
+    """A chart's navigation map: ``m.for_navigation(accuracy)``, or ``m`` itself (flagged
+    for its local expansions, as ``for_navigation`` does when it returns the map) when the
+    chart's own boundary residual exceeds ``accuracy``.
+
+    ``for_navigation`` keeps a coarsened map only if its boundary residual is within
+    ``accuracy`` and T, T' stay within it of the chart: a coarse chart (a progressive atlas's
+    first revision, residual ~1e-4) would spend two to four 400-point evaluations of the
+    full map and its coarsenings to return itself (measured on the depot's 1e-3 charts: the
+    largest part of a progressive atlas's work in the controller's process, 5.8 of 12 s of
+    its first round, and none was coarsened). The map itself steers exactly as the chart
+    does; it costs evaluation speed only, on charts with few nodes."""
+    if not m.diagnostics.boundary_residual <= accuracy:
+        m._fast = True
+        return m
+    return m.for_navigation(accuracy)
 
 
 def _corners(poly: Polygon) -> int:
@@ -347,6 +379,7 @@ def _round_by_chart(
     partial: Callable[[], None],
     every: int,
     eager: bool,
+    depths: dict[str, float] | None = None,
 ) -> tuple[list[Tile], bool]:
     """One round of :func:`solve_atlas` chart by chart: every cell of ``todo`` submitted in
     order (the routes' cells first; a cell whose solve is still pending from an earlier
@@ -355,10 +388,14 @@ def _round_by_chart(
     is split at once; the other solves stay in ``pending`` for the next round). Returns the
     failed tiles and whether the round ended early."""
     tol, accept = tols
+    depths = {} if depths is None else depths
     for i in todo:
-        if keys[i] not in pending:
+        # a solve started before this decomposition (:func:`_early_starts`) counts if it
+        # probed this decomposition's margin
+        if keys[i] not in pending or depths.get(keys[i], dec.margin) != dec.margin:
             job = dec.cells[i].workspace.to_json()
             pending[keys[i]] = pool.submit(_solve_one, job, tol, accept, dec.margin)
+            depths[keys[i]] = dec.margin
     wait = {pending[keys[i]]: i for i in todo}
     failed: list[Tile] = []
     since = 0
@@ -424,13 +461,32 @@ def solve_atlas(
     own = executor is None and workers > 1
     pool = ProcessPoolExecutor(max_workers=workers) if own else executor
     pending: dict[str, Future[tuple[str, float, str]]] = {}  # cell key -> its solve
+    depths: dict[str, float] = {}  # cell key -> the probe depth its pending solve was given
     eager_left = max_rounds  # early splits of a route's failed cell (not counted as rounds)
     try:
         _round, rounds = -1, -1
         while rounds < max_rounds:
             _round, rounds = _round + 1, rounds + 1
-            dec = decompose(ws, split=split, **decompose_kw)
-            keys = [c.workspace.content_hash for c in dec.cells]
+            early = (
+                _early_starts(pool, priority, (tol, accept), pending, depths)
+                if priority and on_partial is not None and isinstance(pool, ProcessPoolExecutor)
+                else None
+            )
+            if early is None:
+                dec = decompose(ws, split=split, **decompose_kw)
+            else:
+                assert on_partial is not None  # ``early`` needs it
+
+                def preview(
+                    d: Decomposition,
+                    c: tuple[ConformalMap | None, ...],
+                    r: int = _round,
+                    show: Callable[[PartialAtlas], None] = on_partial,
+                ) -> None:
+                    show(PartialAtlas(d, c, tol, r, time.perf_counter() - t0))
+
+                dec = _decompose_previewing(ws, split, early, pending, preview, decompose_kw)
+            keys = list(dec.keys)
             todo, first = _round_order(dec, keys, done, priority)
             if progress is not None:
                 progress(f"atlas: {len(dec.cells)} cells, solving {len(todo)}")
@@ -450,11 +506,11 @@ def solve_atlas(
             )
             failed: list[Tile] = []
             if on_partial is not None and isinstance(pool, ProcessPoolExecutor):
-                failed, early = _round_by_chart(
+                failed, ended = _round_by_chart(
                     pool, dec, keys, todo, set(first), (tol, accept), pending, done, records,
-                    partial, every, split_early and eager_left > 0,
+                    partial, every, split_early and eager_left > 0, depths,
                 )  # fmt: skip
-                if early:  # a route's cell failed: split it now, the other solves pending
+                if ended:  # a route's cell failed: split it now, the other solves pending
                     eager_left -= 1
                     rounds -= 1
                 batches = []
@@ -477,6 +533,92 @@ def solve_atlas(
             f.cancel()
         if own and pool is not None:
             pool.shutdown()
+
+
+def _early_starts(
+    pool: ProcessPoolExecutor,
+    priority: Sequence[tuple[complex, complex]],
+    tols: tuple[float, float],
+    pending: dict[str, Future[tuple[str, float, str]]],
+    depths: dict[str, float],
+) -> Callable[[Decomposition, float], None]:
+    """:func:`decompose`'s ``on_pass`` for a progressive atlas: when a pass is redone with a
+    new margin, start solving the robots' start cells of that pass (:func:`route_order`)
+    with the new margin as the probe depth, while the next pass is cut. A cell the next pass
+    leaves unchanged (the same content hash, as a cell whose tile band and pieces do not
+    depend on the margin) takes its solve over; another one is wasted worker time."""
+    tol, accept = tols
+
+    def start(dec: Decomposition, margin: float) -> None:
+        for i in route_order(dec, priority)[: len(priority)]:
+            key = dec.keys[i]
+            if key not in pending:
+                job = dec.cells[i].workspace.to_json()
+                pending[key] = pool.submit(_solve_one, job, tol, accept, margin)
+                depths[key] = margin
+
+    return start
+
+
+def _with_margin(dec: Decomposition, margin: float) -> Decomposition:
+    """A decomposition pass's cells with the margin of the next pass (the cached cell graph
+    kept: it does not depend on the margin). Every invariant of the cell graph holds: the
+    next margin is :data:`confnav.atlas.decompose.AUTO_MARGIN_FRACTION` times the depth of
+    this pass's passage, so the overlaps at least that deep connect every cell."""
+    out = replace(dec, margin=margin)
+    for name in ("links", "passage", "keys", "centres", "touching"):
+        if name in dec.__dict__:
+            out.__dict__[name] = dec.__dict__[name]
+    return out
+
+
+def _decompose_previewing(
+    ws: Workspace,
+    split: set[Tile],
+    early: Callable[[Decomposition, float], None],
+    pending: dict[str, Future[tuple[str, float, str]]],
+    preview: Callable[[Decomposition, tuple[ConformalMap | None, ...]], None],
+    decompose_kw: dict[str, Any],
+) -> Decomposition:
+    """:func:`decompose` with ``on_pass=early`` in a thread; meanwhile this thread shows the
+    start cells' charts as they come (``preview``, a partial revision) on the first pass's
+    cells with the next pass's margin (:func:`_with_margin`), the margin they were solved
+    for: the robots move while the decomposition is cut again. Returns the settled
+    decomposition (the same as :func:`decompose`'s), whose round collects those solves."""
+    got: dict[str, Decomposition] = {}
+    passed = threading.Event()
+
+    def on_pass(d: Decomposition, margin: float) -> None:
+        got["dec"] = _with_margin(d, margin)
+        passed.set()
+        early(d, margin)
+
+    maps: dict[str, ConformalMap | None] = {}
+    with ThreadPoolExecutor(1) as thread:
+        fut = thread.submit(
+            decompose, ws, split=split, on_pass=on_pass, **decompose_kw
+        )  # fmt: skip
+        while not fut.done():
+            if not passed.wait(0.02):
+                continue
+            d = got["dec"]
+            jobs = [pending[k] for k in d.keys if k in pending and k not in maps]
+            if not jobs:
+                wait([fut], timeout=0.05)
+                continue
+            waiting: list[Future[Any]] = [fut, *jobs]
+            wait(waiting, return_when=FIRST_COMPLETED)
+            new = False
+            for k in d.keys:
+                f = pending.get(k)
+                if k in maps or f is None or not f.done() or f.cancelled():
+                    continue
+                text, _, err = f.result()
+                maps[k] = None if err else ConformalMap.from_json(text)
+                new = new or maps[k] is not None
+            if new and not fut.done():
+                preview(d, tuple(maps.get(k) for k in d.keys))
+        return fut.result()
 
 
 def _round_order(

@@ -20,12 +20,11 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-import shapely
 from numpy.typing import ArrayLike, NDArray
 from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import dijkstra
 
-from confnav.atlas.charts import Atlas, PartialAtlas
+from confnav.atlas.charts import Atlas, PartialAtlas, navigation_map
 from confnav.atlas.decompose import Overlap
 from confnav.errors import NavigationError, fmt_point
 from confnav.navigation.control import Controller
@@ -227,10 +226,9 @@ class AtlasNavigator:
         self._nav_maps: list[Any] = (
             list(nav_maps)
             if nav_maps is not None
-            else [None if m is None else m.for_navigation() for m in atlas.charts]
+            else [None if m is None else navigation_map(m) for m in atlas.charts]
         )
-        tree = shapely.STRtree([c.polygon for c in self.cells])
-        a, b = tree.query([c.polygon for c in self.cells], predicate="intersects")
+        a, b = atlas.decomposition.touching
         rank = self.plan.rank
         # the cells a robot in cell i may switch to: strictly lower rank, intersecting i
         self.lower: list[list[int]] = [[] for _ in self.cells]
@@ -311,6 +309,17 @@ class AtlasNavigator:
         """For each point, the lowest-ranked reachable cell containing it whose chart is
         installed (-1: none)."""
         z = np.atleast_1d(np.asarray(z, dtype=np.complex128))
+        if z.size == 1:  # one robot (a controller's pose): every cell at once
+            ok = (
+                (self.atlas.decomposition.depths(complex(z.ravel()[0])) > 0)
+                & np.isfinite(self.plan.rank)
+                & np.array([m is not None for m in self._nav_maps])
+            )
+            if not ok.any():
+                return np.full(z.shape, -1, dtype=np.int64)
+            cand = np.flatnonzero(ok)
+            # the first of the lowest rank, as the loop below takes it
+            return np.full(z.shape, int(cand[np.argmin(self.plan.rank[cand])]), dtype=np.int64)
         best = np.full(z.shape, -1, dtype=np.int64)
         best_rank = np.full(z.shape, np.inf)
         for i, c in enumerate(self.cells):

@@ -23,7 +23,7 @@ from numpy.typing import ArrayLike
 from shapely.geometry import LineString, MultiLineString, Polygon
 from shapely.geometry.base import BaseGeometry
 
-from confnav.atlas.charts import Atlas, PartialAtlas
+from confnav.atlas.charts import Atlas, PartialAtlas, navigation_map
 from confnav.atlas.compose import AtlasNavigator, Overlap, overlaps
 from confnav.atlas.decompose import Cell, Decomposition, _cell_workspace, elongation
 from confnav.conformal.cmap import EXPANSION_MIN_POINTS
@@ -254,7 +254,7 @@ class AtlasMap:
 
     def __post_init__(self) -> None:
         if not self.nav_maps:
-            self.nav_maps = [None if m is None else m.for_navigation() for m in self.atlas.charts]
+            self.nav_maps = [None if m is None else navigation_map(m) for m in self.atlas.charts]
         if not self.links:
             self.links = overlaps(self.atlas)
         # charts start cold (module docstring of :meth:`warm`): a robot's first command on a
@@ -429,11 +429,11 @@ class AtlasController:
         """A reachable cell holding ``pt`` whose chart is not installed (lowest rank), or
         None: on a partial atlas the robot holds there until that chart comes."""
         nav = self.nav
-        held = [
-            i
-            for i in nav.missing()
-            if np.isfinite(nav.plan.rank[i]) and nav.cells[i].depth(pt)[0] > 0
-        ]
+        missing = nav.missing()
+        if not missing:
+            return None
+        depth = nav.atlas.decomposition.depths(complex(pt[0]))
+        held = [i for i in missing if np.isfinite(nav.plan.rank[i]) and depth[i] > 0]
         return min(held, key=lambda i: nav.plan.rank[i]) if held else None
 
     def _one(self, z: complex) -> tuple[complex, int]:
@@ -499,7 +499,7 @@ class NavMaps:
                 continue
             got = self._maps.get(id(m))
             if got is None or got[0] is not m:
-                got = (m, m.for_navigation())
+                got = (m, navigation_map(m))
                 if self.defer_expansions:
                     _defer_expansions(got[1])
                 self._maps[id(m)] = got
@@ -517,7 +517,7 @@ class NavMaps:
 
 
 def _cell_keys(atlas: Atlas | PartialAtlas) -> tuple[str, ...]:
-    return tuple(c.workspace.content_hash for c in atlas.decomposition.cells)
+    return atlas.decomposition.keys
 
 
 class ProgressiveController:

@@ -68,7 +68,6 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from confnav.errors import NavigationError
-from confnav.geometry import _distance_to_segments
 from confnav.navigation import defaults
 from confnav.types import CArray, FArray
 
@@ -573,20 +572,34 @@ class _Grid:
         ix, iy = np.meshgrid(np.arange(nx), np.arange(ny), indexing="ij")
         q = (x0 + (ix.ravel() + 0.5) * h) + 1j * (y0 + (iy.ravel() + 0.5) * h)
         r = h * math.sqrt(0.5)  # half diagonal
-        dq = _distance_to_segments(q, a, bnd)  # clearance of the cell centres
-        reach = np.minimum(flt.kappa * (dq + r), flt.lookahead) + r
-        reach = np.maximum(reach, dq + 2 * r)  # the nearest segment of every point
-        rows: list[NDArray[np.intp]] = []
-        step = max(1, (1 << 22) // max(1, a.size))
-        for s in range(0, q.size, step):  # blocks bound the memory (cells x segments)
-            qq = q[s : s + step, None]
-            t = np.clip(((qq - a) * np.conj(d)).real / np.abs(d) ** 2, 0.0, 1.0)
-            dist = np.abs(qq - (a + t * d))
-            rows.extend(np.flatnonzero(row) for row in dist <= reach[s : s + step, None])
-        width = max(1, max(len(x) for x in rows))
+        # the exact distance of every cell centre to every segment, once, in blocks that
+        # bound the memory (cells x segments), in real arithmetic: the centre's clearance
+        # ``dq`` (its minimum) and the candidate segments (those within ``reach``)
+        ax, ay, dx, dy = a.real, a.imag, d.real, d.imag
+        dd = dx * dx + dy * dy
+        inv = np.divide(1.0, dd, out=np.zeros_like(dd), where=dd > 0)
+        dq = np.empty(q.size)
+        hits_i: list[NDArray[np.intp]] = []
+        hits_j: list[NDArray[np.intp]] = []
+        step = max(1, (1 << 21) // max(1, a.size))
+        for s in range(0, q.size, step):
+            qx, qy = q.real[s : s + step, None] - ax, q.imag[s : s + step, None] - ay
+            t = np.clip((qx * dx + qy * dy) * inv, 0.0, 1.0)
+            ex, ey = qx - t * dx, qy - t * dy
+            dist = np.sqrt(ex * ex + ey * ey)
+            dqs = dist.min(axis=1)
+            dq[s : s + step] = dqs
+            reach = np.minimum(flt.kappa * (dqs + r), flt.lookahead) + r
+            reach = np.maximum(reach, dqs + 2 * r)  # the nearest segment of every point
+            i, j = np.nonzero(dist <= reach[:, None])
+            hits_i.append(i + s)
+            hits_j.append(j)
+        ci, cj = np.concatenate(hits_i), np.concatenate(hits_j)  # row-major: by cell, segment
+        count = np.bincount(ci, minlength=q.size)
+        width = max(1, int(count.max(initial=0)))
         cand = np.full((q.size, width), -1, dtype=np.intp)
-        for i, x in enumerate(rows):
-            cand[i, : len(x)] = x
+        first = np.concatenate([[0], np.cumsum(count)[:-1]])
+        cand[ci, np.arange(ci.size) - first[ci]] = cj
         low = np.maximum(dq - r, 0.0)
         inside = np.asarray(ws.contains(q), dtype=bool)
         side = np.where(dq > r, np.where(inside, 1, -1), 0).astype(np.int8)
