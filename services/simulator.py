@@ -593,8 +593,8 @@ def add_parser(sub: Any) -> None:
         action="append",
         default=[],
         metavar=ROBOT_SPEC,
-        help="a robot at start (repeatable): heading THETA in rad (default 0), body radius "
-        "r in m (default 0: a point that touches nothing), drive (default holonomic)",
+        help="a robot at start (repeatable): heading THETA in rad, 0 if left out; body radius "
+        "r in m, 0 if left out (a point that touches nothing); drive holonomic if left out",
     )
     p.add_argument("--workspace", action="append", default=[], metavar="ID=PATH")
     p.add_argument("--rate", type=float, default=50.0, help="simulated steps per second, Hz")

@@ -114,3 +114,30 @@ def test_options_are_still_options() -> None:
         PARSERS[""].parse_args(["goal", "r2", "-v"])
     args = PARSERS[""].parse_args(["-v", "goal", "r2", "1,2"])
     assert args.verbose == 1
+
+
+@pytest.mark.parametrize(
+    "service", ["transform", "controller", "simulator", "recorder", "router", "ros2", "foxglove"]
+)
+def test_serve_runs_with_one_blas_thread(service: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A service started by hand gets one BLAS thread, as the launcher's children do; a
+    count the user sets in the environment is left alone."""
+    from threadpoolctl import threadpool_info
+
+    from confnav.cli.services import _single_thread_blas
+
+    def blas_threads(_: object = None) -> list[int]:
+        return [p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas"]
+
+    func = PARSERS[f"serve {service}"].get_default("func")
+    assert func.__wrapped__ is not None  # the service's main runs inside the limit
+    args = argparse.Namespace()
+    seen: list[list[int]] = []
+    probe = _single_thread_blas(lambda a: seen.append(blas_threads()) or 0)
+    for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+        monkeypatch.delenv(var, raising=False)
+    before = blas_threads()
+    assert probe(args) == 0 and seen[-1] and set(seen[-1]) == {1}
+    assert blas_threads() == before  # restored on return
+    monkeypatch.setenv("OPENBLAS_NUM_THREADS", "2")
+    assert probe(args) == 0 and seen[-1] == before  # the user's setting wins
