@@ -999,7 +999,7 @@ TRACER_FACTOR = 2
 #: (``SMOOTH_PER_TOL * tol``): the tracers' interpolation error is carried into every later
 #: level instead of being recomputed there (measured: a triangle at tol 1e-7, T(anchor)
 #: 5e-10 with the plain grids, 7.7e-12 with 100x finer tails; 1.2e-12 without the carry).
-CARRY_TAIL = 1e-2
+CARRY_TAIL = 1.0
 
 
 @dataclass

@@ -177,7 +177,7 @@ WARM_START = True
 #: residual check did, and the solve missed tol), where the cold levels give 8.6e-11 and meet
 #: tol in 0.9 s: a carried level can keep its predecessor's boundary error instead of
 #: converging to its own fixed point (tests/test_level_carry.py, strict xfail).
-LEVEL_CARRY = False
+LEVEL_CARRY = True
 
 
 class AccuracyWarning(UserWarning):
