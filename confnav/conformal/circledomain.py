@@ -101,11 +101,15 @@ values (Cauchy formula). Points not found to TRANSPLANT_RTOL, a Taylor term abov
 tracked centre outside its image refuse the transplant (the level runs cold). Certification:
 the sweep after the transplant is measured on the passive nodes' positions, and the
 contraction is never taken below the one observed by the cold first level over its whole run
-(``LevelCarry.rho``). The tracers' interpolation error is carried into every later level
-instead of being recomputed there, so a traced level's grids resolve their curves
-CARRY_TAIL finer (measured on a 24.7-degree triangle at tol 1e-7: T(anchor) 5e-10 with the
-usual grids, 7.7e-12 with them; 1.2e-12 cold). Measured: :mod:`confnav.conformal.solver`
-module docstring and bench/README.md ("Where the time goes").
+(``LevelCarry.rho``). The first sweep's curves define the domain: their tangents are reset
+to the curves' own derivatives (:func:`_consistent_tangents`), since the graded maps'
+derivatives off their curves differ from them by the level's discretisation error, and a map
+composed on such tangents is not conformal on the curves' domain -- carried across levels,
+that defect kept every carried level at the coarsest one's boundary error (a 9.2e-8 residual
+on a room with a pillar, 8.6e-11 cold) and made T(anchor) of a 24.7-degree triangle 5e-10
+(1.2e-12 cold), which 100x finer grids on traced levels had hidden there; with consistent
+tangents both are as cold on the usual grids (tests/test_level_carry.py). Measured:
+:mod:`confnav.conformal.solver` module docstring and bench/README.md ("Where the time goes").
 
 References
 ----------
@@ -995,11 +999,6 @@ ANCHOR_SPACINGS = float(np.log(1e16) / np.pi)
 #: Tracers per smooth-grid point (the interpolant of Phi on a curve needs more modes than the
 #: curve: Phi's singularities lie nearer than the curve's).
 TRACER_FACTOR = 2
-#: A traced level's smooth grids resolve their curves to this fraction of the usual tail
-#: (``SMOOTH_PER_TOL * tol``): the tracers' interpolation error is carried into every later
-#: level instead of being recomputed there (measured: a triangle at tol 1e-7, T(anchor)
-#: 5e-10 with the plain grids, 7.7e-12 with 100x finer tails; 1.2e-12 without the carry).
-CARRY_TAIL = 1.0
 
 
 @dataclass
@@ -1218,7 +1217,7 @@ def koebe_iteration(
         first sweep (:func:`_transplant`).
     trace
         Record this level's map for the next level (the result's ``carry``; not with
-        ``start``), on grids :data:`CARRY_TAIL` finer (not the untraced run bit for bit).
+        ``start``); the same sweeps as an untraced run (the tracers only follow them).
     """
     accel = KOEBE_ACCEL if accel is None else accel
     if accel not in KOEBE_ACCELS:
@@ -1226,8 +1225,7 @@ def koebe_iteration(
     t0 = time.perf_counter()
     M = len(meshes) - 1
     trace = trace and start is None and M > 0
-    # traced (its map becomes the next level's start): grids CARRY_TAIL finer
-    it = _initial_iterate(meshes, hole_points, anchor, tol * (CARRY_TAIL if trace else 1.0), start)
+    it = _initial_iterate(meshes, hole_points, anchor, tol, start)
     guess: list[FloatArray | None] = (
         list(first_guess) if first_guess is not None else [None] * (M + 1)
     )

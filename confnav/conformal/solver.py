@@ -171,12 +171,11 @@ WARM_START = True
 #: sweep stays this level's own (its polygon GNK solves on its graded meshes carry the whole
 #: discretisation), so each level's fixed point, its level difference and the estimate are as
 #: before; only the sweeps that follow start near the circle domain. Measured: module
-#: docstring. Off by default: on a 2 x 1 m room with a square pillar to 1e-8 the carried
-#: levels kept a boundary residual of 9.2e-8 at every level from the locally refined 120 on,
-#: while the level differences fell to 1e-13 (so the level estimate did not see it; the
-#: residual check did, and the solve missed tol), where the cold levels give 8.6e-11 and meet
-#: tol in 0.9 s: a carried level can keep its predecessor's boundary error instead of
-#: converging to its own fixed point (tests/test_level_carry.py, strict xfail).
+#: docstring. It was off while a carried level kept its predecessor's boundary error (on a
+#: 2 x 1 m room with a square pillar to 1e-8: a 9.2e-8 residual at every level against 8.6e-11
+#: cold); the cause, the first sweep's tangents not those of its curves, is fixed
+#: (:func:`confnav.conformal.circledomain._consistent_tangents`), and every carried level
+#: ends within its iteration error of the cold one (tests/test_level_carry.py).
 LEVEL_CARRY = True
 
 
