@@ -55,13 +55,15 @@ these smooth grids (~3 iterations per solve for 1e-11 relative), and the start c
 product more than a zero start: 2645 FMM sums against 2371 at gap 0.01, 80 nodes per side.
 
 Accelerations (issue 24 item 1; ``accel`` / ``solve(..., koebe_accel=...)``, default
-``"none"``; :mod:`confnav.conformal.acceleration`). Both keep the iterate a *conformal image*
-of the polygon domain -- every change of state is an analytic map applied to all of it (grids,
-their derivatives, passive nodes through their parameters u, the anchor derivative D) -- so
+``"extrapolate"``, :data:`KOEBE_ACCEL`; :mod:`confnav.conformal.acceleration`). Both keep
+the iterate a *conformal image* of the polygon domain -- every change of state is an analytic
+map applied to all of it (grids, their derivatives, passive nodes through their parameters u,
+the anchor derivative D) -- so
 they only change where the next sweep starts, never the fixed point; and both end with at
 least three plain sweeps whose own history gives the reported iteration error:
 
-* ``"extrapolate"``: when two successive plain contraction ratios agree (rho in (0.2, 0.99)),
+* ``"extrapolate"``: when two successive plain contraction ratios agree (rho in (0.5, 0.99),
+  :data:`RHO_EXTRAPOLATE_MIN`),
   one sweep keeps every grid (no regrid: each grid point stays the image of the same point,
   so the sweep map G is known on every grid), then ``z -> z + (G(z) - z)/(1 - rho)`` (the
   geometric tail, Aitken's delta^2 on the slowest mode) is applied to the whole domain. The
@@ -77,8 +79,17 @@ stand"): gap 0.01, sweeps per level plain / sor / extrapolate 61 / 45 / 34, 123.
 within 2.7e-11 of each other; gap 0.03: 24 / 21 / 19, 14.6 / 13.6 / 11.2 s. Where the plain
 contraction is fast (gap 0.1, the default workspace, 50 obstacles) nothing triggers and the
 runs are the plain ones; on the default workspace shrunk by 0.2 m an accepted extrapolation
-saved no sweep (14 = 14 per level, 42.7 against 41.3 s). So the default stays ``"none"`` (it
-must win on every measured case); ``"extrapolate"`` is the candidate. What neither removes:
+saved no sweep (14 = 14 per level, 42.7 against 41.3 s). With the carried levels only the cold
+first level runs many sweeps, and extrapolating only contractions above 0.5 it wins or does
+the same sweeps on every case measured, so it is the default (``bench/bench_koebe.py --gaps
+0.01 0.03 0.1 --scenes room default shrunk mixed50 --case-tol default=1e-10 --accels none
+extrapolate --designs carry``, ``bench/results/koebe_extrapolate_default.json`` at 0c0b8fa,
+one run, load 1.6-5.8, CPU s, none / extrapolate): two squares 0.01 apart 74 / 46 sweeps
+(61/7/3/3 against 34/6/3/3), 36.5 / 25.9 s, asymmetry 1.1e-12 / 1.5e-12 under 1.2e-9, the
+maps 6.1e-12 apart; 0.03 apart 33 / 31 sweeps, 9.1 / 6.8 s; 0.1 apart, a room with a pillar,
+the default workspace (1e-10), it shrunk by 0.2 m (rho ~0.23, where extrapolating from 0.2
+had cost a sweep) and 50 obstacles: nothing triggers, the same sweeps and GMRES iterations
+as plain. What neither removes:
 ~4 sweeps per extrapolation cycle are plain, so a near-touching level still takes 3x the
 sweeps of a well-separated one.
 Tried before and not used (full-state Anderson mixing, GMRES warm starts): below.

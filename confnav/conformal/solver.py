@@ -73,8 +73,11 @@ the machine shared, so compare within a file): the plain sweeps against over-rel
 / 34 sweeps per level, 123.5 / 96.4 / 83.0 s, all honest; where the plain contraction is fast
 nothing triggers. Newton on the whole circle domain after 6 sweeps (``method="nasser"``,
 ``bench/results/koebe_methods.json``): slower on every case measured and never certified (see
-``method`` below). So the plain sweeps stay the default; the carried levels (above) remove
-the sweeps of every level after the first instead.
+``method`` below). The carried levels (above) remove the sweeps of every level after the
+first; of the cold first level's, ``"extrapolate"`` (now the default, from plain contractions
+above 0.5 only) removes about half where the contraction is slow: two squares 0.01 apart 36.5
+-> 25.9 s CPU, 74 -> 46 sweeps, the same sweeps wherever it does not trigger
+(``bench/results/koebe_extrapolate_default.json``; :mod:`confnav.conformal.circledomain`).
 
 Warm re-solve (issue 24 item 3, ``initial=``, :func:`_warm_solve`): the sweeps start from the
 previous map carried over to the changed workspace (:mod:`confnav.conformal.warm`: the
