@@ -48,7 +48,8 @@ from confnav.scenes.workspaces import (
 #: ``before``: dense GNK matrices on every smooth grid up to gnk.DENSE_MAX_NODES and every mesh
 #: level's sweeps started from the polygon (the solver up to a1fd614); ``fmm_smooth``: smooth
 #: grids above gnk.SMOOTH_DENSE_MAX_NODES through FMM products; ``carry``: that and each
-#: level's sweeps after the first started from the previous level's map (the default).
+#: level's sweeps after the first started from the previous level's map (the default since
+#: the first sweep's tangents are its curves', circledomain._consistent_tangents).
 DESIGNS: dict[str, dict[str, bool]] = {
     "before": {"smooth_fmm": False, "carry": False},
     "fmm_smooth": {"smooth_fmm": True, "carry": False},
@@ -93,14 +94,18 @@ class _Counter:
 
 
 def scene(name: str) -> Workspace:
-    """The asymmetric cases: the default workspace, it shrunk for a 0.2 m robot, and
-    ``mixed_obstacles(50, seed=0)``."""
+    """The asymmetric cases: the default workspace, it shrunk for a 0.2 m robot,
+    ``mixed_obstacles(50, seed=0)`` and a 2 x 1 m room with a square pillar."""
     if name == "default":
         return default_workspace()
     if name == "shrunk":
         return inflate(default_workspace(), 0.2)
     if name == "mixed50":
         return mixed_obstacles(50, seed=0)
+    if name == "room":  # the carried levels' regression case (tests/test_level_carry.py)
+        return Workspace(
+            [(0, 0), (2, 0), (2, 1), (0, 1)], [[(0.8, 0.3), (1.2, 0.3), (1.2, 0.7), (0.8, 0.7)]]
+        )
     raise ValueError(f"unknown scene {name!r}")
 
 
@@ -202,8 +207,16 @@ def main(argv: list[str] | None = None) -> int:
         "--scenes",
         nargs="*",
         default=[],
-        choices=["default", "shrunk", "mixed50"],
-        help="asymmetric cases too: default workspace, it shrunk by 0.2 m, 50 mixed obstacles",
+        choices=["default", "shrunk", "mixed50", "room"],
+        help="asymmetric cases too: default workspace, it shrunk by 0.2 m, 50 mixed obstacles, "
+        "a 2 x 1 m room with a pillar",
+    )
+    ap.add_argument(
+        "--case-tol",
+        nargs="*",
+        default=[],
+        metavar="CASE=TOL",
+        help="another tol for a case (e.g. default=1e-10), the rest at --tol",
     )
     ap.add_argument("--accels", nargs="+", default=list(KOEBE_ACCELS))
     ap.add_argument(
@@ -246,18 +259,20 @@ def main(argv: list[str] | None = None) -> int:
         confnav.solve(mirror_squares(0.1), tol=1e-4)
     rows = []
     cases: list[float | str] = [*gaps, *a.scenes]
+    case_tol = {k: float(v) for k, v in (c.split("=") for c in a.case_tol)}
     for gap in cases:
+        tol = case_tol.get(str(gap), a.tol)
         plain: ConformalMap | None = None
         runs = [(des, meth, acc) for des in a.designs for meth in a.methods for acc in a.accels]
         runs = [(des, meth, acc) for des, meth, acc in runs if meth == "koebe" or acc == "none"]
         for i, (des, meth, acc) in enumerate(runs):
             c0 = time.process_time()
             try:
-                r, m = run_one(gap, a.tol, acc, meth, a.nodes_per_side, des)
+                r, m = run_one(gap, tol, acc, meth, a.nodes_per_side, des)
             except confnav.ConfnavError as exc:  # a refused map is a result too
                 r = {
                     "gap": gap,
-                    "tol": a.tol,
+                    "tol": tol,
                     "accel": acc,
                     "method": meth,
                     "design": des,

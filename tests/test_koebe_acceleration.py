@@ -124,3 +124,16 @@ def test_where_nothing_triggers_the_run_is_the_plain_one() -> None:
         assert r.extrapolations == 0 and r.relaxed_sweeps == 0
         assert r.sweeps == plain.sweeps and r.history == plain.history
         assert np.array_equal(r.radii, plain.radii) and np.array_equal(r.centers, plain.centers)
+
+
+@pytest.mark.parametrize(("rho", "extrapolates"), [(0.3, False), (0.45, False), (0.7, True)])
+def test_extrapolation_starts_only_above_its_smallest_contraction(
+    rho: float, extrapolates: bool
+) -> None:
+    """Two agreeing plain contraction ratios start an extrapolation only above
+    RHO_EXTRAPOLATE_MIN (0.5): below it four plain sweeps gain rho^4 <= 0.06 anyway, and on the
+    shrunk workspace (rho ~0.23) extrapolating cost a sweep."""
+    sched = circledomain._Schedule("extrapolate", tol=1e-12)
+    sched.phase_history = [rho**k for k in range(5)]
+    assert sched._start_extrapolation(sweep=6) is extrapolates
+    assert (sched.phase == "material") is extrapolates

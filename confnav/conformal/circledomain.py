@@ -55,13 +55,15 @@ these smooth grids (~3 iterations per solve for 1e-11 relative), and the start c
 product more than a zero start: 2645 FMM sums against 2371 at gap 0.01, 80 nodes per side.
 
 Accelerations (issue 24 item 1; ``accel`` / ``solve(..., koebe_accel=...)``, default
-``"none"``; :mod:`confnav.conformal.acceleration`). Both keep the iterate a *conformal image*
-of the polygon domain -- every change of state is an analytic map applied to all of it (grids,
-their derivatives, passive nodes through their parameters u, the anchor derivative D) -- so
+``"extrapolate"``, :data:`KOEBE_ACCEL`; :mod:`confnav.conformal.acceleration`). Both keep
+the iterate a *conformal image* of the polygon domain -- every change of state is an analytic
+map applied to all of it (grids, their derivatives, passive nodes through their parameters u,
+the anchor derivative D) -- so
 they only change where the next sweep starts, never the fixed point; and both end with at
 least three plain sweeps whose own history gives the reported iteration error:
 
-* ``"extrapolate"``: when two successive plain contraction ratios agree (rho in (0.2, 0.99)),
+* ``"extrapolate"``: when two successive plain contraction ratios agree (rho in (0.5, 0.99),
+  :data:`RHO_EXTRAPOLATE_MIN`),
   one sweep keeps every grid (no regrid: each grid point stays the image of the same point,
   so the sweep map G is known on every grid), then ``z -> z + (G(z) - z)/(1 - rho)`` (the
   geometric tail, Aitken's delta^2 on the slowest mode) is applied to the whole domain. The
@@ -77,8 +79,17 @@ stand"): gap 0.01, sweeps per level plain / sor / extrapolate 61 / 45 / 34, 123.
 within 2.7e-11 of each other; gap 0.03: 24 / 21 / 19, 14.6 / 13.6 / 11.2 s. Where the plain
 contraction is fast (gap 0.1, the default workspace, 50 obstacles) nothing triggers and the
 runs are the plain ones; on the default workspace shrunk by 0.2 m an accepted extrapolation
-saved no sweep (14 = 14 per level, 42.7 against 41.3 s). So the default stays ``"none"`` (it
-must win on every measured case); ``"extrapolate"`` is the candidate. What neither removes:
+saved no sweep (14 = 14 per level, 42.7 against 41.3 s). With the carried levels only the cold
+first level runs many sweeps, and extrapolating only contractions above 0.5 it wins or does
+the same sweeps on every case measured, so it is the default (``bench/bench_koebe.py --gaps
+0.01 0.03 0.1 --scenes room default shrunk mixed50 --case-tol default=1e-10 --accels none
+extrapolate --designs carry``, ``bench/results/koebe_extrapolate_default.json`` at 0c0b8fa,
+one run, load 1.6-5.8, CPU s, none / extrapolate): two squares 0.01 apart 74 / 46 sweeps
+(61/7/3/3 against 34/6/3/3), 36.5 / 25.9 s, asymmetry 1.1e-12 / 1.5e-12 under 1.2e-9, the
+maps 6.1e-12 apart; 0.03 apart 33 / 31 sweeps, 9.1 / 6.8 s; 0.1 apart, a room with a pillar,
+the default workspace (1e-10), it shrunk by 0.2 m (rho ~0.23, where extrapolating from 0.2
+had cost a sweep) and 50 obstacles: nothing triggers, the same sweeps and GMRES iterations
+as plain. What neither removes:
 ~4 sweeps per extrapolation cycle are plain, so a near-touching level still takes 3x the
 sweeps of a well-separated one.
 Tried before and not used (full-state Anderson mixing, GMRES warm starts): below.
@@ -101,11 +112,15 @@ values (Cauchy formula). Points not found to TRANSPLANT_RTOL, a Taylor term abov
 tracked centre outside its image refuse the transplant (the level runs cold). Certification:
 the sweep after the transplant is measured on the passive nodes' positions, and the
 contraction is never taken below the one observed by the cold first level over its whole run
-(``LevelCarry.rho``). The tracers' interpolation error is carried into every later level
-instead of being recomputed there, so a traced level's grids resolve their curves
-CARRY_TAIL finer (measured on a 24.7-degree triangle at tol 1e-7: T(anchor) 5e-10 with the
-usual grids, 7.7e-12 with them; 1.2e-12 cold). Measured: :mod:`confnav.conformal.solver`
-module docstring and bench/README.md ("Where the time goes").
+(``LevelCarry.rho``). The first sweep's curves define the domain: their tangents are reset
+to the curves' own derivatives (:func:`_consistent_tangents`), since the graded maps'
+derivatives off their curves differ from them by the level's discretisation error, and a map
+composed on such tangents is not conformal on the curves' domain -- carried across levels,
+that defect kept every carried level at the coarsest one's boundary error (a 9.2e-8 residual
+on a room with a pillar, 8.6e-11 cold) and made T(anchor) of a 24.7-degree triangle 5e-10
+(1.2e-12 cold), which 100x finer grids on traced levels had hidden there; with consistent
+tangents both are as cold on the usual grids (tests/test_level_carry.py). Measured:
+:mod:`confnav.conformal.solver` module docstring and bench/README.md ("Where the time goes").
 
 References
 ----------
@@ -129,7 +144,6 @@ from scipy.spatial import cKDTree
 
 from confnav.conformal.acceleration import (
     KOEBE_ACCELS,
-    RHO_MIN,
     RelaxedMap,
     extrapolate_curve,
     optimal_omega,
@@ -147,12 +161,19 @@ from confnav.types import FArray as FloatArray
 CROWDING_RADIUS = 1e-11
 MAX_SWEEPS = 200
 #: Default acceleration of the sweeps (:mod:`confnav.conformal.acceleration`).
-KOEBE_ACCEL = "none"
+KOEBE_ACCEL = "extrapolate"
 #: Two successive plain contraction ratios agreeing to this (relative) set the over-relaxation.
 RATIO_AGREE = 0.2
 #: Largest contraction extrapolated along (1/(1 - rho) = 20) and plain sweeps between a
 #: rejected extrapolation and the next one.
 RHO_EXTRAPOLATE = 0.95
+#: Smallest plain contraction extrapolated: an extrapolation cycle takes about four sweeps (the
+#: one that keeps its grids, the confirming one and the plain sweeps that certify), over which
+#: plain sweeps at rho <= 0.5 already gain rho^4 <= 0.06. Measured with the carried levels
+#: (bench/results/koebe_carry_extrapolate.json): on the default workspace shrunk by 0.2 m
+#: (rho ~0.23) extrapolating at RHO_MIN = 0.2 cost a sweep (33 against 32), on two squares
+#: 0.01 apart (rho 0.79) it saved 28 (46 against 74 sweeps).
+RHO_EXTRAPOLATE_MIN = 0.5
 EXTRAPOLATE_WAIT = 3
 #: Sweeps without any decrease of the change (below the best of the three before) after which
 #: the iteration counts as stalled: at the rounding floor, or not converging at all.
@@ -850,7 +871,7 @@ class _Schedule:
 
     def _start_extrapolation(self, sweep: int) -> bool:
         """Extrapolate next when two successive plain contraction ratios agree, rho in
-        (RHO_MIN, RHO_MAX), and the tolerance is not met yet."""
+        (RHO_EXTRAPOLATE_MIN, RHO_MAX), and the tolerance is not met yet."""
         h = self.phase_history
         if not (
             self.accel == "extrapolate"
@@ -863,7 +884,7 @@ class _Schedule:
         r0 = h[-2] / max(h[-3], 1e-300)
         rem, ok = _remaining_error(h)
         if (
-            RHO_MIN < r1 < RHO_MAX
+            RHO_EXTRAPOLATE_MIN < r1 < RHO_MAX
             and abs(r1 - r0) <= RATIO_AGREE * r1
             and not (ok and rem <= self.tol)
         ):
@@ -995,11 +1016,6 @@ ANCHOR_SPACINGS = float(np.log(1e16) / np.pi)
 #: Tracers per smooth-grid point (the interpolant of Phi on a curve needs more modes than the
 #: curve: Phi's singularities lie nearer than the curve's).
 TRACER_FACTOR = 2
-#: A traced level's smooth grids resolve their curves to this fraction of the usual tail
-#: (``SMOOTH_PER_TOL * tol``): the tracers' interpolation error is carried into every later
-#: level instead of being recomputed there (measured: a triangle at tol 1e-7, T(anchor)
-#: 5e-10 with the plain grids, 7.7e-12 with 100x finer tails; 1.2e-12 without the carry).
-CARRY_TAIL = 1e-2
 
 
 @dataclass
@@ -1218,7 +1234,7 @@ def koebe_iteration(
         first sweep (:func:`_transplant`).
     trace
         Record this level's map for the next level (the result's ``carry``; not with
-        ``start``), on grids :data:`CARRY_TAIL` finer (not the untraced run bit for bit).
+        ``start``); the same sweeps as an untraced run (the tracers only follow them).
     """
     accel = KOEBE_ACCEL if accel is None else accel
     if accel not in KOEBE_ACCELS:
@@ -1226,8 +1242,7 @@ def koebe_iteration(
     t0 = time.perf_counter()
     M = len(meshes) - 1
     trace = trace and start is None and M > 0
-    # traced (its map becomes the next level's start): grids CARRY_TAIL finer
-    it = _initial_iterate(meshes, hole_points, anchor, tol * (CARRY_TAIL if trace else 1.0), start)
+    it = _initial_iterate(meshes, hole_points, anchor, tol, start)
     guess: list[FloatArray | None] = (
         list(first_guess) if first_guess is not None else [None] * (M + 1)
     )
@@ -1250,6 +1265,8 @@ def koebe_iteration(
         if M == 0:  # the first sweep's interior map IS the Riemann map ([1], sec. 3)
             sched.remaining, sched.converged = 0.0, True
             break
+        if sweep == 1 and start is None:
+            _consistent_tangents(it)
         _check_crowding(radii[1:])
         if start is not None and sweep == 1:
             # the first sweep's change is no measurement (1 for a boundary without a previous
@@ -1272,6 +1289,30 @@ def koebe_iteration(
     if traced is not None and result.converged:
         result.carry = _level_carry(it, sched, traced)
     return result
+
+
+def _consistent_tangents(it: _Iterate) -> None:
+    """Make every smooth grid's ``dS`` the derivative of its own curve after the first sweep.
+
+    In the first sweep the maps are those of the polygons on their graded meshes, and a map's
+    derivative at a point off its curve is the Cauchy integral of its boundary derivative
+    (:meth:`~confnav.conformal.diskmap.CurveMap.evaluate`), not the derivative of the Cauchy
+    integral giving the point: the two agree only to the mesh's discretisation error
+    (measured on a 2 x 1 m room with a pillar: ``dS`` 5e-7 relative off the spectral
+    derivative of ``S`` at 36 nodes per side, 2e-8 at 54; 1e-13 after the second sweep,
+    whose maps are those of smooth grids). The sweeps after the first solve GNK equations on
+    ``(S, dS)``, so with such a tangent the domain they map is not the one bounded by the
+    curves ``S``, and the map they compose is not conformal on that domain to ~1e-9 --
+    harmless within one level (its fixed point moves by its own discretisation error), but
+    a carried level (:func:`_transplant`) continues that map off the curves and applies it
+    to the next level's domain: the defect became a deformation no later sweep removes, and
+    every carried level kept the coarsest level's boundary residual (9.2e-8 on that room,
+    where the cold levels reach 8.6e-11). Here the curve ``S`` (resolved to its Fourier tail)
+    defines the domain, and its tangent is its spectral derivative (Trefethen, "Spectral
+    Methods in MATLAB", SIAM 2000, ch. 3)."""
+    for b in it.bnds:
+        if b.S is not None:
+            b.dS = spectral_derivative_complex(b.S)
 
 
 def _transplant_after_first_sweep(it: _Iterate, sched: _Schedule, carry: LevelCarry) -> bool:

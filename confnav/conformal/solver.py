@@ -49,15 +49,22 @@ the mesh -- and the outer boundary's 2048-point smooth grid built a dense GNK ma
 sweep for ~3 GMRES iterations (7.5 of 21 s CPU on the shrunk workspace; now FMM products,
 :data:`confnav.conformal.gnk.SMOOTH_DENSE_MAX_NODES`). Now each level's first sweep is its
 own (its discretisation, hence its fixed point, level difference and estimate are as
-before), and the rest start within the level difference of the circle domain. Measured side
-by side in one run (``bench/bench_koebe.py --designs before carry``,
-``bench/results/koebe_designs.json`` at 3591380, load 4.9-8.5, CPU seconds): two squares 0.01
-apart to 1e-8, sweeps per level 61/61/61/61 -> 61/7/3/3, 109.7 -> 34.6 s, asymmetry 2.5e-12
--> 3.2e-12 under the same estimate 1.2e-9, the two maps 4.0e-11 apart; default shrunk by
-0.2 m, 15/15/15/15/15 -> 15/7/4/3/3, 19.1 -> 9.4 s, estimates 8.1e-9 and 7.6e-9, maps 7.6e-10
-apart. The first (cold) level's sweeps are now most of what is left there. **Off by default**
-(:data:`LEVEL_CARRY`): on a room with a pillar the carried levels kept a 9.2e-8 boundary
-residual that the cold levels do not have, so the figures above are not the defaults'.
+before), and the rest start within the level difference of the circle domain. The first
+sweep's curves define the domain that the later sweeps map, so their tangents are reset to
+the curves' derivatives (:func:`confnav.conformal.circledomain._consistent_tangents`): with
+the graded maps' own derivatives (which differ by the level's discretisation error) the
+carried map was not conformal on that domain, and each carried level kept its predecessor's
+boundary error (a 9.2e-8 residual on a 2 x 1 m room with a pillar at every level, 8.6e-11
+cold; tests/test_level_carry.py). Measured side by side, cold against carried, in one run
+(``bench/bench_koebe.py --gaps 0.01 --scenes room default shrunk mixed50 --case-tol
+default=1e-10 --designs fmm_smooth carry``, ``bench/results/koebe_carry_fixed.json`` at
+30b19d7, load 6.1 -> 3.8, CPU seconds; tol 1e-8, the default workspace 1e-10): two squares
+0.01 apart 122.9 -> 38.1 s (sweeps per level 61/61/61/61 -> 61/7/3/3, asymmetry 2.5e-12 ->
+1.1e-12 under the estimate 1.2e-9); default shrunk by 0.2 m 14.3 -> 7.7 s (15 x 5 ->
+15/7/4/3/3); 50 obstacles 81.9 -> 45.4 s (5 x 6 -> 5/3/3/3/3/3); default workspace 3.6 ->
+3.1 s; the room 0.5 = 0.5 s (residual 8.6e-11 cold, 2.6e-11 carried). Every map tol_met with
+the cold estimate, the carried maps within 6.3e-11 of the cold ones. The first (cold) level's
+sweeps are now most of what is left on the near-touching and shrunk cases.
 
 Designs of the iteration measured side by side (issue 24 item 1; CPU seconds of one run each,
 the machine shared, so compare within a file): the plain sweeps against over-relaxed
@@ -66,8 +73,11 @@ the machine shared, so compare within a file): the plain sweeps against over-rel
 / 34 sweeps per level, 123.5 / 96.4 / 83.0 s, all honest; where the plain contraction is fast
 nothing triggers. Newton on the whole circle domain after 6 sweeps (``method="nasser"``,
 ``bench/results/koebe_methods.json``): slower on every case measured and never certified (see
-``method`` below). So the plain sweeps stay the default; the carried levels (above) remove
-the sweeps of every level after the first instead.
+``method`` below). The carried levels (above) remove the sweeps of every level after the
+first; of the cold first level's, ``"extrapolate"`` (now the default, from plain contractions
+above 0.5 only) removes about half where the contraction is slow: two squares 0.01 apart 36.5
+-> 25.9 s CPU, 74 -> 46 sweeps, the same sweeps wherever it does not trigger
+(``bench/results/koebe_extrapolate_default.json``; :mod:`confnav.conformal.circledomain`).
 
 Warm re-solve (issue 24 item 3, ``initial=``, :func:`_warm_solve`): the sweeps start from the
 previous map carried over to the changed workspace (:mod:`confnav.conformal.warm`: the
@@ -171,13 +181,12 @@ WARM_START = True
 #: sweep stays this level's own (its polygon GNK solves on its graded meshes carry the whole
 #: discretisation), so each level's fixed point, its level difference and the estimate are as
 #: before; only the sweeps that follow start near the circle domain. Measured: module
-#: docstring. Off by default: on a 2 x 1 m room with a square pillar to 1e-8 the carried
-#: levels kept a boundary residual of 9.2e-8 at every level from the locally refined 120 on,
-#: while the level differences fell to 1e-13 (so the level estimate did not see it; the
-#: residual check did, and the solve missed tol), where the cold levels give 8.6e-11 and meet
-#: tol in 0.9 s: a carried level can keep its predecessor's boundary error instead of
-#: converging to its own fixed point (tests/test_level_carry.py, strict xfail).
-LEVEL_CARRY = False
+#: docstring. It was off while a carried level kept its predecessor's boundary error (on a
+#: 2 x 1 m room with a square pillar to 1e-8: a 9.2e-8 residual at every level against 8.6e-11
+#: cold); the cause, the first sweep's tangents not those of its curves, is fixed
+#: (:func:`confnav.conformal.circledomain._consistent_tangents`), and every carried level
+#: ends within its iteration error of the cold one (tests/test_level_carry.py).
+LEVEL_CARRY = True
 
 
 class AccuracyWarning(UserWarning):
