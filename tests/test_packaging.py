@@ -41,7 +41,17 @@ def _run(*args: str | Path, cwd: Path) -> str:
 
 
 #: What the wheel imports at run time (pyproject dependencies, by import name).
-DEPENDENCIES = ("numpy", "scipy", "shapely", "matplotlib", "pydantic", "zenoh", "mcap", "yaml")
+DEPENDENCIES = (
+    "numpy",
+    "scipy",
+    "shapely",
+    "matplotlib",
+    "pydantic",
+    "zenoh",
+    "mcap",
+    "yaml",
+    "threadpoolctl",
+)
 
 
 def _setuptools_version() -> tuple[int, ...]:
