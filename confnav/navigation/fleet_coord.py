@@ -56,7 +56,7 @@ contact), and that the plan never gives a node to two robots in one tick
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Hashable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -65,6 +65,7 @@ from scipy.optimize import linear_sum_assignment
 
 from confnav.errors import NavigationError
 from confnav.navigation.control import Controller
+from confnav.navigation.defaults import V_MAX
 from confnav.navigation.navfn import CircleDomain, KoditschekRimon
 from confnav.navigation.roadmap import (
     Roadmap,
@@ -74,7 +75,16 @@ from confnav.navigation.roadmap import (
 )
 from confnav.types import CArray
 
-__all__ = ["GOAL_LEG", "RETURN_LEG", "ROAD", "RoadmapCoordinator", "pibt_step"]
+__all__ = [
+    "ALONE",
+    "GOAL_LEG",
+    "RETURN_LEG",
+    "ROAD",
+    "FleetCoordinator",
+    "Plan",
+    "RoadmapCoordinator",
+    "pibt_step",
+]
 
 #: modes of a robot
 ROAD, GOAL_LEG, RETURN_LEG = 0, 1, 2
@@ -228,6 +238,7 @@ class RoadmapCoordinator:
         margin: float = 0.05,
         edge_clearance: float = 0.03,
         max_edge: float = 2.2,
+        v_max: float = V_MAX,
         **kw: float,
     ) -> RoadmapCoordinator:
         """The roadmap of ``cmap.workspace`` (the free space shrunk by the filter radius
@@ -239,8 +250,9 @@ class RoadmapCoordinator:
         node: Koditschek-Rimon with the given ``k`` (one k for all nodes: for k at or above
         the goal's threshold the function is a navigation function, Koditschek and Rimon,
         "Robot navigation functions on manifolds with boundary", Adv. Appl. Math. 11, 1990)
-        and gain ``node_gain``.  ``node_tol`` defaults to ``spacing - 2 rho`` (a robot that
-        near its node clears a robot standing on any other node)."""
+        and gain ``node_gain`` (speed limit ``v_max``).  ``node_tol`` defaults to
+        ``spacing - 2 rho`` (a robot that near its node clears a robot standing on any other
+        node)."""
         ws = getattr(cmap, "workspace", None)
         if ws is None:
             raise NavigationError("the coordinator needs a map with its workspace")
@@ -257,7 +269,13 @@ class RoadmapCoordinator:
         dom = CircleDomain.of(cmap)  # type: ignore[arg-type]
         w = np.asarray(cmap.T_and_dT(rm.nodes)[0], dtype=np.complex128)  # type: ignore[attr-defined]
         ctrls = [
-            Controller(cmap, complex(z), navfn=KoditschekRimon(dom, complex(wz), k), gain=node_gain)  # type: ignore[arg-type]
+            Controller(
+                cmap,  # type: ignore[arg-type]
+                complex(z),
+                navfn=KoditschekRimon(dom, complex(wz), k),
+                gain=node_gain,
+                v_max=v_max,
+            )
             for z, wz in zip(rm.nodes.tolist(), w.tolist(), strict=True)
         ]
         # within spacing - 2 rho of its node a robot clears one standing on another node
@@ -281,6 +299,42 @@ class RoadmapCoordinator:
         self.origin[:] = self.at
         self.goal_node[:] = self.at
         self.mode[:] = RETURN_LEG
+
+    _ARRAYS = ("at", "nxt", "mode", "eta", "goal_node", "goal_pt", "pend_since",
+               "suspend_until", "_settled", "origin", "_tie")  # fmt: skip
+
+    def add(self, p: complex) -> int:
+        """A new robot at ``p`` (its controlled point): it gets the free main-component node
+        nearest ``p`` (free: no robot is on it, bound for it or coming from it, and no
+        excursion closes it) and drives there first (return leg); its index.  For a host
+        whose robots come and go (:class:`FleetCoordinator`)."""
+        used = {int(v) for v in np.concatenate([self.at, self.nxt, self.origin])}
+        for ex in self.excursions.values():
+            used |= ex.nodes
+        free = np.array([v for v in self.main.tolist() if v not in used], dtype=np.intp)
+        if free.size == 0:
+            raise NavigationError(f"no free roadmap node for robot {self.n}")
+        v = int(free[np.argmin(np.abs(self.roadmap.nodes[free] - complex(p)))])
+        fill = {"at": v, "nxt": v, "mode": RETURN_LEG, "eta": 0.0, "goal_node": v,
+                "goal_pt": np.nan + 0j, "pend_since": np.nan, "suspend_until": -np.inf,
+                "_settled": False, "origin": v, "_tie": self._rng.random() * 1e-3}  # fmt: skip
+        for name in self._ARRAYS:
+            a = getattr(self, name)
+            setattr(self, name, np.append(a, np.array([fill[name]], dtype=a.dtype)))
+        self.n += 1
+        return self.n - 1
+
+    def remove(self, i: int) -> None:
+        """Forget robot ``i`` (its nodes and its excursion are freed); the robots after it
+        move down one index."""
+        if not 0 <= i < self.n:
+            raise NavigationError(f"no robot {i} of {self.n}")
+        for name in self._ARRAYS:
+            setattr(self, name, np.delete(getattr(self, name), i))
+        self.excursions = {
+            (j if j < i else j - 1): ex for j, ex in self.excursions.items() if j != i
+        }
+        self.n -= 1
 
     def goal_node_of(self, goal: complex) -> int:
         """The main-component node nearest ``goal`` whose straight segment to it is free."""
@@ -450,3 +504,178 @@ class RoadmapCoordinator:
             if int(self.at[i]) not in (u, v)
         )
         return _Excursion(nodes=nodes, edges=edges, a=a, b=b)
+
+
+@dataclass(frozen=True)
+class Plan:
+    """What a coordinated robot does now: ``ctrl`` drives it (None: its own goal controller,
+    on the goal leg or uncoordinated); ``goal_leg``: its own controller's arrival counts;
+    ``parked``: it reached its goal and waits on the roadmap; ``note``: what it does, in
+    words (a status message)."""
+
+    ctrl: Controller | None
+    goal_leg: bool
+    parked: bool
+    note: str
+    coordinated: bool
+
+
+#: the plan of a robot that is not coordinated: its own controller, exactly as alone
+ALONE = Plan(ctrl=None, goal_leg=True, parked=False, note="", coordinated=False)
+
+
+class FleetCoordinator:
+    """A :class:`RoadmapCoordinator` for a host that gets its robots' poses asynchronously,
+    in batches, and whose robots come and go (the controller service,
+    ``services/controller_coord.py``): robots are named by id, and each call of :meth:`plan`
+    with the poses of some of them (the others keep their last position) advances the plan
+    (:meth:`RoadmapCoordinator.update`: a tick when the robots on the roadmap have settled,
+    eagerly at most every ``min_tick`` s, or after ``settle_timeout`` s) and returns each
+    given robot's :class:`Plan`.
+
+    Coordination engages only with two robots or more seen within ``ttl`` s: a robot alone
+    is not coordinated (:data:`ALONE`: its own controller, exactly as without this class),
+    and when the fleet drops to one robot, that robot is let go.  A robot not seen for
+    ``ttl`` s is forgotten (its nodes freed).  Goals are named by a ``token`` (any hashable
+    that changes when a goal is given again, e.g. its stamp): a robot that reached the goal
+    of its current token is done (it parks on the roadmap, :class:`RoadmapCoordinator`)
+    until its token changes."""
+
+    def __init__(self, coordinator: RoadmapCoordinator, ttl: float = 2.0) -> None:
+        if coordinator.n:
+            raise NavigationError("FleetCoordinator takes a coordinator with no robots yet")
+        self.coord = coordinator
+        self.ttl = float(ttl)
+        self.ids: list[str] = []  # coordinator index -> robot id
+        self._p = np.zeros(0, dtype=np.complex128)  # last controlled point of each member
+        self._goal = np.zeros(0, dtype=np.complex128)
+        self._token: list[Hashable] = []
+        self._done: list[Hashable] = []  # the token whose goal was reached (None: none)
+        self._seen: dict[str, float] = {}  # robot id -> last time it was planned
+
+    @property
+    def size(self) -> int:
+        """Robots being coordinated."""
+        return len(self.ids)
+
+    def plan(
+        self,
+        t: float,
+        ids: Sequence[str],
+        p: ArrayLike,
+        goals: ArrayLike,
+        tokens: Sequence[Hashable],
+    ) -> list[Plan]:
+        """The plans of robots ``ids`` (controlled points ``p``, goals ``goals`` named by
+        ``tokens``) at time ``t`` (s, any monotonic clock)."""
+        pp = np.asarray(p, dtype=np.complex128).reshape(-1)
+        gg = np.asarray(goals, dtype=np.complex128).reshape(-1)
+        for rid in ids:
+            self._seen[rid] = t
+        for rid in [r for r, s in self._seen.items() if t - s > self.ttl]:
+            del self._seen[rid]
+            if rid in self.ids:
+                self._remove(self.ids.index(rid))
+        if len(self._seen) < 2:  # alone: not coordinated (let go if it was)
+            while self.ids:
+                self._remove(len(self.ids) - 1)
+            return [ALONE] * len(ids)
+        idx: list[int] = []
+        for k, rid in enumerate(ids):
+            if rid not in self.ids:
+                try:
+                    self.coord.add(complex(pp[k]))
+                except NavigationError:
+                    idx.append(-1)  # no free node: not coordinated
+                    continue
+                self.ids.append(rid)
+                self._p = np.append(self._p, pp[k])
+                self._goal = np.append(self._goal, gg[k])
+                self._token.append(tokens[k])
+                self._done.append(None)
+            i = self.ids.index(rid)
+            idx.append(i)
+            self._p[i], self._goal[i] = pp[k], gg[k]
+            if tokens[k] != self._token[i]:
+                self._token[i] = tokens[k]
+                self._done[i] = None
+        done = np.array([d is not None and d == tk for d, tk in zip(self._done, self._token,
+                                                                     strict=True)])  # fmt: skip
+        drive, leg = self.coord.update(t, self._p, self._goal, done)
+        out: list[Plan] = []
+        for i in idx:
+            if i < 0:
+                out.append(ALONE)
+                continue
+            out.append(
+                Plan(
+                    ctrl=drive[i],
+                    goal_leg=bool(leg[i]),
+                    parked=bool(done[i]),
+                    note=self.describe(i, bool(done[i])),
+                    coordinated=True,
+                )
+            )
+        return out
+
+    def reached(self, rid: str) -> None:
+        """Robot ``rid`` reached its goal (its own controller said so on the goal leg): it
+        returns to its roadmap node and parks there until it gets a new goal."""
+        if rid in self.ids:
+            i = self.ids.index(rid)
+            self.coord.reached(i)
+            self._done[i] = self._token[i]
+
+    def forget(self, rid: str) -> None:
+        """Robot ``rid`` is gone (goal cancelled, served elsewhere): its nodes are freed."""
+        self._seen.pop(rid, None)
+        if rid in self.ids:
+            self._remove(self.ids.index(rid))
+
+    def _remove(self, i: int) -> None:
+        self.coord.remove(i)
+        del self.ids[i], self._token[i], self._done[i]
+        self._p = np.delete(self._p, i)
+        self._goal = np.delete(self._goal, i)
+
+    def describe(self, i: int, parked: bool = False) -> str:
+        """What robot ``i`` does, in words: the roadmap nodes it is at or bound for, and the
+        robot it waits for (the one on or bound for its next node toward its goal)."""
+        c = self.coord
+        at, nxt, m = int(c.at[i]), int(c.nxt[i]), int(c.mode[i])
+        if m == GOAL_LEG:
+            return f"driving off the roadmap from node {at} to its goal"
+        if m == RETURN_LEG:
+            if parked:
+                return f"arrived; returning to roadmap node {at} to park off the goal"
+            return f"joining the roadmap at node {at}"
+        if parked:
+            return f"arrived; parked on roadmap node {nxt}"
+        g = int(c.goal_node[i])
+        if nxt == g and at == g:
+            if i in c.excursions:
+                who = self._on(c.excursions[i].nodes, i)
+                return f"at node {g}, waiting for {who or 'its way to the goal'} to clear"
+            if c.suspend_until[i] > c.t_tick:
+                return f"at node {g}, its way to the goal blocked: waiting to try again"
+            return f"at node {g}, next to its goal"
+        togo = float(c.roadmap.dist[nxt, g])
+        if nxt != at:
+            return f"following roadmap to goal: node {at} -> {nxt}, {togo:.1f} m to go"
+        nb = c.roadmap.neighbours[at]
+        if nb.size:
+            best = int(nb[np.argmin(c.roadmap.dist[nb, g])])
+            who = self._on(frozenset({best}), i)
+            if who:
+                return f"waiting for {who} at node {at} (next node {best})"
+        return f"waiting at node {at} ({togo:.1f} m to go along the roadmap)"
+
+    def _on(self, nodes: frozenset[int], me: int) -> str:
+        """The robots (ids) on, bound for or coming from ``nodes``, other than ``me``."""
+        c = self.coord
+        who = [
+            self.ids[j]
+            for j in range(c.n)
+            if j != me and ({int(c.at[j]), int(c.nxt[j]), int(c.origin[j])} & nodes)
+        ]
+        return ", ".join(who[:3]) + (" ..." if len(who) > 3 else "")
