@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from typing import Any
 
 import numpy as np
@@ -27,7 +27,7 @@ def door_room(width: float = 0.9) -> WorkspaceDefinition:
         outer=[
             (0, 0), (2.9, 0), (2.9, h0), (3.1, h0), (3.1, 0), (6, 0), (6, 3), (3.1, 3),
             (3.1, h1), (2.9, h1), (2.9, 3), (0, 3),
-        ],  # fmt: skip
+        ],
         tol=1e-6,
     )
 
@@ -87,10 +87,8 @@ def swap_through_door(
                     out[s.robot_id] = min(out.get(s.robot_id, np.inf), s.distance_to_goal)
             return out
 
-        try:
+        with suppress(AssertionError):
             wait_for(lambda: len(best()) == 4, timeout=timeout, interval=0.2)
-        except AssertionError:
-            pass
         return best(), list(sim.collisions), list(statuses), ctl
 
 
