@@ -6,15 +6,17 @@ A thin shell over the core's :class:`~confnav.navigation.fleet_coord.FleetCoordi
 (docs/NAVIGATION.md, "Coordination on a roadmap (PIBT)" and "Fleets through the services"):
 the robots of one map (the free space shrunk by one footprint) with one speed limit are one
 coordinated fleet; each pose block's fresh poses advance its plan, and a robot's sub-goal (its
-next roadmap node) becomes the goal of the node's Koditschek-Rimon controller (wrapped in the
-robot's look-ahead law for a unicycle), whose command then goes through the same fleet filter
+next roadmap node) becomes the goal of the node's controller (Koditschek-Rimon on a single
+conformal map; on an atlas the straight law along the roadmap's free edges,
+:class:`~confnav.navigation.fleet_coord.LineLaw`; wrapped in the robot's look-ahead law for a
+unicycle), whose command then goes through the same fleet filter
 as any other (``services/neighbours.py``: pairwise rows, walls, the hold cap; side passing
 and the yield rule are off for coordinated robots: the plan replaces them).  On the goal leg
 the robot's own controller drives it, and its arrival is the published one.
 
 Not coordinated, and driven exactly as without this module: a robot alone on its map (one
-robot with a goal seen within the coordinator's ``ttl``), a robot on an atlas, a robot on the
-base map while its footprint map is solved, any robot while its fleet's roadmap is being built
+robot with a goal seen within the coordinator's ``ttl``), a robot on the base map while its
+footprint map is solved, any robot while its fleet's roadmap is being built
 (in a background thread, the first time two robots share a map).  Robots of other shards, real
 and replayed robots are never coordinated: they stay neighbours of the safety filter.
 """
@@ -62,17 +64,14 @@ class CoordMixin(ControllerCore):
         if self.fleet_coordinator != "roadmap" or not rows:
             return {}
         st = self._coord_state()
-        by_key: dict[_Key, list[tuple[_Robot, PoseLike, Controller, float]]] = {}
+        by_key: dict[_Key, list[tuple[_Robot, PoseLike, Any, float]]] = {}
         for r, pose, ctrl in rows:
-            law = getattr(ctrl, "controller", ctrl)
-            cmap = getattr(law, "cmap", None)
-            if (
-                not isinstance(law, Controller)
-                or r.goal is None
-                or r.base_ws
-                or r.atlas_ws
-                or getattr(cmap, "workspace", None) is None
-            ):
+            law = getattr(ctrl, "controller", ctrl)  # a unicycle's point law
+            if isinstance(law, Controller):  # one conformal map: Koditschek-Rimon node laws
+                cmap = law.cmap
+            else:  # an atlas (AtlasController): straight node laws on its workspace
+                cmap = getattr(getattr(law, "nav", None), "atlas", None)
+            if r.goal is None or r.base_ws or getattr(cmap, "workspace", None) is None:
                 continue
             d = float(getattr(ctrl, "d", 0.0)) if getattr(ctrl, "frame", "") == "body" else 0.0
             key = (id(cmap), navigation.footprint_radius(r.goal), float(r.goal.v_max))
@@ -80,7 +79,7 @@ class CoordMixin(ControllerCore):
             if old is not None and old != key and old in st["fleets"]:
                 st["fleets"][old].forget(r.robot_id)  # another map or speed: another fleet
             st["of"][r.robot_id] = key
-            by_key.setdefault(key, []).append((r, pose, law, d))
+            by_key.setdefault(key, []).append((r, pose, cmap, d))
         out: dict[str, Plan] = {}
         for key, members in by_key.items():
             fleet = st["fleets"].get(key)
@@ -111,7 +110,7 @@ class CoordMixin(ControllerCore):
         st = self._coord_state()
         return sum(1 for k in st["of"].values() if k == key) > 1
 
-    def _build_fleet(self, key: _Key, law: Controller, d: float) -> None:
+    def _build_fleet(self, key: _Key, cmap: Any, d: float) -> None:
         """Build fleet ``key``'s roadmap and node controllers in a background thread (the pose
         path never waits for it: its robots use the local rules meanwhile)."""
         st = self._coord_state()
@@ -122,7 +121,18 @@ class CoordMixin(ControllerCore):
 
         def build() -> None:
             try:
-                coord = RoadmapCoordinator.build(law.cmap, 0, key[1], v_max=key[2])
+                single = hasattr(cmap, "T_and_dT")  # one map (else an atlas)
+                coord = RoadmapCoordinator.build(
+                    cmap if single else None,
+                    0,
+                    key[1],
+                    v_max=key[2],
+                    node_law="kr" if single else "line",
+                    workspace=cmap.workspace,
+                )
+                st["fleets"] = {  # fleets of maps no robot uses any more are dropped
+                    k: f for k, f in list(st["fleets"].items()) if k in set(st["of"].values())
+                }
                 st["fleets"][key] = FleetCoordinator(coord)
                 self.count("roadmaps_built")
                 log.info(

@@ -58,14 +58,15 @@ from __future__ import annotations
 
 from collections.abc import Hashable, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.optimize import linear_sum_assignment
 
 from confnav.errors import NavigationError
-from confnav.navigation.control import Controller
-from confnav.navigation.defaults import V_MAX
+from confnav.navigation.control import Controller, Status
+from confnav.navigation.defaults import GOAL_TOL, V_MAX
 from confnav.navigation.navfn import CircleDomain, KoditschekRimon
 from confnav.navigation.roadmap import (
     Roadmap,
@@ -73,6 +74,7 @@ from confnav.navigation.roadmap import (
     segment_clearance,
     segment_segment_distance,
 )
+from confnav.navigation.safety import SafetyFilter, safety_filter
 from confnav.types import CArray
 
 __all__ = [
@@ -81,6 +83,7 @@ __all__ = [
     "RETURN_LEG",
     "ROAD",
     "FleetCoordinator",
+    "LineLaw",
     "Plan",
     "RoadmapCoordinator",
     "pibt_step",
@@ -161,6 +164,56 @@ def pibt_step(
     return out
 
 
+@dataclass(frozen=True)
+class LineOutput:
+    """Commands (complex, m/s) and :class:`~confnav.navigation.control.Status` codes."""
+
+    u: CArray
+    status: NDArray[np.int8]
+
+
+class LineLaw:
+    """A point driven straight to ``goal``: ``u = gain (goal - z)`` at most ``v_max`` fast,
+    zero within ``goal_tol`` (ARRIVED), then the wall safety filter on the exact workspace
+    (:class:`~confnav.navigation.safety.SafetyFilter`: barrier rows and the hold cap), so it
+    never leaves the free space.  The node law of a fleet on a map that is not one conformal
+    map (an atlas, docs/ATLAS.md): a robot on the roadmap moves along its edges, which are
+    free straight segments (:func:`~confnav.navigation.roadmap.build_roadmap`), so the
+    straight law from a node to the next, or from a goal back to its node (a free segment,
+    :meth:`RoadmapCoordinator.goal_node_of`), needs no navigation function; off a free
+    segment (pushed aside by the fleet filter) it may stop at a wall, which the filter's
+    rows then hold (no contact; arrival is what the bench measures)."""
+
+    frame = "world"
+
+    def __init__(
+        self,
+        goal: complex,
+        safety: SafetyFilter,
+        *,
+        v_max: float = V_MAX,
+        gain: float = 4.0,
+        goal_tol: float = GOAL_TOL,
+    ) -> None:
+        self.goal = complex(goal)
+        self.safety = safety
+        self.v_max = float(v_max)
+        self.gain = float(gain)
+        self.goal_tol = float(goal_tol)
+
+    def __call__(self, z: ArrayLike) -> LineOutput:
+        zz = np.asarray(z, dtype=np.complex128)
+        e = self.goal - zz
+        u = self.gain * e
+        speed = np.abs(u)
+        u = np.where(speed > self.v_max, u * (self.v_max / np.maximum(speed, 1e-300)), u)
+        arrived = np.abs(e) <= self.goal_tol
+        u = np.where(arrived, 0j, u)
+        pr = self.safety(zz, u)
+        status = np.where(arrived, Status.ARRIVED, Status.MOVING).astype(np.int8)
+        return LineOutput(u=np.asarray(pr.u).reshape(zz.shape), status=status.reshape(zz.shape))
+
+
 @dataclass
 class _Excursion:
     nodes: frozenset[int]
@@ -179,9 +232,10 @@ class RoadmapCoordinator:
     :meth:`update` every control step and :meth:`reached` when a robot reaches its goal."""
 
     roadmap: Roadmap
-    node_ctrls: list[Controller]
+    node_ctrls: list[Any]  # Controller (one conformal map) or LineLaw (any workspace)
     n: int
     gap: float
+    workspace: Any = None  # the exact free space (None: the node controllers' map's)
     node_tol: float = 0.12
     settle_timeout: float = 1.0
     seed: int = 0
@@ -239,6 +293,8 @@ class RoadmapCoordinator:
         edge_clearance: float = 0.03,
         max_edge: float = 2.2,
         v_max: float = V_MAX,
+        node_law: str = "kr",
+        workspace: Any = None,
         **kw: float,
     ) -> RoadmapCoordinator:
         """The roadmap of ``cmap.workspace`` (the free space shrunk by the filter radius
@@ -250,10 +306,12 @@ class RoadmapCoordinator:
         node: Koditschek-Rimon with the given ``k`` (one k for all nodes: for k at or above
         the goal's threshold the function is a navigation function, Koditschek and Rimon,
         "Robot navigation functions on manifolds with boundary", Adv. Appl. Math. 11, 1990)
-        and gain ``node_gain`` (speed limit ``v_max``).  ``node_tol`` defaults to
+        and gain ``node_gain`` (speed limit ``v_max``); ``node_law`` ``line``: a
+        :class:`LineLaw` per node instead, on ``workspace`` (default ``cmap.workspace``; no
+        conformal map is evaluated, ``cmap`` may be None).  ``node_tol`` defaults to
         ``spacing - 2 rho`` (a robot that near its node clears a robot standing on any other
         node)."""
-        ws = getattr(cmap, "workspace", None)
+        ws = getattr(cmap, "workspace", None) if workspace is None else workspace
         if ws is None:
             raise NavigationError("the coordinator needs a map with its workspace")
         gap = 2.0 * rho + margin
@@ -266,6 +324,14 @@ class RoadmapCoordinator:
             max_edge=max_edge * sp,
             prune_leaves=True,
         )
+        kw.setdefault("node_tol", sp - 2.0 * rho)
+        if node_law == "line":  # no conformal map needed (an atlas): straight along edges
+            flt = safety_filter(ws)
+            lines = [LineLaw(complex(z), flt, v_max=v_max, gain=node_gain)
+                     for z in rm.nodes.tolist()]  # fmt: skip
+            return cls(roadmap=rm, node_ctrls=lines, n=n, gap=gap, workspace=ws, **kw)  # type: ignore[arg-type]
+        if node_law != "kr":
+            raise NavigationError(f"node_law must be 'kr' or 'line', got {node_law!r}")
         dom = CircleDomain.of(cmap)  # type: ignore[arg-type]
         w = np.asarray(cmap.T_and_dT(rm.nodes)[0], dtype=np.complex128)  # type: ignore[attr-defined]
         ctrls = [
@@ -278,9 +344,7 @@ class RoadmapCoordinator:
             )
             for z, wz in zip(rm.nodes.tolist(), w.tolist(), strict=True)
         ]
-        # within spacing - 2 rho of its node a robot clears one standing on another node
-        kw.setdefault("node_tol", sp - 2.0 * rho)
-        return cls(roadmap=rm, node_ctrls=ctrls, n=n, gap=gap, **kw)  # type: ignore[arg-type]
+        return cls(roadmap=rm, node_ctrls=ctrls, n=n, gap=gap, workspace=ws, **kw)  # type: ignore[arg-type]
 
     # -- set-up -----------------------------------------------------------------------------
     def start(self, p: ArrayLike) -> None:
@@ -300,13 +364,19 @@ class RoadmapCoordinator:
         self.goal_node[:] = self.at
         self.mode[:] = RETURN_LEG
 
+    def _workspace(self) -> Any:
+        if self.workspace is not None:
+            return self.workspace
+        return getattr(self.node_ctrls[0].cmap, "workspace")  # noqa: B009 (typed Any)
+
     _ARRAYS = ("at", "nxt", "mode", "eta", "goal_node", "goal_pt", "pend_since",
                "suspend_until", "_settled", "origin", "_tie")  # fmt: skip
 
     def add(self, p: complex) -> int:
         """A new robot at ``p`` (its controlled point): it gets the free main-component node
-        nearest ``p`` (free: no robot is on it, bound for it or coming from it, and no
-        excursion closes it) and drives there first (return leg); its index.  For a host
+        nearest ``p`` among those with a free straight segment to ``p`` (the nearest if none
+        of the eight nearest has; free: no robot is on it, bound for it or coming from it,
+        and no excursion closes it) and drives there first (return leg); its index.  For a host
         whose robots come and go (:class:`FleetCoordinator`)."""
         used = {int(v) for v in np.concatenate([self.at, self.nxt, self.origin])}
         for ex in self.excursions.values():
@@ -314,7 +384,9 @@ class RoadmapCoordinator:
         free = np.array([v for v in self.main.tolist() if v not in used], dtype=np.intp)
         if free.size == 0:
             raise NavigationError(f"no free roadmap node for robot {self.n}")
-        v = int(free[np.argmin(np.abs(self.roadmap.nodes[free] - complex(p)))])
+        near = free[np.argsort(np.abs(self.roadmap.nodes[free] - complex(p)))[:8]]
+        seen = segment_clearance(self._workspace(), self.roadmap.nodes[near], complex(p)) > 0
+        v = int(near[np.flatnonzero(seen)[0]] if seen.any() else near[0])
         fill = {"at": v, "nxt": v, "mode": RETURN_LEG, "eta": 0.0, "goal_node": v,
                 "goal_pt": np.nan + 0j, "pend_since": np.nan, "suspend_until": -np.inf,
                 "_settled": False, "origin": v, "_tie": self._rng.random() * 1e-3}  # fmt: skip
@@ -343,7 +415,7 @@ class RoadmapCoordinator:
             return self._goal_cache[g]
         nodes = self.roadmap.nodes[self.main]
         order = np.argsort(np.abs(nodes - g))[:8]
-        ws = getattr(self.node_ctrls[0].cmap, "workspace")  # noqa: B009 (typed Any)
+        ws = self._workspace()
         free = segment_clearance(ws, nodes[order], np.full(order.size, g))
         ok = np.flatnonzero(free > 0.0)
         best = int(self.main[order[ok[0]] if ok.size else order[0]])
@@ -359,7 +431,7 @@ class RoadmapCoordinator:
 
     def update(
         self, t: float, p: ArrayLike, goals: ArrayLike, done: ArrayLike
-    ) -> tuple[list[Controller | None], NDArray[np.bool_]]:
+    ) -> tuple[list[Any], NDArray[np.bool_]]:
         """Each robot's controller for this step (None: its own goal controller, on the goal
         leg) and the goal-leg mask.  ``p``: controlled points; ``goals``: current goals;
         ``done``: robots with no goal left (they park on the roadmap)."""
@@ -389,7 +461,7 @@ class RoadmapCoordinator:
             if not (np.all(settled | ~road) or eager):
                 self.timeouts += 1
             self.tick(t, settled, dn)
-        drive: list[Controller | None] = []
+        drive: list[Any] = []
         for i in range(self.n):
             m = self.mode[i]
             if m == GOAL_LEG:
@@ -513,7 +585,7 @@ class Plan:
     ``parked``: it reached its goal and waits on the roadmap; ``note``: what it does, in
     words (a status message)."""
 
-    ctrl: Controller | None
+    ctrl: Any  # the node's law (Controller or LineLaw); None: its own goal controller
     goal_leg: bool
     parked: bool
     note: str
