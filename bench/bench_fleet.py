@@ -88,11 +88,25 @@ def shrunk_map(ws: Workspace) -> Any:
 
 
 def run(
-    ws: Workspace, cmap: Any, starts: np.ndarray, goals: np.ndarray, movers: list[Mover] = ()
+    ws: Workspace,
+    cmap: Any,
+    starts: np.ndarray,
+    goals: np.ndarray,
+    movers: list[Mover] = (),
+    roadmap: bool = False,
 ) -> dict[str, Any]:
+    """One scenario (``roadmap``: with the PIBT coordinator, as ``--fleet-coordinator
+    roadmap`` in the controller service)."""
     ctrls = [Controller(cmap, g) for g in goals]
+    coord = None
+    if roadmap:
+        from confnav.navigation.fleet_coord import RoadmapCoordinator
+
+        coord = RoadmapCoordinator.build(cmap, len(ctrls), R)
     t0 = time.perf_counter()
-    res = simulate_fleet(ctrls, starts, ws, radius=R, movers=movers, t_max=T_MAX)
+    res = simulate_fleet(
+        ctrls, starts, ws, radius=R, movers=movers, t_max=T_MAX, coordinator=coord
+    )
     wall = time.perf_counter() - t0
     ghost = simulate_fleet(ctrls, starts, ws, radius=R, movers=movers, t_max=T_MAX, avoid=False)
     lone = [
@@ -522,12 +536,22 @@ def main() -> None:
         help="only the warehouse through the services (router, transform, controller and "
         "simulator processes), with each --coordinator; writes results/fleet_services.json",
     )
+    ap.add_argument(
+        "--roadmap-scenarios",
+        action="store_true",
+        help="only the swaps and the door with the roadmap coordinator and with the local "
+        "rules (the controller service's two --fleet-coordinator choices); writes "
+        "results/fleet_roadmap_scenarios.json",
+    )
     ap.add_argument("--coordinator", action="append", choices=("roadmap", "local"))
     ap.add_argument("--time-scale", type=float, default=2.0, help="services: simulator speed")
     ap.add_argument("--t-max", type=float, default=WAREHOUSE_T_MAX, help="services: sim s")
     args = ap.parse_args()
     if args.services:
         services_main(args)
+        return
+    if args.roadmap_scenarios:
+        roadmap_scenarios_main(args)
         return
     started = datetime.now(UTC).isoformat(timespec="seconds")
     commit = git("rev-parse", "HEAD")
@@ -631,9 +655,50 @@ def main() -> None:
     print(f"wrote {args.out}")
 
 
+def roadmap_scenarios_main(args: argparse.Namespace) -> None:
+    """``--roadmap-scenarios``: swap 4, 8, 20 and door 8, local rules against the roadmap."""
+    started = datetime.now(UTC).isoformat(timespec="seconds")
+    commit = git("rev-parse", "HEAD")
+    dirty = bool(git("status", "--porcelain", "--untracked-files=no"))
+    load0 = loadavg()
+    room_map = shrunk_map(ROOM)
+    door_map = shrunk_map(DOOR)
+    cases = {f"swap {n}": (ROOM, room_map, *ring(n)) for n in (4, 8, 20)}
+    cases["door 8"] = (DOOR, door_map, *door())
+    rows: dict[str, dict[str, Any]] = {}
+    for name, (ws, cm, st, gl) in cases.items():
+        for mode in ("local", "roadmap"):
+            r = run(ws, cm, st, gl, roadmap=mode == "roadmap")
+            rows[f"{name}, {mode}"] = r
+            print(
+                f"{name:8s} {mode:8s} contacts {r['robot_contacts']}/{r['wall_contacts']} "
+                f"arrived {r['arrived_pct']:.0f}% last {r['last_arrival_s']} s "
+                f"(lone {r['slowest_lone_s']:.2f} s, ratio {r['ratio']}) load {loadavg()}",
+                flush=True,
+            )
+    out = RESULTS / "fleet_roadmap_scenarios.json"
+    doc = {
+        "commit": commit,
+        "dirty": dirty,
+        "started": started,
+        "finished": datetime.now(UTC).isoformat(timespec="seconds"),
+        "load_before": load0,
+        "load_after": loadavg(),
+        "cpu_count": os.cpu_count(),
+        "robot_radius": R,
+        "map_tol": TOL,
+        "control_period_s": 0.05,
+        "scenarios": rows,
+    }
+    out.write_text(json.dumps(doc, indent=1, default=float))
+    print(f"wrote {out}")
+
+
 def services_main(args: argparse.Namespace) -> None:
     """``--services``: the warehouse rounds through the services, one row per coordinator."""
     started = datetime.now(UTC).isoformat(timespec="seconds")
+    commit = git("rev-parse", "HEAD")  # the code the processes run (started now)
+    dirty = bool(git("status", "--porcelain", "--untracked-files=no"))
     load0 = loadavg()
     out = RESULTS / "fleet_services.json" if args.out == RESULTS / "fleet.json" else args.out
     rows = {
@@ -648,8 +713,8 @@ def services_main(args: argparse.Namespace) -> None:
             f"{w['last_arrival_s']} s (nominal), wall {w['wall_s']:.0f} s"
         )
     doc = {
-        "commit": git("rev-parse", "HEAD"),
-        "dirty": bool(git("status", "--porcelain", "--untracked-files=no")),
+        "commit": commit,
+        "dirty": dirty,
         "started": started,
         "finished": datetime.now(UTC).isoformat(timespec="seconds"),
         "load_before": load0,

@@ -140,3 +140,39 @@ def test_describe_says_what_a_robot_does(door_map: Any) -> None:
     assert fc.describe(0) == f"driving off the roadmap from node {v} to its goal"
     c.mode[0] = ROAD
     assert fc.describe(0, parked=True) == f"arrived; parked on roadmap node {v}"
+
+
+def test_the_service_shell_coordinates_two_robots_never_one(door_map: Any, mem_net: Any) -> None:
+    """``CoordMixin._coord_plans`` (services/controller_coord.py) on the controller service:
+    a robot alone gets no plan (its own law, bitwise as before); with a second robot on the
+    same map the roadmap is built off the pose path and both get plans; with
+    ``--fleet-coordinator local`` never."""
+    import time as _time
+
+    from confnav.schemas import Goal, Pose
+    from confnav.services import navigation
+    from confnav.services.controller import ControllerService
+    from confnav.services.controller_state import _Robot
+    from confnav.services.keys import Keys
+
+    ctl = ControllerService(mem_net.bus("ctl"), Keys())
+    rows = []
+    for i, rid in enumerate("ab"):
+        g = Goal(robot_id=rid, ws_id="door", goal=(GOALS[i].real, GOALS[i].imag), robot_radius=R)
+        r = _Robot(robot_id=rid, goal=g, ctrl=navigation.point_law(door_map, g))
+        pose = Pose(robot_id=rid, stamp_ns=1, x=STARTS[i].real, y=STARTS[i].imag)
+        rows.append((r, pose, r.ctrl))
+    assert ctl._coord_plans(rows[:1], 0.0) == {}
+    assert ctl._coord_plans(rows[:1], 0.1) == {}  # alone: no roadmap is even built
+    assert ctl.counters.get("roadmaps_built", 0) == 0
+    ctl._coord_plans(rows, 0.2)  # two robots: the roadmap is built in the background
+    wait = _time.monotonic() + 30
+    while not ctl.counters.get("roadmaps_built") and _time.monotonic() < wait:
+        _time.sleep(0.05)
+    plans = ctl._coord_plans(rows, 0.3)
+    assert set(plans) == {"a", "b"} and all(p.coordinated for p in plans.values())
+    assert plans["a"].note.startswith("joining the roadmap at node")
+    assert ctl._coord_plans(rows[:1], 3.0) == {}  # b gone for more than the ttl: a alone
+    local = ControllerService(mem_net.bus("ctl2"), Keys())
+    local.fleet_coordinator = "local"
+    assert local._coord_plans(rows, 0.0) == {}
