@@ -39,7 +39,7 @@ log = logging.getLogger(__name__)
 #: the coordinators the ``--fleet-coordinator`` option names
 COORDINATORS = ("roadmap", "local")
 
-_Key = tuple[int, float, float]  # (id of the map, filter radius, v_max)
+_Key = tuple[str, float, float]  # (free space's content hash, filter radius, v_max)
 
 
 class CoordMixin(ControllerCore):
@@ -74,7 +74,9 @@ class CoordMixin(ControllerCore):
             if r.goal is None or r.base_ws or getattr(cmap, "workspace", None) is None:
                 continue
             d = float(getattr(ctrl, "d", 0.0)) if getattr(ctrl, "frame", "") == "body" else 0.0
-            key = (id(cmap), navigation.footprint_radius(r.goal), float(r.goal.v_max))
+            # one fleet per free space (not per map object: a re-solved map or an atlas
+            # whose charts come in one by one is a new object for the same robots' floor)
+            key = (_space_of(cmap), navigation.footprint_radius(r.goal), float(r.goal.v_max))
             old = st["of"].get(r.robot_id)
             if old is not None and old != key and old in st["fleets"]:
                 st["fleets"][old].forget(r.robot_id)  # another map or speed: another fleet
@@ -188,6 +190,16 @@ class CoordMixin(ControllerCore):
         if plan.parked:
             return navigation.Decision(d.u, "arrived", "arrived", note)
         return navigation.Decision(d.u, "navigating", d.reason, note)
+
+
+def _space_of(cmap: Any) -> str:
+    """The identity of a map's free space: its workspace's content hash (cached on the
+    workspace object)."""
+    ws = cmap.workspace
+    h = ws.__dict__.get("_fleet_key")
+    if h is None:
+        h = ws.__dict__.setdefault("_fleet_key", str(ws.content_hash))
+    return str(h)
 
 
 def _heading(theta: float) -> complex:
