@@ -140,11 +140,13 @@ def add_parser(sub: Any) -> None:
     p.add_argument(
         "--fleet-coordinator",
         choices=COORDINATORS,
-        default="roadmap",
-        help="how the robots this process drives get past each other: 'roadmap' (default): "
-        "two or more robots on one map move on a roadmap of its free space as planned by PIBT "
-        "(a robot alone drives as without it); 'local': side passing, yielding and the "
-        "deadlock step only (docs/NAVIGATION.md, 'Fleets through the services')",
+        default="local",
+        help="how the robots this process drives get past each other: 'local' (default): "
+        "side passing, yielding and the deadlock step; 'roadmap': two or more robots on one "
+        "map move on a roadmap of its free space as planned by PIBT (a robot alone drives as "
+        "without it): every robot arrives through single-lane aisles and doors where the "
+        "local rules gridlock, but open rooms take longer (docs/NAVIGATION.md, 'The roadmap "
+        "coordinator in the controller service')",
     )
     p.set_defaults(func=main)
 
@@ -169,7 +171,7 @@ def main(args: argparse.Namespace) -> int:
             idle_ttl=args.idle_ttl,
         )
         svc.atlas_warmup = getattr(args, "atlas_warmup", "background")
-        svc.fleet_coordinator = getattr(args, "fleet_coordinator", "roadmap")
+        svc.fleet_coordinator = getattr(args, "fleet_coordinator", "local")
         return svc
 
     return run_until_signal(make, args)

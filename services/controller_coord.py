@@ -1,6 +1,6 @@
 """The controller service's fleet coordinator: the robots this controller serves move on a
-roadmap as planned by PIBT (``confnav serve controller --fleet-coordinator roadmap``, the
-default; ``local``: the local rules of ``services/neighbours.py`` only).
+roadmap as planned by PIBT (``confnav serve controller --fleet-coordinator roadmap``; the
+default ``local``: the local rules of ``services/neighbours.py`` only).
 
 A thin shell over the core's :class:`~confnav.navigation.fleet_coord.FleetCoordinator`
 (docs/NAVIGATION.md, "Coordination on a roadmap (PIBT)" and "Fleets through the services"):
@@ -37,7 +37,7 @@ from confnav.navigation.unicycle import UnicycleController
 log = logging.getLogger(__name__)
 
 #: the coordinators the ``--fleet-coordinator`` option names
-COORDINATORS = ("roadmap", "local")
+COORDINATORS = ("local", "roadmap")
 
 _Key = tuple[str, float, float]  # (free space's content hash, filter radius, v_max)
 
@@ -45,8 +45,8 @@ _Key = tuple[str, float, float]  # (free space's content hash, filter radius, v_
 class CoordMixin(ControllerCore):
     """The fleet coordinator of a controller service (module docstring)."""
 
-    #: ``roadmap`` (default) or ``local``
-    fleet_coordinator: str = "roadmap"
+    #: ``local`` (default: the local rules) or ``roadmap``
+    fleet_coordinator: str = "local"
 
     def _coord_state(self) -> dict[str, Any]:
         st: dict[str, Any] | None = self.__dict__.get("_coord")

@@ -146,7 +146,7 @@ def test_the_service_shell_coordinates_two_robots_never_one(door_map: Any, mem_n
     """``CoordMixin._coord_plans`` (services/controller_coord.py) on the controller service:
     a robot alone gets no plan (its own law, bitwise as before); with a second robot on the
     same map the roadmap is built off the pose path and both get plans; with
-    ``--fleet-coordinator local`` never."""
+    ``--fleet-coordinator local`` (the default) never."""
     import time as _time
 
     from confnav.schemas import Goal, Pose
@@ -156,6 +156,8 @@ def test_the_service_shell_coordinates_two_robots_never_one(door_map: Any, mem_n
     from confnav.services.keys import Keys
 
     ctl = ControllerService(mem_net.bus("ctl"), Keys())
+    assert ctl.fleet_coordinator == "local"  # the default
+    ctl.fleet_coordinator = "roadmap"
     rows = []
     for i, rid in enumerate("ab"):
         g = Goal(robot_id=rid, ws_id="door", goal=(GOALS[i].real, GOALS[i].imag), robot_radius=R)
@@ -174,5 +176,4 @@ def test_the_service_shell_coordinates_two_robots_never_one(door_map: Any, mem_n
     assert plans["a"].note.startswith("joining the roadmap at node")
     assert ctl._coord_plans(rows[:1], 3.0) == {}  # b gone for more than the ttl: a alone
     local = ControllerService(mem_net.bus("ctl2"), Keys())
-    local.fleet_coordinator = "local"
     assert local._coord_plans(rows, 0.0) == {}
