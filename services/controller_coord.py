@@ -67,6 +67,7 @@ class CoordMixin(ControllerCore):
         by_key: dict[_Key, list[tuple[_Robot, PoseLike, Any, float]]] = {}
         for r, pose, ctrl in rows:
             law = getattr(ctrl, "controller", ctrl)  # a unicycle's point law
+            cmap: Any
             if isinstance(law, Controller):  # one conformal map: Koditschek-Rimon node laws
                 cmap = law.cmap
             else:  # an atlas (AtlasController): straight node laws on its workspace
@@ -158,7 +159,8 @@ class CoordMixin(ControllerCore):
         if plan.ctrl is None:
             return ctrl
         if getattr(ctrl, "frame", "") != "body":
-            return plan.ctrl
+            node: navigation.ControllerLike = plan.ctrl
+            return node
         u: Any = ctrl
         key = (id(plan.ctrl), u.d, u.v_max, u.omega_max)
         laws: dict[tuple[int, float, float, float], Any] = self._coord_state()["laws"]
