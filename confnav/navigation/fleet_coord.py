@@ -732,6 +732,11 @@ class FleetCoordinator:
                 return f"at node {g}, its way to the goal blocked: waiting to try again"
             return f"at node {g}, next to its goal"
         togo = float(c.roadmap.dist[nxt, g])
+        off = abs(complex(self._p[i]) - complex(c.roadmap.nodes[nxt])) if i < self._p.size else 0.0
+        if nxt == at and off > c.node_tol:  # fixed until it is there (held off by the filter)
+            who = self._on(frozenset({nxt}), i)
+            near = f" ({who} near)" if who else ""
+            return f"getting to node {nxt}, {off:.2f} m off it{near}"
         if nxt != at:
             return f"following roadmap to goal: node {at} -> {nxt}, {togo:.1f} m to go"
         nb = c.roadmap.neighbours[at]
