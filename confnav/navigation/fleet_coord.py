@@ -242,6 +242,7 @@ class RoadmapCoordinator:
     patience: float = 4.0
     eager: bool = True
     min_tick: float = 0.1
+    late_limit: float = 3.0
     at: NDArray[np.intp] = field(init=False)
     nxt: NDArray[np.intp] = field(init=False)
     mode: NDArray[np.int8] = field(init=False)
@@ -253,6 +254,7 @@ class RoadmapCoordinator:
     origin: NDArray[np.intp] = field(init=False)  # the node a robot on its way comes from
     excursions: dict[int, _Excursion] = field(init=False)
     ticks: int = 0
+    reverts: int = 0
     excursions_done: int = 0
     timeouts: int = 0
     idle_ticks: int = 0
@@ -270,6 +272,8 @@ class RoadmapCoordinator:
         self.pend_since = np.full(n, np.nan)
         self.suspend_until = np.full(n, -np.inf)
         self._settled = np.zeros(n, dtype=bool)
+        self._best = np.full(n, np.inf)  # a robot's least distance to its next node so far
+        self._t_best = np.zeros(n)  # and when it came 0.05 m nearer than before
         self.origin = np.zeros(n, dtype=np.intp)
         self.excursions = {}
         self._rng = np.random.default_rng(self.seed)
@@ -370,7 +374,7 @@ class RoadmapCoordinator:
         return getattr(self.node_ctrls[0].cmap, "workspace")  # noqa: B009 (typed Any)
 
     _ARRAYS = ("at", "nxt", "mode", "eta", "goal_node", "goal_pt", "pend_since",
-               "suspend_until", "_settled", "origin", "_tie")  # fmt: skip
+               "suspend_until", "_settled", "origin", "_tie", "_best", "_t_best")  # fmt: skip
 
     def add(self, p: complex) -> int:
         """A new robot at ``p`` (its controlled point): it gets the free main-component node
@@ -389,7 +393,8 @@ class RoadmapCoordinator:
         v = int(near[np.flatnonzero(seen)[0]] if seen.any() else near[0])
         fill = {"at": v, "nxt": v, "mode": RETURN_LEG, "eta": 0.0, "goal_node": v,
                 "goal_pt": np.nan + 0j, "pend_since": np.nan, "suspend_until": -np.inf,
-                "_settled": False, "origin": v, "_tie": self._rng.random() * 1e-3}  # fmt: skip
+                "_settled": False, "origin": v, "_tie": self._rng.random() * 1e-3,
+                "_best": np.inf, "_t_best": 0.0}  # fmt: skip
         for name in self._ARRAYS:
             a = getattr(self, name)
             setattr(self, name, np.append(a, np.array([fill[name]], dtype=a.dtype)))
@@ -453,7 +458,11 @@ class RoadmapCoordinator:
             self.mode[i] = ROAD
             self.excursions.pop(i, None)
         road = self.mode == ROAD
-        settled = np.abs(pp - nodes[self.nxt]) <= self.node_tol
+        gap = np.abs(pp - nodes[self.nxt])
+        settled = gap <= self.node_tol
+        nearer = gap < self._best - 0.05  # progress toward the next node
+        self._t_best = np.where(nearer, t, self._t_best)
+        self._best = np.where(nearer, gap, self._best)
         newly = road & settled & ~self._settled
         self._settled = road & settled
         eager = self.eager and bool(newly.any()) and t - self.t_tick >= self.min_tick
@@ -479,6 +488,7 @@ class RoadmapCoordinator:
         road = self.mode == ROAD
         late = road & ~settled  # still between two nodes: keeps both until it is there
         self.origin = np.where(road & settled, self.nxt, self.origin)
+        self._revert(t, late)
         blocked = {int(v) for v in self.origin[late & (self.origin != self.nxt)]}
         self.at = np.where(road, self.nxt, self.at)
         fixed = ~road | late
@@ -554,7 +564,10 @@ class RoadmapCoordinator:
             rng=self._rng,
         )
         self.origin = np.where(road & ~late, self.at, self.origin)
+        moved = np.array(nxt, dtype=np.intp) != self.nxt
         self.nxt = np.array(nxt, dtype=np.intp)
+        self._best = np.where(moved, np.inf, self._best)  # a new next node: a new clock
+        self._t_best = np.where(moved, t, self._t_best)
         if np.unique(self.nxt).size != self.n:  # pibt_step's invariant, kept cheaply checked
             raise NavigationError("roadmap plan gave one node to two robots")
         if np.all(self.nxt == self.at) and not starting:
@@ -562,6 +575,23 @@ class RoadmapCoordinator:
         for i in starting:
             self.mode[i] = GOAL_LEG
             self.pend_since[i] = np.nan
+
+    def _revert(self, t: float, late: NDArray[np.bool_]) -> None:
+        """A robot on its way that has not come 0.05 m nearer its next node for
+        ``late_limit`` s (held off it: by the fleet filter, by a robot pushed onto the edge,
+        by a wall) goes back to the node it comes from, if no other robot is on, bound for or
+        coming from that node: its move is undone (it would otherwise stay fixed, and the
+        robots around it with it)."""
+        stuck = late & (t - self._t_best >= self.late_limit) & (self.origin != self.nxt)
+        for i in np.flatnonzero(stuck).tolist():
+            u = int(self.origin[i])
+            others = np.arange(self.n) != i
+            taken = np.concatenate([self.at[others], self.nxt[others], self.origin[others]])
+            if u in taken.tolist() or any(u in ex.nodes for ex in self.excursions.values()):
+                continue
+            self.origin[i], self.nxt[i] = self.nxt[i], u
+            self._best[i], self._t_best[i] = np.inf, t
+            self.reverts += 1
 
     def _excursion(self, i: int) -> _Excursion:
         a = complex(self.roadmap.nodes[int(self.at[i])])
