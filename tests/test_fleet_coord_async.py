@@ -177,3 +177,38 @@ def test_the_service_shell_coordinates_two_robots_never_one(door_map: Any, mem_n
     assert ctl._coord_plans(rows[:1], 3.0) == {}  # b gone for more than the ttl: a alone
     local = ControllerService(mem_net.bus("ctl2"), Keys())
     assert local._coord_plans(rows, 0.0) == {}
+
+
+def test_a_robot_held_off_its_node_goes_back_where_it_came_from(door_map: Any) -> None:
+    """A robot on its way from node u to v that makes no progress for ``late_limit`` s is
+    sent back to u (reverts), unless another robot is on, bound for or coming from u."""
+    c = RoadmapCoordinator.build(door_map, 0, R, late_limit=3.0)
+    nodes = c.roadmap.nodes
+    u = int(c.main[0])
+    v = int(c.roadmap.neighbours[u][0])
+    c.add(nodes[u])
+    c.mode[:] = ROAD
+    c.at[:], c.nxt[:], c.origin[:] = v, v, u
+    c._best[:], c._t_best[:] = np.inf, 0.0
+    p = np.array([0.5 * (nodes[u] + nodes[v])])  # half way, and it stays there
+    goal = np.array([nodes[v]])
+    for t in np.arange(0.0, 2.9, 0.05):
+        c.update(float(t), p, goal, np.array([False]))
+    assert c.nxt[0] == v and c.reverts == 0  # not yet 3 s
+    for t in np.arange(2.9, 4.5, 0.05):
+        c.update(float(t), p, goal, np.array([False]))
+    assert c.reverts == 1 and c.nxt[0] == u and c.origin[0] == v
+    # with a second robot bound for the node it would go back to: no revert
+    c2 = RoadmapCoordinator.build(door_map, 0, R, late_limit=3.0)
+    c2.add(nodes[u])
+    w = next(int(x) for x in c2.main if int(x) not in (u, v))
+    c2.add(nodes[w])
+    c2.mode[:] = ROAD
+    c2.at[:], c2.nxt[:], c2.origin[:] = [v, u], [v, u], [u, w]
+    c2._best[:], c2._t_best[:] = np.inf, 0.0
+    p2 = np.array([0.5 * (nodes[u] + nodes[v]), 0.5 * (nodes[u] + nodes[w])])
+    for t in np.arange(0.0, 4.5, 0.05):
+        c2.update(float(t), p2, np.array([nodes[v], nodes[u]]), np.array([False, False]))
+    # robot 1 may go back to w (free); robot 0's node u stays robot 1's: robot 0 stays put
+    assert int(c2.nxt[0]) == v and int(c2.origin[0]) == u
+    assert len({int(c2.nxt[0]), int(c2.nxt[1])}) == 2
