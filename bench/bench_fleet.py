@@ -180,6 +180,7 @@ def warehouse(
     yielding: bool = True,
     traffic: bool = False,
     roadmap: bool = False,
+    node_law: str = "kr",
 ) -> dict[str, Any]:
     """20 unicycles, ``rounds`` random goals each in the README's warehouse, a new goal issued
     on arrival; a robot done with its goals parks at its last one (and yields).  ``traffic``:
@@ -220,7 +221,7 @@ def warehouse(
     if roadmap:
         from confnav.navigation.fleet_coord import RoadmapCoordinator
 
-        coord = RoadmapCoordinator.build(cmap, n, rd + d)
+        coord = RoadmapCoordinator.build(cmap, n, rd + d, node_law=node_law)
     t0 = time.perf_counter()
     res = simulate_fleet(
         [c[0] for c in ctrls],
@@ -260,6 +261,8 @@ def warehouse(
         "ticks": coord.ticks if coord is not None else None,
         "idle_ticks": coord.idle_ticks if coord is not None else None,
         "tick_timeouts": coord.timeouts if coord is not None else None,
+        "reverts": coord.reverts if coord is not None else None,
+        "node_law": node_law if coord is not None else None,
         "gates": res.gates,
         "gate_waits": res.waits,
         "goal_yield_steps": res.goal_yields,
@@ -543,6 +546,13 @@ def main() -> None:
         "rules (the controller service's two --fleet-coordinator choices); writes "
         "results/fleet_roadmap_scenarios.json",
     )
+    ap.add_argument(
+        "--node-laws",
+        action="store_true",
+        help="only the warehouse with the roadmap coordinator, Koditschek-Rimon node laws "
+        "against straight ones (LineLaw, the laws on an atlas); writes "
+        "results/fleet_node_laws.json",
+    )
     ap.add_argument("--coordinator", action="append", choices=("roadmap", "local"))
     ap.add_argument("--time-scale", type=float, default=2.0, help="services: simulator speed")
     ap.add_argument("--t-max", type=float, default=WAREHOUSE_T_MAX, help="services: sim s")
@@ -552,6 +562,9 @@ def main() -> None:
         return
     if args.roadmap_scenarios:
         roadmap_scenarios_main(args)
+        return
+    if args.node_laws:
+        node_laws_main(args)
         return
     started = datetime.now(UTC).isoformat(timespec="seconds")
     commit = git("rev-parse", "HEAD")
@@ -653,6 +666,28 @@ def main() -> None:
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(doc, indent=1, default=float))
     print(f"wrote {args.out}")
+
+
+def node_laws_main(args: argparse.Namespace) -> None:
+    """``--node-laws``: the warehouse rounds with the coordinator's two node laws."""
+    started = datetime.now(UTC).isoformat(timespec="seconds")
+    commit = git("rev-parse", "HEAD")
+    dirty = bool(git("status", "--porcelain", "--untracked-files=no"))
+    load0 = loadavg()
+    rows = {law: warehouse(args.rounds, roadmap=True, node_law=law) for law in ("kr", "line")}
+    out = RESULTS / "fleet_node_laws.json"
+    doc = {
+        "commit": commit,
+        "dirty": dirty,
+        "started": started,
+        "finished": datetime.now(UTC).isoformat(timespec="seconds"),
+        "load_before": load0,
+        "load_after": loadavg(),
+        "cpu_count": os.cpu_count(),
+        "warehouse_roadmap": rows,
+    }
+    out.write_text(json.dumps(doc, indent=1, default=float))
+    print(f"wrote {out}")
 
 
 def roadmap_scenarios_main(args: argparse.Namespace) -> None:
