@@ -3,7 +3,8 @@ roadmap as planned by PIBT (``confnav serve controller --fleet-coordinator roadm
 default ``local``: the local rules of ``services/neighbours.py`` only).
 
 A thin shell over the core's :class:`~confnav.navigation.fleet_coord.FleetCoordinator`
-(docs/NAVIGATION.md, "Coordination on a roadmap (PIBT)" and "Fleets through the services"):
+(docs/NAVIGATION.md, "Coordination on a roadmap (PIBT)" and "The roadmap coordinator in the
+controller service"):
 the robots of one map (the free space shrunk by one footprint) with one speed limit are one
 coordinated fleet; each pose block's fresh poses advance its plan, and a robot's sub-goal (its
 next roadmap node) becomes the goal of the node's controller (Koditschek-Rimon on a single

@@ -101,7 +101,8 @@ def test_four_robots_swap_through_a_one_robot_door_with_the_roadmap(
     in it.  With the roadmap coordinator all four arrive (each reported ``arrived`` within its
     goal's tolerance) and the simulator reports no contact.  With the local rules instead
     (``--fleet-coordinator local``) the same run freezes at the door (0 of 4 arrive in the
-    core simulation too: docs/NAVIGATION.md, "Fleets through the services")."""
+    core simulation too: docs/NAVIGATION.md, "The roadmap coordinator in the controller
+    service")."""
     arrived, collisions, statuses, ctl = swap_through_door(make_bus, "roadmap", timeout=75)
     assert collisions == []
     assert sorted(arrived) == ["a", "b", "c", "d"], arrived
