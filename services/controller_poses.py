@@ -1,7 +1,9 @@
 """The controller service's hot path: the batched pose step. Poses arrive in batches (the newest
 per robot), are decoded in blocks of ``POSE_BLOCK``, grouped by controller and evaluated with one
 vectorized control-law call per group (``fleet_step`` for the world-frame robots of one map),
-and their commands published in order.
+and their commands published in order. With ``--fleet-coordinator roadmap`` each block's fresh
+poses first advance the fleet's roadmap plan, and a coordinated robot is driven by its next
+node's law (``services/controller_coord.py``).
 
 A simulator that steps all its robots at once may publish one :class:`~confnav.schemas.PoseBatch`
 per step on ``{prefix}/sim/{sim}/poses`` instead of a ``Pose`` per robot: its poses are decoded

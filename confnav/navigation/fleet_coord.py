@@ -649,6 +649,7 @@ class FleetCoordinator:
         self.coord = coordinator
         self.ttl = float(ttl)
         self.ids: list[str] = []  # coordinator index -> robot id
+        self._index: dict[str, int] = {}  # robot id -> coordinator index
         self._p = np.zeros(0, dtype=np.complex128)  # last controlled point of each member
         self._goal = np.zeros(0, dtype=np.complex128)
         self._token: list[Hashable] = []
@@ -676,26 +677,27 @@ class FleetCoordinator:
             self._seen[rid] = t
         for rid in [r for r, s in self._seen.items() if t - s > self.ttl]:
             del self._seen[rid]
-            if rid in self.ids:
-                self._remove(self.ids.index(rid))
+            if rid in self._index:
+                self._remove(self._index[rid])
         if len(self._seen) < 2:  # alone: not coordinated (let go if it was)
             while self.ids:
                 self._remove(len(self.ids) - 1)
             return [ALONE] * len(ids)
         idx: list[int] = []
         for k, rid in enumerate(ids):
-            if rid not in self.ids:
+            if rid not in self._index:
                 try:
                     self.coord.add(complex(pp[k]))
                 except NavigationError:
                     idx.append(-1)  # no free node: not coordinated
                     continue
+                self._index[rid] = len(self.ids)
                 self.ids.append(rid)
                 self._p = np.append(self._p, pp[k])
                 self._goal = np.append(self._goal, gg[k])
                 self._token.append(tokens[k])
                 self._done.append(None)
-            i = self.ids.index(rid)
+            i = self._index[rid]
             idx.append(i)
             self._p[i], self._goal[i] = pp[k], gg[k]
             if tokens[k] != self._token[i]:
@@ -723,20 +725,21 @@ class FleetCoordinator:
     def reached(self, rid: str) -> None:
         """Robot ``rid`` reached its goal (its own controller said so on the goal leg): it
         returns to its roadmap node and parks there until it gets a new goal."""
-        if rid in self.ids:
-            i = self.ids.index(rid)
+        if rid in self._index:
+            i = self._index[rid]
             self.coord.reached(i)
             self._done[i] = self._token[i]
 
     def forget(self, rid: str) -> None:
         """Robot ``rid`` is gone (goal cancelled, served elsewhere): its nodes are freed."""
         self._seen.pop(rid, None)
-        if rid in self.ids:
-            self._remove(self.ids.index(rid))
+        if rid in self._index:
+            self._remove(self._index[rid])
 
     def _remove(self, i: int) -> None:
         self.coord.remove(i)
         del self.ids[i], self._token[i], self._done[i]
+        self._index = {r: k for k, r in enumerate(self.ids)}
         self._p = np.delete(self._p, i)
         self._goal = np.delete(self._goal, i)
 
@@ -780,9 +783,8 @@ class FleetCoordinator:
     def _on(self, nodes: frozenset[int], me: int) -> str:
         """The robots (ids) on, bound for or coming from ``nodes``, other than ``me``."""
         c = self.coord
-        who = [
-            self.ids[j]
-            for j in range(c.n)
-            if j != me and ({int(c.at[j]), int(c.nxt[j]), int(c.origin[j])} & nodes)
-        ]
+        nn = np.fromiter(nodes, dtype=np.intp, count=len(nodes))
+        hit = np.isin(c.at, nn) | np.isin(c.nxt, nn) | np.isin(c.origin, nn)
+        hit[me] = False
+        who = [self.ids[j] for j in np.flatnonzero(hit)[:4].tolist()]
         return ", ".join(who[:3]) + (" ..." if len(who) > 3 else "")
