@@ -38,6 +38,7 @@ import argparse
 import json
 import os
 import sys
+import threading
 import time
 import warnings
 from datetime import UTC, datetime
@@ -63,6 +64,7 @@ WAREHOUSE_T_MAX = 900.0
 #: wall and stopped there (the far field of G is rounding-limited on this map: its gradient
 #: in the bottom aisle points at the wall), and each new goal's harmonic fit costs 0.25-30 s.
 WAREHOUSE_NAVFN = "kr"
+STALL_S = 240.0  # services: no goal reached for this long (nominal sim s) ends the run
 
 ROOM = Workspace(
     [(0, 0), (10, 0), (10, 8), (0, 8)],
@@ -86,11 +88,25 @@ def shrunk_map(ws: Workspace) -> Any:
 
 
 def run(
-    ws: Workspace, cmap: Any, starts: np.ndarray, goals: np.ndarray, movers: list[Mover] = ()
+    ws: Workspace,
+    cmap: Any,
+    starts: np.ndarray,
+    goals: np.ndarray,
+    movers: list[Mover] = (),
+    roadmap: bool = False,
 ) -> dict[str, Any]:
+    """One scenario (``roadmap``: with the PIBT coordinator, as ``--fleet-coordinator
+    roadmap`` in the controller service)."""
     ctrls = [Controller(cmap, g) for g in goals]
+    coord = None
+    if roadmap:
+        from confnav.navigation.fleet_coord import RoadmapCoordinator
+
+        coord = RoadmapCoordinator.build(cmap, len(ctrls), R)
     t0 = time.perf_counter()
-    res = simulate_fleet(ctrls, starts, ws, radius=R, movers=movers, t_max=T_MAX)
+    res = simulate_fleet(
+        ctrls, starts, ws, radius=R, movers=movers, t_max=T_MAX, coordinator=coord
+    )
     wall = time.perf_counter() - t0
     ghost = simulate_fleet(ctrls, starts, ws, radius=R, movers=movers, t_max=T_MAX, avoid=False)
     lone = [
@@ -164,6 +180,7 @@ def warehouse(
     yielding: bool = True,
     traffic: bool = False,
     roadmap: bool = False,
+    node_law: str = "kr",
 ) -> dict[str, Any]:
     """20 unicycles, ``rounds`` random goals each in the README's warehouse, a new goal issued
     on arrival; a robot done with its goals parks at its last one (and yields).  ``traffic``:
@@ -204,7 +221,7 @@ def warehouse(
     if roadmap:
         from confnav.navigation.fleet_coord import RoadmapCoordinator
 
-        coord = RoadmapCoordinator.build(cmap, n, rd + d)
+        coord = RoadmapCoordinator.build(cmap, n, rd + d, node_law=node_law)
     t0 = time.perf_counter()
     res = simulate_fleet(
         [c[0] for c in ctrls],
@@ -244,6 +261,8 @@ def warehouse(
         "ticks": coord.ticks if coord is not None else None,
         "idle_ticks": coord.idle_ticks if coord is not None else None,
         "tick_timeouts": coord.timeouts if coord is not None else None,
+        "reverts": coord.reverts if coord is not None else None,
+        "node_law": node_law if coord is not None else None,
         "gates": res.gates,
         "gate_waits": res.waits,
         "goal_yield_steps": res.goal_yields,
@@ -265,6 +284,215 @@ def warehouse(
         "filter_us_per_robot_step": res.filter_us_per_robot_step,
         "steps": res.steps,
         "wall_s": wall,
+    }
+
+
+def warehouse_goals(rounds: int, seed: int = 0) -> tuple[Any, np.ndarray, np.ndarray, np.ndarray]:
+    """The warehouse (unshrunk), the 20 unicycles' axles and headings at the start and their
+    ``rounds`` goals per robot (``goals[k, i]``): the same draws as :func:`warehouse` (points
+    of the free space shrunk by r + d, at least 0.05 m inside it, 0.8 m apart)."""
+    from confnav import import_map
+
+    rd, d, n = 0.2, 0.1, 20
+    root = Path(__file__).resolve().parent.parent
+    ws = import_map(str(root / "examples" / "warehouse.yaml"))
+    ws = getattr(ws, "workspace", ws)
+    shrunk = inflate(ws, rd + d)
+    rng = np.random.default_rng(seed)
+    xs = [z.real for z in shrunk.outer]
+    ys = [z.imag for z in shrunk.outer]
+
+    def spots(k: int) -> np.ndarray:
+        out: list[complex] = []
+        while len(out) < k:
+            c = complex(rng.uniform(min(xs), max(xs)), rng.uniform(min(ys), max(ys)))
+            if shrunk.clearance(np.array([c]))[0] < 0.05:
+                continue
+            if out and np.min(np.abs(np.array(out) - c)) < 0.8:
+                continue
+            out.append(c)
+        return np.array(out)
+
+    p = spots(n)
+    th = rng.uniform(-np.pi, np.pi, n)
+    x = p - d * np.exp(1j * th)
+    goals = np.array([spots(n) for _ in range(rounds)])
+    return ws, x, th, goals
+
+
+def services_warehouse(
+    rounds: int, coordinator: str, time_scale: float, t_max: float, seed: int = 0
+) -> dict[str, Any]:
+    """The warehouse rounds through the services: a router, a transform, a controller
+    (``--fleet-coordinator coordinator``) and a simulator (20 Hz steps, ``time_scale`` times
+    real time, one ``PoseBatch`` per step), each its own process on loopback TCP; this
+    process is the client: it publishes the warehouse's definition, spawns the 20 unicycles
+    (``SpawnRequest``, r 0.2 m, look-ahead 0.1 m), sends each robot its next ``Goal`` when a
+    status says it arrived at the current one (``arrived`` within 0.15 m of it, the axle
+    being 0.1 m behind the steered point), and counts the simulator's ``CollisionEvent``s
+    (robot-robot contacts once per pair, walls once per robot), until every goal is reached
+    or ``t_max`` s of simulated time (nominal: wall time x ``time_scale``) have passed, or no
+    goal was reached for :data:`STALL_S` s (``stalled``)."""
+    import tempfile
+
+    from bench_services import connect, cpu_seconds, free_port, spawn
+    from confnav.schemas import (
+        CollisionEvent,
+        Goal,
+        RobotStatus,
+        SpawnRequest,
+        decode,
+        encode,
+    )
+    from confnav.services.definitions import definition_of
+    from confnav.services.keys import Keys
+
+    keys = Keys()
+    ws, x, th, goals = warehouse_goals(rounds, seed)
+    n = x.size
+    rid = [f"w{i:02d}" for i in range(n)]
+    tmp = Path(tempfile.mkdtemp(prefix="confnav-fleet-"))
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    common = ["--mode", "client", "--connect", ep]
+    procs: dict[str, Any] = {}
+    lock = threading.Lock()
+    k_of = [0] * n  # index of each robot's current goal
+    sent_ns = [0] * n
+    reached_t: list[list[float]] = [[] for _ in range(n)]
+    pairs: set[tuple[str, str]] = set()
+    walls: set[str] = set()
+    waits: dict[str, int] = {}
+    statuses = 0
+    try:
+        procs["router"] = spawn("serve", "router", "--listen", ep, log=tmp / "router.log")
+        time.sleep(1.0)
+        procs["transform"] = spawn("serve", "transform", *common, "--cache-dir",
+                                   str(tmp / "cache"), log=tmp / "transform.log")  # fmt: skip
+        procs["controller"] = spawn("serve", "controller", *common, "--fleet-coordinator",
+                                    coordinator, log=tmp / "controller.log")  # fmt: skip
+        procs["simulator"] = spawn("serve", "simulator", *common, "--rate", "20",
+                                   "--time-scale", str(time_scale), "--pose-batch",
+                                   log=tmp / "simulator.log")  # fmt: skip
+        bus = connect(ep)
+        t0 = [0.0]
+
+        def send_goal(i: int) -> None:
+            g = goals[k_of[i], i]
+            sent_ns[i] = time.time_ns()
+            bus.publish(keys.robot(rid[i], "goal"), encode(Goal(
+                robot_id=rid[i], ws_id="warehouse", goal=(g.real, g.imag), navfn=WAREHOUSE_NAVFN,
+                robot_radius=0.2, drive="unicycle", lookahead=0.1, omega_max=2.0)))  # fmt: skip
+
+        def on_status(key: str, payload: bytes) -> None:
+            nonlocal statuses
+            s = decode(RobotStatus, payload)
+            if not s.robot_id.startswith("w") or s.position is None:
+                return
+            i = int(s.robot_id[1:])
+            with lock:
+                statuses += 1
+                if s.message.startswith("waiting for"):
+                    waits[s.robot_id] = waits.get(s.robot_id, 0) + 1
+                if k_of[i] >= rounds or s.state != "arrived" or s.stamp_ns < sent_ns[i]:
+                    return
+                g = goals[k_of[i], i]
+                if abs(complex(*s.position) - g) > 0.15:
+                    return  # parked on the roadmap, or an earlier goal's status
+                reached_t[i].append((time.monotonic() - t0[0]) * time_scale)
+                k_of[i] += 1
+                if k_of[i] < rounds:
+                    send_goal(i)
+
+        def on_collision(key: str, payload: bytes) -> None:
+            e = decode(CollisionEvent, payload)
+            with lock:
+                if e.other_robot_id is None:
+                    walls.add(e.robot_id)
+                else:
+                    a, b = sorted((e.robot_id, e.other_robot_id))
+                    pairs.add((a, b))
+
+        bus.subscribe(keys.any_robot("status"), on_status)
+        bus.subscribe(keys.any_robot("collision"), on_collision)
+        deadline = time.monotonic() + 60
+        while len(bus.alive(keys.alive_of("controller"))) < 1 or not bus.alive(
+            keys.alive_of("transform")
+        ):
+            if time.monotonic() > deadline:
+                raise RuntimeError("services did not come up")
+            time.sleep(0.2)
+        defn = definition_of("warehouse", ws, 1e-4)
+        bus.publish(keys.ws("warehouse", "definition"), encode(defn))
+        time.sleep(2.0)  # the simulator learns the walls from the definition
+        for i in range(n):
+            bus.publish(keys.sim("sim", "spawn"), encode(SpawnRequest(
+                robot_id=rid[i], ws_id="warehouse", position=(x[i].real, x[i].imag),
+                theta=float(th[i]), robot_radius=0.2, drive="unicycle")))  # fmt: skip
+        time.sleep(1.0)
+        t0[0] = time.monotonic()
+        for i in range(n):
+            send_goal(i)
+        cpu0 = {k: cpu_seconds(p.pid) for k, p in procs.items()}
+        last_progress = time.monotonic()
+        done_before = 0
+        stalled = False
+        while (time.monotonic() - t0[0]) * time_scale < t_max:
+            time.sleep(1.0)
+            with lock:
+                done = sum(k_of)
+            if done >= n * rounds:
+                break
+            if done != done_before:
+                done_before, last_progress = done, time.monotonic()
+            elif (time.monotonic() - last_progress) * time_scale > STALL_S:
+                stalled = True
+                break
+            sim_t = (time.monotonic() - t0[0]) * time_scale
+            if int(sim_t) % 30 == 0:
+                print(f"#   {coordinator}: {done}/{n * rounds} goals, {sim_t:.0f} s", flush=True)
+        wall = time.monotonic() - t0[0]
+        cpu = {k: cpu_seconds(p.pid) - cpu0[k] for k, p in procs.items()}
+        bus.close()
+    finally:
+        for p in procs.values():
+            p.terminate()
+        for p in procs.values():
+            try:
+                p.wait(timeout=10)
+            except Exception:
+                p.kill()
+    reached = sum(k_of)
+    arrivals = [t for ts in reached_t for t in ts]
+    print(
+        f"#   services warehouse ({coordinator}): {reached}/{n * rounds} goals, "
+        f"{len(pairs)} robot pairs / {len(walls)} wall contacts, wall {wall:.0f} s "
+        f"(load {loadavg()})",
+        flush=True,
+    )
+    return {
+        "coordinator": coordinator,
+        "robots": n,
+        "rounds": rounds,
+        "seed": seed,
+        "navfn": WAREHOUSE_NAVFN,
+        "goals": n * rounds,
+        "reached": reached,
+        "arrived_pct": 100.0 * reached / (n * rounds),
+        "robot_contacts": len(pairs),
+        "robot_contact_pairs": sorted(pairs),
+        "wall_contacts": len(walls),
+        "last_arrival_s": max(arrivals) if arrivals else None,
+        "t_max_s": t_max,
+        "stalled": stalled,
+        "stall_s": STALL_S,
+        "time_scale": time_scale,
+        "sim_rate_hz": 20.0,
+        "wall_s": wall,
+        "cpu_s": cpu,
+        "statuses": statuses,
+        "waiting_statuses": sum(waits.values()),
+        "note": "times are nominal simulated seconds (wall time x time_scale) since the first "
+        "goals; the simulator steps at 20 Hz of simulated time",
     }
 
 
@@ -305,7 +533,39 @@ def main() -> None:
         default=0,
         help="the roadmap row again on the goals of seeds 1..N (warehouse_roadmap_seeds)",
     )
+    ap.add_argument(
+        "--services",
+        action="store_true",
+        help="only the warehouse through the services (router, transform, controller and "
+        "simulator processes), with each --coordinator; writes results/fleet_services.json",
+    )
+    ap.add_argument(
+        "--roadmap-scenarios",
+        action="store_true",
+        help="only the swaps and the door with the roadmap coordinator and with the local "
+        "rules (the controller service's two --fleet-coordinator choices); writes "
+        "results/fleet_roadmap_scenarios.json",
+    )
+    ap.add_argument(
+        "--node-laws",
+        action="store_true",
+        help="only the warehouse with the roadmap coordinator, Koditschek-Rimon node laws "
+        "against straight ones (LineLaw, the laws on an atlas); writes "
+        "results/fleet_node_laws.json",
+    )
+    ap.add_argument("--coordinator", action="append", choices=("roadmap", "local"))
+    ap.add_argument("--time-scale", type=float, default=2.0, help="services: simulator speed")
+    ap.add_argument("--t-max", type=float, default=WAREHOUSE_T_MAX, help="services: sim s")
     args = ap.parse_args()
+    if args.services:
+        services_main(args)
+        return
+    if args.roadmap_scenarios:
+        roadmap_scenarios_main(args)
+        return
+    if args.node_laws:
+        node_laws_main(args)
+        return
     started = datetime.now(UTC).isoformat(timespec="seconds")
     commit = git("rev-parse", "HEAD")
     dirty = bool(git("status", "--porcelain", "--untracked-files=no"))
@@ -406,6 +666,100 @@ def main() -> None:
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(doc, indent=1, default=float))
     print(f"wrote {args.out}")
+
+
+def node_laws_main(args: argparse.Namespace) -> None:
+    """``--node-laws``: the warehouse rounds with the coordinator's two node laws."""
+    started = datetime.now(UTC).isoformat(timespec="seconds")
+    commit = git("rev-parse", "HEAD")
+    dirty = bool(git("status", "--porcelain", "--untracked-files=no"))
+    load0 = loadavg()
+    rows = {law: warehouse(args.rounds, roadmap=True, node_law=law) for law in ("kr", "line")}
+    out = RESULTS / "fleet_node_laws.json"
+    doc = {
+        "commit": commit,
+        "dirty": dirty,
+        "started": started,
+        "finished": datetime.now(UTC).isoformat(timespec="seconds"),
+        "load_before": load0,
+        "load_after": loadavg(),
+        "cpu_count": os.cpu_count(),
+        "warehouse_roadmap": rows,
+    }
+    out.write_text(json.dumps(doc, indent=1, default=float))
+    print(f"wrote {out}")
+
+
+def roadmap_scenarios_main(args: argparse.Namespace) -> None:
+    """``--roadmap-scenarios``: swap 4, 8, 20 and door 8, local rules against the roadmap."""
+    started = datetime.now(UTC).isoformat(timespec="seconds")
+    commit = git("rev-parse", "HEAD")
+    dirty = bool(git("status", "--porcelain", "--untracked-files=no"))
+    load0 = loadavg()
+    room_map = shrunk_map(ROOM)
+    door_map = shrunk_map(DOOR)
+    cases = {f"swap {n}": (ROOM, room_map, *ring(n)) for n in (4, 8, 20)}
+    cases["door 8"] = (DOOR, door_map, *door())
+    rows: dict[str, dict[str, Any]] = {}
+    for name, (ws, cm, st, gl) in cases.items():
+        for mode in ("local", "roadmap"):
+            r = run(ws, cm, st, gl, roadmap=mode == "roadmap")
+            rows[f"{name}, {mode}"] = r
+            print(
+                f"{name:8s} {mode:8s} contacts {r['robot_contacts']}/{r['wall_contacts']} "
+                f"arrived {r['arrived_pct']:.0f}% last {r['last_arrival_s']} s "
+                f"(lone {r['slowest_lone_s']:.2f} s, ratio {r['ratio']}) load {loadavg()}",
+                flush=True,
+            )
+    out = RESULTS / "fleet_roadmap_scenarios.json"
+    doc = {
+        "commit": commit,
+        "dirty": dirty,
+        "started": started,
+        "finished": datetime.now(UTC).isoformat(timespec="seconds"),
+        "load_before": load0,
+        "load_after": loadavg(),
+        "cpu_count": os.cpu_count(),
+        "robot_radius": R,
+        "map_tol": TOL,
+        "control_period_s": 0.05,
+        "scenarios": rows,
+    }
+    out.write_text(json.dumps(doc, indent=1, default=float))
+    print(f"wrote {out}")
+
+
+def services_main(args: argparse.Namespace) -> None:
+    """``--services``: the warehouse rounds through the services, one row per coordinator."""
+    started = datetime.now(UTC).isoformat(timespec="seconds")
+    commit = git("rev-parse", "HEAD")  # the code the processes run (started now)
+    dirty = bool(git("status", "--porcelain", "--untracked-files=no"))
+    load0 = loadavg()
+    out = RESULTS / "fleet_services.json" if args.out == RESULTS / "fleet.json" else args.out
+    rows = {
+        c: services_warehouse(args.rounds, c, args.time_scale, args.t_max)
+        for c in (args.coordinator or ["roadmap"])
+    }
+    for c, w in rows.items():
+        print(
+            f"services warehouse, {c}: {w['robots']} unicycles x {w['rounds']} goals: "
+            f"{w['robot_contacts']} robot / {w['wall_contacts']} wall contacts, "
+            f"{w['reached']}/{w['goals']} = {w['arrived_pct']:.1f}% reached, last arrival "
+            f"{w['last_arrival_s']} s (nominal), wall {w['wall_s']:.0f} s"
+        )
+    doc = {
+        "commit": commit,
+        "dirty": dirty,
+        "started": started,
+        "finished": datetime.now(UTC).isoformat(timespec="seconds"),
+        "load_before": load0,
+        "load_after": loadavg(),
+        "note": "timings under the load shown (shared machine), not idle figures",
+        "cpu_count": os.cpu_count(),
+        "warehouse_services": rows,
+    }
+    out.write_text(json.dumps(doc, indent=1, default=float))
+    print(f"wrote {out}")
 
 
 if __name__ == "__main__":

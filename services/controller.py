@@ -29,7 +29,8 @@ The service is split by job, one module each: ``controller_state`` (robot record
 thread, commands, statuses, stop reasons), ``controller_cache`` (controllers per map revision
 and goal), ``controller_maps`` (fetching, installing and hot-swapping maps and atlases,
 definition changes), ``controller_goals`` (goals and cancels), ``controller_poses`` (the batched
-pose step), ``controller_watchdog``; this module puts them together and holds the CLI.
+pose step), ``controller_coord`` (the fleet coordinator), ``controller_watchdog``; this module
+puts them together and holds the CLI.
 """
 
 from __future__ import annotations
@@ -40,6 +41,7 @@ import sys
 from typing import Any
 
 from confnav.services.controller_cache import CTRL_CACHE_SIZE
+from confnav.services.controller_coord import COORDINATORS
 from confnav.services.controller_goals import GoalsMixin
 from confnav.services.controller_maps import MapsMixin
 from confnav.services.controller_poses import PosesMixin
@@ -135,6 +137,17 @@ def add_parser(sub: Any) -> None:
         "uses it, in its goal or pose step (less memory for charts no robot visits; a "
         "robot's first move then waits about a second per chart, more under load)",
     )
+    p.add_argument(
+        "--fleet-coordinator",
+        choices=COORDINATORS,
+        default="local",
+        help="how the robots this process drives get past each other: 'local' (default): "
+        "side passing, yielding and the deadlock step; 'roadmap': two or more robots on one "
+        "map move on a roadmap of its free space as planned by PIBT (a robot alone drives as "
+        "without it): every robot arrives through single-lane aisles and doors where the "
+        "local rules gridlock, but open rooms take longer (docs/NAVIGATION.md, 'The roadmap "
+        "coordinator in the controller service')",
+    )
     p.set_defaults(func=main)
 
 
@@ -158,6 +171,7 @@ def main(args: argparse.Namespace) -> int:
             idle_ttl=args.idle_ttl,
         )
         svc.atlas_warmup = getattr(args, "atlas_warmup", "background")
+        svc.fleet_coordinator = getattr(args, "fleet_coordinator", "local")
         return svc
 
     return run_until_signal(make, args)

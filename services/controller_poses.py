@@ -1,7 +1,9 @@
 """The controller service's hot path: the batched pose step. Poses arrive in batches (the newest
 per robot), are decoded in blocks of ``POSE_BLOCK``, grouped by controller and evaluated with one
 vectorized control-law call per group (``fleet_step`` for the world-frame robots of one map),
-and their commands published in order.
+and their commands published in order. With ``--fleet-coordinator roadmap`` each block's fresh
+poses first advance the fleet's roadmap plan, and a coordinated robot is driven by its next
+node's law (``services/controller_coord.py``).
 
 A simulator that steps all its robots at once may publish one :class:`~confnav.schemas.PoseBatch`
 per step on ``{prefix}/sim/{sim}/poses`` instead of a ``Pose`` per robot: its poses are decoded
@@ -18,8 +20,9 @@ from typing import Any, NamedTuple
 import numpy as np
 from confnav.schemas import DecodeError, Pose, PoseBatch, decode
 from confnav.services import navigation
+from confnav.services.controller_coord import CoordMixin
 from confnav.services.controller_footprint import off_shrunk
-from confnav.services.controller_state import POSE_BLOCK, ControllerCore, PoseLike, _Robot
+from confnav.services.controller_state import POSE_BLOCK, PoseLike, _Robot
 from confnav.services.keys import KeyError_
 
 from confnav.navigation.control import Controller
@@ -40,7 +43,25 @@ class BatchPose(NamedTuple):
     theta: float
 
 
-class PosesMixin(ControllerCore):
+def _sub_goal_codes(results: list[Any], plans: dict[str, Any]) -> list[Any]:
+    """``results`` with ARRIVED turned into MOVING for the coordinated robots off their goal
+    leg (at a roadmap node: a sub-goal, not the goal)."""
+    out: list[Any] = []
+    for (ctrl, members), res in results:
+        if not isinstance(res, Exception):
+            sub = np.array(
+                [(p := plans.get(r.robot_id)) is not None and not p.goal_leg for r, _ in members],
+                dtype=bool,
+            )
+            if sub.any():
+                codes = np.asarray(res[1]).copy()
+                codes[sub & (codes == navigation.ARRIVED)] = navigation.MOVING
+                res = (res[0], codes)
+        out.append(((ctrl, members), res))
+    return out
+
+
+class PosesMixin(CoordMixin):
     """The batched pose step (hot path)."""
 
     # poses (hot path) -------------------------------------------------------------------------
@@ -164,6 +185,7 @@ class PosesMixin(ControllerCore):
         groups: dict[int, tuple[navigation.ControllerLike, list[tuple[_Robot, PoseLike]]]] = {}
         nb = self.neighbours
         nb_fed = nb is not None and nb.fed
+        drive: list[tuple[_Robot, PoseLike, navigation.ControllerLike]] = []
         for r, pose in rows:
             if nb_fed:  # the fleet filter's view of every robot (services/neighbours.py)
                 nb.note_pose(r.robot_id, pose, now)  # type: ignore[union-attr,arg-type]
@@ -185,12 +207,24 @@ class PosesMixin(ControllerCore):
                     continue
                 ctrl = r.ctrl
             assert ctrl is not None
+            drive.append((r, pose, ctrl))
+        # the fleet coordinator (services/controller_coord.py): a coordinated robot is driven
+        # by its next roadmap node's controller, or by its own on the goal leg
+        plans = self._coord_plans(drive, now)
+        own: dict[str, navigation.ControllerLike] = {}
+        for r, pose, ctrl in drive:
+            pl = plans.get(r.robot_id)
+            if pl is not None:
+                own[r.robot_id] = ctrl
+                ctrl = self._coord_law(pl, ctrl)
             groups.setdefault(id(ctrl), (ctrl, []))[1].append((r, pose))
         members_of = list(groups.values())
         results = list(zip(members_of, self._control(members_of), strict=True))
+        if plans:  # a node controller's arrival is a sub-goal's: the robot keeps moving
+            results = _sub_goal_codes(results, plans)
         # --- fleet hook (services/neighbours.py): keep robots off each other and movers ---
         if self.neighbours is not None:
-            results = self.neighbours.filter_block(results, now)
+            results = self.neighbours.filter_block(results, now, coordinated=plans)
         # --- end fleet hook ---
         for (ctrl, members), res in results:
             if isinstance(res, Exception):
@@ -204,12 +238,17 @@ class PosesMixin(ControllerCore):
             u, codes = res
             for (r, pose), ui, code in zip(members, u.tolist(), codes.tolist(), strict=True):
                 with r.lock:
-                    if r.ctrl is not ctrl:  # swapped to another map revision meanwhile: the
-                        # answer is not the current revision's, and replay --check recomputes
-                        # each command from the revision it names; the next pose gets one
+                    if r.ctrl is not own.get(r.robot_id, ctrl):  # swapped to another map
+                        # revision meanwhile: the answer is not the current revision's, and
+                        # replay --check recomputes each command from the revision it names;
+                        # the next pose gets one
                         self.count("answers_dropped_on_swap")
                         continue
-                    self._act(r, pose, navigation.decide(ctrl, complex(ui), int(code)), now)
+                    d = navigation.decide(ctrl, complex(ui), int(code))
+                    pl = plans.get(r.robot_id)
+                    if pl is not None:
+                        d = self._coord_decision(pl, d, r.robot_id)
+                    self._act(r, pose, d, now)
 
     def _control(
         self, groups: list[tuple[navigation.ControllerLike, list[tuple[_Robot, PoseLike]]]]

@@ -28,7 +28,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Container
 from dataclasses import dataclass
 from typing import Any
 
@@ -346,10 +346,18 @@ class Neighbours:
             np.concatenate([r_h, np.zeros(len(zs), dtype=np.complex128)]),
         )
 
-    def filter_block(self, results: list[Any], now: float | None = None) -> list[Any]:
+    def filter_block(
+        self,
+        results: list[Any],
+        now: float | None = None,
+        coordinated: Container[str] = frozenset(),
+    ) -> list[Any]:
         """The controller's results of one pose block, ``[((ctrl, [(robot, pose), ...]),
         (u, codes) or an exception), ...]``, with every robot's command filtered against the
-        others (module docstring).  Robots without rows keep their command bitwise."""
+        others (module docstring).  Robots without rows keep their command bitwise.  The
+        ``coordinated`` robots (ids; the fleet coordinator plans their way,
+        ``services/controller_coord.py``) get the filter without side passing and the yield
+        rule, as the fleet simulation with a coordinator."""
         now = time.monotonic() if now is None else now
         entries: list[tuple[int, int, Any, Any, Any]] = []  # (group, k, robot, pose, ctrl)
         for gi, ((ctrl, members), res) in enumerate(results):
@@ -374,7 +382,7 @@ class Neighbours:
         ]
         own = {e[2].robot_id for e in entries}
         for floor, idx in by_floor.items():
-            self._filter_floor(floor, [entries[i] for i in idx], out, own, now)
+            self._filter_floor(floor, [entries[i] for i in idx], out, own, now, coordinated)
         return out
 
     def _filter_floor(
@@ -384,8 +392,10 @@ class Neighbours:
         out: list[Any],
         own: set[str],
         now: float,
+        coordinated: Container[str] = frozenset(),
     ) -> None:
         goals = [e[2].goal for e in entries]
+        local = np.array([e[2].robot_id not in coordinated for e in entries], dtype=bool)
         z = np.array([complex(e[3].x, e[3].y) for e in entries])
         th = np.array([e[3].theta for e in entries])
         body = np.array([getattr(e[4], "frame", "world") == "body" for e in entries])
@@ -439,9 +449,10 @@ class Neighbours:
         if self.yielding:
             u_y, yl = self._yield_rule(entries, p, rad, rows, vmax, live, arrived, u0, cb, oz,
                                        orad, ohead)  # fmt: skip
-        if self.side_passing:
+            yl &= local
+        if self.side_passing and local.any():
             blocked = self._blocked([e[2].robot_id for e in entries], p, goals, rows, now)
-            u0 = side_pass(u0, rows, blocked=blocked, clearance=cb)
+            u0 = np.where(local, side_pass(u0, rows, blocked=blocked, clearance=cb), u0)
         if self.yielding:
             u0 = np.where(yl, u_y, u0)
         # the wall hold cap of the robot's own law

@@ -56,15 +56,17 @@ contact), and that the plan never gives a node to two robots in one tick
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Hashable, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.optimize import linear_sum_assignment
 
 from confnav.errors import NavigationError
-from confnav.navigation.control import Controller
+from confnav.navigation.control import Controller, Status
+from confnav.navigation.defaults import GOAL_TOL, V_MAX
 from confnav.navigation.navfn import CircleDomain, KoditschekRimon
 from confnav.navigation.roadmap import (
     Roadmap,
@@ -72,9 +74,20 @@ from confnav.navigation.roadmap import (
     segment_clearance,
     segment_segment_distance,
 )
+from confnav.navigation.safety import SafetyFilter, safety_filter
 from confnav.types import CArray
 
-__all__ = ["GOAL_LEG", "RETURN_LEG", "ROAD", "RoadmapCoordinator", "pibt_step"]
+__all__ = [
+    "ALONE",
+    "GOAL_LEG",
+    "RETURN_LEG",
+    "ROAD",
+    "FleetCoordinator",
+    "LineLaw",
+    "Plan",
+    "RoadmapCoordinator",
+    "pibt_step",
+]
 
 #: modes of a robot
 ROAD, GOAL_LEG, RETURN_LEG = 0, 1, 2
@@ -151,6 +164,56 @@ def pibt_step(
     return out
 
 
+@dataclass(frozen=True)
+class LineOutput:
+    """Commands (complex, m/s) and :class:`~confnav.navigation.control.Status` codes."""
+
+    u: CArray
+    status: NDArray[np.int8]
+
+
+class LineLaw:
+    """A point driven straight to ``goal``: ``u = gain (goal - z)`` at most ``v_max`` fast,
+    zero within ``goal_tol`` (ARRIVED), then the wall safety filter on the exact workspace
+    (:class:`~confnav.navigation.safety.SafetyFilter`: barrier rows and the hold cap), so it
+    never leaves the free space.  The node law of a fleet on a map that is not one conformal
+    map (an atlas, docs/ATLAS.md): a robot on the roadmap moves along its edges, which are
+    free straight segments (:func:`~confnav.navigation.roadmap.build_roadmap`), so the
+    straight law from a node to the next, or from a goal back to its node (a free segment,
+    :meth:`RoadmapCoordinator.goal_node_of`), needs no navigation function; off a free
+    segment (pushed aside by the fleet filter) it may stop at a wall, which the filter's
+    rows then hold (no contact; arrival is what the bench measures)."""
+
+    frame = "world"
+
+    def __init__(
+        self,
+        goal: complex,
+        safety: SafetyFilter,
+        *,
+        v_max: float = V_MAX,
+        gain: float = 4.0,
+        goal_tol: float = GOAL_TOL,
+    ) -> None:
+        self.goal = complex(goal)
+        self.safety = safety
+        self.v_max = float(v_max)
+        self.gain = float(gain)
+        self.goal_tol = float(goal_tol)
+
+    def __call__(self, z: ArrayLike) -> LineOutput:
+        zz = np.asarray(z, dtype=np.complex128)
+        e = self.goal - zz
+        u = self.gain * e
+        speed = np.abs(u)
+        u = np.where(speed > self.v_max, u * (self.v_max / np.maximum(speed, 1e-300)), u)
+        arrived = np.abs(e) <= self.goal_tol
+        u = np.where(arrived, 0j, u)
+        pr = self.safety(zz, u)
+        status = np.where(arrived, Status.ARRIVED, Status.MOVING).astype(np.int8)
+        return LineOutput(u=np.asarray(pr.u).reshape(zz.shape), status=status.reshape(zz.shape))
+
+
 @dataclass
 class _Excursion:
     nodes: frozenset[int]
@@ -169,15 +232,17 @@ class RoadmapCoordinator:
     :meth:`update` every control step and :meth:`reached` when a robot reaches its goal."""
 
     roadmap: Roadmap
-    node_ctrls: list[Controller]
+    node_ctrls: list[Any]  # Controller (one conformal map) or LineLaw (any workspace)
     n: int
     gap: float
+    workspace: Any = None  # the exact free space (None: the node controllers' map's)
     node_tol: float = 0.12
     settle_timeout: float = 1.0
     seed: int = 0
     patience: float = 4.0
     eager: bool = True
     min_tick: float = 0.1
+    late_limit: float = 3.0
     at: NDArray[np.intp] = field(init=False)
     nxt: NDArray[np.intp] = field(init=False)
     mode: NDArray[np.int8] = field(init=False)
@@ -189,6 +254,7 @@ class RoadmapCoordinator:
     origin: NDArray[np.intp] = field(init=False)  # the node a robot on its way comes from
     excursions: dict[int, _Excursion] = field(init=False)
     ticks: int = 0
+    reverts: int = 0
     excursions_done: int = 0
     timeouts: int = 0
     idle_ticks: int = 0
@@ -206,6 +272,8 @@ class RoadmapCoordinator:
         self.pend_since = np.full(n, np.nan)
         self.suspend_until = np.full(n, -np.inf)
         self._settled = np.zeros(n, dtype=bool)
+        self._best = np.full(n, np.inf)  # a robot's least distance to its next node so far
+        self._t_best = np.zeros(n)  # and when it came 0.05 m nearer than before
         self.origin = np.zeros(n, dtype=np.intp)
         self.excursions = {}
         self._rng = np.random.default_rng(self.seed)
@@ -228,6 +296,9 @@ class RoadmapCoordinator:
         margin: float = 0.05,
         edge_clearance: float = 0.03,
         max_edge: float = 2.2,
+        v_max: float = V_MAX,
+        node_law: str = "kr",
+        workspace: Any = None,
         **kw: float,
     ) -> RoadmapCoordinator:
         """The roadmap of ``cmap.workspace`` (the free space shrunk by the filter radius
@@ -239,9 +310,12 @@ class RoadmapCoordinator:
         node: Koditschek-Rimon with the given ``k`` (one k for all nodes: for k at or above
         the goal's threshold the function is a navigation function, Koditschek and Rimon,
         "Robot navigation functions on manifolds with boundary", Adv. Appl. Math. 11, 1990)
-        and gain ``node_gain``.  ``node_tol`` defaults to ``spacing - 2 rho`` (a robot that
-        near its node clears a robot standing on any other node)."""
-        ws = getattr(cmap, "workspace", None)
+        and gain ``node_gain`` (speed limit ``v_max``); ``node_law`` ``line``: a
+        :class:`LineLaw` per node instead, on ``workspace`` (default ``cmap.workspace``; no
+        conformal map is evaluated, ``cmap`` may be None).  ``node_tol`` defaults to
+        ``spacing - 2 rho`` (a robot that near its node clears a robot standing on any other
+        node)."""
+        ws = getattr(cmap, "workspace", None) if workspace is None else workspace
         if ws is None:
             raise NavigationError("the coordinator needs a map with its workspace")
         gap = 2.0 * rho + margin
@@ -254,15 +328,27 @@ class RoadmapCoordinator:
             max_edge=max_edge * sp,
             prune_leaves=True,
         )
+        kw.setdefault("node_tol", sp - 2.0 * rho)
+        if node_law == "line":  # no conformal map needed (an atlas): straight along edges
+            flt = safety_filter(ws)
+            lines = [LineLaw(complex(z), flt, v_max=v_max, gain=node_gain)
+                     for z in rm.nodes.tolist()]  # fmt: skip
+            return cls(roadmap=rm, node_ctrls=lines, n=n, gap=gap, workspace=ws, **kw)  # type: ignore[arg-type]
+        if node_law != "kr":
+            raise NavigationError(f"node_law must be 'kr' or 'line', got {node_law!r}")
         dom = CircleDomain.of(cmap)  # type: ignore[arg-type]
         w = np.asarray(cmap.T_and_dT(rm.nodes)[0], dtype=np.complex128)  # type: ignore[attr-defined]
         ctrls = [
-            Controller(cmap, complex(z), navfn=KoditschekRimon(dom, complex(wz), k), gain=node_gain)  # type: ignore[arg-type]
+            Controller(
+                cmap,  # type: ignore[arg-type]
+                complex(z),
+                navfn=KoditschekRimon(dom, complex(wz), k),
+                gain=node_gain,
+                v_max=v_max,
+            )
             for z, wz in zip(rm.nodes.tolist(), w.tolist(), strict=True)
         ]
-        # within spacing - 2 rho of its node a robot clears one standing on another node
-        kw.setdefault("node_tol", sp - 2.0 * rho)
-        return cls(roadmap=rm, node_ctrls=ctrls, n=n, gap=gap, **kw)  # type: ignore[arg-type]
+        return cls(roadmap=rm, node_ctrls=ctrls, n=n, gap=gap, workspace=ws, **kw)  # type: ignore[arg-type]
 
     # -- set-up -----------------------------------------------------------------------------
     def start(self, p: ArrayLike) -> None:
@@ -282,6 +368,51 @@ class RoadmapCoordinator:
         self.goal_node[:] = self.at
         self.mode[:] = RETURN_LEG
 
+    def _workspace(self) -> Any:
+        if self.workspace is not None:
+            return self.workspace
+        return getattr(self.node_ctrls[0].cmap, "workspace")  # noqa: B009 (typed Any)
+
+    _ARRAYS = ("at", "nxt", "mode", "eta", "goal_node", "goal_pt", "pend_since",
+               "suspend_until", "_settled", "origin", "_tie", "_best", "_t_best")  # fmt: skip
+
+    def add(self, p: complex) -> int:
+        """A new robot at ``p`` (its controlled point): it gets the free main-component node
+        nearest ``p`` among those with a free straight segment to ``p`` (the nearest if none
+        of the eight nearest has; free: no robot is on it, bound for it or coming from it,
+        and no excursion closes it) and drives there first (return leg); its index.  For a host
+        whose robots come and go (:class:`FleetCoordinator`)."""
+        used = {int(v) for v in np.concatenate([self.at, self.nxt, self.origin])}
+        for ex in self.excursions.values():
+            used |= ex.nodes
+        free = np.array([v for v in self.main.tolist() if v not in used], dtype=np.intp)
+        if free.size == 0:
+            raise NavigationError(f"no free roadmap node for robot {self.n}")
+        near = free[np.argsort(np.abs(self.roadmap.nodes[free] - complex(p)))[:8]]
+        seen = segment_clearance(self._workspace(), self.roadmap.nodes[near], complex(p)) > 0
+        v = int(near[np.flatnonzero(seen)[0]] if seen.any() else near[0])
+        fill = {"at": v, "nxt": v, "mode": RETURN_LEG, "eta": 0.0, "goal_node": v,
+                "goal_pt": np.nan + 0j, "pend_since": np.nan, "suspend_until": -np.inf,
+                "_settled": False, "origin": v, "_tie": self._rng.random() * 1e-3,
+                "_best": np.inf, "_t_best": 0.0}  # fmt: skip
+        for name in self._ARRAYS:
+            a = getattr(self, name)
+            setattr(self, name, np.append(a, np.array([fill[name]], dtype=a.dtype)))
+        self.n += 1
+        return self.n - 1
+
+    def remove(self, i: int) -> None:
+        """Forget robot ``i`` (its nodes and its excursion are freed); the robots after it
+        move down one index."""
+        if not 0 <= i < self.n:
+            raise NavigationError(f"no robot {i} of {self.n}")
+        for name in self._ARRAYS:
+            setattr(self, name, np.delete(getattr(self, name), i))
+        self.excursions = {
+            (j if j < i else j - 1): ex for j, ex in self.excursions.items() if j != i
+        }
+        self.n -= 1
+
     def goal_node_of(self, goal: complex) -> int:
         """The main-component node nearest ``goal`` whose straight segment to it is free."""
         g = complex(goal)
@@ -289,7 +420,7 @@ class RoadmapCoordinator:
             return self._goal_cache[g]
         nodes = self.roadmap.nodes[self.main]
         order = np.argsort(np.abs(nodes - g))[:8]
-        ws = getattr(self.node_ctrls[0].cmap, "workspace")  # noqa: B009 (typed Any)
+        ws = self._workspace()
         free = segment_clearance(ws, nodes[order], np.full(order.size, g))
         ok = np.flatnonzero(free > 0.0)
         best = int(self.main[order[ok[0]] if ok.size else order[0]])
@@ -305,7 +436,7 @@ class RoadmapCoordinator:
 
     def update(
         self, t: float, p: ArrayLike, goals: ArrayLike, done: ArrayLike
-    ) -> tuple[list[Controller | None], NDArray[np.bool_]]:
+    ) -> tuple[list[Any], NDArray[np.bool_]]:
         """Each robot's controller for this step (None: its own goal controller, on the goal
         leg) and the goal-leg mask.  ``p``: controlled points; ``goals``: current goals;
         ``done``: robots with no goal left (they park on the roadmap)."""
@@ -327,7 +458,11 @@ class RoadmapCoordinator:
             self.mode[i] = ROAD
             self.excursions.pop(i, None)
         road = self.mode == ROAD
-        settled = np.abs(pp - nodes[self.nxt]) <= self.node_tol
+        gap = np.abs(pp - nodes[self.nxt])
+        settled = gap <= self.node_tol
+        nearer = gap < self._best - 0.05  # progress toward the next node
+        self._t_best = np.where(nearer, t, self._t_best)
+        self._best = np.where(nearer, gap, self._best)
         newly = road & settled & ~self._settled
         self._settled = road & settled
         eager = self.eager and bool(newly.any()) and t - self.t_tick >= self.min_tick
@@ -335,7 +470,7 @@ class RoadmapCoordinator:
             if not (np.all(settled | ~road) or eager):
                 self.timeouts += 1
             self.tick(t, settled, dn)
-        drive: list[Controller | None] = []
+        drive: list[Any] = []
         for i in range(self.n):
             m = self.mode[i]
             if m == GOAL_LEG:
@@ -353,6 +488,7 @@ class RoadmapCoordinator:
         road = self.mode == ROAD
         late = road & ~settled  # still between two nodes: keeps both until it is there
         self.origin = np.where(road & settled, self.nxt, self.origin)
+        self._revert(t, late)
         blocked = {int(v) for v in self.origin[late & (self.origin != self.nxt)]}
         self.at = np.where(road, self.nxt, self.at)
         fixed = ~road | late
@@ -428,7 +564,10 @@ class RoadmapCoordinator:
             rng=self._rng,
         )
         self.origin = np.where(road & ~late, self.at, self.origin)
+        moved = np.array(nxt, dtype=np.intp) != self.nxt
         self.nxt = np.array(nxt, dtype=np.intp)
+        self._best = np.where(moved, np.inf, self._best)  # a new next node: a new clock
+        self._t_best = np.where(moved, t, self._t_best)
         if np.unique(self.nxt).size != self.n:  # pibt_step's invariant, kept cheaply checked
             raise NavigationError("roadmap plan gave one node to two robots")
         if np.all(self.nxt == self.at) and not starting:
@@ -436,6 +575,23 @@ class RoadmapCoordinator:
         for i in starting:
             self.mode[i] = GOAL_LEG
             self.pend_since[i] = np.nan
+
+    def _revert(self, t: float, late: NDArray[np.bool_]) -> None:
+        """A robot on its way that has not come 0.05 m nearer its next node for
+        ``late_limit`` s (held off it: by the fleet filter, by a robot pushed onto the edge,
+        by a wall) goes back to the node it comes from, if no other robot is on, bound for or
+        coming from that node: its move is undone (it would otherwise stay fixed, and the
+        robots around it with it)."""
+        stuck = late & (t - self._t_best >= self.late_limit) & (self.origin != self.nxt)
+        for i in np.flatnonzero(stuck).tolist():
+            u = int(self.origin[i])
+            others = np.arange(self.n) != i
+            taken = np.concatenate([self.at[others], self.nxt[others], self.origin[others]])
+            if u in taken.tolist() or any(u in ex.nodes for ex in self.excursions.values()):
+                continue
+            self.origin[i], self.nxt[i] = self.nxt[i], u
+            self._best[i], self._t_best[i] = np.inf, t
+            self.reverts += 1
 
     def _excursion(self, i: int) -> _Excursion:
         a = complex(self.roadmap.nodes[int(self.at[i])])
@@ -450,3 +606,185 @@ class RoadmapCoordinator:
             if int(self.at[i]) not in (u, v)
         )
         return _Excursion(nodes=nodes, edges=edges, a=a, b=b)
+
+
+@dataclass(frozen=True)
+class Plan:
+    """What a coordinated robot does now: ``ctrl`` drives it (None: its own goal controller,
+    on the goal leg or uncoordinated); ``goal_leg``: its own controller's arrival counts;
+    ``parked``: it reached its goal and waits on the roadmap; ``note``: what it does, in
+    words (a status message)."""
+
+    ctrl: Any  # the node's law (Controller or LineLaw); None: its own goal controller
+    goal_leg: bool
+    parked: bool
+    note: str
+    coordinated: bool
+
+
+#: the plan of a robot that is not coordinated: its own controller, exactly as alone
+ALONE = Plan(ctrl=None, goal_leg=True, parked=False, note="", coordinated=False)
+
+
+class FleetCoordinator:
+    """A :class:`RoadmapCoordinator` for a host that gets its robots' poses asynchronously,
+    in batches, and whose robots come and go (the controller service,
+    ``services/controller_coord.py``): robots are named by id, and each call of :meth:`plan`
+    with the poses of some of them (the others keep their last position) advances the plan
+    (:meth:`RoadmapCoordinator.update`: a tick when the robots on the roadmap have settled,
+    eagerly at most every ``min_tick`` s, or after ``settle_timeout`` s) and returns each
+    given robot's :class:`Plan`.
+
+    Coordination engages only with two robots or more seen within ``ttl`` s: a robot alone
+    is not coordinated (:data:`ALONE`: its own controller, exactly as without this class),
+    and when the fleet drops to one robot, that robot is let go.  A robot not seen for
+    ``ttl`` s is forgotten (its nodes freed).  Goals are named by a ``token`` (any hashable
+    that changes when a goal is given again, e.g. its stamp): a robot that reached the goal
+    of its current token is done (it parks on the roadmap, :class:`RoadmapCoordinator`)
+    until its token changes."""
+
+    def __init__(self, coordinator: RoadmapCoordinator, ttl: float = 2.0) -> None:
+        if coordinator.n:
+            raise NavigationError("FleetCoordinator takes a coordinator with no robots yet")
+        self.coord = coordinator
+        self.ttl = float(ttl)
+        self.ids: list[str] = []  # coordinator index -> robot id
+        self._index: dict[str, int] = {}  # robot id -> coordinator index
+        self._p = np.zeros(0, dtype=np.complex128)  # last controlled point of each member
+        self._goal = np.zeros(0, dtype=np.complex128)
+        self._token: list[Hashable] = []
+        self._done: list[Hashable] = []  # the token whose goal was reached (None: none)
+        self._seen: dict[str, float] = {}  # robot id -> last time it was planned
+
+    @property
+    def size(self) -> int:
+        """Robots being coordinated."""
+        return len(self.ids)
+
+    def plan(
+        self,
+        t: float,
+        ids: Sequence[str],
+        p: ArrayLike,
+        goals: ArrayLike,
+        tokens: Sequence[Hashable],
+    ) -> list[Plan]:
+        """The plans of robots ``ids`` (controlled points ``p``, goals ``goals`` named by
+        ``tokens``) at time ``t`` (s, any monotonic clock)."""
+        pp = np.asarray(p, dtype=np.complex128).reshape(-1)
+        gg = np.asarray(goals, dtype=np.complex128).reshape(-1)
+        for rid in ids:
+            self._seen[rid] = t
+        for rid in [r for r, s in self._seen.items() if t - s > self.ttl]:
+            del self._seen[rid]
+            if rid in self._index:
+                self._remove(self._index[rid])
+        if len(self._seen) < 2:  # alone: not coordinated (let go if it was)
+            while self.ids:
+                self._remove(len(self.ids) - 1)
+            return [ALONE] * len(ids)
+        idx: list[int] = []
+        for k, rid in enumerate(ids):
+            if rid not in self._index:
+                try:
+                    self.coord.add(complex(pp[k]))
+                except NavigationError:
+                    idx.append(-1)  # no free node: not coordinated
+                    continue
+                self._index[rid] = len(self.ids)
+                self.ids.append(rid)
+                self._p = np.append(self._p, pp[k])
+                self._goal = np.append(self._goal, gg[k])
+                self._token.append(tokens[k])
+                self._done.append(None)
+            i = self._index[rid]
+            idx.append(i)
+            self._p[i], self._goal[i] = pp[k], gg[k]
+            if tokens[k] != self._token[i]:
+                self._token[i] = tokens[k]
+                self._done[i] = None
+        done = np.array([d is not None and d == tk for d, tk in zip(self._done, self._token,
+                                                                     strict=True)])  # fmt: skip
+        drive, leg = self.coord.update(t, self._p, self._goal, done)
+        out: list[Plan] = []
+        for i in idx:
+            if i < 0:
+                out.append(ALONE)
+                continue
+            out.append(
+                Plan(
+                    ctrl=drive[i],
+                    goal_leg=bool(leg[i]),
+                    parked=bool(done[i]),
+                    note=self.describe(i, bool(done[i])),
+                    coordinated=True,
+                )
+            )
+        return out
+
+    def reached(self, rid: str) -> None:
+        """Robot ``rid`` reached its goal (its own controller said so on the goal leg): it
+        returns to its roadmap node and parks there until it gets a new goal."""
+        if rid in self._index:
+            i = self._index[rid]
+            self.coord.reached(i)
+            self._done[i] = self._token[i]
+
+    def forget(self, rid: str) -> None:
+        """Robot ``rid`` is gone (goal cancelled, served elsewhere): its nodes are freed."""
+        self._seen.pop(rid, None)
+        if rid in self._index:
+            self._remove(self._index[rid])
+
+    def _remove(self, i: int) -> None:
+        self.coord.remove(i)
+        del self.ids[i], self._token[i], self._done[i]
+        self._index = {r: k for k, r in enumerate(self.ids)}
+        self._p = np.delete(self._p, i)
+        self._goal = np.delete(self._goal, i)
+
+    def describe(self, i: int, parked: bool = False) -> str:
+        """What robot ``i`` does, in words: the roadmap nodes it is at or bound for, and the
+        robot it waits for (the one on or bound for its next node toward its goal)."""
+        c = self.coord
+        at, nxt, m = int(c.at[i]), int(c.nxt[i]), int(c.mode[i])
+        if m == GOAL_LEG:
+            return f"driving off the roadmap from node {at} to its goal"
+        if m == RETURN_LEG:
+            if parked:
+                return f"arrived; returning to roadmap node {at} to park off the goal"
+            return f"joining the roadmap at node {at}"
+        if parked:
+            return f"arrived; parked on roadmap node {nxt}"
+        g = int(c.goal_node[i])
+        if nxt == g and at == g:
+            if i in c.excursions:
+                who = self._on(c.excursions[i].nodes, i)
+                return f"at node {g}, waiting for {who or 'its way to the goal'} to clear"
+            if c.suspend_until[i] > c.t_tick:
+                return f"at node {g}, its way to the goal blocked: waiting to try again"
+            return f"at node {g}, next to its goal"
+        togo = float(c.roadmap.dist[nxt, g])
+        off = abs(complex(self._p[i]) - complex(c.roadmap.nodes[nxt])) if i < self._p.size else 0.0
+        if nxt == at and off > c.node_tol:  # fixed until it is there (held off by the filter)
+            who = self._on(frozenset({nxt}), i)
+            near = f" ({who} near)" if who else ""
+            return f"getting to node {nxt}, {off:.2f} m off it{near}"
+        if nxt != at:
+            return f"following roadmap to goal: node {at} -> {nxt}, {togo:.1f} m to go"
+        nb = c.roadmap.neighbours[at]
+        if nb.size:
+            best = int(nb[np.argmin(c.roadmap.dist[nb, g])])
+            who = self._on(frozenset({best}), i)
+            if who:
+                return f"waiting for {who} at node {at} (next node {best})"
+        return f"waiting at node {at} ({togo:.1f} m to go along the roadmap)"
+
+    def _on(self, nodes: frozenset[int], me: int) -> str:
+        """The robots (ids) on, bound for or coming from ``nodes``, other than ``me``."""
+        c = self.coord
+        nn = np.fromiter(nodes, dtype=np.intp, count=len(nodes))
+        hit = np.isin(c.at, nn) | np.isin(c.nxt, nn) | np.isin(c.origin, nn)
+        hit[me] = False
+        who = [self.ids[j] for j in np.flatnonzero(hit)[:4].tolist()]
+        return ", ".join(who[:3]) + (" ..." if len(who) > 3 else "")

@@ -270,7 +270,11 @@ def simulate_fleet(
             driving = [ctrls[i] if c is None else c for i, c in enumerate(drv)]
             groups = _map_groups(driving)
         for g in groups:
-            cm = driving[int(g[0])].cmap
+            cm = getattr(driving[int(g[0])], "cmap", None)
+            if cm is None:  # a law without a map (fleet_coord.LineLaw): called directly
+                o = driving[int(g[0])](p[g])
+                u_nom[g], status[g] = o.u, o.status
+                continue
             w, dw = cm.T_and_dT(p[g])
             out = fleet_step([driving[i] for i in g], p[g], w, dw)
             u_nom[g], status[g] = out.u, out.status
@@ -467,6 +471,6 @@ def _trace(
 def _map_groups(ctrls: Sequence[Controller]) -> list[NDArray[np.intp]]:
     """Robots grouped by their controller's map (one batched fleet step per map)."""
     groups: dict[int, list[int]] = {}
-    for i, c in enumerate(ctrls):
-        groups.setdefault(id(c.cmap), []).append(i)
+    for i, c in enumerate(ctrls):  # a law without a map (LineLaw): a group of its own
+        groups.setdefault(id(getattr(c, "cmap", c)), []).append(i)
     return [np.array(g, dtype=np.intp) for g in groups.values()]

@@ -1,0 +1,214 @@
+"""The fleet coordinator for a pose-driven host (:class:`FleetCoordinator`): robots named by
+id that come and go, poses in partial batches; a robot alone is not coordinated."""
+
+from __future__ import annotations
+
+import warnings
+from typing import Any
+
+import numpy as np
+import pytest
+
+from confnav import Controller, Workspace, inflate, solve
+from confnav.errors import NavigationError
+from confnav.navigation.fleet_coord import (
+    ALONE,
+    GOAL_LEG,
+    RETURN_LEG,
+    ROAD,
+    FleetCoordinator,
+    RoadmapCoordinator,
+)
+from confnav.navigation.fleet_sim import simulate_fleet
+
+R = 0.2
+# a 6 x 3 m room split at x = 3 by a 0.2 m wall with a 0.9 m door: one robot at a time
+DOOR = Workspace(
+    [
+        (0, 0), (2.9, 0), (2.9, 1.05), (3.1, 1.05), (3.1, 0), (6, 0), (6, 3), (3.1, 3),
+        (3.1, 1.95), (2.9, 1.95), (2.9, 3), (0, 3),
+    ]
+)  # fmt: skip
+STARTS = np.array([0.8 + 1.0j, 0.8 + 2.0j, 5.2 + 2.0j, 5.2 + 1.0j])
+GOALS = 6.0 - STARTS.real + 1j * STARTS.imag
+
+
+@pytest.fixture(scope="module")
+def door_map() -> Any:
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return solve(inflate(DOOR, R), 1e-6)
+
+
+def test_alone_is_not_coordinated_and_a_second_robot_engages(door_map: Any) -> None:
+    fc = FleetCoordinator(RoadmapCoordinator.build(door_map, 0, R), ttl=2.0)
+    [pl] = fc.plan(0.0, ["a"], [STARTS[0]], [GOALS[0]], ["g"])
+    assert pl == ALONE and fc.size == 0
+    plans = fc.plan(0.1, ["a", "b"], STARTS[:2], GOALS[:2], ["g", "g"])
+    assert [p.coordinated for p in plans] == [True, True] and fc.size == 2
+    c = fc.coord
+    assert c.n == 2 and c.at[0] != c.at[1]  # distinct nodes, nearest its start
+    for i in range(2):
+        free = np.setdiff1d(c.main, c.at[:i])
+        assert c.at[i] == free[np.argmin(np.abs(c.roadmap.nodes[free] - STARTS[i]))]
+    assert all(p.ctrl is c.node_ctrls[int(c.at[i])] for i, p in enumerate(plans))
+    assert plans[0].note == f"joining the roadmap at node {int(c.at[0])}"
+    # b is not heard from for more than ttl: forgotten; a is alone again, let go
+    [pl] = fc.plan(2.5, ["a"], [STARTS[0]], [GOALS[0]], ["g"])
+    assert pl == ALONE and fc.size == 0 and fc.coord.n == 0
+
+
+def test_remove_renumbers_the_robots_and_their_excursions(door_map: Any) -> None:
+    c = RoadmapCoordinator.build(door_map, 0, R)
+    for z in STARTS[:3]:
+        c.add(z)
+    at = c.at.copy()
+    c.excursions = {2: c._excursion(2)}
+    c.mode[2] = GOAL_LEG
+    c.remove(0)
+    assert c.n == 2 and list(c.at) == list(at[1:]) and set(c.excursions) == {1}
+    assert c.mode.tolist() == [RETURN_LEG, GOAL_LEG]
+    with pytest.raises(NavigationError):
+        c.remove(5)
+
+
+def test_add_refuses_when_every_node_is_taken(door_map: Any) -> None:
+    c = RoadmapCoordinator.build(door_map, 0, R)
+    for _ in range(c.main.size):
+        c.add(3.0 + 1.5j)
+    assert np.unique(c.at).size == c.main.size
+    with pytest.raises(NavigationError, match="no free roadmap node"):
+        c.add(3.0 + 1.5j)
+
+
+class _Partial:
+    """A :class:`FleetCoordinator` seen by ``simulate_fleet`` as its coordinator, fed as the
+    controller service feeds it: each step only a random part of the robots' poses (the
+    others keep their last plan), goals named by their point."""
+
+    def __init__(self, fc: FleetCoordinator, n: int, seed: int = 3) -> None:
+        self.fc, self.ids = fc, [f"r{i}" for i in range(n)]
+        self.rng = np.random.default_rng(seed)
+        self.last = [ALONE] * n
+
+    def start(self, p: Any) -> None:
+        pass
+
+    def update(self, t: float, p: Any, goals: Any, done: Any) -> tuple[list[Any], np.ndarray]:
+        pick = np.flatnonzero(self.rng.random(len(self.ids)) < 0.5)
+        got = self.fc.plan(
+            t, [self.ids[i] for i in pick], p[pick], goals[pick], [complex(g) for g in goals[pick]]
+        )
+        for i, pl in zip(pick.tolist(), got, strict=True):
+            self.last[i] = pl
+        return [pl.ctrl for pl in self.last], np.array([pl.goal_leg for pl in self.last])
+
+    def reached(self, i: int) -> None:
+        self.fc.reached(self.ids[i])
+
+
+def test_four_robots_swap_through_the_door_fed_in_partial_batches(door_map: Any) -> None:
+    """Two robots each side of a door one robot wide swap sides, the coordinator fed half
+    the poses per step at random: all four arrive, no contact.  Without it (the local rules:
+    side passing, yielding, the deadlock step) none arrives within 120 s."""
+    ctrls = [Controller(door_map, complex(g)) for g in GOALS]
+    fc = FleetCoordinator(RoadmapCoordinator.build(door_map, 0, R), ttl=2.0)
+    res = simulate_fleet(ctrls, STARTS, DOOR, radius=R, t_max=120.0,
+                         coordinator=_Partial(fc, 4))  # type: ignore[arg-type]  # fmt: skip
+    assert res.arrived.all() and res.robot_contacts == 0 and res.wall_contacts == 0
+    assert fc.size == 4 and all(int(m) in (ROAD, RETURN_LEG) for m in fc.coord.mode)
+    local = simulate_fleet(ctrls, STARTS, DOOR, radius=R, t_max=120.0)
+    assert local.robot_contacts == 0 and not local.arrived.any()
+
+
+def test_describe_says_what_a_robot_does(door_map: Any) -> None:
+    fc = FleetCoordinator(RoadmapCoordinator.build(door_map, 0, R), ttl=10.0)
+    c = fc.coord
+    nodes = c.roadmap.nodes
+    u = int(c.main[0])
+    v = int(c.roadmap.neighbours[u][0])
+    fc.plan(0.0, ["a", "b"], [nodes[v], nodes[u]], [nodes[v], nodes[v]], [0, 0])
+    # a stands on v, b on u wants v (its goal node), both settled on the roadmap
+    c.at[:] = c.nxt[:] = c.origin[:] = [v, u]
+    c.mode[:] = ROAD
+    c.goal_node[:] = [v, v]
+    assert fc.describe(1) == f"waiting for a at node {u} (next node {v})"
+    c.nxt[1] = v
+    togo = c.roadmap.dist[v, v]
+    assert fc.describe(1) == f"following roadmap to goal: node {u} -> {v}, {togo:.1f} m to go"
+    c.mode[0] = GOAL_LEG
+    assert fc.describe(0) == f"driving off the roadmap from node {v} to its goal"
+    c.mode[0] = ROAD
+    assert fc.describe(0, parked=True) == f"arrived; parked on roadmap node {v}"
+
+
+def test_the_service_shell_coordinates_two_robots_never_one(door_map: Any, mem_net: Any) -> None:
+    """``CoordMixin._coord_plans`` (services/controller_coord.py) on the controller service:
+    a robot alone gets no plan (its own law, bitwise as before); with a second robot on the
+    same map the roadmap is built off the pose path and both get plans; with
+    ``--fleet-coordinator local`` (the default) never."""
+    import time as _time
+
+    from confnav.schemas import Goal, Pose
+    from confnav.services import navigation
+    from confnav.services.controller import ControllerService
+    from confnav.services.controller_state import _Robot
+    from confnav.services.keys import Keys
+
+    ctl = ControllerService(mem_net.bus("ctl"), Keys())
+    assert ctl.fleet_coordinator == "local"  # the default
+    ctl.fleet_coordinator = "roadmap"
+    rows = []
+    for i, rid in enumerate("ab"):
+        g = Goal(robot_id=rid, ws_id="door", goal=(GOALS[i].real, GOALS[i].imag), robot_radius=R)
+        r = _Robot(robot_id=rid, goal=g, ctrl=navigation.point_law(door_map, g))
+        pose = Pose(robot_id=rid, stamp_ns=1, x=STARTS[i].real, y=STARTS[i].imag)
+        rows.append((r, pose, r.ctrl))
+    assert ctl._coord_plans(rows[:1], 0.0) == {}
+    assert ctl._coord_plans(rows[:1], 0.1) == {}  # alone: no roadmap is even built
+    assert ctl.counters.get("roadmaps_built", 0) == 0
+    ctl._coord_plans(rows, 0.2)  # two robots: the roadmap is built in the background
+    wait = _time.monotonic() + 30
+    while not ctl.counters.get("roadmaps_built") and _time.monotonic() < wait:
+        _time.sleep(0.05)
+    plans = ctl._coord_plans(rows, 0.3)
+    assert set(plans) == {"a", "b"} and all(p.coordinated for p in plans.values())
+    assert plans["a"].note.startswith("joining the roadmap at node")
+    assert ctl._coord_plans(rows[:1], 3.0) == {}  # b gone for more than the ttl: a alone
+    local = ControllerService(mem_net.bus("ctl2"), Keys())
+    assert local._coord_plans(rows, 0.0) == {}
+
+
+def test_a_robot_held_off_its_node_goes_back_where_it_came_from(door_map: Any) -> None:
+    """A robot on its way from node u to v that makes no progress for ``late_limit`` s is
+    sent back to u (reverts), unless another robot is on, bound for or coming from u."""
+    c = RoadmapCoordinator.build(door_map, 0, R, late_limit=3.0)
+    nodes = c.roadmap.nodes
+    u = int(c.main[0])
+    v = int(c.roadmap.neighbours[u][0])
+    c.add(nodes[u])
+    c.mode[:] = ROAD
+    c.at[:], c.nxt[:], c.origin[:] = v, v, u
+    c._best[:], c._t_best[:] = np.inf, 0.0
+    p = np.array([0.5 * (nodes[u] + nodes[v])])  # half way, and it stays there
+    goal = np.array([nodes[v]])
+    for t in np.arange(0.0, 2.9, 0.05):
+        c.update(float(t), p, goal, np.array([False]))
+    assert c.nxt[0] == v and c.reverts == 0  # not yet 3 s
+    for t in np.arange(2.9, 4.5, 0.05):
+        c.update(float(t), p, goal, np.array([False]))
+    assert c.reverts == 1 and c.nxt[0] == u and c.origin[0] == v
+    # with a second robot bound for the node it would go back to: no revert
+    c2 = RoadmapCoordinator.build(door_map, 0, R, late_limit=3.0)
+    c2.add(nodes[u])
+    w = next(int(x) for x in c2.main if int(x) not in (u, v))
+    c2.add(nodes[w])
+    c2.mode[:] = ROAD
+    c2.at[:], c2.nxt[:], c2.origin[:] = [v, u], [v, u], [u, w]
+    c2._best[:], c2._t_best[:] = np.inf, 0.0
+    p2 = np.array([0.5 * (nodes[u] + nodes[v]), 0.5 * (nodes[u] + nodes[w])])
+    for t in np.arange(0.0, 4.5, 0.05):
+        c2.update(float(t), p2, np.array([nodes[v], nodes[u]]), np.array([False, False]))
+    # robot 1 may go back to w (free); robot 0's node u stays robot 1's: robot 0 stays put
+    assert int(c2.nxt[0]) == v and int(c2.origin[0]) == u
+    assert len({int(c2.nxt[0]), int(c2.nxt[1])}) == 2
