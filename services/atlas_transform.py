@@ -331,7 +331,7 @@ class ChartShare:
         #: publish an atlas's charts as they come (:meth:`solve`); ``serve transform
         #: --progressive-atlas``. Off by default: a consumer then sees one complete atlas
         #: revision per definition, as before
-        self.progressive = False
+        self.progressive = True
 
     def start(self) -> list[Closeable]:
         """Declare the chart queryable and the claim subscriber (the handles to close)."""
