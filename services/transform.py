@@ -825,7 +825,8 @@ def add_parser(sub: Any) -> None:
         action=argparse.BooleanOptionalAction,
         default=True,
         help="with --progressive: publish an atlas's charts as they are solved (partial "
-        "revisions, a coarse atlas first; docs/SLAM.md)",
+        "revisions, a coarse atlas first; docs/SLAM.md; the default); "
+        "--no-progressive-atlas: the complete atlas only",
     )
     p.set_defaults(func=main)
 

@@ -78,26 +78,22 @@ def test_corridor_atlas_through_the_services(tmp_path: Path) -> None:
         watch.attach(bus, k)
 
         # the atlas is served: index, every chart, and the workspace's own transform says so.
-        # The progressive atlas (the default) publishes partial and coarse revisions first:
-        # the final one is the revision of the "solved" status
-        solved: list[str] = []
-
-        def on_status(key: str, payload: bytes) -> None:
-            st = decode(TransformStatus, payload)
-            if st.ws_id == "corr" and st.state == "solved" and st.revision:
-                solved.append(st.revision)
-
-        bus.subscribe(k.ws("corr", "status"), on_status)
-
+        # The progressive atlas (the default) publishes partial revisions (cells pending) and
+        # the complete coarse atlas (tol 1e-3) first: the final one is complete at the file's
+        # tol (a status subscription made now could miss the "solved" of a file loaded at start)
         def final_index() -> list[object]:
-            if not solved:
-                return []
-            return [r for r in bus.query(k.ws("corr", "atlas")) if r.ok]
+            reps = [r for r in bus.query(k.ws("corr", "atlas")) if r.ok]
+            found = [decode(AtlasIndex, r.payload) for r in reps]
+            return [
+                r
+                for r, i in zip(reps, found, strict=True)
+                if i.tol < 1e-3 and not any(c.pending for c in i.cells)
+            ]
 
         replies = wait_for(final_index, timeout=180, interval=0.5)
         index = decode(AtlasIndex, replies[0].payload)
         assert index.ws_id == "corr" and len(index.cells) >= 4
-        assert index.revision == solved[-1] and not any(c.pending for c in index.cells)
+        assert not any(c.pending for c in index.cells)
         charts = []
         for cell in index.cells:
             assert cell.chart_ws_id == chart_ws_id("corr", cell.index)

@@ -27,12 +27,24 @@ from confnav.atlas.scenes import corridor
 from confnav.recording.inspect import inspect_recording
 from confnav.recording.replay_check import check_recording
 
-pytestmark = [pytest.mark.integration, pytest.mark.slow]
-
 K = Keys()
 SCENE = corridor(12.0)
 
 
+@pytest.mark.parametrize(
+    ("flags", "on"),
+    [([], True), (["--progressive-atlas"], True), (["--no-progressive-atlas"], False)],
+)
+def test_serve_transform_progressive_atlas_flags(flags: list[str], on: bool) -> None:
+    """On by default; both spellings of the option stay accepted (a contract)."""
+    from confnav.cli.app import build_parser
+
+    args = build_parser().parse_args(["serve", "transform", *flags])
+    assert args.progressive_atlas is on and args.progressive is True
+
+
+@pytest.mark.integration
+@pytest.mark.slow
 @pytest.mark.timeout(600)
 def test_first_command_before_the_atlas_is_solved_and_the_recording_replays(
     make_bus: Callable[[], Any], tmp_path: Path
