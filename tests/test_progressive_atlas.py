@@ -133,6 +133,10 @@ def test_a_robot_holds_at_a_missing_chart_and_goes_on_when_it_is_installed(
     svc = ControllerService(InMemoryNetwork().bus("ctl"), Keys())
     robot = SimpleNamespace(ctrl=law, base_ws=None, atlas_ws=None, ctrl_revision=None)
     assert f"holding for chart {route[1]} of the atlas (being solved" in svc._map_note(robot)  # type: ignore[arg-type]
+    # a unicycle's look-ahead law wraps the atlas controller: its status says the same
+    wrapped = SimpleNamespace(ctrl=SimpleNamespace(controller=law.law), base_ws=None,
+                              atlas_ws=None, ctrl_revision=None)  # fmt: skip
+    assert f"holding for chart {route[1]} of the atlas (being solved" in svc._map_note(wrapped)  # type: ignore[arg-type]
     held = law.law
     # the complete atlas extends the revision: installed in place (same law), it goes on
     law.offer(atlas)
