@@ -328,10 +328,10 @@ class ChartShare:
         # atlas key -> job key -> encoded ChartResult (least recently used atlas first)
         self._results: OrderedDict[str, dict[str, bytes]] = OrderedDict()
         self._claims: defaultdict[tuple[str, str], set[str]] = defaultdict(set)
-        #: publish an atlas's charts as they come (:meth:`solve`); ``serve transform
-        #: --progressive-atlas``. Off by default: a consumer then sees one complete atlas
-        #: revision per definition, as before
-        self.progressive = False
+        #: publish an atlas's charts as they come (:meth:`solve`, docs/SLAM.md "Progressive
+        #: atlas"); the default, ``serve transform --no-progressive-atlas`` turns it off (a
+        #: consumer then sees one complete atlas revision per definition)
+        self.progressive = True
 
     def start(self) -> list[Closeable]:
         """Declare the chart queryable and the claim subscriber (the handles to close)."""

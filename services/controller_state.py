@@ -329,7 +329,11 @@ class ControllerCore(Service):
         """What the robot drives on, when it is a coarse revision of a map being refined
         or the base map while its footprint map is being solved, or an atlas revision whose
         next chart is still being solved (docs/SLAM.md, "Progressive atlas")."""
-        waiting = getattr(r.ctrl, "waiting", None)
+        law = r.ctrl
+        # a unicycle's look-ahead law wraps the atlas controller that holds (its .controller)
+        waiting = getattr(
+            law, "waiting", getattr(getattr(law, "controller", None), "waiting", None)
+        )
         if isinstance(waiting, int):
             return (
                 f"holding for chart {waiting} of the atlas (being solved; the robot goes on "

@@ -823,9 +823,10 @@ def add_parser(sub: Any) -> None:
     p.add_argument(
         "--progressive-atlas",
         action=argparse.BooleanOptionalAction,
-        default=False,
+        default=True,
         help="with --progressive: publish an atlas's charts as they are solved (partial "
-        "revisions, a coarse atlas first; docs/SLAM.md)",
+        "revisions, a coarse atlas first; docs/SLAM.md; the default); "
+        "--no-progressive-atlas: the complete atlas only",
     )
     p.set_defaults(func=main)
 
@@ -834,7 +835,7 @@ def main(args: argparse.Namespace) -> int:
     sources = parse_sources(args.workspace)
 
     def make(svc: TransformService) -> TransformService:
-        svc.charts.progressive = bool(getattr(args, "progressive_atlas", False))
+        svc.charts.progressive = bool(getattr(args, "progressive_atlas", True))
         return svc
 
     return run_until_signal(

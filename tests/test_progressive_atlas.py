@@ -133,6 +133,10 @@ def test_a_robot_holds_at_a_missing_chart_and_goes_on_when_it_is_installed(
     svc = ControllerService(InMemoryNetwork().bus("ctl"), Keys())
     robot = SimpleNamespace(ctrl=law, base_ws=None, atlas_ws=None, ctrl_revision=None)
     assert f"holding for chart {route[1]} of the atlas (being solved" in svc._map_note(robot)  # type: ignore[arg-type]
+    # a unicycle's look-ahead law wraps the atlas controller: its status says the same
+    wrapped = SimpleNamespace(ctrl=SimpleNamespace(controller=law.law), base_ws=None,
+                              atlas_ws=None, ctrl_revision=None)  # fmt: skip
+    assert f"holding for chart {route[1]} of the atlas (being solved" in svc._map_note(wrapped)  # type: ignore[arg-type]
     held = law.law
     # the complete atlas extends the revision: installed in place (same law), it goes on
     law.offer(atlas)
@@ -187,10 +191,11 @@ def test_on_a_process_pool_revisions_come_chart_by_chart_route_first() -> None:
     )
     route = route_order(atlas.decomposition, [(START, GOAL)])
     first = [r for r in revisions if r.round == 0]
-    # one chart more per revision while the route's cells come in, the route's cells first
-    assert len(first[0].installed) == 1 and set(first[0].installed) <= set(route)
-    for a, b in itertools.pairwise(first[: len(route)]):
-        assert len(b.installed) == len(a.installed) + 1
+    # a revision per route chart as it comes, the route's cells first; other cells solved on
+    # the second worker meanwhile ride along (how many: a matter of timing, not checked)
+    on_route = [len(set(r.installed) & set(route)) for r in first]
+    assert all(b - a in (0, 1) for a, b in itertools.pairwise(on_route)), on_route
+    assert on_route[0] == 1 and on_route[-1] >= 2
     assert revisions[-1].complete
 
 

@@ -180,6 +180,38 @@ def test_latched_state_is_bounded() -> None:
     assert [e.ident for e in st.entries()] == ["r2", "r3", "r4"]
 
 
+def test_latched_state_keeps_the_charts_the_latched_atlas_index_names() -> None:
+    """A progressive atlas republishes chart ``{ws}~c{i}`` before the index that names the new
+    revision: a segment starting in between latches the chart's previous message as well
+    (written first), until the atlas's next index arrives."""
+    from confnav.schemas import AtlasIndex, TransformSolution
+
+    st = LatchedState()
+    tr = "transform"
+
+    def chart(i: int, rev: bytes, t: int) -> None:
+        ident = f"corr~c{i}"
+        st.observe(K.ws(ident, tr), "ws", ident, tr, TransformSolution, rev, t, t)
+
+    def index(t: int) -> None:
+        st.observe(K.ws("corr", "atlas"), "ws", "corr", "atlas", AtlasIndex, b"i%d" % t, t, t)
+
+    chart(0, b"a0", 1)
+    chart(1, b"a1", 2)
+    index(3)
+    assert [e.data for e in st.entries()] == [b"a0", b"a1", b"i3"]
+    chart(0, b"b0", 4)  # the next revision's chart; its index not yet
+    chart(0, b"c0", 5)  # replaced again: the one the latched index names is still kept
+    ident = "corr~r0.2~c1"  # another atlas's chart, and a workspace that is no chart
+    st.observe(K.ws(ident, tr), "ws", ident, tr, TransformSolution, b"x", 6, 6)
+    st.observe(K.ws(ident, tr), "ws", ident, tr, TransformSolution, b"y", 7, 7)
+    st.observe(K.ws("plain", tr), "ws", "plain", tr, TransformSolution, b"p", 8, 8)
+    st.observe(K.ws("plain", tr), "ws", "plain", tr, TransformSolution, b"q", 9, 9)
+    assert [e.data for e in st.entries()] == [b"a0", b"x", b"a1", b"i3", b"c0", b"y", b"q"]
+    index(10)  # the new revision's index: its charts are the latest ones
+    assert [e.data for e in st.entries()] == [b"x", b"a1", b"c0", b"y", b"q", b"i10"]
+
+
 def test_rotation_limits(mem_net: InMemoryNetwork, tmp_path: Path) -> None:
     """``split_size`` and ``split_duration`` start new segments by themselves (checked at each
     flush); an idle recorder starts none."""

@@ -79,6 +79,48 @@ class RobotSummary:
 
 
 @dataclass
+class AtlasHistory:
+    """The revisions of one workspace's atlas in a recording (a progressive atlas publishes
+    partial revisions, cells ``pending``, then complete ones: docs/SLAM.md "Progressive
+    atlas"); times: s after the recording start."""
+
+    revisions: int = 0  # distinct revisions recorded
+    partial: int = 0  # of them, with pending cells
+    first_charts: int = 0  # charts solved in the first revision recorded
+    first_cells: int = 0  # its cells
+    first_time_s: float | None = None  # log time of the first revision
+    complete_time_s: float | None = None  # log time of the first revision with no pending cell
+    _seen: set[str] = field(default_factory=set, repr=False)
+
+    def add(self, index: AtlasIndex, t_s: float) -> None:
+        """File a recorded index (a revision recorded twice, e.g. latched into a later
+        segment, counts once)."""
+        if index.revision in self._seen:
+            return
+        self._seen.add(index.revision)
+        pending = sum(bool(c.pending) for c in index.cells)
+        if self.revisions == 0:
+            self.first_charts, self.first_cells = len(index.cells) - pending, len(index.cells)
+            self.first_time_s = t_s
+        self.revisions += 1
+        self.partial += pending > 0
+        if pending == 0 and self.complete_time_s is None:
+            self.complete_time_s = t_s
+
+    def format(self) -> str:
+        """E.g. "first published after 2 of 11 charts (5 revisions, 3 partial)"."""
+        if self.partial == 0:
+            return f"{self.revisions} revision{'s' if self.revisions != 1 else ''}, complete"
+        when = ""
+        if self.first_time_s is not None and self.complete_time_s is not None:
+            when = f"; complete {self.complete_time_s - self.first_time_s:.2f} s after the first"
+        return (
+            f"first published after {self.first_charts} of {self.first_cells} charts "
+            f"({self.revisions} revisions, {self.partial} partial{when})"
+        )
+
+
+@dataclass
 class InspectReport:
     """Summary of a recording (see :func:`inspect_recording`)."""
 
@@ -95,6 +137,8 @@ class InspectReport:
     unknown_schemas: list[str]
     invalid_messages: int
     atlases: dict[str, AtlasIndex] = field(default_factory=dict)
+    #: per atlas workspace, its recorded revisions (partial ones of a progressive atlas)
+    atlas_history: dict[str, AtlasHistory] = field(default_factory=dict)
     #: the closest approach of two robots (:func:`closest_approach`), None: fewer than two
     closest: dict[str, Any] | None = None
 
@@ -126,6 +170,17 @@ class InspectReport:
                     "cells": len(a.cells),
                     "robots": self.atlas_robots(w),
                     "cells_used": self.cells_used(w),
+                    **(
+                        {
+                            "revisions": h.revisions,
+                            "partial_revisions": h.partial,
+                            "first_charts": h.first_charts,
+                            "first_time_s": h.first_time_s,
+                            "complete_time_s": h.complete_time_s,
+                        }
+                        if (h := self.atlas_history.get(w)) is not None
+                        else {}
+                    ),
                 }
                 for w, a in sorted(self.atlases.items())
             },
@@ -215,6 +270,9 @@ class InspectReport:
                 else "used by no robot"
             )
             out.append(f"atlas {ws_id}: {len(atlas.cells)} cells, {used}")
+            hist = self.atlas_history.get(ws_id)
+            if hist is not None and hist.partial:  # a progressive atlas
+                out.append(f"atlas {ws_id}: {len(atlas.cells)} charts, {hist.format()}")
         if not self.robots:
             out.append("\nno robots recorded")
         if self.closest is not None:
@@ -315,6 +373,7 @@ class _Scan:
     atlases: dict[str, AtlasIndex] = field(default_factory=dict)
     #: every recorded atlas revision -> its ws_id
     atlas_of_revision: dict[str, str] = field(default_factory=dict)
+    atlas_history: dict[str, AtlasHistory] = field(default_factory=dict)
     robots: dict[str, RobotSummary] = field(default_factory=dict)
     status_arrival: dict[str, int] = field(default_factory=dict)
     pose_times: dict[str, list[int]] = field(default_factory=lambda: defaultdict(list))
@@ -353,6 +412,9 @@ class _Scan:
         elif isinstance(model, AtlasIndex):
             self.atlases[model.ws_id] = model
             self.atlas_of_revision[model.revision] = model.ws_id
+            t0 = self.first_ns if self.first_ns is not None else log_time_ns
+            hist = self.atlas_history.setdefault(model.ws_id, AtlasHistory())
+            hist.add(model, (log_time_ns - t0) / NS_PER_S)
         elif isinstance(model, VelocityCommand):
             self._command(model)
         elif isinstance(model, CollisionEvent):
@@ -468,6 +530,7 @@ def inspect_recording(path: str | os.PathLike[str]) -> InspectReport:
             unknown_schemas=unknown,
             invalid_messages=invalid,
             atlases=scan.atlases,
+            atlas_history=scan.atlas_history,
         )
 
 
@@ -553,4 +616,11 @@ def report_json(report: InspectReport) -> str:
     return json.dumps(report.to_dict(), indent=2, sort_keys=True)
 
 
-__all__ = ["InspectReport", "RobotSummary", "closest_approach", "inspect_recording", "report_json"]
+__all__ = [
+    "AtlasHistory",
+    "InspectReport",
+    "RobotSummary",
+    "closest_approach",
+    "inspect_recording",
+    "report_json",
+]

@@ -11,6 +11,13 @@ start of each new segment, in the order they arrived (charts before the atlas in
 them, a definition before its transform), on channels marked
 :data:`~confnav.recording.layout.LATCHED_CHANNEL_METADATA` so that the copies are not counted
 twice across segments. Pure bookkeeping: no Zenoh, no I/O.
+
+An atlas's charts (``{ws}~c{i}``) are published before the index that names them, and a
+progressive atlas publishes several revisions (docs/SLAM.md, "Progressive atlas"): a segment
+that starts after a new revision's charts but before its index would latch the new charts
+with the old index, whose charts it would no longer hold. So a chart replaced before its
+atlas's next index keeps its previous message too (:meth:`LatchedState.entries` writes it
+first), until that index arrives.
 """
 
 from __future__ import annotations
@@ -58,6 +65,8 @@ class LatchedState:
             raise ValueError("max_entries must be >= 1")
         self.max_entries = max_entries
         self._latest: OrderedDict[str, Latched] = OrderedDict()
+        #: a chart's previous message, kept until its atlas's next index (module docstring)
+        self._previous: OrderedDict[str, Latched] = OrderedDict()
 
     def __len__(self) -> int:
         return len(self._latest)
@@ -76,7 +85,15 @@ class LatchedState:
         """Take note of one valid message that was recorded on ``key`` (parsed into
         ``group``/``ident``/``kind``); anything not latched nor forgetting is ignored."""
         if (group, kind) in LATCHED_KINDS:
-            self._latest.pop(key, None)  # re-inserted last: arrival order
+            old = self._latest.pop(key, None)  # re-inserted last: arrival order
+            if group == "ws" and kind == "transform" and old is not None and _atlas_of(ident):
+                self._previous.setdefault(key, old)  # the one the latched index may name
+                if len(self._previous) > self.max_entries:
+                    self._previous.popitem(last=False)
+            elif group == "ws" and kind == "atlas":  # its charts are the latest ones now
+                stale = [k for k, e in self._previous.items() if _atlas_of(e.ident) == ident]
+                for k in stale:
+                    del self._previous[k]
             self._latest[key] = Latched(
                 key, group, ident, model, bytes(data), log_time_ns, publish_time_ns
             )
@@ -88,8 +105,16 @@ class LatchedState:
                 del self._latest[k]
 
     def entries(self) -> list[Latched]:
-        """The latched messages, oldest arrival first."""
-        return list(self._latest.values())
+        """The latched messages, oldest arrival first (a replaced chart's previous message,
+        kept for the index that names it, before all of them)."""
+        return [*self._previous.values(), *self._latest.values()]
+
+
+def _atlas_of(ident: str) -> str | None:
+    """The atlas of a chart's workspace id ``{ws}~c{i}`` (:func:`confnav.atlas.wire.chart_ws_id`),
+    None for any other id."""
+    base, sep, i = ident.rpartition("~c")
+    return base if sep and base and i.isdigit() else None
 
 
 __all__ = ["FORGETTING_KINDS", "LATCHED_KINDS", "MAX_ENTRIES", "Latched", "LatchedState"]
