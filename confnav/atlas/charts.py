@@ -467,25 +467,10 @@ def solve_atlas(
         _round, rounds = -1, -1
         while rounds < max_rounds:
             _round, rounds = _round + 1, rounds + 1
-            early = (
-                _early_starts(pool, priority, (tol, accept), pending, depths)
-                if priority and on_partial is not None and isinstance(pool, ProcessPoolExecutor)
-                else None
-            )
-            if early is None:
-                dec = decompose(ws, split=split, **decompose_kw)
-            else:
-                assert on_partial is not None  # ``early`` needs it
-
-                def preview(
-                    d: Decomposition,
-                    c: tuple[ConformalMap | None, ...],
-                    r: int = _round,
-                    show: Callable[[PartialAtlas], None] = on_partial,
-                ) -> None:
-                    show(PartialAtlas(d, c, tol, r, time.perf_counter() - t0))
-
-                dec = _decompose_previewing(ws, split, early, pending, preview, decompose_kw)
+            dec = _decompose_round(
+                ws, split, pool, priority, on_partial, (tol, accept), pending, depths,
+                decompose_kw, _round, t0,
+            )  # fmt: skip
             keys = list(dec.keys)
             todo, first = _round_order(dec, keys, done, priority)
             if progress is not None:
@@ -523,16 +508,52 @@ def solve_atlas(
                 return Atlas(dec, charts, tol, tuple(records), time.perf_counter() - t0, workers)
             _check_splittable(failed, split, records, dec.margin)
             split |= set(failed)
-        bad = [r for r in records if r.error][-1]
-        raise SolverError(
-            f"atlas: cell of tile {fmt_tile(bad.tile)} still fails after {max_rounds} splits: "
-            f"{bad.error}"
-        )
+        raise _still_failing(records, max_rounds)
     finally:
         for f in pending.values():  # solves of cells a later round no longer has
             f.cancel()
         if own and pool is not None:
             pool.shutdown()
+
+
+def _still_failing(records: list[ChartRecord], max_rounds: int) -> SolverError:
+    """The error of an atlas whose last failed cell still fails after ``max_rounds`` splits."""
+    bad = [r for r in records if r.error][-1]
+    return SolverError(
+        f"atlas: cell of tile {fmt_tile(bad.tile)} still fails after {max_rounds} splits: "
+        f"{bad.error}"
+    )
+
+
+def _decompose_round(
+    ws: Workspace,
+    split: set[Tile],
+    pool: Executor | None,
+    priority: Sequence[tuple[complex, complex]],
+    on_partial: Callable[[PartialAtlas], None] | None,
+    tols: tuple[float, float],
+    pending: dict[str, Future[tuple[str, float, str]]],
+    depths: dict[str, float],
+    decompose_kw: dict[str, Any],
+    rnd: int,
+    t0: float,
+) -> Decomposition:
+    """One round's decomposition of :func:`solve_atlas`; progressive with robots on a
+    process pool, the start cells' solves start at each pass (:func:`_early_starts`) and
+    ``on_partial`` previews the first pass's cells (:func:`_decompose_previewing`)."""
+    early = (
+        _early_starts(pool, priority, tols, pending, depths)
+        if priority and on_partial is not None and isinstance(pool, ProcessPoolExecutor)
+        else None
+    )
+    if early is None or on_partial is None:
+        return decompose(ws, split=split, **decompose_kw)
+    show = on_partial
+
+    def preview(d: Decomposition, c: tuple[ConformalMap | None, ...]) -> None:
+        show(PartialAtlas(d, c, tols[0], rnd, time.perf_counter() - t0))
+
+    return _decompose_previewing(ws, split, early, pending, preview, decompose_kw)
 
 
 def _early_starts(

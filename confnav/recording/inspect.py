@@ -285,46 +285,52 @@ class InspectReport:
                 + ("  CONTACT" if near["gap"] <= 0 else "")
             )
         for rid, r in sorted(self.robots.items()):
-            out.append(f"\nrobot {rid}" + (f" (workspace {r.ws_id})" if r.ws_id else ""))
-            out.append(f"  poses {r.poses}, commands {r.commands}, path {r.path_length:.3f} m")
-            if r.start is not None and r.end is not None:
-                out.append(f"  start {_fmt_pt(r.start)} -> end {_fmt_pt(r.end)}")
-            if r.goal is not None:
-                out.append(f"  goal {_fmt_pt(r.goal)}")
-            if r.atlas is not None:
-                a = self.atlases[r.atlas]
-                out.append(
-                    f"  map: atlas {r.atlas} ({len(a.cells)} cells, revision {a.revision[:12]})"
-                    + (f", active chart {r.chart}" if r.chart is not None else "")
-                )
-            elif r.map_ws_id is not None and r.map_ws_id != r.ws_id:
-                out.append(f"  map: {r.map_ws_id}")
-            if r.charts:
-                path = " -> ".join(map(str, r.charts))
-                out.append(f"  charts {path} ({len(r.charts) - 1} switches)")
-            if r.arrived and r.arrival_time_s is not None:
-                after = (
-                    f", {r.arrival_time_s - r.goal_time_s:.3f} s after its goal"
-                    if r.goal_time_s is not None and r.goal_time_s <= r.arrival_time_s
-                    else ""
-                )
-                out.append(f"  arrived at t = {r.arrival_time_s:.3f} s{after} ({r.arrival_source})")
-            else:
-                state = f" (last state {r.final_state}/{r.final_reason})" if r.final_state else ""
-                out.append(f"  did not arrive{state}")
-            if r.collision_at is not None and r.collision_time_s is not None:
-                out.append(
-                    f"  COLLISION at t = {r.collision_time_s:.3f} s at {_fmt_pt(r.collision_at)}"
-                )
-            if r.robot_contacts:
-                out.append(f"  touched robot(s) {', '.join(sorted(set(r.robot_contacts)))}")
-            if r.min_clearance is not None and r.min_clearance_at is not None:
-                out.append(
-                    f"  minimum clearance {r.min_clearance:.4f} m at {_fmt_pt(r.min_clearance_at)}"
-                )
-            else:
-                out.append("  minimum clearance: n/a (no workspace definition recorded)")
+            out += self._robot_lines(rid, r)
         return "\n".join(out)
+
+    def _robot_lines(self, rid: str, r: RobotSummary) -> list[str]:
+        """The report's lines on one robot: path, map, arrival, collisions, clearance."""
+        out: list[str] = []
+        out.append(f"\nrobot {rid}" + (f" (workspace {r.ws_id})" if r.ws_id else ""))
+        out.append(f"  poses {r.poses}, commands {r.commands}, path {r.path_length:.3f} m")
+        if r.start is not None and r.end is not None:
+            out.append(f"  start {_fmt_pt(r.start)} -> end {_fmt_pt(r.end)}")
+        if r.goal is not None:
+            out.append(f"  goal {_fmt_pt(r.goal)}")
+        if r.atlas is not None:
+            a = self.atlases[r.atlas]
+            out.append(
+                f"  map: atlas {r.atlas} ({len(a.cells)} cells, revision {a.revision[:12]})"
+                + (f", active chart {r.chart}" if r.chart is not None else "")
+            )
+        elif r.map_ws_id is not None and r.map_ws_id != r.ws_id:
+            out.append(f"  map: {r.map_ws_id}")
+        if r.charts:
+            path = " -> ".join(map(str, r.charts))
+            out.append(f"  charts {path} ({len(r.charts) - 1} switches)")
+        if r.arrived and r.arrival_time_s is not None:
+            after = (
+                f", {r.arrival_time_s - r.goal_time_s:.3f} s after its goal"
+                if r.goal_time_s is not None and r.goal_time_s <= r.arrival_time_s
+                else ""
+            )
+            out.append(f"  arrived at t = {r.arrival_time_s:.3f} s{after} ({r.arrival_source})")
+        else:
+            state = f" (last state {r.final_state}/{r.final_reason})" if r.final_state else ""
+            out.append(f"  did not arrive{state}")
+        if r.collision_at is not None and r.collision_time_s is not None:
+            out.append(
+                f"  COLLISION at t = {r.collision_time_s:.3f} s at {_fmt_pt(r.collision_at)}"
+            )
+        if r.robot_contacts:
+            out.append(f"  touched robot(s) {', '.join(sorted(set(r.robot_contacts)))}")
+        if r.min_clearance is not None and r.min_clearance_at is not None:
+            out.append(
+                f"  minimum clearance {r.min_clearance:.4f} m at {_fmt_pt(r.min_clearance_at)}"
+            )
+        else:
+            out.append("  minimum clearance: n/a (no workspace definition recorded)")
+        return out
 
 
 def _ranges(xs: list[int]) -> str:
