@@ -104,9 +104,7 @@ def run(
 
         coord = RoadmapCoordinator.build(cmap, len(ctrls), R)
     t0 = time.perf_counter()
-    res = simulate_fleet(
-        ctrls, starts, ws, radius=R, movers=movers, t_max=T_MAX, coordinator=coord
-    )
+    res = simulate_fleet(ctrls, starts, ws, radius=R, movers=movers, t_max=T_MAX, coordinator=coord)
     wall = time.perf_counter() - t0
     ghost = simulate_fleet(ctrls, starts, ws, radius=R, movers=movers, t_max=T_MAX, avoid=False)
     lone = [

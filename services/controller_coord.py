@@ -152,9 +152,7 @@ class CoordMixin(ControllerCore):
 
         threading.Thread(target=build, name="fleet-roadmap", daemon=True).start()
 
-    def _coord_law(
-        self, plan: Plan, ctrl: navigation.ControllerLike
-    ) -> navigation.ControllerLike:
+    def _coord_law(self, plan: Plan, ctrl: navigation.ControllerLike) -> navigation.ControllerLike:
         """The law that drives a coordinated robot now: its own (goal leg) or its node's
         controller, wrapped in the robot's look-ahead law for a unicycle (cached)."""
         if plan.ctrl is None:
@@ -179,9 +177,7 @@ class CoordMixin(ControllerCore):
         if fleet is not None:
             fleet.reached(rid)
 
-    def _coord_decision(
-        self, plan: Plan, d: navigation.Decision, rid: str
-    ) -> navigation.Decision:
+    def _coord_decision(self, plan: Plan, d: navigation.Decision, rid: str) -> navigation.Decision:
         """What a coordinated robot publishes: its node's command with the plan in the status
         message; a robot done with its goal stays ``arrived`` while it parks."""
         if d.state == "arrived" and plan.goal_leg:
