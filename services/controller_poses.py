@@ -333,4 +333,7 @@ class PosesMixin(CoordMixin):
             if (self._refining or r.base_ws or r.atlas_ws or holding) and d.state == "navigating":
                 note = self._map_note(r)
                 message = "; ".join(m for m in (note, message) if m)
+            if self.neighbours is not None and d.state == "navigating":
+                stuck = self.neighbours.stuck_note(r.robot_id, now)
+                message = "; ".join(m for m in (message, stuck) if m)
             self._status(r, d.state, d.reason, message, now)

@@ -124,6 +124,8 @@ class Neighbours:
         self._movers: dict[str, tuple[Movers, float]] = {}
         # deadlock monitor per robot: best distance to goal, its time, blocked until
         self._dl: dict[str, tuple[float, float, float]] = {}
+        # robot id -> (first, last) time the deadlock monitor held it blocked, in one spell
+        self._stuck: dict[str, tuple[float, float]] = {}
         # robot id -> the goal it arrived at (it counts as idle, and yields, while it keeps it)
         self._done: dict[str, Goal] = {}
         self.counters: dict[str, int] = {}
@@ -522,9 +524,34 @@ class Neighbours:
             progress=self.progress,
         )
         self._count("deadlocks", int(new.sum()))
+        blocked = np.asarray(until >= now)
         for i, rid in enumerate(rids):
             self._dl[rid] = (float(best[i]), float(t_best[i]), float(until[i]))
-        return np.asarray(until >= now)
+            self._note_stuck(rid, bool(blocked[i]), now)
+        return blocked
+
+    def _note_stuck(self, rid: str, blocked: bool, now: float) -> None:
+        """Keep the spell of a robot the deadlock monitor holds blocked again and again: the
+        monitor releases a robot after ``release`` s and may block it again ``window`` s
+        later, so a spell ends only after twice that long unblocked."""
+        first, last = self._stuck.get(rid, (now, -np.inf))
+        if blocked:
+            gap = 2.0 * (self.window + 1.0)  # 1.0: deadlock_step's release (s)
+            self._stuck[rid] = (first if now - last <= gap else now, now)
+        elif now - last > 2.0 * (self.window + 1.0):
+            self._stuck.pop(rid, None)
+
+    def stuck_note(self, rid: str, now: float, after: float = 5.0) -> str:
+        """A status note for a robot the local fleet rules have held blocked by other robots
+        for ``after`` s or more (a deadlock they do not resolve, e.g. two robots meeting in
+        a single-lane passage), else ''."""
+        spell = self._stuck.get(rid)
+        if spell is None or spell[1] - spell[0] < after:
+            return ""
+        return (
+            f"blocked by other robots for {spell[1] - spell[0]:.0f} s (local fleet rules: "
+            "side passing, yielding; single-lane passages need --fleet-coordinator roadmap)"
+        )
 
 
 def attach(service: Any, **kw: Any) -> Neighbours:

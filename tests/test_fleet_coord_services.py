@@ -130,7 +130,13 @@ def test_four_robots_swap_through_a_one_robot_door_with_the_roadmap(
 def test_local_rules_freeze_at_the_door(make_bus: Callable[[], Any]) -> None:
     """The same run with the local rules (``--fleet-coordinator local``): not all four arrive
     in 45 s (90 s of simulated time, three times what the roadmap run takes): the test above
-    fails without the coordinator."""
-    arrived, collisions, _, _ = swap_through_door(make_bus, "local", timeout=45)
+    fails without the coordinator. The robots held there say so in their statuses."""
+    arrived, collisions, statuses, _ = swap_through_door(make_bus, "local", timeout=45)
     assert collisions == []
     assert len(arrived) < 4, arrived
+    held = {
+        s.robot_id
+        for s in statuses
+        if s.state == "navigating" and "blocked by other robots for" in s.message
+    }
+    assert held - set(arrived), (held, arrived)  # a robot that never arrived says why
