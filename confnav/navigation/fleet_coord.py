@@ -80,6 +80,7 @@ from confnav.types import CArray
 __all__ = [
     "ALONE",
     "GOAL_LEG",
+    "PARKED",
     "RETURN_LEG",
     "ROAD",
     "FleetCoordinator",
@@ -89,8 +90,9 @@ __all__ = [
     "pibt_step",
 ]
 
-#: modes of a robot
-ROAD, GOAL_LEG, RETURN_LEG = 0, 1, 2
+#: modes of a robot; PARKED: at the goal it reached, its excursion still closed to the others,
+#: until a robot's shortest way needs one of those nodes (then the return leg) or a new goal
+ROAD, GOAL_LEG, RETURN_LEG, PARKED = 0, 1, 2, 3
 
 
 def pibt_step(
@@ -429,9 +431,10 @@ class RoadmapCoordinator:
 
     # -- per control step -------------------------------------------------------------------
     def reached(self, i: int) -> None:
-        """Robot ``i`` reached its goal: it returns to its node."""
+        """Robot ``i`` reached its goal: it stays there (``PARKED``) until a robot needs its
+        way or it gets a new goal, then returns to its node."""
         if self.mode[i] == GOAL_LEG:
-            self.mode[i] = RETURN_LEG
+            self.mode[i] = PARKED
             self.excursions_done += 1
 
     def update(
@@ -447,6 +450,8 @@ class RoadmapCoordinator:
         for i in range(self.n):
             if dn[i]:
                 continue
+            if self.mode[i] == PARKED:  # given its goal again: arrival counts again
+                self.mode[i] = GOAL_LEG if gg[i] == self.goal_pt[i] else RETURN_LEG
             if gg[i] != self.goal_pt[i]:
                 self.goal_pt[i] = gg[i]
                 self.goal_node[i] = self.goal_node_of(gg[i])
@@ -473,13 +478,30 @@ class RoadmapCoordinator:
         drive: list[Any] = []
         for i in range(self.n):
             m = self.mode[i]
-            if m == GOAL_LEG:
+            if m in (GOAL_LEG, PARKED):
                 drive.append(None)
             elif m == RETURN_LEG:
                 drive.append(self.node_ctrls[int(self.at[i])])
             else:
                 drive.append(self.node_ctrls[int(self.nxt[i])])
         return drive, self.mode == GOAL_LEG
+
+    def _unpark(self, active: NDArray[np.bool_]) -> None:
+        """Parked robots whose goal's nodes (its excursion and its goal node) lie on a
+        shortest roadmap path of an ``active`` robot to its goal node take the return leg:
+        they leave the way, and become robots done with their goals (pushed aside)."""
+        parked = [i for i in np.flatnonzero(self.mode == PARKED).tolist() if i in self.excursions]
+        if not parked or not active.any():
+            return
+        dist = self.roadmap.dist
+        a, g = self.at[active], self.goal_node[active]
+        direct = dist[a, g]
+        for i in parked:
+            nn = np.fromiter(self.excursions[i].nodes | {int(self.at[i])}, dtype=np.intp)
+            via = dist[np.ix_(a, nn)] + dist[np.ix_(nn, g)].T  # (robots, nodes)
+            on_way = np.isfinite(direct)[:, None] & (via <= direct[:, None] + 1e-9)
+            if on_way.any():
+                self.mode[i] = RETURN_LEG
 
     def tick(self, t: float, settled: NDArray[np.bool_], done: NDArray[np.bool_]) -> None:
         """One PIBT step for the robots on the roadmap; excursions granted and started."""
@@ -494,6 +516,7 @@ class RoadmapCoordinator:
         fixed = ~road | late
         for i in [j for j in self.excursions if self.mode[j] == ROAD]:
             self.excursions.pop(i)  # a request not started last tick is asked again
+        self._unpark(road & ~done)
         goal = np.where(done, self.at, self.goal_node)
         at_goal = road & (self.at == goal)
         self.eta = np.where(at_goal | done, 0.0, self.eta + 1.0)
@@ -750,6 +773,8 @@ class FleetCoordinator:
         at, nxt, m = int(c.at[i]), int(c.nxt[i]), int(c.mode[i])
         if m == GOAL_LEG:
             return f"driving off the roadmap from node {at} to its goal"
+        if m == PARKED:
+            return f"arrived; at its goal (off node {at}; leaves it when a robot needs the way)"
         if m == RETURN_LEG:
             if parked:
                 return f"arrived; returning to roadmap node {at} to park off the goal"
