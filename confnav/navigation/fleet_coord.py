@@ -487,9 +487,10 @@ class RoadmapCoordinator:
         return drive, self.mode == GOAL_LEG
 
     def _unpark(self, active: NDArray[np.bool_]) -> None:
-        """Parked robots whose goal's nodes (its excursion and its goal node) lie on a
-        shortest roadmap path of an ``active`` robot to its goal node take the return leg:
-        they leave the way, and become robots done with their goals (pushed aside)."""
+        """Parked robots whose goal's nodes (its excursion's nodes and closed edges' ends, its
+        goal node) lie on a shortest roadmap path of an ``active`` robot to its goal node, or
+        within ``3 gap`` of an active robot along the roadmap, take the return leg: they
+        leave the way, and become robots done with their goals (pushed aside)."""
         parked = [i for i in np.flatnonzero(self.mode == PARKED).tolist() if i in self.excursions]
         if not parked or not active.any():
             return
@@ -497,10 +498,13 @@ class RoadmapCoordinator:
         a, g = self.at[active], self.goal_node[active]
         direct = dist[a, g]
         for i in parked:
-            nn = np.fromiter(self.excursions[i].nodes | {int(self.at[i])}, dtype=np.intp)
+            ex = self.excursions[i]
+            ends = {int(v) for e in ex.edges for v in e}  # a closed edge's ends
+            nn = np.fromiter(ex.nodes | ends | {int(self.at[i])}, dtype=np.intp)
             via = dist[np.ix_(a, nn)] + dist[np.ix_(nn, g)].T  # (robots, nodes)
             on_way = np.isfinite(direct)[:, None] & (via <= direct[:, None] + 1e-9)
-            if on_way.any():
+            near = dist[np.ix_(a, nn)] <= 3.0 * self.gap  # a robot coming near
+            if on_way.any() or near.any():
                 self.mode[i] = RETURN_LEG
 
     def tick(self, t: float, settled: NDArray[np.bool_], done: NDArray[np.bool_]) -> None:
