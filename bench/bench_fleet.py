@@ -172,6 +172,22 @@ def warehouse_map(inflate_by: float) -> tuple[Any, Any, float]:
 _WAREHOUSE_CTRLS: dict[tuple[int, int], list[list[Controller]]] = {}
 
 
+def free_spots(shrunk: Any, rng: np.random.Generator, k: int) -> np.ndarray:
+    """``k`` random points of the shrunk free space at least 0.05 m inside it and 0.8 m
+    apart (the warehouse rounds' starts and goals, core and services alike)."""
+    xs = [z.real for z in shrunk.outer]
+    ys = [z.imag for z in shrunk.outer]
+    out: list[complex] = []
+    while len(out) < k:
+        c = complex(rng.uniform(min(xs), max(xs)), rng.uniform(min(ys), max(ys)))
+        if shrunk.clearance(np.array([c]))[0] < 0.05:
+            continue
+        if out and np.min(np.abs(np.array(out) - c)) < 0.8:
+            continue
+        out.append(c)
+    return np.array(out)
+
+
 def warehouse(
     rounds: int,
     seed: int = 0,
@@ -190,20 +206,9 @@ def warehouse(
     ws, cmap, solve_s = warehouse_map(rd + d)
     shrunk = cmap.workspace
     rng = np.random.default_rng(seed)
-    xs = [z.real for z in shrunk.outer]
-    ys = [z.imag for z in shrunk.outer]
 
     def spots(k: int) -> np.ndarray:
-        """k random points of the shrunk free space at least 0.05 m inside it, 0.8 m apart."""
-        out: list[complex] = []
-        while len(out) < k:
-            c = complex(rng.uniform(min(xs), max(xs)), rng.uniform(min(ys), max(ys)))
-            if shrunk.clearance(np.array([c]))[0] < 0.05:
-                continue
-            if out and np.min(np.abs(np.array(out) - c)) < 0.8:
-                continue
-            out.append(c)
-        return np.array(out)
+        return free_spots(shrunk, rng, k)
 
     p = spots(n)  # look-ahead points at the start
     th = rng.uniform(-np.pi, np.pi, n)
@@ -297,19 +302,9 @@ def warehouse_goals(rounds: int, seed: int = 0) -> tuple[Any, np.ndarray, np.nda
     ws = getattr(ws, "workspace", ws)
     shrunk = inflate(ws, rd + d)
     rng = np.random.default_rng(seed)
-    xs = [z.real for z in shrunk.outer]
-    ys = [z.imag for z in shrunk.outer]
 
     def spots(k: int) -> np.ndarray:
-        out: list[complex] = []
-        while len(out) < k:
-            c = complex(rng.uniform(min(xs), max(xs)), rng.uniform(min(ys), max(ys)))
-            if shrunk.clearance(np.array([c]))[0] < 0.05:
-                continue
-            if out and np.min(np.abs(np.array(out) - c)) < 0.8:
-                continue
-            out.append(c)
-        return np.array(out)
+        return free_spots(shrunk, rng, k)
 
     p = spots(n)
     th = rng.uniform(-np.pi, np.pi, n)
