@@ -152,6 +152,30 @@ def door() -> tuple[np.ndarray, np.ndarray]:
 _WAREHOUSE_MAP: dict[float, tuple[Any, Any, float]] = {}
 
 
+def run_start() -> dict[str, Any]:
+    """A results file's provenance at the start of a run: the commit (the code the run and
+    its processes use), whether the tree was dirty, the start time and load."""
+    return {
+        "commit": git("rev-parse", "HEAD"),
+        "dirty": bool(git("status", "--porcelain", "--untracked-files=no")),
+        "started": datetime.now(UTC).isoformat(timespec="seconds"),
+        "load_before": loadavg(),
+    }
+
+
+def run_end(stamp: dict[str, Any]) -> dict[str, Any]:
+    """The provenance block of a results file: :func:`run_start`'s with the end time and
+    load (the keys in the order the files have always had)."""
+    return {
+        "commit": stamp["commit"],
+        "dirty": stamp["dirty"],
+        "started": stamp["started"],
+        "finished": datetime.now(UTC).isoformat(timespec="seconds"),
+        "load_before": stamp["load_before"],
+        "load_after": loadavg(),
+    }
+
+
 def warehouse_map(inflate_by: float) -> tuple[Any, Any, float]:
     """The README's warehouse, its map shrunk by ``inflate_by`` (solved once per run) and the
     solve's wall time."""
@@ -559,10 +583,7 @@ def main() -> None:
     if args.node_laws:
         node_laws_main(args)
         return
-    started = datetime.now(UTC).isoformat(timespec="seconds")
-    commit = git("rev-parse", "HEAD")
-    dirty = bool(git("status", "--porcelain", "--untracked-files=no"))
-    load0 = loadavg()
+    stamp = run_start()
     room_map = shrunk_map(ROOM)
     rows: dict[str, dict[str, Any]] = {}
     for n in (4, 8) if args.quick else (4, 8, 20):
@@ -636,12 +657,7 @@ def main() -> None:
     for name, t in targets.items():
         print(f"  {name}: " + ", ".join(f"{k} {'met' if v else 'MISSED'}" for k, v in t.items()))
     doc = {
-        "commit": commit,
-        "dirty": dirty,
-        "started": started,
-        "finished": datetime.now(UTC).isoformat(timespec="seconds"),
-        "load_before": load0,
-        "load_after": loadavg(),
+        **run_end(stamp),
         "note": "timings under the load shown (shared machine), not idle figures",
         "cpu_count": os.cpu_count(),
         "quick": args.quick,
@@ -663,19 +679,11 @@ def main() -> None:
 
 def node_laws_main(args: argparse.Namespace) -> None:
     """``--node-laws``: the warehouse rounds with the coordinator's two node laws."""
-    started = datetime.now(UTC).isoformat(timespec="seconds")
-    commit = git("rev-parse", "HEAD")
-    dirty = bool(git("status", "--porcelain", "--untracked-files=no"))
-    load0 = loadavg()
+    stamp = run_start()
     rows = {law: warehouse(args.rounds, roadmap=True, node_law=law) for law in ("kr", "line")}
     out = RESULTS / "fleet_node_laws.json"
     doc = {
-        "commit": commit,
-        "dirty": dirty,
-        "started": started,
-        "finished": datetime.now(UTC).isoformat(timespec="seconds"),
-        "load_before": load0,
-        "load_after": loadavg(),
+        **run_end(stamp),
         "cpu_count": os.cpu_count(),
         "warehouse_roadmap": rows,
     }
@@ -685,10 +693,7 @@ def node_laws_main(args: argparse.Namespace) -> None:
 
 def roadmap_scenarios_main(args: argparse.Namespace) -> None:
     """``--roadmap-scenarios``: swap 4, 8, 20 and door 8, local rules against the roadmap."""
-    started = datetime.now(UTC).isoformat(timespec="seconds")
-    commit = git("rev-parse", "HEAD")
-    dirty = bool(git("status", "--porcelain", "--untracked-files=no"))
-    load0 = loadavg()
+    stamp = run_start()
     room_map = shrunk_map(ROOM)
     door_map = shrunk_map(DOOR)
     cases = {f"swap {n}": (ROOM, room_map, *ring(n)) for n in (4, 8, 20)}
@@ -706,12 +711,7 @@ def roadmap_scenarios_main(args: argparse.Namespace) -> None:
             )
     out = RESULTS / "fleet_roadmap_scenarios.json"
     doc = {
-        "commit": commit,
-        "dirty": dirty,
-        "started": started,
-        "finished": datetime.now(UTC).isoformat(timespec="seconds"),
-        "load_before": load0,
-        "load_after": loadavg(),
+        **run_end(stamp),
         "cpu_count": os.cpu_count(),
         "robot_radius": R,
         "map_tol": TOL,
@@ -724,10 +724,7 @@ def roadmap_scenarios_main(args: argparse.Namespace) -> None:
 
 def services_main(args: argparse.Namespace) -> None:
     """``--services``: the warehouse rounds through the services, one row per coordinator."""
-    started = datetime.now(UTC).isoformat(timespec="seconds")
-    commit = git("rev-parse", "HEAD")  # the code the processes run (started now)
-    dirty = bool(git("status", "--porcelain", "--untracked-files=no"))
-    load0 = loadavg()
+    stamp = run_start()  # the code the processes run (started now)
     out = RESULTS / "fleet_services.json" if args.out == RESULTS / "fleet.json" else args.out
     rows = {
         c: services_warehouse(args.rounds, c, args.time_scale, args.t_max)
@@ -741,12 +738,7 @@ def services_main(args: argparse.Namespace) -> None:
             f"{w['last_arrival_s']} s (nominal), wall {w['wall_s']:.0f} s"
         )
     doc = {
-        "commit": commit,
-        "dirty": dirty,
-        "started": started,
-        "finished": datetime.now(UTC).isoformat(timespec="seconds"),
-        "load_before": load0,
-        "load_after": loadavg(),
+        **run_end(stamp),
         "note": "timings under the load shown (shared machine), not idle figures",
         "cpu_count": os.cpu_count(),
         "warehouse_services": rows,
