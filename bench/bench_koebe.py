@@ -49,11 +49,18 @@ from confnav.scenes.workspaces import (
 #: level's sweeps started from the polygon (the solver up to a1fd614); ``fmm_smooth``: smooth
 #: grids above gnk.SMOOTH_DENSE_MAX_NODES through FMM products; ``carry``: that and each
 #: level's sweeps after the first started from the previous level's map (the default since
-#: the first sweep's tangents are its curves', circledomain._consistent_tangents).
+#: the first sweep's tangents are its curves', circledomain._consistent_tangents); ``corner``:
+#: that and the first sweep's graded GNK solves right-preconditioned by their corner blocks
+#: (gnk.CORNER_PRECONDITIONER, the default since it was measured against ``carry``). Those run
+#: with the BLAS library's own thread count; ``*_blas1`` with one BLAS thread during the solve
+#: (solver.SOLVE_BLAS_THREADS = 1, the default since ``corner_blas1`` was measured).
 DESIGNS: dict[str, dict[str, bool]] = {
-    "before": {"smooth_fmm": False, "carry": False},
-    "fmm_smooth": {"smooth_fmm": True, "carry": False},
-    "carry": {"smooth_fmm": True, "carry": True},
+    "before": {"smooth_fmm": False, "carry": False, "corner": False, "blas1": False},
+    "fmm_smooth": {"smooth_fmm": True, "carry": False, "corner": False, "blas1": False},
+    "carry": {"smooth_fmm": True, "carry": True, "corner": False, "blas1": False},
+    "corner": {"smooth_fmm": True, "carry": True, "corner": True, "blas1": False},
+    "carry_blas1": {"smooth_fmm": True, "carry": True, "corner": False, "blas1": True},
+    "corner_blas1": {"smooth_fmm": True, "carry": True, "corner": True, "blas1": True},
 }
 
 
@@ -64,6 +71,8 @@ def use_design(name: str) -> None:
     d = DESIGNS[name]
     gnk.SMOOTH_DENSE_MAX_NODES = _SMOOTH_DEFAULT if d["smooth_fmm"] else gnk.DENSE_MAX_NODES
     solver.LEVEL_CARRY = d["carry"]
+    gnk.CORNER_PRECONDITIONER = d["corner"]
+    solver.SOLVE_BLAS_THREADS = 1 if d["blas1"] else None
 
 
 _SMOOTH_DEFAULT = gnk.SMOOTH_DENSE_MAX_NODES

@@ -105,7 +105,9 @@ estimate exceeds :data:`UNUSABLE_ERROR` (or the caller's ``max_error``) raises
 
 from __future__ import annotations
 
+import contextlib
 import logging
+import os
 import time
 import warnings
 from collections.abc import Callable
@@ -113,6 +115,7 @@ from typing import Any
 
 import numpy as np
 from scipy.spatial import cKDTree
+from threadpoolctl import threadpool_limits
 
 from confnav.conformal.boundary import BoundaryMesh, graded_polygon, resample
 from confnav.conformal.circledomain import (
@@ -871,6 +874,30 @@ def _warn_tol_missed(diag: SolveReport, tol: float) -> None:
     )
 
 
+#: BLAS threads during :func:`solve` (None: the BLAS library's own count). Every BLAS call of
+#: a solve is a small, memory-bound product (GNK matrix-vector products of a few thousand
+#: nodes, the Cauchy expansions' n x p x 3 products, block inverses of ~100 nodes), where a
+#: second thread gains little and a multi-threaded OpenBLAS waking and spinning its threads
+#: costs CPU time many times the product's on a busy machine; the services run with one BLAS
+#: thread for the same reason (``confnav.cli.services``). Measured (bench/README.md,
+#: "BLAS threads during a solve"): at load ~4.7 on the 2-core machine, an 8192 x 55 by 55 x 3
+#: complex product 7.8 ms CPU with 2 threads against 0.57 ms with 1, a 2000-node real
+#: matrix-vector product 7.7 against 1.2 ms. A count set in the environment
+#: (:data:`BLAS_THREAD_ENV`) is left alone.
+SOLVE_BLAS_THREADS: int | None = 1
+BLAS_THREAD_ENV = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
+
+
+def _blas_threads() -> contextlib.AbstractContextManager[object]:
+    """The BLAS thread limit of a solve (:data:`SOLVE_BLAS_THREADS`), restored on return."""
+    if SOLVE_BLAS_THREADS is None or any(v in os.environ for v in BLAS_THREAD_ENV):
+        return contextlib.nullcontext()
+    limit: contextlib.AbstractContextManager[object] = threadpool_limits(
+        limits=SOLVE_BLAS_THREADS, user_api="blas"
+    )
+    return limit
+
+
 def solve(
     workspace: Workspace,
     tol: float = 1e-10,
@@ -950,12 +977,15 @@ def solve(
     if not (np.isfinite(max_error) and max_error > 0):
         raise SolverError(f"max_error must be positive and finite, got {max_error}")
     t0 = time.perf_counter()
-    if initial is not None and nodes_per_side is None and method == "koebe":
-        warm = _warm_solve(workspace, tol, initial, progress, koebe_accel, t0)
-        if warm is not None:
-            return warm
-    levels = _mesh_levels(tol, nodes_per_side, initial)
-    cmap = _Refinement(workspace, tol, max_error, progress, koebe_accel, t0, method).run(levels)
+    with _blas_threads():
+        if initial is not None and nodes_per_side is None and method == "koebe":
+            warm = _warm_solve(workspace, tol, initial, progress, koebe_accel, t0)
+            if warm is not None:
+                return warm
+        levels = _mesh_levels(tol, nodes_per_side, initial)
+        cmap = _Refinement(workspace, tol, max_error, progress, koebe_accel, t0, method).run(
+            levels
+        )
     _refuse_unusable(cmap, max_error)
     if not cmap.diagnostics.tol_met:
         _warn_tol_missed(cmap.diagnostics, tol)
