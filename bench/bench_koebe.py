@@ -208,6 +208,100 @@ def _line(r: dict[str, Any]) -> str:
     )
 
 
+#: ``--corner-study``: (scene, nodes per side, tol) whose first sweep's graded GNK solves are
+#: re-solved with corner blocks of several sizes (fractions of each side; None: no blocks).
+CORNER_CASES = (("default", 180, 1e-10), ("mixed50", 120, 1e-8))
+CORNER_FRACTIONS = (None, 0.5, 0.25, 0.125)
+
+
+def _first_sweep_solves(name: str, nodes: int, tol: float) -> list[tuple[Any, ...]]:
+    """The arguments of the first sweep's GNK solves of one cold level, with their meshes."""
+    from confnav.conformal import circledomain, solver
+
+    calls: list[tuple[Any, ...]] = []
+    state: dict[str, Any] = {}
+    real_solve = diskmap.solve_gnk  # type: ignore[attr-defined]
+    real_own, real_sweep = circledomain._own_map, circledomain._sweep
+
+    def own(b: Any, alpha: complex, nm: str, mesh: Any, *a: Any) -> Any:
+        state["mesh"] = mesh
+        return real_own(b, alpha, nm, mesh, *a)
+
+    def record(*a: Any, **kw: Any) -> Any:
+        calls.append((a, kw, state["mesh"]))
+        return real_solve(*a, **kw)
+
+    def sweep(it: Any, k: int, *a: Any) -> Any:
+        if k > 1:
+            raise StopIteration  # the first sweep is all the study needs
+        return real_sweep(it, k, *a)
+
+    setattr(diskmap, "solve_gnk", record)  # noqa: B010
+    setattr(circledomain, "_own_map", own)  # noqa: B010
+    setattr(circledomain, "_sweep", sweep)  # noqa: B010
+    try:
+        solver._solve_level(scene(name), nodes, tol, None)
+    except StopIteration:
+        pass
+    finally:
+        setattr(diskmap, "solve_gnk", real_solve)  # noqa: B010
+        setattr(circledomain, "_own_map", real_own)  # noqa: B010
+        setattr(circledomain, "_sweep", real_sweep)  # noqa: B010
+    return calls
+
+
+def corner_study(out: Path) -> int:
+    """The first sweep's graded GNK solves of one cold mesh level, recorded, then solved again
+    with each block size of the corner preconditioner (``gnk._CornerBlocks``, blocks of the
+    nodes within a fraction of each side from its vertices): GMRES iterations and CPU seconds
+    (one BLAS thread, as ``confnav.solve`` runs), and the largest difference of mu from the
+    unpreconditioned solution."""
+    from threadpoolctl import threadpool_limits
+
+    info, code = machine_info(), code_info()
+    rows: list[dict[str, Any]] = []
+    for name, nodes, tol in CORNER_CASES:
+        calls = _first_sweep_solves(name, nodes, tol)
+        plain_mu: list[Any] = []
+        for frac in CORNER_FRACTIONS:
+            its, diff = 0, 0.0
+            c0 = time.process_time()
+            with threadpool_limits(limits=1, user_api="blas"):
+                for i, (a, kw, mesh) in enumerate(calls):
+                    args = list(a)
+                    args[7] = None if frac is None else mesh.corner_blocks(frac)
+                    sol = gnk.solve_gnk(*args, **kw)
+                    its += sol.iterations
+                    if frac is None:
+                        plain_mu.append(sol.mu)
+                    else:
+                        diff = max(diff, float(np.max(np.abs(sol.mu - plain_mu[i]))))
+            rows.append(
+                {
+                    "scene": name,
+                    "nodes_per_side": nodes,
+                    "tol": tol,
+                    "solves": len(calls),
+                    "nodes": int(sum(c[0][0].size for c in calls)),
+                    "fraction": frac,
+                    "gmres_iterations": its,
+                    "cpu_s": time.process_time() - c0,
+                    "max_mu_difference": diff,
+                    "load1": os.getloadavg()[0],
+                }
+            )
+            print(
+                f"  {name} {nodes}/side: blocks {frac}: GMRES {its}, CPU "
+                f"{rows[-1]['cpu_s']:.2f} s, mu within {diff:.1e}",
+                flush=True,
+            )
+    info["loadavg_end"] = list(os.getloadavg())
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps({"machine": info, "code": code, "rows": rows}, indent=1) + "\n")
+    print(f"wrote {out}")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--gaps", type=float, nargs="*", default=[0.1, 0.03])
@@ -254,7 +348,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--out", type=Path, default=Path(__file__).resolve().parent / "results" / "koebe.json"
     )
+    ap.add_argument(
+        "--corner-study",
+        action="store_true",
+        help="only the corner preconditioner's block sizes on the first sweep's solves",
+    )
     a = ap.parse_args(argv)
+    if a.corner_study:
+        return corner_study(
+            a.out if a.out.name != "koebe.json" else a.out.with_name("koebe_corner_blocks.json")
+        )
     gaps = [0.1] if a.quick else a.gaps
     info, code = machine_info(), code_info()
     print(
