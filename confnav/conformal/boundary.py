@@ -67,10 +67,12 @@ def kress_sigma(tau: FloatArray, p: int = GRADING_P) -> tuple[FloatArray, FloatA
 
 #: Part of each side (in tau, from either end) whose nodes form its vertices' blocks in the GNK
 #: corner preconditioner (:meth:`BoundaryMesh.corner_blocks`). Measured on the first sweep's
-#: graded GNK solves (GMRES iterations, total; none / 1/2 / 1/4 / 1/8 of each side): default
-#: workspace at 180 nodes per side 192 / 67 / 93 / 118, 50 mixed obstacles at 120 nodes per
-#: side 1967 / 617 / 864 / 1098; a quarter costs a quarter of the halves' block factorisations
-#: (bench/README.md, "Corner-block preconditioner").
+#: graded GNK solves of one cold level (``python bench/bench_koebe.py --corner-study``,
+#: bench/results/koebe_corner_blocks.json; GMRES iterations in total and CPU s with one BLAS
+#: thread, for no blocks / 1/2 / 1/4 / 1/8 of each side): default workspace at 180 nodes per
+#: side 195 / 67 / 93 / 118 iterations, 0.26 / 0.16 / 0.20 / 0.17 s; 50 mixed obstacles at 120
+#: 1963 / 617 / 864 / 1098, 1.16 / 1.08 / 0.90 / 0.91 s. A quarter: a quarter of the halves'
+#: factorisation work (blocks half as large), the fewest seconds where the boundaries are many.
 CORNER_BLOCK_FRACTION = 0.25
 
 

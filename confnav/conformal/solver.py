@@ -97,6 +97,21 @@ sweep's GNK solves on the graded meshes (dense, ~14,700 nodes) cost most of it.
 The issue-24 target rows at one commit: ``bench/results/core_targets.json``
 (``python bench/bench_core.py --targets``).
 
+Corner preconditioner and one BLAS thread (issue 24): each level's first sweep solves its GNK
+equations on the graded polygon meshes with GMRES right-preconditioned by the corner blocks
+(:mod:`confnav.conformal.gnk`), and a solve runs with one BLAS thread
+(:data:`SOLVE_BLAS_THREADS`). Side by side in one run (``python bench/bench_koebe.py --gaps
+0.01 --scenes default shrunk mixed50 --case-tol default=1e-10 --accels extrapolate --designs
+carry corner carry_blas1 corner_blas1``, ``bench/results/koebe_corner_blas1.json`` at
+4ebf245, load 4.8-9.8, CPU s, before / preconditioner / one thread / both): 50 obstacles 63.4
+/ 61.1 / 21.2 / 19.9 (GMRES iterations 10136 -> 5238), the default workspace to 1e-10 4.3 /
+3.0 / 1.4 / 1.4 (831 -> 446), shrunk by 0.2 m 7.7 / 7.9 / 3.1 / 3.0, two squares 0.01 apart
+22.6 / 24.3 / 17.5 / 17.9; every map tol_met, the maps within 9.3e-12 of each other, the
+asymmetry 1.5e-12 under the estimate 1.2e-9. The targets at 8791729
+(``bench/results/core_targets_blas1.json``, one process, load 3.0-3.1, CPU s): default to
+1e-10 1.61 s, shrunk 2.95 s (3.5x the unshrunk 0.83 s), 50 obstacles 19.97 s (27.7x the
+4-obstacle scene's 0.72 s), two squares 0.01 apart 17.39 s.
+
 ``tol_met`` is true only if all are within ``tol`` and nothing is ``unverified``. A map that
 misses ``tol`` is returned with ``tol_met = False`` and an :class:`AccuracyWarning`; one whose
 estimate exceeds :data:`UNUSABLE_ERROR` (or the caller's ``max_error``) raises
@@ -879,11 +894,12 @@ def _warn_tol_missed(diag: SolveReport, tol: float) -> None:
 #: nodes, the Cauchy expansions' n x p x 3 products, block inverses of ~100 nodes), where a
 #: second thread gains little and a multi-threaded OpenBLAS waking and spinning its threads
 #: costs CPU time many times the product's on a busy machine; the services run with one BLAS
-#: thread for the same reason (``confnav.cli.services``). Measured (bench/README.md,
-#: "BLAS threads during a solve"): at load ~4.7 on the 2-core machine, an 8192 x 55 by 55 x 3
-#: complex product 7.8 ms CPU with 2 threads against 0.57 ms with 1, a 2000-node real
-#: matrix-vector product 7.7 against 1.2 ms. A count set in the environment
-#: (:data:`BLAS_THREAD_ENV`) is left alone.
+#: thread for the same reason (``confnav.cli.services``). Measured side by side in one run
+#: (bench/results/koebe_corner_blas1.json, load 4.8-9.8, CPU s, the library's 2 threads
+#: against 1, corner preconditioner on): 50 mixed obstacles 61.1 -> 19.9, the default
+#: workspace to 1e-10 3.0 -> 1.4, it shrunk by 0.2 m 7.9 -> 3.0, two squares 0.01 apart 24.3
+#: -> 17.9; the same maps. A count set in the environment (:data:`BLAS_THREAD_ENV`) is left
+#: alone.
 SOLVE_BLAS_THREADS: int | None = 1
 BLAS_THREAD_ENV = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
 
