@@ -465,16 +465,24 @@ def _local_grid_size(
     A uniform grid with spacing h resolves an analytic curve to the Fourier ``tail`` while the
     nearest singularity keeps d/h >= ln(1/tail)/pi away (that is m = 2 ln(1/tail)/delta on a
     circle, delta = d/r); checked point by point with the local spacing |dS| 2pi/m of the
-    nearest grid point, so it holds for graded grids too.
+    nearest grid point, so it holds for graded grids too. Points farther from the curve's
+    centre c than ``max |S - c| + need h_max`` are farther than ``need h`` from every grid
+    point (triangle inequality) and cannot decide the size: only the others are looked up.
     """
     m = S.size
     if others.size == 0:
         return m, False
+    need_ratio = np.log(1 / tail) / np.pi
+    c = complex(np.mean(S))
+    h_max = float(np.max(np.abs(dS))) * 2 * np.pi / m
+    reach = float(np.max(np.abs(S - c))) + need_ratio * h_max
+    near = others[np.abs(others - c) <= reach]
+    if near.size == 0:
+        return m, False
     tree = cKDTree(np.column_stack([S.real, S.imag]))
-    d, i = tree.query(np.column_stack([others.real, others.imag]))
+    d, i = tree.query(np.column_stack([near.real, near.imag]))
     h = np.abs(dS[i]) * 2 * np.pi / m
     ratio = float(np.min(d / np.maximum(h, 1e-300)))
-    need_ratio = np.log(1 / tail) / np.pi
     if ratio >= need_ratio:
         return m, False
     want = int(2 ** np.ceil(np.log2(m * need_ratio / max(ratio, 1e-12))))
