@@ -33,7 +33,7 @@ from bench_core import code_info, machine_info  # script mode: bench/ is on sys.
 
 import confnav
 from confnav import ConformalMap, Workspace
-from confnav.conformal import cauchy, diskmap, gnk
+from confnav.conformal import cauchy, circledomain, diskmap, gnk
 from confnav.conformal.acceleration import KOEBE_ACCELS
 from confnav.conformal.circular_map import METHODS
 from confnav.maps.footprint import inflate
@@ -54,6 +54,10 @@ from confnav.scenes.workspaces import (
 #: (gnk.CORNER_PRECONDITIONER, the default since it was measured against ``carry``). Those run
 #: with the BLAS library's own thread count; ``*_blas1`` with one BLAS thread during the solve
 #: (solver.SOLVE_BLAS_THREADS = 1, the default since ``corner_blas1`` was measured).
+#: ``lean``: that and the expansions' power tables built per degree (``cauchy._powers``) and
+#: the grid-size look-up limited to points within reach (``circledomain._local_grid_size``);
+#: every other design runs the implementations before them (:func:`_cumprod_powers`,
+#: :func:`_grid_size_all_points`).
 DESIGNS: dict[str, dict[str, bool]] = {
     "before": {"smooth_fmm": False, "carry": False, "corner": False, "blas1": False},
     "fmm_smooth": {"smooth_fmm": True, "carry": False, "corner": False, "blas1": False},
@@ -61,7 +65,39 @@ DESIGNS: dict[str, dict[str, bool]] = {
     "corner": {"smooth_fmm": True, "carry": True, "corner": True, "blas1": False},
     "carry_blas1": {"smooth_fmm": True, "carry": True, "corner": False, "blas1": True},
     "corner_blas1": {"smooth_fmm": True, "carry": True, "corner": True, "blas1": True},
+    "lean": {"smooth_fmm": True, "carry": True, "corner": True, "blas1": True, "lean": True},
 }
+
+
+def _cumprod_powers(w: np.ndarray, p: int) -> np.ndarray:
+    """``cauchy._powers`` as it was before ``lean``: cumprod along a (points, degrees) array."""
+    W = np.empty((w.size, p + 1), np.complex128)
+    W[:, 0] = 1.0
+    W[:, 1:] = w[:, None]
+    np.cumprod(W, axis=1, out=W)
+    return W.T
+
+
+def _grid_size_all_points(
+    S: np.ndarray, dS: np.ndarray, others: np.ndarray, tail: float
+) -> tuple[int, bool]:
+    """``circledomain._local_grid_size`` as it was before ``lean``: every point looked up."""
+    from scipy.spatial import cKDTree
+
+    from confnav.conformal.circledomain import SMOOTH_MAX
+
+    m = S.size
+    if others.size == 0:
+        return m, False
+    tree = cKDTree(np.column_stack([S.real, S.imag]))
+    d, i = tree.query(np.column_stack([others.real, others.imag]))
+    h = np.abs(dS[i]) * 2 * np.pi / m
+    ratio = float(np.min(d / np.maximum(h, 1e-300)))
+    need_ratio = np.log(1 / tail) / np.pi
+    if ratio >= need_ratio:
+        return m, False
+    want = int(2 ** np.ceil(np.log2(m * need_ratio / max(ratio, 1e-12))))
+    return min(want, SMOOTH_MAX), want > SMOOTH_MAX
 
 
 def use_design(name: str) -> None:
@@ -73,9 +109,14 @@ def use_design(name: str) -> None:
     solver.LEVEL_CARRY = d["carry"]
     gnk.CORNER_PRECONDITIONER = d["corner"]
     solver.SOLVE_BLAS_THREADS = 1 if d["blas1"] else None
+    lean = d.get("lean", False)
+    setattr(cauchy, "_powers", _POWERS if lean else _cumprod_powers)  # noqa: B010
+    setattr(circledomain, "_local_grid_size", _GRID_SIZE if lean else _grid_size_all_points)  # noqa: B010
 
 
 _SMOOTH_DEFAULT = gnk.SMOOTH_DENSE_MAX_NODES
+_POWERS = cauchy._powers
+_GRID_SIZE = circledomain._local_grid_size
 
 
 def asymmetry(m: ConformalMap) -> float:
