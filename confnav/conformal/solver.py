@@ -110,7 +110,11 @@ carry corner carry_blas1 corner_blas1``, ``bench/results/koebe_corner_blas1.json
 asymmetry 1.5e-12 under the estimate 1.2e-9. The targets at 8791729
 (``bench/results/core_targets_blas1.json``, one process, load 3.0-3.1, CPU s): default to
 1e-10 1.61 s, shrunk 2.95 s (3.5x the unshrunk 0.83 s), 50 obstacles 19.97 s (27.7x the
-4-obstacle scene's 0.72 s), two squares 0.01 apart 17.39 s.
+4-obstacle scene's 0.72 s), two squares 0.01 apart 17.39 s. With the map evaluations'
+power tables built per degree and the grid-size look-up limited to points within reach
+(``koebe_lean.json`` at 41d0c98: 50 obstacles 20.9 -> 17.2 s, the same maps) the targets at
+bf195f9 (``bench/results/core_targets_lean.json``, load 4.7-7.4), in the same order: 1.09,
+3.38, 18.02 and 17.42 s.
 
 ``tol_met`` is true only if all are within ``tol`` and nothing is ``unverified``. A map that
 misses ``tol`` is returned with ``tol_met = False`` and an :class:`AccuracyWarning`; one whose
