@@ -115,3 +115,29 @@ def test_matrix_free_blocks_equal_the_dense_ones(monkeypatch: pytest.MonkeyPatch
     np.testing.assert_allclose(free.diag, dense.diag, rtol=0, atol=1e-12)
     free_sol = gnk.solve_gnk(mesh.eta, mesh.deta, A, gamma, rtol=1e-14, corners=lab)
     assert np.max(np.abs(free_sol.mu - dense_sol.mu)) < 1e-11
+
+
+def test_a_singular_block_or_a_failed_run_falls_back_to_plain_gmres(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """No block inverse (LinAlgError), or a preconditioned run that cannot converge (NaN
+    products): the solve is the plain one, not an error."""
+    mesh = graded_polygon(L_ROOM, 48)
+    A = mesh.eta - (0.5 + 0.5j)
+    gamma = -np.log(np.abs(A))
+    plain = gnk.solve_gnk(mesh.eta, mesh.deta, A, gamma, rtol=1e-13)
+    lab = mesh.corner_blocks()
+
+    def singular(_: np.ndarray) -> np.ndarray:
+        raise np.linalg.LinAlgError("singular")
+
+    with monkeypatch.context() as mp:
+        mp.setattr(gnk.np.linalg, "inv", singular)
+        assert gnk._CornerBlocks.build(gnk._Operator(mesh.eta, mesh.deta, A), lab) is None
+        sol = gnk.solve_gnk(mesh.eta, mesh.deta, A, gamma, rtol=1e-13, corners=lab)
+        assert sol.iterations == plain.iterations
+        np.testing.assert_array_equal(sol.mu, plain.mu)
+    with monkeypatch.context() as mp:
+        mp.setattr(gnk._CornerBlocks, "solve", lambda self, y: np.full_like(y, np.nan))
+        sol = gnk.solve_gnk(mesh.eta, mesh.deta, A, gamma, rtol=1e-13, corners=lab)
+        np.testing.assert_array_equal(sol.mu, plain.mu)

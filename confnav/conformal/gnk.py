@@ -208,20 +208,24 @@ CORNER_PRECONDITIONER = True
 
 class _CornerBlocks:
     """Right preconditioner of ``I - N`` on a graded polygon mesh: the inverse of its
-    diagonal blocks, one per vertex (the nodes of the half sides meeting there).
+    diagonal blocks, one per vertex (the nodes near it on its two sides,
+    :meth:`confnav.conformal.boundary.BoundaryMesh.corner_blocks`), the identity's diagonal
+    scaling elsewhere.
 
     At a corner the GNK operator is not compact: the double-layer-type kernel of two sides
     meeting at an angle is homogeneous of degree -1 in the distance to the vertex, so it
     contributes an interval of essential spectrum whose width grows with the turn of the
-    corner, and GMRES needs a number of iterations that grows with it (Nasser, ETNA 2015,
-    sec. 5; Helsing & Ojala, J. Comput. Phys. 227 (2008) 8820-8840, who remove it by
-    compressing the corner interactions). The graded nodes next to a vertex interact mostly
-    with each other, so the block of ``I - N`` on the two half sides at each vertex carries
-    that non-compact part; off these blocks the kernel is smooth (zero between collinear
-    nodes of one side), a compact perturbation. ``A P^-1`` with P = the block diagonal thus
-    clusters near 1 (Saad, "Iterative Methods for Sparse Linear Systems", 2nd ed., SIAM 2003,
-    sec. 9.3.2: right preconditioning leaves the residual that GMRES minimises the true
-    residual ``b - A x``, so the solver's tolerance keeps its meaning)."""
+    corner, and GMRES needs a number of iterations that grows with it (J. Helsing, R. Ojala,
+    "Corner singularities for elliptic problems: integral equations, graded meshes,
+    quadrature, and compressed inverse preconditioning", J. Comput. Phys. 227 (2008)
+    8820-8840, who precondition by the inverse of the corner interactions, compressed). The
+    graded nodes next to a vertex interact mostly with each other, so the block of ``I - N``
+    on them carries that non-compact part; off these blocks the kernel is smooth (zero
+    between collinear nodes of one side), a compact perturbation. ``A P^-1`` with P = the
+    block diagonal thus clusters near 1 (Y. Saad, "Iterative Methods for Sparse Linear
+    Systems", 2nd ed., SIAM 2003, sec. 9.3.2: right preconditioning leaves the residual that
+    GMRES minimises the true residual ``b - A x``, so the solver's tolerance keeps its
+    meaning). A singular block or a failed preconditioned run falls back to plain GMRES."""
 
     def __init__(self, op: _Operator, labels: np.ndarray) -> None:
         # a label < 0: the node is its own block (a diagonal, Jacobi, entry)
@@ -247,6 +251,19 @@ class _CornerBlocks:
             B[np.diag_indices_from(B)] += 2.0 + rowi[idx]
             self.blocks.append(np.ascontiguousarray(B))
             self.inverses.append(np.linalg.inv(B))
+
+    @classmethod
+    def build(cls, op: _Operator, labels: np.ndarray) -> _CornerBlocks | None:
+        """The preconditioner, or None if a block is singular or its inverse not finite
+        (GMRES then runs unpreconditioned)."""
+        try:
+            pc = cls(op, labels)
+        except np.linalg.LinAlgError:
+            return None
+        finite = np.all(np.isfinite(pc.diag)) and np.all(pc.diag != 0)
+        if not (finite and all(np.all(np.isfinite(v)) for v in pc.inverses)):
+            return None
+        return pc
 
     def solve(self, y: FloatArray) -> FloatArray:
         """P^-1 y."""
@@ -298,11 +315,46 @@ def solve_gnk(
     n = eta.size
     rhs = -op.M(gamma)
     imn_gamma = op.I_minus_N(gamma)  # for h; the same FMM sum as M gamma (memo in S)
+    if not np.all(np.isfinite(rhs)):
+        raise ConvergenceError(
+            f"the GNK right-hand side is not finite (n={n}): coincident or non-finite nodes"
+        )
     prec = (
-        _CornerBlocks(op, corners)
+        _CornerBlocks.build(op, corners)
         if CORNER_PRECONDITIONER and corners is not None and corners.shape == (n,)
         else None
     )
+    count = [0]
+    try:
+        mu, info, res = _gmres(op, rhs, rtol, x0, prec, count)
+    except ConvergenceError:
+        if prec is None:
+            raise
+        # the preconditioned run failed: the plain one decides (the same equation)
+        mu, info, res = _gmres(op, rhs, rtol, x0, None, count)
+    hpt = 0.5 * (op.M(mu) - imn_gamma)  # M mu: the memo of GMRES's last product
+    bnorm = max(float(np.linalg.norm(rhs)), 1e-300)
+    return GNKSolution(
+        mu=np.asarray(mu),
+        h=float(np.mean(hpt)),
+        h_spread=float(np.ptp(hpt)),
+        iterations=count[0],
+        residual=(rtol if info == 0 else res) * bnorm,
+    )
+
+
+def _gmres(
+    op: _Operator,
+    rhs: FloatArray,
+    rtol: float,
+    x0: FloatArray | None,
+    prec: _CornerBlocks | None,
+    count: list[int],
+) -> tuple[FloatArray, int, float]:
+    """GMRES on ``(I - N) mu = rhs``, right-preconditioned by ``prec`` if given: returns mu,
+    GMRES's info and the measured relative residual of a run stopped at its limit (inf when
+    it met ``rtol``); raises :class:`ConvergenceError` if that residual is not accepted."""
+    n = rhs.size
 
     def _mu(y: FloatArray) -> FloatArray:
         return y if prec is None else prec.solve(y)
@@ -311,15 +363,10 @@ def solve_gnk(
         return op.I_minus_N(_mu(y))
 
     lin = LinearOperator((n, n), matvec=_product, dtype=np.float64)
-    count = [0]
 
     def _cb(_: object) -> None:
         count[0] += 1
 
-    if not np.all(np.isfinite(rhs)):
-        raise ConvergenceError(
-            f"the GNK right-hand side is not finite (n={n}): coincident or non-finite nodes"
-        )
     # restarted GMRES, one cycle of GMRES_RESTART iterations at a time: a cycle that does not
     # halve the true residual has stagnated (at the rounding floor of the operator, e.g. a
     # crowded boundary of 10^4 nodes stuck at 9e-12 for 1e-13 asked), and the remaining
@@ -329,6 +376,7 @@ def solve_gnk(
     if x0 is not None and x0.shape == (n,) and np.all(np.isfinite(x0)):
         y = np.array(x0, dtype=np.float64) if prec is None else prec.apply(x0)
     res = np.inf
+    info = -1
     for _cycle in range(GMRES_MAXITER):
         y, info = gmres(
             lin,
@@ -351,15 +399,7 @@ def solve_gnk(
             f"GMRES did not converge for the GNK equation (n={n}, residual {res:.2e} > "
             f"{GMRES_ACCEPT * rtol:.1e} after {count[0]} iterations)"
         )
-    mu = _mu(y)
-    hpt = 0.5 * (op.M(mu) - imn_gamma)  # M mu: the memo of GMRES's last product
-    return GNKSolution(
-        mu=np.asarray(mu),
-        h=float(np.mean(hpt)),
-        h_spread=float(np.ptp(hpt)),
-        iterations=count[0],
-        residual=(rtol if info == 0 else res) * bnorm,
-    )
+    return _mu(y), int(info), float(res)
 
 
 __all__ = [
