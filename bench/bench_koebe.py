@@ -33,7 +33,7 @@ from bench_core import code_info, machine_info  # script mode: bench/ is on sys.
 
 import confnav
 from confnav import ConformalMap, Workspace
-from confnav.conformal import cauchy, diskmap, gnk
+from confnav.conformal import cauchy, circledomain, diskmap, gnk
 from confnav.conformal.acceleration import KOEBE_ACCELS
 from confnav.conformal.circular_map import METHODS
 from confnav.maps.footprint import inflate
@@ -49,12 +49,55 @@ from confnav.scenes.workspaces import (
 #: level's sweeps started from the polygon (the solver up to a1fd614); ``fmm_smooth``: smooth
 #: grids above gnk.SMOOTH_DENSE_MAX_NODES through FMM products; ``carry``: that and each
 #: level's sweeps after the first started from the previous level's map (the default since
-#: the first sweep's tangents are its curves', circledomain._consistent_tangents).
+#: the first sweep's tangents are its curves', circledomain._consistent_tangents); ``corner``:
+#: that and the first sweep's graded GNK solves right-preconditioned by their corner blocks
+#: (gnk.CORNER_PRECONDITIONER, the default since it was measured against ``carry``). Those run
+#: with the BLAS library's own thread count; ``*_blas1`` with one BLAS thread during the solve
+#: (solver.SOLVE_BLAS_THREADS = 1, the default since ``corner_blas1`` was measured).
+#: ``lean``: that and the expansions' power tables built per degree (``cauchy._powers``) and
+#: the grid-size look-up limited to points within reach (``circledomain._local_grid_size``);
+#: every other design runs the implementations before them (:func:`_cumprod_powers`,
+#: :func:`_grid_size_all_points`).
 DESIGNS: dict[str, dict[str, bool]] = {
-    "before": {"smooth_fmm": False, "carry": False},
-    "fmm_smooth": {"smooth_fmm": True, "carry": False},
-    "carry": {"smooth_fmm": True, "carry": True},
+    "before": {"smooth_fmm": False, "carry": False, "corner": False, "blas1": False},
+    "fmm_smooth": {"smooth_fmm": True, "carry": False, "corner": False, "blas1": False},
+    "carry": {"smooth_fmm": True, "carry": True, "corner": False, "blas1": False},
+    "corner": {"smooth_fmm": True, "carry": True, "corner": True, "blas1": False},
+    "carry_blas1": {"smooth_fmm": True, "carry": True, "corner": False, "blas1": True},
+    "corner_blas1": {"smooth_fmm": True, "carry": True, "corner": True, "blas1": True},
+    "lean": {"smooth_fmm": True, "carry": True, "corner": True, "blas1": True, "lean": True},
 }
+
+
+def _cumprod_powers(w: np.ndarray, p: int) -> np.ndarray:
+    """``cauchy._powers`` as it was before ``lean``: cumprod along a (points, degrees) array."""
+    W = np.empty((w.size, p + 1), np.complex128)
+    W[:, 0] = 1.0
+    W[:, 1:] = w[:, None]
+    np.cumprod(W, axis=1, out=W)
+    return W.T
+
+
+def _grid_size_all_points(
+    S: np.ndarray, dS: np.ndarray, others: np.ndarray, tail: float
+) -> tuple[int, bool]:
+    """``circledomain._local_grid_size`` as it was before ``lean``: every point looked up."""
+    from scipy.spatial import cKDTree
+
+    from confnav.conformal.circledomain import SMOOTH_MAX
+
+    m = S.size
+    if others.size == 0:
+        return m, False
+    tree = cKDTree(np.column_stack([S.real, S.imag]))
+    d, i = tree.query(np.column_stack([others.real, others.imag]))
+    h = np.abs(dS[i]) * 2 * np.pi / m
+    ratio = float(np.min(d / np.maximum(h, 1e-300)))
+    need_ratio = np.log(1 / tail) / np.pi
+    if ratio >= need_ratio:
+        return m, False
+    want = int(2 ** np.ceil(np.log2(m * need_ratio / max(ratio, 1e-12))))
+    return min(want, SMOOTH_MAX), want > SMOOTH_MAX
 
 
 def use_design(name: str) -> None:
@@ -64,9 +107,16 @@ def use_design(name: str) -> None:
     d = DESIGNS[name]
     gnk.SMOOTH_DENSE_MAX_NODES = _SMOOTH_DEFAULT if d["smooth_fmm"] else gnk.DENSE_MAX_NODES
     solver.LEVEL_CARRY = d["carry"]
+    gnk.CORNER_PRECONDITIONER = d["corner"]
+    solver.SOLVE_BLAS_THREADS = 1 if d["blas1"] else None
+    lean = d.get("lean", False)
+    setattr(cauchy, "_powers", _POWERS if lean else _cumprod_powers)  # noqa: B010
+    setattr(circledomain, "_local_grid_size", _GRID_SIZE if lean else _grid_size_all_points)  # noqa: B010
 
 
 _SMOOTH_DEFAULT = gnk.SMOOTH_DENSE_MAX_NODES
+_POWERS = cauchy._powers
+_GRID_SIZE = circledomain._local_grid_size
 
 
 def asymmetry(m: ConformalMap) -> float:
@@ -199,6 +249,100 @@ def _line(r: dict[str, Any]) -> str:
     )
 
 
+#: ``--corner-study``: (scene, nodes per side, tol) whose first sweep's graded GNK solves are
+#: re-solved with corner blocks of several sizes (fractions of each side; None: no blocks).
+CORNER_CASES = (("default", 180, 1e-10), ("mixed50", 120, 1e-8))
+CORNER_FRACTIONS = (None, 0.5, 0.25, 0.125)
+
+
+def _first_sweep_solves(name: str, nodes: int, tol: float) -> list[tuple[Any, ...]]:
+    """The arguments of the first sweep's GNK solves of one cold level, with their meshes."""
+    from confnav.conformal import circledomain, solver
+
+    calls: list[tuple[Any, ...]] = []
+    state: dict[str, Any] = {}
+    real_solve = diskmap.solve_gnk  # type: ignore[attr-defined]
+    real_own, real_sweep = circledomain._own_map, circledomain._sweep
+
+    def own(b: Any, alpha: complex, nm: str, mesh: Any, *a: Any) -> Any:
+        state["mesh"] = mesh
+        return real_own(b, alpha, nm, mesh, *a)
+
+    def record(*a: Any, **kw: Any) -> Any:
+        calls.append((a, kw, state["mesh"]))
+        return real_solve(*a, **kw)
+
+    def sweep(it: Any, k: int, *a: Any) -> Any:
+        if k > 1:
+            raise StopIteration  # the first sweep is all the study needs
+        return real_sweep(it, k, *a)
+
+    setattr(diskmap, "solve_gnk", record)  # noqa: B010
+    setattr(circledomain, "_own_map", own)  # noqa: B010
+    setattr(circledomain, "_sweep", sweep)  # noqa: B010
+    try:
+        solver._solve_level(scene(name), nodes, tol, None)
+    except StopIteration:
+        pass
+    finally:
+        setattr(diskmap, "solve_gnk", real_solve)  # noqa: B010
+        setattr(circledomain, "_own_map", real_own)  # noqa: B010
+        setattr(circledomain, "_sweep", real_sweep)  # noqa: B010
+    return calls
+
+
+def corner_study(out: Path) -> int:
+    """The first sweep's graded GNK solves of one cold mesh level, recorded, then solved again
+    with each block size of the corner preconditioner (``gnk._CornerBlocks``, blocks of the
+    nodes within a fraction of each side from its vertices): GMRES iterations and CPU seconds
+    (one BLAS thread, as ``confnav.solve`` runs), and the largest difference of mu from the
+    unpreconditioned solution."""
+    from threadpoolctl import threadpool_limits
+
+    info, code = machine_info(), code_info()
+    rows: list[dict[str, Any]] = []
+    for name, nodes, tol in CORNER_CASES:
+        calls = _first_sweep_solves(name, nodes, tol)
+        plain_mu: list[Any] = []
+        for frac in CORNER_FRACTIONS:
+            its, diff = 0, 0.0
+            c0 = time.process_time()
+            with threadpool_limits(limits=1, user_api="blas"):
+                for i, (a, kw, mesh) in enumerate(calls):
+                    args = list(a)
+                    args[7] = None if frac is None else mesh.corner_blocks(frac)
+                    sol = gnk.solve_gnk(*args, **kw)
+                    its += sol.iterations
+                    if frac is None:
+                        plain_mu.append(sol.mu)
+                    else:
+                        diff = max(diff, float(np.max(np.abs(sol.mu - plain_mu[i]))))
+            rows.append(
+                {
+                    "scene": name,
+                    "nodes_per_side": nodes,
+                    "tol": tol,
+                    "solves": len(calls),
+                    "nodes": int(sum(c[0][0].size for c in calls)),
+                    "fraction": frac,
+                    "gmres_iterations": its,
+                    "cpu_s": time.process_time() - c0,
+                    "max_mu_difference": diff,
+                    "load1": os.getloadavg()[0],
+                }
+            )
+            print(
+                f"  {name} {nodes}/side: blocks {frac}: GMRES {its}, CPU "
+                f"{rows[-1]['cpu_s']:.2f} s, mu within {diff:.1e}",
+                flush=True,
+            )
+    info["loadavg_end"] = list(os.getloadavg())
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps({"machine": info, "code": code, "rows": rows}, indent=1) + "\n")
+    print(f"wrote {out}")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--gaps", type=float, nargs="*", default=[0.1, 0.03])
@@ -245,7 +389,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--out", type=Path, default=Path(__file__).resolve().parent / "results" / "koebe.json"
     )
+    ap.add_argument(
+        "--corner-study",
+        action="store_true",
+        help="only the corner preconditioner's block sizes on the first sweep's solves",
+    )
     a = ap.parse_args(argv)
+    if a.corner_study:
+        return corner_study(
+            a.out if a.out.name != "koebe.json" else a.out.with_name("koebe_corner_blocks.json")
+        )
     gaps = [0.1] if a.quick else a.gaps
     info, code = machine_info(), code_info()
     print(

@@ -75,3 +75,16 @@ def test_expansions_cover_the_far_targets() -> None:
 def test_degrees_bound_the_truncation() -> None:
     for edge, p in zip(cy.EXPANSION_BANDS, cy._BAND_DEGREES, strict=True):
         assert cy._tail_bound(edge, p) <= cy.EXPANSION_EPS < cy._tail_bound(edge, p - 1)
+
+
+def test_powers_are_the_cumulative_products() -> None:
+    """The expansions' power table equals ``cumprod`` of the same factors to rounding (a
+    complex product may round differently in numpy's two loops: one ulp per factor)."""
+    rng = np.random.default_rng(5)
+    w = rng.normal(size=300) + 1j * rng.normal(size=300)
+    for p in (0, 1, 2, 17):
+        W = np.empty((w.size, p + 1), np.complex128)
+        W[:, 0] = 1.0
+        W[:, 1:] = w[:, None]
+        np.cumprod(W, axis=1, out=W)
+        np.testing.assert_allclose(cy._powers(w, p), W.T, rtol=4 * max(p, 1) * 2.0**-52, atol=0)

@@ -65,6 +65,17 @@ def kress_sigma(tau: FloatArray, p: int = GRADING_P) -> tuple[FloatArray, FloatA
     return sig, dsig
 
 
+#: Part of each side (in tau, from either end) whose nodes form its vertices' blocks in the GNK
+#: corner preconditioner (:meth:`BoundaryMesh.corner_blocks`). Measured on the first sweep's
+#: graded GNK solves of one cold level (``python bench/bench_koebe.py --corner-study``,
+#: bench/results/koebe_corner_blocks.json; GMRES iterations in total and CPU s with one BLAS
+#: thread, for no blocks / 1/2 / 1/4 / 1/8 of each side): default workspace at 180 nodes per
+#: side 195 / 67 / 93 / 118 iterations, 0.26 / 0.16 / 0.20 / 0.17 s; 50 mixed obstacles at 120
+#: 1963 / 617 / 864 / 1098, 1.16 / 1.08 / 0.90 / 0.91 s. A quarter: a quarter of the halves'
+#: factorisation work (blocks half as large), the fewest seconds where the boundaries are many.
+CORNER_BLOCK_FRACTION = 0.25
+
+
 @dataclass(frozen=True)
 class BoundaryMesh:
     """Nodes of one closed polygonal curve on the graded mesh.
@@ -101,6 +112,16 @@ class BoundaryMesh:
         """
         lo = 2 * np.pi * margin
         return np.asarray((self.tau >= lo) & (self.tau <= 2 * np.pi - lo))
+
+    def corner_blocks(self, fraction: float = CORNER_BLOCK_FRACTION) -> NDArray[np.intp]:
+        """The vertex block of each node: the nodes in the first ``fraction`` of a side (in
+        tau) belong to its first vertex (label ``side``), those in the last to its second
+        (``side + 1``), the others to none (-1); the same labels in either direction. The
+        blocks of the GNK corner preconditioner (:func:`confnav.conformal.gnk.solve_gnk`)."""
+        L = int(self.side.max()) + 1 if self.side.size else 1
+        lo, hi = 2 * np.pi * fraction, 2 * np.pi * (1.0 - fraction)
+        lab = np.where(self.tau < lo, self.side, np.where(self.tau > hi, (self.side + 1) % L, -1))
+        return np.asarray(lab, dtype=np.intp)
 
     def reversed(self) -> BoundaryMesh:
         """The same nodes traversed the other way: eta(-t) (derivative negated)."""

@@ -234,11 +234,8 @@ def _expanded(
         # 0..p_max + 1 (the local second-order sums need one more): a_m / R^m outside,
         # b_m r^(m+1) inside
         u = (sources - c) / R if multipole else r / (sources - c)
-        V = np.empty((sources.size, p_max + 3), np.complex128)
-        V[:, 0] = 1.0
-        V[:, 1:] = u[:, None]
-        np.cumprod(V, axis=1, out=V)
-        A = (V[:, :-1] if multipole else V[:, 1:]).T @ Q
+        V = _powers(u, p_max + 2)  # (degree, source): u^0 .. u^(p_max + 2)
+        A = (V[:-1] if multipole else V[1:]) @ Q
         m = np.arange(p_max + 2)[:, None]
         for b, p in enumerate(_BAND_DEGREES):
             sel = idx[band == b]
@@ -258,6 +255,20 @@ def _expanded(
     return np.flatnonzero(~(outside | inside))
 
 
+def _powers(w: ComplexArray, p: int) -> ComplexArray:
+    """``P[m] = w^m`` for m = 0..p, one row per degree (each row contiguous): built row by row
+    with the products ``cumprod`` would take (equal to rounding), and faster than ``cumprod``
+    along the short axis of a (points, degrees) array, which loops per point (bench/README.md,
+    "Corner-block preconditioner and one BLAS thread")."""
+    P = np.empty((p + 1, w.size), np.complex128)
+    P[0] = 1.0
+    if p >= 1:
+        P[1] = w
+    for m in range(2, p + 1):
+        np.multiply(P[m - 1], w, out=P[m])
+    return P
+
+
 def _evaluate(
     x: ComplexArray,
     scale: float,
@@ -273,10 +284,7 @@ def _evaluate(
     if not rows.size:
         return
     w = scale / x if multipole else x / scale
-    W = np.empty((rows.size, p + 1), np.complex128)
-    W[:, 0] = 1.0
-    W[:, 1:] = w[:, None]
-    np.cumprod(W, axis=1, out=W)
+    W = _powers(w, p).T  # (target, degree), a view
     if multipole:  # sum a_m/x^(m+1) and sum (m+1) a_m/x^(m+2)
         one[rows] = (W @ A[: p + 1]) / x[:, None]
         if two is not None:

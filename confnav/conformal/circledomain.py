@@ -264,12 +264,19 @@ class _Boundary:
     tu: FloatArray | None = None
 
     def own_map(
-        self, alpha: complex, others: ComplexArray, rtol: float, x0: FloatArray | None = None
+        self,
+        alpha: complex,
+        others: ComplexArray,
+        rtol: float,
+        x0: FloatArray | None = None,
+        corners: np.ndarray | None = None,
     ) -> CurveMap:
         """Solve the disk map of this boundary's current image and move it onto |w| = 1.
 
         ``x0``: a first guess of the GNK solution, used in the first sweep (on the polygon's
-        graded mesh; the previous mesh level's solution there).
+        graded mesh; the previous mesh level's solution there); ``corners``: that mesh's
+        vertex blocks (:meth:`~confnav.conformal.boundary.BoundaryMesh.corner_blocks`, the
+        first sweep's GMRES preconditioner).
 
         ``others`` are points of the other boundaries: if they have come closer to this curve
         than its smooth grid resolves, the grid is refined first (exact FFT upsampling of an
@@ -277,7 +284,9 @@ class _Boundary:
         """
         self._resolve(others)
         if self.S is None:  # first sweep: the polygon, on its graded mesh
-            cm = (exterior_map if self.hole else interior_map)(self.P, self.dP, alpha, rtol, x0)
+            cm = (exterior_map if self.hole else interior_map)(
+                self.P, self.dP, alpha, rtol, x0, corners=corners
+            )
             sgn = -1.0 if self.hole else 1.0
             self.u = sgn * np.unwrap(np.angle(cm.f))
             self.u = self.u - 2 * np.pi * np.floor(self.u[0] / (2 * np.pi))
@@ -456,16 +465,24 @@ def _local_grid_size(
     A uniform grid with spacing h resolves an analytic curve to the Fourier ``tail`` while the
     nearest singularity keeps d/h >= ln(1/tail)/pi away (that is m = 2 ln(1/tail)/delta on a
     circle, delta = d/r); checked point by point with the local spacing |dS| 2pi/m of the
-    nearest grid point, so it holds for graded grids too.
+    nearest grid point, so it holds for graded grids too. Points farther from the curve's
+    centre c than ``max |S - c| + need h_max`` are farther than ``need h`` from every grid
+    point (triangle inequality) and cannot decide the size: only the others are looked up.
     """
     m = S.size
     if others.size == 0:
         return m, False
+    need_ratio = np.log(1 / tail) / np.pi
+    c = complex(np.mean(S))
+    h_max = float(np.max(np.abs(dS))) * 2 * np.pi / m
+    reach = float(np.max(np.abs(S - c))) + need_ratio * h_max
+    near = others[np.abs(others - c) <= reach]
+    if near.size == 0:
+        return m, False
     tree = cKDTree(np.column_stack([S.real, S.imag]))
-    d, i = tree.query(np.column_stack([others.real, others.imag]))
+    d, i = tree.query(np.column_stack([near.real, near.imag]))
     h = np.abs(dS[i]) * 2 * np.pi / m
     ratio = float(np.min(d / np.maximum(h, 1e-300)))
-    need_ratio = np.log(1 / tail) / np.pi
     if ratio >= need_ratio:
         return m, False
     want = int(2 ** np.ceil(np.log2(m * need_ratio / max(ratio, 1e-12))))
@@ -1397,7 +1414,8 @@ def _own_map(
 ) -> CurveMap:
     """``b.own_map`` with failures reported against the boundary and its sharpest corner."""
     try:
-        return b.own_map(alpha, others, rtol, x0)
+        corners = mesh.corner_blocks() if b.S is None and b.P.size == mesh.n else None
+        return b.own_map(alpha, others, rtol, x0, corners)
     except ConvergenceError as exc:
         v = mesh.eta[mesh.tau == 0]
         turn = np.angle((np.roll(v, -1) - v) / (v - np.roll(v, 1)))

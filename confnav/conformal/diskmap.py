@@ -134,15 +134,17 @@ def interior_map(
     rtol: float = GMRES_RTOL,
     x0: FloatArray | None = None,
     smooth: bool = False,
+    corners: np.ndarray | None = None,
 ) -> CurveMap:
     """Map the inside of a counter-clockwise curve onto the unit disk (docs/METHOD.md sec. 2).
 
     ``rtol``: relative GMRES residual of the GNK solve
     (:func:`confnav.conformal.gnk.gmres_rtol`); ``x0``: a first guess of its ``mu``;
-    ``smooth``: a smooth grid (see :func:`confnav.conformal.gnk.solve_gnk`)."""
+    ``smooth``: a smooth grid, ``corners``: the vertex blocks of a graded polygon mesh (its
+    GMRES preconditioner; see :func:`confnav.conformal.gnk.solve_gnk`)."""
     A = eta - alpha
     gamma = -np.log(np.abs(A))
-    sol = solve_gnk(eta, deta, A, gamma, rtol, x0, smooth)
+    sol = solve_gnk(eta, deta, A, gamma, rtol, x0, smooth, corners)
     theta_dot = (deta / A).imag + spectral_derivative(sol.mu)
     f = A / np.abs(A) * np.exp(1j * sol.mu)
     return CurveMap(
@@ -166,15 +168,17 @@ def exterior_map(
     rtol: float = GMRES_RTOL,
     x0: FloatArray | None = None,
     smooth: bool = False,
+    corners: np.ndarray | None = None,
 ) -> CurveMap:
     """Map the outside of a clockwise curve onto |w| > 1 with F'(inf) > 0 (docs/METHOD.md sec. 2).
 
     ``rtol``: relative GMRES residual of the GNK solve
     (:func:`confnav.conformal.gnk.gmres_rtol`); ``x0``: a first guess of its ``mu``;
-    ``smooth``: a smooth grid (see :func:`confnav.conformal.gnk.solve_gnk`)."""
+    ``smooth``: a smooth grid, ``corners``: the vertex blocks of a graded polygon mesh (its
+    GMRES preconditioner; see :func:`confnav.conformal.gnk.solve_gnk`)."""
     A = np.ones_like(eta)
     gamma = np.log(np.abs(eta - alpha))
-    sol = solve_gnk(eta, deta, A, gamma, rtol, x0, smooth)
+    sol = solve_gnk(eta, deta, A, gamma, rtol, x0, smooth, corners)
     phi = gamma + sol.h + 1j * sol.mu
     # Phi_inf = (1/2pi i) oint_ccw Phi/(zeta - alpha) dzeta; eta runs clockwise -> minus sign.
     phi_inf = -(2 * np.pi / eta.size) / (2j * np.pi) * np.sum(phi * deta / (eta - alpha))

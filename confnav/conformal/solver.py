@@ -97,6 +97,25 @@ sweep's GNK solves on the graded meshes (dense, ~14,700 nodes) cost most of it.
 The issue-24 target rows at one commit: ``bench/results/core_targets.json``
 (``python bench/bench_core.py --targets``).
 
+Corner preconditioner and one BLAS thread (issue 24): each level's first sweep solves its GNK
+equations on the graded polygon meshes with GMRES right-preconditioned by the corner blocks
+(:mod:`confnav.conformal.gnk`), and a solve runs with one BLAS thread
+(:data:`SOLVE_BLAS_THREADS`). Side by side in one run (``python bench/bench_koebe.py --gaps
+0.01 --scenes default shrunk mixed50 --case-tol default=1e-10 --accels extrapolate --designs
+carry corner carry_blas1 corner_blas1``, ``bench/results/koebe_corner_blas1.json`` at
+4ebf245, load 4.8-9.8, CPU s, before / preconditioner / one thread / both): 50 obstacles 63.4
+/ 61.1 / 21.2 / 19.9 (GMRES iterations 10136 -> 5238), the default workspace to 1e-10 4.3 /
+3.0 / 1.4 / 1.4 (831 -> 446), shrunk by 0.2 m 7.7 / 7.9 / 3.1 / 3.0, two squares 0.01 apart
+22.6 / 24.3 / 17.5 / 17.9; every map tol_met, the maps within 9.3e-12 of each other, the
+asymmetry 1.5e-12 under the estimate 1.2e-9. The targets at 8791729
+(``bench/results/core_targets_blas1.json``, one process, load 3.0-3.1, CPU s): default to
+1e-10 1.61 s, shrunk 2.95 s (3.5x the unshrunk 0.83 s), 50 obstacles 19.97 s (27.7x the
+4-obstacle scene's 0.72 s), two squares 0.01 apart 17.39 s. With the map evaluations'
+power tables built per degree and the grid-size look-up limited to points within reach
+(``koebe_lean.json`` at 41d0c98: 50 obstacles 20.9 -> 17.2 s, the same maps) the targets at
+bf195f9 (``bench/results/core_targets_lean.json``, load 4.7-7.4), in the same order: 1.09,
+3.38, 18.02 and 17.42 s.
+
 ``tol_met`` is true only if all are within ``tol`` and nothing is ``unverified``. A map that
 misses ``tol`` is returned with ``tol_met = False`` and an :class:`AccuracyWarning`; one whose
 estimate exceeds :data:`UNUSABLE_ERROR` (or the caller's ``max_error``) raises
@@ -105,7 +124,9 @@ estimate exceeds :data:`UNUSABLE_ERROR` (or the caller's ``max_error``) raises
 
 from __future__ import annotations
 
+import contextlib
 import logging
+import os
 import time
 import warnings
 from collections.abc import Callable
@@ -113,6 +134,7 @@ from typing import Any
 
 import numpy as np
 from scipy.spatial import cKDTree
+from threadpoolctl import threadpool_limits
 
 from confnav.conformal.boundary import BoundaryMesh, graded_polygon, resample
 from confnav.conformal.circledomain import (
@@ -871,6 +893,31 @@ def _warn_tol_missed(diag: SolveReport, tol: float) -> None:
     )
 
 
+#: BLAS threads during :func:`solve` (None: the BLAS library's own count). Every BLAS call of
+#: a solve is a small, memory-bound product (GNK matrix-vector products of a few thousand
+#: nodes, the Cauchy expansions' n x p x 3 products, block inverses of ~100 nodes), where a
+#: second thread gains little and a multi-threaded OpenBLAS waking and spinning its threads
+#: costs CPU time many times the product's on a busy machine; the services run with one BLAS
+#: thread for the same reason (``confnav.cli.services``). Measured side by side in one run
+#: (bench/results/koebe_corner_blas1.json, load 4.8-9.8, CPU s, the library's 2 threads
+#: against 1, corner preconditioner on): 50 mixed obstacles 61.1 -> 19.9, the default
+#: workspace to 1e-10 3.0 -> 1.4, it shrunk by 0.2 m 7.9 -> 3.0, two squares 0.01 apart 24.3
+#: -> 17.9; the same maps. A count set in the environment (:data:`BLAS_THREAD_ENV`) is left
+#: alone.
+SOLVE_BLAS_THREADS: int | None = 1
+BLAS_THREAD_ENV = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
+
+
+def _blas_threads() -> contextlib.AbstractContextManager[object]:
+    """The BLAS thread limit of a solve (:data:`SOLVE_BLAS_THREADS`), restored on return."""
+    if SOLVE_BLAS_THREADS is None or any(v in os.environ for v in BLAS_THREAD_ENV):
+        return contextlib.nullcontext()
+    limit: contextlib.AbstractContextManager[object] = threadpool_limits(
+        limits=SOLVE_BLAS_THREADS, user_api="blas"
+    )
+    return limit
+
+
 def solve(
     workspace: Workspace,
     tol: float = 1e-10,
@@ -950,12 +997,15 @@ def solve(
     if not (np.isfinite(max_error) and max_error > 0):
         raise SolverError(f"max_error must be positive and finite, got {max_error}")
     t0 = time.perf_counter()
-    if initial is not None and nodes_per_side is None and method == "koebe":
-        warm = _warm_solve(workspace, tol, initial, progress, koebe_accel, t0)
-        if warm is not None:
-            return warm
-    levels = _mesh_levels(tol, nodes_per_side, initial)
-    cmap = _Refinement(workspace, tol, max_error, progress, koebe_accel, t0, method).run(levels)
+    with _blas_threads():
+        if initial is not None and nodes_per_side is None and method == "koebe":
+            warm = _warm_solve(workspace, tol, initial, progress, koebe_accel, t0)
+            if warm is not None:
+                return warm
+        levels = _mesh_levels(tol, nodes_per_side, initial)
+        cmap = _Refinement(workspace, tol, max_error, progress, koebe_accel, t0, method).run(
+            levels
+        )
     _refuse_unusable(cmap, max_error)
     if not cmap.diagnostics.tol_met:
         _warn_tol_missed(cmap.diagnostics, tol)
