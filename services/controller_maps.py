@@ -4,7 +4,9 @@ services/controller.py)."""
 
 from __future__ import annotations
 
+import cmath
 import logging
+import math
 import time
 from collections import OrderedDict
 
@@ -12,11 +14,15 @@ import numpy as np
 from confnav.schemas import (
     AtlasIndex,
     DecodeError,
+    MapQuery,
+    RouteHint,
     TransformSolution,
     TransformStatus,
     WorkspaceDefinition,
     decode,
+    encode,
 )
+from confnav.schemas.messages import MAX_ROUTES
 from confnav.services.atlas_client import fetch_atlas
 from confnav.services.controller_flat import FlatMixin
 from confnav.services.controller_footprint import FootprintMixin, base_of
@@ -233,11 +239,64 @@ class MapsMixin(FootprintMixin, FlatMixin):
                 needed = missing | {b for b in bases if b not in self._maps} | set(self._pending)
             for ws_id in sorted(needed):
                 self._fetch(ws_id)
+            self._send_hints()
+
+    def _route_hints(self, ws_id: str, only_new: bool = False) -> bytes | None:
+        """The ``MapQuery`` payload of a query for ``ws_id``'s map: the routes (start, goal)
+        of the robots waiting for it (their goal's map, the atlas they asked for, or the base
+        map of their footprint map), the start being the point the law steers (a unicycle's
+        look-ahead point); None if there is none. ``only_new``: only routes not sent for
+        ``ws_id`` yet. The transform service solves those routes' charts first
+        (docs/SLAM.md, "Progressive atlas")."""
+        with self._lock:
+            robots = list(self._robots.values())
+        routes: list[RouteHint] = []
+        sent = self._hinted.setdefault(ws_id, {})
+        for r in robots:
+            with r.lock:
+                goal, pos, theta = r.goal, r.position, r.theta
+                wanted = goal is not None and ws_id in (goal.ws_id, r.atlas_ws, base_of(goal.ws_id))
+            if not wanted or goal is None or pos is None:
+                continue
+            z = complex(pos[0], pos[1])
+            if goal.drive == "unicycle":
+                z += goal.lookahead * cmath.exp(1j * theta)
+            key = (goal.goal, goal.ws_id)
+            if only_new and sent.get(r.robot_id) == key:
+                continue
+            if not (math.isfinite(z.real) and math.isfinite(z.imag)):
+                continue
+            routes.append(RouteHint(robot_id=r.robot_id, start=(z.real, z.imag), goal=goal.goal))
+            sent[r.robot_id] = key
+            if len(routes) >= MAX_ROUTES:
+                break
+        if not routes:
+            return None
+        self.count("route_hints_sent", len(routes))
+        payload: bytes = encode(MapQuery(stamp_ns=time.time_ns(), routes=routes))
+        return payload
+
+    def _send_hints(self) -> None:
+        """New robots' routes on a progressive atlas still being solved (an installed
+        revision with pending cells): sent with a query of its index, whose reply is not
+        needed (the revisions come on ``ws/{ws}/atlas``)."""
+        with self._lock:
+            partial = [w for w, m in self._maps.items() if getattr(m.cmap, "pending", None)]
+        for ws_id in partial:
+            payload = self._route_hints(ws_id, only_new=True)
+            if payload is None:
+                continue
+            try:
+                self.bus.query(self.keys.ws(ws_id, "atlas"), timeout=2.0, payload=payload)
+            except Exception as exc:
+                log.debug("workspace %r: route hints not sent: %s", ws_id, exc)
 
     def _fetch(self, ws_id: str) -> None:
         self.count("queries")
         try:
-            replies = self.bus.query(self.keys.ws(ws_id, "transform"), timeout=2.0)
+            replies = self.bus.query(
+                self.keys.ws(ws_id, "transform"), timeout=2.0, payload=self._route_hints(ws_id)
+            )
         except Exception as exc:
             self._map_errors[ws_id] = f"query failed: {exc}"
             return
