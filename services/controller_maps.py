@@ -248,6 +248,8 @@ class MapsMixin(FootprintMixin, FlatMixin):
         look-ahead point); None if there is none. ``only_new``: only routes not sent for
         ``ws_id`` yet. The transform service solves those routes' charts first
         (docs/SLAM.md, "Progressive atlas")."""
+        if not self.route_hints:
+            return None
         with self._lock:
             robots = list(self._robots.values())
         routes: list[RouteHint] = []

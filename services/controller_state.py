@@ -188,6 +188,7 @@ class ControllerCore(Service):
         # ws id -> robot id -> (goal, goal's ws) of the route hint last sent for that map
         # (services/controller_maps.py; the fetch thread's own)
         self._hinted: dict[str, dict[str, tuple[Any, str]]] = {}
+        self.route_hints = True  # serve controller --no-route-hints: queries without payload
         self._estimates: dict[str, float] = {}
         # (key, payload) or a list of them (one control step's messages, in order)
         self._out: queue.SimpleQueue[Any] = queue.SimpleQueue()
