@@ -7,15 +7,16 @@
 The maps, the body and the start/goal pairs are :mod:`bench_slam`'s (the first ``--pairs``
 of its ``PAIRS`` pairs per map, seed ``SEED``: a 0.22 m unicycle with a 0.1 m look-ahead, so
 its map is ``{map}~r0.32``). Per map, real service processes as ``confnav launch`` starts
-them (``confnav serve router|transform|controller|simulator``, TCP loopback, one BLAS thread
-each, the services' defaults: a progressive atlas with route hints): the transform service
-loads the imported map (``confnav import-map``'s defaults, a workspace file), the simulator
-the same map with one unicycle per pair (``--robot ID=MAP:X,Y,THETA:r=0.22:drive=unicycle``,
-50 Hz). Once every service is alive and the base map ``{map}`` has a first revision (or has
-failed: the unshrunk depot does), the bench waits up to ``--settle`` s for the transform
-service to be idle (its health: nothing solving or refining), then publishes every robot's
-goal at once (``Goal`` with ``robot_radius`` 0.22, ``drive`` unicycle) and measures per robot,
-from its goal's publication:
+them (``confnav -v serve router|transform|controller|simulator``, INFO logs as the launcher
+writes them to its log directory, TCP loopback, one BLAS thread each, the services'
+defaults: a progressive atlas with route hints): the transform service loads the imported
+map (``confnav import-map``'s defaults, a workspace file), the simulator the same map with
+one unicycle per pair (``--robot ID=MAP:X,Y,THETA:r=0.22:drive=unicycle``, 50 Hz). Once
+every service is alive and the base map ``{map}`` has a first revision (or has failed: the
+unshrunk depot does), the bench waits up to ``--settle`` s for the transform service to be
+idle (its health: nothing solving or refining), then publishes every robot's goal at once
+(``Goal`` with ``robot_radius`` 0.22, ``drive`` unicycle) and measures per robot, from its
+goal's publication:
 
 - ``first_cmd_s``: the first non-zero ``cmd_vel`` (linear or angular), the robot moves;
   target <= 2 s (``READY_TARGET_S``);
@@ -250,19 +251,29 @@ def run_map(name: str, n_pairs: int, args: Any, tmp: Path) -> dict[str, Any]:
             "--robot",
             f"{rid}={name}:{s.real:.4f},{s.imag:.4f},{th:.4f}:r={RADIUS}:drive=unicycle",
         ]
-    procs = [spawn("serve", "router", "--listen", ep, log=logs / "router.log")]
+    procs = [spawn("-v", "serve", "router", "--listen", ep, log=logs / "router.log")]
     try:
         time.sleep(1.0)
         t_launch = time.monotonic()
         procs.append(
             spawn(
-                "serve", "transform", *common, *wsarg, "--workers", "2", log=logs / "transform.log"
+                "-v",
+                "serve",
+                "transform",
+                *common,
+                *wsarg,
+                "--workers",
+                "2",
+                log=logs / "transform.log",
             )
         )
         hints = [] if args.route_hints else ["--no-route-hints"]
-        procs.append(spawn("serve", "controller", *common, *hints, log=logs / "controller.log"))
+        procs.append(
+            spawn("-v", "serve", "controller", *common, *hints, log=logs / "controller.log")
+        )
         procs.append(
             spawn(
+                "-v",
                 "serve",
                 "simulator",
                 *common,
