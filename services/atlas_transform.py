@@ -362,6 +362,7 @@ def publish_partial(svc: TransformService, h: str, atlas: Any, sent: set[str]) -
                 sent.add(key)
         svc.bus.publish(svc.keys.ws(ws_id, "atlas"), encode(index))
         svc.count("atlas_revisions_published")
+        log.info("workspace %r: atlas revision with %d of %d charts published", ws_id, k, n)
         what = "complete, refining" if k == n else "robots drive on them, the rest follow"
         svc._publish_status(
             ws_id,

@@ -189,6 +189,12 @@ class ControllerCore(Service):
         # (services/controller_maps.py; the fetch thread's own)
         self._hinted: dict[str, dict[str, tuple[Any, str]]] = {}
         self.route_hints = True  # serve controller --no-route-hints: queries without payload
+        # footprint ws id -> its exact shrunk workspace, whose safety grid was built before
+        # its map came (services/controller_maps.py, _prebuild_safety)
+        self._prebuilt: OrderedDict[str, Any] = OrderedDict()
+        # ws id -> the newest AtlasIndex waiting for the atlas fetch running for it (None:
+        # one runs, nothing waits); services/controller_maps.py, _fetch_atlas
+        self._atlas_busy: dict[str, Any] = {}
         self._estimates: dict[str, float] = {}
         # (key, payload) or a list of them (one control step's messages, in order)
         self._out: queue.SimpleQueue[Any] = queue.SimpleQueue()

@@ -739,7 +739,7 @@ class TransformService(Service):
             new = self.routes.add(ws_id, q.routes)
             self.count("route_hints", len(q.routes))
             if new:
-                log.info("workspace %r: %d new route hints", ws_id, new)
+                log.debug("workspace %r: %d new route hints", ws_id, new)
 
     def state_of(self, ws_id: str) -> str | None:
         with self._lock:
