@@ -9,6 +9,8 @@ import logging
 import math
 import time
 from collections import OrderedDict
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 from confnav.schemas import (
@@ -37,6 +39,7 @@ from confnav.services.definitions import REFINING, definition_hash, workspace_of
 from confnav.services.keys import KeyError_
 
 from confnav.atlas.wire import ATLAS_MARKER, AtlasMap, is_chart_ws_id, shared_workspace
+from confnav.geometry import Workspace
 from confnav.navigation import defaults
 from confnav.navigation.safety import safety_filter
 
@@ -273,15 +276,25 @@ class MapsMixin(FootprintMixin, FlatMixin):
             base_ws = pend.workspace
         else:
             return
-        self._prebuilt[ws_id] = None  # one attempt per footprint map
-        while len(self._prebuilt) > PREBUILT:
-            self._prebuilt.popitem(last=False)
+        self._prebuild(ws_id, lambda: shrunk_workspace(base_ws, ws_id))
+
+    def _prebuild(self, ws_id: str, geometry: Callable[[], Any]) -> None:
+        """Build the safety grid of ``geometry()`` (the exact workspace of ``ws_id``'s map)
+        in a thread, once per map id (:meth:`_prebuild_safety`; also from the first atlas
+        index of a map not installed yet, beside the fetch of its charts)."""
+        with self._lock:  # from the fetch thread and the atlas subscriber
+            if ws_id in self._prebuilt:
+                return
+            self._prebuilt[ws_id] = None  # one attempt per map
+            while len(self._prebuilt) > PREBUILT:
+                self._prebuilt.popitem(last=False)
 
         def build() -> None:
             try:
-                shrunk = shared_workspace(shrunk_workspace(base_ws, ws_id))
-                if ws_id in self._prebuilt:
-                    self._prebuilt[ws_id] = shrunk  # held: the registry keeps it while used
+                shrunk = shared_workspace(geometry())
+                with self._lock:
+                    if ws_id in self._prebuilt:  # held: the registry keeps it while used
+                        self._prebuilt[ws_id] = shrunk
                 t0 = time.perf_counter()
                 _ = safety_filter(shrunk, hold_time=defaults.HOLD_TIME).grid
                 self.count("safety_grids_prebuilt")
@@ -432,5 +445,9 @@ class MapsMixin(FootprintMixin, FlatMixin):
             log.warning("rejected atlas on %s: %s", key, exc)
             return
         cur = self._maps.get(index.ws_id)
+        if cur is None and base_of(index.ws_id) is not None and self._on_base_available():
+            # the first revision of a footprint atlas: its safety grid beside the fetch
+            ws = dict(index.decomposition).get("workspace")
+            self._prebuild(index.ws_id, lambda: Workspace.from_dict(ws))  # type: ignore[arg-type]
         if cur is None or cur.revision != index.revision:
             self.spawn(lambda: self._fetch_atlas(index.ws_id, index), "atlas-fetch")
