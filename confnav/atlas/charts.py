@@ -698,7 +698,6 @@ def _batches(todo: list[int], n_first: int, workers: int, every: int) -> list[li
     return out + [rest[k : k + every] for k in range(0, len(rest), every)]
 
 
-
 def _routes_of(priority: Routes) -> Callable[[], tuple[tuple[complex, complex], ...]]:
     """``priority`` as a callable returning the current pairs as a tuple (a fixed sequence
     returns itself; a callable that raises counts as no routes: hints only steer the order)."""
