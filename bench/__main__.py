@@ -141,6 +141,12 @@ BENCHMARKS: dict[str, Bench] = {
         "slam.json",
         "real SLAM maps (ROS map_server): import, first map, TurtleBot pairs (issue 23)",
     ),
+    "slam_services": Bench(
+        "bench_slam.py",
+        "slam_services.json",
+        "real SLAM maps through the service processes: goal to first command (issue 23)",
+        args=("--services",),
+    ),
     "atlas": Bench(
         "bench_atlas.py",
         "atlas.json",

@@ -36,6 +36,10 @@ unicycle through a look-ahead point 0.1 m ahead of its axle (the README's ``--ro
    arrived, collided, the reason of a failure, simulated time of the first move and of the
    end, revisions offered and swaps, wall time.
 
+``--services`` runs :mod:`bench_slam_services` instead: the same maps, body and (the first)
+pairs through real service processes, goal to first command per robot
+(``bench/results/slam_services.json``).
+
 ``--rungwise`` runs the former bench instead: each rung (1e-3, 1e-6, the README's accuracy)
 solved whole, its first robot's controller built, every pair driven on it alone.
 
@@ -480,6 +484,11 @@ def _warm_worker(_: int) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if "--services" in argv:  # the same maps, body and pairs through the service processes
+        from bench_slam_services import main as services_main
+
+        return services_main([a for a in argv if a != "--services"])
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--maps", nargs="+", choices=MAPS, default=None)
     ap.add_argument("--pairs", type=int, default=PAIRS)

@@ -383,6 +383,37 @@ class AtlasIndex(Message):
     cpu_time: Annotated[float, Field(ge=0.0)] = 0.0
 
 
+MAX_ROUTES = 256
+"""Most route hints in one :class:`MapQuery`."""
+
+
+class RouteHint(Message):
+    """One robot's route for :class:`MapQuery`: where it starts (the point its law steers: the
+    position, or a unicycle's look-ahead point) and its goal, workspace frame (m)."""
+
+    TYPE: ClassVar[str] = "confnav.RouteHint"
+    type: Literal["confnav.RouteHint"] = "confnav.RouteHint"
+    schema_version: Literal[1] = 1
+    robot_id: Id | None = None
+    start: Point
+    goal: Point
+
+
+class MapQuery(Message):
+    """The optional payload of a query on ``{prefix}/ws/{ws}/transform`` or
+    ``{prefix}/ws/{ws}/atlas`` (a query without payload is answered the same way): the routes
+    of the robots waiting for that map. A transform service solving the workspace as a
+    progressive atlas solves the charts these routes need first (docs/SLAM.md, "Progressive
+    atlas"); routes outside the workspace are ignored. Hints only order the solve: the
+    answer, the atlas and its charts do not depend on them."""
+
+    TYPE: ClassVar[str] = "confnav.MapQuery"
+    type: Literal["confnav.MapQuery"] = "confnav.MapQuery"
+    schema_version: Literal[1] = 1
+    stamp_ns: TimeNs = 0
+    routes: Annotated[list[RouteHint], Field(max_length=MAX_ROUTES)] = []
+
+
 MAX_MOVERS = 1024
 
 

@@ -12,6 +12,7 @@ from confnav.schemas.messages import (
     CommandBatch,
     Goal,
     GoalCancel,
+    MapQuery,
     Message,
     Movers,
     Pose,
@@ -48,6 +49,7 @@ MESSAGE_MODELS: tuple[type[Message], ...] = (
     Movers,
     PoseBatch,
     CommandBatch,
+    MapQuery,
 )
 MODELS_BY_TYPE: dict[str, type[Message]] = {m.TYPE: m for m in MESSAGE_MODELS}
 
@@ -70,6 +72,13 @@ MODEL_BY_KEY_KIND: dict[tuple[str, str], type[Message]] = {
     ("sim", "poses"): PoseBatch,
     ("sim", "cmd_vel"): CommandBatch,
     ("health", "*"): ServiceHealth,
+}
+
+#: (key group, key kind) -> the model of a query's optional payload on that key (a query
+#: without payload is valid too; replies are the key's model above).
+QUERY_MODEL_BY_KEY_KIND: dict[tuple[str, str], type[Message]] = {
+    ("ws", "transform"): MapQuery,
+    ("ws", "atlas"): MapQuery,
 }
 
 DEFAULT_MAX_BYTES = 64 * 1024

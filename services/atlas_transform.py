@@ -43,6 +43,7 @@ from collections import OrderedDict, defaultdict
 from collections.abc import Callable, Iterable, Iterator
 from typing import TYPE_CHECKING, Any
 
+import numpy as np
 from confnav.schemas import AtlasCell, AtlasIndex, SolveDiagnostics, TransformSolution, encode
 from confnav.services.bus import Closeable, QueryError, key_matches
 from confnav.services.definitions import (
@@ -55,7 +56,7 @@ from confnav.services.definitions import (
 from confnav.atlas.charts import atlas_reason, solve_atlas
 from confnav.atlas.wire import ATLAS_MARKER, atlas_revision, chart_ws_id, index_fields
 from confnav.conformal.solver import crowding_reason, solve
-from confnav.errors import CrowdingError, SolverError
+from confnav.errors import CrowdingError, SolverError, fmt_point
 
 if TYPE_CHECKING:
     from confnav.services.transform import TransformService
@@ -108,6 +109,66 @@ def job_key(*args: Any) -> str:
     """Content key of a chart job (the arguments of the cell solve: cell workspace JSON,
     ``tol``, accepted error, probe depth): equal jobs give equal charts on every instance."""
     return hashlib.sha256(json.dumps([repr(a) for a in args]).encode()).hexdigest()[:32]
+
+
+#: Route hints kept per workspace (the most recent robots' routes; older ones dropped).
+MAX_HINTS = 256
+
+
+class RouteBook:
+    """The robots' routes the controllers sent with their map queries (``MapQuery``), per
+    workspace id (thread-safe): a robot's newer route replaces its older one. Read by the
+    atlas solves as ``solve_atlas(priority=...)`` (:meth:`ChartShare.solve`)."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._by_ws: dict[str, OrderedDict[str, tuple[complex, complex]]] = {}
+
+    def add(self, ws_id: str, routes: Iterable[Any]) -> int:
+        """Keep the ``RouteHint`` s ``routes`` of ``ws_id``; returns how many were new."""
+        new = 0
+        with self._lock:
+            book = self._by_ws.setdefault(ws_id, OrderedDict())
+            for r in routes:
+                pair = (complex(*r.start), complex(*r.goal))
+                key = r.robot_id or f"{pair[0]}>{pair[1]}"
+                if book.get(key) != pair:
+                    new += 1
+                book[key] = pair
+                book.move_to_end(key)
+            while len(book) > MAX_HINTS:
+                book.popitem(last=False)
+        return new
+
+    def pairs(self, ws_ids: Iterable[str]) -> list[tuple[complex, complex]]:
+        """Every kept (start, goal) pair of the workspaces ``ws_ids``, oldest first."""
+        with self._lock:
+            return [p for w in ws_ids for p in self._by_ws.get(w, {}).values()]
+
+    def forget(self, ws_id: str) -> None:
+        with self._lock:
+            self._by_ws.pop(ws_id, None)
+
+
+def valid_routes(
+    ws: Any, pairs: list[tuple[complex, complex]], seen: dict[tuple[complex, complex], bool]
+) -> list[tuple[complex, complex]]:
+    """The pairs whose start and goal lie in the free space of ``ws`` (vectorized
+    ``Workspace.contains``); each pair not seen before is checked once (``seen``, updated)
+    and an ignored one says so in the log."""
+    todo = [p for p in pairs if p not in seen]
+    if todo:
+        z = np.array([[a, b] for a, b in todo], dtype=np.complex128)
+        inside = np.asarray(ws.contains(z.ravel()), dtype=bool).reshape(z.shape)
+        ok: list[bool] = [bool(v) for v in np.all(inside, axis=1).tolist()]
+        for p, good in zip(todo, ok, strict=True):
+            seen[p] = good
+            if not good:
+                log.info(
+                    "route hint %s -> %s is outside the workspace: ignored",
+                    fmt_point(p[0]), fmt_point(p[1]),
+                )  # fmt: skip
+    return [p for p in pairs if seen[p]]
 
 
 class AtlasAbandoned(Exception):
@@ -301,6 +362,7 @@ def publish_partial(svc: TransformService, h: str, atlas: Any, sent: set[str]) -
                 sent.add(key)
         svc.bus.publish(svc.keys.ws(ws_id, "atlas"), encode(index))
         svc.count("atlas_revisions_published")
+        log.info("workspace %r: atlas revision with %d of %d charts published", ws_id, k, n)
         what = "complete, refining" if k == n else "robots drive on them, the rest follow"
         svc._publish_status(
             ws_id,
@@ -407,8 +469,9 @@ class ChartShare:
         the service); raises :class:`AtlasAbandoned` or what ``solve_atlas`` raises.
 
         Progressive (:attr:`progressive` and the service's ``progressive``, docs/SLAM.md
-        "Progressive atlas"): the
-        charts are published as they come, a partial revision per ``workers`` charts
+        "Progressive atlas"): the cells the robots' routes need (the route hints of the
+        controllers' queries, :class:`RouteBook`, read before every batch) are solved first;
+        the charts are published as they come, a partial revision per ``workers`` charts
         (:func:`publish_partial`), first to the ladder's first tolerance (accepted up to
         ``COARSE_MAX_ERROR``) when the definition asks for a finer one, whose complete
         atlas is a revision too; then the atlas to the definition's ``tol``, returned (the
@@ -419,6 +482,14 @@ class ChartShare:
         if not (self.progressive and getattr(self.svc, "progressive", False)):
             return atlas_result(solve_atlas(ws, defn.tol, workers=workers, executor=ex))
         sent: set[str] = set()
+        checked: dict[tuple[complex, complex], bool] = {}
+
+        def routes() -> list[tuple[complex, complex]]:
+            """The route hints of every workspace waiting for ``h``, those in ``ws``."""
+            svc = self.svc
+            with svc._lock:
+                ids = [w for w, st in svc._ws.items() if st.definition_hash == h]
+            return valid_routes(ws, svc.routes.pairs(ids), checked)
 
         def publish(pa: Any) -> None:
             if not abandoned():
@@ -430,15 +501,16 @@ class ChartShare:
                 # its complete revision is the last partial one
                 solve_atlas(
                     ws, first, workers=workers, executor=ex, on_partial=publish, batch=workers,
-                    accept=max(first, COARSE_MAX_ERROR),
+                    accept=max(first, COARSE_MAX_ERROR), priority=routes,
                 )  # fmt: skip
             except SolverError as exc:  # the final atlas may still solve: go on to it
                 log.info("atlas %s: no coarse revision (%s)", h[:12], exc)
             atlas = solve_atlas(ws, defn.tol, workers=workers, executor=ex)
         else:
             atlas = solve_atlas(
-                ws, defn.tol, workers=workers, executor=ex, on_partial=publish, batch=workers
-            )
+                ws, defn.tol, workers=workers, executor=ex, on_partial=publish, batch=workers,
+                priority=routes,
+            )  # fmt: skip
         return atlas_result(atlas)
 
     def run(

@@ -148,6 +148,14 @@ def add_parser(sub: Any) -> None:
         "local rules gridlock, but open rooms take longer (docs/NAVIGATION.md, 'The roadmap "
         "coordinator in the controller service')",
     )
+    p.add_argument(
+        "--route-hints",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="send the waiting robots' start and goal with map queries, so that a transform "
+        "service solving a progressive atlas solves their charts first (docs/SLAM.md, "
+        "'Progressive atlas'; the default); --no-route-hints: queries without payload",
+    )
     p.set_defaults(func=main)
 
 
@@ -172,6 +180,7 @@ def main(args: argparse.Namespace) -> int:
         )
         svc.atlas_warmup = getattr(args, "atlas_warmup", "background")
         svc.fleet_coordinator = getattr(args, "fleet_coordinator", "local")
+        svc.route_hints = bool(getattr(args, "route_hints", True))
         return svc
 
     return run_until_signal(make, args)

@@ -94,6 +94,8 @@ class GoalsMixin(FootprintMixin, FlatMixin):
                 self._adopt_base(r, base, latest)  # a base revision that landed meanwhile
             self._wake_fetch.set()
         self._check_flat(r)  # a single map flat where it stands: ask for the atlas
+        if current is not None and getattr(current.cmap, "pending", None):
+            self._wake_fetch.set()  # a progressive atlas being solved: send the route hint
         log.info("robot %r: goal %s on %r", rid, goal.goal, goal.ws_id)
 
     def _reject_goal(self, rid: str, message: str) -> None:

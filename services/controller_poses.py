@@ -198,6 +198,7 @@ class PosesMixin(CoordMixin):
                 r.last_stamp = stamp
                 r.last_pose_t = now
                 r.position = (pose.x, pose.y)
+                r.theta = pose.theta
                 r.stale_reported = False
                 if r.goal is None:
                     continue

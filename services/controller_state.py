@@ -131,6 +131,7 @@ class _Robot:
     goal_t: float = 0.0  # monotonic time the goal was set
     seen_t: float = 0.0  # monotonic time of the last pose or goal (idle TTL)
     position: tuple[float, float] | None = None
+    theta: float = 0.0  # heading of the last fresh pose (a unicycle's look-ahead point)
     status_key: tuple[str, str, str | None, str] = ("", "", None, "")
     status_t: float = 0.0
     stale_reported: bool = False
@@ -184,6 +185,16 @@ class ControllerCore(Service):
         # progressive maps (docs/SERVICES.md): the map revisions the transform services said
         # are coarse ones being refined (newest last, at most 4096); revision -> its estimate
         self._refining: OrderedDict[str, None] = OrderedDict()
+        # ws id -> robot id -> (goal, goal's ws) of the route hint last sent for that map
+        # (services/controller_maps.py; the fetch thread's own)
+        self._hinted: dict[str, dict[str, tuple[Any, str]]] = {}
+        self.route_hints = True  # serve controller --no-route-hints: queries without payload
+        # footprint ws id -> its exact shrunk workspace, whose safety grid was built before
+        # its map came (services/controller_maps.py, _prebuild_safety)
+        self._prebuilt: OrderedDict[str, Any] = OrderedDict()
+        # ws id -> the newest AtlasIndex waiting for the atlas fetch running for it (None:
+        # one runs, nothing waits); services/controller_maps.py, _fetch_atlas
+        self._atlas_busy: dict[str, Any] = {}
         self._estimates: dict[str, float] = {}
         # (key, payload) or a list of them (one control step's messages, in order)
         self._out: queue.SimpleQueue[Any] = queue.SimpleQueue()

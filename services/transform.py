@@ -43,6 +43,7 @@ from typing import Any
 from confnav.schemas import (
     DecodeError,
     Goal,
+    MapQuery,
     SolveDiagnostics,
     SpawnRequest,
     TransformSolution,
@@ -54,6 +55,7 @@ from confnav.schemas import (
 from confnav.services.atlas_transform import (
     AtlasStore,
     ChartShare,
+    RouteBook,
     finish_atlas,
     single_or_atlas,
 )
@@ -190,6 +192,7 @@ class TransformService(Service):
         self.solved = threading.Event()  # set each time a solution is published (tests)
         self.atlases = AtlasStore()  # workspaces solved as atlases (index + charts)
         self.charts = ChartShare(self)  # atlas charts solved with the peer instances
+        self.routes = RouteBook()  # the robots' routes sent with map queries (MapQuery)
         self._atlas_threads = cf.ThreadPoolExecutor(4, thread_name_prefix="atlas")
 
     @property
@@ -337,6 +340,7 @@ class TransformService(Service):
         with self._lock:
             st = self._ws.pop(ws_id, None)
         self.atlases.forget(ws_id)
+        self.routes.forget(ws_id)
         path = self._definition_path(ws_id)
         if path is not None:
             path.unlink(missing_ok=True)
@@ -689,6 +693,8 @@ class TransformService(Service):
                 self.count("bad_queries")
                 raise QueryError(f"bad key {keyexpr[:80]!r}: {exc}") from None
             parsed = None
+        if payload and parsed is not None:  # before a derive: its solve reads them
+            self._take_hints(parsed.ident, payload)
         if parsed is not None:
             hit = self.atlases.answer(keyexpr, parsed.ident, parsed.kind)
             if hit is not None:
@@ -717,6 +723,23 @@ class TransformService(Service):
             if st.solution is None:
                 raise QueryError(f"workspace {parsed.ident!r} is being solved; retry")
             return [(keyexpr, st.solution)]
+
+    def _take_hints(self, ws_id: str, payload: bytes) -> None:
+        """Keep the route hints of a query's ``MapQuery`` payload for ``ws_id``'s atlas solve
+        (docs/SLAM.md, "Progressive atlas"); a malformed payload is logged and ignored, the
+        query answered as without it (routes outside the workspace are dropped by the
+        solve, :func:`~confnav.services.atlas_transform.valid_routes`)."""
+        try:
+            q = decode(MapQuery, payload)
+        except DecodeError as exc:
+            self.count("bad_route_hints")
+            log.warning("workspace %r: query payload ignored (%s)", ws_id, exc)
+            return
+        if q.routes:
+            new = self.routes.add(ws_id, q.routes)
+            self.count("route_hints", len(q.routes))
+            if new:
+                log.debug("workspace %r: %d new route hints", ws_id, new)
 
     def state_of(self, ws_id: str) -> str | None:
         with self._lock:

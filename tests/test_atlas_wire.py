@@ -221,3 +221,24 @@ def test_charts_start_cold_and_command_what_warm_charts_command(
     cold.build_on_first_use()  # the old behaviour: the next evaluation builds them
     commands(make_controller(cold, g), np.array(path[:1]))
     assert cold.is_warm(first[0])
+
+
+def test_revisions_rebuilt_from_their_indexes_share_one_workspace_and_safety_grid(
+    wire: tuple[AtlasIndex, list[TransformSolution]],
+) -> None:
+    """Every revision of an atlas rebuilt from its index, and a workspace of the same
+    geometry built elsewhere (the controller's, ahead of the map), is one object, so the
+    safety layer's grid (built once per workspace object) is built once."""
+    from confnav.atlas.wire import shared_workspace
+    from confnav.geometry import Workspace
+    from confnav.navigation import defaults
+    from confnav.navigation.safety import safety_filter
+
+    index, _ = wire
+    ahead = shared_workspace(Workspace.from_dict(dict(index.decomposition)["workspace"]))
+    grid = safety_filter(ahead, hold_time=defaults.HOLD_TIME).grid
+    a, b = rebuilt(wire), rebuilt(wire)
+    assert a is not b and a.atlas.workspace is b.atlas.workspace is ahead
+    assert safety_filter(a.atlas.workspace, hold_time=defaults.HOLD_TIME).grid is grid
+    other = Workspace([(0, 0), (3, 0), (3, 1), (0, 1)])
+    assert shared_workspace(other) is other  # another geometry: its own object

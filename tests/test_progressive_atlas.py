@@ -227,3 +227,30 @@ def test_fine_splits_a_starts_tile_until_its_cell_is_small_and_the_cells_still_c
     far = {c.workspace.content_hash for c in plain.cells if c.polygon.distance(
         plain.cells[big].polygon) > 2 * plain.tile}  # fmt: skip
     assert far <= {c.workspace.content_hash for c in fine.cells}
+
+
+def test_routes_that_arrive_mid_solve_go_into_the_next_batch() -> None:
+    """``priority`` as a callable (the transform service's route hints): a robot's route that
+    arrives after the first batch puts its start cell into the next one, ahead of the cells
+    of the route known from the start (and of the plain largest-first order)."""
+    ws = pillar_corridor()
+    known, late = (START, GOAL), (GOAL, START)  # the late robot starts at the far end
+    routes = [known]
+    revisions: list[PartialAtlas] = []
+
+    def on_partial(pa: PartialAtlas) -> None:
+        revisions.append(pa)
+        if late not in routes:
+            routes.append(late)  # arrives while the first batch's chart was being solved
+
+    atlas = solve_atlas(ws, TOL, workers=1, batch=1, priority=lambda: list(routes),
+                        on_partial=on_partial)  # fmt: skip
+    dec = atlas.decomposition
+    first = [r for r in revisions if r.round == 0]
+    assert len({r.decomposition.keys for r in first}) == 1 and len(first) >= 3
+    mine, theirs = route_order(dec, [known]), route_order(dec, [late])
+    assert first[0].installed == (mine[0],)
+    # without the late route the known route's second cell would come next: a different one
+    assert theirs[0] not in mine[:2]
+    assert set(first[1].installed) - set(first[0].installed) == {theirs[0]}
+    assert revisions[-1].complete

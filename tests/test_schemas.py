@@ -97,6 +97,10 @@ SAMPLES: list[S.Message] = [
         ],
         decomposition={"tile": 1.0},
     ),
+    S.MapQuery(
+        stamp_ns=10,
+        routes=[S.RouteHint(robot_id="r1", start=(0.1, 0.2), goal=(0.5, -0.5))],
+    ),
 ]
 
 
@@ -172,7 +176,8 @@ def test_export_writes_every_schema(tmp_path: Path) -> None:
         assert schema["$id"] == model.TYPE
         # the wire contract is what decode accepts: type and schema_version may be omitted,
         # but when present they must name this model and version
-        assert "type" not in schema["required"] and "schema_version" not in schema["required"]
+        required = schema.get("required", [])  # MapQuery: every field optional
+        assert "type" not in required and "schema_version" not in required
         assert schema["properties"]["type"]["const"] == model.TYPE
         assert schema["properties"]["schema_version"]["const"] == S.SCHEMA_VERSION
         assert schema["additionalProperties"] is False
@@ -230,7 +235,7 @@ def _variants(msg: S.Message) -> list[tuple[str, dict[str, object]]]:
     """The full payload, each field left out in turn, every optional field left out, an unknown
     field, a wrong type tag, a wrong version, a wrong-typed value of each field."""
     full = json.loads(S.encode(msg))
-    required = set(S.json_schema(type(msg))["required"])
+    required = set(S.json_schema(type(msg)).get("required", []))
     out: list[tuple[str, dict[str, object]]] = [("full", full)]
     out.append(("minimal", {k: v for k, v in full.items() if k in required}))
     for k in full:

@@ -11,7 +11,7 @@ import logging
 import threading
 import time
 import warnings
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from concurrent.futures import (
     FIRST_COMPLETED,
     Executor,
@@ -47,6 +47,10 @@ __all__ = [
 ]
 
 log = logging.getLogger(__name__)
+
+Pairs = Sequence[tuple[complex, complex]]
+Routes = Pairs | Callable[[], Pairs]
+"""Robots' (start, goal) pairs, or a callable returning the current ones (:func:`solve_atlas`)."""
 
 #: elongation (``area / (2 r)^2``) above which one map is not attempted (crowding of a
 #: channel ~ exp(-pi L/w): at L/w = 10 about 2e-14, the end of double precision)
@@ -424,7 +428,7 @@ def solve_atlas(
     max_rounds: int = 8,
     progress: Callable[[str], None] | None = None,
     executor: Executor | None = None,
-    priority: Sequence[tuple[complex, complex]] = (),
+    priority: Routes = (),
     on_partial: Callable[[PartialAtlas], None] | None = None,
     split_early: bool = False,
     batch: int | None = None,
@@ -449,12 +453,21 @@ def solve_atlas(
     the charts solved so far. The result is the same atlas. ``split_early``: a failed route
     cell ends its round at once (off: it delayed the first robot on tb3_world).
 
+    ``priority`` may be a callable returning the pairs (robots' routes that arrive while the
+    atlas solves: the transform service's route hints, docs/SLAM.md "Progressive atlas"): it
+    is read at each round's start and, when cells are solved batch by batch (an ``executor``
+    such as the transform service's, with ``on_partial``), before every batch: the cells of
+    routes that came meanwhile go into the next batch. On a process pool chart by chart,
+    every cell of a round is submitted at its start, so new routes count from the next
+    round.
+
     Raises
     ------
     SolverError
         if some cell still fails after ``max_rounds`` rounds (the message names it).
     """
     t0 = time.perf_counter()
+    routes = _routes_of(priority)
     split: set[Tile] = set(decompose_kw.pop("split", ()))
     done: dict[str, ConformalMap] = {}
     records: list[ChartRecord] = []
@@ -467,12 +480,14 @@ def solve_atlas(
         _round, rounds = -1, -1
         while rounds < max_rounds:
             _round, rounds = _round + 1, rounds + 1
+            pairs = routes()
             dec = _decompose_round(
-                ws, split, pool, priority, on_partial, (tol, accept), pending, depths,
+                ws, split, pool, pairs, on_partial, (tol, accept), pending, depths,
                 decompose_kw, _round, t0,
             )  # fmt: skip
             keys = list(dec.keys)
-            todo, first = _round_order(dec, keys, done, priority)
+            pairs = routes()  # routes that came while the decomposition was cut
+            todo, first = _round_order(dec, keys, done, pairs)
             if progress is not None:
                 progress(f"atlas: {len(dec.cells)} cells, solving {len(todo)}")
 
@@ -486,8 +501,10 @@ def solve_atlas(
             if on_partial is not None and len(todo) < len(keys):
                 partial()  # the charts this round reuses
             every = max(1, batch if batch is not None else 4 * max(1, workers))
-            batches = (
-                _batches(todo, len(first), workers, every) if on_partial is not None else [todo]
+            batches: Iterable[list[int]] = (
+                _Batches(dec, todo, len(first), pairs, routes, workers, every)
+                if on_partial is not None
+                else [todo]
             )
             failed: list[Tile] = []
             if on_partial is not None and isinstance(pool, ProcessPoolExecutor):
@@ -679,6 +696,59 @@ def _batches(todo: list[int], n_first: int, workers: int, every: int) -> list[li
     out = [todo[k : k + size] for k in range(0, n_first, size)]
     rest = todo[n_first:]
     return out + [rest[k : k + every] for k in range(0, len(rest), every)]
+
+
+def _routes_of(priority: Routes) -> Callable[[], tuple[tuple[complex, complex], ...]]:
+    """``priority`` as a callable returning the current pairs as a tuple (a fixed sequence
+    returns itself; a callable that raises counts as no routes: hints only steer the order)."""
+    if not callable(priority):
+        fixed = tuple((complex(a), complex(b)) for a, b in priority)
+        return lambda: fixed
+
+    def read() -> tuple[tuple[complex, complex], ...]:
+        try:
+            return tuple((complex(a), complex(b)) for a, b in priority())
+        except Exception:  # the caller's hints must never stop the solve
+            log.warning("atlas: route hints unreadable: ignored", exc_info=True)
+            return ()
+
+    return read
+
+
+class _Batches:
+    """The batches of one round (:func:`_batches`), re-ordered when the routes change: before
+    each batch the current routes are read, and the cells the new routes need
+    (:func:`route_order`) among those still to solve go first, ``workers`` at a time."""
+
+    def __init__(
+        self,
+        dec: Decomposition,
+        todo: list[int],
+        n_first: int,
+        pairs: Pairs,
+        routes: Callable[[], tuple[tuple[complex, complex], ...]],
+        workers: int,
+        every: int,
+    ) -> None:
+        self.dec, self.left, self.n_first = dec, list(todo), n_first
+        self.pairs, self.routes = tuple(pairs), routes
+        self.size, self.every = max(1, workers), max(1, every)
+
+    def __iter__(self) -> Iterator[list[int]]:
+        while self.left:
+            now = self.routes()
+            if now != self.pairs:
+                self.pairs = now
+                left = set(self.left)
+                first = [i for i in route_order(self.dec, now) if i in left] if now else []
+                if first:
+                    log.info("atlas: %d route cells moved to the front", len(first))
+                    self.left = first + [i for i in self.left if i not in set(first)]
+                    self.n_first = len(first)
+            take = min(self.size, self.n_first) if self.n_first > 0 else self.every
+            chunk, self.left = self.left[:take], self.left[take:]
+            self.n_first = max(0, self.n_first - len(chunk))
+            yield chunk
 
 
 def _solve_chunk(

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import hashlib
 import threading
+import weakref
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -142,6 +143,26 @@ def index_fields(atlas: Atlas | PartialAtlas) -> dict[str, Any]:
     }
 
 
+_SHARED: weakref.WeakValueDictionary[str, Workspace] = weakref.WeakValueDictionary()
+_SHARED_LOCK = threading.Lock()
+
+
+def shared_workspace(ws: Workspace) -> Workspace:
+    """The one :class:`Workspace` object of this geometry in the process (by
+    ``content_hash``; kept while something holds it): ``ws`` itself, or an equal workspace
+    registered before. The safety layer's grid is built once per workspace object
+    (:func:`confnav.navigation.safety.safety_filter`), so every revision of an atlas rebuilt
+    from its index (:func:`atlas_from_index`) shares one grid, and a grid built ahead of the
+    first revision (the controller service, from the definition) is the one it uses."""
+    key = ws.content_hash
+    with _SHARED_LOCK:
+        hit = _SHARED.get(key)
+        if hit is not None:
+            return hit
+        _SHARED[key] = ws
+        return ws
+
+
 def atlas_from_index(index: Any, charts: Sequence[Any]) -> Atlas | PartialAtlas:
     """Rebuild an :class:`Atlas` from an ``AtlasIndex`` message and its charts' maps (cell
     order).  Cell polygons and cut edges exactly as published (the plan is then the same).
@@ -152,7 +173,7 @@ def atlas_from_index(index: Any, charts: Sequence[Any]) -> Atlas | PartialAtlas:
             f"atlas {index.ws_id!r}: {len(charts)} charts for {len(index.cells)} cells"
         )
     dec_d = dict(index.decomposition)
-    ws = Workspace.from_dict(dec_d.pop("workspace"))
+    ws = shared_workspace(Workspace.from_dict(dec_d.pop("workspace")))
     cells = []
     # the chart's workspace is the cell polygon without collinear vertices: simplified within
     # 1e-9 of the workspace's diameter (confnav.atlas.decompose._cell_workspace), which moves
