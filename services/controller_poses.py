@@ -223,9 +223,12 @@ class PosesMixin(CoordMixin):
         results = list(zip(members_of, self._control(members_of), strict=True))
         if plans:  # a node controller's arrival is a sub-goal's: the robot keeps moving
             results = _sub_goal_codes(results, plans)
+        results = self._reentered(results)
         # --- fleet hook (services/neighbours.py): keep robots off each other and movers ---
         if self.neighbours is not None:
-            results = self.neighbours.filter_block(results, now, coordinated=plans)
+            results = self.neighbours.filter_block(
+                results, now, coordinated=plans, reentering=self._reentry_notes
+            )
         # --- end fleet hook ---
         for (ctrl, members), res in results:
             if isinstance(res, Exception):
@@ -314,6 +317,33 @@ class PosesMixin(CoordMixin):
                 out[i] = exc
         return [o for o in out if o is not None]
 
+    def _reentered(self, results: list[Any]) -> list[Any]:
+        """``results`` with the robots just outside their law's free space steered back in
+        (:func:`navigation.reenter`; confnav/navigation/reentry.py): their re-entry command
+        and MOVING, before the fleet filter sees them. Robots outside their map are rare, so
+        only the ERROR entries of a group are visited."""
+        self._reentry_notes.clear()  # this step's (steps run one at a time)
+        out: list[Any] = []
+        for (ctrl, members), res in results:
+            if isinstance(res, Exception):
+                out.append(((ctrl, members), res))
+                continue
+            u, codes = res
+            bad = np.flatnonzero(np.asarray(codes) == navigation.ERROR)
+            if bad.size:
+                u, codes = np.array(u, dtype=complex), np.array(codes)
+                for k in bad.tolist():
+                    r, pose = members[k]
+                    uk, ck, note = navigation.reenter(
+                        ctrl, pose.x, pose.y, pose.theta, complex(u[k]), int(codes[k])
+                    )
+                    if note:
+                        u[k], codes[k] = uk, ck
+                        self._reentry_notes[r.robot_id] = note
+                        self.count("reentry_commands")
+            out.append(((ctrl, members), (u, codes)))
+        return out
+
     def _act(self, r: _Robot, pose: PoseLike, d: navigation.Decision, now: float) -> None:
         """Publish what :func:`navigation.decide` made of the control law's output."""
         if r.goal is None or r.last_stamp != (pose.stamp_ns, pose.seq):
@@ -334,6 +364,9 @@ class PosesMixin(CoordMixin):
             if (self._refining or r.base_ws or r.atlas_ws or holding) and d.state == "navigating":
                 note = self._map_note(r)
                 message = "; ".join(m for m in (note, message) if m)
+            reentry = self._reentry_notes.pop(r.robot_id, "")
+            if reentry and d.state == "navigating":
+                message = "; ".join(m for m in (reentry, message) if m)
             if self.neighbours is not None and d.state == "navigating":
                 stuck = self.neighbours.stuck_note(r.robot_id, now)
                 message = "; ".join(m for m in (message, stuck) if m)

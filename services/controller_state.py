@@ -196,6 +196,9 @@ class ControllerCore(Service):
         # one runs, nothing waits); services/controller_maps.py, _fetch_atlas
         self._atlas_busy: dict[str, Any] = {}
         self._estimates: dict[str, float] = {}
+        # robot id -> the status note of its re-entry command this step (controller_poses.py,
+        # _reentered; confnav/navigation/reentry.py)
+        self._reentry_notes: dict[str, str] = {}
         # (key, payload) or a list of them (one control step's messages, in order)
         self._out: queue.SimpleQueue[Any] = queue.SimpleQueue()
         self._held = threading.local()  # .msgs: the messages of the step this thread runs

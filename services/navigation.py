@@ -30,6 +30,7 @@ from confnav.navigation.messages import (
     commands,
     decide,
     precompute,
+    reenter,
 )
 
 log = logging.getLogger(__name__)
@@ -55,6 +56,7 @@ __all__ = [
     "map_ws_id",
     "point_law",
     "precompute",
+    "reenter",
     "shrunk_workspace",
     "stands_in",
 ]

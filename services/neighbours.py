@@ -353,13 +353,17 @@ class Neighbours:
         results: list[Any],
         now: float | None = None,
         coordinated: Container[str] = frozenset(),
+        reentering: Container[str] = frozenset(),
     ) -> list[Any]:
         """The controller's results of one pose block, ``[((ctrl, [(robot, pose), ...]),
         (u, codes) or an exception), ...]``, with every robot's command filtered against the
         others (module docstring).  Robots without rows keep their command bitwise.  The
         ``coordinated`` robots (ids; the fleet coordinator plans their way,
         ``services/controller_coord.py``) get the filter without side passing and the yield
-        rule, as the fleet simulation with a coordinator."""
+        rule, as the fleet simulation with a coordinator. The ``reentering`` robots (ids) steer
+        back into their map's free space (confnav/navigation/reentry.py): filtered against the
+        others only, at most at their re-entry speed, never yielding nor side passing (their
+        wall filter would hold them: it stops a point outside its workspace)."""
         now = time.monotonic() if now is None else now
         entries: list[tuple[int, int, Any, Any, Any]] = []  # (group, k, robot, pose, ctrl)
         for gi, ((ctrl, members), res) in enumerate(results):
@@ -384,7 +388,9 @@ class Neighbours:
         ]
         own = {e[2].robot_id for e in entries}
         for floor, idx in by_floor.items():
-            self._filter_floor(floor, [entries[i] for i in idx], out, own, now, coordinated)
+            self._filter_floor(
+                floor, [entries[i] for i in idx], out, own, now, coordinated, reentering
+            )
         return out
 
     def _filter_floor(
@@ -395,9 +401,12 @@ class Neighbours:
         own: set[str],
         now: float,
         coordinated: Container[str] = frozenset(),
+        reentering: Container[str] = frozenset(),
     ) -> None:
         goals = [e[2].goal for e in entries]
+        reent = np.array([e[2].robot_id in reentering for e in entries], dtype=bool)
         local = np.array([e[2].robot_id not in coordinated for e in entries], dtype=bool)
+        local &= ~reent
         z = np.array([complex(e[3].x, e[3].y) for e in entries])
         th = np.array([e[3].theta for e in entries])
         body = np.array([getattr(e[4], "frame", "world") == "body" for e in entries])
@@ -451,7 +460,7 @@ class Neighbours:
         if self.yielding:
             u_y, yl = self._yield_rule(entries, p, rad, rows, vmax, live, arrived, u0, cb, oz,
                                        orad, ohead)  # fmt: skip
-            yl &= local
+            yl &= local  # (re-entering robots are not local)
         if self.side_passing and local.any():
             blocked = self._blocked([e[2].robot_id for e in entries], p, goals, rows, now)
             u0 = np.where(local, side_pass(u0, rows, blocked=blocked, clearance=cb), u0)
@@ -459,7 +468,11 @@ class Neighbours:
             u0 = np.where(yl, u_y, u0)
         # the wall hold cap of the robot's own law
         cap = np.minimum(vmax, defaults.HOLD_FRACTION * np.maximum(cb, 0.0) / hold)
-        walls = [getattr(getattr(e[4], "controller", e[4]), "safety", None) for e in entries]
+        cap = np.where(reent, np.minimum(vmax, np.abs(u_nom)), cap)
+        walls = [
+            None if re else getattr(getattr(e[4], "controller", e[4]), "safety", None)
+            for e, re in zip(entries, reent.tolist(), strict=True)
+        ]
         u, ok = project_with_walls(u0, p, rows, cap, walls)
         self._count("filtered", int(has.sum()))
         self._count("infeasible", int((~ok & has).sum()))

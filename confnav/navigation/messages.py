@@ -105,6 +105,56 @@ def commands(
     return np.concatenate(us), np.concatenate(codes)
 
 
+def law_workspace(ctrl: Any) -> Any:
+    """The free space a controller's law is defined on (its reference point's), or None: the
+    safety layer's workspace, an atlas's whole workspace, or the map's; through a unicycle's
+    look-ahead law to the point law it wraps."""
+    inner = getattr(ctrl, "controller", ctrl)
+    for path in (("safety", "workspace"), ("nav", "atlas", "workspace"), ("cmap", "workspace")):
+        obj: Any = inner
+        for name in path:
+            obj = getattr(obj, name, None)
+            if obj is None:
+                break
+        if obj is not None and hasattr(obj, "clearance1") and hasattr(obj, "polygon"):
+            return obj
+    return None
+
+
+def reenter(
+    ctrl: Any, x: float, y: float, theta: float, u: complex, code: int
+) -> tuple[complex, int, str]:
+    """``(u, code, note)`` of one robot's law output, with a reference point just outside the
+    law's free space (ERROR with no other stop reason) steered back in
+    (:mod:`confnav.navigation.reentry`): the re-entry command (a unicycle's twist), MOVING and
+    a status note; any other output unchanged with an empty note. The controller service
+    applies it before its fleet filter and ``replay --check`` after :func:`command`, so both
+    compute the same command."""
+    if code != ERROR or getattr(ctrl, "stop_reason", None):
+        return u, code, ""
+    from confnav.navigation.reentry import reentry_velocity
+
+    ws = law_workspace(ctrl)
+    if ws is None:
+        return u, code, ""
+    body = getattr(ctrl, "frame", "world") == "body"
+    d = float(getattr(ctrl, "d", 0.0)) if body else 0.0
+    p = complex(x, y) + d * complex(np.cos(theta), np.sin(theta))
+    got = reentry_velocity(ws, p)
+    if got is None:
+        return u, code, ""
+    up, depth = got
+    note = f"re-entering the map's free space ({depth:.3g} m outside it)"
+    if not body:
+        return up, MOVING, note
+    from confnav.navigation.unicycle import twist_from_velocity
+
+    v, omega = twist_from_velocity(
+        up, theta, d, getattr(ctrl, "v_max", np.inf), getattr(ctrl, "omega_max", np.inf)
+    )
+    return complex(float(v), float(omega)), MOVING, note
+
+
 def command(ctrl: ControllerLike, x: float, y: float, theta: float = 0.0) -> tuple[complex, int]:
     """(u, status) for one robot at (x, y) heading ``theta`` (read by body-frame controllers
     only: :func:`commands`, as the controller service calls them)."""

@@ -150,6 +150,7 @@ def decide(
     if ctrl is None:
         return 0j, "no controller"
     u, code = navigation.command(ctrl, x, y, theta)
+    u, code, _ = navigation.reenter(ctrl, x, y, theta, u, code)  # as the service does
     d = navigation.decide(ctrl, u, code)
     return d.u, d.message or d.reason
 
