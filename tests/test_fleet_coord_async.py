@@ -19,6 +19,7 @@ from confnav.navigation.fleet_coord import (
     ROAD,
     FleetCoordinator,
     RoadmapCoordinator,
+    pibt_step,
 )
 from confnav.navigation.fleet_sim import simulate_fleet
 
@@ -216,3 +217,98 @@ def test_a_robot_held_off_its_node_goes_back_where_it_came_from(door_map: Any) -
     # robot 1 may go back to w (free); robot 0's node u stays robot 1's: robot 0 stays put
     assert int(c2.nxt[0]) == v and int(c2.origin[0]) == u
     assert len({int(c2.nxt[0]), int(c2.nxt[1])}) == 2
+
+
+# a single-lane passage (0.7 m: 0.3 m for the centres of 0.2 m robots) between two rooms, with
+# a side pocket above its middle, large enough to hold a cycle of roadmap nodes
+LANE = Workspace(
+    [
+        (0, 0), (2, 0), (2, 0.65), (5.5, 0.65), (5.5, 0), (7.5, 0), (7.5, 2), (5.5, 2),
+        (5.5, 1.35), (4.4, 1.35), (4.4, 3.0), (2.8, 3.0), (2.8, 1.35), (2, 1.35), (2, 2),
+        (0, 2),
+    ]
+)  # fmt: skip
+
+
+def _teleport(c: RoadmapCoordinator, p: np.ndarray, goals: np.ndarray, done: np.ndarray,
+              t: float) -> None:  # fmt: skip
+    """One step of robots that are where their plan sends them at once: on the roadmap at
+    their next node, on the goal leg at their goal (then reached), parked at their goal."""
+    c.update(t, p, goals, done)
+    for i in range(c.n):
+        m = int(c.mode[i])
+        if m == GOAL_LEG:
+            p[i] = goals[i]
+            c.reached(i)
+            done[i] = True
+        elif m == PARKED:
+            p[i] = goals[i]
+        elif m == RETURN_LEG:
+            p[i] = c.roadmap.nodes[int(c.at[i])]
+        else:
+            p[i] = c.roadmap.nodes[int(c.nxt[i])]
+
+
+def test_a_robot_pushed_in_a_lane_steps_into_the_pocket_and_comes_back() -> None:
+    """Robot b is parked at its goal in a single-lane passage; robot a crosses the passage.
+    b is pushed off its goal ahead of a, then into the side pocket (off a's shortest path,
+    not along the lane ahead of a to its far end), and once a has passed, b goes back to its
+    goal and parks there.  Before: b was pushed along the lane ahead of a and stayed where it
+    was pushed."""
+    ws = inflate(LANE, R)
+    c = RoadmapCoordinator.build(None, 0, R, node_law="line", workspace=ws)
+    nodes = c.roadmap.nodes
+    pocket = np.flatnonzero(nodes.imag > 1.5)  # the pocket's nodes (the lane's are below)
+    far_room = np.flatnonzero(nodes.real > 5.3)
+    assert pocket.size >= 3 and far_room.size
+    goals = np.array([0.8 + 1.0j, 2.25 + 1.0j])  # a: first in its room; b: in the lane
+    p = np.array([0.8 + 0.6j, 2.25 + 1.0j])
+    for z in p:
+        c.add(complex(z))
+    done = np.array([False, False])
+    t = 0.0
+    for _ in range(100):  # b reaches its goal and parks; a waits in its room
+        _teleport(c, p, goals, done, t)
+        t += 0.2
+    assert int(c.mode[1]) == PARKED and done[1]
+    home = int(c.goal_node[1])
+    goals[0], done[0] = 7.0 + 1.0j, False  # a crosses the lane
+    b_nodes: list[int] = []
+    for _ in range(400):
+        _teleport(c, p, goals, done, t)
+        t += 0.2
+        b_nodes.append(int(c.nxt[1]))
+        if done.all() and int(c.mode[1]) == PARKED:
+            break
+    assert done[0] and abs(p[0] - goals[0]) < 1e-12  # a crossed
+    assert any(v != home for v in b_nodes)  # b was pushed off its goal ...
+    assert set(b_nodes) & set(pocket.tolist())  # ... into the pocket
+    assert not set(b_nodes) & set(far_room.tolist())  # not to the lane's far end
+    # it steps aside at the pocket's near corner (x 3.1-3.2 m), not pushed on along the lane
+    # ahead of a (before: on to x 4.0 under the pocket, then into its far corner)
+    assert max(float(nodes[v].real) for v in b_nodes) < 3.5
+    assert int(c.mode[1]) == PARKED and int(c.at[1]) == home and p[1] == goals[1]  # back
+
+
+def test_pibt_a_meek_robot_pushes_no_one_and_a_pushed_one_steps_aside() -> None:
+    """On the lane's roadmap: a robot pushed by another takes the node off the pusher's
+    shortest path (the pocket) before the one ahead of it on the lane; a meek robot (done,
+    going back) with the same wish does not push: it stays."""
+    c = RoadmapCoordinator.build(None, 0, R, node_law="line", workspace=inflate(LANE, R))
+    rm = c.roadmap
+    nodes = rm.nodes
+    # three lane nodes under the pocket's near corner: u (left), v (the corner), the pocket
+    # node above v and the lane node after v (both neighbours of v)
+    v = int(np.flatnonzero(np.isclose(nodes, 3.2 + 1.1j, atol=0.06))[0])
+    u = int(np.flatnonzero(np.isclose(nodes, 2.25 + 1.0j, atol=0.06))[0])
+    far = int(np.argmax(nodes.real))
+    nb = rm.neighbours[v].tolist()
+    up = max((w for w in nb if w != u), key=lambda w: nodes[w].imag)
+    ahead = min((w for w in nb if w not in (u, up)), key=lambda w: rm.dist[w, far])
+    assert rm.dist[ahead, far] < rm.dist[up, far]  # the lane node is on the way, the pocket not
+    # robot 0 on u heads for the far room; robot 1 (done: its goal is its node) stands on v
+    out = pibt_step(rm, [u, v], [far, v], [1.0, 0.0])
+    assert out == [v, up]  # pushed: into the pocket, not ahead along the lane
+    # the same with robot 0 meek: it does not push robot 1, so it stays on u
+    out = pibt_step(rm, [u, v], [far, v], [1.0, 0.0], meek=[True, False])
+    assert out == [u, v]
