@@ -19,6 +19,7 @@ from confnav.navigation.fleet_coord import (
     ROAD,
     FleetCoordinator,
     RoadmapCoordinator,
+    choose_coordinator,
     pibt_step,
 )
 from confnav.navigation.fleet_sim import simulate_fleet
@@ -150,8 +151,9 @@ def test_describe_says_what_a_robot_does(door_map: Any) -> None:
 def test_the_service_shell_coordinates_two_robots_never_one(door_map: Any, mem_net: Any) -> None:
     """``CoordMixin._coord_plans`` (services/controller_coord.py) on the controller service:
     a robot alone gets no plan (its own law, bitwise as before); with a second robot on the
-    same map the roadmap is built off the pose path and both get plans; with
-    ``--fleet-coordinator local`` (the default) never."""
+    same map the roadmap is built off the pose path and both get plans (``roadmap``, and the
+    default ``auto``: the 0.9 m door is a single-lane passage); with ``--fleet-coordinator
+    local`` never; ``auto`` leaves an open room to the local rules."""
     import time as _time
 
     from confnav.schemas import Goal, Pose
@@ -161,8 +163,7 @@ def test_the_service_shell_coordinates_two_robots_never_one(door_map: Any, mem_n
     from confnav.services.keys import Keys
 
     ctl = ControllerService(mem_net.bus("ctl"), Keys())
-    assert ctl.fleet_coordinator == "local"  # the default
-    ctl.fleet_coordinator = "roadmap"
+    assert ctl.fleet_coordinator == "auto"  # the default
     rows = []
     for i, rid in enumerate("ab"):
         g = Goal(robot_id=rid, ws_id="door", goal=(GOALS[i].real, GOALS[i].imag), robot_radius=R)
@@ -180,8 +181,32 @@ def test_the_service_shell_coordinates_two_robots_never_one(door_map: Any, mem_n
     assert set(plans) == {"a", "b"} and all(p.coordinated for p in plans.values())
     assert plans["a"].note.startswith("joining the roadmap at node")
     assert ctl._coord_plans(rows[:1], 3.0) == {}  # b gone for more than the ttl: a alone
-    local = ControllerService(mem_net.bus("ctl2"), Keys())
-    assert local._coord_plans(rows, 0.0) == {}
+    assert ctl.counters.get("fleet_auto_roadmap") == 1  # decided once, for the map
+    for mode in ("roadmap", "local"):
+        other = ControllerService(mem_net.bus(f"ctl-{mode}"), Keys())
+        other.fleet_coordinator = mode
+        other._coord_plans(rows, 0.0)
+        wait = _time.monotonic() + 30
+        while mode == "roadmap" and not other.counters.get("roadmaps_built"):
+            assert _time.monotonic() < wait
+            _time.sleep(0.05)
+        assert bool(other._coord_plans(rows, 0.1)) == (mode == "roadmap")
+        assert not any(k.startswith("fleet_auto") for k in other.counters)
+    # an open room (the door's room without its wall): auto keeps the local rules
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        room_map = solve(inflate(Workspace([(0, 0), (6, 0), (6, 3), (0, 3)]), R), 1e-6)
+    room = ControllerService(mem_net.bus("ctl-room"), Keys())
+    rows = [(r, pose, navigation.point_law(room_map, r.goal)) for r, pose, _ in rows]  # type: ignore[arg-type]
+    for r, _, law in rows:
+        r.ctrl = law
+    room._coord_plans(rows, 0.0)
+    wait = _time.monotonic() + 30
+    while not room.counters.get("fleet_auto_local"):
+        assert _time.monotonic() < wait
+        _time.sleep(0.05)
+    assert room._coord_plans(rows, 0.1) == {} and room.counters["fleet_auto_local"] == 1
+    assert not room.counters.get("roadmaps_built")
 
 
 def test_a_robot_held_off_its_node_goes_back_where_it_came_from(door_map: Any) -> None:
@@ -312,3 +337,34 @@ def test_pibt_a_meek_robot_pushes_no_one_and_a_pushed_one_steps_aside() -> None:
     # the same with robot 0 meek: it does not push robot 1, so it stays on u
     out = pibt_step(rm, [u, v], [far, v], [1.0, 0.0], meek=[True, False])
     assert out == [u, v]
+
+
+def test_auto_chooses_the_roadmap_where_a_passage_is_single_lane() -> None:
+    """``auto`` (:func:`choose_coordinator`): the bench's open room (the swaps) and its 1.2 m
+    door (two robots of 0.2 m pass in it) keep the local rules; the lane (0.7 m) and the
+    0.9 m door (the local rules freeze there: the door test above) get the roadmap.  The
+    narrowest width is the centres' free space across the passage: the passage less 2 r."""
+    room = Workspace(  # bench/bench_fleet.py's ROOM and DOOR
+        [(0, 0), (10, 0), (10, 8), (0, 8)],
+        [
+            [(3, 2.5), (4.2, 2.5), (4.2, 3.7), (3, 3.7)],
+            [(6, 4.5), (7.2, 4.5), (7.2, 5.7), (6, 5.7)],
+        ],
+    )
+    door12 = Workspace(
+        [
+            (0, 0), (4.9, 0), (4.9, 3.4), (5.1, 3.4), (5.1, 0), (10, 0), (10, 8), (5.1, 8),
+            (5.1, 4.6), (4.9, 4.6), (4.9, 8), (0, 8),
+        ]
+    )  # fmt: skip
+    got = {}
+    for name, ws in (("room", room), ("door 1.2", door12), ("lane", LANE), ("door 0.9", DOOR)):
+        c = RoadmapCoordinator.build(None, 0, R, node_law="line", workspace=inflate(ws, R))
+        got[name] = choose_coordinator(c, R)
+    assert {k: v[0] for k, v in got.items()} == {
+        "room": "local", "door 1.2": "local", "lane": "roadmap", "door 0.9": "roadmap"
+    }  # fmt: skip
+    assert got["door 1.2"][1] == pytest.approx(1.2 - 2 * R, abs=0.01)
+    assert got["door 0.9"][1] == pytest.approx(0.9 - 2 * R, abs=0.01)
+    assert got["lane"][1] == pytest.approx(0.7 - 2 * R, abs=0.01)
+    assert abs(got["door 0.9"][2] - (3.0 + 1.5j)) < 0.1  # found in the door

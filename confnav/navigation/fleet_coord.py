@@ -75,6 +75,7 @@ from confnav.navigation.navfn import CircleDomain, KoditschekRimon
 from confnav.navigation.roadmap import (
     Roadmap,
     build_roadmap,
+    passage_widths,
     segment_clearance,
     segment_segment_distance,
 )
@@ -84,6 +85,7 @@ from confnav.types import CArray
 __all__ = [
     "ALONE",
     "GOAL_LEG",
+    "LANE_FACTOR",
     "PARKED",
     "RETURN_LEG",
     "ROAD",
@@ -91,6 +93,7 @@ __all__ = [
     "LineLaw",
     "Plan",
     "RoadmapCoordinator",
+    "choose_coordinator",
     "pibt_step",
 ]
 
@@ -110,6 +113,7 @@ def pibt_step(
     closed_edges: set[tuple[int, int]] | frozenset[tuple[int, int]] = frozenset(),
     blocked: set[int] | frozenset[int] = frozenset(),
     meek: Sequence[bool] | None = None,
+    aside: Sequence[bool] | None = None,
     rng: np.random.Generator | None = None,
 ) -> list[int]:
     """One PIBT step (Okumura et al. 2022, Algorithm 1): the node of every robot at the next
@@ -124,7 +128,8 @@ def pibt_step(
     (directly or down a chain started by robot ``h``) tries the candidates off every
     shortest path of ``h`` to its goal first (``dist[at_h, v] + dist[v, goal_h] >
     dist[at_h, goal_h]``: a pocket or a branch rather than the next node of the lane ahead of
-    ``h``), then the others, each group nearest its own goal first; and a chain started by a
+    ``h``), then the others, each group nearest its own goal first (only the ``aside``
+    robots, default all; the others nearest their goal first); and a chain started by a
     ``meek`` robot (a robot done with its goals, going back to it) pushes no one: it moves
     only to nodes that are free or already left."""
     n = len(at)
@@ -133,6 +138,7 @@ def pibt_step(
         raise NavigationError("pibt_step: two robots on one node")
     fix = [False] * n if fixed is None else [bool(f) for f in fixed]
     mk = [False] * n if meek is None else [bool(f) for f in meek]
+    asd = [True] * n if aside is None else [bool(f) for f in aside]
     occupant: dict[int, int] = {v: i for i, v in enumerate(cur)}
     nxt: list[int | None] = [None] * n
     taken: dict[int, int] = {}
@@ -155,7 +161,7 @@ def pibt_step(
         if u not in closed_nodes:
             cands.append(u)
         g = goal[i]
-        if parent is None:
+        if parent is None or not asd[i]:
             cands.sort(key=lambda v: (dist[v, g], tie[v]))
         else:  # pushed: off the chain's starter's shortest paths first (step aside)
             a0, g0 = cur[root], goal[root]
@@ -268,6 +274,7 @@ class RoadmapCoordinator:
     eager: bool = True
     min_tick: float = 0.1
     late_limit: float = 3.0
+    aside: str = "all"  # pushed robots that step aside first (pibt_step): "all" or "done"
     at: NDArray[np.intp] = field(init=False)
     nxt: NDArray[np.intp] = field(init=False)
     mode: NDArray[np.int8] = field(init=False)
@@ -649,6 +656,7 @@ class RoadmapCoordinator:
             closed_edges=closed_edges,
             blocked=blocked,
             meek=done.tolist(),
+            aside=None if self.aside == "all" else done.tolist(),
             rng=self._rng,
         )
         self.origin = np.where(road & ~late, self.at, self.origin)
@@ -694,6 +702,38 @@ class RoadmapCoordinator:
             (int(u), int(v)) for u, v in rm.edges[de < self.gap].tolist() if s not in (u, v)
         )
         return _Excursion(nodes=nodes, edges=edges, a=a, b=b)
+
+
+#: ``auto``'s threshold: a passage is single-lane when the free space of the robots' centres
+#: across it (the workspace shrunk by the filter radius ``rho``) is narrower than
+#: ``LANE_FACTOR rho``, i.e. the passage itself narrower than ``(LANE_FACTOR + 2) rho``: two
+#: disks side by side (``4 rho``) and half a disk of room for side passing.  Measured: under
+#: the local rules 4 robots of radius 0.2 m do not get through a 0.9 m door (``4.5 rho``,
+#: tests/test_fleet_coord_async.py), 8 get through a 1.2 m one (``6 rho``) in 1.45 times the
+#: slowest lone run (bench/results/fleet_roadmap_scenarios.json)
+LANE_FACTOR = 3.0
+
+
+def choose_coordinator(
+    coord: RoadmapCoordinator, rho: float, factor: float = LANE_FACTOR
+) -> tuple[str, float, complex]:
+    """``auto``: ``"roadmap"`` when the free space (of centres, for filter radius ``rho``)
+    that ``coord``'s roadmap covers has a single-lane passage -- an edge of its main component
+    across which the free space is narrower than ``factor rho`` (:data:`LANE_FACTOR`;
+    :func:`~confnav.navigation.roadmap.passage_widths`) -- else ``"local"``; with the
+    narrowest width across an edge (m; ``inf``: no edge) and where (the edge's midpoint)."""
+    rm = coord.roadmap
+    main = np.zeros(rm.size, dtype=bool)
+    main[coord.main] = True
+    keep = main[rm.edges[:, 0]] & main[rm.edges[:, 1]] if len(rm.edges) else np.zeros(0, bool)
+    if not keep.any():
+        return "local", float("inf"), complex(np.nan, np.nan)
+    e = rm.edges[keep]
+    sub = Roadmap(rm.nodes, e, rm.neighbours, rm.dist, rm.spacing, rm.min_clearance)
+    w = passage_widths(coord._workspace(), sub)
+    k = int(np.argmin(w))
+    where = complex(0.5 * (rm.nodes[e[k, 0]] + rm.nodes[e[k, 1]]))
+    return ("roadmap" if w[k] < factor * rho else "local"), float(w[k]), where
 
 
 @dataclass(frozen=True)
