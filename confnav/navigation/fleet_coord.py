@@ -274,7 +274,10 @@ class RoadmapCoordinator:
     eager: bool = True
     min_tick: float = 0.1
     late_limit: float = 3.0
-    aside: str = "all"  # pushed robots that step aside first (pibt_step): "all" or "done"
+    #: which pushed robots step aside first (:func:`pibt_step`'s ``aside``): ``"done"``
+    #: (robots done with their goals: parked robots leave a lane into a pocket) or ``"all"``
+    #: (every pushed robot: measured slower, bench/results/fleet_node_laws_aside.json)
+    aside: str = "done"
     at: NDArray[np.intp] = field(init=False)
     nxt: NDArray[np.intp] = field(init=False)
     mode: NDArray[np.int8] = field(init=False)
