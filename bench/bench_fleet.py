@@ -230,6 +230,7 @@ def warehouse(
     traffic: bool = False,
     roadmap: bool = False,
     node_law: str = "kr",
+    aside: str | None = None,
 ) -> dict[str, Any]:
     """20 unicycles, ``rounds`` random goals each in the README's warehouse, a new goal issued
     on arrival; a robot done with its goals parks at its last one (and yields).  ``traffic``:
@@ -260,6 +261,8 @@ def warehouse(
         from confnav.navigation.fleet_coord import RoadmapCoordinator
 
         coord = RoadmapCoordinator.build(cmap, n, rd + d, node_law=node_law)
+        if aside is not None:  # which pushed robots step aside first (pibt_step)
+            coord.aside = aside
     t0 = time.perf_counter()
     res = simulate_fleet(
         [c[0] for c in ctrls],
@@ -711,16 +714,11 @@ def node_laws_main(args: argparse.Namespace) -> None:
     ``--aside``: the straight node laws with each of the coordinator's ``aside`` rules."""
     stamp = run_start()
     if args.aside:
-        from confnav.navigation.fleet_coord import RoadmapCoordinator
-
-        rows = {}
-        default = RoadmapCoordinator.aside
-        try:
-            for rule in args.aside:
-                RoadmapCoordinator.aside = rule  # the class default the coordinator takes
-                rows[f"line, aside {rule}"] = warehouse(args.rounds, roadmap=True, node_law="line")
-        finally:
-            RoadmapCoordinator.aside = default
+        rows = {
+            f"line, aside {rule}": warehouse(args.rounds, roadmap=True, node_law="line", aside=rule)
+            | {"aside": rule}
+            for rule in args.aside
+        }
         out = RESULTS / "fleet_node_laws_aside.json"
     else:
         rows = {law: warehouse(args.rounds, roadmap=True, node_law=law) for law in ("kr", "line")}
