@@ -231,6 +231,7 @@ def warehouse(
     roadmap: bool = False,
     node_law: str = "kr",
     aside: str | None = None,
+    come_back: str | None = None,
 ) -> dict[str, Any]:
     """20 unicycles, ``rounds`` random goals each in the README's warehouse, a new goal issued
     on arrival; a robot done with its goals parks at its last one (and yields).  ``traffic``:
@@ -263,6 +264,8 @@ def warehouse(
         coord = RoadmapCoordinator.build(cmap, n, rd + d, node_law=node_law)
         if aside is not None:  # which pushed robots step aside first (pibt_step)
             coord.aside = aside
+        if come_back is not None:  # when a done robot pushed off its goal goes back
+            coord.come_back = come_back
     t0 = time.perf_counter()
     res = simulate_fleet(
         [c[0] for c in ctrls],
@@ -603,6 +606,14 @@ def main() -> None:
         help="--node-laws: the straight node laws with each of these pushed-robot rules "
         "(RoadmapCoordinator.aside); writes results/fleet_node_laws_aside.json",
     )
+    ap.add_argument(
+        "--come-back",
+        action="append",
+        choices=("idle", "clear"),
+        help="--node-laws: the straight node laws, seeds 0 and 1, with each of these rules for "
+        "when a pushed done robot goes back (RoadmapCoordinator.come_back); writes "
+        "results/fleet_node_laws_comeback.json",
+    )
     ap.add_argument("--time-scale", type=float, default=2.0, help="services: simulator speed")
     ap.add_argument("--t-max", type=float, default=WAREHOUSE_T_MAX, help="services: sim s")
     args = ap.parse_args()
@@ -713,7 +724,17 @@ def node_laws_main(args: argparse.Namespace) -> None:
     """``--node-laws``: the warehouse rounds with the coordinator's two node laws; with
     ``--aside``: the straight node laws with each of the coordinator's ``aside`` rules."""
     stamp = run_start()
-    if args.aside:
+    if args.come_back:
+        rows = {
+            f"line, come back {rule}, seed {seed}": warehouse(
+                args.rounds, seed=seed, roadmap=True, node_law="line", come_back=rule
+            )
+            | {"come_back": rule, "seed": seed}
+            for rule in args.come_back
+            for seed in (0, 1)
+        }
+        out = RESULTS / "fleet_node_laws_comeback.json"
+    elif args.aside:
         rows = {
             f"line, aside {rule}": warehouse(args.rounds, roadmap=True, node_law="line", aside=rule)
             | {"aside": rule}

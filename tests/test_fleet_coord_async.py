@@ -277,7 +277,8 @@ def _teleport(c: RoadmapCoordinator, p: np.ndarray, goals: np.ndarray, done: np.
             p[i] = c.roadmap.nodes[int(c.nxt[i])]
 
 
-def test_a_robot_pushed_in_a_lane_steps_into_the_pocket_and_comes_back() -> None:
+@pytest.mark.parametrize("come_back", ["idle", "clear"])
+def test_a_robot_pushed_in_a_lane_steps_into_the_pocket_and_comes_back(come_back: str) -> None:
     """Robot b is parked at its goal in a single-lane passage; robot a crosses the passage.
     b is pushed off its goal ahead of a, then into the side pocket (off a's shortest path,
     not along the lane ahead of a to its far end), and once a has passed, b goes back to its
@@ -285,6 +286,7 @@ def test_a_robot_pushed_in_a_lane_steps_into_the_pocket_and_comes_back() -> None
     was pushed."""
     ws = inflate(LANE, R)
     c = RoadmapCoordinator.build(None, 0, R, node_law="line", workspace=ws)
+    c.come_back = come_back  # once a is done too (default), or once a has passed b's goal
     nodes = c.roadmap.nodes
     pocket = np.flatnonzero(nodes.imag > 1.5)  # the pocket's nodes (the lane's are below)
     far_room = np.flatnonzero(nodes.real > 5.3)

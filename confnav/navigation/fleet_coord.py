@@ -278,6 +278,11 @@ class RoadmapCoordinator:
     #: (robots done with their goals: parked robots leave a lane into a pocket) or ``"all"``
     #: (every pushed robot: measured slower, bench/results/fleet_node_laws_aside.json)
     aside: str = "done"
+    #: when a done robot pushed off its goal goes back (:meth:`_may_return`): ``"idle"`` (no
+    #: robot of the fleet has a goal left) or ``"clear"`` (no active robot needs its goal's
+    #: nodes: sooner, but measured to cost arrivals in the warehouse,
+    #: bench/results/fleet_node_laws_comeback.json)
+    come_back: str = "idle"
     at: NDArray[np.intp] = field(init=False)
     nxt: NDArray[np.intp] = field(init=False)
     mode: NDArray[np.int8] = field(init=False)
@@ -562,10 +567,14 @@ class RoadmapCoordinator:
 
     def _may_return(self, done: NDArray[np.bool_], active: NDArray[np.bool_]) -> NDArray[np.bool_]:
         """Robots done with their goals, on the roadmap (pushed off their goal or parked
-        there), whose goal's nodes no active robot needs (:meth:`_in_the_way`): they go back
-        to their goal, as meek robots (:func:`pibt_step`: pushing no one)."""
+        there), that go back to their goal, as meek robots (:func:`pibt_step`: pushing no
+        one): with ``come_back = "idle"`` (the default) all of them once every robot is
+        done; with ``"clear"`` those whose goal's nodes no active robot needs
+        (:meth:`_in_the_way`)."""
         out = np.zeros(self.n, dtype=bool)
         cand = done & (self.mode == ROAD) & ~np.isnan(self.goal_pt.real)
+        if self.come_back == "idle":  # only once no robot of the fleet has a goal left
+            return cand if done.all() else out
         for i in np.flatnonzero(cand).tolist():
             out[i] = not self._in_the_way(self._goal_nodes(i), active)
         return out
