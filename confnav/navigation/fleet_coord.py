@@ -17,9 +17,10 @@ the robot waiting longest leads (ties by a fixed random order).  A robot done wi
 is an agent with its current node as goal and priority zero: robots that need its node push
 it aside -- off the pusher's shortest path first (a pocket or a branch of a single-lane
 passage rather than the lane ahead of the pusher, :func:`pibt_step`) -- and it goes back to
-its goal once no active robot's shortest path runs through its goal's nodes and none is
-within ``3 gap`` of them; going back it is *meek*: it pushes no robot (two done robots
-pushing each other back and forth along a lane is what this rules out).
+its goal once every robot is done (``come_back = "clear"``: once no active robot's shortest
+path runs through its goal's nodes and none is within ``3 gap`` of them); going back it is
+*meek*: it pushes no robot (two done robots pushing each other back and forth along a lane
+is what this rules out).
 
 The nodes are the sub-goals: a robot drives to its next node with a conformal controller of
 that node (Koditschek-Rimon on the same map, :class:`~confnav.navigation.control.Controller`),
