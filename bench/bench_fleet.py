@@ -94,15 +94,25 @@ def run(
     goals: np.ndarray,
     movers: list[Mover] = (),
     roadmap: bool = False,
+    auto: bool = False,
 ) -> dict[str, Any]:
     """One scenario (``roadmap``: with the PIBT coordinator, as ``--fleet-coordinator
-    roadmap`` in the controller service)."""
+    roadmap`` in the controller service; ``auto``: the roadmap if
+    :func:`~confnav.navigation.fleet_coord.choose_coordinator` chooses it, as
+    ``--fleet-coordinator auto``)."""
     ctrls = [Controller(cmap, g) for g in goals]
     coord = None
-    if roadmap:
-        from confnav.navigation.fleet_coord import RoadmapCoordinator
+    choice: dict[str, Any] = {}
+    if roadmap or auto:
+        from confnav.navigation.fleet_coord import RoadmapCoordinator, choose_coordinator
 
         coord = RoadmapCoordinator.build(cmap, len(ctrls), R)
+        if auto:
+            pick, width, where = choose_coordinator(coord, R)
+            choice = {"auto_choice": pick, "narrowest_passage_m": width,
+                      "narrowest_at": [where.real, where.imag]}  # fmt: skip
+            if pick == "local":
+                coord = None
     t0 = time.perf_counter()
     res = simulate_fleet(ctrls, starts, ws, radius=R, movers=movers, t_max=T_MAX, coordinator=coord)
     wall = time.perf_counter() - t0
@@ -132,6 +142,7 @@ def run(
         "wall_s": wall,
         "ghost_robot_contacts": ghost.robot_contacts,
         "ghost_mover_contacts": ghost.mover_contacts,
+        **choice,
     }
 
 
@@ -219,6 +230,8 @@ def warehouse(
     traffic: bool = False,
     roadmap: bool = False,
     node_law: str = "kr",
+    aside: str | None = None,
+    come_back: str | None = None,
 ) -> dict[str, Any]:
     """20 unicycles, ``rounds`` random goals each in the README's warehouse, a new goal issued
     on arrival; a robot done with its goals parks at its last one (and yields).  ``traffic``:
@@ -249,6 +262,10 @@ def warehouse(
         from confnav.navigation.fleet_coord import RoadmapCoordinator
 
         coord = RoadmapCoordinator.build(cmap, n, rd + d, node_law=node_law)
+        if aside is not None:  # which pushed robots step aside first (pibt_step)
+            coord.aside = aside
+        if come_back is not None:  # when a done robot pushed off its goal goes back
+            coord.come_back = come_back
     t0 = time.perf_counter()
     res = simulate_fleet(
         [c[0] for c in ctrls],
@@ -385,8 +402,9 @@ def services_warehouse(
         time.sleep(1.0)
         procs["transform"] = spawn("serve", "transform", *common, "--cache-dir",
                                    str(tmp / "cache"), log=tmp / "transform.log")  # fmt: skip
-        procs["controller"] = spawn("serve", "controller", *common, "--fleet-coordinator",
-                                    coordinator, log=tmp / "controller.log")  # fmt: skip
+        procs["controller"] = spawn("-v", "serve", "controller", *common,  # -v: auto's choice
+                                    "--fleet-coordinator", coordinator,
+                                    log=tmp / "controller.log")  # fmt: skip
         procs["simulator"] = spawn("serve", "simulator", *common, "--rate", "20",
                                    "--time-scale", str(time_scale), "--pose-batch",
                                    log=tmp / "simulator.log")  # fmt: skip
@@ -480,6 +498,8 @@ def services_warehouse(
                 p.kill()
     reached = sum(k_of)
     arrivals = [t for ts in reached_t for t in ts]
+    log_lines = (tmp / "controller.log").read_text(errors="replace").splitlines()
+    fleet_log = [ln for ln in log_lines if "fleet coordinator auto" in ln or "fleet roadmap" in ln]
     print(
         f"#   services warehouse ({coordinator}): {reached}/{n * rounds} goals, "
         f"{len(pairs)} robot pairs / {len(walls)} wall contacts, wall {wall:.0f} s "
@@ -508,6 +528,7 @@ def services_warehouse(
         "cpu_s": cpu,
         "statuses": statuses,
         "waiting_statuses": sum(waits.values()),
+        "controller_fleet_log": fleet_log[:10],
         "note": "times are nominal simulated seconds (wall time x time_scale) since the first "
         "goals; the simulator steps at 20 Hz of simulated time",
     }
@@ -570,7 +591,29 @@ def main() -> None:
         "against straight ones (LineLaw, the laws on an atlas); writes "
         "results/fleet_node_laws.json",
     )
-    ap.add_argument("--coordinator", action="append", choices=("roadmap", "local"))
+    ap.add_argument(
+        "--coordinator",
+        action="append",
+        choices=("roadmap", "local", "auto"),
+        help="--services and --roadmap-scenarios: the --fleet-coordinator choices to run "
+        "(repeatable; default roadmap, resp. local and roadmap)",
+    )
+    ap.add_argument("--seed", type=int, default=0, help="services: the warehouse goals' seed")
+    ap.add_argument(
+        "--aside",
+        action="append",
+        choices=("all", "done"),
+        help="--node-laws: the straight node laws with each of these pushed-robot rules "
+        "(RoadmapCoordinator.aside); writes results/fleet_node_laws_aside.json",
+    )
+    ap.add_argument(
+        "--come-back",
+        action="append",
+        choices=("idle", "clear"),
+        help="--node-laws: the straight node laws, seeds 0 and 1, with each of these rules for "
+        "when a pushed done robot goes back (RoadmapCoordinator.come_back); writes "
+        "results/fleet_node_laws_comeback.json",
+    )
     ap.add_argument("--time-scale", type=float, default=2.0, help="services: simulator speed")
     ap.add_argument("--t-max", type=float, default=WAREHOUSE_T_MAX, help="services: sim s")
     args = ap.parse_args()
@@ -678,10 +721,29 @@ def main() -> None:
 
 
 def node_laws_main(args: argparse.Namespace) -> None:
-    """``--node-laws``: the warehouse rounds with the coordinator's two node laws."""
+    """``--node-laws``: the warehouse rounds with the coordinator's two node laws; with
+    ``--aside``: the straight node laws with each of the coordinator's ``aside`` rules."""
     stamp = run_start()
-    rows = {law: warehouse(args.rounds, roadmap=True, node_law=law) for law in ("kr", "line")}
-    out = RESULTS / "fleet_node_laws.json"
+    if args.come_back:
+        rows = {
+            f"line, come back {rule}, seed {seed}": warehouse(
+                args.rounds, seed=seed, roadmap=True, node_law="line", come_back=rule
+            )
+            | {"come_back": rule, "seed": seed}
+            for rule in args.come_back
+            for seed in (0, 1)
+        }
+        out = RESULTS / "fleet_node_laws_comeback.json"
+    elif args.aside:
+        rows = {
+            f"line, aside {rule}": warehouse(args.rounds, roadmap=True, node_law="line", aside=rule)
+            | {"aside": rule}
+            for rule in args.aside
+        }
+        out = RESULTS / "fleet_node_laws_aside.json"
+    else:
+        rows = {law: warehouse(args.rounds, roadmap=True, node_law=law) for law in ("kr", "line")}
+        out = RESULTS / "fleet_node_laws.json"
     doc = {
         **run_end(stamp),
         "cpu_count": os.cpu_count(),
@@ -699,9 +761,10 @@ def roadmap_scenarios_main(args: argparse.Namespace) -> None:
     cases = {f"swap {n}": (ROOM, room_map, *ring(n)) for n in (4, 8, 20)}
     cases["door 8"] = (DOOR, door_map, *door())
     rows: dict[str, dict[str, Any]] = {}
+    modes = args.coordinator or ["local", "roadmap"]
     for name, (ws, cm, st, gl) in cases.items():
-        for mode in ("local", "roadmap"):
-            r = run(ws, cm, st, gl, roadmap=mode == "roadmap")
+        for mode in modes:
+            r = run(ws, cm, st, gl, roadmap=mode == "roadmap", auto=mode == "auto")
             rows[f"{name}, {mode}"] = r
             print(
                 f"{name:8s} {mode:8s} contacts {r['robot_contacts']}/{r['wall_contacts']} "
@@ -709,7 +772,9 @@ def roadmap_scenarios_main(args: argparse.Namespace) -> None:
                 f"(lone {r['slowest_lone_s']:.2f} s, ratio {r['ratio']}) load {loadavg()}",
                 flush=True,
             )
-    out = RESULTS / "fleet_roadmap_scenarios.json"
+    out = (
+        RESULTS / "fleet_roadmap_scenarios.json" if args.out == RESULTS / "fleet.json" else args.out
+    )
     doc = {
         **run_end(stamp),
         "cpu_count": os.cpu_count(),
@@ -727,7 +792,7 @@ def services_main(args: argparse.Namespace) -> None:
     stamp = run_start()  # the code the processes run (started now)
     out = RESULTS / "fleet_services.json" if args.out == RESULTS / "fleet.json" else args.out
     rows = {
-        c: services_warehouse(args.rounds, c, args.time_scale, args.t_max)
+        c: services_warehouse(args.rounds, c, args.time_scale, args.t_max, seed=args.seed)
         for c in (args.coordinator or ["roadmap"])
     }
     for c, w in rows.items():

@@ -41,7 +41,7 @@ import sys
 from typing import Any
 
 from confnav.services.controller_cache import CTRL_CACHE_SIZE
-from confnav.services.controller_coord import COORDINATORS
+from confnav.services.controller_coord import COORDINATORS, DEFAULT_COORDINATOR
 from confnav.services.controller_goals import GoalsMixin
 from confnav.services.controller_maps import MapsMixin
 from confnav.services.controller_poses import PosesMixin
@@ -140,13 +140,16 @@ def add_parser(sub: Any) -> None:
     p.add_argument(
         "--fleet-coordinator",
         choices=COORDINATORS,
-        default="local",
-        help="how the robots this process drives get past each other: 'local' (default): "
-        "side passing, yielding and the deadlock step; 'roadmap': two or more robots on one "
-        "map move on a roadmap of its free space as planned by PIBT (a robot alone drives as "
+        default=DEFAULT_COORDINATOR,
+        help="how the robots this process drives get past each other: 'local': side "
+        "passing, yielding and the deadlock step; 'roadmap': two or more robots on one map "
+        "move on a roadmap of its free space as planned by PIBT (a robot alone drives as "
         "without it): every robot arrives through single-lane aisles and doors where the "
-        "local rules gridlock, but open rooms take longer (docs/NAVIGATION.md, 'The roadmap "
-        "coordinator in the controller service')",
+        "local rules gridlock, but open rooms take longer; 'auto' (default): per map and "
+        "robot footprint, 'roadmap' when the free space has a single-lane passage "
+        "(narrower than two robots' look-ahead disks side by side plus half a disk), "
+        "'local' otherwise, decided when a second robot comes and said once in the log "
+        "(docs/NAVIGATION.md, 'The roadmap coordinator in the controller service')",
     )
     p.add_argument(
         "--route-hints",
@@ -179,7 +182,7 @@ def main(args: argparse.Namespace) -> int:
             idle_ttl=args.idle_ttl,
         )
         svc.atlas_warmup = getattr(args, "atlas_warmup", "background")
-        svc.fleet_coordinator = getattr(args, "fleet_coordinator", "local")
+        svc.fleet_coordinator = getattr(args, "fleet_coordinator", DEFAULT_COORDINATOR)
         svc.route_hints = bool(getattr(args, "route_hints", True))
         return svc
 

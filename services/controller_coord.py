@@ -1,6 +1,9 @@
 """The controller service's fleet coordinator: the robots this controller serves move on a
-roadmap as planned by PIBT (``confnav serve controller --fleet-coordinator roadmap``; the
-default ``local``: the local rules of ``services/neighbours.py`` only).
+roadmap as planned by PIBT (``confnav serve controller --fleet-coordinator roadmap``;
+``local``: the local rules of ``services/neighbours.py`` only; the default ``auto``: per map
+and footprint, ``roadmap`` where the free space has a single-lane passage, ``local`` in
+open rooms, :func:`~confnav.navigation.fleet_coord.choose_coordinator`, decided once when
+the fleet's roadmap is built and said in the log).
 
 A thin shell over the core's :class:`~confnav.navigation.fleet_coord.FleetCoordinator`
 (docs/NAVIGATION.md, "Coordination on a roadmap (PIBT)" and "The roadmap coordinator in the
@@ -32,13 +35,22 @@ from confnav.services import navigation
 from confnav.services.controller_state import ControllerCore, PoseLike, _Robot
 
 from confnav.navigation.control import Controller
-from confnav.navigation.fleet_coord import ALONE, FleetCoordinator, Plan, RoadmapCoordinator
+from confnav.navigation.fleet_coord import (
+    ALONE,
+    LANE_FACTOR,
+    FleetCoordinator,
+    Plan,
+    RoadmapCoordinator,
+    choose_coordinator,
+)
 from confnav.navigation.unicycle import UnicycleController
 
 log = logging.getLogger(__name__)
 
 #: the coordinators the ``--fleet-coordinator`` option names
-COORDINATORS = ("local", "roadmap")
+COORDINATORS = ("auto", "local", "roadmap")
+#: the default of ``--fleet-coordinator``
+DEFAULT_COORDINATOR = "auto"
 
 _Key = tuple[str, float, float]  # (free space's content hash, filter radius, v_max)
 
@@ -46,15 +58,23 @@ _Key = tuple[str, float, float]  # (free space's content hash, filter radius, v_
 class CoordMixin(ControllerCore):
     """The fleet coordinator of a controller service (module docstring)."""
 
-    #: ``local`` (default: the local rules) or ``roadmap``
-    fleet_coordinator: str = "local"
+    #: ``auto`` (default: ``roadmap`` on maps with a single-lane passage, else ``local``),
+    #: ``local`` (the local rules) or ``roadmap``
+    fleet_coordinator: str = DEFAULT_COORDINATOR
 
     def _coord_state(self) -> dict[str, Any]:
         st: dict[str, Any] | None = self.__dict__.get("_coord")
         if st is None:
             st = self.__dict__.setdefault(
                 "_coord",
-                {"fleets": {}, "building": set(), "of": {}, "laws": {}, "lock": threading.Lock()},
+                {
+                    "fleets": {},
+                    "building": set(),
+                    "of": {},
+                    "laws": {},
+                    "lock": threading.Lock(),
+                    "local": set(),  # fleets ``auto`` leaves to the local rules
+                },
             )
         return st
 
@@ -62,7 +82,7 @@ class CoordMixin(ControllerCore):
         self, rows: list[tuple[_Robot, PoseLike, navigation.ControllerLike]], now: float
     ) -> dict[str, Plan]:
         """The plan of each robot of a pose block that is coordinated (absent: not)."""
-        if self.fleet_coordinator != "roadmap" or not rows:
+        if self.fleet_coordinator not in ("roadmap", "auto") or not rows:
             return {}
         st = self._coord_state()
         by_key: dict[_Key, list[tuple[_Robot, PoseLike, Any, float]]] = {}
@@ -86,6 +106,8 @@ class CoordMixin(ControllerCore):
             by_key.setdefault(key, []).append((r, pose, cmap, d))
         out: dict[str, Plan] = {}
         for key, members in by_key.items():
+            if key in st["local"]:  # auto chose the local rules for this map
+                continue
             fleet = st["fleets"].get(key)
             if fleet is None:
                 if len(members) > 1 or self._fleet_waits(key):
@@ -134,6 +156,18 @@ class CoordMixin(ControllerCore):
                     node_law="kr" if single else "line",
                     workspace=cmap.workspace,
                 )
+                if self.fleet_coordinator == "auto":
+                    choice, width, where = choose_coordinator(coord, key[1])
+                    self.count(f"fleet_auto_{choice}")
+                    log.info(
+                        "fleet coordinator auto for radius %g m: %s (narrowest passage for "
+                        "the robots' centres %.2f m at (%.2f, %.2f); single-lane below "
+                        "%.2f m)", key[1], choice, width, where.real, where.imag,
+                        LANE_FACTOR * key[1],
+                    )  # fmt: skip
+                    if choice == "local":
+                        st["local"].add(key)
+                        return
                 st["fleets"] = {  # fleets of maps no robot uses any more are dropped
                     k: f for k, f in list(st["fleets"].items()) if k in set(st["of"].values())
                 }
@@ -207,4 +241,4 @@ def _heading(theta: float) -> complex:
     return cmath.exp(1j * theta)
 
 
-__all__ = ["ALONE", "COORDINATORS", "CoordMixin"]
+__all__ = ["ALONE", "COORDINATORS", "DEFAULT_COORDINATOR", "CoordMixin"]

@@ -19,6 +19,8 @@ from confnav.navigation.fleet_coord import (
     ROAD,
     FleetCoordinator,
     RoadmapCoordinator,
+    choose_coordinator,
+    pibt_step,
 )
 from confnav.navigation.fleet_sim import simulate_fleet
 
@@ -117,7 +119,10 @@ def test_four_robots_swap_through_the_door_fed_in_partial_batches(door_map: Any)
     res = simulate_fleet(ctrls, STARTS, DOOR, radius=R, t_max=120.0,
                          coordinator=_Partial(fc, 4))  # type: ignore[arg-type]  # fmt: skip
     assert res.arrived.all() and res.robot_contacts == 0 and res.wall_contacts == 0
-    assert fc.size == 4 and all(int(m) in (ROAD, RETURN_LEG, PARKED) for m in fc.coord.mode)
+    # every robot done: parked at its goal, on the roadmap, or on its way back to its goal
+    assert fc.size == 4 and all(
+        int(m) in (ROAD, RETURN_LEG, PARKED, GOAL_LEG) for m in fc.coord.mode
+    )
     # the last to arrive stays at its goal (nobody needs its way): it is not driven off it
     last = int(np.argmax(res.arrival_time))
     assert int(fc.coord.mode[fc._index[f"r{last}"]]) == PARKED
@@ -149,8 +154,9 @@ def test_describe_says_what_a_robot_does(door_map: Any) -> None:
 def test_the_service_shell_coordinates_two_robots_never_one(door_map: Any, mem_net: Any) -> None:
     """``CoordMixin._coord_plans`` (services/controller_coord.py) on the controller service:
     a robot alone gets no plan (its own law, bitwise as before); with a second robot on the
-    same map the roadmap is built off the pose path and both get plans; with
-    ``--fleet-coordinator local`` (the default) never."""
+    same map the roadmap is built off the pose path and both get plans (``roadmap``, and the
+    default ``auto``: the 0.9 m door is a single-lane passage); with ``--fleet-coordinator
+    local`` never; ``auto`` leaves an open room to the local rules."""
     import time as _time
 
     from confnav.schemas import Goal, Pose
@@ -160,8 +166,7 @@ def test_the_service_shell_coordinates_two_robots_never_one(door_map: Any, mem_n
     from confnav.services.keys import Keys
 
     ctl = ControllerService(mem_net.bus("ctl"), Keys())
-    assert ctl.fleet_coordinator == "local"  # the default
-    ctl.fleet_coordinator = "roadmap"
+    assert ctl.fleet_coordinator == "auto"  # the default
     rows = []
     for i, rid in enumerate("ab"):
         g = Goal(robot_id=rid, ws_id="door", goal=(GOALS[i].real, GOALS[i].imag), robot_radius=R)
@@ -179,8 +184,32 @@ def test_the_service_shell_coordinates_two_robots_never_one(door_map: Any, mem_n
     assert set(plans) == {"a", "b"} and all(p.coordinated for p in plans.values())
     assert plans["a"].note.startswith("joining the roadmap at node")
     assert ctl._coord_plans(rows[:1], 3.0) == {}  # b gone for more than the ttl: a alone
-    local = ControllerService(mem_net.bus("ctl2"), Keys())
-    assert local._coord_plans(rows, 0.0) == {}
+    assert ctl.counters.get("fleet_auto_roadmap") == 1  # decided once, for the map
+    for mode in ("roadmap", "local"):
+        other = ControllerService(mem_net.bus(f"ctl-{mode}"), Keys())
+        other.fleet_coordinator = mode
+        other._coord_plans(rows, 0.0)
+        wait = _time.monotonic() + 30
+        while mode == "roadmap" and not other.counters.get("roadmaps_built"):
+            assert _time.monotonic() < wait
+            _time.sleep(0.05)
+        assert bool(other._coord_plans(rows, 0.1)) == (mode == "roadmap")
+        assert not any(k.startswith("fleet_auto") for k in other.counters)
+    # an open room (the door's room without its wall): auto keeps the local rules
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        room_map = solve(inflate(Workspace([(0, 0), (6, 0), (6, 3), (0, 3)]), R), 1e-6)
+    room = ControllerService(mem_net.bus("ctl-room"), Keys())
+    rows = [(r, pose, navigation.point_law(room_map, r.goal)) for r, pose, _ in rows]  # type: ignore[arg-type]
+    for r, _, law in rows:
+        r.ctrl = law
+    room._coord_plans(rows, 0.0)
+    wait = _time.monotonic() + 30
+    while not room.counters.get("fleet_auto_local"):
+        assert _time.monotonic() < wait
+        _time.sleep(0.05)
+    assert room._coord_plans(rows, 0.1) == {} and room.counters["fleet_auto_local"] == 1
+    assert not room.counters.get("roadmaps_built")
 
 
 def test_a_robot_held_off_its_node_goes_back_where_it_came_from(door_map: Any) -> None:
@@ -216,3 +245,131 @@ def test_a_robot_held_off_its_node_goes_back_where_it_came_from(door_map: Any) -
     # robot 1 may go back to w (free); robot 0's node u stays robot 1's: robot 0 stays put
     assert int(c2.nxt[0]) == v and int(c2.origin[0]) == u
     assert len({int(c2.nxt[0]), int(c2.nxt[1])}) == 2
+
+
+# a single-lane passage (0.7 m: 0.3 m for the centres of 0.2 m robots) between two rooms, with
+# a side pocket above its middle, large enough to hold a cycle of roadmap nodes
+LANE = Workspace(
+    [
+        (0, 0), (2, 0), (2, 0.65), (5.5, 0.65), (5.5, 0), (7.5, 0), (7.5, 2), (5.5, 2),
+        (5.5, 1.35), (4.4, 1.35), (4.4, 3.0), (2.8, 3.0), (2.8, 1.35), (2, 1.35), (2, 2),
+        (0, 2),
+    ]
+)  # fmt: skip
+
+
+def _teleport(c: RoadmapCoordinator, p: np.ndarray, goals: np.ndarray, done: np.ndarray,
+              t: float) -> None:  # fmt: skip
+    """One step of robots that are where their plan sends them at once: on the roadmap at
+    their next node, on the goal leg at their goal (then reached), parked at their goal."""
+    c.update(t, p, goals, done)
+    for i in range(c.n):
+        m = int(c.mode[i])
+        if m == GOAL_LEG:
+            p[i] = goals[i]
+            c.reached(i)
+            done[i] = True
+        elif m == PARKED:
+            p[i] = goals[i]
+        elif m == RETURN_LEG:
+            p[i] = c.roadmap.nodes[int(c.at[i])]
+        else:
+            p[i] = c.roadmap.nodes[int(c.nxt[i])]
+
+
+@pytest.mark.parametrize("come_back", ["idle", "clear"])
+def test_a_robot_pushed_in_a_lane_steps_into_the_pocket_and_comes_back(come_back: str) -> None:
+    """Robot b is parked at its goal in a single-lane passage; robot a crosses the passage.
+    b is pushed off its goal ahead of a, then into the side pocket (off a's shortest path,
+    not along the lane ahead of a to its far end), and once a has passed, b goes back to its
+    goal and parks there.  Before: b was pushed along the lane ahead of a and stayed where it
+    was pushed."""
+    ws = inflate(LANE, R)
+    c = RoadmapCoordinator.build(None, 0, R, node_law="line", workspace=ws)
+    c.come_back = come_back  # once a is done too (default), or once a has passed b's goal
+    nodes = c.roadmap.nodes
+    pocket = np.flatnonzero(nodes.imag > 1.5)  # the pocket's nodes (the lane's are below)
+    far_room = np.flatnonzero(nodes.real > 5.3)
+    assert pocket.size >= 3 and far_room.size
+    goals = np.array([0.8 + 1.0j, 2.25 + 1.0j])  # a: first in its room; b: in the lane
+    p = np.array([0.8 + 0.6j, 2.25 + 1.0j])
+    for z in p:
+        c.add(complex(z))
+    done = np.array([False, False])
+    t = 0.0
+    for _ in range(100):  # b reaches its goal and parks; a waits in its room
+        _teleport(c, p, goals, done, t)
+        t += 0.2
+    assert int(c.mode[1]) == PARKED and done[1]
+    home = int(c.goal_node[1])
+    goals[0], done[0] = 7.0 + 1.0j, False  # a crosses the lane
+    b_nodes: list[int] = []
+    for _ in range(400):
+        _teleport(c, p, goals, done, t)
+        t += 0.2
+        b_nodes.append(int(c.nxt[1]))
+        if done.all() and int(c.mode[1]) == PARKED:
+            break
+    assert done[0] and abs(p[0] - goals[0]) < 1e-12  # a crossed
+    assert any(v != home for v in b_nodes)  # b was pushed off its goal ...
+    assert set(b_nodes) & set(pocket.tolist())  # ... into the pocket
+    assert not set(b_nodes) & set(far_room.tolist())  # not to the lane's far end
+    # it steps aside at the pocket's near corner (x 3.1-3.2 m), not pushed on along the lane
+    # ahead of a (before: on to x 4.0 under the pocket, then into its far corner)
+    assert max(float(nodes[v].real) for v in b_nodes) < 3.5
+    assert int(c.mode[1]) == PARKED and int(c.at[1]) == home and p[1] == goals[1]  # back
+
+
+def test_pibt_a_meek_robot_pushes_no_one_and_a_pushed_one_steps_aside() -> None:
+    """On the lane's roadmap: a robot pushed by another takes the node off the pusher's
+    shortest path (the pocket) before the one ahead of it on the lane; a meek robot (done,
+    going back) with the same wish does not push: it stays."""
+    c = RoadmapCoordinator.build(None, 0, R, node_law="line", workspace=inflate(LANE, R))
+    rm = c.roadmap
+    nodes = rm.nodes
+    # three lane nodes under the pocket's near corner: u (left), v (the corner), the pocket
+    # node above v and the lane node after v (both neighbours of v)
+    v = int(np.flatnonzero(np.isclose(nodes, 3.2 + 1.1j, atol=0.06))[0])
+    u = int(np.flatnonzero(np.isclose(nodes, 2.25 + 1.0j, atol=0.06))[0])
+    far = int(np.argmax(nodes.real))
+    nb = rm.neighbours[v].tolist()
+    up = max((w for w in nb if w != u), key=lambda w: nodes[w].imag)
+    ahead = min((w for w in nb if w not in (u, up)), key=lambda w: rm.dist[w, far])
+    assert rm.dist[ahead, far] < rm.dist[up, far]  # the lane node is on the way, the pocket not
+    # robot 0 on u heads for the far room; robot 1 (done: its goal is its node) stands on v
+    out = pibt_step(rm, [u, v], [far, v], [1.0, 0.0])
+    assert out == [v, up]  # pushed: into the pocket, not ahead along the lane
+    # the same with robot 0 meek: it does not push robot 1, so it stays on u
+    out = pibt_step(rm, [u, v], [far, v], [1.0, 0.0], meek=[True, False])
+    assert out == [u, v]
+
+
+def test_auto_chooses_the_roadmap_where_a_passage_is_single_lane() -> None:
+    """``auto`` (:func:`choose_coordinator`): the bench's open room (the swaps) and its 1.2 m
+    door (two robots of 0.2 m pass in it) keep the local rules; the lane (0.7 m) and the
+    0.9 m door (the local rules freeze there: the door test above) get the roadmap.  The
+    narrowest width is the centres' free space across the passage: the passage less 2 r."""
+    room = Workspace(  # bench/bench_fleet.py's ROOM and DOOR
+        [(0, 0), (10, 0), (10, 8), (0, 8)],
+        [
+            [(3, 2.5), (4.2, 2.5), (4.2, 3.7), (3, 3.7)],
+            [(6, 4.5), (7.2, 4.5), (7.2, 5.7), (6, 5.7)],
+        ],
+    )
+    door12 = Workspace(
+        [
+            (0, 0), (4.9, 0), (4.9, 3.4), (5.1, 3.4), (5.1, 0), (10, 0), (10, 8), (5.1, 8),
+            (5.1, 4.6), (4.9, 4.6), (4.9, 8), (0, 8),
+        ]
+    )  # fmt: skip
+    got = {}
+    for name, ws in (("room", room), ("door 1.2", door12), ("lane", LANE), ("door 0.9", DOOR)):
+        c = RoadmapCoordinator.build(None, 0, R, node_law="line", workspace=inflate(ws, R))
+        got[name] = choose_coordinator(c, R)
+    assert {k: v[0] for k, v in got.items()} == {
+        "room": "local", "door 1.2": "local", "lane": "roadmap", "door 0.9": "roadmap"
+    }  # fmt: skip
+    assert got["door 1.2"][1] == pytest.approx(1.2 - 2 * R, abs=0.01)
+    assert got["door 0.9"][1] == pytest.approx(0.9 - 2 * R, abs=0.01)
+    assert got["lane"][1] == pytest.approx(0.7 - 2 * R, abs=0.01)
+    assert abs(got["door 0.9"][2] - (3.0 + 1.5j)) < 0.1  # found in the door

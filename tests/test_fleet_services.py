@@ -115,7 +115,7 @@ def _services(
 
     services: list[Any] = [
         TransformService(make_bus(), K, executor="thread", health_period=0.5),
-        ControllerService(make_bus(), K, health_period=0.5),
+        ControllerService(make_bus(), K, health_period=0.5),  # the local rules, below
         SimulatorService(make_bus(), K, rate_hz=50, time_scale=2.0, cmd_timeout=1.0),
     ]
     client = make_bus()
@@ -126,6 +126,8 @@ def _services(
             decode(RobotStatus, p).robot_id, decode(RobotStatus, p).state
         ),
     )
+    services[1].fleet_coordinator = "local"  # these tests are of the local rules (auto
+    # would coordinate the 0.8 m door's robots on a roadmap: tests/test_fleet_coord_*.py)
     for s in services:
         s.start()
     try:

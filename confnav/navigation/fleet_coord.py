@@ -15,7 +15,12 @@ fails and the next candidate is tried: backtracking); no two robots swap.  The p
 robot grows by one every tick it is not at its goal node and drops to zero on a new goal, so
 the robot waiting longest leads (ties by a fixed random order).  A robot done with its goals
 is an agent with its current node as goal and priority zero: robots that need its node push
-it aside, and it comes back.
+it aside -- off the pusher's shortest path first (a pocket or a branch of a single-lane
+passage rather than the lane ahead of the pusher, :func:`pibt_step`) -- and it goes back to
+its goal once every robot is done (``come_back = "clear"``: once no active robot's shortest
+path runs through its goal's nodes and none is within ``3 gap`` of them); going back it is
+*meek*: it pushes no robot (two done robots pushing each other back and forth along a lane
+is what this rules out).
 
 The nodes are the sub-goals: a robot drives to its next node with a conformal controller of
 that node (Koditschek-Rimon on the same map, :class:`~confnav.navigation.control.Controller`),
@@ -71,6 +76,7 @@ from confnav.navigation.navfn import CircleDomain, KoditschekRimon
 from confnav.navigation.roadmap import (
     Roadmap,
     build_roadmap,
+    passage_widths,
     segment_clearance,
     segment_segment_distance,
 )
@@ -80,6 +86,7 @@ from confnav.types import CArray
 __all__ = [
     "ALONE",
     "GOAL_LEG",
+    "LANE_FACTOR",
     "PARKED",
     "RETURN_LEG",
     "ROAD",
@@ -87,6 +94,7 @@ __all__ = [
     "LineLaw",
     "Plan",
     "RoadmapCoordinator",
+    "choose_coordinator",
     "pibt_step",
 ]
 
@@ -105,6 +113,8 @@ def pibt_step(
     closed_nodes: set[int] | frozenset[int] = frozenset(),
     closed_edges: set[tuple[int, int]] | frozenset[tuple[int, int]] = frozenset(),
     blocked: set[int] | frozenset[int] = frozenset(),
+    meek: Sequence[bool] | None = None,
+    aside: Sequence[bool] | None = None,
     rng: np.random.Generator | None = None,
 ) -> list[int]:
     """One PIBT step (Okumura et al. 2022, Algorithm 1): the node of every robot at the next
@@ -113,12 +123,23 @@ def pibt_step(
     ``closed_edges`` edge (either order); a robot standing on a closed node must leave it
     (staying is its last resort); no robot enters a ``blocked`` node (one standing on it may
     stay).  The result never gives one node to two robots, and no two
-    robots swap nodes."""
+    robots swap nodes.
+
+    Two rules for lanes (a pushed robot steps aside, not ahead): a robot pushed by another
+    (directly or down a chain started by robot ``h``) tries the candidates off every
+    shortest path of ``h`` to its goal first (``dist[at_h, v] + dist[v, goal_h] >
+    dist[at_h, goal_h]``: a pocket or a branch rather than the next node of the lane ahead of
+    ``h``), then the others, each group nearest its own goal first (only the ``aside``
+    robots, default all; the others nearest their goal first); and a chain started by a
+    ``meek`` robot (a robot done with its goals, going back to it) pushes no one: it moves
+    only to nodes that are free or already left."""
     n = len(at)
     cur = [int(a) for a in at]
     if len(set(cur)) != n:
         raise NavigationError("pibt_step: two robots on one node")
     fix = [False] * n if fixed is None else [bool(f) for f in fixed]
+    mk = [False] * n if meek is None else [bool(f) for f in meek]
+    asd = [True] * n if aside is None else [bool(f) for f in aside]
     occupant: dict[int, int] = {v: i for i, v in enumerate(cur)}
     nxt: list[int | None] = [None] * n
     taken: dict[int, int] = {}
@@ -132,7 +153,7 @@ def pibt_step(
     def closed_edge(u: int, v: int) -> bool:
         return (u, v) in closed_edges or (v, u) in closed_edges
 
-    def plan(i: int, parent: int | None) -> bool:
+    def plan(i: int, parent: int | None, root: int) -> bool:
         u = cur[i]
         cands = [int(v) for v in roadmap.neighbours[u]]
         cands = [
@@ -141,16 +162,25 @@ def pibt_step(
         if u not in closed_nodes:
             cands.append(u)
         g = goal[i]
-        cands.sort(key=lambda v: (dist[v, g], tie[v]))
+        if parent is None or not asd[i]:
+            cands.sort(key=lambda v: (dist[v, g], tie[v]))
+        else:  # pushed: off the chain's starter's shortest paths first (step aside)
+            a0, g0 = cur[root], goal[root]
+            d0 = dist[a0, g0]
+            on = {v: bool(np.isfinite(d0) and dist[a0, v] + dist[v, g0] <= d0 + 1e-9)
+                  for v in cands}  # fmt: skip
+            cands.sort(key=lambda v: (on[v], dist[v, g], tie[v]))
         for v in cands:
             if v in taken:
                 continue
             if parent is not None and v == cur[parent]:
                 continue  # no swap with the robot that pushed
+            k = occupant.get(v)
+            if mk[root] and k is not None and k != i and nxt[k] is None:
+                continue  # a meek chain pushes no one
             nxt[i] = v
             taken[v] = i
-            k = occupant.get(v)
-            if k is not None and k != i and nxt[k] is None and not plan(k, i):
+            if k is not None and k != i and nxt[k] is None and not plan(k, i, root):
                 continue  # k stays on v (it took v itself): try the next candidate
             return True
         nxt[i] = u
@@ -161,7 +191,7 @@ def pibt_step(
     order = sorted(range(n), key=lambda i: -priority[i])
     for i in must_leave + order:
         if nxt[i] is None:
-            plan(i, None)
+            plan(i, None, i)
     out = [int(v) if v is not None else cur[i] for i, v in enumerate(nxt)]
     return out
 
@@ -245,6 +275,15 @@ class RoadmapCoordinator:
     eager: bool = True
     min_tick: float = 0.1
     late_limit: float = 3.0
+    #: which pushed robots step aside first (:func:`pibt_step`'s ``aside``): ``"done"``
+    #: (robots done with their goals: parked robots leave a lane into a pocket) or ``"all"``
+    #: (every pushed robot: measured slower, bench/results/fleet_node_laws_aside.json)
+    aside: str = "done"
+    #: when a done robot pushed off its goal goes back (:meth:`_may_return`): ``"idle"`` (no
+    #: robot of the fleet has a goal left) or ``"clear"`` (no active robot needs its goal's
+    #: nodes: sooner, but measured to cost arrivals in the warehouse,
+    #: bench/results/fleet_node_laws_comeback.json)
+    come_back: str = "idle"
     at: NDArray[np.intp] = field(init=False)
     nxt: NDArray[np.intp] = field(init=False)
     mode: NDArray[np.int8] = field(init=False)
@@ -284,6 +323,7 @@ class RoadmapCoordinator:
         big = np.bincount(lab).argmax() if lab.size else 0
         self.main = np.flatnonzero(lab == big).astype(np.intp)
         self._goal_cache: dict[complex, int] = {}
+        self._goal_nodes_cache: dict[tuple[int, complex], NDArray[np.intp]] = {}
 
     @classmethod
     def build(
@@ -494,18 +534,51 @@ class RoadmapCoordinator:
         parked = [i for i in np.flatnonzero(self.mode == PARKED).tolist() if i in self.excursions]
         if not parked or not active.any():
             return
-        dist = self.roadmap.dist
-        a, g = self.at[active], self.goal_node[active]
-        direct = dist[a, g]
         for i in parked:
             ex = self.excursions[i]
             ends = {int(v) for e in ex.edges for v in e}  # a closed edge's ends
             nn = np.fromiter(ex.nodes | ends | {int(self.at[i])}, dtype=np.intp)
-            via = dist[np.ix_(a, nn)] + dist[np.ix_(nn, g)].T  # (robots, nodes)
-            on_way = np.isfinite(direct)[:, None] & (via <= direct[:, None] + 1e-9)
-            near = dist[np.ix_(a, nn)] <= 3.0 * self.gap  # a robot coming near
-            if on_way.any() or near.any():
+            if self._in_the_way(nn, active):
                 self.mode[i] = RETURN_LEG
+
+    def _in_the_way(self, nn: NDArray[np.intp], active: NDArray[np.bool_]) -> bool:
+        """Whether nodes ``nn`` lie on a shortest roadmap path of an ``active`` robot to its
+        goal node, or within ``3 gap`` of an active robot along the roadmap."""
+        if not active.any():
+            return False
+        dist = self.roadmap.dist
+        a, g = self.at[active], self.goal_node[active]
+        direct = dist[a, g]
+        via = dist[np.ix_(a, nn)] + dist[np.ix_(nn, g)].T  # (robots, nodes)
+        on_way = np.isfinite(direct)[:, None] & (via <= direct[:, None] + 1e-9)
+        near = dist[np.ix_(a, nn)] <= 3.0 * self.gap  # a robot coming near
+        return bool(on_way.any() or near.any())
+
+    def _goal_nodes(self, i: int) -> NDArray[np.intp]:
+        """Robot ``i``'s goal's nodes: its goal node, the nodes its excursion from there
+        closes and its closed edges' ends (cached per goal node and point)."""
+        key = (int(self.goal_node[i]), complex(self.goal_pt[i]))
+        nn = self._goal_nodes_cache.get(key)
+        if nn is None:
+            ex = self._excursion(i, key[0])
+            ends = {int(v) for e in ex.edges for v in e}
+            nn = np.fromiter(ex.nodes | ends | {key[0]}, dtype=np.intp)
+            self._goal_nodes_cache[key] = nn
+        return nn
+
+    def _may_return(self, done: NDArray[np.bool_], active: NDArray[np.bool_]) -> NDArray[np.bool_]:
+        """Robots done with their goals, on the roadmap (pushed off their goal or parked
+        there), that go back to their goal, as meek robots (:func:`pibt_step`: pushing no
+        one): with ``come_back = "idle"`` (the default) all of them once every robot is
+        done; with ``"clear"`` those whose goal's nodes no active robot needs
+        (:meth:`_in_the_way`)."""
+        out = np.zeros(self.n, dtype=bool)
+        cand = done & (self.mode == ROAD) & ~np.isnan(self.goal_pt.real)
+        if self.come_back == "idle":  # only once no robot of the fleet has a goal left
+            return cand if done.all() else out
+        for i in np.flatnonzero(cand).tolist():
+            out[i] = not self._in_the_way(self._goal_nodes(i), active)
+        return out
 
     def tick(self, t: float, settled: NDArray[np.bool_], done: NDArray[np.bool_]) -> None:
         """One PIBT step for the robots on the roadmap; excursions granted and started."""
@@ -521,7 +594,8 @@ class RoadmapCoordinator:
         for i in [j for j in self.excursions if self.mode[j] == ROAD]:
             self.excursions.pop(i)  # a request not started last tick is asked again
         self._unpark(road & ~done)
-        goal = np.where(done, self.at, self.goal_node)
+        back = self._may_return(done, road & ~done)  # done, its goal clear: goes back
+        goal = np.where(done & ~back, self.at, self.goal_node)
         at_goal = road & (self.at == goal)
         self.eta = np.where(at_goal | done, 0.0, self.eta + 1.0)
         closed_nodes: set[int] = set()
@@ -533,7 +607,11 @@ class RoadmapCoordinator:
         # suspended (a request pending ``patience`` s is dropped for ``patience`` s:
         # the robot is then an ordinary agent that may be pushed off its goal node)
         req = np.flatnonzero(
-            road & settled & ~done & (self.at == self.goal_node) & (t >= self.suspend_until)
+            road
+            & settled
+            & (~done | back)
+            & (self.at == self.goal_node)
+            & (t >= self.suspend_until)
         )
         req = req[np.argsort(-(self.eta[req] + self._tie[req]), kind="stable")]
         holders = {int(self.at[j]) for j in np.flatnonzero(~road)}
@@ -549,6 +627,8 @@ class RoadmapCoordinator:
             ):
                 continue
             others = {int(self.at[j]) for j in range(self.n) if j != i}
+            if done[i] and ex.nodes & (others | {int(v) for v in self.nxt}):
+                continue  # a done robot going back does not empty its way: it waits
             if ex.nodes & others:  # pending: its nodes are emptied first, its edges stay open
                 if np.isnan(self.pend_since[i]):
                     self.pend_since[i] = t
@@ -588,6 +668,8 @@ class RoadmapCoordinator:
             closed_nodes=closed_nodes,
             closed_edges=closed_edges,
             blocked=blocked,
+            meek=done.tolist(),
+            aside=None if self.aside == "all" else done.tolist(),
             rng=self._rng,
         )
         self.origin = np.where(road & ~late, self.at, self.origin)
@@ -620,19 +702,51 @@ class RoadmapCoordinator:
             self._best[i], self._t_best[i] = np.inf, t
             self.reverts += 1
 
-    def _excursion(self, i: int) -> _Excursion:
-        a = complex(self.roadmap.nodes[int(self.at[i])])
+    def _excursion(self, i: int, node: int | None = None) -> _Excursion:
+        """Robot ``i``'s excursion from ``node`` (default: its node) to its goal point."""
+        s = int(self.at[i]) if node is None else int(node)
+        a = complex(self.roadmap.nodes[s])
         b = complex(self.goal_pt[i])
         rm = self.roadmap
         dn = segment_segment_distance(rm.nodes, rm.nodes, a, b)
-        nodes = frozenset(int(v) for v in np.flatnonzero(dn < self.gap)) - {int(self.at[i])}
+        nodes = frozenset(int(v) for v in np.flatnonzero(dn < self.gap)) - {s}
         de = segment_segment_distance(rm.nodes[rm.edges[:, 0]], rm.nodes[rm.edges[:, 1]], a, b)
         edges = frozenset(
-            (int(u), int(v))
-            for u, v in rm.edges[de < self.gap].tolist()
-            if int(self.at[i]) not in (u, v)
+            (int(u), int(v)) for u, v in rm.edges[de < self.gap].tolist() if s not in (u, v)
         )
         return _Excursion(nodes=nodes, edges=edges, a=a, b=b)
+
+
+#: ``auto``'s threshold: a passage is single-lane when the free space of the robots' centres
+#: across it (the workspace shrunk by the filter radius ``rho``) is narrower than
+#: ``LANE_FACTOR rho``, i.e. the passage itself narrower than ``(LANE_FACTOR + 2) rho``: two
+#: disks side by side (``4 rho``) and half a disk of room for side passing.  Measured: under
+#: the local rules 4 robots of radius 0.2 m do not get through a 0.9 m door (``4.5 rho``,
+#: tests/test_fleet_coord_async.py), 8 get through a 1.2 m one (``6 rho``) in 1.45 times the
+#: slowest lone run (bench/results/fleet_roadmap_scenarios.json)
+LANE_FACTOR = 3.0
+
+
+def choose_coordinator(
+    coord: RoadmapCoordinator, rho: float, factor: float = LANE_FACTOR
+) -> tuple[str, float, complex]:
+    """``auto``: ``"roadmap"`` when the free space (of centres, for filter radius ``rho``)
+    that ``coord``'s roadmap covers has a single-lane passage -- an edge of its main component
+    across which the free space is narrower than ``factor rho`` (:data:`LANE_FACTOR`;
+    :func:`~confnav.navigation.roadmap.passage_widths`) -- else ``"local"``; with the
+    narrowest width across an edge (m; ``inf``: no edge) and where (the edge's midpoint)."""
+    rm = coord.roadmap
+    main = np.zeros(rm.size, dtype=bool)
+    main[coord.main] = True
+    keep = main[rm.edges[:, 0]] & main[rm.edges[:, 1]] if len(rm.edges) else np.zeros(0, bool)
+    if not keep.any():
+        return "local", float("inf"), complex(np.nan, np.nan)
+    e = rm.edges[keep]
+    sub = Roadmap(rm.nodes, e, rm.neighbours, rm.dist, rm.spacing, rm.min_clearance)
+    w = passage_widths(coord._workspace(), sub)
+    k = int(np.argmin(w))
+    where = complex(0.5 * (rm.nodes[e[k, 0]] + rm.nodes[e[k, 1]]))
+    return ("roadmap" if w[k] < factor * rho else "local"), float(w[k]), where
 
 
 @dataclass(frozen=True)

@@ -281,8 +281,13 @@ def simulate_fleet(
         if leg is not None:  # arrival counts on the goal leg only
             status = np.where(leg | (status == Status.ERROR), status, Status.MOVING)
         now_arr = (status == Status.ARRIVED) & np.isnan(arrival)
-        if coord is not None:
-            for i_ in np.flatnonzero(now_arr):
+        if coord is not None:  # a done robot gone back to its goal arrives there again
+            again = (
+                leg & (status == Status.ARRIVED) & ~np.isnan(arrival)
+                if leg is not None
+                else now_arr
+            )
+            for i_ in np.flatnonzero(now_arr | again):
                 coord.reached(int(i_))
         reached += now_arr
         nxt = now_arr & np.array([len(q) > 0 for q in queue], dtype=bool)
