@@ -20,7 +20,8 @@ applied here (it is off in the fleet simulation too: measured worse on the wareh
 A robot with no neighbour within reach of a row keeps the control law's command bitwise, so
 a robot alone drives exactly as without this module; so does a robot without a radius (a
 point), except near a mover.  A robot whose floor is unknown (no goal
-or spawn request seen) counts as a neighbour on every floor (conservative).
+or spawn request seen) counts as a neighbour on every floor, and a robot whose body is unknown
+as a disk of the largest radius known on the floor (both conservative).
 """
 
 from __future__ import annotations
@@ -116,7 +117,7 @@ class Neighbours:
         self._t = np.zeros(0)  # monotonic receive time; -inf: free slot
         self._stamp = np.zeros(0, dtype=np.int64)
         self._v = np.zeros(0, dtype=np.complex128)  # estimated from the last two poses (m/s)
-        self._rad = np.zeros(0)  # body radius, NaN: unknown (default_radius)
+        self._rad = np.zeros(0)  # body radius, NaN: unknown (_select: the largest known)
         self._fl = np.zeros(0, dtype=np.int64)  # floor number (_floors), -1: unknown
         self._un = np.zeros(0, dtype=np.complex128)  # a served robot's last nominal command
         self._floors: dict[str, int] = {}
@@ -290,7 +291,7 @@ class Neighbours:
         return self._select(floor, exclude, now)[:5]
 
     def _select(
-        self, floor: str | None, exclude: set[str], now: float
+        self, floor: str | None, exclude: set[str], now: float, at_least: float = 0.0
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """:meth:`_others` and each one's heading: a robot this controller serves, its last
         nominal command (the yield rule across pose blocks); another robot, its velocity; a
@@ -305,13 +306,23 @@ class Neighbours:
             self._expire(now)
             n = len(self._rids)
             sel = self._t[:n] > -np.inf
+            if floor is not None:
+                fno = self._floors.get(floor, -2)
+                sel &= (self._fl[:n] == -1) | (self._fl[:n] == fno)
+            # a robot whose body nobody announced (no Goal, no SpawnRequest: e.g. a
+            # simulator's config robot before its goal, or a real robot's bridge without a
+            # radius) is taken as large as the largest body known on this floor, the robots
+            # being filtered included (``at_least``: their goals' radii), and at least
+            # default_radius: as a point it let a robot drive into a standing one (the studio
+            # outside check, fleet_studio_auto.json)
+            known = self._rad[:n][sel & ~np.isnan(self._rad[:n])]
+            unknown_r = max(
+                self.default_radius, at_least, float(known.max()) if known.size else 0.0
+            )
             for rid in exclude:
                 i = self._slot.get(rid)
                 if i is not None:
                     sel[i] = False
-            if floor is not None:
-                fno = self._floors.get(floor, -2)
-                sel &= (self._fl[:n] == -1) | (self._fl[:n] == fno)
             idx = np.flatnonzero(sel)
             rids = [self._rids[i] for i in idx]
             if self.served_many is not None:
@@ -322,7 +333,7 @@ class Neighbours:
                 mine = np.zeros(idx.size, dtype=bool)
             rad = self._rad[idx]
             r_z = self._z[idx]
-            r_r = np.where(np.isnan(rad), self.default_radius, rad)
+            r_r = np.where(np.isnan(rad), unknown_r, rad)
             r_v = np.where(mine, 0j, self._v[idx])
             r_h = np.where(mine, self._un[idx], self._v[idx])
             for fl, (m, _) in list(self._movers.items()):
@@ -425,7 +436,8 @@ class Neighbours:
         # (v + i d omega) e^{i theta} (confnav.navigation.unicycle)
         u_nom = np.where(body, (u_law.real + 1j * d * u_law.imag) * np.exp(1j * th), u_law)
         live = np.isfinite(u_nom) & (codes != Status.ERROR)
-        oz, orad, ov, oco, omv, ohead = self._select(floor, own, now)
+        body_max = max((float(g.robot_radius) for g in goals), default=0.0)
+        oz, orad, ov, oco, omv, ohead = self._select(floor, own, now, at_least=body_max)
         rows = pairwise_rows(
             p,
             # as the fleet simulation: no round-off contact (points stay points: no rows)

@@ -315,3 +315,19 @@ def test_hook_parked_robot_steps_aside() -> None:
     assert out[0][1][1][0] == Status.MOVING  # off its goal: reported moving
     assert ua.real > 0 and ua.imag > 0 and abs(np.angle(ua) - np.pi / 4) < 1e-9
     assert ub.imag < 0  # keeps right
+
+
+def test_a_robot_whose_body_is_unknown_counts_as_the_largest_known_body() -> None:
+    """Robot b stands 0.4 m ahead of robot a (r 0.18) with no goal and no spawn request seen
+    (a simulator's config robot before its goal: the studio outside check's contact). b
+    counts as a disk of a's radius, gap 0.04 m, so a may close at most alpha * gap = 0.08 m/s
+    (non-cooperative: full responsibility); as a point (the old rule: gap 0.22 m) it could
+    close at 0.44 m/s and drove into b."""
+    from confnav.schemas import Pose
+    from confnav.services.neighbours import Neighbours
+
+    nb = Neighbours(K)
+    nb.note_pose("b", Pose(robot_id="b", stamp_ns=1, x=0.4, y=0.0))
+    out = nb.filter_block(_block([("a", 0.0, 0.0)], [0.5 + 0j], radius=0.18))
+    u = out[0][1][0][0]
+    assert u.real <= 2.0 * (0.4 - 0.36) + 1e-9

@@ -29,11 +29,15 @@ def test_neighbours_positions_velocities_floors_and_expiry() -> None:
     nb.note_pose("c", _pose("c", 1_000_000_000, 0.0, -1.0), now=10.5)  # no body: every floor
     z, r, v, coop, mover = nb._others("w1", set(), now=10.6)
     assert list(z) == [1.5 + 1j, -1j]
-    assert list(r) == [0.2, 0.05]
+    assert list(r) == [0.2, 0.2]  # c's body is unknown: the largest known on w1, a's
     assert v[0] == (1.5 + 1j - (1 + 2j)) / 0.5 and v[1] == 0
     assert not coop.any() and not mover.any()
     z, _, _, _, _ = nb._others("w2", {"c"}, now=10.6)  # floor of "w2~r0.3"; c excluded
     assert list(z) == [-1 + 0j]
+    _, r, _, _, _ = nb._others("w2", {"b"}, now=10.6)  # the filtered robot's body counts
+    assert list(r) == [0.3]
+    _, r, _, _, _ = Neighbours(K, default_radius=0.05)._others(None, set(), now=0.0)
+    assert r.size == 0
     # a served robot is cooperative and counts with velocity 0
     nb.served_many = lambda rids: [rid == "a" for rid in rids]
     _, _, v, coop, _ = nb._others("w1", set(), now=10.6)
