@@ -59,7 +59,9 @@ from confnav.scenes.workspaces import (
 #: every other design runs the implementations before them (:func:`_cumprod_powers`,
 #: :func:`_grid_size_all_points`). ``once``: that and each map's boundary residuals evaluated
 #: once (``ConformalMap.boundary_residuals`` kept); the others evaluate them at every call
-#: (:func:`_residuals_every_call`, as before).
+#: (:func:`_residuals_every_call`, as before). ``interleaved``: that and the dense GNK
+#: matrices kept complex (gnk.DENSE_INTERLEAVED); the others copy their parts into two real
+#: matrices (as before).
 DESIGNS: dict[str, dict[str, bool]] = {
     "before": {"smooth_fmm": False, "carry": False, "corner": False, "blas1": False},
     "fmm_smooth": {"smooth_fmm": True, "carry": False, "corner": False, "blas1": False},
@@ -75,6 +77,15 @@ DESIGNS: dict[str, dict[str, bool]] = {
         "blas1": True,
         "lean": True,
         "once": True,
+    },
+    "interleaved": {
+        "smooth_fmm": True,
+        "carry": True,
+        "corner": True,
+        "blas1": True,
+        "lean": True,
+        "once": True,
+        "interleaved": True,
     },
 }
 
@@ -128,6 +139,7 @@ def use_design(name: str) -> None:
     setattr(cauchy, "_powers", _POWERS if lean else _cumprod_powers)  # noqa: B010
     setattr(circledomain, "_local_grid_size", _GRID_SIZE if lean else _grid_size_all_points)  # noqa: B010
     once = d.get("once", False)
+    gnk.DENSE_INTERLEAVED = d.get("interleaved", False)
     setattr(ConformalMap, "boundary_residuals", _RESIDUALS if once else _residuals_every_call)  # noqa: B010
 
 
