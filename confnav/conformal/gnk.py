@@ -112,10 +112,13 @@ SMOOTH_DENSE_MAX_NODES = 1024
 #: its float view (the other part's slots multiplied by exact zeros) instead of copying the
 #: parts into two real matrices. The copies (strided reads into freshly faulted-in pages)
 #: cost more than the products they served: on 50 obstacles 2.4 of 24 s in a cProfile, for
-#: ~5 GMRES products per graded solve (bench/README.md, "Dense GNK matrices kept complex").
-#: A product reads twice the memory of one part, so this pays only while products per matrix
-#: stay few. The products equal the copies' to rounding (the summation order of the BLAS
-#: kernels differs). False: two real copies (before).
+#: ~5 GMRES products per graded solve. A product reads twice the memory of one part, so this
+#: pays only while products per matrix stay few. Measured side by side (bench/README.md,
+#: "Residuals evaluated once; dense GNK matrices kept complex", koebe_interleaved.json, CPU s):
+#: the default workspace to 1e-10 1.3 -> 0.9, 50 obstacles 16.1 -> 15.5, two squares 0.01
+#: apart 17.0 -> 16.6, the default shrunk by 0.2 m 2.8 -> 2.9 (noise); the same sweeps, maps
+#: within 4.9e-12. The products equal the copies' to rounding (the summation order of the
+#: BLAS kernels differs). False: two real copies (before).
 DENSE_INTERLEAVED = True
 
 #: A node whose quadrature weight |eta'| 2pi/n is below this fraction of the curve's size lies
