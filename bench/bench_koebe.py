@@ -61,7 +61,8 @@ from confnav.scenes.workspaces import (
 #: once (``ConformalMap.boundary_residuals`` kept); the others evaluate them at every call
 #: (:func:`_residuals_every_call`, as before). ``interleaved``: that and the dense GNK
 #: matrices kept complex (gnk.DENSE_INTERLEAVED); the others copy their parts into two real
-#: matrices (as before).
+#: matrices (as before). ``second_sums``: that and the maps' derivatives in the sweeps from the
+#: second-order sums of two charges (diskmap.DERIVATIVE_FROM_SECOND_SUMS; an experiment, off).
 DESIGNS: dict[str, dict[str, bool]] = {
     "before": {"smooth_fmm": False, "carry": False, "corner": False, "blas1": False},
     "fmm_smooth": {"smooth_fmm": True, "carry": False, "corner": False, "blas1": False},
@@ -86,6 +87,16 @@ DESIGNS: dict[str, dict[str, bool]] = {
         "lean": True,
         "once": True,
         "interleaved": True,
+    },
+    "second_sums": {
+        "smooth_fmm": True,
+        "carry": True,
+        "corner": True,
+        "blas1": True,
+        "lean": True,
+        "once": True,
+        "interleaved": True,
+        "second_sums": True,
     },
 }
 
@@ -140,6 +151,7 @@ def use_design(name: str) -> None:
     setattr(circledomain, "_local_grid_size", _GRID_SIZE if lean else _grid_size_all_points)  # noqa: B010
     once = d.get("once", False)
     gnk.DENSE_INTERLEAVED = d.get("interleaved", False)
+    diskmap.DERIVATIVE_FROM_SECOND_SUMS = d.get("second_sums", False)
     setattr(ConformalMap, "boundary_residuals", _RESIDUALS if once else _residuals_every_call)  # noqa: B010
 
 

@@ -38,7 +38,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from confnav.conformal.cauchy import cauchy_sums
+from confnav.conformal.cauchy import cauchy_sums, cauchy_sums2
 from confnav.conformal.gnk import (
     GMRES_RTOL,
     solve_gnk,
@@ -47,6 +47,13 @@ from confnav.conformal.gnk import (
 )
 from confnav.types import CArray as ComplexArray
 from confnav.types import FArray as FloatArray
+
+#: A map's derivative from the second-order sums of its two barycentric charges (the exact
+#: derivative of the quotient; with the FMM one call gives both orders) instead of a third
+#: charge, the boundary derivative (a third FMM call: pyfmmlib takes one charge vector per
+#: call). Off: measured in bench/README.md ("Residuals evaluated once; dense GNK matrices kept
+#: complex"), it changes the maps beyond rounding.
+DERIVATIVE_FROM_SECOND_SUMS = False
 
 
 @dataclass(frozen=True)
@@ -99,6 +106,10 @@ class CurveMap:
     def _evaluate_interior(
         self, z: ComplexArray, derivative: bool
     ) -> tuple[ComplexArray, ComplexArray | None]:
+        if derivative and DERIVATIVE_FROM_SECOND_SUMS:
+            first, second = cauchy_sums2(self.eta, [self.f * self.deta, self.deta], z)
+            N, D = -first[0], -first[1]  # sum q/(eta - z); its z-derivative sum q/(z - eta)^2
+            return N / D, (second[0] * D - N * second[1]) / D**2
         charges = [self.f * self.deta, self.deta] + ([self.df] if derivative else [])
         sums = self._sums(z, charges)
         w = sums[0] / sums[1]
@@ -116,6 +127,12 @@ class CurveMap:
         # undiminished to every distance.)
         dg = spectral_derivative_complex(g)
         w2pi = 2 * np.pi / self.eta.size / (2j * np.pi)
+        if derivative and DERIVATIVE_FROM_SECOND_SUMS:
+            first, second = cauchy_sums2(self.eta, [g * self.deta, self.deta], z)
+            den = 1.0 - w2pi * first[1]
+            gz = (self.scale - w2pi * first[0]) / den
+            dgz = w2pi * (second[0] - gz * second[1]) / den
+            return (z - a) * gz, gz + (z - a) * dgz
         charges = [g * self.deta, self.deta] + ([dg] if derivative else [])
         sums = self._sums(z, charges)
         den = 1.0 + w2pi * sums[1]
