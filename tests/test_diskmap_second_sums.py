@@ -49,3 +49,24 @@ def test_second_sums_match_the_third_charge_off_the_curve(monkeypatch: pytest.Mo
         out.append(f.evaluate(z))
     assert np.array_equal(out[0][0], out[1][0])
     assert np.max(np.abs(out[0][1] - out[1][1])) < 1e-13
+
+
+def test_a_solve_gives_the_third_charge_paths_map(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The whole solve (sweeps on smooth grids, FMM and expansions) with either derivative:
+    the same sweeps and circle domain to 1e-11, both tol_met."""
+    import warnings
+
+    import confnav
+    from confnav.scenes.workspaces import mirror_squares
+
+    maps = []
+    for flag in (False, True):
+        monkeypatch.setattr(diskmap, "DERIVATIVE_FROM_SECOND_SUMS", flag)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", confnav.AccuracyWarning)
+            maps.append(confnav.solve(mirror_squares(0.1), tol=1e-7))
+    a, b = maps
+    assert a.diagnostics.tol_met and b.diagnostics.tol_met
+    assert a.diagnostics.sweeps == b.diagnostics.sweeps
+    assert np.max(np.abs(a.centers - b.centers)) < 1e-11
+    assert np.max(np.abs(a.radii - b.radii)) < 1e-11

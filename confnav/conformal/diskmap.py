@@ -48,12 +48,18 @@ from confnav.conformal.gnk import (
 from confnav.types import CArray as ComplexArray
 from confnav.types import FArray as FloatArray
 
-#: A map's derivative from the second-order sums of its two barycentric charges (the exact
-#: derivative of the quotient; with the FMM one call gives both orders) instead of a third
-#: charge, the boundary derivative (a third FMM call: pyfmmlib takes one charge vector per
-#: call). Off: measured in bench/README.md ("Residuals evaluated once; dense GNK matrices kept
-#: complex"), it changes the maps beyond rounding.
-DERIVATIVE_FROM_SECOND_SUMS = False
+#: A map's derivative (``evaluate(z, derivative=True)``, what the Koebe sweeps ask for on
+#: every other boundary) from the second-order sums of its two barycentric charges, the exact
+#: derivative of the quotient ``N/D`` (with the FMM one call gives both orders: the Hessian
+#: of the same expansions), instead of the Cauchy sum of a third charge, the boundary
+#: derivative: pyfmmlib's ``lfmm2dparttarg`` takes one charge vector per call, and a complex
+#: charge already uses both of its real outputs, so the third sum was a third FMM call.
+#: Measured side by side (bench/README.md, "Residuals evaluated once; dense GNK matrices
+#: kept complex", ``koebe_second_sums.json``, CPU s): two squares 0.01 apart 16.9 -> 14.9
+#: (FMM sums 905 -> 771), 50 obstacles 15.5 -> 15.3 (171 -> 151), the default shrunk by
+#: 0.2 m 2.9 -> 2.8, the default workspace to 1e-10 1.1 -> 0.9; the same sweeps and
+#: estimates, the maps within 6.8e-12 (two squares 4.6e-14). False: the third charge (before).
+DERIVATIVE_FROM_SECOND_SUMS = True
 
 
 @dataclass(frozen=True)
