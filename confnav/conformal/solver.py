@@ -122,9 +122,13 @@ the same maps bitwise) and the dense GNK matrices kept complex
 | once / interleaved): 50 obstacles 17.6 / 15.9 | 16.1 / 15.5, the default workspace to 1e-10
 1.4 / 1.1 | 1.3 / 0.9, two squares 0.01 apart 17.2 / 17.0 | 17.0 / 16.6, shrunk 2.8 / 2.8 |
 2.8 / 2.9; the targets at 1d8599a (``core_targets_interleaved.json``, load 2.6-6.8): 1.43
-(first solve of the process), 2.95, 17.30 and 17.19 s. What is left is FMM sums (two squares:
-~900 per solve; pyfmmlib takes one charge vector per call, so a map evaluation's three sums
-cannot share one) and, on 50 obstacles, the expansions' O(holes x points) per sweep.
+(first solve of the process), 2.95, 17.30 and 17.19 s. Then the sweeps' map derivatives from
+the second-order sums of two charges (:data:`confnav.conformal.diskmap.DERIVATIVE_FROM_SECOND_SUMS`:
+two FMM calls per evaluation instead of three; ``koebe_second_sums.json`` at 8c92cc1, CPU s,
+before / after): two squares 0.01 apart 16.9 / 14.9 (FMM sums 905 / 771), 50 obstacles 15.5 /
+15.3, shrunk 2.9 / 2.8, the default workspace 1.1 / 0.9; the maps within 6.8e-12. What is left
+is FMM sums (two squares: 771 per solve) and, on 50 obstacles, the expansions' O(holes x
+points) per sweep.
 
 ``tol_met`` is true only if all are within ``tol`` and nothing is ``unverified``. A map that
 misses ``tol`` is returned with ``tol_met = False`` and an :class:`AccuracyWarning`; one whose
