@@ -580,8 +580,8 @@ class ConformalMap:
 
         Computed on the first call and kept (read-only arrays): the solver's certificate and
         its choice of sides to refine read the same evaluation. On 50 obstacles that second
-        evaluation (two FMM sums from every node to ~40,000 points) was ~0.7 of 16.5 s CPU
-        (bench/README.md, "Residuals evaluated once").
+        evaluation was two FMM sums from every node to ~40,000 points (side by side 17.6 ->
+        15.9 s CPU, the same maps bitwise; bench/README.md, "Residuals evaluated once").
         """
         if self._residuals is None:
             z, res, which = self._boundary_residuals()

@@ -111,8 +111,8 @@ SMOOTH_DENSE_MAX_NODES = 1024
 #: Keep a dense GNK matrix complex and take its real and imaginary parts' products through
 #: its float view (the other part's slots multiplied by exact zeros) instead of copying the
 #: parts into two real matrices. The copies (strided reads into freshly faulted-in pages)
-#: cost more than the products they served: on 50 obstacles 2.4 of 24 s in a cProfile, for
-#: ~5 GMRES products per graded solve. A product reads twice the memory of one part, so this
+#: cost more than the products they served, ~5 GMRES products per graded solve (a cProfile
+#: of 50 obstacles). A product reads twice the memory of one part, so this
 #: pays only while products per matrix stay few. Measured side by side (bench/README.md,
 #: "Residuals evaluated once; dense GNK matrices kept complex", koebe_interleaved.json, CPU s):
 #: the default workspace to 1e-10 1.3 -> 0.9, 50 obstacles 16.1 -> 15.5, two squares 0.01
