@@ -57,7 +57,12 @@ from confnav.scenes.workspaces import (
 #: ``lean``: that and the expansions' power tables built per degree (``cauchy._powers``) and
 #: the grid-size look-up limited to points within reach (``circledomain._local_grid_size``);
 #: every other design runs the implementations before them (:func:`_cumprod_powers`,
-#: :func:`_grid_size_all_points`).
+#: :func:`_grid_size_all_points`). ``once``: that and each map's boundary residuals evaluated
+#: once (``ConformalMap.boundary_residuals`` kept); the others evaluate them at every call
+#: (:func:`_residuals_every_call`, as before). ``interleaved``: that and the dense GNK
+#: matrices kept complex (gnk.DENSE_INTERLEAVED); the others copy their parts into two real
+#: matrices (as before). ``second_sums``: that and the maps' derivatives in the sweeps from the
+#: second-order sums of two charges (diskmap.DERIVATIVE_FROM_SECOND_SUMS; an experiment, off).
 DESIGNS: dict[str, dict[str, bool]] = {
     "before": {"smooth_fmm": False, "carry": False, "corner": False, "blas1": False},
     "fmm_smooth": {"smooth_fmm": True, "carry": False, "corner": False, "blas1": False},
@@ -66,7 +71,39 @@ DESIGNS: dict[str, dict[str, bool]] = {
     "carry_blas1": {"smooth_fmm": True, "carry": True, "corner": False, "blas1": True},
     "corner_blas1": {"smooth_fmm": True, "carry": True, "corner": True, "blas1": True},
     "lean": {"smooth_fmm": True, "carry": True, "corner": True, "blas1": True, "lean": True},
+    "once": {
+        "smooth_fmm": True,
+        "carry": True,
+        "corner": True,
+        "blas1": True,
+        "lean": True,
+        "once": True,
+    },
+    "interleaved": {
+        "smooth_fmm": True,
+        "carry": True,
+        "corner": True,
+        "blas1": True,
+        "lean": True,
+        "once": True,
+        "interleaved": True,
+    },
+    "second_sums": {
+        "smooth_fmm": True,
+        "carry": True,
+        "corner": True,
+        "blas1": True,
+        "lean": True,
+        "once": True,
+        "interleaved": True,
+        "second_sums": True,
+    },
 }
+
+
+def _residuals_every_call(m: ConformalMap) -> Any:
+    """``ConformalMap.boundary_residuals`` as it was before ``once``: evaluated at every call."""
+    return m._boundary_residuals()
 
 
 def _cumprod_powers(w: np.ndarray, p: int) -> np.ndarray:
@@ -112,11 +149,16 @@ def use_design(name: str) -> None:
     lean = d.get("lean", False)
     setattr(cauchy, "_powers", _POWERS if lean else _cumprod_powers)  # noqa: B010
     setattr(circledomain, "_local_grid_size", _GRID_SIZE if lean else _grid_size_all_points)  # noqa: B010
+    once = d.get("once", False)
+    gnk.DENSE_INTERLEAVED = d.get("interleaved", False)
+    diskmap.DERIVATIVE_FROM_SECOND_SUMS = d.get("second_sums", False)
+    setattr(ConformalMap, "boundary_residuals", _RESIDUALS if once else _residuals_every_call)  # noqa: B010
 
 
 _SMOOTH_DEFAULT = gnk.SMOOTH_DENSE_MAX_NODES
 _POWERS = cauchy._powers
 _GRID_SIZE = circledomain._local_grid_size
+_RESIDUALS = ConformalMap.boundary_residuals
 
 
 def asymmetry(m: ConformalMap) -> float:

@@ -137,3 +137,23 @@ def test_a_looser_initial_map_says_nothing_about_the_levels(cold: ConformalMap) 
         solver._warm_start_level(cold, 1e-8)
         == solver.LEVELS.index(cold.diagnostics.nodes_per_side) - 2
     )
+
+
+def test_boundary_residuals_are_evaluated_once_and_equal_a_fresh_evaluation(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The certificate and the choice of sides read one evaluation: the kept residuals are
+    bitwise a fresh evaluation's, the second call evaluates nothing, and they cannot be
+    changed through the arrays returned."""
+    m = _solve(mirror_squares(0.1), 1e-6, nodes_per_side=54)
+    fresh = m._boundary_residuals()
+    first = m.boundary_residuals()
+    for a, b in zip(fresh, first, strict=True):
+        assert np.array_equal(a, b)
+    assert m.diagnostics.boundary_residual == float(np.max(first[1]))
+    calls: list[int] = []
+    monkeypatch.setattr(m, "_boundary_residuals", lambda: calls.append(1))
+    again = m.boundary_residuals()
+    assert not calls and all(x is y for x, y in zip(again, first, strict=True))
+    with pytest.raises(ValueError):
+        again[1][0] = 0.0

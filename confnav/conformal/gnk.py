@@ -108,6 +108,19 @@ DENSE_MAX_NODES = 3200
 #: dense build wins there, hence the limit.
 SMOOTH_DENSE_MAX_NODES = 1024
 
+#: Keep a dense GNK matrix complex and take its real and imaginary parts' products through
+#: its float view (the other part's slots multiplied by exact zeros) instead of copying the
+#: parts into two real matrices. The copies (strided reads into freshly faulted-in pages)
+#: cost more than the products they served, ~5 GMRES products per graded solve (a cProfile
+#: of 50 obstacles). A product reads twice the memory of one part, so this
+#: pays only while products per matrix stay few. Measured side by side (bench/README.md,
+#: "Residuals evaluated once; dense GNK matrices kept complex", koebe_interleaved.json, CPU s):
+#: the default workspace to 1e-10 1.3 -> 0.9, 50 obstacles 16.1 -> 15.5, two squares 0.01
+#: apart 17.0 -> 16.6, the default shrunk by 0.2 m 2.8 -> 2.9 (noise); the same sweeps, maps
+#: within 4.9e-12. The products equal the copies' to rounding (the summation order of the
+#: BLAS kernels differs). False: two real copies (before).
+DENSE_INTERLEAVED = True
+
 #: A node whose quadrature weight |eta'| 2pi/n is below this fraction of the curve's size lies
 #: within rounding of its neighbours (graded nodes next to a corner, and their images under maps
 #: that compress the corner); it carries no information as a source and is dropped as one.
@@ -148,6 +161,7 @@ class _Operator:
         self.q0 = np.where(self.alive, deta / A, 0.0)
         limit = min(DENSE_MAX_NODES, SMOOTH_DENSE_MAX_NODES) if smooth else DENSE_MAX_NODES
         self.dense = not (_cauchy.HAVE_FMM and n > limit)
+        self.K: ComplexArray | None = None  # the dense matrix, complex (DENSE_INTERLEAVED)
         if self.dense:
             # K_ik = (2/n) A_i q0_k / (eta_k - eta_i), built in place (in-place reciprocal and
             # products: 3-5x faster than a complex division over n^2 entries, measured)
@@ -157,8 +171,14 @@ class _Operator:
             np.reciprocal(K, out=K)
             K *= (-2.0 / n) * A[:, None]
             K *= self.q0[None, :]
-            self.Kr = K.real.copy()
-            self.Ki = K.imag.copy()
+            if DENSE_INTERLEAVED:
+                # kept complex; products through its float view (DENSE_INTERLEAVED)
+                self.K = K
+                self._Kf = K.view(np.float64)  # (n, 2n): Re K_ik, Im K_ik interleaved
+                self.Kr, self.Ki = K.real, K.imag  # strided views (blocks, row sums)
+            else:
+                self.Kr = K.real.copy()
+                self.Ki = K.imag.copy()
             self.rowr = self.Kr.sum(axis=1)
             self.rowi = self.Ki.sum(axis=1)
         else:
@@ -178,10 +198,25 @@ class _Operator:
             out[~a] = (q[a][None, :] / d).sum(axis=1)
         return out
 
+    def _real(self, x: FloatArray, part: int) -> FloatArray:
+        """``Kr @ x`` (part 0) or ``Ki @ x`` (part 1) of the dense matrix."""
+        if self.K is None:
+            return np.asarray((self.Kr if part == 0 else self.Ki) @ x)
+        # x in the slots of one part of the interleaved row, zeros in the other's: one
+        # contiguous product over the complex matrix's memory (exact zeros add nothing)
+        xx = np.zeros(2 * self.n)
+        xx[part::2] = x
+        return np.asarray(self._Kf @ xx)
+
     def S(self, x: FloatArray) -> ComplexArray:
         """sum_{k != i} K_ik (x_k - x_i), complex (Re -> M part, Im -> N part)."""
         if self.dense:
-            return np.asarray((self.Kr @ x - self.rowr * x) + 1j * (self.Ki @ x - self.rowi * x))
+            if self.K is not None:  # both parts in one pass over the complex matrix
+                kx = self.K @ x.astype(np.complex128)
+                kr, ki = kx.real, kx.imag
+            else:
+                kr, ki = self._real(x, 0), self._real(x, 1)
+            return np.asarray((kr - self.rowr * x) + 1j * (ki - self.rowi * x))
         # one-entry memo: GMRES's last product is (I - N) mu of the solution, whose M mu (h)
         # needs the same FMM sum
         if self._last is not None and np.array_equal(self._last[0], x):
@@ -193,11 +228,11 @@ class _Operator:
 
     def I_minus_N(self, x: FloatArray) -> FloatArray:
         if self.dense:
-            return np.asarray(2 * x - (self.Ki @ x - self.rowi * x))
+            return np.asarray(2 * x - (self._real(x, 1) - self.rowi * x))
         return np.asarray(2 * x - self.S(x).imag)
 
     def M(self, x: FloatArray) -> FloatArray:
-        mx = self.Kr @ x - self.rowr * x if self.dense else self.S(x).real
+        mx = self._real(x, 0) - self.rowr * x if self.dense else self.S(x).real
         return np.asarray(mx + (2.0 / self.n) * spectral_derivative(x))
 
 
@@ -238,7 +273,7 @@ class _CornerBlocks:
         self.inverses: list[FloatArray] = []
         for idx in self.groups:
             if op.dense:
-                ki = op.Ki[np.ix_(idx, idx)]
+                ki = op.Ki[np.ix_(idx, idx)]  # a copy (fancy index), also of a view
             else:
                 d = np.subtract.outer(op.eta[idx], op.eta[idx])
                 np.fill_diagonal(d, np.inf)

@@ -114,7 +114,21 @@ asymmetry 1.5e-12 under the estimate 1.2e-9. The targets at 8791729
 power tables built per degree and the grid-size look-up limited to points within reach
 (``koebe_lean.json`` at 41d0c98: 50 obstacles 20.9 -> 17.2 s, the same maps) the targets at
 bf195f9 (``bench/results/core_targets_lean.json``, load 4.7-7.4), in the same order: 1.09,
-3.38, 18.02 and 17.42 s.
+3.38, 18.02 and 17.42 s. Then each map's boundary residuals evaluated once (the certificate
+and the per-side refinement read one evaluation, :meth:`ConformalMap.boundary_residuals`;
+the same maps bitwise) and the dense GNK matrices kept complex
+(:data:`confnav.conformal.gnk.DENSE_INTERLEAVED`; maps within 4.9e-12), side by side
+(``koebe_once.json`` at 3f25606 and ``koebe_interleaved.json`` at cf69531, CPU s, lean / once
+| once / interleaved): 50 obstacles 17.6 / 15.9 | 16.1 / 15.5, the default workspace to 1e-10
+1.4 / 1.1 | 1.3 / 0.9, two squares 0.01 apart 17.2 / 17.0 | 17.0 / 16.6, shrunk 2.8 / 2.8 |
+2.8 / 2.9; the targets at 1d8599a (``core_targets_interleaved.json``, load 2.6-6.8): 1.43
+(first solve of the process), 2.95, 17.30 and 17.19 s. Then the sweeps' map derivatives from
+the second-order sums of two charges (:data:`confnav.conformal.diskmap.DERIVATIVE_FROM_SECOND_SUMS`:
+two FMM calls per evaluation instead of three; ``koebe_second_sums.json`` at 8c92cc1, CPU s,
+before / after): two squares 0.01 apart 16.9 / 14.9 (FMM sums 905 / 771), 50 obstacles 15.5 /
+15.3, shrunk 2.9 / 2.8, the default workspace 1.1 / 0.9; the maps within 6.8e-12. What is left
+is FMM sums (two squares: 771 per solve) and, on 50 obstacles, the expansions' O(holes x
+points) per sweep.
 
 ``tol_met`` is true only if all are within ``tol`` and nothing is ``unverified``. A map that
 misses ``tol`` is returned with ``tol_met = False`` and an :class:`AccuracyWarning`; one whose

@@ -1,0 +1,64 @@
+"""Dense GNK matrices kept complex (``gnk.DENSE_INTERLEAVED``, issue 24): the products, row
+sums, corner blocks and solutions equal those of the two real copies (the path before) to
+rounding, on a graded L-shaped room (a 270-degree corner) and on a hole's exterior map."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from confnav.conformal import gnk
+from confnav.conformal.boundary import graded_polygon
+from confnav.conformal.diskmap import exterior_map, interior_map
+
+L_ROOM = np.array([0, 2, 2 + 1j, 1 + 1j, 1 + 2j, 2j]) + 0j
+
+
+def _operators(
+    monkeypatch: pytest.MonkeyPatch, eta: np.ndarray, deta: np.ndarray, A: np.ndarray
+) -> tuple[gnk._Operator, gnk._Operator]:
+    monkeypatch.setattr(gnk, "DENSE_INTERLEAVED", False)
+    split = gnk._Operator(eta, deta, A)
+    monkeypatch.setattr(gnk, "DENSE_INTERLEAVED", True)
+    kept = gnk._Operator(eta, deta, A)
+    return split, kept
+
+
+@pytest.mark.parametrize("nodes", [24, 96])
+def test_interleaved_products_equal_the_real_copies(
+    monkeypatch: pytest.MonkeyPatch, nodes: int
+) -> None:
+    mesh = graded_polygon(L_ROOM, nodes)
+    A = mesh.eta - (0.5 + 0.5j)
+    split, kept = _operators(monkeypatch, mesh.eta, mesh.deta, A)
+    assert kept.K is not None and split.K is None
+    assert np.array_equal(split.rowr, kept.rowr) and np.array_equal(split.rowi, kept.rowi)
+    x = np.random.default_rng(1).standard_normal(mesh.n)
+    scale = float(np.sum(np.abs(split.Ki) * np.abs(x)[None, :], axis=1).max())
+    eps = 64 * np.finfo(float).eps * scale
+    assert np.max(np.abs(kept.S(x) - split.S(x))) <= eps
+    assert np.max(np.abs(kept.I_minus_N(x) - split.I_minus_N(x))) <= eps
+    assert np.max(np.abs(kept.M(x) - split.M(x))) <= eps
+    # exact algebra on top of rounding: (I - N) x = 2x - Im S(x), M's dense part = Re S(x)
+    assert np.max(np.abs(kept.I_minus_N(x) - (2 * x - kept.S(x).imag))) <= eps
+    labels = mesh.corner_blocks()
+    a, b = gnk._CornerBlocks(split, labels), gnk._CornerBlocks(kept, labels)
+    for u, v in zip(a.blocks, b.blocks, strict=True):
+        assert np.array_equal(u, v)
+
+
+def test_maps_equal_the_real_copies_path(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Interior and exterior maps (with corner blocks, GMRES to rounding) agree with the
+    path before to 1e-13: the iterations match and the boundary values are the same map."""
+    mesh = graded_polygon(L_ROOM, 80)
+    hole = mesh.reversed()
+    out = {}
+    for flag in (False, True):
+        monkeypatch.setattr(gnk, "DENSE_INTERLEAVED", flag)
+        f = interior_map(mesh.eta, mesh.deta, 0.5 + 0.5j, rtol=1e-14, corners=mesh.corner_blocks())
+        F = exterior_map(hole.eta, hole.deta, 0.5 + 0.5j, rtol=1e-14, corners=hole.corner_blocks())
+        out[flag] = (f, F)
+    for old, new in zip(out[False], out[True], strict=True):
+        assert abs(old.gmres_iterations - new.gmres_iterations) <= 1
+        assert np.max(np.abs(old.f - new.f)) < 1e-13
+        assert abs(old.scale - new.scale) < 1e-13 * old.scale
