@@ -447,7 +447,7 @@ def _pieces(
             # grid is dropped after (later overlays would round to it: the cells rebuilt from
             # an index, without it, would give other overlaps)
             opened = shapely.set_precision(shapely.set_precision(opened.union(thin), grid), 0.0)
-            opened = _unpinched(opened, comp, grid)
+            opened = _unpinched(opened, comp, grid, overlap / 8)
         # a piece that does not reach into the core lies in the neighbours' cores, which
         # cover it deeply: drop it (measured: a 4.4 x 18 cm sliver along a corridor wall whose
         # solve missed 1e-6)
@@ -472,7 +472,7 @@ def _pinched_holes(poly: Polygon) -> list[int]:
     return sorted({int(i) for i, j in zip(a.tolist(), b.tolist(), strict=True) if j != i + 1})
 
 
-def _unpinched(opened: BaseGeometry, comp: Polygon, grid: float) -> BaseGeometry:
+def _unpinched(opened: BaseGeometry, comp: Polygon, grid: float, notch: float) -> BaseGeometry:
     """``opened`` with what the cleaning dropped inside a pinched hole given back.
 
     The opening's boundary can meet the cut edge (or another obstacle's dropped sliver) at a
@@ -485,7 +485,8 @@ def _unpinched(opened: BaseGeometry, comp: Polygon, grid: float) -> BaseGeometry
     a hole's ring (the obstacle's dropped sliver; the obstacle itself is no part of ``comp``)
     is given back: the obstacle is then the component's hole, strictly inside it, with the
     channel to the cut the cleaning would have removed (it costs the chart accuracy, not its
-    validity).
+    validity).  A contact the component itself has (the snapped cut through an obstacle's
+    lone vertex) gets a notch of half-side ``notch`` there instead.
     """
     out: list[Polygon] = []
     parts_in = _polygons(opened)
@@ -500,7 +501,28 @@ def _unpinched(opened: BaseGeometry, comp: Polygon, grid: float) -> BaseGeometry
             grown = shapely.set_precision(p.union(back.intersection(comp)), grid)
             parts = _polygons(shapely.set_precision(grown, 0.0))
             p = max(parts, key=lambda q: q.area)  # one piece: the slivers adjoin it
-        out.append(p)
+        bad = _pinched_holes(p)
+        if bad:
+            # the component itself has it: the snapped cut runs through an obstacle's lone
+            # vertex. The contact lies on the cut, deep in a neighbouring tile's core, which
+            # covers it: a notch of side ``notch`` there joins the obstacle to the cut
+            rings = [shapely.LinearRing(p.exterior.coords)]
+            rings += [shapely.LinearRing(h.coords) for h in p.interiors]
+            hit = shapely.union_all(
+                [rings[i + 1].intersection(r) for i in bad for r in rings if r is not rings[i + 1]]
+            )
+            cut_out = shapely.union_all(
+                [shapely.box(q.x - notch, q.y - notch, q.x + notch, q.y + notch)
+                 for q in shapely.get_parts(shapely.points(shapely.get_coordinates(hit)))]
+            )  # fmt: skip
+            parts = _polygons(shapely.set_precision(p.difference(cut_out), grid))
+            p = max(parts, key=lambda q: q.area)
+            if _pinched_holes(p):
+                raise WorkspaceError(
+                    f"atlas cell near {fmt_point(complex(hit.centroid.x, hit.centroid.y))}: an "
+                    "obstacle touches the cell's boundary at a point after cleaning"
+                )
+        out.append(shapely.set_precision(p, 0.0))
     return shapely.union_all(out) if len(out) != 1 else out[0]
 
 
