@@ -598,7 +598,7 @@ def decompose(
     forced = frozenset(split)
     floor = 1e-3 * 0.1 * r  # below this an automatic margin is a hairline, not a passage
     for _ in range(4):
-        dec = _connected(ws, params, margin, forced)
+        dec = _connected(ws, params, margin, forced, floor / AUTO_MARGIN_FRACTION)
         thin = dec.passage
         if thin is None or thin.depth >= margin:
             return dec
@@ -652,9 +652,9 @@ def _too_many_corners(pieces: list[Polygon], core: Tile, p: _Params) -> bool:
     return False
 
 
-def _components(dec: Decomposition) -> list[list[int]]:
-    """The cells of ``dec`` grouped by the overlaps linking them (:attr:`Decomposition.links`),
-    the group of the largest area first."""
+def _components(dec: Decomposition, hairline: float = 0.0) -> list[list[int]]:
+    """The cells of ``dec`` grouped by the overlaps linking them (:attr:`Decomposition.links`)
+    at least ``hairline`` deep, the group of the largest area first."""
     n = len(dec.cells)
     parent = list(range(n))
 
@@ -665,7 +665,8 @@ def _components(dec: Decomposition) -> list[list[int]]:
         return i
 
     for o in dec.links:
-        parent[root(o.a)] = root(o.b)
+        if o.depth >= hairline:
+            parent[root(o.a)] = root(o.b)
     groups: dict[int, list[int]] = {}
     for i in range(n):
         groups.setdefault(root(i), []).append(i)
@@ -673,7 +674,9 @@ def _components(dec: Decomposition) -> list[list[int]]:
     return sorted(groups.values(), key=lambda g: -float(area[g].sum()))
 
 
-def _connected(ws: Workspace, p: _Params, margin: float, forced: frozenset[Tile]) -> Decomposition:
+def _connected(
+    ws: Workspace, p: _Params, margin: float, forced: frozenset[Tile], hairline: float = 0.0
+) -> Decomposition:
     """:func:`_decompose` with every cell linked to the others through an overlap.
 
     A cell without any overlap with the rest (its group, :func:`_components`) is a piece of
@@ -687,11 +690,17 @@ def _connected(ws: Workspace, p: _Params, margin: float, forced: frozenset[Tile]
     image border, 5 cm wide between the border and the outer wall, with a 0.11 m^2 pocket
     behind it, raised :class:`PassageError` and the unshrunk map had no atlas): its cells
     are left out (:attr:`Decomposition.dropped`) and the atlas covers the rest.
+
+    An overlap less than ``hairline`` deep links nothing here (:func:`decompose` passes the
+    depth below which the automatic margin, half of it, would be a hairline): a group of
+    cells hanging on it alone is cut off too (measured: nav2's warehouse, unshrunk, after
+    its failed charts' tiles were split: two cells linked only across a gap of 1.35 mm
+    between two imported obstacles, and no margin fitted it).
     """
     grow: frozenset[Tile] = frozenset()
     while True:
         dec = _decompose(ws, p, margin, forced, grow)
-        groups = _components(dec)
+        groups = _components(dec, hairline)
         if len(groups) <= 1:
             return dec
         main = shapely.union_all([dec.cells[i].polygon for i in groups[0]])
@@ -718,7 +727,9 @@ def _connected(ws: Workspace, p: _Params, margin: float, forced: frozenset[Tile]
     out = replace(dec, cells=cells, dropped=tuple(q for parts in dropped for q in parts))
     # the links, re-indexed (computed once: the passage needs them)
     out.__dict__["links"] = tuple(
-        Overlap(new[o.a], new[o.b], o.point, o.depth) for o in dec.links if o.a in new
+        Overlap(new[o.a], new[o.b], o.point, o.depth)
+        for o in dec.links
+        if o.a in new and o.b in new
     )
     return out
 
