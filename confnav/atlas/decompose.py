@@ -516,6 +516,8 @@ def _unpinched(opened: BaseGeometry, comp: Polygon, grid: float, notch: float) -
                  for q in shapely.get_parts(shapely.points(shapely.get_coordinates(hit)))]
             )  # fmt: skip
             parts = _polygons(shapely.set_precision(p.difference(cut_out), grid))
+            if not parts:  # a speck within the notch (measured: 12 x 30 cm on the warehouse)
+                continue
             p = max(parts, key=lambda q: q.area)
             if _pinched_holes(p):
                 raise WorkspaceError(
@@ -523,7 +525,7 @@ def _unpinched(opened: BaseGeometry, comp: Polygon, grid: float, notch: float) -
                     "obstacle touches the cell's boundary at a point after cleaning"
                 )
         out.append(shapely.set_precision(p, 0.0))
-    return shapely.union_all(out) if len(out) != 1 else out[0]
+    return shapely.union_all(out) if len(out) != 1 else out[0]  # empty: no piece
 
 
 def decompose(
