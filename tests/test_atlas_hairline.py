@@ -12,7 +12,7 @@ import shapely
 from shapely.geometry import Polygon, box
 
 from confnav.atlas import decompose
-from confnav.atlas.decompose import _pieces, _pinched_holes
+from confnav.atlas.decompose import _pieces, _pinched_holes, _unpinched
 from confnav.geometry import Workspace
 
 
@@ -88,3 +88,35 @@ def test_a_chamfer_grown_onto_the_cut_leaves_no_hole_touching_the_cell_boundary(
     held = [p for p in pieces if any(Polygon(h).contains(Polygon(CHAMFERED).buffer(-1e-6))
                                      for h in p.interiors)]  # fmt: skip
     assert len(held) == 1
+
+
+# nav2 warehouse, a split tile's piece: the cleaning's cut ran through the corner (-6.85, 23.42)
+# of a one-cell obstacle (3 cm), which then touched the piece's outer ring there
+SPECK = shapely.from_wkt(
+    "POLYGON ((-6.85 23.63, -6.82 23.63, -6.82 23.45, -6.85 23.42, -6.94 23.33, -6.91 23.54, "
+    "-6.91 23.63, -6.88 23.63, -6.88 23.48, -6.85 23.48, -6.85 23.63), "
+    "(-6.85 23.45, -6.88 23.45, -6.88 23.42, -6.85 23.42, -6.85 23.45))"
+)
+SPECK_COMP = shapely.from_wkt(
+    "POLYGON ((-6.82 23.42, -6.79 23.3, -6.64 23.3, -6.61 23.27, -6.79 23.27, -6.81125 23.1, "
+    "-6.94 23.1, -6.94 23.15, -6.91 23.24, -6.91 23.3, -6.97 23.3, -6.94 23.33, -6.91 23.54, "
+    "-6.91 23.63, -6.88 23.63, -6.88 23.48, -6.85 23.48, -6.85 23.63, -6.82 23.63, "
+    "-6.82 23.45, -6.82 23.42), (-6.88 23.42, -6.85 23.42, -6.85 23.45, -6.88 23.45, "
+    "-6.88 23.42))"
+)
+
+
+@pytest.mark.parametrize("notch", [0.23, 0.01])
+def test_an_obstacle_corner_on_the_cleaned_boundary_gets_a_notch(notch: float) -> None:
+    """Giving back cannot help (the hole is the obstacle alone): a notch at the contact joins
+    the obstacle to the boundary; a piece the notch swallows whole (the warehouse's, with its
+    notch of 0.23 m) is dropped ("max() arg is an empty sequence" before)."""
+    assert _pinched_holes(SPECK) == [0]
+    out = _unpinched(SPECK, SPECK_COMP, 1e-9, notch)
+    pieces = [p for p in getattr(out, "geoms", [out]) if not p.is_empty]
+    for p in pieces:
+        assert isinstance(p, Polygon) and _pinched_holes(p) == []
+        _workspace(p)
+        assert p.within(SPECK.buffer(1e-9))
+    if notch < 0.1:  # a small notch keeps most of the piece
+        assert sum(p.area for p in pieces) > 0.5 * SPECK.area
