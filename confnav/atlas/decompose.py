@@ -485,8 +485,9 @@ def _unpinched(opened: BaseGeometry, comp: Polygon, grid: float, notch: float) -
     a hole's ring (the obstacle's dropped sliver; the obstacle itself is no part of ``comp``)
     is given back: the obstacle is then the component's hole, strictly inside it, with the
     channel to the cut the cleaning would have removed (it costs the chart accuracy, not its
-    validity).  A contact the component itself has (the snapped cut through an obstacle's
-    lone vertex) gets a notch of half-side ``notch`` there instead.
+    validity).  A contact giving back cannot remove (the snapped cut through an obstacle's
+    lone vertex, the cleaned boundary through an obstacle's corner) gets a notch of
+    half-side ``notch`` there instead.
     """
     out: list[Polygon] = []
     parts_in = _polygons(opened)
@@ -503,9 +504,11 @@ def _unpinched(opened: BaseGeometry, comp: Polygon, grid: float, notch: float) -
             p = max(parts, key=lambda q: q.area)  # one piece: the slivers adjoin it
         bad = _pinched_holes(p)
         if bad:
-            # the component itself has it: the snapped cut runs through an obstacle's lone
-            # vertex. The contact lies on the cut, deep in a neighbouring tile's core, which
-            # covers it: a notch of side ``notch`` there joins the obstacle to the cut
+            # giving back did not help: the snapped cut runs through an obstacle's lone vertex,
+            # or the boundary of what the cleaning dropped does (measured: a one-cell
+            # obstacle's corner on the warehouse). The contact lies within 3/4 of the band from
+            # the cut, in a neighbouring tile's core, which covers it: a notch of half-side
+            # ``notch`` there joins the obstacle to the boundary (a piece it swallows goes)
             rings = [shapely.LinearRing(p.exterior.coords)]
             rings += [shapely.LinearRing(h.coords) for h in p.interiors]
             hit = shapely.union_all(
