@@ -20,7 +20,10 @@ with small cells, each mapped on its own.  The cells come from overlapping tiles
 Why it covers: a free point lies in the core (un-enlarged) square of some tile, at least 3/4 of
 that tile's overlap from its cut edges; cleaning removes nothing of the core except where the
 free space itself is thinner than the opening (:func:`Decomposition.uncovered_area` measures
-it; the tests require 0).
+it; the tests require 0).  A region reached only through such a hairline gives cells linked
+to no other: their tiles are split, and what stays cut off is left out
+(:attr:`Decomposition.dropped`, :func:`_connected`); a cleaned piece whose obstacle touches
+its outer ring is repaired (:func:`_unpinched`).
 
 The margin (the depth a local goal needs inside an overlap, :mod:`confnav.atlas.compose`) is
 derived from the cells unless given: the cell graph links two cells through an overlap holding
