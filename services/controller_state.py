@@ -188,6 +188,9 @@ class ControllerCore(Service):
         # ws id -> robot id -> (goal, goal's ws) of the route hint last sent for that map
         # (services/controller_maps.py; the fetch thread's own)
         self._hinted: dict[str, dict[str, tuple[Any, str]]] = {}
+        # ws id -> the transform's error when its routes were last sent with a map query: a
+        # query retried on the same error sends only new routes (services/controller_maps.py)
+        self._hint_error: dict[str, str] = {}
         self.route_hints = True  # serve controller --no-route-hints: queries without payload
         # footprint ws id -> its exact shrunk workspace, whose safety grid was built before
         # its map came (services/controller_maps.py, _prebuild_safety)

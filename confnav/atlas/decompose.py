@@ -20,7 +20,10 @@ with small cells, each mapped on its own.  The cells come from overlapping tiles
 Why it covers: a free point lies in the core (un-enlarged) square of some tile, at least 3/4 of
 that tile's overlap from its cut edges; cleaning removes nothing of the core except where the
 free space itself is thinner than the opening (:func:`Decomposition.uncovered_area` measures
-it; the tests require 0).
+it; the tests require 0).  A region reached only through such a hairline gives cells linked
+to no other: their tiles are split, and what stays cut off is left out
+(:attr:`Decomposition.dropped`, :func:`_connected`); a cleaned piece whose obstacle touches
+its outer ring is repaired (:func:`_unpinched`).
 
 The margin (the depth a local goal needs inside an overlap, :mod:`confnav.atlas.compose`) is
 derived from the cells unless given: the cell graph links two cells through an overlap holding
@@ -39,7 +42,7 @@ See docs/ATLAS.md.
 from __future__ import annotations
 
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import cached_property
 
 import numpy as np
@@ -250,6 +253,11 @@ class Decomposition:
     max_ratio_holes: float
     max_obstacles: int
     split: frozenset[Tile] = field(default_factory=frozenset)
+    #: Regions of the free space the cells leave out (:func:`decompose`): each reached from
+    #: the rest only through a channel narrower than the cleaning's opening at the smallest
+    #: tile (a SLAM map's one-cell strip along the image border), so no overlap links its
+    #: cells to the others; the atlas does not cover them (:meth:`uncovered_area` counts them).
+    dropped: tuple[Polygon, ...] = ()
 
     def uncovered_area(self) -> float:
         """Area of the free space outside every cell (0 up to rounding when covered)."""
@@ -442,6 +450,7 @@ def _pieces(
             # grid is dropped after (later overlays would round to it: the cells rebuilt from
             # an index, without it, would give other overlaps)
             opened = shapely.set_precision(shapely.set_precision(opened.union(thin), grid), 0.0)
+            opened = _unpinched(opened, comp, grid, overlap / 8)
         # a piece that does not reach into the core lies in the neighbours' cores, which
         # cover it deeply: drop it (measured: a 4.4 x 18 cm sliver along a corridor wall whose
         # solve missed 1e-6)
@@ -451,6 +460,78 @@ def _pieces(
             if p.area >= min_area and p.intersection(core_box).area >= min_area
         )
     return out
+
+
+def _pinched_holes(poly: Polygon) -> list[int]:
+    """The holes of ``poly`` that touch its outer ring or another hole (shapely allows a
+    hole to touch a ring at one point; a :class:`Workspace` needs its obstacles strictly
+    inside and pairwise disjoint)."""
+    holes = [shapely.LinearRing(h.coords) for h in poly.interiors]
+    if not holes:
+        return []
+    rings = np.array([shapely.LinearRing(poly.exterior.coords), *holes], dtype=object)
+    tree = shapely.STRtree(rings)
+    a, b = tree.query(rings[1:], predicate="intersects")
+    return sorted({int(i) for i, j in zip(a.tolist(), b.tolist(), strict=True) if j != i + 1})
+
+
+def _unpinched(opened: BaseGeometry, comp: Polygon, grid: float, notch: float) -> BaseGeometry:
+    """``opened`` with what the cleaning dropped inside a pinched hole given back.
+
+    The opening's boundary can meet the cut edge (or another obstacle's dropped sliver) at a
+    single point: the sliver dropped between an obstacle and the cut then touches the cell's
+    outer ring there, and the obstacle with it becomes a hole touching the outer boundary,
+    which no :class:`Workspace` (hence no chart) accepts.  Measured on nav2's warehouse
+    (occupancy grid of 3 cm cells): an obstacle's 45-degree chamfer, grown by the mitred
+    dilation, reached the cut exactly at another of its corners (-7.15, 8.36), and the
+    unshrunk map's atlas failed to decompose.  The part of the component ``comp`` inside such
+    a hole's ring (the obstacle's dropped sliver; the obstacle itself is no part of ``comp``)
+    is given back: the obstacle is then the component's hole, strictly inside it, with the
+    channel to the cut the cleaning would have removed (it costs the chart accuracy, not its
+    validity).  A contact giving back cannot remove (the snapped cut through an obstacle's
+    lone vertex, the cleaned boundary through an obstacle's corner) gets a notch of
+    half-side ``notch`` there instead.
+    """
+    out: list[Polygon] = []
+    parts_in = _polygons(opened)
+    if not any(_pinched_holes(p) for p in parts_in):
+        return opened
+    for p in parts_in:
+        for _ in range(4):  # a given-back sliver may meet another; a few rounds settle it
+            bad = _pinched_holes(p)
+            if not bad:
+                break
+            back = shapely.union_all([Polygon(p.interiors[i].coords) for i in bad])
+            grown = shapely.set_precision(p.union(back.intersection(comp)), grid)
+            parts = _polygons(shapely.set_precision(grown, 0.0))
+            p = max(parts, key=lambda q: q.area)  # one piece: the slivers adjoin it
+        bad = _pinched_holes(p)
+        if bad:
+            # giving back did not help: the snapped cut runs through an obstacle's lone vertex,
+            # or the boundary of what the cleaning dropped does (measured: a one-cell
+            # obstacle's corner on the warehouse). The contact lies within 3/4 of the band from
+            # the cut, in a neighbouring tile's core, which covers it: a notch of half-side
+            # ``notch`` there joins the obstacle to the boundary (a piece it swallows goes)
+            rings = [shapely.LinearRing(p.exterior.coords)]
+            rings += [shapely.LinearRing(h.coords) for h in p.interiors]
+            hit = shapely.union_all(
+                [rings[i + 1].intersection(r) for i in bad for r in rings if r is not rings[i + 1]]
+            )
+            cut_out = shapely.union_all(
+                [shapely.box(q.x - notch, q.y - notch, q.x + notch, q.y + notch)
+                 for q in shapely.get_parts(shapely.points(shapely.get_coordinates(hit)))]
+            )  # fmt: skip
+            parts = _polygons(shapely.set_precision(p.difference(cut_out), grid))
+            if not parts:  # a speck within the notch (measured: 12 x 30 cm on the warehouse)
+                continue
+            p = max(parts, key=lambda q: q.area)
+            if _pinched_holes(p):
+                raise WorkspaceError(
+                    f"atlas cell near {fmt_point(complex(hit.centroid.x, hit.centroid.y))}: an "
+                    "obstacle touches the cell's boundary at a point after cleaning"
+                )
+        out.append(shapely.set_precision(p, 0.0))
+    return shapely.union_all(out) if len(out) != 1 else out[0]  # empty: no piece
 
 
 def decompose(
@@ -525,7 +606,7 @@ def decompose(
     forced = frozenset(split)
     floor = 1e-3 * 0.1 * r  # below this an automatic margin is a hairline, not a passage
     for _ in range(4):
-        dec = _decompose(ws, params, margin, forced)
+        dec = _connected(ws, params, margin, forced, floor / AUTO_MARGIN_FRACTION)
         thin = dec.passage
         if thin is None or thin.depth >= margin:
             return dec
@@ -579,8 +660,98 @@ def _too_many_corners(pieces: list[Polygon], core: Tile, p: _Params) -> bool:
     return False
 
 
-def _decompose(ws: Workspace, p: _Params, margin: float, forced: frozenset[Tile]) -> Decomposition:
-    """The quadtree of :func:`decompose` for one margin (module docstring, steps 1-4)."""
+def _components(dec: Decomposition, hairline: float = 0.0) -> list[list[int]]:
+    """The cells of ``dec`` grouped by the overlaps linking them (:attr:`Decomposition.links`)
+    at least ``hairline`` deep, the group of the largest area first."""
+    n = len(dec.cells)
+    parent = list(range(n))
+
+    def root(i: int) -> int:
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    for o in dec.links:
+        if o.depth >= hairline:
+            parent[root(o.a)] = root(o.b)
+    groups: dict[int, list[int]] = {}
+    for i in range(n):
+        groups.setdefault(root(i), []).append(i)
+    area = np.array([c.polygon.area for c in dec.cells])
+    return sorted(groups.values(), key=lambda g: -float(area[g].sum()))
+
+
+def _connected(
+    ws: Workspace, p: _Params, margin: float, forced: frozenset[Tile], hairline: float = 0.0
+) -> Decomposition:
+    """:func:`_decompose` with every cell linked to the others through an overlap.
+
+    A cell without any overlap with the rest (its group, :func:`_components`) is a piece of
+    the free space reached only through a channel the cleaning of :func:`_pieces` removed
+    where it crosses a cut: narrower than the opening, ``3/4`` of the band.  The band
+    shrinks with the tile, so the tiles of the cut-off group and of the main group's cells
+    nearest it are split (down to ``min_tile`` and ``FORCED_MIN_MARGINS`` margins) and the
+    decomposition redone: a channel as
+    wide as the opening at ``min_tile`` is kept.  What stays cut off at ``min_tile`` is a
+    hairline channel (measured: nav2's depot, its one-cell strip of free space along the
+    image border, 5 cm wide between the border and the outer wall, with a 0.11 m^2 pocket
+    behind it, raised :class:`PassageError` and the unshrunk map had no atlas): its cells
+    are left out (:attr:`Decomposition.dropped`) and the atlas covers the rest.
+
+    An overlap less than ``hairline`` deep links nothing here (:func:`decompose` passes the
+    depth below which the automatic margin, half of it, would be a hairline): a group of
+    cells hanging on it alone is cut off too (measured: nav2's warehouse, unshrunk, after
+    its failed charts' tiles were split: two cells linked only across a gap of 1.35 mm
+    between two imported obstacles, and no margin fitted it).
+    """
+    grow: frozenset[Tile] = frozenset()
+    while True:
+        dec = _decompose(ws, p, margin, forced, grow)
+        groups = _components(dec, hairline)
+        if len(groups) <= 1:
+            return dec
+        main = shapely.union_all([dec.cells[i].polygon for i in groups[0]])
+        main_tree = shapely.STRtree([dec.cells[i].polygon for i in groups[0]])
+        more: set[Tile] = set()
+        for g in groups[1:]:
+            more |= {dec.cells[i].tile for i in g}
+            near = main_tree.nearest(shapely.union_all([dec.cells[i].polygon for i in g]))
+            more.add(dec.cells[groups[0][int(near)]].tile)
+        # not below 2 margins either: a core smaller than the least piece (margin^2 / 2)
+        # keeps no piece, and the cells there would vanish instead of linking
+        floor = max(p.min_tile, FORCED_MIN_MARGINS * margin)
+        more = {t for t in more if (t[2] - t[0]) / 2 >= floor - 1e-12} - grow
+        if not more:
+            break
+        grow = grow | more
+    keep = sorted(groups[0])
+    new = {old: k for k, old in enumerate(keep)}
+    cells = tuple(replace(dec.cells[i], index=new[i]) for i in keep)
+    dropped = tuple(
+        _polygons(shapely.union_all([dec.cells[i].polygon for i in g]).difference(main))
+        for g in groups[1:]
+    )
+    out = replace(dec, cells=cells, dropped=tuple(q for parts in dropped for q in parts))
+    # the links, re-indexed (computed once: the passage needs them)
+    out.__dict__["links"] = tuple(
+        Overlap(new[o.a], new[o.b], o.point, o.depth)
+        for o in dec.links
+        if o.a in new and o.b in new
+    )
+    return out
+
+
+def _decompose(
+    ws: Workspace,
+    p: _Params,
+    margin: float,
+    forced: frozenset[Tile],
+    grow: frozenset[Tile] = frozenset(),
+) -> Decomposition:
+    """The quadtree of :func:`decompose` for one margin (module docstring, steps 1-4);
+    ``grow``: tiles split once more regardless (:func:`_connected` keeps them at least
+    ``min_tile`` and ``FORCED_MIN_MARGINS`` margins wide)."""
     free = ws.polygon
     tile, overlap, min_tile = p.tile, p.overlap, p.min_tile
     min_area = 0.5 * margin**2
@@ -617,6 +788,7 @@ def _decompose(ws: Workspace, p: _Params, margin: float, forced: frozenset[Tile]
         floor = FORCED_MIN_MARGINS * margin if core in forced else min_tile
         if not bad and p.fine and side / 2 >= min_tile - 1e-12:
             bad = _too_many_corners(pieces, core, p)
+        bad = bad or core in grow
         if (bad or core in forced) and side / 2 >= floor - 1e-12:
             cx, cy = (core[0] + core[2]) / 2, (core[1] + core[3]) / 2
             todo += [
