@@ -5,9 +5,10 @@
     python -m bench slam_services [--quick]
 
 The maps, the body and the start/goal pairs are :mod:`bench_slam`'s (the first ``--pairs``
-of its ``PAIRS`` pairs per map, seed ``SEED``: a 0.22 m unicycle with a 0.1 m look-ahead, so
-its map is ``{map}~r0.32``). Per map, real service processes as ``confnav launch`` starts
-them (``confnav -v serve router|transform|controller|simulator``, INFO logs as the launcher
+of its ``PAIRS`` pairs per map, seed ``SEED``, whose starts and goals are ``SEPARATION``
+apart: a 0.22 m unicycle with a 0.1 m look-ahead, so its map is ``{map}~r0.32``). Per map,
+real service processes as ``confnav launch`` starts them
+(``confnav -v serve router|transform|controller|simulator``, INFO logs as the launcher
 writes them to its log directory, TCP loopback, one BLAS thread each, the services'
 defaults: a progressive atlas with route hints): the transform service loads the imported
 map (``confnav import-map``'s defaults, a workspace file), the simulator the same map with
@@ -74,6 +75,9 @@ K = Keys()
 HERE = Path(__file__).resolve().parent
 RESULTS = HERE / "results" / "slam_services.json"
 PAIRS = 3
+#: m between any two starts or goals of the robots sharing a map (two 0.22 m bodies, 0.2 m to
+#: pass): pairs_of
+SEPARATION = 2 * 0.22 + 0.2
 QUICK_PAIRS = 2
 SETTLE_S = 20.0
 ARRIVE_TIMEOUT_S = 180.0
@@ -157,12 +161,25 @@ def stop(procs: list[Any]) -> None:
 def pairs_of(
     nav_ws: Any, n: int, all_pairs: int, seed: int
 ) -> list[tuple[complex, complex, float]]:
-    """:mod:`bench_slam`'s pairs of a map (its ``all_pairs`` with ``seed``), the first ``n``."""
+    """:mod:`bench_slam`'s pairs of a map (its ``all_pairs`` with ``seed``): the first ``n``
+    whose starts and goals are at least ``SEPARATION`` apart from those of the pairs taken
+    before (robots that share a map at once: two bodies cannot both stand on goals closer
+    than their diameter; before, a tb3_world goal 0.28 m from another robot's made one of
+    them yield for good)."""
     from bench_slam import LOOKAHEAD
 
     pts = random_starts(nav_ws, 2 * all_pairs, seed=seed, margin=0.05 + LOOKAHEAD)
     heads = np.random.default_rng(seed).uniform(-np.pi, np.pi, all_pairs)
-    return [(complex(pts[i]), complex(pts[all_pairs + i]), float(heads[i])) for i in range(n)]
+    out: list[tuple[complex, complex, float]] = []
+    taken: list[complex] = []
+    for i in range(all_pairs):
+        s, g = complex(pts[i]), complex(pts[all_pairs + i])
+        if all(abs(s - q) >= SEPARATION and abs(g - q) >= SEPARATION for q in taken):
+            out.append((s, g, float(heads[i])))
+            taken += [s, g]
+        if len(out) == n:
+            break
+    return out
 
 
 def base_settled(w: Watch, ws_id: str) -> bool:
@@ -362,6 +379,9 @@ def run_map(name: str, n_pairs: int, args: Any, tmp: Path) -> dict[str, Any]:
                     "last_status": None
                     if last is None
                     else [last.state, last.reason, last.message[:160]],
+                    "last_pose": None
+                    if not poses[rid]
+                    else [poses[rid][-1].x, poses[rid][-1].y, poses[rid][-1].theta],
                     **body_collisions(ws, poses[rid], RADIUS),
                 }
             )
