@@ -59,7 +59,12 @@ from confnav.types import FArray as FloatArray
 #: (FMM sums 905 -> 771), 50 obstacles 15.5 -> 15.3 (171 -> 151), the default shrunk by
 #: 0.2 m 2.9 -> 2.8, the default workspace to 1e-10 1.1 -> 0.9; the same sweeps and
 #: estimates, the maps within 6.8e-12 (two squares 4.6e-14). False: the third charge (before).
-DERIVATIVE_FROM_SECOND_SUMS = True
+#: Off by default: on the default workspace's map solved with it, the harmonic fleet step and
+#: each robot's own step (tests/test_fleet_step.py) differ by a median 1.3e-14 relative, over
+#: that test's rounding bound 1e-14, against 4.7e-15 without it
+#: (``bench/results/second_sums_fleet_step.json``, one BLAS thread); the gain is mostly the two
+#: squares' (16.9 -> 14.9 s CPU).
+DERIVATIVE_FROM_SECOND_SUMS = False
 
 
 @dataclass(frozen=True)

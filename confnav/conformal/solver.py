@@ -126,7 +126,8 @@ the same maps bitwise) and the dense GNK matrices kept complex
 the second-order sums of two charges (:data:`confnav.conformal.diskmap.DERIVATIVE_FROM_SECOND_SUMS`:
 two FMM calls per evaluation instead of three; ``koebe_second_sums.json`` at 8c92cc1, CPU s,
 before / after): two squares 0.01 apart 16.9 / 14.9 (FMM sums 905 / 771), 50 obstacles 15.5 /
-15.3, shrunk 2.9 / 2.8, the default workspace 1.1 / 0.9; the maps within 6.8e-12. What is left
+15.3, shrunk 2.9 / 2.8, the default workspace 1.1 / 0.9; the maps within 6.8e-12; off by
+default (its docstring: the harmonic fleet step then leaves its rounding bound). What is left
 is FMM sums (two squares: 771 per solve) and, on 50 obstacles, the expansions' O(holes x
 points) per sweep.
 
