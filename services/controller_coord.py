@@ -93,8 +93,9 @@ class CoordMixin(ControllerCore):
                 cmap = law.cmap
             else:  # an atlas (AtlasController): straight node laws on its workspace
                 cmap = getattr(getattr(law, "nav", None), "atlas", None)
-            if r.goal is None or r.base_ws or getattr(cmap, "workspace", None) is None:
-                continue
+            ws = getattr(cmap, "workspace", None)
+            if r.goal is None or r.base_ws or not hasattr(ws, "content_hash"):
+                continue  # no goal, on the base map, or no polygonal workspace (a test's map)
             d = float(getattr(ctrl, "d", 0.0)) if getattr(ctrl, "frame", "") == "body" else 0.0
             # one fleet per free space (not per map object: a re-solved map or an atlas
             # whose charts come in one by one is a new object for the same robots' floor)

@@ -453,13 +453,8 @@ def solve_atlas(
     the charts solved so far. The result is the same atlas. ``split_early``: a failed route
     cell ends its round at once (off: it delayed the first robot on tb3_world).
 
-    ``priority`` may be a callable returning the pairs (robots' routes that arrive while the
-    atlas solves: the transform service's route hints, docs/SLAM.md "Progressive atlas"): it
-    is read at each round's start and, when cells are solved batch by batch (an ``executor``
-    such as the transform service's, with ``on_partial``), before every batch: the cells of
-    routes that came meanwhile go into the next batch. On a process pool chart by chart,
-    every cell of a round is submitted at its start, so new routes count from the next
-    round.
+    ``priority`` may be a callable returning the pairs (routes that arrive while the atlas
+    solves: :func:`_routes_of`).
 
     Raises
     ------
@@ -491,21 +486,13 @@ def solve_atlas(
             if progress is not None:
                 progress(f"atlas: {len(dec.cells)} cells, solving {len(todo)}")
 
-            def partial(
-                dec: Decomposition = dec, keys: list[str] = keys, rnd: int = _round
-            ) -> None:
-                if on_partial is not None:
-                    charts = tuple(done.get(k) for k in keys)
-                    on_partial(PartialAtlas(dec, charts, tol, rnd, time.perf_counter() - t0))
-
+            partial = _partial_of(on_partial, dec, keys, done, tol, _round, t0)
             if on_partial is not None and len(todo) < len(keys):
                 partial()  # the charts this round reuses
             every = max(1, batch if batch is not None else 4 * max(1, workers))
-            batches: Iterable[list[int]] = (
-                _Batches(dec, todo, len(first), pairs, routes, workers, every)
-                if on_partial is not None
-                else [todo]
-            )
+            batches: Iterable[list[int]] = [todo]
+            if on_partial is not None:
+                batches = _Batches(dec, todo, len(first), pairs, routes, workers, every)
             failed: list[Tile] = []
             if on_partial is not None and isinstance(pool, ProcessPoolExecutor):
                 failed, ended = _round_by_chart(
@@ -531,6 +518,26 @@ def solve_atlas(
             f.cancel()
         if own and pool is not None:
             pool.shutdown()
+
+
+def _partial_of(
+    on_partial: Callable[[PartialAtlas], None] | None,
+    dec: Decomposition,
+    keys: list[str],
+    done: dict[str, ConformalMap],
+    tol: float,
+    rnd: int,
+    t0: float,
+) -> Callable[[], None]:
+    """What :func:`solve_atlas` calls after a batch of round ``rnd``: ``on_partial`` with the
+    charts solved so far (``done``, read at the call), or nothing."""
+
+    def partial() -> None:
+        if on_partial is not None:
+            charts = tuple(done.get(k) for k in keys)
+            on_partial(PartialAtlas(dec, charts, tol, rnd, time.perf_counter() - t0))
+
+    return partial
 
 
 def _still_failing(records: list[ChartRecord], max_rounds: int) -> SolverError:
@@ -700,7 +707,14 @@ def _batches(todo: list[int], n_first: int, workers: int, every: int) -> list[li
 
 def _routes_of(priority: Routes) -> Callable[[], tuple[tuple[complex, complex], ...]]:
     """``priority`` as a callable returning the current pairs as a tuple (a fixed sequence
-    returns itself; a callable that raises counts as no routes: hints only steer the order)."""
+    returns itself; a callable that raises counts as no routes: hints only steer the order).
+
+    A callable ``priority`` of :func:`solve_atlas` (robots' routes that arrive while the atlas
+    solves: the transform service's route hints, docs/SLAM.md "Progressive atlas") is read at
+    each round's start and, when cells are solved batch by batch (an ``executor`` such as the
+    transform service's, with ``on_partial``), before every batch: the cells of routes that
+    came meanwhile go into the next batch. On a process pool chart by chart, every cell of a
+    round is submitted at its start, so new routes count from the next round."""
     if not callable(priority):
         fixed = tuple((complex(a), complex(b)) for a, b in priority)
         return lambda: fixed

@@ -641,22 +641,8 @@ class RoadmapCoordinator:
             self.excursions[i] = ex
             fixed[i] = True
             asked.append(i)
-        over = road & (t - self.pend_since >= self.patience)  # NaN (not pending): False
-        self.suspend_until[over] = t + self.patience
-        self.pend_since[over] = np.nan
-        for i in np.flatnonzero(over).tolist():
-            self.excursions.pop(i, None)
-            self.eta[i] = 0.0
-            fixed[i] = bool(late[i])  # a robot still on its way stays fixed regardless
-            if i in asked:
-                asked.remove(i)
-        closed_nodes = set()
-        closed_edges = set()
-        for ex in self.excursions.values():
-            closed_nodes |= ex.nodes
-        for j, ex in self.excursions.items():
-            if self.mode[j] != ROAD or j in starting:
-                closed_edges |= ex.edges
+        self._drop_overdue(t, road, late, fixed, asked)
+        closed_nodes, closed_edges = self._closed(starting)
         prio = self.eta + self._tie
         prio = np.where(np.isin(np.arange(self.n), asked), prio + 1e6, prio)  # at goal: hold
         nxt = pibt_step(
@@ -684,6 +670,38 @@ class RoadmapCoordinator:
         for i in starting:
             self.mode[i] = GOAL_LEG
             self.pend_since[i] = np.nan
+
+    def _drop_overdue(
+        self,
+        t: float,
+        road: NDArray[np.bool_],
+        late: NDArray[np.bool_],
+        fixed: NDArray[np.bool_],
+        asked: list[int],
+    ) -> None:
+        """Excursion requests pending ``patience`` s are dropped and suspended for as long
+        (the robot is then an ordinary agent); ``fixed`` and ``asked`` updated in place."""
+        over = road & (t - self.pend_since >= self.patience)  # NaN (not pending): False
+        self.suspend_until[over] = t + self.patience
+        self.pend_since[over] = np.nan
+        for i in np.flatnonzero(over).tolist():
+            self.excursions.pop(i, None)
+            self.eta[i] = 0.0
+            fixed[i] = bool(late[i])  # a robot still on its way stays fixed regardless
+            if i in asked:
+                asked.remove(i)
+
+    def _closed(self, starting: list[int]) -> tuple[set[int], set[tuple[int, int]]]:
+        """The roadmap nodes every excursion closes, and the edges of those under way or
+        starting this tick (a pending one keeps its edges open)."""
+        closed_nodes: set[int] = set()
+        closed_edges: set[tuple[int, int]] = set()
+        for ex in self.excursions.values():
+            closed_nodes |= ex.nodes
+        for j, ex in self.excursions.items():
+            if self.mode[j] != ROAD or j in starting:
+                closed_edges |= ex.edges
+        return closed_nodes, closed_edges
 
     def _revert(self, t: float, late: NDArray[np.bool_]) -> None:
         """A robot on its way that has not come 0.05 m nearer its next node for
