@@ -1018,9 +1018,7 @@ def solve(
             if warm is not None:
                 return warm
         levels = _mesh_levels(tol, nodes_per_side, initial)
-        cmap = _Refinement(workspace, tol, max_error, progress, koebe_accel, t0, method).run(
-            levels
-        )
+        cmap = _Refinement(workspace, tol, max_error, progress, koebe_accel, t0, method).run(levels)
     _refuse_unusable(cmap, max_error)
     if not cmap.diagnostics.tol_met:
         _warn_tol_missed(cmap.diagnostics, tol)
