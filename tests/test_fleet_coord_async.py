@@ -373,3 +373,22 @@ def test_auto_chooses_the_roadmap_where_a_passage_is_single_lane() -> None:
     assert got["door 0.9"][1] == pytest.approx(0.9 - 2 * R, abs=0.01)
     assert got["lane"][1] == pytest.approx(0.7 - 2 * R, abs=0.01)
     assert abs(got["door 0.9"][2] - (3.0 + 1.5j)) < 0.1  # found in the door
+
+
+def test_straight_node_laws_do_not_take_a_robot_with_no_node_in_sight(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """With straight node laws (an atlas) a robot that sees no free node would drive into a
+    wall toward the nearest one and stay there (tb3_world through the services: 'joining the
+    roadmap at node 3' for 180 s); ``add`` refuses it (the host leaves it to the local rules
+    and asks again on its next pose). With a node in sight it is taken as before."""
+    from confnav.navigation import fleet_coord
+
+    c = RoadmapCoordinator.build(None, 0, R, node_law="line", workspace=inflate(LANE, R))
+    real = fleet_coord.segment_clearance
+    monkeypatch.setattr(fleet_coord, "segment_clearance", lambda ws, a, b: real(ws, a, b) - 1e3)
+    with pytest.raises(NavigationError, match="no free roadmap node in straight sight"):
+        c.add(0.8 + 0.6j)
+    assert c.n == 0
+    monkeypatch.setattr(fleet_coord, "segment_clearance", real)
+    assert c.add(0.8 + 0.6j) == 0 and c.mode[0] == RETURN_LEG

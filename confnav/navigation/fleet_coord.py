@@ -421,9 +421,10 @@ class RoadmapCoordinator:
     def add(self, p: complex) -> int:
         """A new robot at ``p`` (its controlled point): it gets the free main-component node
         nearest ``p`` among those with a free straight segment to ``p`` (the nearest if none
-        of the eight nearest has; free: no robot is on it, bound for it or coming from it,
-        and no excursion closes it) and drives there first (return leg); its index.  For a host
-        whose robots come and go (:class:`FleetCoordinator`)."""
+        of the eight nearest has, with conformal node laws; with straight ones
+        (:class:`LineLaw`) a ``NavigationError``; free: no robot is on it, bound for it or
+        coming from it, and no excursion closes it) and drives there first (return leg); its
+        index.  For a host whose robots come and go (:class:`FleetCoordinator`)."""
         used = {int(v) for v in np.concatenate([self.at, self.nxt, self.origin])}
         for ex in self.excursions.values():
             used |= ex.nodes
@@ -432,6 +433,12 @@ class RoadmapCoordinator:
             raise NavigationError(f"no free roadmap node for robot {self.n}")
         near = free[np.argsort(np.abs(self.roadmap.nodes[free] - complex(p)))[:8]]
         seen = segment_clearance(self._workspace(), self.roadmap.nodes[near], complex(p)) > 0
+        if not seen.any() and isinstance(self.node_ctrls[0], LineLaw):
+            # a straight node law cannot go round a wall: on tb3_world through the services a
+            # robot stayed "joining the roadmap" at a node behind one for 180 s
+            # (bench/results/slam_services_final.json); it drives on its own law (the local
+            # rules) until a node is in sight, then joins
+            raise NavigationError(f"no free roadmap node in straight sight of {complex(p)}")
         v = int(near[np.flatnonzero(seen)[0]] if seen.any() else near[0])
         fill = {"at": v, "nxt": v, "mode": RETURN_LEG, "eta": 0.0, "goal_node": v,
                 "goal_pt": np.nan + 0j, "pend_since": np.nan, "suspend_until": -np.inf,
