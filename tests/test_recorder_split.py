@@ -276,6 +276,12 @@ def test_each_segment_alone_checks_inspects_and_draws(
             "r2": (0.0, 0.0),
         }, seg
         assert any(is_viz_topic(c.topic) and c.count > 0 for c in rep.channels), seg
+        has_pose = any(c.topic.endswith("/pose") and c.count > 0 for c in rep.channels)
+        if any(c.topic.endswith("/cmd_vel") for c in rep.channels) and not has_pose:
+            # poses are events, not latched state: only the segment cut at shutdown may hold
+            # commands without the poses they answer (seen once in a loaded full run)
+            assert seg == segs[-1], seg
+            continue
         if any(c.topic.endswith("/cmd_vel") for c in rep.channels):
             report = check_recording(seg, load_map=identity_loader)
             assert report.ok, report.format()
