@@ -63,6 +63,7 @@ from confnav.scenes.workspaces import (
 #: matrices kept complex (gnk.DENSE_INTERLEAVED); the others copy their parts into two real
 #: matrices (as before). ``second_sums``: that and the maps' derivatives in the sweeps from the
 #: second-order sums of two charges (diskmap.DERIVATIVE_FROM_SECOND_SUMS; an experiment, off).
+_LEAN = {"smooth_fmm": True, "carry": True, "corner": True, "blas1": True, "lean": True}
 DESIGNS: dict[str, dict[str, bool]] = {
     "before": {"smooth_fmm": False, "carry": False, "corner": False, "blas1": False},
     "fmm_smooth": {"smooth_fmm": True, "carry": False, "corner": False, "blas1": False},
@@ -70,34 +71,10 @@ DESIGNS: dict[str, dict[str, bool]] = {
     "corner": {"smooth_fmm": True, "carry": True, "corner": True, "blas1": False},
     "carry_blas1": {"smooth_fmm": True, "carry": True, "corner": False, "blas1": True},
     "corner_blas1": {"smooth_fmm": True, "carry": True, "corner": True, "blas1": True},
-    "lean": {"smooth_fmm": True, "carry": True, "corner": True, "blas1": True, "lean": True},
-    "once": {
-        "smooth_fmm": True,
-        "carry": True,
-        "corner": True,
-        "blas1": True,
-        "lean": True,
-        "once": True,
-    },
-    "interleaved": {
-        "smooth_fmm": True,
-        "carry": True,
-        "corner": True,
-        "blas1": True,
-        "lean": True,
-        "once": True,
-        "interleaved": True,
-    },
-    "second_sums": {
-        "smooth_fmm": True,
-        "carry": True,
-        "corner": True,
-        "blas1": True,
-        "lean": True,
-        "once": True,
-        "interleaved": True,
-        "second_sums": True,
-    },
+    "lean": _LEAN,
+    "once": {**_LEAN, "once": True},
+    "interleaved": {**_LEAN, "once": True, "interleaved": True},
+    "second_sums": {**_LEAN, "once": True, "interleaved": True, "second_sums": True},
 }
 
 

@@ -325,10 +325,7 @@ class Decomposition:
         parent = list(range(n))
 
         def root(i: int) -> int:
-            while parent[i] != i:
-                parent[i] = parent[parent[i]]
-                i = parent[i]
-            return i
+            return _root(parent, i)
 
         groups, last = n, None
         for o in sorted(self.links, key=lambda o: -o.depth):
@@ -660,6 +657,15 @@ def _too_many_corners(pieces: list[Polygon], core: Tile, p: _Params) -> bool:
     return False
 
 
+def _root(parent: list[int], i: int) -> int:
+    """The root of ``i`` in the union-find forest ``parent`` (path halving; Tarjan and van
+    Leeuwen, "Worst-case analysis of set union algorithms", J. ACM 31, 1984)."""
+    while parent[i] != i:
+        parent[i] = parent[parent[i]]
+        i = parent[i]
+    return i
+
+
 def _components(dec: Decomposition, hairline: float = 0.0) -> list[list[int]]:
     """The cells of ``dec`` grouped by the overlaps linking them (:attr:`Decomposition.links`)
     at least ``hairline`` deep, the group of the largest area first."""
@@ -667,10 +673,7 @@ def _components(dec: Decomposition, hairline: float = 0.0) -> list[list[int]]:
     parent = list(range(n))
 
     def root(i: int) -> int:
-        while parent[i] != i:
-            parent[i] = parent[parent[i]]
-            i = parent[i]
-        return i
+        return _root(parent, i)
 
     for o in dec.links:
         if o.depth >= hairline:
