@@ -76,7 +76,12 @@ import time
 from pathlib import Path
 from typing import Any
 
-from bench_services import connect, free_port, spawn  # the services bench's process helpers
+from bench_services import (
+    connect,
+    free_port,
+    require_services,
+    spawn,
+)  # the services bench's process helpers
 from confnav.schemas import (
     CollisionEvent,
     Goal,
@@ -201,15 +206,7 @@ def run_case(case: str, args: argparse.Namespace, tmp: Path, n: int) -> dict[str
         procs.append(spawn("serve", "simulator", *common, *ws, log=logs / "simulator.log"))
         rid = "u1"
         with connect(ep) as bus:
-            alive = wait(
-                lambda: all(
-                    bus.alive(K.alive_of(s), timeout=0.5)
-                    for s in ("transform", "controller", "simulator")
-                ),
-                60,
-            )
-            if not alive:
-                raise RuntimeError(f"services did not come up (logs in {logs})")
+            require_services(bus, 60, logs)
             watch = Watch(bus, rid)
             t_up = time.monotonic()
             body = case == "spawned"
@@ -472,15 +469,7 @@ def run_ros2(args: argparse.Namespace, tmp: Path, n: int) -> dict[str, Any]:
         robot += ["--connect", ep, "--ns", f"/{rid}", "--x", str(args.start[0])]
         robot += ["--y", str(args.start[1]), "--yaw", "0"]
         with connect(ep) as bus:
-            alive = wait(
-                lambda: all(
-                    bus.alive(K.alive_of(s), timeout=0.5)
-                    for s in ("transform", "controller", "ros2")
-                ),
-                60,
-            )
-            if not alive:
-                raise RuntimeError(f"services did not come up (logs in {logs})")
+            require_services(bus, 60, logs, ("transform", "controller", "ros2"))
             with open(logs / "robot.log", "wb") as f:  # the router is up: the robot connects
                 procs.append(subprocess.Popen(robot, stdout=f, stderr=subprocess.STDOUT))
             watch = Watch(bus, rid)

@@ -95,6 +95,21 @@ def connect(ep: str) -> ZenohBus:
             time.sleep(0.3)
 
 
+def require_services(
+    bus: ZenohBus,
+    timeout: float,
+    logs: Path,
+    names: tuple[str, ...] = ("transform", "controller", "simulator"),
+) -> None:
+    """Wait up to ``timeout`` s until every named service is alive on ``bus``; raise naming
+    the log directory if one is not (the first-move and SLAM services benches)."""
+    deadline = time.monotonic() + timeout
+    while not all(bus.alive(K.alive_of(s), timeout=0.5) for s in names):
+        if time.monotonic() > deadline:
+            raise RuntimeError(f"services did not come up (logs in {logs})")
+        time.sleep(0.02)
+
+
 ZONES = 12  # robots are named z{zone}r{index}; controllers take whole zones (12 = 1, 2, 3, 4, 6)
 
 

@@ -50,7 +50,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from bench_services import connect, free_port, spawn
+from bench_services import connect, free_port, require_services, spawn
 from confnav.schemas import (
     AtlasIndex,
     CollisionEvent,
@@ -303,15 +303,7 @@ def run_map(name: str, n_pairs: int, args: Any, tmp: Path) -> dict[str, Any]:
         )
         with connect(ep) as bus:
             w = Watch(bus, ids, nav_ws_id)
-            up = wait(
-                lambda: all(
-                    bus.alive(K.alive_of(s), timeout=0.5)
-                    for s in ("transform", "controller", "simulator")
-                ),
-                90,
-            )
-            if not up:
-                raise RuntimeError(f"services did not come up (logs in {logs})")
+            require_services(bus, 90, logs)
             t_up = time.monotonic()
             wait(lambda: base_settled(w, name), args.settle)
             t_base = time.monotonic()
