@@ -2,6 +2,7 @@
 
 from confnav.schemas.messages import (
     SCHEMA_VERSION,
+    WAITING_FOR_MAP,
     AtlasCell,
     AtlasIndex,
     CollisionEvent,
@@ -46,6 +47,7 @@ __all__ = [
     "MODELS_BY_TYPE",
     "QUERY_MODEL_BY_KEY_KIND",
     "SCHEMA_VERSION",
+    "WAITING_FOR_MAP",
     "AtlasCell",
     "AtlasIndex",
     "CollisionEvent",

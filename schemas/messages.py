@@ -249,10 +249,17 @@ StatusReason = Literal[
 ]
 
 
+#: How a ``navigating`` status's message starts while the robot holds (zero command) for the
+#: first revision of a map that is being solved (progressive maps, docs/SERVICES.md).
+WAITING_FOR_MAP = "waiting for the first revision of map"
+
+
 class RobotStatus(Message):
     """Controller's view of one robot, on ``{prefix}/robot/{r}/status``.
 
-    ``state`` ``stopped`` always comes with a ``reason`` saying why the command is zero.
+    ``state`` ``stopped`` always comes with a ``reason`` saying why the command is zero; a
+    ``navigating`` robot may hold (zero command) while its map's first revision is being
+    solved, its message then starting with :data:`WAITING_FOR_MAP`.
     """
 
     TYPE: ClassVar[str] = "confnav.RobotStatus"

@@ -204,7 +204,7 @@ class PosesMixin(CoordMixin):
                     continue
                 blocker = self._blocker(r)
                 if blocker is not None:
-                    self._stop_robot(r, blocker[0], blocker[1], now, pose)
+                    self._block(r, blocker, now, pose)
                     continue
                 ctrl = r.ctrl
             assert ctrl is not None
@@ -350,7 +350,7 @@ class PosesMixin(CoordMixin):
             return  # cancelled, or a newer pose came meanwhile: it gets the answer
         blocker = self._blocker(r)  # again: the geometry may have changed meanwhile
         if blocker is not None:
-            self._stop_robot(r, blocker[0], blocker[1], now, pose)
+            self._block(r, blocker, now, pose)
         elif d.state == "stopped":
             self._stop_robot(r, d.reason, d.message, now, pose)
         elif r.shrunk is not None and (off := off_shrunk(r, pose.theta)):

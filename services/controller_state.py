@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Protocol
 
 from confnav.schemas import (
+    WAITING_FOR_MAP,
     CommandBatch,
     Goal,
     RobotStatus,
@@ -32,6 +33,22 @@ if TYPE_CHECKING:
     from confnav.services.neighbours import Neighbours
 
 log = logging.getLogger(__name__)
+
+#: The map error of a goal's workspace before the transform service answered its query.
+NO_ANSWER_YET = "waiting for the map"
+
+
+def map_being_solved(error: str) -> bool:
+    """Whether a map error only says the map has no revision yet: the transform service's
+    answer while it solves the workspace (``workspace 'x' is being solved; retry``,
+    docs/SERVICES.md) or no answer yet. Robots hold on it instead of stopping."""
+    return error == NO_ANSWER_YET or "is being solved" in error
+
+
+def waiting_note(ws_id: str) -> str:
+    """The status message of a robot holding for the first revision of its map."""
+    return f"{WAITING_FOR_MAP} {ws_id!r} (being solved; the robot moves once it is installed)"
+
 
 POSE_BLOCK = 256
 """Most poses per control step: one vectorized block, whose commands go out before the next
@@ -334,7 +351,7 @@ class ControllerCore(Service):
             assert r.goal is not None
             if r.ctrl_error:
                 return "navigation_error", r.ctrl_error
-            err = self._map_errors.get(r.goal.ws_id, "waiting for the map")
+            err = self._map_errors.get(r.goal.ws_id, NO_ANSWER_YET)
             return "missing_map", err
         if self._pending:
             outdated = self._outdated(r)
@@ -368,6 +385,27 @@ class ControllerCore(Service):
         est = self._estimates.get(rev)
         tail = "" if est is None else f" (estimated error {est:.1e})"
         return f"navigating on a coarse map, refining{tail}"
+
+    def _blocked_status(self, r: _Robot, blocker: tuple[str, str]) -> tuple[str, str, str]:
+        """(state, reason, message) of a robot that must not move: a robot whose map is
+        being solved holds (``navigating``, what it waits for in the message:
+        docs/SERVICES.md, progressive maps); any other blocker stops it with its reason."""
+        reason, message = blocker
+        if reason == "missing_map" and r.goal is not None and map_being_solved(message):
+            return "navigating", "ok", waiting_note(r.goal.ws_id)
+        return "stopped", reason, message
+
+    def _block(
+        self, r: _Robot, blocker: tuple[str, str], now: float, pose: PoseLike | None = None
+    ) -> None:
+        """Zero command and the status of :meth:`_blocked_status`."""
+        state, reason, message = self._blocked_status(r, blocker)
+        if state == "stopped":
+            self._stop_robot(r, reason, message, now, pose)
+        else:
+            self.count("holds_map_being_solved")
+            self._publish_cmd(r, 0j, pose)
+            self._status(r, state, reason, message, now)
 
     def _stop_robot(
         self, r: _Robot, reason: str, message: str, now: float, pose: PoseLike | None = None

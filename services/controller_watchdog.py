@@ -46,7 +46,8 @@ class WatchdogMixin(ControllerCore):
                         continue
                     blocker = self._blocker(r)
                     if blocker is not None:  # stop now; the pose path keeps it stopped
-                        if r.status_key[:2] != ("stopped", blocker[0]):
-                            self._stop_robot(r, blocker[0], blocker[1], now)
+                        state = self._blocked_status(r, blocker)
+                        if r.status_key[:2] != state[:2]:
+                            self._block(r, blocker, now)
                         else:
-                            self._status(r, "stopped", blocker[0], blocker[1], now)
+                            self._status(r, *state, now)

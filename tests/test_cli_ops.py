@@ -12,10 +12,12 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+from confnav.schemas import WAITING_FOR_MAP, RobotStatus
 from confnav.services.bus import ZenohBus, zenoh_config
 from confnav.services.launcher import LaunchConfig, Launcher, ServiceSpec
 from conftest import confnav_cmd, subprocess_env, wait_for
 
+from confnav.cli.ops import goal_verdict
 from confnav.geometry import Workspace
 
 ROOM = Workspace(
@@ -172,3 +174,27 @@ def test_no_router_reachable(cmd: tuple[str, ...], sockdir: Path) -> None:
     assert res.stderr.count("\n") == 1 and "Traceback" not in res.stderr
     assert "cannot reach a Zenoh router" in res.stderr
     assert time.monotonic() - t0 < 30
+
+
+@pytest.mark.parametrize(
+    ("state", "reason", "message", "verdict"),
+    [
+        (
+            "navigating",
+            "ok",
+            f"{WAITING_FOR_MAP} 'ws~r0.2' (being solved; ...)",
+            "map_being_solved",
+        ),
+        ("stopped", "missing_map", "workspace 'ws' is being solved; retry", "map_being_solved"),
+        ("stopped", "missing_map", "unknown workspace 'ws'", "pending"),
+        ("navigating", "ok", "holding for chart 3 of the atlas (being solved; ...)", "done"),
+        ("navigating", "ok", "", "done"),
+        ("arrived", "arrived", "", "done"),
+        ("stopped", "outside_workspace", "start inside an obstacle", "done"),
+    ],
+)
+def test_goal_waits_while_the_map_is_being_solved_and_not_longer(
+    state: str, reason: str, message: str, verdict: str
+) -> None:
+    s = RobotStatus(robot_id="r", stamp_ns=1, state=state, reason=reason, message=message)  # type: ignore[arg-type]
+    assert goal_verdict(s) == verdict

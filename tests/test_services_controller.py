@@ -10,6 +10,7 @@ from typing import Any
 import numpy as np
 import pytest
 from confnav.schemas import (
+    WAITING_FOR_MAP,
     Goal,
     GoalCancel,
     Pose,
@@ -67,11 +68,14 @@ class FakeTransform:
     def __init__(self, bus: Any) -> None:
         self.bus = bus
         self.solutions: dict[str, TransformSolution] = {}
+        self.solving: set[str] = set()  # answered "being solved" (the real service's words)
         self.q = bus.queryable("confnav/ws/*/transform", self._answer)
         self.token = bus.declare_token(K.alive("transform", bus.zid))
 
     def _answer(self, key: str, payload: bytes | None) -> list[tuple[str, bytes]]:
         ws = K.parse(key).ident
+        if ws in self.solving:
+            raise QueryError(f"workspace {ws!r} is being solved; retry")
         if ws not in self.solutions:
             raise QueryError(f"unknown workspace {ws!r}")
         return [(key, encode(self.solutions[ws]))]
@@ -303,6 +307,44 @@ def test_missing_map_reports_the_transform_error(mem_net: InMemoryNetwork) -> No
 
         wait_for(moving, timeout=10, interval=0.05)
         assert cl.last_status("r1").state == "navigating"
+    finally:
+        ctl.stop()
+
+
+def test_a_robot_whose_map_is_being_solved_holds_navigating_not_stopped(
+    mem_net: InMemoryNetwork,
+) -> None:
+    # issue 23, item 2: never `stopped (missing_map)` for a map that is being solved; the
+    # robot holds (zero command) with a status saying what it waits for, then moves
+    ctl, tr, cl = setup(mem_net, fetch_period=0.05)
+    try:
+        tr.solving.add("late")
+        cl.goal("r1", ws="late")
+        wait_for(lambda: ctl.counters["goals"] == 1)
+
+        def held() -> bool:
+            cl.pose("r1", 0.0, 0.5)
+            s = cl.last_status("r1")
+            return s is not None and s.message.startswith(WAITING_FOR_MAP)
+
+        wait_for(held, timeout=10, interval=0.05)
+        cl.pose("r1", 0.0, 0.5)
+        wait_for(lambda: cl.answer("r1") is not None)
+        assert cl.answer("r1").linear == (0.0, 0.0)
+        s = cl.last_status("r1")
+        assert (s.state, s.reason) == ("navigating", "ok")
+        assert s.message.startswith(WAITING_FOR_MAP) and "'late'" in s.message
+        # the first revision comes: the robot moves on it
+        tr.solutions["late"] = solution("late")
+        tr.solving.discard("late")
+
+        def moving() -> bool:
+            cl.pose("r1", 0.0, 0.5)
+            c = cl.last_cmd("r1")
+            return c is not None and c.linear != (0.0, 0.0)
+
+        wait_for(moving, timeout=10, interval=0.05)
+        assert not [m for m in cl.status if m.robot_id == "r1" and m.state == "stopped"]
     finally:
         ctl.stop()
 

@@ -24,6 +24,7 @@ from confnav.cli.app import HelpFormatter
 from confnav.errors import ConfnavError
 from confnav.navigation import defaults
 from confnav.schemas import (
+    WAITING_FOR_MAP,
     Goal,
     GoalCancel,
     Pose,
@@ -173,9 +174,10 @@ def _goal(args: argparse.Namespace) -> int:
             s = seen.snapshot().get("s")
             if s is not None and s.stamp_ns >= t_sent:
                 last = s
-                if s.state in ("navigating", "arrived") or s.reason in REJECTED:
+                verdict = goal_verdict(s)
+                if verdict == "done":
                     break
-                if s.reason == "missing_map" and "being solved" in s.message:
+                if verdict == "map_being_solved":
                     # its map is being solved (progressive maps: the robot moves on the first
                     # revision): the timeout counts from the newest such status
                     if not solving:
@@ -196,6 +198,18 @@ def _goal(args: argparse.Namespace) -> int:
             f"robot {args.robot} is {last.state} ({last.reason}) {args.timeout:g} s after the goal"
         )
     return 0
+
+
+def goal_verdict(s: RobotStatus) -> str:
+    """What a status after ``confnav goal`` means: ``done`` (the robot navigates, arrived, or
+    its goal was rejected), ``map_being_solved`` (it holds for the first revision of its map:
+    keep waiting) or ``pending`` (any other state, e.g. a stop that may clear)."""
+    if s.reason in REJECTED:
+        return "done"
+    holding = s.state == "navigating" and s.message.startswith(WAITING_FOR_MAP)
+    if holding or (s.reason == "missing_map" and "being solved" in s.message):
+        return "map_being_solved"  # (the second: a controller older than this one)
+    return "done" if s.state in ("navigating", "arrived") else "pending"
 
 
 def _cancel(args: argparse.Namespace) -> int:
