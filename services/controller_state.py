@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import logging
 import queue
+import re
 import threading
 import time
 import zlib
@@ -33,6 +34,9 @@ if TYPE_CHECKING:
     from confnav.services.neighbours import Neighbours
 
 log = logging.getLogger(__name__)
+
+#: Decimal figures in a status message (distances, errors): not part of its identity.
+_FIGURES = re.compile(r"[-+]?\d+\.\d+(?:e[-+]?\d+)?")
 
 #: The map error of a goal's workspace before the transform service answered its query.
 NO_ANSWER_YET = "waiting for the map"
@@ -450,7 +454,9 @@ class ControllerCore(Service):
 
     def _status(self, r: _Robot, state: str, reason: str, message: str, now: float) -> None:
         chart = getattr(r.ctrl, "active_chart", None)
-        skey = (state, reason, r.ctrl_revision, message + f"|{chart}")
+        # a message that differs only in its measured figures ("0.88 m off it") is the same
+        # status: repeated once per period, not on every pose (docs/SERVICES.md, "Scale")
+        skey = (state, reason, r.ctrl_revision, _FIGURES.sub("#", message) + f"|{chart}")
         if skey == r.status_key and now - r.status_t < self.status_period:
             return
         if skey[:2] != r.status_key[:2]:  # a new state or reason: worth a line in the log
