@@ -26,6 +26,7 @@ from confnav.schemas import (
 from confnav.services import controller_cache
 from confnav.services.bus import InMemoryNetwork, QueryError
 from confnav.services.controller import ControllerService
+from confnav.services.controller_state import _Robot
 from confnav.services.keys import Keys
 from confnav.services.transform import definition_hash
 from conftest import IdentityMap, identity_loader, wait_for
@@ -808,5 +809,29 @@ def test_controller_cache_is_bounded_and_robots_keep_theirs(
             g = Goal(robot_id=rid, ws_id="cd", goal=xy, v_max=0.5, tolerance=0.02)
             z = complex(0.0, 0.5 if rid != "r4" else -0.5)
             assert same(complex(*cmd.linear), expected_u(g, z)), rid
+    finally:
+        ctl.stop()
+
+
+def test_a_status_changing_only_in_its_figures_is_repeated_once_per_period(
+    mem_net: InMemoryNetwork,
+) -> None:
+    ctl, _tr, cl = setup(mem_net, status_period=60.0)
+    try:
+        r = _Robot("r9")
+        t = time.monotonic()
+        for i in range(20):  # twenty poses, each a new distance: one status
+            note = f"getting to node 14, {0.9 - i / 100:.2f} m off it"
+            ctl._status(r, "navigating", "ok", note, t)
+        ctl._status(r, "navigating", "ok", "getting to node 13, 0.70 m off it", t)  # new node
+        ctl._status(r, "navigating", "ok", "waiting at node 13", t)  # new wording
+        wait_for(lambda: len([s for s in cl.status if s.robot_id == "r9"]) >= 3)
+        time.sleep(0.2)  # nothing else is on its way
+        got = [s.message for s in cl.status if s.robot_id == "r9"]
+        assert got == [
+            "getting to node 14, 0.90 m off it",
+            "getting to node 13, 0.70 m off it",
+            "waiting at node 13",
+        ]
     finally:
         ctl.stop()
