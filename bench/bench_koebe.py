@@ -62,7 +62,8 @@ from confnav.scenes.workspaces import (
 #: (:func:`_residuals_every_call`, as before). ``interleaved``: that and the dense GNK
 #: matrices kept complex (gnk.DENSE_INTERLEAVED); the others copy their parts into two real
 #: matrices (as before). ``second_sums``: that and the maps' derivatives in the sweeps from the
-#: second-order sums of two charges (diskmap.DERIVATIVE_FROM_SECOND_SUMS; an experiment, off).
+#: second-order sums of two charges (diskmap.DERIVATIVE_FROM_SECOND_SUMS; on by default since the
+#: harmonic one-robot gradient's fix, :func:`fleet_step_rounding`).
 _LEAN = {"smooth_fmm": True, "carry": True, "corner": True, "blas1": True, "lean": True}
 DESIGNS: dict[str, dict[str, bool]] = {
     "before": {"smooth_fmm": False, "carry": False, "corner": False, "blas1": False},
@@ -76,6 +77,8 @@ DESIGNS: dict[str, dict[str, bool]] = {
     "interleaved": {**_LEAN, "once": True, "interleaved": True},
     "second_sums": {**_LEAN, "once": True, "interleaved": True, "second_sums": True},
 }
+#: The solver's own setting (restored after :func:`fleet_step_rounding`).
+DERIVATIVE_DEFAULT = diskmap.DERIVATIVE_FROM_SECOND_SUMS
 
 
 def _residuals_every_call(m: ConformalMap) -> Any:
@@ -362,6 +365,64 @@ def corner_study(out: Path) -> int:
     return 0
 
 
+def fleet_step_rounding(out: Path) -> int:
+    """``--fleet-step``: the harmonic fleet step against each robot's own step
+    (tests/test_fleet_step.py's case: the default workspace at 1e-8, 60 robots, 12 goals) on
+    the map solved with and without ``diskmap.DERIVATIVE_FROM_SECOND_SUMS``; the relative
+    differences of the commands ``u`` (median: the test's bulk bound, largest)."""
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
+    import test_fleet_step as tfs  # the test's own fleet and poses
+
+    from confnav.navigation.fleet import fleet_step
+
+    info, code = machine_info(), code_info()
+    rows = []
+    for flag in (True, False):
+        diskmap.DERIVATIVE_FROM_SECOND_SUMS = flag
+        m = confnav.solve(default_workspace(), tol=1e-8).for_navigation()
+        ctrls, z = tfs._fleet(m, navfn="harmonic")
+        zz = np.where(np.isfinite(z), z, 0j)
+        w, dw = m.T_and_dT(zz)
+        c = ctrls[0].clearance(zz)
+        out_f = fleet_step(ctrls, z, w, dw, c)
+        u1 = np.array(
+            [
+                ctl.from_map_values(z[i : i + 1], w[i : i + 1], dw[i : i + 1], c[i : i + 1]).u[0]
+                for i, ctl in enumerate(ctrls)
+            ]
+        )
+        ok = np.isfinite(u1) & (u1 != 0)
+        rel = np.abs(out_f.u[ok] - u1[ok]) / np.abs(u1[ok])
+        rows.append(
+            {
+                "second_sums": flag,
+                "median_rel": float(np.median(rel)),
+                "max_rel": float(np.max(rel)),
+                "robots": int(ok.sum()),
+            }
+        )
+        print(f"second sums {flag}: median {rows[-1]['median_rel']:.2e}, "
+              f"largest {rows[-1]['max_rel']:.2e} over {rows[-1]['robots']} robots", flush=True)
+    diskmap.DERIVATIVE_FROM_SECOND_SUMS = DERIVATIVE_DEFAULT
+    out.write_text(
+        json.dumps(
+            {
+                "what": fleet_step_rounding.__doc__,
+                "test_bound_median": tfs.RTOL_BULK,
+                "machine": info,
+                "code": code,
+                "rows": rows,
+            },
+            indent=1,
+        )
+        + "\n"
+    )
+    print(f"wrote {out}")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--gaps", type=float, nargs="*", default=[0.1, 0.03])
@@ -413,7 +474,16 @@ def main(argv: list[str] | None = None) -> int:
         action="store_true",
         help="only the corner preconditioner's block sizes on the first sweep's solves",
     )
+    ap.add_argument(
+        "--fleet-step",
+        action="store_true",
+        help="only the fleet step against each robot's own step, second sums on and off",
+    )
     a = ap.parse_args(argv)
+    if a.fleet_step:
+        return fleet_step_rounding(
+            a.out if a.out.name != "koebe.json" else a.out.with_name("second_sums_fleet_step.json")
+        )
     if a.corner_study:
         return corner_study(
             a.out if a.out.name != "koebe.json" else a.out.with_name("koebe_corner_blocks.json")
