@@ -63,7 +63,9 @@ from confnav.scenes.workspaces import (
 #: matrices kept complex (gnk.DENSE_INTERLEAVED); the others copy their parts into two real
 #: matrices (as before). ``second_sums``: that and the maps' derivatives in the sweeps from the
 #: second-order sums of two charges (diskmap.DERIVATIVE_FROM_SECOND_SUMS; on by default since the
-#: harmonic one-robot gradient's fix, :func:`fleet_step_rounding`).
+#: harmonic one-robot gradient's fix, :func:`fleet_step_rounding`). ``fine_grids``: that and
+#: smooth-grid sizes rounded up to eighths of an octave (circledomain.GRID_STEPS = 8), not to
+#: powers of two (every other design: GRID_STEPS = 1).
 _LEAN = {"smooth_fmm": True, "carry": True, "corner": True, "blas1": True, "lean": True}
 DESIGNS: dict[str, dict[str, bool]] = {
     "before": {"smooth_fmm": False, "carry": False, "corner": False, "blas1": False},
@@ -76,6 +78,13 @@ DESIGNS: dict[str, dict[str, bool]] = {
     "once": {**_LEAN, "once": True},
     "interleaved": {**_LEAN, "once": True, "interleaved": True},
     "second_sums": {**_LEAN, "once": True, "interleaved": True, "second_sums": True},
+    "fine_grids": {
+        **_LEAN,
+        "once": True,
+        "interleaved": True,
+        "second_sums": True,
+        "fine_grids": True,
+    },
 }
 #: The solver's own setting (restored after :func:`fleet_step_rounding`).
 DERIVATIVE_DEFAULT = diskmap.DERIVATIVE_FROM_SECOND_SUMS
@@ -132,6 +141,7 @@ def use_design(name: str) -> None:
     once = d.get("once", False)
     gnk.DENSE_INTERLEAVED = d.get("interleaved", False)
     diskmap.DERIVATIVE_FROM_SECOND_SUMS = d.get("second_sums", False)
+    circledomain.GRID_STEPS = _GRID_STEPS if d.get("fine_grids", False) else 1
     setattr(ConformalMap, "boundary_residuals", _RESIDUALS if once else _residuals_every_call)  # noqa: B010
 
 
@@ -139,6 +149,7 @@ _SMOOTH_DEFAULT = gnk.SMOOTH_DENSE_MAX_NODES
 _POWERS = cauchy._powers
 _GRID_SIZE = circledomain._local_grid_size
 _RESIDUALS = ConformalMap.boundary_residuals
+_GRID_STEPS = circledomain.GRID_STEPS
 
 
 def asymmetry(m: ConformalMap) -> float:
@@ -403,8 +414,11 @@ def fleet_step_rounding(out: Path) -> int:
                 "robots": int(ok.sum()),
             }
         )
-        print(f"second sums {flag}: median {rows[-1]['median_rel']:.2e}, "
-              f"largest {rows[-1]['max_rel']:.2e} over {rows[-1]['robots']} robots", flush=True)
+        print(
+            f"second sums {flag}: median {rows[-1]['median_rel']:.2e}, "
+            f"largest {rows[-1]['max_rel']:.2e} over {rows[-1]['robots']} robots",
+            flush=True,
+        )
     diskmap.DERIVATIVE_FROM_SECOND_SUMS = DERIVATIVE_DEFAULT
     out.write_text(
         json.dumps(

@@ -187,6 +187,14 @@ SMOOTH_START = 64
 SMOOTH_MAX = 16384
 SMOOTH_TAIL = 1e-15
 SMOOTH_PER_TOL = 1e-3
+#: Smooth-grid sizes a required size is rounded up to: this many steps per octave, the sizes
+#: ``2^k (1 + j / GRID_STEPS)`` (1: powers of two, as before). The required size
+#: (:func:`_grid_size`, :func:`_local_grid_size`) already resolves the curve to its tail;
+#: rounding to a power of two added up to 2x more points, and every FMM sum and map
+#: evaluation on the grid costs in proportion (two squares 0.01 apart: 2235 points needed on
+#: each hole, 4096 laid). Whether a grid resolves its curve stays checked a posteriori (its
+#: Fourier tail, :func:`_tail`; an under-resolved grid doubles).
+GRID_STEPS = 8
 
 
 @dataclass
@@ -485,8 +493,19 @@ def _local_grid_size(
     ratio = float(np.min(d / np.maximum(h, 1e-300)))
     if ratio >= need_ratio:
         return m, False
-    want = int(2 ** np.ceil(np.log2(m * need_ratio / max(ratio, 1e-12))))
+    want = _round_size(m * need_ratio / max(ratio, 1e-12))
     return min(want, SMOOTH_MAX), want > SMOOTH_MAX
+
+
+def _round_size(need: float) -> int:
+    """The smallest grid size ``2^k (1 + j / GRID_STEPS)`` (j = 0 .. GRID_STEPS - 1) that is
+    at least ``need`` (:data:`GRID_STEPS`); at least 2 GRID_STEPS, so every size is even."""
+    need = max(float(need), 2.0 * GRID_STEPS)
+    if not np.isfinite(need) or need > 4 * SMOOTH_MAX:
+        return 4 * SMOOTH_MAX
+    k = int(np.floor(np.log2(need)))
+    step = 2**k // GRID_STEPS if 2**k >= GRID_STEPS else 1
+    return int(-(-int(np.ceil(need)) // step) * step)
 
 
 def _grid_size(gap: float, tail: float) -> tuple[int, bool]:
@@ -498,7 +517,7 @@ def _grid_size(gap: float, tail: float) -> tuple[int, bool]:
     if not np.isfinite(gap):
         raise ConvergenceError("a boundary image became non-finite (NaN or inf)")
     need = 2 * np.log(1 / tail) / np.log1p(max(gap, 1e-6))
-    m = int(2 ** np.ceil(np.log2(max(need, SMOOTH_START))))
+    m = _round_size(max(need, SMOOTH_START))
     return min(m, SMOOTH_MAX), m > SMOOTH_MAX
 
 
@@ -1148,6 +1167,28 @@ def _transplant_curve(
     return Xz, dXz / der * b.dS
 
 
+def _anchor_resolved(it: _Iterate) -> bool:
+    """Grids on which the anchor keeps :data:`ANCHOR_SPACINGS` local grid spacings from every
+    curve, as :func:`_transplant`'s Cauchy formula needs: a grid too coarse for that is
+    upsampled first (FFT interpolation of the analytic curve, exact to its resolved tail, as
+    :meth:`_Boundary._resolve` refines a grid for near boundaries). With grid sizes rounded to
+    powers of two the margin had come by chance; with sizes rounded to eighths of an octave
+    (:data:`GRID_STEPS`) a hole 9.9 spacings from the anchor refused every transplant of the
+    default workspace shrunk by 0.2 m. False if the size needed exceeds :data:`SMOOTH_MAX`."""
+    for b in it.bnds:
+        if b.S is None or b.dS is None:
+            return False
+        h = np.abs(b.dS) * 2 * np.pi / b.S.size
+        ratio = float(np.min(np.abs(b.S - it.a) / np.maximum(h, 1e-300)))
+        if ratio >= ANCHOR_SPACINGS:
+            continue
+        m = _round_size(b.S.size * ANCHOR_SPACINGS / max(ratio, 1e-300))
+        if not ratio > 0 or m > SMOOTH_MAX or _tail(b.S) > b.tail:
+            return False
+        b.S, b.dS = upsample(np.stack([b.S, b.dS]), m)
+    return True
+
+
 def _transplant(it: _Iterate, carry: LevelCarry) -> bool:
     """Start the sweeps after the first from the previous mesh level's converged map.
 
@@ -1161,8 +1202,11 @@ def _transplant(it: _Iterate, carry: LevelCarry) -> bool:
     through their parameters u, D), so the fixed point -- this level's circle domain -- is
     unchanged, as for the accelerations (:mod:`confnav.conformal.acceleration`); the
     interpolants must resolve Phi to the smooth grids' own tail (else no transplant), and the
-    passive nodes follow their curves. False (state untouched) if any boundary fails."""
+    passive nodes follow their curves. False (state untouched, but for grids upsampled by
+    :func:`_anchor_resolved`: the same curves) if any boundary fails."""
     if len(carry.curves) != len(it.bnds):
+        return False
+    if not _anchor_resolved(it):
         return False
     new = []
     for b, C, c_old, X in zip(it.bnds, carry.curves, carry.grading, carry.images, strict=True):
