@@ -65,7 +65,10 @@ from confnav.scenes.workspaces import (
 #: second-order sums of two charges (diskmap.DERIVATIVE_FROM_SECOND_SUMS; on by default since the
 #: harmonic one-robot gradient's fix, :func:`fleet_step_rounding`). ``fine_grids``: that and
 #: smooth-grid sizes rounded up to eighths of an octave (circledomain.GRID_STEPS = 8), not to
-#: powers of two (every other design: GRID_STEPS = 1).
+#: powers of two, from the rule for the band _tail reads (circledomain.TAIL_BAND; every other
+#: design: GRID_STEPS = 1, TAIL_BAND = 1). ``graded``: that and the smooth grids'
+#: Moebius grading strength searched between the listed ones (circledomain.GRADING_REFINE;
+#: every other design: the list alone).
 _LEAN = {"smooth_fmm": True, "carry": True, "corner": True, "blas1": True, "lean": True}
 DESIGNS: dict[str, dict[str, bool]] = {
     "before": {"smooth_fmm": False, "carry": False, "corner": False, "blas1": False},
@@ -84,6 +87,14 @@ DESIGNS: dict[str, dict[str, bool]] = {
         "interleaved": True,
         "second_sums": True,
         "fine_grids": True,
+    },
+    "graded": {
+        **_LEAN,
+        "once": True,
+        "interleaved": True,
+        "second_sums": True,
+        "fine_grids": True,
+        "graded": True,
     },
 }
 #: The solver's own setting (restored after :func:`fleet_step_rounding`).
@@ -142,6 +153,8 @@ def use_design(name: str) -> None:
     gnk.DENSE_INTERLEAVED = d.get("interleaved", False)
     diskmap.DERIVATIVE_FROM_SECOND_SUMS = d.get("second_sums", False)
     circledomain.GRID_STEPS = _GRID_STEPS if d.get("fine_grids", False) else 1
+    circledomain.TAIL_BAND = _TAIL_BAND if d.get("fine_grids", False) else 1.0
+    circledomain.GRADING_REFINE = _GRADING_REFINE if d.get("graded", False) else 0
     setattr(ConformalMap, "boundary_residuals", _RESIDUALS if once else _residuals_every_call)  # noqa: B010
 
 
@@ -150,6 +163,8 @@ _POWERS = cauchy._powers
 _GRID_SIZE = circledomain._local_grid_size
 _RESIDUALS = ConformalMap.boundary_residuals
 _GRID_STEPS = circledomain.GRID_STEPS
+_TAIL_BAND = circledomain.TAIL_BAND
+_GRADING_REFINE = circledomain.GRADING_REFINE
 
 
 def asymmetry(m: ConformalMap) -> float:
