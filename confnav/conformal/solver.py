@@ -143,10 +143,13 @@ of an octave from the rule for the band the tail check reads
 :data:`~confnav.conformal.circledomain.TAIL_BAND`), a grid too coarse for the carried level's
 anchor upsampled first; the Moebius grading strength searched between the listed ones
 (:data:`~confnav.conformal.circledomain.GRADING_REFINE`). Side by side
-(``bench/results/koebe_fine_grids.json``, ``koebe_graded.json``, ``koebe_round3.json``; CPU s
-at load 7-18): two squares 15.4 -> 11.5 (grids) -> 11.0 (grading), 50 obstacles 17.3 -> 14.9
--> 13.7, shrunk 3.0 -> 2.5, the default workspace unchanged; the same sweeps and estimates,
-every map tol_met, the maps within 3.8e-14 of each other, the asymmetry 1.5e-12 under 1.2e-9.
+(``bench/results/koebe_fine_grids.json``, ``koebe_graded.json``; CPU s at load 7-18): two
+squares 15.4 -> 11.5 (grids) -> 11.0 (grading), 50 obstacles 17.3 -> 14.9 -> 13.7, shrunk
+3.0 -> 2.5, the default workspace unchanged; the committed code against the second sums
+alone in one run (``koebe_round3.json`` at bac1a98, load 11.5-17.6): two squares 15.3 ->
+10.4, 50 obstacles 17.0 -> 14.7, shrunk 3.0 -> 2.8, the default workspace 1.2 = 1.2; the
+same sweeps and estimates, every map tol_met, the maps within 3.8e-14 of each other, the
+asymmetry 1.5e-12 under 1.2e-9.
 The targets before and after: bench/README.md, "Round 3" (``core_targets_interleaved.json``
 against ``core_targets_round3.json``).
 
