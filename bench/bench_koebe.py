@@ -395,13 +395,19 @@ def fleet_step_rounding(out: Path) -> int:
     """``--fleet-step``: the harmonic fleet step against each robot's own step
     (tests/test_fleet_step.py's case: the default workspace at 1e-8, 60 robots, 12 goals) on
     the map solved with and without ``diskmap.DERIVATIVE_FROM_SECOND_SUMS``; the relative
-    differences of the commands ``u`` (median: the test's bulk bound, largest)."""
+    differences of the commands ``u`` (median: the test's bulk bound, largest); and where the
+    two paths differ: the Green's function parts of the stacked series against one robot's,
+    and the gradient formula in Python's complex arithmetic against numpy's on the same parts
+    (medians)."""
     import sys
 
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
+    import math
+
     import test_fleet_step as tfs  # the test's own fleet and poses
 
     from confnav.navigation.fleet import fleet_step
+    from confnav.navigation.harmonic import stacked_parts
 
     info, code = machine_info(), code_info()
     rows = []
@@ -421,12 +427,49 @@ def fleet_step_rounding(out: Path) -> int:
         )
         ok = np.isfinite(u1) & (u1 != 0)
         rel = np.abs(out_f.u[ok] - u1[ok]) / np.abs(u1[ok])
+        # where the two paths differ: the Green's function parts (G, h, grad H) of the
+        # stacked series against one robot's, and the gradient formula in Python's complex
+        # arithmetic (as value_and_gradient1 had it) against numpy's, on the same parts
+        idx = np.flatnonzero(ok)
+        fns = [ctrls[i].navfn for i in idx]
+        wi = w[idx]
+        big_g, h, gh = stacked_parts([f.green for f in fns], wi)
+        one = [f.green._parts1(complex(x)) for f, x in zip(fns, wi, strict=True)]
+        h1 = np.array([p[1] for p in one])
+        gh1 = np.array([p[2] for p in one])
+        parts_rel = np.concatenate(
+            [
+                np.abs(big_g - [p[0] for p in one]) / np.abs([p[0] for p in one]),
+                np.abs(h - h1) / np.abs(h1),
+                np.abs(gh - gh1) / np.abs(gh1),
+            ]
+        )
+        wd = np.array([f.goal for f in fns])
+        e = wi - wd
+        g = (e * e.conjugate()).real
+        q = 1.0 - np.conj(wd) * wi
+        grad_np = 2.0 * np.exp(-2.0 * h1) * (e * np.conj((1.0 - np.abs(wd) ** 2) / q) - g * gh1)
+        grad_py = np.array(
+            [
+                2.0
+                * math.exp(-2.0 * float(hh))
+                * (
+                    complex(ee) * ((1.0 - abs(complex(d)) ** 2) / complex(qq)).conjugate()
+                    - float(gg) * complex(gx)
+                )
+                for hh, ee, d, qq, gg, gx in zip(h1, e, wd, q, g, gh1, strict=True)
+            ]
+        )
         rows.append(
             {
                 "second_sums": flag,
                 "median_rel": float(np.median(rel)),
                 "max_rel": float(np.max(rel)),
                 "robots": int(ok.sum()),
+                "parts_median_rel": float(np.median(parts_rel)),
+                "python_formula_median_rel": float(
+                    np.median(np.abs(grad_py - grad_np) / np.abs(grad_np))
+                ),
             }
         )
         print(

@@ -65,8 +65,9 @@ from confnav.types import FArray as FloatArray
 #: 1e-14 (4.7e-15 without it). The map was not the cause (it moves by ~1e-12, the same inputs
 #: go to both paths): one robot's harmonic gradient was formed with Python's complex
 #: multiply and divide, the fleet's with numpy's, an ulp apart and amplified ~100-fold by
-#: the gradient's cancellation; with numpy's operations in both
-#: (``HarmonicNavigation.value_and_gradient1``) the medians are 6.9e-16 with it and 2.3e-16
+#: the gradient's cancellation (the two formulas on the same parts: median 2.3e-15 with it,
+#: 4.5e-15 without); with numpy's operations in both
+#: (``HarmonicNavigation.value_and_gradient1``) the medians are 2.1e-16 with it and 2.2e-16
 #: without (``bench/results/second_sums_fleet_step.json``, ``python bench/bench_koebe.py
 #: --fleet-step``).
 DERIVATIVE_FROM_SECOND_SUMS = True
