@@ -62,7 +62,13 @@ from confnav.scenes.workspaces import (
 #: (:func:`_residuals_every_call`, as before). ``interleaved``: that and the dense GNK
 #: matrices kept complex (gnk.DENSE_INTERLEAVED); the others copy their parts into two real
 #: matrices (as before). ``second_sums``: that and the maps' derivatives in the sweeps from the
-#: second-order sums of two charges (diskmap.DERIVATIVE_FROM_SECOND_SUMS; an experiment, off).
+#: second-order sums of two charges (diskmap.DERIVATIVE_FROM_SECOND_SUMS; on by default since the
+#: harmonic one-robot gradient's fix, :func:`fleet_step_rounding`). ``fine_grids``: that and
+#: smooth-grid sizes rounded up to eighths of an octave (circledomain.GRID_STEPS = 8), not to
+#: powers of two, from the rule for the band _tail reads (circledomain.TAIL_BAND; every other
+#: design: GRID_STEPS = 1, TAIL_BAND = 1). ``graded``: that and the smooth grids'
+#: Moebius grading strength searched between the listed ones (circledomain.GRADING_REFINE;
+#: every other design: the list alone).
 _LEAN = {"smooth_fmm": True, "carry": True, "corner": True, "blas1": True, "lean": True}
 DESIGNS: dict[str, dict[str, bool]] = {
     "before": {"smooth_fmm": False, "carry": False, "corner": False, "blas1": False},
@@ -75,7 +81,24 @@ DESIGNS: dict[str, dict[str, bool]] = {
     "once": {**_LEAN, "once": True},
     "interleaved": {**_LEAN, "once": True, "interleaved": True},
     "second_sums": {**_LEAN, "once": True, "interleaved": True, "second_sums": True},
+    "fine_grids": {
+        **_LEAN,
+        "once": True,
+        "interleaved": True,
+        "second_sums": True,
+        "fine_grids": True,
+    },
+    "graded": {
+        **_LEAN,
+        "once": True,
+        "interleaved": True,
+        "second_sums": True,
+        "fine_grids": True,
+        "graded": True,
+    },
 }
+#: The solver's own setting (restored after :func:`fleet_step_rounding`).
+DERIVATIVE_DEFAULT = diskmap.DERIVATIVE_FROM_SECOND_SUMS
 
 
 def _residuals_every_call(m: ConformalMap) -> Any:
@@ -129,6 +152,9 @@ def use_design(name: str) -> None:
     once = d.get("once", False)
     gnk.DENSE_INTERLEAVED = d.get("interleaved", False)
     diskmap.DERIVATIVE_FROM_SECOND_SUMS = d.get("second_sums", False)
+    circledomain.GRID_STEPS = _GRID_STEPS if d.get("fine_grids", False) else 1
+    circledomain.TAIL_BAND = _TAIL_BAND if d.get("fine_grids", False) else 1.0
+    circledomain.GRADING_REFINE = _GRADING_REFINE if d.get("graded", False) else 0
     setattr(ConformalMap, "boundary_residuals", _RESIDUALS if once else _residuals_every_call)  # noqa: B010
 
 
@@ -136,6 +162,9 @@ _SMOOTH_DEFAULT = gnk.SMOOTH_DENSE_MAX_NODES
 _POWERS = cauchy._powers
 _GRID_SIZE = circledomain._local_grid_size
 _RESIDUALS = ConformalMap.boundary_residuals
+_GRID_STEPS = circledomain.GRID_STEPS
+_TAIL_BAND = circledomain.TAIL_BAND
+_GRADING_REFINE = circledomain.GRADING_REFINE
 
 
 def asymmetry(m: ConformalMap) -> float:
@@ -362,6 +391,110 @@ def corner_study(out: Path) -> int:
     return 0
 
 
+def fleet_step_rounding(out: Path) -> int:
+    """``--fleet-step``: the harmonic fleet step against each robot's own step
+    (tests/test_fleet_step.py's case: the default workspace at 1e-8, 60 robots, 12 goals) on
+    the map solved with and without ``diskmap.DERIVATIVE_FROM_SECOND_SUMS``; the relative
+    differences of the commands ``u`` (median: the test's bulk bound, largest); and where the
+    two paths differ: the Green's function parts of the stacked series against one robot's,
+    and the gradient formula in Python's complex arithmetic against numpy's on the same parts
+    (medians)."""
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
+    import math
+
+    import test_fleet_step as tfs  # the test's own fleet and poses
+
+    from confnav.navigation.fleet import fleet_step
+    from confnav.navigation.harmonic import stacked_parts
+
+    info, code = machine_info(), code_info()
+    rows = []
+    for flag in (True, False):
+        diskmap.DERIVATIVE_FROM_SECOND_SUMS = flag
+        m = confnav.solve(default_workspace(), tol=1e-8).for_navigation()
+        ctrls, z = tfs._fleet(m, navfn="harmonic")
+        zz = np.where(np.isfinite(z), z, 0j)
+        w, dw = m.T_and_dT(zz)
+        c = ctrls[0].clearance(zz)
+        out_f = fleet_step(ctrls, z, w, dw, c)
+        u1 = np.array(
+            [
+                ctl.from_map_values(z[i : i + 1], w[i : i + 1], dw[i : i + 1], c[i : i + 1]).u[0]
+                for i, ctl in enumerate(ctrls)
+            ]
+        )
+        ok = np.isfinite(u1) & (u1 != 0)
+        rel = np.abs(out_f.u[ok] - u1[ok]) / np.abs(u1[ok])
+        # where the two paths differ: the Green's function parts (G, h, grad H) of the
+        # stacked series against one robot's, and the gradient formula in Python's complex
+        # arithmetic (as value_and_gradient1 had it) against numpy's, on the same parts
+        idx = np.flatnonzero(ok)
+        fns = [ctrls[i].navfn for i in idx]
+        wi = w[idx]
+        big_g, h, gh = stacked_parts([f.green for f in fns], wi)
+        one = [f.green._parts1(complex(x)) for f, x in zip(fns, wi, strict=True)]
+        h1 = np.array([p[1] for p in one])
+        gh1 = np.array([p[2] for p in one])
+        parts_rel = np.concatenate(
+            [
+                np.abs(big_g - [p[0] for p in one]) / np.abs([p[0] for p in one]),
+                np.abs(h - h1) / np.abs(h1),
+                np.abs(gh - gh1) / np.abs(gh1),
+            ]
+        )
+        wd = np.array([f.goal for f in fns])
+        e = wi - wd
+        g = (e * e.conjugate()).real
+        q = 1.0 - np.conj(wd) * wi
+        grad_np = 2.0 * np.exp(-2.0 * h1) * (e * np.conj((1.0 - np.abs(wd) ** 2) / q) - g * gh1)
+        grad_py = np.array(
+            [
+                2.0
+                * math.exp(-2.0 * float(hh))
+                * (
+                    complex(ee) * ((1.0 - abs(complex(d)) ** 2) / complex(qq)).conjugate()
+                    - float(gg) * complex(gx)
+                )
+                for hh, ee, d, qq, gg, gx in zip(h1, e, wd, q, g, gh1, strict=True)
+            ]
+        )
+        rows.append(
+            {
+                "second_sums": flag,
+                "median_rel": float(np.median(rel)),
+                "max_rel": float(np.max(rel)),
+                "robots": int(ok.sum()),
+                "parts_median_rel": float(np.median(parts_rel)),
+                "python_formula_median_rel": float(
+                    np.median(np.abs(grad_py - grad_np) / np.abs(grad_np))
+                ),
+            }
+        )
+        print(
+            f"second sums {flag}: median {rows[-1]['median_rel']:.2e}, "
+            f"largest {rows[-1]['max_rel']:.2e} over {rows[-1]['robots']} robots",
+            flush=True,
+        )
+    diskmap.DERIVATIVE_FROM_SECOND_SUMS = DERIVATIVE_DEFAULT
+    out.write_text(
+        json.dumps(
+            {
+                "what": fleet_step_rounding.__doc__,
+                "test_bound_median": tfs.RTOL_BULK,
+                "machine": info,
+                "code": code,
+                "rows": rows,
+            },
+            indent=1,
+        )
+        + "\n"
+    )
+    print(f"wrote {out}")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--gaps", type=float, nargs="*", default=[0.1, 0.03])
@@ -413,7 +546,16 @@ def main(argv: list[str] | None = None) -> int:
         action="store_true",
         help="only the corner preconditioner's block sizes on the first sweep's solves",
     )
+    ap.add_argument(
+        "--fleet-step",
+        action="store_true",
+        help="only the fleet step against each robot's own step, second sums on and off",
+    )
     a = ap.parse_args(argv)
+    if a.fleet_step:
+        return fleet_step_rounding(
+            a.out if a.out.name != "koebe.json" else a.out.with_name("second_sums_fleet_step.json")
+        )
     if a.corner_study:
         return corner_study(
             a.out if a.out.name != "koebe.json" else a.out.with_name("koebe_corner_blocks.json")

@@ -82,7 +82,13 @@ def test_upsample_is_the_interpolant() -> None:
 
 def test_solver_data(monkeypatch: pytest.MonkeyPatch) -> None:
     """The smooth grids and passive parameters the Koebe iteration actually evaluates (default
-    workspace): every call agrees with the direct sum to 1e-13 of max |f|."""
+    workspace): every call agrees with the direct sum to 1e-13 of max |f|, plus the phases'
+    conditioning (:func:`_ok`). That term matters for the carried levels' Taylor rows (the
+    recorded curves' s-derivatives up to order 8, ``circledomain._derivative_rows``), whose
+    spectra are dominated by their top modes: on such a row of 416 samples at x ~ 2 pi the
+    interpolant and the direct sum each stood ~5e-14 of max |f| from an extended-precision
+    sum, 1.1e-13 apart (with grid sizes of eighths of an octave; 8.5e-14 on a 512-sample row
+    before, where the sampled calls were other ones)."""
     calls: list[tuple[CArray, FArray]] = []
     real = circledomain.trig_eval
 
@@ -99,5 +105,5 @@ def test_solver_data(monkeypatch: pytest.MonkeyPatch) -> None:
         got = real(rows, x, derivative=True)
         for r, f in enumerate(rows):
             val, der, der2 = _direct(f, x)
-            assert _rel(got[r], val, f) < 1e-13
+            assert _ok(got[r], val, der, x)
             assert _ok(got[rows.shape[0] + r], der, der2, x)

@@ -187,6 +187,21 @@ SMOOTH_START = 64
 SMOOTH_MAX = 16384
 SMOOTH_TAIL = 1e-15
 SMOOTH_PER_TOL = 1e-3
+#: Smooth-grid sizes a required size is rounded up to: this many steps per octave, the sizes
+#: ``2^k (1 + j / GRID_STEPS)`` (1: powers of two, as before). The required size
+#: (:func:`_grid_size`, :func:`_local_grid_size`) already resolves the curve to its tail;
+#: rounding to a power of two added up to 2x more points, and every FMM sum and map
+#: evaluation on the grid costs in proportion (two squares 0.01 apart: 2235 points needed on
+#: each hole, 4096 laid). Whether a grid resolves its curve stays checked a posteriori (its
+#: Fourier tail, :func:`_tail`; an under-resolved grid doubles).
+GRID_STEPS = 8
+#: What :func:`_tail` measures is the largest Fourier mode within m/16 of the Nyquist mode m/2,
+#: so a grid resolves its curve to ``tail`` only if the modes from 7m/16 on have decayed to it:
+#: the sizes of :func:`_grid_size` and :func:`_local_grid_size` are this factor (16/14) above
+#: the Nyquist-mode rule. The powers of two had hidden the difference in their rounding (a
+#: grid graded towards its own pole at |c| = 0.857 laid 448 points with a measured tail of
+#: 3.8e-14 against 1e-14 without it; tests/test_solver_regressions.py).
+TAIL_BAND = 16.0 / 14.0
 
 
 @dataclass
@@ -390,6 +405,11 @@ class _Boundary:
 #: Grading strengths tried (|c| of the Moebius map); 0 = uniform. Above 0.999 the angle of
 #: the grid would come within ~0.1 rad of wrapping (see :func:`_mobius_grid`).
 GRADING_RHO = (0.0, 0.5, 0.8, 0.9, 0.95, 0.98, 0.99, 0.995, 0.998, 0.999)
+#: Gap evaluations of a golden-section search between the neighbours of the best of
+#: :data:`GRADING_RHO` (0: the list alone). On two squares 0.01 apart the list's best left the
+#: holes a gap of 0.025 in the graded parameter (2235 points needed) where a strength between
+#: 0.95 and 0.98 leaves more (2048 laid).
+GRADING_REFINE = 8
 
 
 def _wrap(x: FloatArray) -> FloatArray:
@@ -447,13 +467,37 @@ def _grading(others: ComplexArray) -> tuple[complex, float]:
     if dist[k] > 0.05:  # nothing close: uniform (the grid is small anyway)
         return 0j, float(dist[k])
     direction = others[k] / abs(others[k])
-    best = (0j, float(dist[k]))
-    for rho in GRADING_RHO[1:]:
+
+    def gap_at(rho: float) -> float:
         c = rho * direction
         zeta = (others - c) / (1.0 - np.conj(c) * others)
-        gap = min(float(np.min(np.abs(np.abs(zeta) - 1.0))), 1.0 / rho - 1.0)
-        if gap > best[1]:
-            best = (complex(c), gap)
+        return min(float(np.min(np.abs(np.abs(zeta) - 1.0))), 1.0 / rho - 1.0)
+
+    gaps = [float(dist[k])] + [gap_at(rho) for rho in GRADING_RHO[1:]]
+    i = int(np.argmax(gaps))
+    best = (complex(GRADING_RHO[i] * direction), gaps[i])
+    if i == 0 or GRADING_REFINE == 0:
+        return best
+    # golden-section search between the neighbours of the best strength, in log(1 - rho):
+    # the gap is the smaller of the others' (growing with rho up to the best) and the
+    # grading pole's 1/rho - 1 (falling), so one maximum lies between them
+    lo = float(np.log(1.0 - GRADING_RHO[min(i + 1, len(GRADING_RHO) - 1)]))  # larger rho
+    hi = float(np.log(1.0 - GRADING_RHO[i - 1]))
+    g = (np.sqrt(5.0) - 1.0) / 2.0
+    a, b = hi - g * (hi - lo), lo + g * (hi - lo)  # a < b
+    fa, fb = gap_at(1.0 - np.exp(a)), gap_at(1.0 - np.exp(b))
+    for _ in range(GRADING_REFINE - 2):
+        if fa >= fb:  # the maximum is in [lo, b]
+            hi, b, fb = b, a, fa
+            a = hi - g * (hi - lo)
+            fa = gap_at(1.0 - np.exp(a))
+        else:  # in [a, hi]
+            lo, a, fa = a, b, fb
+            b = lo + g * (hi - lo)
+            fb = gap_at(1.0 - np.exp(b))
+    for t, f in ((a, fa), (b, fb)):
+        if f > best[1]:
+            best = (complex((1.0 - np.exp(t)) * direction), f)
     return best
 
 
@@ -472,7 +516,7 @@ def _local_grid_size(
     m = S.size
     if others.size == 0:
         return m, False
-    need_ratio = np.log(1 / tail) / np.pi
+    need_ratio = TAIL_BAND * np.log(1 / tail) / np.pi
     c = complex(np.mean(S))
     h_max = float(np.max(np.abs(dS))) * 2 * np.pi / m
     reach = float(np.max(np.abs(S - c))) + need_ratio * h_max
@@ -485,20 +529,32 @@ def _local_grid_size(
     ratio = float(np.min(d / np.maximum(h, 1e-300)))
     if ratio >= need_ratio:
         return m, False
-    want = int(2 ** np.ceil(np.log2(m * need_ratio / max(ratio, 1e-12))))
+    want = _round_size(m * need_ratio / max(ratio, 1e-12))
     return min(want, SMOOTH_MAX), want > SMOOTH_MAX
+
+
+def _round_size(need: float) -> int:
+    """The smallest grid size ``2^k (1 + j / GRID_STEPS)`` (j = 0 .. GRID_STEPS - 1) that is
+    at least ``need`` (:data:`GRID_STEPS`); at least 2 GRID_STEPS, so every size is even."""
+    need = max(float(need), 2.0 * GRID_STEPS)
+    if not np.isfinite(need) or need > 4 * SMOOTH_MAX:
+        return 4 * SMOOTH_MAX
+    k = int(np.floor(np.log2(need)))
+    step = 2**k // GRID_STEPS if 2**k >= GRID_STEPS else 1
+    return int(-(-int(np.ceil(need)) // step) * step)
 
 
 def _grid_size(gap: float, tail: float) -> tuple[int, bool]:
     """Uniform grid size resolving an analytic curve whose nearest singularity is at relative
     distance ``gap`` to a relative Fourier ``tail``: modes decay like (1 + gap)^-j, so
-    m = 2 ln(1/tail) / ln(1 + gap) (power of 2, capped at
+    m = 2 ln(1/tail) / ln(1 + gap) (times :data:`TAIL_BAND`, rounded up by :func:`_round_size`,
+    capped at
     :data:`SMOOTH_MAX`); the flag says the cap was hit (the grid is then under-resolved and
     its Fourier tail is reported as ``resolution_error``)."""
     if not np.isfinite(gap):
         raise ConvergenceError("a boundary image became non-finite (NaN or inf)")
-    need = 2 * np.log(1 / tail) / np.log1p(max(gap, 1e-6))
-    m = int(2 ** np.ceil(np.log2(max(need, SMOOTH_START))))
+    need = TAIL_BAND * 2 * np.log(1 / tail) / np.log1p(max(gap, 1e-6))
+    m = _round_size(max(need, SMOOTH_START))
     return min(m, SMOOTH_MAX), m > SMOOTH_MAX
 
 
@@ -1148,6 +1204,28 @@ def _transplant_curve(
     return Xz, dXz / der * b.dS
 
 
+def _anchor_resolved(it: _Iterate) -> bool:
+    """Grids on which the anchor keeps :data:`ANCHOR_SPACINGS` local grid spacings from every
+    curve, as :func:`_transplant`'s Cauchy formula needs: a grid too coarse for that is
+    upsampled first (FFT interpolation of the analytic curve, exact to its resolved tail, as
+    :meth:`_Boundary._resolve` refines a grid for near boundaries). With grid sizes rounded to
+    powers of two the margin had come by chance; with sizes rounded to eighths of an octave
+    (:data:`GRID_STEPS`) a hole 9.9 spacings from the anchor refused every transplant of the
+    default workspace shrunk by 0.2 m. False if the size needed exceeds :data:`SMOOTH_MAX`."""
+    for b in it.bnds:
+        if b.S is None or b.dS is None:
+            return False
+        h = np.abs(b.dS) * 2 * np.pi / b.S.size
+        ratio = float(np.min(np.abs(b.S - it.a) / np.maximum(h, 1e-300)))
+        if ratio >= ANCHOR_SPACINGS:
+            continue
+        m = _round_size(b.S.size * ANCHOR_SPACINGS / max(ratio, 1e-300))
+        if not ratio > 0 or m > SMOOTH_MAX or _tail(b.S) > b.tail:
+            return False
+        b.S, b.dS = upsample(np.stack([b.S, b.dS]), m)
+    return True
+
+
 def _transplant(it: _Iterate, carry: LevelCarry) -> bool:
     """Start the sweeps after the first from the previous mesh level's converged map.
 
@@ -1161,8 +1239,11 @@ def _transplant(it: _Iterate, carry: LevelCarry) -> bool:
     through their parameters u, D), so the fixed point -- this level's circle domain -- is
     unchanged, as for the accelerations (:mod:`confnav.conformal.acceleration`); the
     interpolants must resolve Phi to the smooth grids' own tail (else no transplant), and the
-    passive nodes follow their curves. False (state untouched) if any boundary fails."""
+    passive nodes follow their curves. False (state untouched, but for grids upsampled by
+    :func:`_anchor_resolved`: the same curves) if any boundary fails."""
     if len(carry.curves) != len(it.bnds):
+        return False
+    if not _anchor_resolved(it):
         return False
     new = []
     for b, C, c_old, X in zip(it.bnds, carry.curves, carry.grading, carry.images, strict=True):

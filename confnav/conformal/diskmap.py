@@ -59,12 +59,18 @@ from confnav.types import FArray as FloatArray
 #: (FMM sums 905 -> 771), 50 obstacles 15.5 -> 15.3 (171 -> 151), the default shrunk by
 #: 0.2 m 2.9 -> 2.8, the default workspace to 1e-10 1.1 -> 0.9; the same sweeps and
 #: estimates, the maps within 6.8e-12 (two squares 4.6e-14). False: the third charge (before).
-#: Off by default: on the default workspace's map solved with it, the harmonic fleet step and
-#: each robot's own step (tests/test_fleet_step.py) differ by a median 1.3e-14 relative, over
-#: that test's rounding bound 1e-14, against 4.7e-15 without it
-#: (``bench/results/second_sums_fleet_step.json``, one BLAS thread); the gain is mostly the two
-#: squares' (16.9 -> 14.9 s CPU).
-DERIVATIVE_FROM_SECOND_SUMS = False
+#: On by default since the harmonic fleet step and each robot's own step agree at rounding
+#: again: with it the fleet step (tests/test_fleet_step.py, the same map values into both)
+#: differed from each robot's own step by a median 1.3e-14 relative, over that test's bound
+#: 1e-14 (4.7e-15 without it). The map was not the cause (it moves by ~1e-12, the same inputs
+#: go to both paths): one robot's harmonic gradient was formed with Python's complex
+#: multiply and divide, the fleet's with numpy's, an ulp apart and amplified ~100-fold by
+#: the gradient's cancellation (the two formulas on the same parts: median 2.3e-15 with it,
+#: 4.5e-15 without); with numpy's operations in both
+#: (``HarmonicNavigation.value_and_gradient1``) the medians are 2.1e-16 with it and 2.2e-16
+#: without (``bench/results/second_sums_fleet_step.json``, ``python bench/bench_koebe.py
+#: --fleet-step``).
+DERIVATIVE_FROM_SECOND_SUMS = True
 
 
 @dataclass(frozen=True)

@@ -131,6 +131,28 @@ default (its docstring: the harmonic fleet step then leaves its rounding bound).
 is FMM sums (two squares: 771 per solve) and, on 50 obstacles, the expansions' O(holes x
 points) per sweep.
 
+Round 3 (issue 24; bench/README.md "Round 3"). Profiled first (cProfile and
+``bench_core.py --profile``, ``cauchy._fmm`` counted by size): on two squares 0.01 apart the
+FMM took 13.0 of 16.4 s CPU, 771 calls, most on the holes' smooth grids of 4096 points where
+2235 were needed (sizes were rounded up to powers of two). Three changes, each measured side
+by side: the second-sums derivatives on by default (their blocker was one robot's harmonic
+gradient formed with Python's complex operations, not the map:
+:data:`confnav.conformal.diskmap.DERIVATIVE_FROM_SECOND_SUMS`); smooth grids sized to eighths
+of an octave from the rule for the band the tail check reads
+(:data:`~confnav.conformal.circledomain.GRID_STEPS`,
+:data:`~confnav.conformal.circledomain.TAIL_BAND`), a grid too coarse for the carried level's
+anchor upsampled first; the Moebius grading strength searched between the listed ones
+(:data:`~confnav.conformal.circledomain.GRADING_REFINE`). Side by side
+(``bench/results/koebe_fine_grids.json``, ``koebe_graded.json``; CPU s at load 7-18): two
+squares 15.4 -> 11.5 (grids) -> 11.0 (grading), 50 obstacles 17.3 -> 14.9 -> 13.7, shrunk
+3.0 -> 2.5, the default workspace unchanged; the committed code against the second sums
+alone in one run (``koebe_round3.json`` at bac1a98, load 11.5-17.6): two squares 15.3 ->
+10.4, 50 obstacles 17.0 -> 14.7, shrunk 3.0 -> 2.8, the default workspace 1.2 = 1.2; the
+same sweeps and estimates, every map tol_met, the maps within 3.8e-14 of each other, the
+asymmetry 1.5e-12 under 1.2e-9.
+The targets before and after: bench/README.md, "Round 3" (``core_targets_interleaved.json``
+against ``core_targets_round3.json``).
+
 ``tol_met`` is true only if all are within ``tol`` and nothing is ``unverified``. A map that
 misses ``tol`` is returned with ``tol_met = False`` and an :class:`AccuracyWarning`; one whose
 estimate exceeds :data:`UNUSABLE_ERROR` (or the caller's ``max_error``) raises
