@@ -405,7 +405,7 @@ def services_warehouse(
     history: list[list[dict[str, Any]]] = [[] for _ in range(n)]
     try:
         procs["router"] = spawn("serve", "router", "--listen", ep, log=tmp / "router.log")
-        time.sleep(1.0)
+        wait_port(ep, 120.0)  # a loaded box: the router's start took over 30 s
         procs["transform"] = spawn("serve", "transform", *common, "--cache-dir",
                                    str(tmp / "cache"), log=tmp / "transform.log")  # fmt: skip
         procs["controller"] = spawn("-v", "serve", "controller", *common,  # -v: auto's choice
@@ -548,6 +548,22 @@ def services_warehouse(
         "note": "times are nominal simulated seconds (wall time x time_scale) since the first "
         "goals; the simulator steps at 20 Hz of simulated time",
     }
+
+
+def wait_port(ep: str, timeout: float) -> None:
+    """Wait until the router accepts TCP connections on ``ep`` (``tcp/host:port``)."""
+    import socket
+
+    host, port = ep.split("/", 1)[1].rsplit(":", 1)
+    deadline = time.monotonic() + timeout
+    while True:
+        try:
+            socket.create_connection((host, int(port)), timeout=1.0).close()
+            return
+        except OSError:
+            if time.monotonic() > deadline:
+                raise RuntimeError(f"no router on {ep} after {timeout} s") from None
+            time.sleep(0.3)
 
 
 def not_arrived(
