@@ -392,3 +392,49 @@ def test_straight_node_laws_do_not_take_a_robot_with_no_node_in_sight(
     assert c.n == 0
     monkeypatch.setattr(fleet_coord, "segment_clearance", real)
     assert c.add(0.8 + 0.6j) == 0 and c.mode[0] == RETURN_LEG
+
+
+# the outside check's studio flat (/work/outside/studio.json): a 1 m lane under a table
+# (1.0-2.6 x 1.0-1.7 m) whose roadmap (bodies 0.18 m, look-ahead 0.1 m: rho 0.28 m) is a
+# pocketless path of nodes from the lane's east end (3.33, 0.73) to the west of the room
+STUDIO = Workspace(
+    [
+        (0, 0), (7, 0), (7, 3.2), (5.2, 3.2), (5.2, 3.0), (4.9, 3.0), (4.9, 4.6), (6.2, 4.6),
+        (6.2, 5.5), (0, 5.5), (0, 3.4), (-0.9, 3.4), (-0.9, 2.4), (0, 2.4),
+    ],
+    [
+        [(1.0, 1.0), (2.6, 1.0), (2.6, 1.7), (1.0, 1.7)],
+        [(3.6, 4.2), (4.6, 4.2), (4.6, 5.2), (4.3, 5.2), (4.3, 4.5), (3.6, 4.5)],
+        [(2.5, 2.45), (4.9, 2.45), (4.9, 2.55), (2.5, 2.55)],
+        [(5.6, 0.5), (6.6, 0.5), (6.6, 0.58), (5.6, 0.58)],
+        [(0.4, 4.6), (1.4, 4.6), (1.4, 5.2), (0.4, 5.2)],
+    ],
+)  # fmt: skip
+
+
+def test_a_done_robot_cornered_in_a_lane_leads_the_way_out() -> None:
+    """The studio swap (run_studio.sh): a (west end of the lane) and b (its east end) swap,
+    c and d swap in the room above.  a reaches its goal at the lane's east end first; b,
+    whose way west runs through a's goal, makes it leave; a, done and cornered (the lane has
+    no pocket), leads the way out east past the junction and steps off b's way, b drives
+    through, and a comes back: all four end parked at their goals.  Before: a was pushed
+    west along the lane ahead of b, past b's goal, and stayed there behind b (3.1 m off its
+    goal; 3.09 m through the services, bench/results/fleet_studio_auto.json)."""
+    rho = 0.28
+    c = RoadmapCoordinator.build(None, 0, rho, node_law="line", workspace=inflate(STUDIO, rho))
+    starts = np.array([1.0 + 0.5j, 3.5 + 0.5j, 0.6 + 3.9j, 3.0 + 3.6j])
+    goals = np.array([3.5 + 0.5j, 1.0 + 0.5j, 3.0 + 3.6j, 0.6 + 3.9j])
+    p = starts.copy()
+    for z in p:
+        c.add(complex(z))
+    done = np.zeros(4, dtype=bool)
+    t = 0.0
+    for _ in range(300):
+        _teleport(c, p, goals, done, t)
+        t += 0.2
+        if done.all() and all(int(m) == PARKED for m in c.mode):
+            break
+    assert done.all()
+    assert np.all(np.abs(p - goals) < 1e-12)  # every robot ends at its goal ...
+    assert all(int(m) == PARKED for m in c.mode)  # ... parked there
+    assert c.made_way > 0  # a led the way out of the lane

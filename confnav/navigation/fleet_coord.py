@@ -68,6 +68,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.optimize import linear_sum_assignment
+from scipy.sparse import csr_matrix
+from scipy.sparse.csgraph import connected_components
 
 from confnav.errors import NavigationError
 from confnav.navigation.control import Controller, Status
@@ -299,6 +301,7 @@ class RoadmapCoordinator:
     excursions_done: int = 0
     timeouts: int = 0
     idle_ticks: int = 0
+    made_way: int = 0  # robot-ticks of done robots leading the way out of a lane
     t_tick: float = 0.0
     main: NDArray[np.intp] = field(init=False)  # nodes of the largest component
 
@@ -652,6 +655,12 @@ class RoadmapCoordinator:
         closed_nodes, closed_edges = self._closed(starting)
         prio = self.eta + self._tie
         prio = np.where(np.isin(np.arange(self.n), asked), prio + 1e6, prio)  # at goal: hold
+        meek = done.copy()
+        way = self._make_way(road & done & ~back & ~fixed, road & ~done, prio,
+                             closed_nodes | blocked, closed_edges)  # fmt: skip
+        for i, (w, pr) in way.items():  # cornered in a lane: leads the way out, pushing
+            goal[i], prio[i], meek[i] = w, pr, False
+        self.made_way += len(way)
         nxt = pibt_step(
             self.roadmap,
             self.at.tolist(),
@@ -661,7 +670,7 @@ class RoadmapCoordinator:
             closed_nodes=closed_nodes,
             closed_edges=closed_edges,
             blocked=blocked,
-            meek=done.tolist(),
+            meek=meek.tolist(),
             aside=None if self.aside == "all" else done.tolist(),
             rng=self._rng,
         )
@@ -677,6 +686,72 @@ class RoadmapCoordinator:
         for i in starting:
             self.mode[i] = GOAL_LEG
             self.pend_since[i] = np.nan
+
+    def _make_way(
+        self,
+        cand: NDArray[np.bool_],
+        active: NDArray[np.bool_],
+        prio: NDArray[np.float64],
+        closed_nodes: set[int],
+        closed_edges: set[tuple[int, int]],
+    ) -> dict[int, tuple[int, float]]:
+        """Done robots (``cand``) cornered in an active robot's way: a robot ``i`` on the
+        shortest roadmap path of an active robot ``j`` to its goal node (``j`` within ``3
+        gap`` of it along the roadmap) whose every open neighbour other than ``j``'s node is
+        on that path too (a pocketless lane: pushed, it could only go on ahead of ``j``, past
+        ``j``'s goal, and stay behind it there: the studio's robot a, parked 3.09 m off its
+        goal, bench/results/fleet_studio_auto.json).  Each gets a *waiting node* -- the node
+        nearest it along the roadmap off every such path and open -- and a priority above
+        those robots', so that it leads the way out (pushing them aside at a junction, then
+        stepping off their way) instead of being pushed on ahead of them; ``{i: (node,
+        priority)}``.  The pushing and the priorities are PIBT's (Okumura et al. 2022,
+        Algorithm 1); the waiting node is this module's rule."""
+        out: dict[int, tuple[int, float]] = {}
+        if not cand.any() or not active.any():
+            return out
+        dist = self.roadmap.dist
+        js = np.flatnonzero(active)
+        a, g = self.at[js], self.goal_node[js]
+        direct = dist[a, g]
+        # way[k, v]: node v lies on a shortest path of active robot js[k] to its goal node
+        way = np.isfinite(direct)[:, None] & (dist[a, :] + dist[:, g].T <= direct[:, None] + 1e-9)
+        way &= (a != g)[:, None]
+        shut = np.zeros(self.roadmap.size, dtype=bool)
+        shut[list(closed_nodes)] = True
+        for i in np.flatnonzero(cand).tolist():
+            u = int(self.at[i])
+            mine = way[:, u] & (dist[a, u] <= 3.0 * self.gap)
+            if not mine.any():
+                continue
+            occupied = {int(x) for x in a[mine]}
+            on = way[mine]
+            off = ~on.any(axis=0) & ~shut & np.isfinite(dist[u])
+            off[u] = False
+            home = int(self.goal_node[i])  # it comes back there: not from behind their goals
+            gone = {int(x) for x in g[mine]}
+            if home not in gone:
+                off &= self._reach(home, gone)
+            if not off.any():
+                continue
+            if (off & self._reach(u, occupied | set(closed_nodes))).any():
+                continue  # a pocket or a branch ahead: PIBT's aside rule takes it there
+            cands = np.flatnonzero(off)
+            w = int(cands[np.argmin(dist[u, cands])])
+            out[i] = (w, float(prio[js[mine]].max()) + 1.0)
+        return out
+
+    def _reach(self, src: int, gone: set[int]) -> NDArray[np.bool_]:
+        """The nodes connected to ``src`` on the roadmap without the nodes ``gone``."""
+        e = self.roadmap.edges
+        n = self.roadmap.size
+        keep = ~np.isin(e, list(gone)).any(axis=1) if gone else np.ones(len(e), dtype=bool)
+        _, lab = connected_components(
+            csr_matrix((np.ones(int(keep.sum())), (e[keep, 0], e[keep, 1])), shape=(n, n)),
+            directed=False,
+        )
+        ok = lab == lab[src]
+        ok[list(gone - {src})] = False
+        return np.asarray(ok)
 
     def _drop_overdue(
         self,
