@@ -438,3 +438,63 @@ def test_a_done_robot_cornered_in_a_lane_leads_the_way_out() -> None:
     assert np.all(np.abs(p - goals) < 1e-12)  # every robot ends at its goal ...
     assert all(int(m) == PARKED for m in c.mode)  # ... parked there
     assert c.made_way > 0  # a led the way out of the lane
+
+
+# the README's warehouse (examples/warehouse.yaml): three 6 m shelves and two pillars; for
+# unicycles of the services bench (body 0.2 m, look-ahead 0.1 m: rho 0.3 m) each aisle's
+# roadmap is a lane of nodes 0.8 m apart between the west and east ends
+WAREHOUSE = Workspace(
+    [(0, 0), (10, 0), (10, 8), (1, 8), (1, 7.2), (0, 7.2)],
+    [
+        [(2, 1.6), (8, 1.6), (8, 2.2), (2, 2.2)],
+        [(2, 3.8), (8, 3.8), (8, 4.4), (2, 4.4)],
+        [(2, 6.0), (8, 6.0), (8, 6.6), (2, 6.6)],
+        [(8.8, 2.8), (9.2, 2.8), (9.2, 3.2), (8.8, 3.2)],
+        [(8.8, 5.0), (9.2, 5.0), (9.2, 5.4), (8.8, 5.4)],
+    ],
+)
+
+
+def test_a_robot_parked_at_the_end_of_a_push_chain_leaves_the_way() -> None:
+    """The services warehouse's seed-1 stall (fleet_services_diag_seed1.json): in the
+    bottom aisle two robots done with their goals stand on the lane between an active robot
+    and its goal node, and a robot parked at its goal holds the lane's next node beyond
+    them, out of the active robot's way and over ``3 gap`` from it along the roadmap.  The
+    active robot's push runs down the two done robots and must end on that node: the parked
+    robot leaves it, the chain moves, and the active robot reaches its goal.  Before: the
+    push failed every tick and the active robot waited for good (``waiting for w04 at node
+    21``; 198 of 200 goals)."""
+    rho = 0.3
+    c = RoadmapCoordinator.build(None, 0, rho, node_law="line", workspace=inflate(WAREHOUSE, rho))
+    nodes = c.roadmap.nodes
+
+    def node(z: complex) -> int:
+        return int(np.flatnonzero(np.abs(nodes - z) < 0.06)[0])
+
+    n12, n15, n18, n21 = (node(z) for z in (1.75 + 0.8j, 2.55 + 0.8j, 3.35 + 0.8j, 4.15 + 0.8j))
+    assert set(c.roadmap.neighbours[n15].tolist()) == {n12, n18}  # a lane: no pocket
+    # P parks at its goal off node 12; D1, D2 park at nodes 15, 18; A waits at node 21
+    goals = np.array([1.75 + 0.55j, nodes[n15], nodes[n18], nodes[n21]])
+    p = goals.copy()
+    p[0] = nodes[n12]
+    for z in p:
+        c.add(complex(z))
+    done = np.zeros(4, dtype=bool)
+    t = 0.0
+    for _ in range(60):
+        _teleport(c, p, goals, done, t)
+        t += 0.2
+    assert done.all() and all(int(m) == PARKED for m in c.mode)
+    assert int(c.at[0]) == n12
+    for i in (1, 2):  # D1, D2: pushed off their goals earlier, now done on the roadmap
+        c.mode[i] = ROAD
+        c.excursions.pop(i, None)
+    goals[3], done[3] = 2.886 + 0.69j, False  # A's next goal: its goal node is node 15
+    assert c.goal_node_of(goals[3]) == n15
+    assert c.roadmap.dist[n21, n12] > 3.0 * c.gap  # P is not near A ...
+    for _ in range(300):
+        _teleport(c, p, goals, done, t)
+        t += 0.2
+        if done[3]:
+            break
+    assert done[3] and abs(p[3] - goals[3]) < 1e-12  # ... yet leaves the way: A arrives

@@ -544,12 +544,46 @@ class RoadmapCoordinator:
         parked = [i for i in np.flatnonzero(self.mode == PARKED).tolist() if i in self.excursions]
         if not parked or not active.any():
             return
+        chain = self._push_chains(active)
         for i in parked:
             ex = self.excursions[i]
             ends = {int(v) for e in ex.edges for v in e}  # a closed edge's ends
-            nn = np.fromiter(ex.nodes | ends | {int(self.at[i])}, dtype=np.intp)
-            if self._in_the_way(nn, active):
+            nodes = ex.nodes | ends | {int(self.at[i])}
+            nn = np.fromiter(nodes, dtype=np.intp)
+            if nodes & chain or self._in_the_way(nn, active):
                 self.mode[i] = RETURN_LEG
+
+    def _push_chains(self, active: NDArray[np.bool_]) -> set[int]:
+        """The nodes an ``active`` robot's next move needs cleared: where its next node on a
+        shortest path to its goal node holds a robot done with its goals (on the roadmap),
+        that robot's node and every node of done robots joined to it by edges (the chain its
+        push runs down), with their neighbours (where the chain's last robot must go).  A
+        robot parked at its goal holding one of them blocks the push however far it is from
+        the active robot: in the services warehouse (seed 1) two done robots stood in a
+        lane between an active robot and its goal node, and a robot parked at the lane's
+        far node held it: the push failed for good (bench/results/
+        fleet_services_diag_seed1.json)."""
+        done_on = {int(v) for v in self.at[(self.mode == ROAD) & ~active]}
+        if not done_on:
+            return set()
+        dist, nb = self.roadmap.dist, self.roadmap.neighbours
+        out: set[int] = set()
+        for j in np.flatnonzero(active).tolist():
+            a, g = int(self.at[j]), int(self.goal_node[j])
+            if a == g or not np.isfinite(dist[a, g]):
+                continue
+            nxt = [int(v) for v in nb[a] if int(v) in done_on
+                   and dist[a, v] + dist[v, g] <= dist[a, g] + 1e-9]  # fmt: skip
+            todo = list(nxt)
+            seen = set(nxt)
+            while todo:  # the done robots joined to them
+                v = todo.pop()
+                for w in nb[v].tolist():
+                    if w in done_on and w not in seen:
+                        seen.add(w)
+                        todo.append(w)
+            out |= seen | {int(w) for v in seen for w in nb[v].tolist()}
+        return out
 
     def _in_the_way(self, nn: NDArray[np.intp], active: NDArray[np.bool_]) -> bool:
         """Whether nodes ``nn`` lie on a shortest roadmap path of an ``active`` robot to its
