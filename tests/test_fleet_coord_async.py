@@ -11,6 +11,7 @@ import pytest
 
 from confnav import Controller, Workspace, inflate, solve
 from confnav.errors import NavigationError
+from confnav.navigation.control import Status
 from confnav.navigation.fleet_coord import (
     ALONE,
     GOAL_LEG,
@@ -18,6 +19,7 @@ from confnav.navigation.fleet_coord import (
     RETURN_LEG,
     ROAD,
     FleetCoordinator,
+    LineLaw,
     RoadmapCoordinator,
     choose_coordinator,
     pibt_step,
@@ -498,3 +500,39 @@ def test_a_robot_parked_at_the_end_of_a_push_chain_leaves_the_way() -> None:
         if done[3]:
             break
     assert done[3] and abs(p[3] - goals[3]) < 1e-12  # ... yet leaves the way: A arrives
+
+
+def test_straight_node_laws_drive_the_goal_leg_straight_too() -> None:
+    """With straight node laws (an atlas) the goal leg and the parked robot are driven by
+    the straight law to the goal point (the segment from the goal node is free), not by the
+    robot's own law: through the services (seed 0) a robot's own atlas law was NaN 0.3-0.4 m
+    from its goal in the top aisle (a chart flat to rounding there); the robot stopped on
+    its goal leg ``outside the mapped free space`` for good and 12 robots queued behind it
+    (bench/results/fleet_services_diag_seed0.json).  Before: the goal leg's law was None
+    (the robot's own)."""
+    c = RoadmapCoordinator.build(None, 0, R, node_law="line", workspace=inflate(LANE, R))
+    goals = np.array([0.8 + 1.0j, 6.8 + 1.0j])
+    p = np.array([1.0 + 0.6j, 6.5 + 0.6j])
+    for z in p:
+        c.add(complex(z))
+    done = np.zeros(2, dtype=bool)
+    t, drive = 0.0, []
+    for _ in range(100):  # teleported to their next nodes until robot 0 takes its goal leg
+        drive, leg = c.update(t, p, goals, done)
+        if leg[0]:
+            break
+        for i in range(2):
+            p[i] = c.roadmap.nodes[int(c.at[i] if c.mode[i] != ROAD else c.nxt[i])]
+        t += 0.2
+    assert int(c.mode[0]) == GOAL_LEG
+    law = drive[0]
+    assert isinstance(law, LineLaw) and law.goal == goals[0]
+    z0 = complex(c.roadmap.nodes[int(c.at[0])])  # its goal node: the leg's start
+    o = law(np.array([z0]))
+    e = (goals[0] - z0) / abs(goals[0] - z0)
+    assert int(o.status[0]) == Status.MOVING
+    assert abs(o.u[0] / abs(o.u[0]) - e) < 1e-9  # straight at the goal (the filter is idle)
+    o = law(np.array([goals[0]]))
+    assert int(o.status[0]) == Status.ARRIVED and o.u[0] == 0
+    c.reached(0)
+    assert int(c.mode[0]) == PARKED and c.update(t, p, goals, done)[0][0] is law  # holds it

@@ -327,6 +327,7 @@ class RoadmapCoordinator:
         self.main = np.flatnonzero(lab == big).astype(np.intp)
         self._goal_cache: dict[complex, int] = {}
         self._goal_nodes_cache: dict[tuple[int, complex], NDArray[np.intp]] = {}
+        self._goal_laws: dict[complex, LineLaw] = {}  # straight goal-leg laws (_goal_law)
 
     @classmethod
     def build(
@@ -491,8 +492,10 @@ class RoadmapCoordinator:
         self, t: float, p: ArrayLike, goals: ArrayLike, done: ArrayLike
     ) -> tuple[list[Any], NDArray[np.bool_]]:
         """Each robot's controller for this step (None: its own goal controller, on the goal
-        leg) and the goal-leg mask.  ``p``: controlled points; ``goals``: current goals;
-        ``done``: robots with no goal left (they park on the roadmap)."""
+        leg and parked with conformal node laws; with straight ones the straight law to its
+        goal, :meth:`_goal_law`) and the goal-leg mask.  ``p``: controlled points;
+        ``goals``: current goals; ``done``: robots with no goal left (they park on the
+        roadmap)."""
         pp = np.asarray(p, dtype=np.complex128).reshape(-1)
         gg = np.asarray(goals, dtype=np.complex128).reshape(-1)
         dn = np.asarray(done, dtype=bool).reshape(-1)
@@ -529,12 +532,33 @@ class RoadmapCoordinator:
         for i in range(self.n):
             m = self.mode[i]
             if m in (GOAL_LEG, PARKED):
-                drive.append(None)
+                drive.append(self._goal_law(i))
             elif m == RETURN_LEG:
                 drive.append(self.node_ctrls[int(self.at[i])])
             else:
                 drive.append(self.node_ctrls[int(self.nxt[i])])
         return drive, self.mode == GOAL_LEG
+
+    def _goal_law(self, i: int) -> Any:
+        """What drives robot ``i`` on its goal leg and parked at its goal: None (its own
+        controller) with conformal node laws; with straight ones (:class:`LineLaw`, an
+        atlas) the straight law to its goal point (same safety filter, speed and gain as the
+        node laws, arrival within ``GOAL_TOL``), cached per goal point.  The segment from
+        the goal node to the goal is free (:meth:`goal_node_of`), so the straight law needs
+        no navigation function there, as from a node to the next; the robot's own atlas law
+        may have none: in the services warehouse (seed 0) a chart's law was NaN at points
+        0.3-0.4 m from a goal in the top aisle (the chart flat to rounding there), the robot
+        stopped on its goal leg ``outside the mapped free space`` for good and 12 robots
+        queued behind it (bench/results/fleet_services_diag_seed0.json)."""
+        law0 = self.node_ctrls[0] if self.node_ctrls else None
+        if not isinstance(law0, LineLaw):
+            return None
+        g = complex(self.goal_pt[i])
+        law = self._goal_laws.get(g)
+        if law is None:
+            law = LineLaw(g, law0.safety, v_max=law0.v_max, gain=law0.gain)
+            self._goal_laws[g] = law
+        return law
 
     def _unpark(self, active: NDArray[np.bool_]) -> None:
         """Parked robots whose goal's nodes (its excursion's nodes and closed edges' ends, its
@@ -731,14 +755,18 @@ class RoadmapCoordinator:
     ) -> dict[int, tuple[int, float]]:
         """Done robots (``cand``) cornered in an active robot's way: a robot ``i`` on the
         shortest roadmap path of an active robot ``j`` to its goal node (``j`` within ``3
-        gap`` of it along the roadmap) whose every open neighbour other than ``j``'s node is
-        on that path too (a pocketless lane: pushed, it could only go on ahead of ``j``, past
-        ``j``'s goal, and stay behind it there: the studio's robot a, parked 3.09 m off its
-        goal, bench/results/fleet_studio_auto.json).  Each gets a *waiting node* -- the node
-        nearest it along the roadmap off every such path and open -- and a priority above
-        those robots', so that it leads the way out (pushing them aside at a junction, then
+        gap`` of it along the roadmap) such that no node off that path from which ``i`` can
+        come back to its goal node without passing ``j``'s goal node lies ahead of it (in
+        the roadmap as built, reachable from ``i`` without passing ``j``'s node): a
+        pocketless lane that is a bridge of the roadmap.  Pushed, ``i`` could only go on
+        ahead of ``j``, past ``j``'s goal, and stay behind it there: the studio's robot a,
+        parked 3.09 m off its goal, bench/results/fleet_studio_auto.json.  Each gets a
+        *waiting node* -- the open node off every such path, from which it can come back,
+        nearest it along the roadmap (behind ``j``) -- and a priority above those robots', so
+        that it leads the way out (pushing them aside at the junction behind them, then
         stepping off their way) instead of being pushed on ahead of them; ``{i: (node,
-        priority)}``.  The pushing and the priorities are PIBT's (Okumura et al. 2022,
+        priority)}``.  In the warehouse, whose aisles join at both ends, no robot is
+        cornered.  The pushing and the priorities are PIBT's (Okumura et al. 2022,
         Algorithm 1); the waiting node is this module's rule."""
         out: dict[int, tuple[int, float]] = {}
         if not cand.any() or not active.any():
@@ -759,16 +787,17 @@ class RoadmapCoordinator:
                 continue
             occupied = {int(x) for x in a[mine]}
             on = way[mine]
-            off = ~on.any(axis=0) & ~shut & np.isfinite(dist[u])
+            off = ~on.any(axis=0) & np.isfinite(dist[u])
             off[u] = False
             home = int(self.goal_node[i])  # it comes back there: not from behind their goals
             gone = {int(x) for x in g[mine]}
             if home not in gone:
                 off &= self._reach(home, gone)
+            if (off & self._reach(u, occupied)).any():
+                continue  # a way out ahead (on the roadmap as built): PIBT's aside rule
+            off &= ~shut
             if not off.any():
                 continue
-            if (off & self._reach(u, occupied | set(closed_nodes))).any():
-                continue  # a pocket or a branch ahead: PIBT's aside rule takes it there
             cands = np.flatnonzero(off)
             w = int(cands[np.argmin(dist[u, cands])])
             out[i] = (w, float(prio[js[mine]].max()) + 1.0)
@@ -890,7 +919,7 @@ class Plan:
     ``parked``: it reached its goal and waits on the roadmap; ``note``: what it does, in
     words (a status message)."""
 
-    ctrl: Any  # the node's law (Controller or LineLaw); None: its own goal controller
+    ctrl: Any  # the node's or the goal's law (Controller or LineLaw); None: its own
     goal_leg: bool
     parked: bool
     note: str
