@@ -545,8 +545,26 @@ def services_warehouse(
         "waiting_statuses": sum(waits.values()),
         "controller_fleet_log": fleet_log[:10],
         "not_arrived": unarrived,
+        "final_statuses": final_statuses(rid, last, k_of),
         "note": "times are nominal simulated seconds (wall time x time_scale) since the first "
         "goals; the simulator steps at 20 Hz of simulated time",
+    }
+
+
+def final_statuses(rid: list[str], last: list[Any], k_of: list[int]) -> dict[str, Any]:
+    """Every robot's last status and goals reached (what the fleet around a stalled robot
+    was doing)."""
+    return {
+        r: None
+        if s is None
+        else {
+            "state": s.state,
+            "reason": s.reason,
+            "message": s.message,
+            "position": s.position,
+            "goals_reached": k,
+        }
+        for r, s, k in zip(rid, last, k_of, strict=True)
     }
 
 
