@@ -581,9 +581,10 @@ class RoadmapCoordinator:
         """The nodes an ``active`` robot's next move needs cleared: where its next node on a
         shortest path to its goal node holds a robot done with its goals (on the roadmap),
         that robot's node and every node of done robots joined to it by edges (the chain its
-        push runs down), with their neighbours (where the chain's last robot must go).  A
-        robot parked at its goal holding one of them blocks the push however far it is from
-        the active robot: in the services warehouse (seed 1) two done robots stood in a
+        push runs down), with their neighbours (where the chain's last robot must go), when
+        none of those neighbours is free (no robot on or bound for it, no excursion closing
+        it).  A robot parked at its goal holding one of them blocks the push however far it
+        is from the active robot: in the services warehouse (seed 1) two done robots stood in a
         lane between an active robot and its goal node, and a robot parked at the lane's
         far node held it: the push failed for good (bench/results/
         fleet_services_diag_seed1.json)."""
@@ -591,6 +592,9 @@ class RoadmapCoordinator:
         if not done_on:
             return set()
         dist, nb = self.roadmap.dist, self.roadmap.neighbours
+        taken = {int(v) for v in np.concatenate([self.at, self.nxt])}
+        for ex in self.excursions.values():
+            taken |= ex.nodes
         out: set[int] = set()
         for j in np.flatnonzero(active).tolist():
             a, g = int(self.at[j]), int(self.goal_node[j])
@@ -606,7 +610,10 @@ class RoadmapCoordinator:
                     if w in done_on and w not in seen:
                         seen.add(w)
                         todo.append(w)
-            out |= seen | {int(w) for v in seen for w in nb[v].tolist()}
+            ends = {int(w) for v in seen for w in nb[v].tolist()} - seen - {a}
+            if ends - taken:
+                continue  # the chain can end on a free node: nothing to unpark
+            out |= seen | ends
         return out
 
     def _in_the_way(self, nn: NDArray[np.intp], active: NDArray[np.bool_]) -> bool:
@@ -785,17 +792,23 @@ class RoadmapCoordinator:
             mine = way[:, u] & (dist[a, u] <= 3.0 * self.gap)
             if not mine.any():
                 continue
-            occupied = {int(x) for x in a[mine]}
-            on = way[mine]
-            off = ~on.any(axis=0) & np.isfinite(dist[u])
-            off[u] = False
             home = int(self.goal_node[i])  # it comes back there: not from behind their goals
+            cornered = False
+            for k in np.flatnonzero(mine).tolist():  # each robot whose way it is in, alone
+                ok = ~way[k] & np.isfinite(dist[u]) & self._reach(u, {int(a[k])})
+                ok[u] = False
+                if home != int(g[k]):
+                    ok &= self._reach(home, {int(g[k])})
+                if not ok.any():  # no way out ahead of it in the roadmap as built
+                    cornered = True
+                    break
+            if not cornered:
+                continue  # a way out ahead: PIBT's aside rule takes it there
             gone = {int(x) for x in g[mine]}
+            off = ~way[mine].any(axis=0) & np.isfinite(dist[u]) & ~shut
+            off[u] = False
             if home not in gone:
                 off &= self._reach(home, gone)
-            if (off & self._reach(u, occupied)).any():
-                continue  # a way out ahead (on the roadmap as built): PIBT's aside rule
-            off &= ~shut
             if not off.any():
                 continue
             cands = np.flatnonzero(off)
