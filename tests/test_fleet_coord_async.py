@@ -502,30 +502,29 @@ def test_a_robot_parked_at_the_end_of_a_push_chain_leaves_the_way() -> None:
     assert done[3] and abs(p[3] - goals[3]) < 1e-12  # ... yet leaves the way: A arrives
 
 
-def test_straight_node_laws_drive_the_goal_leg_straight_too() -> None:
-    """With straight node laws (an atlas) the goal leg and the parked robot are driven by
-    the straight law to the goal point (the segment from the goal node is free), not by the
-    robot's own law: through the services (seed 0) a robot's own atlas law was NaN 0.3-0.4 m
-    from its goal in the top aisle (a chart flat to rounding there); the robot stopped on
-    its goal leg ``outside the mapped free space`` for good and 12 robots queued behind it
-    (bench/results/fleet_services_diag_seed0.json).  Before: the goal leg's law was None
-    (the robot's own)."""
+def test_straight_node_laws_give_the_goal_leg_a_straight_fallback() -> None:
+    """With straight node laws (an atlas) the goal leg and the parked robot have the
+    straight law to the goal point as their fallback (``Plan.fallback``; the segment from the
+    goal node is free), which the controller service drives where the robot's own law has
+    no value: through the services (seed 0) a robot's own atlas law was NaN 0.3-0.4 m from
+    its goal in the top aisle (a chart flat to rounding there); the robot stopped on its goal
+    leg ``outside the mapped free space`` for good and 12 robots queued behind it
+    (bench/results/fleet_services_diag_seed0.json).  Before: no fallback."""
     c = RoadmapCoordinator.build(None, 0, R, node_law="line", workspace=inflate(LANE, R))
+    fc = FleetCoordinator(c)
     goals = np.array([0.8 + 1.0j, 6.8 + 1.0j])
     p = np.array([1.0 + 0.6j, 6.5 + 0.6j])
-    for z in p:
-        c.add(complex(z))
-    done = np.zeros(2, dtype=bool)
-    t, drive = 0.0, []
-    for _ in range(100):  # teleported to their next nodes until robot 0 takes its goal leg
-        drive, leg = c.update(t, p, goals, done)
-        if leg[0]:
+    t, plans = 0.0, []
+    for _ in range(100):  # teleported to their next nodes until robot a takes its goal leg
+        plans = fc.plan(t, ["a", "b"], p, goals, [1, 1])
+        if plans[0].goal_leg:
             break
         for i in range(2):
             p[i] = c.roadmap.nodes[int(c.at[i] if c.mode[i] != ROAD else c.nxt[i])]
         t += 0.2
-    assert int(c.mode[0]) == GOAL_LEG
-    law = drive[0]
+    pl = plans[0]
+    assert pl.goal_leg and pl.ctrl is None  # its own law drives it ...
+    law = pl.fallback  # ... and this where its own has no value
     assert isinstance(law, LineLaw) and law.goal == goals[0]
     z0 = complex(c.roadmap.nodes[int(c.at[0])])  # its goal node: the leg's start
     o = law(np.array([z0]))
@@ -534,5 +533,6 @@ def test_straight_node_laws_drive_the_goal_leg_straight_too() -> None:
     assert abs(o.u[0] / abs(o.u[0]) - e) < 1e-9  # straight at the goal (the filter is idle)
     o = law(np.array([goals[0]]))
     assert int(o.status[0]) == Status.ARRIVED and o.u[0] == 0
-    c.reached(0)
-    assert int(c.mode[0]) == PARKED and c.update(t, p, goals, done)[0][0] is law  # holds it
+    fc.reached("a")
+    pl = fc.plan(t, ["a", "b"], p, goals, [1, 1])[0]
+    assert pl.parked and pl.ctrl is None and pl.fallback is law  # parked: the same fallback

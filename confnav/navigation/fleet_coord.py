@@ -327,7 +327,7 @@ class RoadmapCoordinator:
         self.main = np.flatnonzero(lab == big).astype(np.intp)
         self._goal_cache: dict[complex, int] = {}
         self._goal_nodes_cache: dict[tuple[int, complex], NDArray[np.intp]] = {}
-        self._goal_laws: dict[complex, LineLaw] = {}  # straight goal-leg laws (_goal_law)
+        self._goal_laws: dict[complex, LineLaw] = {}  # straight goal-leg laws (goal_law)
 
     @classmethod
     def build(
@@ -492,10 +492,9 @@ class RoadmapCoordinator:
         self, t: float, p: ArrayLike, goals: ArrayLike, done: ArrayLike
     ) -> tuple[list[Any], NDArray[np.bool_]]:
         """Each robot's controller for this step (None: its own goal controller, on the goal
-        leg and parked with conformal node laws; with straight ones the straight law to its
-        goal, :meth:`_goal_law`) and the goal-leg mask.  ``p``: controlled points;
-        ``goals``: current goals; ``done``: robots with no goal left (they park on the
-        roadmap)."""
+        leg and parked; :meth:`goal_law` is the host's fallback there) and the goal-leg
+        mask.  ``p``: controlled points; ``goals``: current goals; ``done``: robots with no
+        goal left (they park on the roadmap)."""
         pp = np.asarray(p, dtype=np.complex128).reshape(-1)
         gg = np.asarray(goals, dtype=np.complex128).reshape(-1)
         dn = np.asarray(done, dtype=bool).reshape(-1)
@@ -532,24 +531,27 @@ class RoadmapCoordinator:
         for i in range(self.n):
             m = self.mode[i]
             if m in (GOAL_LEG, PARKED):
-                drive.append(self._goal_law(i))
+                drive.append(None)
             elif m == RETURN_LEG:
                 drive.append(self.node_ctrls[int(self.at[i])])
             else:
                 drive.append(self.node_ctrls[int(self.nxt[i])])
         return drive, self.mode == GOAL_LEG
 
-    def _goal_law(self, i: int) -> Any:
-        """What drives robot ``i`` on its goal leg and parked at its goal: None (its own
-        controller) with conformal node laws; with straight ones (:class:`LineLaw`, an
-        atlas) the straight law to its goal point (same safety filter, speed and gain as the
-        node laws, arrival within ``GOAL_TOL``), cached per goal point.  The segment from
-        the goal node to the goal is free (:meth:`goal_node_of`), so the straight law needs
-        no navigation function there, as from a node to the next; the robot's own atlas law
-        may have none: in the services warehouse (seed 0) a chart's law was NaN at points
-        0.3-0.4 m from a goal in the top aisle (the chart flat to rounding there), the robot
-        stopped on its goal leg ``outside the mapped free space`` for good and 12 robots
-        queued behind it (bench/results/fleet_services_diag_seed0.json)."""
+    def goal_law(self, i: int) -> Any:
+        """The fallback law of robot ``i`` on its goal leg and parked at its goal, where its
+        own controller (which drives it there) has no value: None with conformal node laws;
+        with straight ones (:class:`LineLaw`, an atlas) the straight law to its goal point
+        (same safety filter, speed and gain as the node laws, arrival within ``GOAL_TOL``),
+        cached per goal point.  The segment from the goal node to the goal is free
+        (:meth:`goal_node_of`), so the straight law needs no navigation function there, as
+        from a node to the next.  Why: in the services warehouse (seed 0) a robot's own atlas
+        law was NaN at points 0.3-0.4 m from its goal in the top aisle (the chart flat to
+        rounding there); it stopped on its goal leg ``outside the mapped free space`` for
+        good and 12 robots queued behind it (bench/results/fleet_services_diag_seed0.json).
+        Only a fallback: driving every goal leg straight cost goals in the core warehouse
+        (197 and 192 of 200 against 200 and 200 on seeds 1 and 0: off the free segment, a
+        robot that starts its leg off its node can be held at a wall)."""
         law0 = self.node_ctrls[0] if self.node_ctrls else None
         if not isinstance(law0, LineLaw):
             return None
@@ -932,11 +934,14 @@ class Plan:
     ``parked``: it reached its goal and waits on the roadmap; ``note``: what it does, in
     words (a status message)."""
 
-    ctrl: Any  # the node's or the goal's law (Controller or LineLaw); None: its own
+    ctrl: Any  # the node's law (Controller or LineLaw); None: its own goal controller
     goal_leg: bool
     parked: bool
     note: str
     coordinated: bool
+    #: on the goal leg and parked: the law for where its own has no value (NaN or ERROR;
+    #: :meth:`RoadmapCoordinator.goal_law`), None: none
+    fallback: Any = None
 
 
 #: the plan of a robot that is not coordinated: its own controller, exactly as alone
@@ -1035,6 +1040,7 @@ class FleetCoordinator:
                     parked=bool(done[i]),
                     note=self.describe(i, bool(done[i])),
                     coordinated=True,
+                    fallback=None if drive[i] is not None else self.coord.goal_law(i),
                 )
             )
         return out
