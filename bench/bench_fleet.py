@@ -709,7 +709,7 @@ def main() -> None:
         choices=("idle", "clear"),
         help="--node-laws: the straight node laws, seeds 0 and 1, with each of these rules for "
         "when a pushed done robot goes back (RoadmapCoordinator.come_back); writes "
-        "results/fleet_node_laws_comeback.json",
+        "results/fleet_node_laws_comeback.json (or --out)",
     )
     ap.add_argument("--time-scale", type=float, default=2.0, help="services: simulator speed")
     ap.add_argument("--t-max", type=float, default=WAREHOUSE_T_MAX, help="services: sim s")
@@ -831,6 +831,8 @@ def node_laws_main(args: argparse.Namespace) -> None:
             for seed in (0, 1)
         }
         out = RESULTS / "fleet_node_laws_comeback.json"
+        if args.out != RESULTS / "fleet.json":
+            out = args.out
     elif args.aside:
         rows = {
             f"line, aside {rule}": warehouse(args.rounds, roadmap=True, node_law="line", aside=rule)
