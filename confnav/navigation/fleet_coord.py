@@ -550,8 +550,8 @@ class RoadmapCoordinator:
         rounding there); it stopped on its goal leg ``outside the mapped free space`` for
         good and 12 robots queued behind it (bench/results/fleet_services_diag_seed0.json).
         Only a fallback: driving every goal leg straight cost goals in the core warehouse
-        (197 and 192 of 200 against 200 and 200 on seeds 1 and 0: off the free segment, a
-        robot that starts its leg off its node can be held at a wall)."""
+        (off the free segment, a robot that starts its leg off its node can be held at a
+        wall)."""
         law0 = self.node_ctrls[0] if self.node_ctrls else None
         if not isinstance(law0, LineLaw):
             return None
