@@ -356,18 +356,28 @@ class PosesMixin(CoordMixin):
         """``results`` with the coordinated robots whose own law has no value on their goal
         leg (ERROR or a NaN command) driven by their plan's fallback law (the straight law
         to the goal on an atlas, :meth:`~confnav.navigation.fleet_coord.RoadmapCoordinator
-        .goal_law`; wrapped in the robot's look-ahead law for a unicycle).  Rare, so only
-        those entries are visited."""
+        .goal_law`; wrapped in the robot's look-ahead law for a unicycle), and for the rest
+        of that leg once it was (latched per robot and fallback law)."""
+        latched: dict[str, Any] = self._coord_state().setdefault("fallback", {})
         out: list[Any] = []
         for (ctrl, members), res in results:
             if isinstance(res, Exception):
                 out.append(((ctrl, members), res))
                 continue
             u, codes = res
-            bad = np.flatnonzero(
-                (np.asarray(codes) == navigation.ERROR) | ~np.isfinite(np.asarray(u))
-            )
-            for k in bad.tolist():
+            bad = (np.asarray(codes) == navigation.ERROR) | ~np.isfinite(np.asarray(u))
+            for k, (r, _) in enumerate(members):
+                pl = plans.get(r.robot_id)
+                fb = None if pl is None else pl.fallback
+                if latched.get(r.robot_id, fb) is not fb or fb is None:
+                    latched.pop(r.robot_id, None)  # off that goal leg: its own law again
+                elif bad[k]:
+                    latched[r.robot_id] = fb
+                # once its own law had no value on this leg, the fallback drives the rest of
+                # it: in the services warehouse (seed 0) the own law, NaN in a patch near the
+                # goal, drove the robot back into the patch, and it stayed between the two
+                bad[k] = bad[k] or r.robot_id in latched
+            for k in np.flatnonzero(bad).tolist():
                 r, pose = members[k]
                 pl = plans.get(r.robot_id)
                 if pl is None or pl.fallback is None or r.robot_id not in own:
