@@ -65,6 +65,8 @@ WAREHOUSE_T_MAX = 900.0
 #: in the bottom aisle points at the wall), and each new goal's harmonic fit costs 0.25-30 s.
 WAREHOUSE_NAVFN = "kr"
 STALL_S = 240.0  # services: no goal reached for this long (nominal sim s) ends the run
+STATUS_HISTORY = 8  # services: distinct statuses kept per robot (the unarrived's records)
+NEIGHBOUR_R = 2.0  # services: an unarrived robot's neighbours at the end lie within (m)
 
 ROOM = Workspace(
     [(0, 0), (10, 0), (10, 8), (0, 8)],
@@ -397,9 +399,13 @@ def services_warehouse(
     walls: set[str] = set()
     waits: dict[str, int] = {}
     statuses = 0
+    # per robot: the last status and the last STATUS_HISTORY distinct (state, reason, message)
+    # with the nominal time each began (what a robot that does not arrive was doing)
+    last: list[Any] = [None] * n
+    history: list[list[dict[str, Any]]] = [[] for _ in range(n)]
     try:
         procs["router"] = spawn("serve", "router", "--listen", ep, log=tmp / "router.log")
-        time.sleep(1.0)
+        wait_port(ep, 120.0)  # a loaded box: the router's start took over 30 s
         procs["transform"] = spawn("serve", "transform", *common, "--cache-dir",
                                    str(tmp / "cache"), log=tmp / "transform.log")  # fmt: skip
         procs["controller"] = spawn("-v", "serve", "controller", *common,  # -v: auto's choice
@@ -426,6 +432,14 @@ def services_warehouse(
             i = int(s.robot_id[1:])
             with lock:
                 statuses += 1
+                last[i] = s
+                h = history[i]
+                if not h or (h[-1]["state"], h[-1]["reason"], h[-1]["message"]) != (
+                    s.state, s.reason, s.message):  # fmt: skip
+                    h.append({"t_s": (time.monotonic() - t0[0]) * time_scale, "state": s.state,
+                              "reason": s.reason, "message": s.message,
+                              "position": s.position})  # fmt: skip
+                    del h[:-STATUS_HISTORY]
                 if s.message.startswith("waiting for"):
                     waits[s.robot_id] = waits.get(s.robot_id, 0) + 1
                 if k_of[i] >= rounds or s.state != "arrived" or s.stamp_ns < sent_ns[i]:
@@ -499,6 +513,7 @@ def services_warehouse(
     reached = sum(k_of)
     arrivals = [t for ts in reached_t for t in ts]
     log_lines = (tmp / "controller.log").read_text(errors="replace").splitlines()
+    unarrived = not_arrived(rid, k_of, rounds, goals, last, history, log_lines)
     fleet_log = [ln for ln in log_lines if "fleet coordinator auto" in ln or "fleet roadmap" in ln]
     print(
         f"#   services warehouse ({coordinator}): {reached}/{n * rounds} goals, "
@@ -529,9 +544,91 @@ def services_warehouse(
         "statuses": statuses,
         "waiting_statuses": sum(waits.values()),
         "controller_fleet_log": fleet_log[:10],
+        "not_arrived": unarrived,
+        "final_statuses": final_statuses(rid, last, k_of),
         "note": "times are nominal simulated seconds (wall time x time_scale) since the first "
         "goals; the simulator steps at 20 Hz of simulated time",
     }
+
+
+def final_statuses(rid: list[str], last: list[Any], k_of: list[int]) -> dict[str, Any]:
+    """Every robot's last status and goals reached (what the fleet around a stalled robot
+    was doing)."""
+    return {
+        r: None
+        if s is None
+        else {
+            "state": s.state,
+            "reason": s.reason,
+            "message": s.message,
+            "position": s.position,
+            "goals_reached": k,
+        }
+        for r, s, k in zip(rid, last, k_of, strict=True)
+    }
+
+
+def wait_port(ep: str, timeout: float) -> None:
+    """Wait until the router accepts TCP connections on ``ep`` (``tcp/host:port``)."""
+    import socket
+
+    host, port = ep.split("/", 1)[1].rsplit(":", 1)
+    deadline = time.monotonic() + timeout
+    while True:
+        try:
+            socket.create_connection((host, int(port)), timeout=1.0).close()
+            return
+        except OSError:
+            if time.monotonic() > deadline:
+                raise RuntimeError(f"no router on {ep} after {timeout} s") from None
+            time.sleep(0.3)
+
+
+def not_arrived(
+    rid: list[str],
+    k_of: list[int],
+    rounds: int,
+    goals: np.ndarray,
+    last: list[Any],
+    history: list[list[dict[str, Any]]],
+    log_lines: list[str],
+) -> list[dict[str, Any]]:
+    """One record per robot that did not reach all its goals: the goal it was on, its last
+    status (state, reason, message, position, distance to goal), its last
+    :data:`STATUS_HISTORY` distinct statuses, its neighbours at the end (every other robot
+    whose last status position is within :data:`NEIGHBOUR_R` m, nearest first, with its
+    state, message and whether it was done) and the controller's last log lines naming it."""
+    out = []
+    for i, r in enumerate(rid):
+        if k_of[i] >= rounds:
+            continue
+        s = last[i]
+        g = goals[k_of[i], i]
+        pos = complex(*s.position) if s is not None and s.position is not None else None
+        nbrs = []
+        for j, o in enumerate(last):
+            if j == i or o is None or o.position is None or pos is None:
+                continue
+            dist = abs(complex(*o.position) - pos)
+            if dist <= NEIGHBOUR_R:
+                nbrs.append({"robot": rid[j], "distance_m": dist, "position": o.position,
+                             "state": o.state, "reason": o.reason, "message": o.message,
+                             "done": k_of[j] >= rounds})  # fmt: skip
+        nbrs.sort(key=lambda e: e["distance_m"])
+        out.append({
+            "robot": r,
+            "goal_index": k_of[i],
+            "goal": (float(g.real), float(g.imag)),
+            "last_position": s.position if s is not None else None,
+            "distance_to_goal_m": abs(pos - g) if pos is not None else None,
+            "last_status": None if s is None else {
+                "state": s.state, "reason": s.reason, "message": s.message,
+                "distance_to_goal": s.distance_to_goal, "chart": s.chart},
+            "status_history": history[i],
+            "neighbours": nbrs,
+            "controller_log": [ln for ln in log_lines if r in ln][-8:],
+        })  # fmt: skip
+    return out
 
 
 def batched_cost(n: int = 200, reps: int = 20) -> dict[str, Any]:
@@ -612,7 +709,7 @@ def main() -> None:
         choices=("idle", "clear"),
         help="--node-laws: the straight node laws, seeds 0 and 1, with each of these rules for "
         "when a pushed done robot goes back (RoadmapCoordinator.come_back); writes "
-        "results/fleet_node_laws_comeback.json",
+        "results/fleet_node_laws_comeback.json (or --out)",
     )
     ap.add_argument("--time-scale", type=float, default=2.0, help="services: simulator speed")
     ap.add_argument("--t-max", type=float, default=WAREHOUSE_T_MAX, help="services: sim s")
@@ -734,6 +831,8 @@ def node_laws_main(args: argparse.Namespace) -> None:
             for seed in (0, 1)
         }
         out = RESULTS / "fleet_node_laws_comeback.json"
+        if args.out != RESULTS / "fleet.json":
+            out = args.out
     elif args.aside:
         rows = {
             f"line, aside {rule}": warehouse(args.rounds, roadmap=True, node_law="line", aside=rule)
@@ -802,6 +901,13 @@ def services_main(args: argparse.Namespace) -> None:
             f"{w['reached']}/{w['goals']} = {w['arrived_pct']:.1f}% reached, last arrival "
             f"{w['last_arrival_s']} s (nominal), wall {w['wall_s']:.0f} s"
         )
+        for u in w["not_arrived"]:
+            ls = u["last_status"] or {}
+            nb = [(e["robot"], round(e["distance_m"], 2), e["message"]) for e in u["neighbours"]]
+            print(f"  not arrived {u['robot']} goal {u['goal_index']} at {u['goal']}: "
+                  f"{ls.get('state')} / {ls.get('reason')}: {ls.get('message')!r}, "
+                  f"{u['distance_to_goal_m']} m off; neighbours "
+                  f"{nb}")  # fmt: skip
     doc = {
         **run_end(stamp),
         "note": "timings under the load shown (shared machine), not idle figures",

@@ -16,7 +16,11 @@ conformal map; on an atlas the straight law along the roadmap's free edges,
 unicycle), whose command then goes through the same fleet filter
 as any other (``services/neighbours.py``: pairwise rows, walls, the hold cap; side passing
 and the yield rule are off for coordinated robots: the plan replaces them).  On the goal leg
-the robot's own controller drives it, and its arrival is the published one.
+the robot's own controller drives it, and its arrival is the published one; where its own
+law has no value there (ERROR or NaN: an atlas chart's law may have none near the goal), the
+straight law to its goal on an atlas (the segment from its goal node is free;
+:meth:`~confnav.navigation.fleet_coord.RoadmapCoordinator.goal_law`,
+``services/controller_poses.py``).
 
 Not coordinated, and driven exactly as without this module: a robot alone on its map (one
 robot with a goal seen within the coordinator's ``ttl``), a robot on the base map while its

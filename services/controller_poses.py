@@ -27,6 +27,7 @@ from confnav.services.keys import KeyError_
 
 from confnav.navigation.control import Controller
 from confnav.navigation.fleet import fleet_step
+from confnav.navigation.fleet_coord import Plan
 
 log = logging.getLogger(__name__)
 
@@ -224,6 +225,8 @@ class PosesMixin(CoordMixin):
         if plans:  # a node controller's arrival is a sub-goal's: the robot keeps moving
             results = _sub_goal_codes(results, plans)
         results = self._reentered(results)
+        if plans:  # a goal leg whose own law has no value: the plan's fallback law
+            results = self._coord_fallback(results, plans, own)
         # --- fleet hook (services/neighbours.py): keep robots off each other and movers ---
         if self.neighbours is not None:
             results = self.neighbours.filter_block(
@@ -341,6 +344,53 @@ class PosesMixin(CoordMixin):
                         u[k], codes[k] = uk, ck
                         self._reentry_notes[r.robot_id] = note
                         self.count("reentry_commands")
+            out.append(((ctrl, members), (u, codes)))
+        return out
+
+    def _coord_fallback(
+        self,
+        results: list[Any],
+        plans: dict[str, Any],
+        own: dict[str, navigation.ControllerLike],
+    ) -> list[Any]:
+        """``results`` with the coordinated robots whose own law has no value on their goal
+        leg (ERROR or a NaN command) driven by their plan's fallback law (the straight law
+        to the goal on an atlas, :meth:`~confnav.navigation.fleet_coord.RoadmapCoordinator
+        .goal_law`; wrapped in the robot's look-ahead law for a unicycle), and for the rest
+        of that leg once it was (latched per robot and fallback law)."""
+        latched: dict[str, Any] = self._coord_state().setdefault("fallback", {})
+        out: list[Any] = []
+        for (ctrl, members), res in results:
+            if isinstance(res, Exception):
+                out.append(((ctrl, members), res))
+                continue
+            u, codes = res
+            bad = (np.asarray(codes) == navigation.ERROR) | ~np.isfinite(np.asarray(u))
+            for k, (r, _) in enumerate(members):
+                pl = plans.get(r.robot_id)
+                fb = None if pl is None else pl.fallback
+                if latched.get(r.robot_id, fb) is not fb or fb is None:
+                    latched.pop(r.robot_id, None)  # off that goal leg: its own law again
+                elif bad[k]:
+                    latched[r.robot_id] = fb
+                # once its own law had no value on this leg, the fallback drives the rest of
+                # it: in the services warehouse (seed 0) the own law, NaN in a patch near the
+                # goal, drove the robot back into the patch, and it stayed between the two
+                bad[k] = bad[k] or r.robot_id in latched
+            for k in np.flatnonzero(bad).tolist():
+                r, pose = members[k]
+                pl = plans.get(r.robot_id)
+                if pl is None or pl.fallback is None or r.robot_id not in own:
+                    continue
+                law = self._coord_law(
+                    Plan(pl.fallback, pl.goal_leg, pl.parked, pl.note, True), own[r.robot_id]
+                )
+                uk, ck = navigation.commands(
+                    law, np.array([complex(pose.x, pose.y)]), np.array([pose.theta])
+                )
+                u, codes = np.array(u, dtype=complex), np.array(codes)
+                u[k], codes[k] = uk[0], ck[0]
+                self.count("goal_leg_fallbacks")
             out.append(((ctrl, members), (u, codes)))
         return out
 

@@ -11,6 +11,7 @@ import pytest
 
 from confnav import Controller, Workspace, inflate, solve
 from confnav.errors import NavigationError
+from confnav.navigation.control import Status
 from confnav.navigation.fleet_coord import (
     ALONE,
     GOAL_LEG,
@@ -18,6 +19,7 @@ from confnav.navigation.fleet_coord import (
     RETURN_LEG,
     ROAD,
     FleetCoordinator,
+    LineLaw,
     RoadmapCoordinator,
     choose_coordinator,
     pibt_step,
@@ -392,3 +394,145 @@ def test_straight_node_laws_do_not_take_a_robot_with_no_node_in_sight(
     assert c.n == 0
     monkeypatch.setattr(fleet_coord, "segment_clearance", real)
     assert c.add(0.8 + 0.6j) == 0 and c.mode[0] == RETURN_LEG
+
+
+# the outside check's studio flat (/work/outside/studio.json): a 1 m lane under a table
+# (1.0-2.6 x 1.0-1.7 m) whose roadmap (bodies 0.18 m, look-ahead 0.1 m: rho 0.28 m) is a
+# pocketless path of nodes from the lane's east end (3.33, 0.73) to the west of the room
+STUDIO = Workspace(
+    [
+        (0, 0), (7, 0), (7, 3.2), (5.2, 3.2), (5.2, 3.0), (4.9, 3.0), (4.9, 4.6), (6.2, 4.6),
+        (6.2, 5.5), (0, 5.5), (0, 3.4), (-0.9, 3.4), (-0.9, 2.4), (0, 2.4),
+    ],
+    [
+        [(1.0, 1.0), (2.6, 1.0), (2.6, 1.7), (1.0, 1.7)],
+        [(3.6, 4.2), (4.6, 4.2), (4.6, 5.2), (4.3, 5.2), (4.3, 4.5), (3.6, 4.5)],
+        [(2.5, 2.45), (4.9, 2.45), (4.9, 2.55), (2.5, 2.55)],
+        [(5.6, 0.5), (6.6, 0.5), (6.6, 0.58), (5.6, 0.58)],
+        [(0.4, 4.6), (1.4, 4.6), (1.4, 5.2), (0.4, 5.2)],
+    ],
+)  # fmt: skip
+
+
+def test_a_done_robot_cornered_in_a_lane_leads_the_way_out() -> None:
+    """The studio swap (run_studio.sh): a (west end of the lane) and b (its east end) swap,
+    c and d swap in the room above.  a reaches its goal at the lane's east end first; b,
+    whose way west runs through a's goal, makes it leave; a, done and cornered (the lane has
+    no pocket), leads the way out east past the junction and steps off b's way, b drives
+    through, and a comes back: all four end parked at their goals.  Before: a was pushed
+    west along the lane ahead of b, past b's goal, and stayed there behind b (3.1 m off its
+    goal; 3.09 m through the services, bench/results/fleet_studio_auto.json)."""
+    rho = 0.28
+    c = RoadmapCoordinator.build(None, 0, rho, node_law="line", workspace=inflate(STUDIO, rho))
+    starts = np.array([1.0 + 0.5j, 3.5 + 0.5j, 0.6 + 3.9j, 3.0 + 3.6j])
+    goals = np.array([3.5 + 0.5j, 1.0 + 0.5j, 3.0 + 3.6j, 0.6 + 3.9j])
+    p = starts.copy()
+    for z in p:
+        c.add(complex(z))
+    done = np.zeros(4, dtype=bool)
+    t = 0.0
+    for _ in range(300):
+        _teleport(c, p, goals, done, t)
+        t += 0.2
+        if done.all() and all(int(m) == PARKED for m in c.mode):
+            break
+    assert done.all()
+    assert np.all(np.abs(p - goals) < 1e-12)  # every robot ends at its goal ...
+    assert all(int(m) == PARKED for m in c.mode)  # ... parked there
+    assert c.made_way > 0  # a led the way out of the lane
+
+
+# the README's warehouse (examples/warehouse.yaml): three 6 m shelves and two pillars; for
+# unicycles of the services bench (body 0.2 m, look-ahead 0.1 m: rho 0.3 m) each aisle's
+# roadmap is a lane of nodes 0.8 m apart between the west and east ends
+WAREHOUSE = Workspace(
+    [(0, 0), (10, 0), (10, 8), (1, 8), (1, 7.2), (0, 7.2)],
+    [
+        [(2, 1.6), (8, 1.6), (8, 2.2), (2, 2.2)],
+        [(2, 3.8), (8, 3.8), (8, 4.4), (2, 4.4)],
+        [(2, 6.0), (8, 6.0), (8, 6.6), (2, 6.6)],
+        [(8.8, 2.8), (9.2, 2.8), (9.2, 3.2), (8.8, 3.2)],
+        [(8.8, 5.0), (9.2, 5.0), (9.2, 5.4), (8.8, 5.4)],
+    ],
+)
+
+
+def test_a_robot_parked_at_the_end_of_a_push_chain_leaves_the_way() -> None:
+    """The services warehouse's seed-1 stall (fleet_services_diag_seed1.json): in the
+    bottom aisle two robots done with their goals stand on the lane between an active robot
+    and its goal node, and a robot parked at its goal holds the lane's next node beyond
+    them, out of the active robot's way and over ``3 gap`` from it along the roadmap.  The
+    active robot's push runs down the two done robots and must end on that node: the parked
+    robot leaves it, the chain moves, and the active robot reaches its goal.  Before: the
+    push failed every tick and the active robot waited for good (``waiting for w04 at node
+    21``; 198 of 200 goals)."""
+    rho = 0.3
+    c = RoadmapCoordinator.build(None, 0, rho, node_law="line", workspace=inflate(WAREHOUSE, rho))
+    nodes = c.roadmap.nodes
+
+    def node(z: complex) -> int:
+        return int(np.flatnonzero(np.abs(nodes - z) < 0.06)[0])
+
+    n12, n15, n18, n21 = (node(z) for z in (1.75 + 0.8j, 2.55 + 0.8j, 3.35 + 0.8j, 4.15 + 0.8j))
+    assert set(c.roadmap.neighbours[n15].tolist()) == {n12, n18}  # a lane: no pocket
+    # P parks at its goal off node 12; D1, D2 park at nodes 15, 18; A waits at node 21
+    goals = np.array([1.75 + 0.55j, nodes[n15], nodes[n18], nodes[n21]])
+    p = goals.copy()
+    p[0] = nodes[n12]
+    for z in p:
+        c.add(complex(z))
+    done = np.zeros(4, dtype=bool)
+    t = 0.0
+    for _ in range(60):
+        _teleport(c, p, goals, done, t)
+        t += 0.2
+    assert done.all() and all(int(m) == PARKED for m in c.mode)
+    assert int(c.at[0]) == n12
+    for i in (1, 2):  # D1, D2: pushed off their goals earlier, now done on the roadmap
+        c.mode[i] = ROAD
+        c.excursions.pop(i, None)
+    goals[3], done[3] = 2.886 + 0.69j, False  # A's next goal: its goal node is node 15
+    assert c.goal_node_of(goals[3]) == n15
+    assert c.roadmap.dist[n21, n12] > 3.0 * c.gap  # P is not near A ...
+    for _ in range(300):
+        _teleport(c, p, goals, done, t)
+        t += 0.2
+        if done[3]:
+            break
+    assert done[3] and abs(p[3] - goals[3]) < 1e-12  # ... yet leaves the way: A arrives
+
+
+def test_straight_node_laws_give_the_goal_leg_a_straight_fallback() -> None:
+    """With straight node laws (an atlas) the goal leg and the parked robot have the
+    straight law to the goal point as their fallback (``Plan.fallback``; the segment from the
+    goal node is free), which the controller service drives where the robot's own law has
+    no value: through the services (seed 0) a robot's own atlas law was NaN 0.3-0.4 m from
+    its goal in the top aisle (a chart flat to rounding there); the robot stopped on its goal
+    leg ``outside the mapped free space`` for good and 12 robots queued behind it
+    (bench/results/fleet_services_diag_seed0.json).  Before: no fallback."""
+    c = RoadmapCoordinator.build(None, 0, R, node_law="line", workspace=inflate(LANE, R))
+    fc = FleetCoordinator(c)
+    goals = np.array([0.8 + 1.0j, 6.8 + 1.0j])
+    p = np.array([1.0 + 0.6j, 6.5 + 0.6j])
+    t, plans = 0.0, []
+    for _ in range(100):  # teleported to their next nodes until robot a takes its goal leg
+        plans = fc.plan(t, ["a", "b"], p, goals, [1, 1])
+        if plans[0].goal_leg:
+            break
+        for i in range(2):
+            p[i] = c.roadmap.nodes[int(c.at[i] if c.mode[i] != ROAD else c.nxt[i])]
+        t += 0.2
+    pl = plans[0]
+    assert pl.goal_leg and pl.ctrl is None  # its own law drives it ...
+    law = pl.fallback  # ... and this where its own has no value
+    assert isinstance(law, LineLaw) and law.goal == goals[0]
+    z0 = complex(c.roadmap.nodes[int(c.at[0])])  # its goal node: the leg's start
+    o = law(np.array([z0]))
+    e = (goals[0] - z0) / abs(goals[0] - z0)
+    assert int(o.status[0]) == Status.MOVING
+    assert abs(o.u[0] / abs(o.u[0]) - e) < 1e-9  # straight at the goal (the filter is idle)
+    o = law(np.array([goals[0]]))
+    assert int(o.status[0]) == Status.ARRIVED and o.u[0] == 0
+    fc.reached("a")
+    pl = fc.plan(t, ["a", "b"], p, goals, [1, 1])[0]
+    assert pl.parked and pl.ctrl is None and pl.fallback is law  # parked: the same fallback

@@ -68,6 +68,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.optimize import linear_sum_assignment
+from scipy.sparse import csr_matrix
+from scipy.sparse.csgraph import connected_components
 
 from confnav.errors import NavigationError
 from confnav.navigation.control import Controller, Status
@@ -299,6 +301,7 @@ class RoadmapCoordinator:
     excursions_done: int = 0
     timeouts: int = 0
     idle_ticks: int = 0
+    made_way: int = 0  # robot-ticks of done robots leading the way out of a lane
     t_tick: float = 0.0
     main: NDArray[np.intp] = field(init=False)  # nodes of the largest component
 
@@ -324,6 +327,7 @@ class RoadmapCoordinator:
         self.main = np.flatnonzero(lab == big).astype(np.intp)
         self._goal_cache: dict[complex, int] = {}
         self._goal_nodes_cache: dict[tuple[int, complex], NDArray[np.intp]] = {}
+        self._goal_laws: dict[complex, LineLaw] = {}  # straight goal-leg laws (goal_law)
 
     @classmethod
     def build(
@@ -488,8 +492,9 @@ class RoadmapCoordinator:
         self, t: float, p: ArrayLike, goals: ArrayLike, done: ArrayLike
     ) -> tuple[list[Any], NDArray[np.bool_]]:
         """Each robot's controller for this step (None: its own goal controller, on the goal
-        leg) and the goal-leg mask.  ``p``: controlled points; ``goals``: current goals;
-        ``done``: robots with no goal left (they park on the roadmap)."""
+        leg and parked; :meth:`goal_law` is the host's fallback there) and the goal-leg
+        mask.  ``p``: controlled points; ``goals``: current goals; ``done``: robots with no
+        goal left (they park on the roadmap)."""
         pp = np.asarray(p, dtype=np.complex128).reshape(-1)
         gg = np.asarray(goals, dtype=np.complex128).reshape(-1)
         dn = np.asarray(done, dtype=bool).reshape(-1)
@@ -533,6 +538,30 @@ class RoadmapCoordinator:
                 drive.append(self.node_ctrls[int(self.nxt[i])])
         return drive, self.mode == GOAL_LEG
 
+    def goal_law(self, i: int) -> Any:
+        """The fallback law of robot ``i`` on its goal leg and parked at its goal, where its
+        own controller (which drives it there) has no value: None with conformal node laws;
+        with straight ones (:class:`LineLaw`, an atlas) the straight law to its goal point
+        (same safety filter, speed and gain as the node laws, arrival within ``GOAL_TOL``),
+        cached per goal point.  The segment from the goal node to the goal is free
+        (:meth:`goal_node_of`), so the straight law needs no navigation function there, as
+        from a node to the next.  Why: in the services warehouse (seed 0) a robot's own atlas
+        law was NaN at points 0.3-0.4 m from its goal in the top aisle (the chart flat to
+        rounding there); it stopped on its goal leg ``outside the mapped free space`` for
+        good and 12 robots queued behind it (bench/results/fleet_services_diag_seed0.json).
+        Only a fallback: driving every goal leg straight cost goals in the core warehouse
+        (off the free segment, a robot that starts its leg off its node can be held at a
+        wall)."""
+        law0 = self.node_ctrls[0] if self.node_ctrls else None
+        if not isinstance(law0, LineLaw):
+            return None
+        g = complex(self.goal_pt[i])
+        law = self._goal_laws.get(g)
+        if law is None:
+            law = LineLaw(g, law0.safety, v_max=law0.v_max, gain=law0.gain)
+            self._goal_laws[g] = law
+        return law
+
     def _unpark(self, active: NDArray[np.bool_]) -> None:
         """Parked robots whose goal's nodes (its excursion's nodes and closed edges' ends, its
         goal node) lie on a shortest roadmap path of an ``active`` robot to its goal node, or
@@ -541,12 +570,53 @@ class RoadmapCoordinator:
         parked = [i for i in np.flatnonzero(self.mode == PARKED).tolist() if i in self.excursions]
         if not parked or not active.any():
             return
+        chain = self._push_chains(active)
         for i in parked:
             ex = self.excursions[i]
             ends = {int(v) for e in ex.edges for v in e}  # a closed edge's ends
-            nn = np.fromiter(ex.nodes | ends | {int(self.at[i])}, dtype=np.intp)
-            if self._in_the_way(nn, active):
+            nodes = ex.nodes | ends | {int(self.at[i])}
+            nn = np.fromiter(nodes, dtype=np.intp)
+            if nodes & chain or self._in_the_way(nn, active):
                 self.mode[i] = RETURN_LEG
+
+    def _push_chains(self, active: NDArray[np.bool_]) -> set[int]:
+        """The nodes an ``active`` robot's next move needs cleared: where its next node on a
+        shortest path to its goal node holds a robot done with its goals (on the roadmap),
+        that robot's node and every node of done robots joined to it by edges (the chain its
+        push runs down), with their neighbours (where the chain's last robot must go), when
+        none of those neighbours is free (no robot on or bound for it, no excursion closing
+        it).  A robot parked at its goal holding one of them blocks the push however far it
+        is from the active robot: in the services warehouse (seed 1) two done robots stood in a
+        lane between an active robot and its goal node, and a robot parked at the lane's
+        far node held it: the push failed for good (bench/results/
+        fleet_services_diag_seed1.json)."""
+        done_on = {int(v) for v in self.at[(self.mode == ROAD) & ~active]}
+        if not done_on:
+            return set()
+        dist, nb = self.roadmap.dist, self.roadmap.neighbours
+        taken = {int(v) for v in np.concatenate([self.at, self.nxt])}
+        for ex in self.excursions.values():
+            taken |= ex.nodes
+        out: set[int] = set()
+        for j in np.flatnonzero(active).tolist():
+            a, g = int(self.at[j]), int(self.goal_node[j])
+            if a == g or not np.isfinite(dist[a, g]):
+                continue
+            nxt = [int(v) for v in nb[a] if int(v) in done_on
+                   and dist[a, v] + dist[v, g] <= dist[a, g] + 1e-9]  # fmt: skip
+            todo = list(nxt)
+            seen = set(nxt)
+            while todo:  # the done robots joined to them
+                v = todo.pop()
+                for w in nb[v].tolist():
+                    if w in done_on and w not in seen:
+                        seen.add(w)
+                        todo.append(w)
+            ends = {int(w) for v in seen for w in nb[v].tolist()} - seen - {a}
+            if ends - taken:
+                continue  # the chain can end on a free node: nothing to unpark
+            out |= seen | ends
+        return out
 
     def _in_the_way(self, nn: NDArray[np.intp], active: NDArray[np.bool_]) -> bool:
         """Whether nodes ``nn`` lie on a shortest roadmap path of an ``active`` robot to its
@@ -652,6 +722,12 @@ class RoadmapCoordinator:
         closed_nodes, closed_edges = self._closed(starting)
         prio = self.eta + self._tie
         prio = np.where(np.isin(np.arange(self.n), asked), prio + 1e6, prio)  # at goal: hold
+        meek = done.copy()
+        way = self._make_way(road & done & ~back & ~fixed, road & ~done, prio,
+                             closed_nodes | blocked, closed_edges)  # fmt: skip
+        for i, (w, pr) in way.items():  # cornered in a lane: leads the way out, pushing
+            goal[i], prio[i], meek[i] = w, pr, False
+        self.made_way += len(way)
         nxt = pibt_step(
             self.roadmap,
             self.at.tolist(),
@@ -661,7 +737,7 @@ class RoadmapCoordinator:
             closed_nodes=closed_nodes,
             closed_edges=closed_edges,
             blocked=blocked,
-            meek=done.tolist(),
+            meek=meek.tolist(),
             aside=None if self.aside == "all" else done.tolist(),
             rng=self._rng,
         )
@@ -677,6 +753,83 @@ class RoadmapCoordinator:
         for i in starting:
             self.mode[i] = GOAL_LEG
             self.pend_since[i] = np.nan
+
+    def _make_way(
+        self,
+        cand: NDArray[np.bool_],
+        active: NDArray[np.bool_],
+        prio: NDArray[np.float64],
+        closed_nodes: set[int],
+        closed_edges: set[tuple[int, int]],
+    ) -> dict[int, tuple[int, float]]:
+        """Done robots (``cand``) cornered in an active robot's way: a robot ``i`` on the
+        shortest roadmap path of an active robot ``j`` to its goal node (``j`` within ``3
+        gap`` of it along the roadmap) such that no node off that path from which ``i`` can
+        come back to its goal node without passing ``j``'s goal node lies ahead of it (in
+        the roadmap as built, reachable from ``i`` without passing ``j``'s node): a
+        pocketless lane that is a bridge of the roadmap.  Pushed, ``i`` could only go on
+        ahead of ``j``, past ``j``'s goal, and stay behind it there: the studio's robot a,
+        parked 3.09 m off its goal, bench/results/fleet_studio_auto.json.  Each gets a
+        *waiting node* -- the open node off every such path, from which it can come back,
+        nearest it along the roadmap (behind ``j``) -- and a priority above those robots', so
+        that it leads the way out (pushing them aside at the junction behind them, then
+        stepping off their way) instead of being pushed on ahead of them; ``{i: (node,
+        priority)}``.  In the warehouse, whose aisles join at both ends, no robot is
+        cornered.  The pushing and the priorities are PIBT's (Okumura et al. 2022,
+        Algorithm 1); the waiting node is this module's rule."""
+        out: dict[int, tuple[int, float]] = {}
+        if not cand.any() or not active.any():
+            return out
+        dist = self.roadmap.dist
+        js = np.flatnonzero(active)
+        a, g = self.at[js], self.goal_node[js]
+        direct = dist[a, g]
+        # way[k, v]: node v lies on a shortest path of active robot js[k] to its goal node
+        way = np.isfinite(direct)[:, None] & (dist[a, :] + dist[:, g].T <= direct[:, None] + 1e-9)
+        way &= (a != g)[:, None]
+        shut = np.zeros(self.roadmap.size, dtype=bool)
+        shut[list(closed_nodes)] = True
+        for i in np.flatnonzero(cand).tolist():
+            u = int(self.at[i])
+            mine = way[:, u] & (dist[a, u] <= 3.0 * self.gap)
+            if not mine.any():
+                continue
+            home = int(self.goal_node[i])  # it comes back there: not from behind their goals
+            cornered = False
+            for k in np.flatnonzero(mine).tolist():  # each robot whose way it is in, alone
+                ok = ~way[k] & np.isfinite(dist[u]) & self._reach(u, {int(a[k])})
+                ok[u] = False
+                if home != int(g[k]):
+                    ok &= self._reach(home, {int(g[k])})
+                if not ok.any():  # no way out ahead of it in the roadmap as built
+                    cornered = True
+                    break
+            if not cornered:
+                continue  # a way out ahead: PIBT's aside rule takes it there
+            gone = {int(x) for x in g[mine]}
+            off = ~way[mine].any(axis=0) & np.isfinite(dist[u]) & ~shut
+            off[u] = False
+            if home not in gone:
+                off &= self._reach(home, gone)
+            if not off.any():
+                continue
+            cands = np.flatnonzero(off)
+            w = int(cands[np.argmin(dist[u, cands])])
+            out[i] = (w, float(prio[js[mine]].max()) + 1.0)
+        return out
+
+    def _reach(self, src: int, gone: set[int]) -> NDArray[np.bool_]:
+        """The nodes connected to ``src`` on the roadmap without the nodes ``gone``."""
+        e = self.roadmap.edges
+        n = self.roadmap.size
+        keep = ~np.isin(e, list(gone)).any(axis=1) if gone else np.ones(len(e), dtype=bool)
+        _, lab = connected_components(
+            csr_matrix((np.ones(int(keep.sum())), (e[keep, 0], e[keep, 1])), shape=(n, n)),
+            directed=False,
+        )
+        ok = lab == lab[src]
+        ok[list(gone - {src})] = False
+        return np.asarray(ok)
 
     def _drop_overdue(
         self,
@@ -786,6 +939,9 @@ class Plan:
     parked: bool
     note: str
     coordinated: bool
+    #: on the goal leg and parked: the law for where its own has no value (NaN or ERROR;
+    #: :meth:`RoadmapCoordinator.goal_law`), None: none
+    fallback: Any = None
 
 
 #: the plan of a robot that is not coordinated: its own controller, exactly as alone
@@ -884,6 +1040,7 @@ class FleetCoordinator:
                     parked=bool(done[i]),
                     note=self.describe(i, bool(done[i])),
                     coordinated=True,
+                    fallback=None if drive[i] is not None else self.coord.goal_law(i),
                 )
             )
         return out
