@@ -154,8 +154,11 @@ def test_workspace_update_resolves_and_controller_hot_swaps(system: System) -> N
     wait_for(lambda: any(t.ws_id == "room2" for t in obs.transforms), timeout=60, interval=0.1)
     rev1 = next(t.revision for t in obs.transforms if t.ws_id == "room2")
     system.goal("r1", "room2")
-    wait_for(
-        lambda: obs.last("r1") is not None and obs.last("r1").state == "navigating", timeout=20
+    wait_for(  # driving on rev1 (not holding for its map: navigating with no revision)
+        lambda: (
+            (s := obs.last("r1")) is not None and s.state == "navigating" and s.map_revision == rev1
+        ),
+        timeout=20,
     )
     # move the obstacle away from the robot's path: re-solved, hot-swapped while moving
     moved = WorkspaceDefinition(

@@ -99,6 +99,9 @@ def test_split_under_load_loses_and_duplicates_nothing(
         for _ in range(5):
             wait_for(lambda n=rec.recorded: rec.recorded > n + 100)  # type: ignore[misc]
             rec.split()
+        # messages into the last segment too before the publishers may stop (they stop at
+        # once if they are past 200 each: seen once, an empty last segment)
+        wait_for(lambda n=rec.recorded: rec.recorded > n + 100)  # type: ignore[misc]
         stop.set()
         for t in threads:
             t.join()
