@@ -196,7 +196,7 @@ def test_a_unicycle_on_an_atlas_through_the_services(tmp_path: Path) -> None:
     ws = am.atlas.workspace
     assert ws.polygon.symmetric_difference(inflate(SCENE.workspace, 0.2).polygon).area < 1e-12
     assert ws.polygon.area < 0.6 * 11.6 + 1e-9  # (the original is 12 x 1)
-    # twists v + i omega only, once the map is in (before it: zero commands while it holds for the map)
+    # twists v + i omega only, once the map is in (before it: zero commands, holding for it)
     first = [f for f, _ in frames].index("body")
     assert all(f == "world" and u == 0 for f, u in frames[:first])
     assert all(f == "body" for f, _ in frames[first:]) and len(frames) - first > 100

@@ -925,8 +925,10 @@ class HarmonicNavigation(NavigationFunction):
         ea = wa - wda
         with np.errstate(over="ignore", invalid="ignore"):
             q = 1.0 - np.conj(wda) * wa
-            ga = 2.0 * np.exp(-2.0 * np.array([h])) * (
-                ea * np.conj((1.0 - np.abs(wda) ** 2) / q) - g * gha
+            ga = (
+                2.0
+                * np.exp(-2.0 * np.array([h]))
+                * (ea * np.conj((1.0 - np.abs(wda) ** 2) / q) - g * gha)
             )
         return phi, complex(ga[0])
 
