@@ -25,6 +25,7 @@ from confnav.navigation.fleet_coord import (
     pibt_step,
 )
 from confnav.navigation.fleet_sim import simulate_fleet
+from confnav.navigation.roadmap import segment_clearance
 
 R = 0.2
 # a 6 x 3 m room split at x = 3 by a 0.2 m wall with a 0.9 m door: one robot at a time
@@ -536,3 +537,74 @@ def test_straight_node_laws_give_the_goal_leg_a_straight_fallback() -> None:
     fc.reached("a")
     pl = fc.plan(t, ["a", "b"], p, goals, [1, 1])[0]
     assert pl.parked and pl.ctrl is None and pl.fallback is law  # parked: the same fallback
+
+
+def _on_goal_leg(c: RoadmapCoordinator, fc: FleetCoordinator, p: np.ndarray,
+                 goals: np.ndarray) -> tuple[float, list[Any]]:  # fmt: skip
+    """Robots teleported to their next nodes until robot ``a`` takes its goal leg."""
+    t, plans = 0.0, []
+    for _ in range(100):
+        plans = fc.plan(t, ["a", "b"], p, goals, [1, 1])
+        if plans[0].goal_leg:
+            break
+        for i in range(2):
+            p[i] = c.roadmap.nodes[int(c.at[i] if c.mode[i] != ROAD else c.nxt[i])]
+        t += 0.2
+    assert plans[0].goal_leg and plans[0].ctrl is None
+    return t, plans
+
+
+def test_a_goal_leg_without_progress_drives_the_rest_straight() -> None:
+    """A robot on its goal leg whose own law brings it no ``LEG_PROGRESS`` m nearer its goal
+    for ``leg_patience`` s drives the rest of the leg on the straight law (where the segment
+    to the goal is free): through the services a unicycle's own atlas law was rounding noise
+    0.27 m from its goal (a crowded chart), with a value, so the NaN fallback never took
+    over; it turned on the spot for good (bench/results/fleet_services_final_seed0.json).
+    A robot that progresses keeps its own law."""
+    c = RoadmapCoordinator.build(None, 0, R, node_law="line", workspace=inflate(LANE, R))
+    fc = FleetCoordinator(c)
+    goals = np.array([0.8 + 1.0j, 6.8 + 1.0j])
+    p = np.array([1.0 + 0.6j, 6.5 + 0.6j])
+    t, plans = _on_goal_leg(c, fc, p, goals)
+    z0 = p[0]
+    e = (goals[0] - z0) / abs(goals[0] - z0)
+    steps = int(np.ceil(c.leg_patience / 0.2)) + 5
+    assert 0.005 * steps < 0.8 * abs(goals[0] - z0)
+    for k in range(steps):  # slow but progressing (0.005 m per 0.2 s): its own law throughout
+        p[0] = z0 + 0.005 * (k + 1) * e
+        t += 0.2
+        plans = fc.plan(t, ["a", "b"], p, goals, [1, 1])
+        assert plans[0].goal_leg and plans[0].ctrl is None, k
+    held, t_held = p[0], t  # then stuck (its last 0.02 m counted at most 0.8 s before)
+    while t - t_held < c.leg_patience - 1.0 - 1e-9:  # its own law while patience lasts
+        t += 0.2
+        plans = fc.plan(t, ["a", "b"], p, goals, [1, 1])
+        assert plans[0].ctrl is None
+    t = t_held + c.leg_patience + 0.2
+    pl = fc.plan(t, ["a", "b"], p, goals, [1, 1])[0]
+    assert pl.goal_leg and isinstance(pl.ctrl, LineLaw) and pl.ctrl.goal == goals[0]
+    assert pl.fallback is None and "straight" in pl.note
+    p[0] = held + 0.3 * (goals[0] - held)  # latched for the rest of the leg, progress or not
+    pl = fc.plan(t + 0.2, ["a", "b"], p, goals, [1, 1])[0]
+    assert isinstance(pl.ctrl, LineLaw)
+    fc.reached("a")  # the leg ends: parked, its own law (and the fallback) again
+    pl = fc.plan(t + 0.4, ["a", "b"], p, goals, [1, 1])[0]
+    assert pl.parked and pl.ctrl is None and isinstance(pl.fallback, LineLaw)
+
+
+def test_a_stalled_goal_leg_behind_a_wall_keeps_its_own_law() -> None:
+    """No straight law where the segment to the goal is not free: a robot stalled where a
+    wall stands between it and its goal keeps its own law (the straight one would pin it
+    to the wall)."""
+    c = RoadmapCoordinator.build(None, 0, R, node_law="line", workspace=inflate(LANE, R))
+    fc = FleetCoordinator(c)
+    goals = np.array([0.8 + 1.0j, 6.8 + 1.0j])
+    p = np.array([1.0 + 0.6j, 6.5 + 0.6j])
+    t, _ = _on_goal_leg(c, fc, p, goals)
+    p[0] = 3.6 + 2.6j  # up the lane's pocket: the pocket's corner hides the goal
+    ws = inflate(LANE, R)
+    assert segment_clearance(ws, np.array([p[0]]), np.array([goals[0]]))[0] <= 0
+    for _ in range(int(np.ceil(2 * c.leg_patience / 0.2)) + 2):
+        t += 0.2
+        pl = fc.plan(t, ["a", "b"], p, goals, [1, 1])[0]
+        assert pl.goal_leg and pl.ctrl is None

@@ -104,6 +104,10 @@ __all__ = [
 #: until a robot's shortest way needs one of those nodes (then the return leg) or a new goal
 ROAD, GOAL_LEG, RETURN_LEG, PARKED = 0, 1, 2, 3
 
+#: m a robot on its goal leg must come nearer its goal within ``leg_patience`` s to count as
+#: progressing (:meth:`RoadmapCoordinator._stalled_legs`)
+LEG_PROGRESS = 0.02
+
 
 def pibt_step(
     roadmap: Roadmap,
@@ -277,6 +281,9 @@ class RoadmapCoordinator:
     eager: bool = True
     min_tick: float = 0.1
     late_limit: float = 3.0
+    #: s on the goal leg without coming ``LEG_PROGRESS`` m nearer the goal after which a
+    #: robot with a straight fallback (:meth:`goal_law`) drives the rest of the leg on it
+    leg_patience: float = 5.0
     #: which pushed robots step aside first (:func:`pibt_step`'s ``aside``): ``"done"``
     #: (robots done with their goals: parked robots leave a lane into a pocket) or ``"all"``
     #: (every pushed robot: measured slower, bench/results/fleet_node_laws_aside.json)
@@ -318,6 +325,9 @@ class RoadmapCoordinator:
         self._settled = np.zeros(n, dtype=bool)
         self._best = np.full(n, np.inf)  # a robot's least distance to its next node so far
         self._t_best = np.zeros(n)  # and when it came 0.05 m nearer than before
+        self._leg_best = np.full(n, np.inf)  # on the goal leg: least distance to the goal
+        self._leg_t = np.zeros(n)  # and when it came LEG_PROGRESS m nearer than before
+        self._leg_straight = np.zeros(n, dtype=bool)  # the rest of the leg on goal_law
         self.origin = np.zeros(n, dtype=np.intp)
         self.excursions = {}
         self._rng = np.random.default_rng(self.seed)
@@ -420,7 +430,8 @@ class RoadmapCoordinator:
         return getattr(self.node_ctrls[0].cmap, "workspace")  # noqa: B009 (typed Any)
 
     _ARRAYS = ("at", "nxt", "mode", "eta", "goal_node", "goal_pt", "pend_since",
-               "suspend_until", "_settled", "origin", "_tie", "_best", "_t_best")  # fmt: skip
+               "suspend_until", "_settled", "origin", "_tie", "_best", "_t_best", "_leg_best",
+               "_leg_t", "_leg_straight")  # fmt: skip
 
     def add(self, p: complex) -> int:
         """A new robot at ``p`` (its controlled point): it gets the free main-component node
@@ -447,7 +458,8 @@ class RoadmapCoordinator:
         fill = {"at": v, "nxt": v, "mode": RETURN_LEG, "eta": 0.0, "goal_node": v,
                 "goal_pt": np.nan + 0j, "pend_since": np.nan, "suspend_until": -np.inf,
                 "_settled": False, "origin": v, "_tie": self._rng.random() * 1e-3,
-                "_best": np.inf, "_t_best": 0.0}  # fmt: skip
+                "_best": np.inf, "_t_best": 0.0, "_leg_best": np.inf, "_leg_t": 0.0,
+                "_leg_straight": False}  # fmt: skip
         for name in self._ARRAYS:
             a = getattr(self, name)
             setattr(self, name, np.append(a, np.array([fill[name]], dtype=a.dtype)))
@@ -504,6 +516,7 @@ class RoadmapCoordinator:
                 continue
             if self.mode[i] == PARKED:  # given its goal again: arrival counts again
                 self.mode[i] = GOAL_LEG if gg[i] == self.goal_pt[i] else RETURN_LEG
+                self._start_leg(i, t)
             if gg[i] != self.goal_pt[i]:
                 self.goal_pt[i] = gg[i]
                 self.goal_node[i] = self.goal_node_of(gg[i])
@@ -527,16 +540,50 @@ class RoadmapCoordinator:
             if not (np.all(settled | ~road) or eager):
                 self.timeouts += 1
             self.tick(t, settled, dn)
+        straight = self._stalled_legs(t, pp)
         drive: list[Any] = []
         for i in range(self.n):
             m = self.mode[i]
-            if m in (GOAL_LEG, PARKED):
+            if m == GOAL_LEG and straight[i]:
+                drive.append(self.goal_law(i))
+            elif m in (GOAL_LEG, PARKED):
                 drive.append(None)
             elif m == RETURN_LEG:
                 drive.append(self.node_ctrls[int(self.at[i])])
             else:
                 drive.append(self.node_ctrls[int(self.nxt[i])])
         return drive, self.mode == GOAL_LEG
+
+    def _start_leg(self, i: int, t: float) -> None:
+        """Robot ``i`` starts a goal leg at ``t``: a new progress clock, its own law."""
+        self._leg_best[i], self._leg_t[i], self._leg_straight[i] = np.inf, t, False
+
+    def _stalled_legs(self, t: float, p: CArray) -> NDArray[np.bool_]:
+        """The robots that drive the rest of their goal leg on the straight fallback
+        (:meth:`goal_law`): those on the leg that came no ``LEG_PROGRESS`` m nearer their goal
+        for ``leg_patience`` s (latched until the leg ends).  Why: through the services
+        (warehouse, seed 0) a unicycle's own atlas law near its goal, 0.06 m off the top
+        aisle's wall, was rounding noise (the chart's map derivative ~3e-7 there: the chart
+        crowds, its goal and the robot 1e-9 apart in the disk); the command's direction
+        flipped from step to step, the robot turned on the spot 0.27 m from its goal from
+        311 s on and 10 robots queued behind it (bench/results/
+        fleet_services_final_seed0.json); its own law had a value, so the NaN/ERROR fallback
+        of the controller service never took over.  A robot held by a neighbour meanwhile
+        loses nothing: the straight law passes the same fleet filter."""
+        leg = self.mode == GOAL_LEG
+        d = np.abs(p - self.goal_pt)
+        nearer = leg & (d < self._leg_best - LEG_PROGRESS)
+        self._leg_t = np.where(nearer, t, self._leg_t)
+        self._leg_best = np.where(nearer, d, self._leg_best)
+        self._leg_straight &= leg
+        stalled = np.flatnonzero(leg & ~self._leg_straight & (t - self._leg_t >= self.leg_patience))
+        if stalled.size and isinstance(self.node_ctrls[0], LineLaw):  # goal_law exists
+            # only where the straight way is free (a robot pushed off the segment from its
+            # goal node may have a wall corner between it and the goal: its own law then)
+            free = segment_clearance(self._workspace(), p[stalled], self.goal_pt[stalled]) > 0
+            self._leg_straight[stalled[free]] = True
+            self._leg_t[stalled[~free]] = t  # look again in leg_patience s
+        return self._leg_straight
 
     def goal_law(self, i: int) -> Any:
         """The fallback law of robot ``i`` on its goal leg and parked at its goal, where its
@@ -753,6 +800,7 @@ class RoadmapCoordinator:
         for i in starting:
             self.mode[i] = GOAL_LEG
             self.pend_since[i] = np.nan
+            self._start_leg(i, t)
 
     def _make_way(
         self,
@@ -1072,7 +1120,8 @@ class FleetCoordinator:
         c = self.coord
         at, nxt, m = int(c.at[i]), int(c.nxt[i]), int(c.mode[i])
         if m == GOAL_LEG:
-            return f"driving off the roadmap from node {at} to its goal"
+            how = " straight (its own law made no progress)" if c._leg_straight[i] else ""
+            return f"driving off the roadmap from node {at} to its goal{how}"
         if m == PARKED:
             return f"arrived; at its goal (off node {at}; leaves it when a robot needs the way)"
         if m == RETURN_LEG:
