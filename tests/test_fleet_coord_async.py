@@ -608,3 +608,31 @@ def test_a_stalled_goal_leg_behind_a_wall_keeps_its_own_law() -> None:
         t += 0.2
         pl = fc.plan(t, ["a", "b"], p, goals, [1, 1])[0]
         assert pl.goal_leg and pl.ctrl is None
+
+
+def test_a_stalled_goal_leg_off_the_free_segment_goes_by_way_of_its_goal_node() -> None:
+    """A robot stalled on its goal leg where the segment to its goal is not free but the one
+    to its goal node is drives straight back to that node, then straight to the goal (the
+    node's segment to the goal is free by construction): in the services warehouse (seed 1)
+    a robot's own law took it round a pillar, off the free segment, where a parked robot
+    held it 1.27 m from its goal."""
+    ws = inflate(LANE, R)
+    c = RoadmapCoordinator.build(None, 0, R, node_law="line", workspace=ws)
+    fc = FleetCoordinator(c)
+    goals = np.array([0.4 + 1.6j, 6.8 + 1.0j])  # a's goal in the left room's corner
+    p = np.array([1.0 + 0.6j, 6.5 + 0.6j])
+    t, _ = _on_goal_leg(c, fc, p, goals)
+    home = complex(c.roadmap.nodes[int(c.at[0])])
+    p[0] = 2.8 + 0.9j  # in the lane: the room's wall hides the goal, not the goal node
+    assert segment_clearance(ws, np.array([p[0]]), np.array([goals[0]]))[0] <= 0
+    assert segment_clearance(ws, np.array([p[0]]), np.array([home]))[0] > 0
+    t += c.leg_patience + 0.2
+    pl = fc.plan(t, ["a", "b"], p, goals, [1, 1])[0]
+    assert pl.goal_leg and isinstance(pl.ctrl, LineLaw) and pl.ctrl.goal == home
+    assert "by way of its goal node" in pl.note
+    o = pl.ctrl(np.array([p[0]]))
+    assert int(o.status[0]) == Status.MOVING  # no arrival off the goal
+    p[0] = home + 0.5 * c.node_tol  # back at its goal node: straight to the goal
+    pl = fc.plan(t + 0.2, ["a", "b"], p, goals, [1, 1])[0]
+    assert pl.goal_leg and isinstance(pl.ctrl, LineLaw) and pl.ctrl.goal == goals[0]
+    assert "straight" in pl.note
