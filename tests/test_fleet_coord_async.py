@@ -347,6 +347,28 @@ def test_pibt_a_meek_robot_pushes_no_one_and_a_pushed_one_steps_aside() -> None:
     assert out == [u, v]
 
 
+def test_pibt_a_meek_robot_on_a_closed_node_pushes_its_way_off_it() -> None:
+    """A robot that must leave a closed node (an excursion's) is not meek: where its only
+    way off is a node another robot stands on, it pushes that robot.  Through the services
+    (warehouse, seed 0, 3 rounds) a done robot on an excursion's node stood boxed in by
+    another done robot; meek, it stayed, and the robot whose excursion needed the node
+    waited for it to clear (bench/results/fleet_services_latch_seed0_3rounds.json).
+    Before: it stayed (its last resort)."""
+    c = RoadmapCoordinator.build(None, 0, R, node_law="line", workspace=inflate(LANE, R))
+    rm = c.roadmap
+    nodes = rm.nodes
+    v = int(np.flatnonzero(np.isclose(nodes, 3.2 + 1.1j, atol=0.06))[0])
+    u = int(np.flatnonzero(np.isclose(nodes, 2.25 + 1.0j, atol=0.06))[0])
+    left = int(np.flatnonzero(np.isclose(nodes, 1.7 + 1.0j, atol=0.06))[0])
+    assert sorted(rm.neighbours[u].tolist()) == sorted([left, v])
+    # robot 0 (done, meek) on the closed node u; robot 1 (done) on v; robot 2 fixed on left
+    kw: dict[str, Any] = {"closed_nodes": {u}, "fixed": [False, False, True]}
+    out = pibt_step(rm, [u, v, left], [u, v, left], [0.0, 0.0, 0.0], meek=[True, True, False],
+                    **kw)  # fmt: skip
+    assert out[0] == v and out[1] not in (u, v) and out[2] == left
+    assert len(set(out)) == 3
+
+
 def test_auto_chooses_the_roadmap_where_a_passage_is_single_lane() -> None:
     """``auto`` (:func:`choose_coordinator`): the bench's open room (the swaps) and its 1.2 m
     door (two robots of 0.2 m pass in it) keep the local rules; the lane (0.7 m) and the

@@ -140,7 +140,9 @@ def pibt_step(
     ``h``), then the others, each group nearest its own goal first (only the ``aside``
     robots, default all; the others nearest their goal first); and a chain started by a
     ``meek`` robot (a robot done with its goals, going back to it) pushes no one: it moves
-    only to nodes that are free or already left."""
+    only to nodes that are free or already left -- unless it stands on a closed node: it
+    must leave that, and may push to (a meek robot boxed in on an excursion's node held the
+    excursion for good, bench/results/fleet_services_latch_seed0_3rounds.json)."""
     n = len(at)
     cur = [int(a) for a in at]
     if len(set(cur)) != n:
@@ -196,6 +198,8 @@ def pibt_step(
         return False
 
     must_leave = [i for i in range(n) if not fix[i] and cur[i] in closed_nodes]
+    for i in must_leave:  # leaving a closed node is no going back: it may push
+        mk[i] = False
     order = sorted(range(n), key=lambda i: -priority[i])
     for i in must_leave + order:
         if nxt[i] is None:
