@@ -833,6 +833,97 @@ def _extrapolate_iterate(
     it.D = D_before * ((1.0 - w_ext) + w_ext * it.D / D_before)
 
 
+#: Geometric modes an extrapolation removes (1: the slowest, with the contraction observed
+#: on the changes, one sweep keeping its grids, :func:`_extrapolate_iterate`; k > 1:
+#: minimal polynomial extrapolation of degree k from k + 1 sweeps keeping their grids,
+#: :func:`_extrapolate_modes`).
+EXTRAPOLATE_MODES = 2
+#: Largest weight |gamma_j| a multi-mode extrapolation may put on one state (beyond it the
+#: fitted polynomial has a root near 1: the one-mode tail is used instead).
+GAMMA_MAX = 40.0
+
+
+def _plain_sweeps_left(remaining: float, rho: float, tol: float) -> float:
+    """Plain sweeps that would take a remaining error down to ``tol`` at contraction rho.
+    A multi-mode extrapolation is started only if more than its cycle (k + 1 sweeps keeping
+    their grids, the confirming one and the two plain ones that certify) would be needed."""
+    if remaining <= tol:
+        return 0.0
+    return float(np.log(tol / remaining) / np.log(rho))
+
+
+def _stack_states(
+    trail: list[tuple[list[tuple[ComplexArray, ComplexArray]], complex]], last: list[_Boundary]
+) -> list[list[tuple[ComplexArray, ComplexArray]]] | None:
+    """The grids of every state of ``trail`` and of the current one (``last``), each
+    boundary's upsampled to its current size (exact FFT interpolation); None if a grid
+    shrank."""
+    now = [(b.S, b.dS) for b in last if b.S is not None and b.dS is not None]
+    states: list[list[tuple[ComplexArray, ComplexArray]]] = []
+    for grids, _D in trail:
+        if len(grids) != len(now):
+            return None
+        row = []
+        for (S, dS), (S1, _dS1) in zip(grids, now, strict=True):
+            if S.size > S1.size:
+                return None
+            if S.size < S1.size:
+                S, dS = upsample(np.stack([S, dS]), S1.size)
+            row.append((S, dS))
+        states.append(row)
+    states.append(now)  # type: ignore[arg-type]
+    return states
+
+
+def _mpe_weights(x: list[ComplexArray]) -> FloatArray | None:
+    """MPE weights gamma_0 .. gamma_k (sum 1) of the states x_1 .. x_(k+1) from the states
+    x_0 .. x_(k+1) (:func:`_extrapolate_modes`); None if not usable."""
+    k = len(x) - 2
+    u = [x[j + 1] - x[j] for j in range(k + 1)]
+    A = np.stack([np.concatenate([v.real, v.imag]) for v in u[:k]], axis=1)
+    rhs = -np.concatenate([u[k].real, u[k].imag])
+    if not (np.all(np.isfinite(A)) and np.all(np.isfinite(rhs))):
+        return None
+    c = np.append(np.linalg.lstsq(A, rhs, rcond=None)[0], 1.0)
+    total = float(np.sum(c))
+    if not np.isfinite(total) or abs(total) < 1.0 / GAMMA_MAX:
+        return None
+    gamma = c / total
+    if float(np.max(np.abs(gamma))) > GAMMA_MAX:
+        return None
+    return np.asarray(gamma)
+
+
+def _extrapolate_modes(
+    it: _Iterate, trail: list[tuple[list[tuple[ComplexArray, ComplexArray]], complex]]
+) -> bool:
+    """Minimal polynomial extrapolation (MPE; A. Sidi, "Vector Extrapolation Methods with
+    Applications", SIAM 2017, ch. 1-2) of the states x_0 .. x_k (the trail, k of them) and
+    x_{k+1} (now), every grid point the image of the same point under the sweep map G: with
+    the differences u_j = x_{j+1} - x_j, real c_0 .. c_{k-1} minimise
+    ``|| sum_j c_j u_j + u_k ||`` (real least squares over the grid points: the linearised
+    sweep is real-linear, its modes real or conjugate pairs), ``gamma_j = c_j / sum c``
+    (c_k = 1), and the domain moves to ``H = sum_j gamma_j G^(j+1)`` applied to x_0: exact
+    for an error in k geometric modes, whatever their ratios. An affine combination of the
+    maps with real weights, so H is analytic wherever the G^j are (the iterate stays a
+    conformal image of the polygon domain, as for the one-mode tail), with derivative along
+    the curves ``sum gamma_j dS_(j+1)`` and ``D = sum gamma_j D_(j+1)``. False (nothing moved)
+    if the grids changed size or the weights are not usable (``sum c`` near 0, a mode at 1,
+    or some |gamma_j| above :data:`GAMMA_MAX`)."""
+    states = _stack_states(trail, it.bnds)
+    if states is None:
+        return False
+    gamma = _mpe_weights([np.concatenate([S for S, _ in st]) for st in states])
+    if gamma is None:
+        return False
+    Ds = [D for _g, D in trail[1:]] + [it.D]
+    for i, b in enumerate(b for b in it.bnds if b.S is not None and b.dS is not None):
+        b.S = np.asarray(sum(g * st[i][0] for g, st in zip(gamma, states[1:], strict=True)))
+        b.dS = np.asarray(sum(g * st[i][1] for g, st in zip(gamma, states[1:], strict=True)))
+    it.D = complex(sum(g * D for g, D in zip(gamma, Ds, strict=True)))
+    return True
+
+
 @dataclass
 class _Schedule:
     """Which kind of sweep comes next, and when the iteration stops.
@@ -859,6 +950,13 @@ class _Schedule:
     prev_change: float = 0.0
     grids_before: list[tuple[ComplexArray, ComplexArray]] = field(default_factory=list)
     D_before: complex = 1.0 + 0j
+    #: The states before each material sweep of the current run (:data:`EXTRAPOLATE_MODES`
+    #: > 1): the grids (with their s-derivatives) and D.
+    trail: list[tuple[list[tuple[ComplexArray, ComplexArray]], complex]] = field(
+        default_factory=list
+    )
+    #: Extrapolations that fell back to the one-mode tail (the fitted polynomial unusable).
+    single_mode: int = 0
     snapshot: tuple[list[_Boundary], ComplexArray, complex] | None = None
     remaining: float = float("inf")
     converged: bool = False
@@ -882,6 +980,7 @@ class _Schedule:
                 (b.S.copy(), b.dS.copy()) for b in it.bnds if b.S is not None and b.dS is not None
             ]
             self.D_before = it.D
+            self.trail.append((self.grids_before, it.D))
         by_position = (
             self.relaxing
             or self.phase == "confirm"
@@ -905,6 +1004,8 @@ class _Schedule:
     def after_sweep(self, it: _Iterate, sweep: int, change: float) -> bool:
         """Choose the next sweep's phase; True when the iteration stops."""
         if self.phase == "material":
+            if EXTRAPOLATE_MODES > 1 and len(self.trail) <= EXTRAPOLATE_MODES:
+                return False  # k modes need k + 1 sweeps keeping their grids
             self._extrapolate(it, change)
             return False
         if self.phase == "confirm":
@@ -928,7 +1029,11 @@ class _Schedule:
         before it; the next plain sweep must confirm it."""
         self.snapshot = (copy.deepcopy(it.bnds), it.c.copy(), it.D)
         self.prev_change = change
-        _extrapolate_iterate(it, self.grids_before, self.D_before, self.rho_ext)
+        trail, self.trail = self.trail, []
+        if len(trail) < 2 or not _extrapolate_modes(it, trail):
+            if len(trail) >= 2:
+                self.single_mode += 1
+            _extrapolate_iterate(it, self.grids_before, self.D_before, self.rho_ext)
         self.extrapolations += 1
         self.phase, self.phase_history = "confirm", []
 
@@ -956,11 +1061,11 @@ class _Schedule:
         r1 = h[-1] / max(h[-2], 1e-300)
         r0 = h[-2] / max(h[-3], 1e-300)
         rem, ok = _remaining_error(h)
-        if (
-            RHO_EXTRAPOLATE_MIN < r1 < RHO_MAX
-            and abs(r1 - r0) <= RATIO_AGREE * r1
-            and not (ok and rem <= self.tol)
-        ):
+        if EXTRAPOLATE_MODES > 1:  # the fit needs no agreeing ratios, but must pay
+            agree = ok and _plain_sweeps_left(rem, r1, self.tol) > EXTRAPOLATE_MODES + 4
+        else:
+            agree = abs(r1 - r0) <= RATIO_AGREE * r1
+        if RHO_EXTRAPOLATE_MIN < r1 < RHO_MAX and agree and not (ok and rem <= self.tol):
             self.rho_ext = min(r1, RHO_EXTRAPOLATE)
             self.phase = "material"
             return True
