@@ -68,7 +68,9 @@ from confnav.scenes.workspaces import (
 #: powers of two, from the rule for the band _tail reads (circledomain.TAIL_BAND; every other
 #: design: GRID_STEPS = 1, TAIL_BAND = 1). ``graded``: that and the smooth grids'
 #: Moebius grading strength searched between the listed ones (circledomain.GRADING_REFINE;
-#: every other design: the list alone).
+#: every other design: the list alone). ``modes2``: that and the extrapolation of two
+#: geometric modes (circledomain.EXTRAPOLATE_MODES = 2, minimal polynomial extrapolation from
+#: three grid-keeping sweeps; every other design: one mode, as before round 4).
 _LEAN = {"smooth_fmm": True, "carry": True, "corner": True, "blas1": True, "lean": True}
 DESIGNS: dict[str, dict[str, bool]] = {
     "before": {"smooth_fmm": False, "carry": False, "corner": False, "blas1": False},
@@ -95,6 +97,17 @@ DESIGNS: dict[str, dict[str, bool]] = {
         "second_sums": True,
         "fine_grids": True,
         "graded": True,
+    },
+    # round 4: the extrapolation removes two geometric modes (circledomain.EXTRAPOLATE_MODES;
+    # every design above: one)
+    "modes2": {
+        **_LEAN,
+        "once": True,
+        "interleaved": True,
+        "second_sums": True,
+        "fine_grids": True,
+        "graded": True,
+        "modes2": True,
     },
 }
 #: The solver's own setting (restored after :func:`fleet_step_rounding`).
@@ -155,6 +168,7 @@ def use_design(name: str) -> None:
     circledomain.GRID_STEPS = _GRID_STEPS if d.get("fine_grids", False) else 1
     circledomain.TAIL_BAND = _TAIL_BAND if d.get("fine_grids", False) else 1.0
     circledomain.GRADING_REFINE = _GRADING_REFINE if d.get("graded", False) else 0
+    circledomain.EXTRAPOLATE_MODES = _EXTRAPOLATE_MODES if d.get("modes2", False) else 1
     setattr(ConformalMap, "boundary_residuals", _RESIDUALS if once else _residuals_every_call)  # noqa: B010
 
 
@@ -165,6 +179,7 @@ _RESIDUALS = ConformalMap.boundary_residuals
 _GRID_STEPS = circledomain.GRID_STEPS
 _TAIL_BAND = circledomain.TAIL_BAND
 _GRADING_REFINE = circledomain.GRADING_REFINE
+_EXTRAPOLATE_MODES = circledomain.EXTRAPOLATE_MODES
 
 
 def asymmetry(m: ConformalMap) -> float:
