@@ -153,6 +153,18 @@ asymmetry 1.5e-12 under 1.2e-9.
 The targets before and after: bench/README.md, "Round 3" (``core_targets_interleaved.json``
 against ``core_targets_round3.json``).
 
+Round 4 (issue 24; bench/README.md "Round 4"). Profiled first at 85476d2
+(``bench/results/core_profile_round4_before.json``, load 1.0, CPU s): 50 obstacles 13.7 s, of
+it GNK solves 3.7 and assembly 2.1 (spread over 6 level solves), map evaluations 3.1 (the
+holes' maps on every other boundary 1.9 of it: ~2 ms per map for ~10,400 targets; the
+outer map's 1.0), the certificate 1.5, the per-side refinement's re-solve 3.0; two squares
+0.01 apart 10.5 s, the cold first level 7.2 of it (34 sweeps). Built: the sweeps'
+extrapolation removes two geometric modes instead of one
+(:data:`~confnav.conformal.circledomain.EXTRAPOLATE_MODES`, minimal polynomial extrapolation
+from three grid-keeping sweeps). Side by side (``koebe_round4_modes2.json`` at e765f88, load
+5.5-9.2, CPU s): two squares 0.01 apart 10.6 -> 8.6 (sweeps 46 -> 39), 0.03 apart 1.4 ->
+1.2; the other cases the same runs bit for bit. The targets: ``core_targets_round4.json``.
+
 ``tol_met`` is true only if all are within ``tol`` and nothing is ``unverified``. A map that
 misses ``tol`` is returned with ``tol_met = False`` and an :class:`AccuracyWarning`; one whose
 estimate exceeds :data:`UNUSABLE_ERROR` (or the caller's ``max_error``) raises
