@@ -73,9 +73,9 @@ least three plain sweeps whose own history gives the reported iteration error:
   of the slowest mode the next-slowest dominated the plain ratios for a sweep or two and the
   slowest came back (two squares 0.01 apart, traced in an ad-hoc run), so each cycle removed
   little more than one plain sweep would. Now three sweeps keep their grids (states
-  x_0 .. x_3, every grid point the image of the same point) and the minimal polynomial extrapolation of degree
-  2 (:func:`_extrapolate_modes`, real weights summing to 1: again an analytic map of the whole
-  domain) removes both modes whatever their ratios; it starts once the plain sweeps left
+  x_0 .. x_3, every grid point the image of the same point) and the minimal polynomial
+  extrapolation of degree 2 (:func:`_extrapolate_modes`, real weights summing to 1: again an
+  analytic map of the whole domain) removes both modes whatever their ratios; it starts once the plain sweeps left
   (from the observed contraction) exceed its cycle of six, with the same confirmation,
   rejection and final plain sweeps. Measured side by side (``bench/bench_koebe.py --gaps 0.01
   0.03 --scenes default shrunk mixed50 --case-tol default=1e-10 --accels extrapolate
