@@ -75,9 +75,9 @@ least three plain sweeps whose own history gives the reported iteration error:
   little more than one plain sweep would. Now three sweeps keep their grids (states
   x_0 .. x_3, every grid point the image of the same point) and the minimal polynomial
   extrapolation of degree 2 (:func:`_extrapolate_modes`, real weights summing to 1: again an
-  analytic map of the whole domain) removes both modes whatever their ratios; it starts once the plain sweeps left
-  (from the observed contraction) exceed its cycle of six, with the same confirmation,
-  rejection and final plain sweeps. Measured side by side (``bench/bench_koebe.py --gaps 0.01
+  analytic map of the whole domain) removes both modes whatever their ratios; it starts once
+  the plain sweeps left (from the observed contraction) exceed its cycle of six, with the
+  same confirmation, rejection and final plain sweeps. Measured side by side (``bench/bench_koebe.py --gaps 0.01
   0.03 --scenes default shrunk mixed50 --case-tol default=1e-10 --accels extrapolate
   --designs graded modes2``, ``bench/results/koebe_round4_modes2.json`` at e765f88, one run,
   load 5.5-9.2, CPU s, one mode / two modes): two squares 0.01 apart 34/6/3/3 -> 25/8/3/3
