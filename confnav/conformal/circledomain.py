@@ -69,25 +69,24 @@ least three plain sweeps whose own history gives the reported iteration error:
   geometric tail, Aitken's delta^2 on the slowest mode) is applied to the whole domain. The
   next plain sweep confirms it: if its change is not smaller than the extrapolating sweep's,
   the state before the extrapolation is restored (a tested safeguard).
-  Two modes (round 4, :data:`EXTRAPOLATE_MODES` = 2, the default): after one extrapolation
-  of the slowest mode the next-slowest dominated the plain ratios for a sweep or two and the
-  slowest came back (two squares 0.01 apart, traced in an ad-hoc run), so each cycle removed
-  little more than one plain sweep would. Now three sweeps keep their grids (states
-  x_0 .. x_3, every grid point the image of the same point) and the minimal polynomial
-  extrapolation of degree 2 (:func:`_extrapolate_modes`, real weights summing to 1: again an
-  analytic map of the whole domain) removes both modes whatever their ratios; it starts once
-  the plain sweeps left (from the observed contraction) exceed its cycle of six, with the
-  same confirmation, rejection and final plain sweeps. Measured side by side (``bench/bench_koebe.py --gaps 0.01
-  0.03 --scenes default shrunk mixed50 --case-tol default=1e-10 --accels extrapolate
-  --designs graded modes2``, ``bench/results/koebe_round4_modes2.json`` at e765f88, one run,
-  load 5.5-9.2, CPU s, one mode / two modes): two squares 0.01 apart 34/6/3/3 -> 25/8/3/3
-  sweeps per level (46 -> 39; the carried level's floor contraction is now the 0.85 seen
-  after the last extrapolation), FMM sums 758 -> 633, 10.6 -> 8.6 s, asymmetry 1.5e-12 /
-  8.9e-13 under the estimate 1.2e-9, the maps 4.4e-12 apart; 0.03 apart 31 -> 28 sweeps,
-  1.4 -> 1.2 s; the default workspace (1e-10), it shrunk by 0.2 m and 50 obstacles: nothing
-  triggers, the runs are the same bit for bit. Three modes (four grid-keeping sweeps) did
-  no better on two squares 0.01 apart in an ad-hoc run (the fit's weights exceeded
-  :data:`GAMMA_MAX` and it fell back to one mode), so two it is.
+  Two modes (round 4, :data:`EXTRAPOLATE_MODES` = 2, the default): after one extrapolation of the
+  slowest mode the next-slowest dominated the plain ratios for a sweep or two and the slowest came
+  back (two squares 0.01 apart, traced in an ad-hoc run), so each cycle removed little more than
+  one plain sweep would. Now three sweeps keep their grids (states x_0 .. x_3, every grid point
+  the image of the same point) and the minimal polynomial extrapolation of degree 2
+  (:func:`_extrapolate_modes`, real weights summing to 1: again an analytic map of the whole
+  domain) removes both modes whatever their ratios; it starts once the plain sweeps left (from the
+  observed contraction) exceed its cycle of six, with the same confirmation, rejection and final
+  plain sweeps. Measured side by side (``bench/bench_koebe.py --gaps 0.01 0.03 --scenes default
+  shrunk mixed50 --case-tol default=1e-10 --accels extrapolate --designs graded modes2``,
+  ``bench/results/koebe_round4_modes2.json`` at e765f88, one run, load 5.5-9.2, CPU s, one mode /
+  two modes): two squares 0.01 apart 34/6/3/3 -> 25/8/3/3 sweeps per level (46 -> 39; the carried
+  level's floor contraction is now the 0.85 seen after the last extrapolation), FMM sums 758 ->
+  633, 10.6 -> 8.6 s, asymmetry 1.5e-12 / 8.9e-13 under the estimate 1.2e-9, the maps 4.4e-12
+  apart; 0.03 apart 31 -> 28 sweeps, 1.4 -> 1.2 s; the default workspace (1e-10), it shrunk by 0.2
+  m and 50 obstacles: nothing triggers, the runs are the same bit for bit. Three modes (four
+  grid-keeping sweeps) did no better on two squares 0.01 apart in an ad-hoc run (the fit's weights
+  exceeded :data:`GAMMA_MAX` and it fell back to one mode), so two it is.
 * ``"sor"``: over-relaxed hole maps ``(1 - omega) s_k (z - alpha_k) + omega F_k(z)`` with
   Young's omega from the observed plain contraction, halved when the change grows.
 
