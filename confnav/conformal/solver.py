@@ -154,16 +154,18 @@ The targets before and after: bench/README.md, "Round 3" (``core_targets_interle
 against ``core_targets_round3.json``).
 
 Round 4 (issue 24; bench/README.md "Round 4"). Profiled first at 85476d2
-(``bench/results/core_profile_round4_before.json``, load 1.0, CPU s): 50 obstacles 13.7 s, of
-it GNK solves 3.7 and assembly 2.1 (spread over 6 level solves), map evaluations 3.1 (the
-holes' maps on every other boundary 1.9 of it: ~2 ms per map for ~10,400 targets; the
-outer map's 1.0), the certificate 1.5, the per-side refinement's re-solve 3.0; two squares
-0.01 apart 10.5 s, the cold first level 7.2 of it (34 sweeps). Built: the sweeps'
-extrapolation removes two geometric modes instead of one
+(``bench/results/core_profile_round4_before.json``, load 1.0, CPU s; split by boundary kind in
+``core_profile_round4_split.json``): 50 obstacles 13.7 s, spread over six level solves (the
+per-side refinement's re-solve of all 51 boundaries 3.0 of it); the holes' maps evaluated on
+every other boundary 2.0 s, the outer map on the holes 1.1, the holes' graded GNK solves 2.8,
+the outer boundary's GNK solves 2.8, the certificate 1.5 -- so the quadratic term alone is not
+what keeps it above 10 s. Two squares 0.01 apart 10.5 s, the cold first level 7.2 of it (34
+sweeps). Built: the sweeps' extrapolation removes two geometric modes instead of one
 (:data:`~confnav.conformal.circledomain.EXTRAPOLATE_MODES`, minimal polynomial extrapolation
 from three grid-keeping sweeps). Side by side (``koebe_round4_modes2.json`` at e765f88, load
-5.5-9.2, CPU s): two squares 0.01 apart 10.6 -> 8.6 (sweeps 46 -> 39), 0.03 apart 1.4 ->
-1.2; the other cases the same runs bit for bit. The targets: ``core_targets_round4.json``.
+5.5-9.2, CPU s): two squares 0.01 apart 10.6 -> 8.6 (sweeps 46 -> 39), 0.03 apart 1.4 -> 1.2;
+the other cases the same runs bit for bit. The targets: ``core_targets_round4.json`` (two
+squares 0.01 apart 8.56 s, met).
 
 ``tol_met`` is true only if all are within ``tol`` and nothing is ``unverified``. A map that
 misses ``tol`` is returned with ``tol_met = False`` and an :class:`AccuracyWarning`; one whose
