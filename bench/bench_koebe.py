@@ -70,7 +70,9 @@ from confnav.scenes.workspaces import (
 #: Moebius grading strength searched between the listed ones (circledomain.GRADING_REFINE;
 #: every other design: the list alone). ``modes2``: that and the extrapolation of two
 #: geometric modes (circledomain.EXTRAPOLATE_MODES = 2, minimal polynomial extrapolation from
-#: three grid-keeping sweeps; every other design: one mode, as before round 4).
+#: three grid-keeping sweeps; every other design: one mode, as before round 4), extrapolating
+#: from plain contractions above 0.5 as one mode does; ``modes2_low``: that from contractions
+#: above 0.2 (circledomain.RHO_EXTRAPOLATE_MIN_MODES, the default).
 _LEAN = {"smooth_fmm": True, "carry": True, "corner": True, "blas1": True, "lean": True}
 DESIGNS: dict[str, dict[str, bool]] = {
     "before": {"smooth_fmm": False, "carry": False, "corner": False, "blas1": False},
@@ -108,6 +110,17 @@ DESIGNS: dict[str, dict[str, bool]] = {
         "fine_grids": True,
         "graded": True,
         "modes2": True,
+    },
+    # and extrapolating from plain contractions above 0.2 instead of 0.5 (the default)
+    "modes2_low": {
+        **_LEAN,
+        "once": True,
+        "interleaved": True,
+        "second_sums": True,
+        "fine_grids": True,
+        "graded": True,
+        "modes2": True,
+        "rho_low": True,
     },
 }
 #: The solver's own setting (restored after :func:`fleet_step_rounding`).
@@ -169,6 +182,9 @@ def use_design(name: str) -> None:
     circledomain.TAIL_BAND = _TAIL_BAND if d.get("fine_grids", False) else 1.0
     circledomain.GRADING_REFINE = _GRADING_REFINE if d.get("graded", False) else 0
     circledomain.EXTRAPOLATE_MODES = _EXTRAPOLATE_MODES if d.get("modes2", False) else 1
+    circledomain.RHO_EXTRAPOLATE_MIN_MODES = (
+        _RHO_MIN_MODES if d.get("rho_low", False) else circledomain.RHO_EXTRAPOLATE_MIN
+    )
     setattr(ConformalMap, "boundary_residuals", _RESIDUALS if once else _residuals_every_call)  # noqa: B010
 
 
@@ -180,6 +196,7 @@ _GRID_STEPS = circledomain.GRID_STEPS
 _TAIL_BAND = circledomain.TAIL_BAND
 _GRADING_REFINE = circledomain.GRADING_REFINE
 _EXTRAPOLATE_MODES = circledomain.EXTRAPOLATE_MODES
+_RHO_MIN_MODES = circledomain.RHO_EXTRAPOLATE_MIN_MODES
 
 
 def asymmetry(m: ConformalMap) -> float:

@@ -144,19 +144,43 @@ def test_where_nothing_triggers_the_run_is_the_plain_one() -> None:
         assert np.array_equal(r.radii, plain.radii) and np.array_equal(r.centers, plain.centers)
 
 
-@pytest.mark.parametrize("modes", [1, 2])
-@pytest.mark.parametrize(("rho", "extrapolates"), [(0.3, False), (0.45, False), (0.7, True)])
+@pytest.mark.parametrize(
+    ("modes", "rho", "extrapolates"),
+    [
+        (1, 0.3, False),
+        (1, 0.45, False),
+        (1, 0.7, True),
+        (2, 0.15, False),
+        (2, 0.3, True),
+        (2, 0.7, True),
+    ],
+)
 def test_extrapolation_starts_only_above_its_smallest_contraction(
-    rho: float, extrapolates: bool, modes: int, monkeypatch: pytest.MonkeyPatch
+    modes: int, rho: float, extrapolates: bool, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """Two agreeing plain contraction ratios start an extrapolation only above
+    """One mode: two agreeing plain contraction ratios start an extrapolation only above
     RHO_EXTRAPOLATE_MIN (0.5): below it four plain sweeps gain rho^4 <= 0.06 anyway, and on the
-    shrunk workspace (rho ~0.23) extrapolating cost a sweep."""
+    shrunk workspace (rho ~0.23) extrapolating cost a sweep. Two modes: above
+    RHO_EXTRAPOLATE_MIN_MODES (0.2), as the cycle must pay anyway (next test)."""
     monkeypatch.setattr(circledomain, "EXTRAPOLATE_MODES", modes)
     sched = circledomain._Schedule("extrapolate", tol=1e-12)
     sched.phase_history = [rho**k for k in range(5)]
     assert sched._start_extrapolation(sweep=6) is extrapolates
     assert (sched.phase == "material") is extrapolates
+
+
+def test_two_mode_extrapolation_starts_only_when_its_cycle_pays(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # rho 0.7, remaining error 0.24 * 0.7 / 0.3 = 0.56: three plain sweeps reach tol = 0.56 *
+    # 0.7^3, fewer than the cycle (three grid-keeping sweeps, the confirming one, two plain)
+    monkeypatch.setattr(circledomain, "EXTRAPOLATE_MODES", 2)
+    history = [0.7**k for k in range(5)]
+    rem = history[-1] * 0.7 / 0.3
+    for tol, starts in ((rem * 0.7**3, False), (rem * 0.7**9, True)):
+        sched = circledomain._Schedule("extrapolate", tol=tol)
+        sched.phase_history = list(history)
+        assert sched._start_extrapolation(sweep=6) is starts
 
 
 def test_mpe_is_exact_for_two_geometric_modes() -> None:

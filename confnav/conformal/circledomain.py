@@ -192,6 +192,11 @@ RHO_EXTRAPOLATE = 0.95
 #: (rho ~0.23) extrapolating at RHO_MIN = 0.2 cost a sweep (33 against 32), on two squares
 #: 0.01 apart (rho 0.79) it saved 28 (46 against 74 sweeps).
 RHO_EXTRAPOLATE_MIN = 0.5
+#: The same for the multi-mode extrapolation (:data:`EXTRAPOLATE_MODES` > 1), which starts
+#: only when the plain sweeps left exceed its cycle anyway (:func:`_plain_sweeps_left`): on
+#: the default workspace shrunk by 0.2 m (rho ~0.23) it took the cold level from 15 to 10
+#: sweeps (bench/README.md "Round 4", ``koebe_round4_rho.json``).
+RHO_EXTRAPOLATE_MIN_MODES = 0.2
 EXTRAPOLATE_WAIT = 3
 #: Sweeps without any decrease of the change (below the best of the three before) after which
 #: the iteration counts as stalled: at the rounding floor, or not converging at all.
@@ -1083,7 +1088,8 @@ class _Schedule:
             agree = ok and _plain_sweeps_left(rem, r1, self.tol) > EXTRAPOLATE_MODES + 4
         else:
             agree = abs(r1 - r0) <= RATIO_AGREE * r1
-        if RHO_EXTRAPOLATE_MIN < r1 < RHO_MAX and agree and not (ok and rem <= self.tol):
+        rho_min = RHO_EXTRAPOLATE_MIN if EXTRAPOLATE_MODES == 1 else RHO_EXTRAPOLATE_MIN_MODES
+        if rho_min < r1 < RHO_MAX and agree and not (ok and rem <= self.tol):
             self.rho_ext = min(r1, RHO_EXTRAPOLATE)
             self.phase = "material"
             return True
