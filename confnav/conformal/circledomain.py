@@ -86,7 +86,16 @@ least three plain sweeps whose own history gives the reported iteration error:
   apart; 0.03 apart 31 -> 28 sweeps, 1.4 -> 1.2 s; the default workspace (1e-10), it shrunk by 0.2
   m and 50 obstacles: nothing triggers, the runs are the same bit for bit. Three modes (four
   grid-keeping sweeps) did no better on two squares 0.01 apart in an ad-hoc run (the fit's weights
-  exceeded :data:`GAMMA_MAX` and it fell back to one mode), so two it is.
+  exceeded :data:`GAMMA_MAX` and it fell back to one mode), so two it is. As the cycle must pay
+  anyway, two modes start from plain contractions above 0.2 (:data:`RHO_EXTRAPOLATE_MIN_MODES`;
+  one mode: 0.5). Side by side (``--gaps 0.01 0.03 0.1 --scenes room default shrunk mixed50
+  --designs graded modes2 modes2_low``, ``bench/results/koebe_round4_rho.json`` at ec05683, load
+  2.0-2.7, CPU s, one mode / two from 0.5 / two from 0.2): two squares 0.01 apart 46 / 39 / 39
+  sweeps (28/5/3/3 from 0.2), 10.2 / 8.7 / 8.7 s, asymmetry 1.5e-12 / 8.9e-13 / 2.0e-12 under
+  1.2e-9; 0.03 apart 31 / 28 / 25 sweeps; the default workspace shrunk by 0.2 m (rho ~0.23) 32 /
+  32 / 27 sweeps (its cold level 15 -> 10), 2.8 / 2.8 / 2.3 s, the maps 1.9e-15 apart; two squares
+  0.1 apart, a room with a pillar, the default workspace and 50 obstacles: the same sweeps in all
+  three.
 * ``"sor"``: over-relaxed hole maps ``(1 - omega) s_k (z - alpha_k) + omega F_k(z)`` with
   Young's omega from the observed plain contraction, halved when the change grows.
 

@@ -164,8 +164,11 @@ sweeps). Built: the sweeps' extrapolation removes two geometric modes instead of
 (:data:`~confnav.conformal.circledomain.EXTRAPOLATE_MODES`, minimal polynomial extrapolation
 from three grid-keeping sweeps). Side by side (``koebe_round4_modes2.json`` at e765f88, load
 5.5-9.2, CPU s): two squares 0.01 apart 10.6 -> 8.6 (sweeps 46 -> 39), 0.03 apart 1.4 -> 1.2;
-the other cases the same runs bit for bit. The targets: ``core_targets_round4.json`` (two
-squares 0.01 apart 8.56 s, met).
+the other cases the same runs bit for bit. From plain contractions above 0.2 instead of 0.5
+(``koebe_round4_rho.json`` at ec05683, load 2.0-2.7): the default workspace shrunk by 0.2 m 2.8
+-> 2.3 s (sweeps 32 -> 27), two squares 0.01 apart 8.7 s either way. The targets:
+``core_targets_round4b.json`` at ae1e0e7 (two squares 0.01 apart 8.83 s, met; 50 obstacles 13.84
+s, missed).
 
 ``tol_met`` is true only if all are within ``tol`` and nothing is ``unverified``. A map that
 misses ``tol`` is returned with ``tol_met = False`` and an :class:`AccuracyWarning`; one whose
