@@ -188,7 +188,7 @@ def test_mpe_is_exact_for_two_geometric_modes() -> None:
     # from x_0 .. x_3 combine x_1 .. x_3 into x* to rounding, whatever the ratios
     rng = np.random.default_rng(0)
     xs, v, w = (rng.normal(size=50) + 1j * rng.normal(size=50) for _ in range(3))
-    x = [xs + 0.3 * 0.8**j * v + 0.2 * (-0.5) ** j * w for j in range(4)]
+    x = [np.asarray(xs + 0.3 * 0.8**j * v + 0.2 * (-0.5) ** j * w, np.complex128) for j in range(4)]
     gamma = circledomain._mpe_weights(x)
     assert gamma is not None and gamma.sum() == pytest.approx(1.0)
     limit = sum(g * xj for g, xj in zip(gamma, x[1:], strict=True))
@@ -196,10 +196,11 @@ def test_mpe_is_exact_for_two_geometric_modes() -> None:
 
 
 def test_mpe_refuses_a_mode_at_one() -> None:
-    # a non-contracting mode (ratio 1): the polynomial's coefficients sum to ~0, no weights
+    # a mode that does not contract (the state drifting by the same step every sweep: a double
+    # root at 1): the polynomial's coefficients sum to ~0, no weights
     rng = np.random.default_rng(1)
     xs, v, w = (rng.normal(size=40) + 1j * rng.normal(size=40) for _ in range(3))
-    x = [xs + 0.3 * 1.0**j * j * v + 0.2 * 0.5**j * w for j in range(4)]
+    x = [np.asarray(xs + 0.3 * j * v + 0.2 * 0.5**j * w, np.complex128) for j in range(4)]
     assert circledomain._mpe_weights(x) is None
 
 
