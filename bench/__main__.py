@@ -159,6 +159,12 @@ BENCHMARKS: dict[str, Bench] = {
         "fleets: robot-robot contacts, arrival, filter cost (swaps, door, person)",
         measures=NAVIGATION_PATHS,
     ),
+    "goal_leg": Bench(
+        "bench_goal_leg.py",
+        "fleet_goal_leg.json",
+        "a goal leg on a crowded atlas chart: own law against the stalled-leg rule",
+        quick=(),
+    ),
     "chaos": Bench(
         "bench_chaos.py",
         "chaos.json",

@@ -25,6 +25,7 @@ from confnav.navigation.fleet_coord import (
     pibt_step,
 )
 from confnav.navigation.fleet_sim import simulate_fleet
+from confnav.navigation.roadmap import segment_clearance
 
 R = 0.2
 # a 6 x 3 m room split at x = 3 by a 0.2 m wall with a 0.9 m door: one robot at a time
@@ -346,6 +347,28 @@ def test_pibt_a_meek_robot_pushes_no_one_and_a_pushed_one_steps_aside() -> None:
     assert out == [u, v]
 
 
+def test_pibt_a_meek_robot_on_a_closed_node_pushes_its_way_off_it() -> None:
+    """A robot that must leave a closed node (an excursion's) is not meek: where its only
+    way off is a node another robot stands on, it pushes that robot.  Through the services
+    (warehouse, seed 0, 3 rounds) a done robot on an excursion's node stood boxed in by
+    another done robot; meek, it stayed, and the robot whose excursion needed the node
+    waited for it to clear (bench/results/fleet_services_latch_seed0_3rounds.json).
+    Before: it stayed (its last resort)."""
+    c = RoadmapCoordinator.build(None, 0, R, node_law="line", workspace=inflate(LANE, R))
+    rm = c.roadmap
+    nodes = rm.nodes
+    v = int(np.flatnonzero(np.isclose(nodes, 3.2 + 1.1j, atol=0.06))[0])
+    u = int(np.flatnonzero(np.isclose(nodes, 2.25 + 1.0j, atol=0.06))[0])
+    left = int(np.flatnonzero(np.isclose(nodes, 1.7 + 1.0j, atol=0.06))[0])
+    assert sorted(rm.neighbours[u].tolist()) == sorted([left, v])
+    # robot 0 (done, meek) on the closed node u; robot 1 (done) on v; robot 2 fixed on left
+    kw: dict[str, Any] = {"closed_nodes": {u}, "fixed": [False, False, True]}
+    out = pibt_step(rm, [u, v, left], [u, v, left], [0.0, 0.0, 0.0], meek=[True, True, False],
+                    **kw)  # fmt: skip
+    assert out[0] == v and out[1] not in (u, v) and out[2] == left
+    assert len(set(out)) == 3
+
+
 def test_auto_chooses_the_roadmap_where_a_passage_is_single_lane() -> None:
     """``auto`` (:func:`choose_coordinator`): the bench's open room (the swaps) and its 1.2 m
     door (two robots of 0.2 m pass in it) keep the local rules; the lane (0.7 m) and the
@@ -536,3 +559,102 @@ def test_straight_node_laws_give_the_goal_leg_a_straight_fallback() -> None:
     fc.reached("a")
     pl = fc.plan(t, ["a", "b"], p, goals, [1, 1])[0]
     assert pl.parked and pl.ctrl is None and pl.fallback is law  # parked: the same fallback
+
+
+def _on_goal_leg(c: RoadmapCoordinator, fc: FleetCoordinator, p: np.ndarray,
+                 goals: np.ndarray) -> tuple[float, list[Any]]:  # fmt: skip
+    """Robots teleported to their next nodes until robot ``a`` takes its goal leg."""
+    t, plans = 0.0, []
+    for _ in range(100):
+        plans = fc.plan(t, ["a", "b"], p, goals, [1, 1])
+        if plans[0].goal_leg:
+            break
+        for i in range(2):
+            p[i] = c.roadmap.nodes[int(c.at[i] if c.mode[i] != ROAD else c.nxt[i])]
+        t += 0.2
+    assert plans[0].goal_leg and plans[0].ctrl is None
+    return t, plans
+
+
+def test_a_goal_leg_without_progress_drives_the_rest_straight() -> None:
+    """A robot on its goal leg whose own law brings it no ``LEG_PROGRESS`` m nearer its goal
+    for ``leg_patience`` s drives the rest of the leg on the straight law (where the segment
+    to the goal is free): through the services a unicycle's own atlas law was rounding noise
+    0.27 m from its goal (a crowded chart), with a value, so the NaN fallback never took
+    over; it turned on the spot for good (bench/results/fleet_services_final_seed0.json).
+    A robot that progresses keeps its own law."""
+    c = RoadmapCoordinator.build(None, 0, R, node_law="line", workspace=inflate(LANE, R))
+    fc = FleetCoordinator(c)
+    goals = np.array([0.8 + 1.0j, 6.8 + 1.0j])
+    p = np.array([1.0 + 0.6j, 6.5 + 0.6j])
+    t, plans = _on_goal_leg(c, fc, p, goals)
+    z0 = p[0]
+    e = (goals[0] - z0) / abs(goals[0] - z0)
+    steps = int(np.ceil(c.leg_patience / 0.2)) + 5
+    assert 0.005 * steps < 0.8 * abs(goals[0] - z0)
+    for k in range(steps):  # slow but progressing (0.005 m per 0.2 s): its own law throughout
+        p[0] = z0 + 0.005 * (k + 1) * e
+        t += 0.2
+        plans = fc.plan(t, ["a", "b"], p, goals, [1, 1])
+        assert plans[0].goal_leg and plans[0].ctrl is None, k
+    held, t_held = p[0], t  # then stuck (its last 0.02 m counted at most 0.8 s before)
+    while t - t_held < c.leg_patience - 1.0 - 1e-9:  # its own law while patience lasts
+        t += 0.2
+        plans = fc.plan(t, ["a", "b"], p, goals, [1, 1])
+        assert plans[0].ctrl is None
+    t = t_held + c.leg_patience + 0.2
+    pl = fc.plan(t, ["a", "b"], p, goals, [1, 1])[0]
+    assert pl.goal_leg and isinstance(pl.ctrl, LineLaw) and pl.ctrl.goal == goals[0]
+    assert pl.fallback is None and "straight" in pl.note
+    p[0] = held + 0.3 * (goals[0] - held)  # latched for the rest of the leg, progress or not
+    pl = fc.plan(t + 0.2, ["a", "b"], p, goals, [1, 1])[0]
+    assert isinstance(pl.ctrl, LineLaw)
+    fc.reached("a")  # the leg ends: parked, its own law (and the fallback) again
+    pl = fc.plan(t + 0.4, ["a", "b"], p, goals, [1, 1])[0]
+    assert pl.parked and pl.ctrl is None and isinstance(pl.fallback, LineLaw)
+
+
+def test_a_stalled_goal_leg_behind_a_wall_keeps_its_own_law() -> None:
+    """No straight law where the segment to the goal is not free: a robot stalled where a
+    wall stands between it and its goal keeps its own law (the straight one would pin it
+    to the wall)."""
+    c = RoadmapCoordinator.build(None, 0, R, node_law="line", workspace=inflate(LANE, R))
+    fc = FleetCoordinator(c)
+    goals = np.array([0.8 + 1.0j, 6.8 + 1.0j])
+    p = np.array([1.0 + 0.6j, 6.5 + 0.6j])
+    t, _ = _on_goal_leg(c, fc, p, goals)
+    p[0] = 3.6 + 2.6j  # up the lane's pocket: the pocket's corner hides the goal
+    ws = inflate(LANE, R)
+    assert segment_clearance(ws, np.array([p[0]]), np.array([goals[0]]))[0] <= 0
+    for _ in range(int(np.ceil(2 * c.leg_patience / 0.2)) + 2):
+        t += 0.2
+        pl = fc.plan(t, ["a", "b"], p, goals, [1, 1])[0]
+        assert pl.goal_leg and pl.ctrl is None
+
+
+def test_a_stalled_goal_leg_off_the_free_segment_goes_by_way_of_its_goal_node() -> None:
+    """A robot stalled on its goal leg where the segment to its goal is not free but the one
+    to its goal node is drives straight back to that node, then straight to the goal (the
+    node's segment to the goal is free by construction): in the services warehouse (seed 1)
+    a robot's own law took it round a pillar, off the free segment, where a parked robot
+    held it 1.27 m from its goal."""
+    ws = inflate(LANE, R)
+    c = RoadmapCoordinator.build(None, 0, R, node_law="line", workspace=ws)
+    fc = FleetCoordinator(c)
+    goals = np.array([0.4 + 1.6j, 6.8 + 1.0j])  # a's goal in the left room's corner
+    p = np.array([1.0 + 0.6j, 6.5 + 0.6j])
+    t, _ = _on_goal_leg(c, fc, p, goals)
+    home = complex(c.roadmap.nodes[int(c.at[0])])
+    p[0] = 2.8 + 0.9j  # in the lane: the room's wall hides the goal, not the goal node
+    assert segment_clearance(ws, np.array([p[0]]), np.array([goals[0]]))[0] <= 0
+    assert segment_clearance(ws, np.array([p[0]]), np.array([home]))[0] > 0
+    t += c.leg_patience + 0.2
+    pl = fc.plan(t, ["a", "b"], p, goals, [1, 1])[0]
+    assert pl.goal_leg and isinstance(pl.ctrl, LineLaw) and pl.ctrl.goal == home
+    assert "by way of its goal node" in pl.note
+    o = pl.ctrl(np.array([p[0]]))
+    assert int(o.status[0]) == Status.MOVING  # no arrival off the goal
+    p[0] = home + 0.5 * c.node_tol  # back at its goal node: straight to the goal
+    pl = fc.plan(t + 0.2, ["a", "b"], p, goals, [1, 1])[0]
+    assert pl.goal_leg and isinstance(pl.ctrl, LineLaw) and pl.ctrl.goal == goals[0]
+    assert "straight" in pl.note

@@ -104,6 +104,12 @@ __all__ = [
 #: until a robot's shortest way needs one of those nodes (then the return leg) or a new goal
 ROAD, GOAL_LEG, RETURN_LEG, PARKED = 0, 1, 2, 3
 
+#: m a robot on its goal leg must come nearer its goal within ``leg_patience`` s to count as
+#: progressing (:meth:`RoadmapCoordinator._stalled_legs`)
+LEG_PROGRESS = 0.02
+#: how a robot drives the rest of its goal leg (:meth:`RoadmapCoordinator._stalled_legs`)
+OWN_LAW, STRAIGHT, VIA_NODE = 0, 1, 2
+
 
 def pibt_step(
     roadmap: Roadmap,
@@ -134,7 +140,9 @@ def pibt_step(
     ``h``), then the others, each group nearest its own goal first (only the ``aside``
     robots, default all; the others nearest their goal first); and a chain started by a
     ``meek`` robot (a robot done with its goals, going back to it) pushes no one: it moves
-    only to nodes that are free or already left."""
+    only to nodes that are free or already left -- unless it stands on a closed node: it
+    must leave that, and may push to (a meek robot boxed in on an excursion's node held the
+    excursion for good, bench/results/fleet_services_latch_seed0_3rounds.json)."""
     n = len(at)
     cur = [int(a) for a in at]
     if len(set(cur)) != n:
@@ -190,6 +198,8 @@ def pibt_step(
         return False
 
     must_leave = [i for i in range(n) if not fix[i] and cur[i] in closed_nodes]
+    for i in must_leave:  # leaving a closed node is no going back: it may push
+        mk[i] = False
     order = sorted(range(n), key=lambda i: -priority[i])
     for i in must_leave + order:
         if nxt[i] is None:
@@ -277,6 +287,9 @@ class RoadmapCoordinator:
     eager: bool = True
     min_tick: float = 0.1
     late_limit: float = 3.0
+    #: s on the goal leg without coming ``LEG_PROGRESS`` m nearer the goal after which a
+    #: robot with a straight fallback (:meth:`goal_law`) drives the rest of the leg on it
+    leg_patience: float = 5.0
     #: which pushed robots step aside first (:func:`pibt_step`'s ``aside``): ``"done"``
     #: (robots done with their goals: parked robots leave a lane into a pocket) or ``"all"``
     #: (every pushed robot: measured slower, bench/results/fleet_node_laws_aside.json)
@@ -318,6 +331,9 @@ class RoadmapCoordinator:
         self._settled = np.zeros(n, dtype=bool)
         self._best = np.full(n, np.inf)  # a robot's least distance to its next node so far
         self._t_best = np.zeros(n)  # and when it came 0.05 m nearer than before
+        self._leg_best = np.full(n, np.inf)  # on the goal leg: least distance to the goal
+        self._leg_t = np.zeros(n)  # and when it came LEG_PROGRESS m nearer than before
+        self._leg_way = np.zeros(n, dtype=np.int8)  # OWN_LAW, STRAIGHT or VIA_NODE
         self.origin = np.zeros(n, dtype=np.intp)
         self.excursions = {}
         self._rng = np.random.default_rng(self.seed)
@@ -420,7 +436,8 @@ class RoadmapCoordinator:
         return getattr(self.node_ctrls[0].cmap, "workspace")  # noqa: B009 (typed Any)
 
     _ARRAYS = ("at", "nxt", "mode", "eta", "goal_node", "goal_pt", "pend_since",
-               "suspend_until", "_settled", "origin", "_tie", "_best", "_t_best")  # fmt: skip
+               "suspend_until", "_settled", "origin", "_tie", "_best", "_t_best", "_leg_best",
+               "_leg_t", "_leg_way")  # fmt: skip
 
     def add(self, p: complex) -> int:
         """A new robot at ``p`` (its controlled point): it gets the free main-component node
@@ -447,7 +464,8 @@ class RoadmapCoordinator:
         fill = {"at": v, "nxt": v, "mode": RETURN_LEG, "eta": 0.0, "goal_node": v,
                 "goal_pt": np.nan + 0j, "pend_since": np.nan, "suspend_until": -np.inf,
                 "_settled": False, "origin": v, "_tie": self._rng.random() * 1e-3,
-                "_best": np.inf, "_t_best": 0.0}  # fmt: skip
+                "_best": np.inf, "_t_best": 0.0, "_leg_best": np.inf, "_leg_t": 0.0,
+                "_leg_way": OWN_LAW}  # fmt: skip
         for name in self._ARRAYS:
             a = getattr(self, name)
             setattr(self, name, np.append(a, np.array([fill[name]], dtype=a.dtype)))
@@ -504,6 +522,7 @@ class RoadmapCoordinator:
                 continue
             if self.mode[i] == PARKED:  # given its goal again: arrival counts again
                 self.mode[i] = GOAL_LEG if gg[i] == self.goal_pt[i] else RETURN_LEG
+                self._start_leg(i, t)
             if gg[i] != self.goal_pt[i]:
                 self.goal_pt[i] = gg[i]
                 self.goal_node[i] = self.goal_node_of(gg[i])
@@ -527,16 +546,66 @@ class RoadmapCoordinator:
             if not (np.all(settled | ~road) or eager):
                 self.timeouts += 1
             self.tick(t, settled, dn)
+        way = self._stalled_legs(t, pp)
         drive: list[Any] = []
         for i in range(self.n):
             m = self.mode[i]
-            if m in (GOAL_LEG, PARKED):
+            if m == GOAL_LEG and way[i] == STRAIGHT:
+                drive.append(self.goal_law(i))
+            elif m == GOAL_LEG and way[i] == VIA_NODE:
+                drive.append(self.node_ctrls[int(self.at[i])])
+            elif m in (GOAL_LEG, PARKED):
                 drive.append(None)
             elif m == RETURN_LEG:
                 drive.append(self.node_ctrls[int(self.at[i])])
             else:
                 drive.append(self.node_ctrls[int(self.nxt[i])])
         return drive, self.mode == GOAL_LEG
+
+    def _start_leg(self, i: int, t: float) -> None:
+        """Robot ``i`` starts a goal leg at ``t``: a new progress clock, its own law."""
+        self._leg_best[i], self._leg_t[i], self._leg_way[i] = np.inf, t, OWN_LAW
+
+    def _stalled_legs(self, t: float, p: CArray) -> NDArray[np.int8]:
+        """How each robot drives the rest of its goal leg: ``OWN_LAW``; ``STRAIGHT``, the
+        straight fallback (:meth:`goal_law`) to the goal; ``VIA_NODE``, straight back to its
+        goal node (whose segment to the goal is free by construction), then ``STRAIGHT``.  A
+        robot on the leg that came no ``LEG_PROGRESS`` m nearer its goal for ``leg_patience``
+        s takes ``STRAIGHT`` where the segment to its goal is free, else ``VIA_NODE`` where
+        the segment to its goal node is, else keeps its own law and is looked at again
+        ``leg_patience`` s later; latched until the leg ends.  Only with straight node laws
+        (an atlas: :meth:`goal_law` exists).  Why: through the services (warehouse, seed 0) a
+        unicycle's own atlas law near its goal, 0.06 m off the top aisle's wall, was
+        rounding noise (the chart's map derivative ~3e-7 there: the chart crowds, the goal
+        and the robot 1e-9 apart in its disk); the command's direction flipped from step to
+        step, the robot turned on the spot 0.27 m from its goal from 311 s on and 10 robots
+        queued behind it (bench/results/fleet_services_final_seed0.json); its own law had a
+        value, so the NaN/ERROR fallback of the controller service never took over.  In seed
+        1 (round 3) a robot's own law took it round a pillar, off the free segment, where a
+        parked robot held it 1.27 m from its goal: ``VIA_NODE``.  A robot held by a neighbour
+        meanwhile loses nothing: the straight laws pass the same fleet filter."""
+        leg = self.mode == GOAL_LEG
+        d = np.abs(p - self.goal_pt)
+        nearer = leg & (d < self._leg_best - LEG_PROGRESS)
+        self._leg_t = np.where(nearer, t, self._leg_t)
+        self._leg_best = np.where(nearer, d, self._leg_best)
+        self._leg_way[~leg] = OWN_LAW
+        home = self.roadmap.nodes[self.at]
+        # within node_tol, and within the node law's own arrival radius (its ARRIVED must
+        # never reach the goal leg, where arrival counts)
+        tol = max(self.node_tol, float(getattr(self.node_ctrls[0], "goal_tol", 0.0)))
+        back = (self._leg_way == VIA_NODE) & (np.abs(p - home) <= tol)
+        self._leg_way[back] = STRAIGHT  # at its goal node: the free segment to the goal
+        late = leg & (self._leg_way == OWN_LAW) & (t - self._leg_t >= self.leg_patience)
+        stalled = np.flatnonzero(late)
+        if stalled.size and isinstance(self.node_ctrls[0], LineLaw):  # goal_law exists
+            ws = self._workspace()
+            to_goal = segment_clearance(ws, p[stalled], self.goal_pt[stalled]) > 0
+            to_node = segment_clearance(ws, p[stalled], home[stalled]) > 0
+            self._leg_way[stalled[to_goal]] = STRAIGHT
+            self._leg_way[stalled[~to_goal & to_node]] = VIA_NODE
+            self._leg_t[stalled[~to_goal & ~to_node]] = t  # look again in leg_patience s
+        return self._leg_way
 
     def goal_law(self, i: int) -> Any:
         """The fallback law of robot ``i`` on its goal leg and parked at its goal, where its
@@ -753,6 +822,7 @@ class RoadmapCoordinator:
         for i in starting:
             self.mode[i] = GOAL_LEG
             self.pend_since[i] = np.nan
+            self._start_leg(i, t)
 
     def _make_way(
         self,
@@ -1072,7 +1142,10 @@ class FleetCoordinator:
         c = self.coord
         at, nxt, m = int(c.at[i]), int(c.nxt[i]), int(c.mode[i])
         if m == GOAL_LEG:
-            return f"driving off the roadmap from node {at} to its goal"
+            how = {STRAIGHT: " straight (its own law made no progress)",
+                   VIA_NODE: " by way of its goal node (its own law made no progress)"}.get(
+                       int(c._leg_way[i]), "")  # fmt: skip
+            return f"driving off the roadmap from node {at} to its goal{how}"
         if m == PARKED:
             return f"arrived; at its goal (off node {at}; leaves it when a robot needs the way)"
         if m == RETURN_LEG:
