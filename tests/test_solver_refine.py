@@ -14,6 +14,11 @@ import pytest
 import confnav
 from confnav import ConformalMap, Workspace
 from confnav.conformal import solver
+from confnav.conformal.boundary import BoundaryMesh, graded_polygon
+from confnav.conformal.circledomain import _reusable, koebe_iteration
+from confnav.conformal.diskmap import exterior_map
+from confnav.conformal.meshing import PanelPlan, plan_boundaries
+from confnav.geometry import interior_point
 from confnav.scenes.workspaces import mirror_squares
 
 ROOM = [[-2, -2], [2, -2], [2, 2], [-2, 2]]
@@ -157,3 +162,51 @@ def test_boundary_residuals_are_evaluated_once_and_equal_a_fresh_evaluation(
     assert not calls and all(x is y for x, y in zip(again, first, strict=True))
     with pytest.raises(ValueError):
         again[1][0] = 0.0
+
+
+# ---------------------------------------------------------------- reused first-sweep maps
+def _level_meshes(plans: list[PanelPlan]) -> list[BoundaryMesh]:
+    return [graded_polygon(plans[0].vertices, plans[0].nodes)] + [
+        graded_polygon(p.vertices, p.nodes).reversed() for p in plans[1:]
+    ]
+
+
+def test_a_refined_re_solve_reuses_the_first_sweep_maps_before_the_refined_boundary() -> None:
+    """Round 5 (issue 24): the last hole's mesh refined, the first sweep's maps of the holes
+    before it are taken from the base solve (their equations are the same bit for bit), the
+    refined hole and the outer boundary (mapped after it) are solved anew, and the circle
+    domain is the one a re-solve without reuse gives, to the sweeps' tolerance."""
+    ws, tol = room(), 1e-8
+    coarse, fine = plan_boundaries(ws, 36, tol), plan_boundaries(ws, 54, tol)
+    holes = [interior_point(o) for o in ws.obstacles]
+    base = koebe_iteration(_level_meshes(coarse), holes, ws.anchor, 1e-9)
+    assert len(base.first_maps) == 4 and all(f is not None for f in base.first_maps)
+    assert base.reused_first_maps == 0
+    meshes = _level_meshes(coarse[:3] + fine[3:])  # the last hole refined
+    reused = koebe_iteration(meshes, holes, ws.anchor, 1e-9, reuse_first=base.first_maps)
+    fresh = koebe_iteration(meshes, holes, ws.anchor, 1e-9)
+    assert reused.reused_first_maps == 2
+    assert reused.first_maps[1] is base.first_maps[1]
+    assert reused.first_maps[2] is base.first_maps[2]
+    assert reused.first_maps[3] is not base.first_maps[3]
+    assert reused.first_maps[0] is not base.first_maps[0]
+    assert reused.converged and fresh.converged
+    dist = max(
+        np.max(np.abs(reused.centers - fresh.centers)), np.max(np.abs(reused.radii - fresh.radii))
+    )
+    assert dist <= 2e-9  # both within the sweeps' tolerance (1e-9) of one fixed point
+    # the refinement moved the circle domain by far more than the reuse did
+    assert np.max(np.abs(base.radii - fresh.radii)) > 10 * dist
+
+
+def test_a_map_of_another_curve_is_never_reused() -> None:
+    ws = room()
+    m = _level_meshes(plan_boundaries(ws, 36, 1e-8))[1]
+    c = complex(interior_point(ws.obstacles[0]))
+    cm = exterior_map(m.eta, m.deta, c, 1e-12)
+    assert _reusable(cm, m.eta, m.deta, c, True)
+    assert not _reusable(cm, m.eta, m.deta, c, False)
+    assert not _reusable(cm, m.eta, m.deta, c + 1e-15, True)
+    eta = m.eta.copy()
+    eta[3] += 1e-14
+    assert not _reusable(cm, eta, m.deta, c, True)

@@ -261,6 +261,12 @@ class CircleDomainResult:
     #: The first sweep's GNK solution of each boundary on its graded mesh (outer first): the
     #: next mesh level's first guess (:func:`confnav.conformal.boundary.resample`).
     first_mu: list[FloatArray | None] = field(default_factory=list)
+    #: The first sweep's own map of each boundary (outer first; None where it was a relaxed
+    #: map): a re-solve of the same level with some sides refined reuses those whose input --
+    #: the curve the map was solved on and its alpha -- is the same (``reuse_first``).
+    first_maps: list[CurveMap | None] = field(default_factory=list)
+    #: First-sweep maps taken from ``reuse_first`` instead of solved (their input identical).
+    reused_first_maps: int = 0
     #: Largest absolute GNK residual of any solve (:attr:`CurveMap.gmres_residual`).
     gmres_residual: float = 0.0
     #: Sweeps with over-relaxed hole maps (``accel="sor"``) and the last omega used.
@@ -317,13 +323,17 @@ class _Boundary:
         rtol: float,
         x0: FloatArray | None = None,
         corners: np.ndarray | None = None,
+        reuse: CurveMap | None = None,
     ) -> CurveMap:
         """Solve the disk map of this boundary's current image and move it onto |w| = 1.
 
         ``x0``: a first guess of the GNK solution, used in the first sweep (on the polygon's
         graded mesh; the previous mesh level's solution there); ``corners``: that mesh's
         vertex blocks (:meth:`~confnav.conformal.boundary.BoundaryMesh.corner_blocks`, the
-        first sweep's GMRES preconditioner).
+        first sweep's GMRES preconditioner); ``reuse``: a first-sweep map of a previous solve,
+        taken instead of solving if it was solved on this very curve (nodes and t-derivatives
+        equal bit for bit) with the same ``alpha`` -- the same GNK equation, solved to the same
+        GMRES tolerance (:func:`_reusable`).
 
         ``others`` are points of the other boundaries: if they have come closer to this curve
         than its smooth grid resolves, the grid is refined first (exact FFT upsampling of an
@@ -331,9 +341,12 @@ class _Boundary:
         """
         self._resolve(others)
         if self.S is None:  # first sweep: the polygon, on its graded mesh
-            cm = (exterior_map if self.hole else interior_map)(
-                self.P, self.dP, alpha, rtol, x0, corners=corners
-            )
+            if reuse is not None and _reusable(reuse, self.P, self.dP, alpha, self.hole):
+                cm = reuse
+            else:
+                cm = (exterior_map if self.hole else interior_map)(
+                    self.P, self.dP, alpha, rtol, x0, corners=corners
+                )
             sgn = -1.0 if self.hole else 1.0
             self.u = sgn * np.unwrap(np.angle(cm.f))
             self.u = self.u - 2 * np.pi * np.floor(self.u[0] / (2 * np.pi))
@@ -442,6 +455,20 @@ GRADING_RHO = (0.0, 0.5, 0.8, 0.9, 0.95, 0.98, 0.99, 0.995, 0.998, 0.999)
 #: holes a gap of 0.025 in the graded parameter (2235 points needed) where a strength between
 #: 0.95 and 0.98 leaves more (2048 laid).
 GRADING_REFINE = 8
+
+
+def _reusable(cm: CurveMap, P: ComplexArray, dP: ComplexArray, alpha: complex, hole: bool) -> bool:
+    """Whether ``cm`` solved this very first-sweep equation: the same curve nodes and
+    t-derivatives (bit for bit) and the same ``alpha`` and kind -- the GNK system is a function
+    of these alone (:func:`confnav.conformal.diskmap.exterior_map`), so ``cm`` is its solution
+    to the GMRES tolerance it was solved to."""
+    return (
+        cm.exterior == hole
+        and complex(cm.alpha) == complex(alpha)
+        and cm.eta.shape == P.shape
+        and bool(np.array_equal(cm.eta, P))
+        and bool(np.array_equal(cm.deta, dP))
+    )
 
 
 def _wrap(x: FloatArray) -> FloatArray:
@@ -642,10 +669,28 @@ class _Tally:
     first_mu: list[FloatArray | None]
     iterations: int = 0
     residual: float = 0.0
+    #: the first sweep's own maps (recorded) and those of a previous solve to reuse
+    first_maps: list[CurveMap | None] = field(default_factory=list)
+    reuse: list[CurveMap | None] = field(default_factory=list)
+    reused: int = 0
 
     def add(self, cm: CurveMap | RelaxedMap) -> None:
         self.iterations += cm.gmres_iterations
         self.residual = max(self.residual, cm.gmres_residual)
+
+    def first(self, k: int, cm: CurveMap) -> None:
+        """Record boundary k's first-sweep map; its GMRES work counts once, where solved."""
+        self.first_mu[k] = cm.mu
+        if self.first_maps:
+            self.first_maps[k] = cm
+        if self.reuse and self.reuse[k] is cm:
+            self.reused += 1
+            self.residual = max(self.residual, cm.gmres_residual)
+        else:
+            self.add(cm)
+
+    def reusable(self, k: int, sweep: int) -> CurveMap | None:
+        return self.reuse[k] if sweep == 1 and self.reuse else None
 
 
 @dataclass
@@ -738,10 +783,20 @@ def _map_hole(
                 f"the relaxed map of {name} in sweep {sweep} produced non-finite boundary images"
             )
     else:
-        F = _own_map(b, it.c[k - 1], name, mesh, _curves(it.bnds, k), gmres_tol, guess)
-        tally.add(F)
+        F = _own_map(
+            b,
+            it.c[k - 1],
+            name,
+            mesh,
+            _curves(it.bnds, k),
+            gmres_tol,
+            guess,
+            tally.reusable(k, sweep),
+        )
         if sweep == 1:
-            tally.first_mu[k] = F.mu
+            tally.first(k, F)
+        else:
+            tally.add(F)
         out = _apply(F, it.bnds, k, others)
         _check_images(_curves(it.bnds, k), out[: others.size], True, name, sweep)
         _regrid(b, _curves(it.bnds, k), name, sweep)
@@ -769,10 +824,14 @@ def _map_outer(
     if phase == "material":
         f0 = b0.relaxed_map(it.a, _curves(it.bnds, 0), gmres_tol, 1.0)
     else:
-        f0 = _own_map(b0, it.a, name, mesh, _curves(it.bnds, 0), gmres_tol, guess)
-        if sweep == 1:
-            tally.first_mu[0] = f0.mu
-    tally.add(f0)
+        f0 = _own_map(
+            b0, it.a, name, mesh, _curves(it.bnds, 0), gmres_tol, guess, tally.reusable(0, sweep)
+        )
+    if phase != "material" and sweep == 1:
+        assert isinstance(f0, CurveMap)
+        tally.first(0, f0)
+    else:
+        tally.add(f0)
     out = _apply(f0, it.bnds, 0, it.c)
     _check_images(_curves(it.bnds, 0), out[: it.c.size], False, name, sweep)
     if phase != "material":
@@ -1205,6 +1264,8 @@ def _circle_domain(
         converged=converged,
         resolution_error=max(b.capped_tail for b in it.bnds),
         first_mu=tally.first_mu,
+        first_maps=tally.first_maps,
+        reused_first_maps=tally.reused,
         gmres_residual=tally.residual,
         relaxed_sweeps=sched.relaxed_sweeps,
         omega=sched.omega,
@@ -1438,6 +1499,7 @@ def koebe_iteration(
     start: StartImage | None = None,
     carry: LevelCarry | None = None,
     trace: bool = False,
+    reuse_first: list[CurveMap | None] | None = None,
 ) -> CircleDomainResult:
     """Run the iteration on graded meshes (outer counter-clockwise, holes clockwise).
 
@@ -1471,6 +1533,12 @@ def koebe_iteration(
     trace
         Record this level's map for the next level (the result's ``carry``; not with
         ``start``); the same sweeps as an untraced run (the tracers only follow them).
+    reuse_first
+        A previous solve's first-sweep maps (its result's ``first_maps``, outer first): each
+        boundary whose first-sweep equation is that solve's bit for bit (:func:`_reusable`:
+        the same graded mesh, and every map before it in the sweep the same) takes its map
+        instead of solving -- a re-solve of a level with some sides refined re-solves the
+        graded equations from the first refined boundary on only.
     """
     accel = KOEBE_ACCEL if accel is None else accel
     if accel not in KOEBE_ACCELS:
@@ -1482,7 +1550,11 @@ def koebe_iteration(
     guess: list[FloatArray | None] = (
         list(first_guess) if first_guess is not None else [None] * (M + 1)
     )
-    tally = _Tally(first_mu=[None] * (M + 1))
+    tally = _Tally(
+        first_mu=[None] * (M + 1),
+        first_maps=[None] * (M + 1),
+        reuse=list(reuse_first) if reuse_first is not None and len(reuse_first) == M + 1 else [],
+    )
     sched = _Schedule(accel, tol)
     sweeps = 0
     traced: tuple[list[ComplexArray], list[complex], complex] | None = None
@@ -1630,11 +1702,12 @@ def _own_map(
     others: ComplexArray,
     rtol: float,
     x0: FloatArray | None = None,
+    reuse: CurveMap | None = None,
 ) -> CurveMap:
     """``b.own_map`` with failures reported against the boundary and its sharpest corner."""
     try:
         corners = mesh.corner_blocks() if b.S is None and b.P.size == mesh.n else None
-        return b.own_map(alpha, others, rtol, x0, corners)
+        return b.own_map(alpha, others, rtol, x0, corners, reuse)
     except ConvergenceError as exc:
         v = mesh.eta[mesh.tau == 0]
         turn = np.angle((np.roll(v, -1) - v) / (v - np.roll(v, 1)))

@@ -200,6 +200,7 @@ from confnav.conformal.circledomain import (
 )
 from confnav.conformal.circular_map import METHODS, nasser_iteration
 from confnav.conformal.cmap import ConformalMap, SolveReport
+from confnav.conformal.diskmap import CurveMap
 from confnav.conformal.gnk import gmres_rtol
 from confnav.conformal.meshing import NODE_MULTIPLE, PanelPlan, plan_boundaries
 from confnav.errors import (
@@ -283,6 +284,7 @@ def _solve_level(
     accel: str | None = None,
     method: str = "koebe",
     carry: LevelCarry | None = None,
+    reuse_first: list[CurveMap | None] | None = None,
 ) -> tuple[CircleDomainResult, list[BoundaryMesh]]:
     if plans is None:
         plans = plan_boundaries(ws, nodes_per_side, tol)
@@ -313,7 +315,15 @@ def _solve_level(
         res = nasser_iteration(meshes, holes, ws.anchor, **common)
     else:
         carried = carry if LEVEL_CARRY else None
-        res = koebe_iteration(meshes, holes, ws.anchor, **common, carry=carried, trace=LEVEL_CARRY)
+        res = koebe_iteration(
+            meshes,
+            holes,
+            ws.anchor,
+            **common,
+            carry=carried,
+            trace=LEVEL_CARRY,
+            reuse_first=reuse_first if REFINE_REUSE else None,
+        )
     return res, meshes
 
 
@@ -449,6 +459,14 @@ LOCAL_REFINEMENT = True
 #: obstacles at 1e-8: base 8.0e-9, change 2.4e-9 -- the partial level met the residual
 #: (6.5e-9) but not the estimate (1.04e-8), and the full level had to follow (4.2 s lost).
 LOCAL_HEADROOM = 0.5
+#: A per-side refinement's re-solve takes the base level's first-sweep maps of every boundary
+#: whose first-sweep equation is unchanged (bit for bit: its graded mesh not refined, and every
+#: map before it in the sweep taken too; circledomain._reusable) instead of solving it again:
+#: the boundaries before the first refined one in the sweep's order keep the base level's
+#: solution, the refined ones and those after them are solved anew (their equations differ).
+#: The map is the same to the GMRES tolerance; its estimate, iteration error and residual are
+#: computed on it as before.
+REFINE_REUSE = True
 
 
 def _bad_sides(m: ConformalMap, plans: list[PanelPlan], tol: float) -> list[tuple[int, int]]:
@@ -502,6 +520,7 @@ def _refine_sides(
         return None
     level = [np.zeros(p.nodes.size, np.intp) for p in plans0]
     m = bad_map
+    last = res0  # the latest solve of this level: its first-sweep maps are reused
     for _round in range(LOCAL_ROUNDS):
         bad = _bad_sides(m, plans0, tol)
         if not bad:
@@ -529,11 +548,20 @@ def _refine_sides(
             progress(f"refining {n_ref} sides where the boundary residual asks")
         try:
             res, meshes = _solve_level(
-                ws, ns, tol, progress, warm, plans, accel, carry=base[0].carry
+                ws,
+                ns,
+                tol,
+                progress,
+                warm,
+                plans,
+                accel,
+                carry=base[0].carry,
+                reuse_first=last.first_maps,
             )
         except ConvergenceError as exc:
             log.warning("local refinement failed (%s)", exc)
             return None
+        last = res
         diff = _difference(res, res0)
         est = est0 + diff
         eta, deta = [mm.eta for mm in meshes], [mm.deta for mm in meshes]
@@ -546,6 +574,7 @@ def _refine_sides(
                 "error_estimate": est,
                 "iteration_error": res.iteration_error,
                 "wall_time": res.wall_time,
+                "reused_first_maps": res.reused_first_maps,
             }
         )
         m = _make_map(ws, lvl, tol, caps, refinements, t0)
