@@ -1104,7 +1104,7 @@ def target_rows(group: str) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]
 # 9. where the time goes (``--profile``): per mesh level, by solver stage
 # --------------------------------------------------------------------------------------------
 PROFILE_RESULTS = RESULTS.parent / "core_profile.json"
-PROFILE_CASES = ("shrunk", "mixed50", "default", "gap001")
+PROFILE_CASES = ("shrunk", "mixed50", "default", "gap001", "default8")
 #: Solver designs profiled side by side (module switches, as bench/bench_koebe.py DESIGNS).
 PROFILE_DESIGNS = ("before", "carry")
 
@@ -1119,6 +1119,8 @@ def _profile_ws(case: str) -> tuple[Any, float]:
         return mixed_obstacles(50, seed=0), 1e-8
     if case == "default":
         return default_workspace(), 1e-10
+    if case == "default8":  # the 4-obstacle scene of the 50-obstacle ratio (round 5)
+        return default_workspace(), 1e-8
     if case == "gap001":
         return mirror_squares(0.01), 1e-8
     raise ValueError(f"unknown profile case {case!r}")

@@ -72,7 +72,11 @@ from confnav.scenes.workspaces import (
 #: geometric modes (circledomain.EXTRAPOLATE_MODES = 2, minimal polynomial extrapolation from
 #: three grid-keeping sweeps; every other design: one mode, as before round 4), extrapolating
 #: from plain contractions above 0.5 as one mode does; ``modes2_low``: that from contractions
-#: above 0.2 (circledomain.RHO_EXTRAPOLATE_MIN_MODES, the default).
+#: above 0.2 (circledomain.RHO_EXTRAPOLATE_MIN_MODES). ``reuse`` (round 5): that and a
+#: per-side refinement's re-solve taking the base level's first-sweep maps whose equations
+#: are unchanged (solver.REFINE_REUSE); ``round5``: that and the ladder started higher for a
+#: workspace with an obstacle tip sharper than 60 degrees (solver.START_BY_CORNERS; the
+#: default).
 _LEAN = {"smooth_fmm": True, "carry": True, "corner": True, "blas1": True, "lean": True}
 DESIGNS: dict[str, dict[str, bool]] = {
     "before": {"smooth_fmm": False, "carry": False, "corner": False, "blas1": False},
@@ -121,6 +125,33 @@ DESIGNS: dict[str, dict[str, bool]] = {
         "graded": True,
         "modes2": True,
         "rho_low": True,
+    },
+    # round 5: a per-side refinement's re-solve reuses the base level's unchanged first-sweep
+    # maps (solver.REFINE_REUSE; every design above: off) ...
+    "reuse": {
+        **_LEAN,
+        "once": True,
+        "interleaved": True,
+        "second_sums": True,
+        "fine_grids": True,
+        "graded": True,
+        "modes2": True,
+        "rho_low": True,
+        "reuse": True,
+    },
+    # ... and a workspace with an obstacle tip sharper than 60 degrees starts the ladder
+    # higher (solver.START_BY_CORNERS; every design above: off): the default since round 5
+    "round5": {
+        **_LEAN,
+        "once": True,
+        "interleaved": True,
+        "second_sums": True,
+        "fine_grids": True,
+        "graded": True,
+        "modes2": True,
+        "rho_low": True,
+        "reuse": True,
+        "start": True,
     },
 }
 #: The solver's own setting (restored after :func:`fleet_step_rounding`).
@@ -186,6 +217,8 @@ def use_design(name: str) -> None:
         _RHO_MIN_MODES if d.get("rho_low", False) else circledomain.RHO_EXTRAPOLATE_MIN
     )
     setattr(ConformalMap, "boundary_residuals", _RESIDUALS if once else _residuals_every_call)  # noqa: B010
+    solver.REFINE_REUSE = d.get("reuse", False)
+    solver.START_BY_CORNERS = d.get("start", False)
 
 
 _SMOOTH_DEFAULT = gnk.SMOOTH_DENSE_MAX_NODES

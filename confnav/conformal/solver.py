@@ -211,7 +211,7 @@ from confnav.errors import (
     UnresolvedCrowdingError,
     fmt_point,
 )
-from confnav.geometry import Workspace, interior_point
+from confnav.geometry import Workspace, interior_point, signed_area
 from confnav.types import CArray as ComplexArray
 from confnav.types import FArray as FloatArray
 
@@ -704,11 +704,58 @@ def _already_solved(
     return None
 
 
-def _mesh_levels(tol: float, nodes_per_side: int | None, initial: ConformalMap | None) -> list[int]:
+#: Start the ladder higher for a workspace with a sharp obstacle tip (round 5, issue 24):
+#: the levels a certificate at ``tol`` rests on are the last three solved, and on the scenes
+#: measured so far (bench/README.md "Round 5") the workspaces whose largest free-space angle
+#: exceeds :data:`SHARP_FREE_ANGLE` -- the default workspace (312 degrees) and 50 mixed
+#: obstacles (330) -- were certified only at 180 nodes per side to 1e-8 and at 256 to 1e-10,
+#: while those without (two squares, the default shrunk by 0.2 m: 270 at most) were certified
+#: at 80 and 120 to 1e-8. The map's leading singularity at a corner of free-space angle
+#: ``alpha pi`` is ``(z - v)^(1/alpha)`` (Henrici, "Applied and Computational Complex
+#: Analysis", Vol. 1, sec. 5.11): the sharper the tip, the more nodes a given accuracy needs
+#: at the same grading. Such a workspace starts at :data:`SHARP_START` instead (nodes per side
+#: by the tolerance's band, as :func:`_mesh_levels`); the estimate at the level that certifies
+#: rests on the same three levels as before, so the certificate is unchanged -- a sharp
+#: workspace that would have been certified lower pays one or two finer levels instead.
+START_BY_CORNERS = True
+SHARP_FREE_ANGLE = 300.0
+#: (smallest tol of the band, first level): tol >= 1e-7 keeps the default start.
+SHARP_START: tuple[tuple[float, int], ...] = ((1e-7, 0), (1e-9, 80), (0.0, 120))
+
+
+def largest_free_angle(ws: Workspace) -> float:
+    """The largest free-space angle (degrees) at a corner of any boundary: 360 minus the
+    sharpest obstacle tip, or a room corner's own angle."""
+    out = 0.0
+    for j, b in enumerate(ws.boundaries):
+        v = np.asarray(b)
+        if (signed_area(v) > 0) == (j > 0):
+            v = v[::-1]  # free space on the left: outer counter-clockwise, holes clockwise
+        turn = np.angle((np.roll(v, -1) - v) / (v - np.roll(v, 1)))
+        out = max(out, float(np.degrees(np.max(np.pi - turn))))
+    return out
+
+
+def _sharp_start(ws: Workspace | None, tol: float) -> int:
+    """Index into :data:`LEVELS` of :data:`SHARP_START` for a sharp workspace; 0 otherwise."""
+    if ws is None or not START_BY_CORNERS or largest_free_angle(ws) <= SHARP_FREE_ANGLE:
+        return 0
+    for low, ns in SHARP_START:
+        if tol >= low:
+            return LEVELS.index(ns) if ns else 0
+    return 0
+
+
+def _mesh_levels(
+    tol: float,
+    nodes_per_side: int | None,
+    initial: ConformalMap | None,
+    workspace: Workspace | None = None,
+) -> list[int]:
     """Nodes per side of the levels to solve, coarse to fine: :data:`LEVELS` from a start
-    that the tolerance sets (and a warm start raises, :func:`_warm_start_level`), or a fixed
-    mesh and the two next coarser ones (x1.5 steps), so that an estimate still rests on an
-    observed contraction."""
+    that the tolerance sets (a sharp obstacle tip raises, :data:`START_BY_CORNERS`, and a
+    warm start, :func:`_warm_start_level`), or a fixed mesh and the two next coarser ones
+    (x1.5 steps), so that an estimate still rests on an observed contraction."""
     if nodes_per_side is not None:
         if nodes_per_side < 8:
             raise SolverError("nodes_per_side must be at least 8")
@@ -717,6 +764,7 @@ def _mesh_levels(tol: float, nodes_per_side: int | None, initial: ConformalMap |
             | {nodes_per_side}
         )
     start = 0 if tol >= 1e-7 else (1 if tol >= 1e-9 else 3)
+    start = max(start, _sharp_start(workspace, tol))
     if initial is not None:
         start = max(start, _warm_start_level(initial, tol))
     return list(LEVELS[start:])
@@ -1085,7 +1133,7 @@ def solve(
             warm = _warm_solve(workspace, tol, initial, progress, koebe_accel, t0)
             if warm is not None:
                 return warm
-        levels = _mesh_levels(tol, nodes_per_side, initial)
+        levels = _mesh_levels(tol, nodes_per_side, initial, workspace)
         cmap = _Refinement(workspace, tol, max_error, progress, koebe_accel, t0, method).run(levels)
     _refuse_unusable(cmap, max_error)
     if not cmap.diagnostics.tol_met:
