@@ -19,7 +19,7 @@ from confnav.conformal.circledomain import _reusable, koebe_iteration
 from confnav.conformal.diskmap import exterior_map
 from confnav.conformal.meshing import PanelPlan, plan_boundaries
 from confnav.geometry import interior_point
-from confnav.scenes.workspaces import mirror_squares
+from confnav.scenes.workspaces import default_workspace, mirror_squares
 
 ROOM = [[-2, -2], [2, -2], [2, 2], [-2, 2]]
 
@@ -210,3 +210,32 @@ def test_a_map_of_another_curve_is_never_reused() -> None:
     eta = m.eta.copy()
     eta[3] += 1e-14
     assert not _reusable(cm, eta, m.deta, c, True)
+
+
+# ---------------------------------------------------------------- where the ladder starts
+def test_a_sharp_obstacle_tip_starts_the_ladder_higher(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Round 5 (issue 24): the default workspace (a 47.6-degree tip: free-space angle 312.4)
+    starts at 80 nodes per side to 1e-8 and at 120 to 1e-10; two squares (270 at most) keep
+    the tolerance's start; a loose tolerance, a fixed mesh and the switch off are unchanged."""
+    sharp, blunt = default_workspace(), mirror_squares(0.1)
+    assert solver.largest_free_angle(sharp) == pytest.approx(312.4, abs=0.1)
+    assert solver.largest_free_angle(blunt) == pytest.approx(270.0)
+    assert solver._mesh_levels(1e-8, None, None, sharp)[0] == 80
+    assert solver._mesh_levels(1e-10, None, None, sharp)[0] == 120
+    assert solver._mesh_levels(1e-6, None, None, sharp)[0] == solver.LEVELS[0]
+    assert solver._mesh_levels(1e-8, None, None, blunt)[0] == 36
+    assert solver._mesh_levels(1e-10, None, None, blunt)[0] == 80
+    assert solver._mesh_levels(1e-8, 54, None, sharp) == [24, 36, 54]
+    monkeypatch.setattr(solver, "START_BY_CORNERS", False)
+    assert solver._mesh_levels(1e-8, None, None, sharp)[0] == 36
+
+
+def test_a_ladder_started_higher_certifies_on_the_same_three_levels() -> None:
+    """The default workspace to 1e-8: started at 80 nodes per side, the estimate at 180
+    rests on 80, 120 and 180 as when started at 36 -- the same certificate."""
+    m = _solve(default_workspace(), 1e-8)
+    d = m.diagnostics
+    assert d.tol_met, d.table()
+    levels = [int(r["nodes_per_side"]) for r in d.refinements]
+    assert levels[0] == 120 and d.nodes_per_side >= 180  # the first estimate: 120 against 80
+    assert d.error_estimate <= 1e-8
