@@ -75,8 +75,9 @@ from confnav.scenes.workspaces import (
 #: above 0.2 (circledomain.RHO_EXTRAPOLATE_MIN_MODES). ``reuse`` (round 5): that and a
 #: per-side refinement's re-solve taking the base level's first-sweep maps whose equations
 #: are unchanged (solver.REFINE_REUSE); ``round5``: that and the ladder started higher for a
-#: workspace with an obstacle tip sharper than 60 degrees (solver.START_BY_CORNERS; the
-#: default).
+#: workspace with an obstacle tip sharper than 60 degrees (solver.START_BY_CORNERS);
+#: ``round5s``: that and the re-solve's first sweep resumed from the base level's snapshot
+#: (solver.REFINE_SNAPSHOTS; the default).
 _LEAN = {"smooth_fmm": True, "carry": True, "corner": True, "blas1": True, "lean": True}
 DESIGNS: dict[str, dict[str, bool]] = {
     "before": {"smooth_fmm": False, "carry": False, "corner": False, "blas1": False},
@@ -153,6 +154,21 @@ DESIGNS: dict[str, dict[str, bool]] = {
         "reuse": True,
         "start": True,
     },
+    # ... and the re-solve's first sweep resumed from the base level's snapshot before the
+    # first refined boundary (solver.REFINE_SNAPSHOTS; every design above: off)
+    "round5s": {
+        **_LEAN,
+        "once": True,
+        "interleaved": True,
+        "second_sums": True,
+        "fine_grids": True,
+        "graded": True,
+        "modes2": True,
+        "rho_low": True,
+        "reuse": True,
+        "start": True,
+        "snapshots": True,
+    },
 }
 #: The solver's own setting (restored after :func:`fleet_step_rounding`).
 DERIVATIVE_DEFAULT = diskmap.DERIVATIVE_FROM_SECOND_SUMS
@@ -219,6 +235,7 @@ def use_design(name: str) -> None:
     setattr(ConformalMap, "boundary_residuals", _RESIDUALS if once else _residuals_every_call)  # noqa: B010
     solver.REFINE_REUSE = d.get("reuse", False)
     solver.START_BY_CORNERS = d.get("start", False)
+    solver.REFINE_SNAPSHOTS = d.get("snapshots", False)
 
 
 _SMOOTH_DEFAULT = gnk.SMOOTH_DENSE_MAX_NODES

@@ -239,3 +239,38 @@ def test_a_ladder_started_higher_certifies_on_the_same_three_levels() -> None:
     levels = [int(r["nodes_per_side"]) for r in d.refinements]
     assert levels[0] == 120 and d.nodes_per_side >= 180  # the first estimate: 120 against 80
     assert d.error_estimate <= 1e-8
+
+
+@pytest.mark.parametrize("refined", [3, 0])
+def test_a_first_sweep_resumed_from_a_snapshot_is_the_one_that_reapplies_the_maps(
+    refined: int,
+) -> None:
+    """The re-solve's first sweep started from the base's snapshot before the first refined
+    boundary (the last hole; the outer boundary, mapped last) gives the circle domain of the
+    one that applies the reused maps again, to rounding."""
+    ws, tol = room(), 1e-8
+    coarse, fine = plan_boundaries(ws, 36, tol), plan_boundaries(ws, 54, tol)
+    holes = [interior_point(o) for o in ws.obstacles]
+    base = koebe_iteration(_level_meshes(coarse), holes, ws.anchor, 1e-9, snapshots=True)
+    assert sorted(base.first_snapshots) == [1, 2, 3, 4]  # before each hole and the outer map
+    plans = list(coarse)
+    plans[refined] = fine[refined]
+    meshes = _level_meshes(plans)
+    again = koebe_iteration(meshes, holes, ws.anchor, 1e-9, reuse_first=base.first_maps)
+    resumed = koebe_iteration(
+        meshes,
+        holes,
+        ws.anchor,
+        1e-9,
+        reuse_first=base.first_maps,
+        reuse_snapshots=base.first_snapshots,
+    )
+    first = 3 if refined == 3 else 4
+    assert again.resumed_at == 1 and resumed.resumed_at == first
+    assert again.reused_first_maps == resumed.reused_first_maps == first - 1
+    assert resumed.sweeps == again.sweeps
+    dist = max(
+        np.max(np.abs(resumed.centers - again.centers)), np.max(np.abs(resumed.radii - again.radii))
+    )
+    assert dist <= 1e-13
+    assert max(np.max(np.abs(a - b)) for a, b in zip(resumed.W, again.W, strict=True)) <= 1e-12

@@ -165,6 +165,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from math import factorial
+from typing import Any
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -267,6 +268,10 @@ class CircleDomainResult:
     first_maps: list[CurveMap | None] = field(default_factory=list)
     #: First-sweep maps taken from ``reuse_first`` instead of solved (their input identical).
     reused_first_maps: int = 0
+    #: The first sweep's iterate before some of its maps (``snapshots=True``; :func:`_sweep`).
+    first_snapshots: dict[int, Any] = field(default_factory=dict)
+    #: The hole a first sweep resumed at from ``reuse_snapshots`` (1: none, :func:`_resume`).
+    resumed_at: int = 1
     #: Largest absolute GNK residual of any solve (:attr:`CurveMap.gmres_residual`).
     gmres_residual: float = 0.0
     #: Sweeps with over-relaxed hole maps (``accel="sor"``) and the last omega used.
@@ -673,6 +678,8 @@ class _Tally:
     first_maps: list[CurveMap | None] = field(default_factory=list)
     reuse: list[CurveMap | None] = field(default_factory=list)
     reused: int = 0
+    #: the first sweep's snapshots (recorded; None: not recorded) by position (:func:`_sweep`)
+    snapshots: dict[int, _Iterate] | None = None
 
     def add(self, cm: CurveMap | RelaxedMap) -> None:
         self.iterations += cm.gmres_iterations
@@ -848,11 +855,90 @@ def _sweep(
     guess: list[FloatArray | None],
     tally: _Tally,
     gmres_tol: float,
+    first_hole: int = 1,
 ) -> None:
-    """One sweep of the iteration ([1], secs. 3-4): every hole's map, then the outer one."""
-    for k in range(1, len(it.bnds)):
-        _map_hole(it, k, sweep, phase, omega, meshes[k], guess[k], tally, gmres_tol)
+    """One sweep of the iteration ([1], secs. 3-4): every hole's map, then the outer one
+    (from hole ``first_hole`` on: a first sweep resumed from a snapshot, :func:`_resume`).
+    A recording first sweep keeps snapshots of the iterate before some of its maps
+    (:data:`SNAPSHOTS`)."""
+    M = len(it.bnds) - 1
+    for k in range(first_hole, M + 2):
+        if sweep == 1 and tally.snapshots is not None and k in _snapshot_positions(M):
+            tally.snapshots[k] = copy.deepcopy(it)
+        if k <= M:
+            _map_hole(it, k, sweep, phase, omega, meshes[k], guess[k], tally, gmres_tol)
     _map_outer(it, sweep, phase, meshes[0], guess[0], tally, gmres_tol)
+
+
+#: Snapshots of the first sweep's iterate kept for a re-solve of the same level with some
+#: sides refined (:func:`_resume`): before hole 1, every ``ceil(M / SNAPSHOTS)``-th hole and
+#: the outer boundary's map (position M + 1).
+SNAPSHOTS = 8
+
+
+def _snapshot_positions(M: int) -> set[int]:
+    step = max(1, -(-M // SNAPSHOTS))
+    return set(range(1, M + 1, step)) | {M + 1}
+
+
+def _changed(init: _Iterate, meshes: list[BoundaryMesh]) -> list[int]:
+    """Boundaries whose graded mesh differs from the snapshot's initial one (bit for bit)."""
+    return [
+        i
+        for i, (b, m) in enumerate(zip(init.bnds, meshes, strict=True))
+        if not (
+            b.P.shape == m.eta.shape
+            and bool(np.array_equal(b.P, m.eta))
+            and bool(np.array_equal(b.dP, m.deta))
+        )
+    ]
+
+
+def _resume(
+    it: _Iterate,
+    snapshots: dict[int, _Iterate],
+    reuse: list[CurveMap | None],
+    meshes: list[BoundaryMesh],
+    tally: _Tally,
+) -> int:
+    """Start a first sweep from a previous solve's snapshot (:data:`SNAPSHOTS`) instead of
+    the polygon domain, where every map before it is reused anyway (:func:`_reusable`): the
+    last snapshot at or before the first boundary (in the sweep's order) whose mesh changed.
+    The snapshot's iterate is the previous solve's state there; the changed boundaries' nodes
+    (not mapped yet at that point) are moved by the same maps the snapshot's boundaries were
+    moved by -- the reused ones, evaluated with their derivatives as :func:`_apply` does --
+    so the iterate is the one a first sweep through those maps gives. Returns the hole to go on
+    from (1: nothing resumed, ``it`` untouched)."""
+    init = snapshots.get(1)
+    M = len(it.bnds) - 1
+    if init is None or len(init.bnds) != M + 1 or not reuse:
+        return 1
+    if not (np.array_equal(init.c, it.c) and init.a == it.a and init.D == it.D):
+        return 1
+    changed = _changed(init, meshes)
+    order = [*range(1, M + 1), 0]
+    first = next((pos + 1 for pos, i in enumerate(order) if i in changed), M + 2)
+    p = max((k for k in snapshots if k <= first and k <= M + 1), default=1)
+    if p <= 1 or any(reuse[k] is None for k in range(1, p)):
+        return 1
+    state = copy.deepcopy(snapshots[p])
+    for i in changed:
+        fresh = it.bnds[i]
+        P, dP = fresh.P, fresh.dP
+        for k in range(1, p):
+            cm = reuse[k]
+            assert cm is not None
+            fz, dfz = cm.evaluate(P, derivative=True)
+            assert dfz is not None
+            P, dP = fz, dP * dfz
+        fresh.P, fresh.dP = np.asarray(P), np.asarray(dP)
+        state.bnds[i] = fresh
+    for k in range(1, p):
+        cm = reuse[k]
+        assert cm is not None
+        tally.first(k, cm)
+    it.bnds, it.c, it.a, it.D = state.bnds, state.c, state.a, state.D
+    return p
 
 
 @dataclass
@@ -1266,6 +1352,7 @@ def _circle_domain(
         first_mu=tally.first_mu,
         first_maps=tally.first_maps,
         reused_first_maps=tally.reused,
+        first_snapshots=tally.snapshots or {},
         gmres_residual=tally.residual,
         relaxed_sweeps=sched.relaxed_sweeps,
         omega=sched.omega,
@@ -1500,6 +1587,8 @@ def koebe_iteration(
     carry: LevelCarry | None = None,
     trace: bool = False,
     reuse_first: list[CurveMap | None] | None = None,
+    snapshots: bool = False,
+    reuse_snapshots: dict[int, Any] | None = None,
 ) -> CircleDomainResult:
     """Run the iteration on graded meshes (outer counter-clockwise, holes clockwise).
 
@@ -1539,6 +1628,13 @@ def koebe_iteration(
         the same graded mesh, and every map before it in the sweep the same) takes its map
         instead of solving -- a re-solve of a level with some sides refined re-solves the
         graded equations from the first refined boundary on only.
+    snapshots
+        Keep snapshots of the first sweep's iterate (the result's ``first_snapshots``,
+        :data:`SNAPSHOTS`; not with ``start``).
+    reuse_snapshots
+        A previous solve's ``first_snapshots`` (with its ``first_maps`` as ``reuse_first``):
+        the first sweep starts at the last snapshot before the first changed mesh
+        (:func:`_resume`) instead of applying the reused maps again.
     """
     accel = KOEBE_ACCEL if accel is None else accel
     if accel not in KOEBE_ACCELS:
@@ -1554,7 +1650,14 @@ def koebe_iteration(
         first_mu=[None] * (M + 1),
         first_maps=[None] * (M + 1),
         reuse=list(reuse_first) if reuse_first is not None and len(reuse_first) == M + 1 else [],
+        snapshots={} if snapshots and start is None and M > 0 else None,
     )
+    resumed = 1
+    if reuse_snapshots and start is None and tally.reuse:
+        resumed = _resume(it, reuse_snapshots, tally.reuse, meshes, tally)
+        if tally.snapshots is not None:  # the positions skipped: the same states (the
+            # changed boundaries' nodes are replaced whenever a snapshot is resumed from)
+            tally.snapshots.update({k: v for k, v in reuse_snapshots.items() if k < resumed})
     sched = _Schedule(accel, tol)
     sweeps = 0
     traced: tuple[list[ComplexArray], list[complex], complex] | None = None
@@ -1562,7 +1665,17 @@ def koebe_iteration(
     for sweep in range(1, max_sweeps + 1):
         sweeps = sweep
         before = sched.before_sweep(it)
-        _sweep(it, sweep, sched.phase, sched.omega, meshes, guess, tally, gmres_tol)
+        _sweep(
+            it,
+            sweep,
+            sched.phase,
+            sched.omega,
+            meshes,
+            guess,
+            tally,
+            gmres_tol,
+            resumed if sweep == 1 else 1,
+        )
         radii = _circle_radii(it)
         change = _sweep_change(it, before, radii)
         sched.record(change)
@@ -1594,6 +1707,7 @@ def koebe_iteration(
         sched.converged = False  # sweep limit: the extrapolated remaining error is reported
     result = _circle_domain(it, tally, sched, sweeps, t0)
     result.transplanted = transplanted
+    result.resumed_at = resumed
     if traced is not None and result.converged:
         result.carry = _level_carry(it, sched, traced)
     return result

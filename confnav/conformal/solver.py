@@ -170,6 +170,22 @@ the other cases the same runs bit for bit. From plain contractions above 0.2 ins
 ``core_targets_round4b.json`` at ae1e0e7 (two squares 0.01 apart 8.83 s, met; 50 obstacles 13.84
 s, missed).
 
+Round 5 (issue 24; bench/README.md "Round 5"). A per-side refinement's re-solve takes the base
+level's first-sweep maps of the boundaries whose first-sweep equations are unchanged bit for
+bit -- those before the first refined boundary in the sweep's order (:data:`REFINE_REUSE`,
+``reuse_first`` of :func:`~confnav.conformal.circledomain.koebe_iteration`); the refined
+boundaries and those after them are solved anew, and the estimate (base + change), iteration
+error and residual are computed on the map that comes out, as before. A workspace with an
+obstacle tip sharper than 60 degrees starts the ladder at 80 nodes per side to 1e-8 and at 120
+to 1e-10 (:data:`START_BY_CORNERS`): the certificate rests on the same three levels. Side by
+side (``core_profile_round5.json`` at a28254b, one run, load 2.8-4.2, CPU s, round 4 / reuse /
+both): 50 obstacles 14.39 / 13.77 / 10.45 (28 of 51 graded solves of the refinement reused:
+its re-solve 3.27 -> 2.92 s; levels 36 and 54 no longer solved), the default workspace to 1e-8
+0.69 / 0.64 / 0.49 and to 1e-10 1.01 / 0.89 / 0.81; two squares 0.01 apart and the shrunk
+workspace the same levels (8.88 / 8.67 / 8.65 and 2.50 / 2.40 / 2.41); every map tol_met with
+the same estimate. The targets: ``core_targets_round5.json`` at b225c32 (50 obstacles 10.30 s,
+10 s missed by 3 %).
+
 ``tol_met`` is true only if all are within ``tol`` and nothing is ``unverified``. A map that
 misses ``tol`` is returned with ``tol_met = False`` and an :class:`AccuracyWarning`; one whose
 estimate exceeds :data:`UNUSABLE_ERROR` (or the caller's ``max_error``) raises
@@ -285,6 +301,7 @@ def _solve_level(
     method: str = "koebe",
     carry: LevelCarry | None = None,
     reuse_first: list[CurveMap | None] | None = None,
+    reuse_snapshots: dict[int, Any] | None = None,
 ) -> tuple[CircleDomainResult, list[BoundaryMesh]]:
     if plans is None:
         plans = plan_boundaries(ws, nodes_per_side, tol)
@@ -323,6 +340,8 @@ def _solve_level(
             carry=carried,
             trace=LEVEL_CARRY,
             reuse_first=reuse_first if REFINE_REUSE else None,
+            snapshots=REFINE_REUSE and REFINE_SNAPSHOTS,
+            reuse_snapshots=reuse_snapshots if REFINE_REUSE and REFINE_SNAPSHOTS else None,
         )
     return res, meshes
 
@@ -467,6 +486,10 @@ LOCAL_HEADROOM = 0.5
 #: The map is the same to the GMRES tolerance; its estimate, iteration error and residual are
 #: computed on it as before.
 REFINE_REUSE = True
+#: And the re-solve's first sweep starts from a snapshot of the base level's iterate before the
+#: first refined boundary (circledomain.SNAPSHOTS, ``_resume``) instead of applying the reused
+#: maps to every other boundary again.
+REFINE_SNAPSHOTS = True
 
 
 def _bad_sides(m: ConformalMap, plans: list[PanelPlan], tol: float) -> list[tuple[int, int]]:
@@ -557,6 +580,7 @@ def _refine_sides(
                 accel,
                 carry=base[0].carry,
                 reuse_first=last.first_maps,
+                reuse_snapshots=last.first_snapshots,
             )
         except ConvergenceError as exc:
             log.warning("local refinement failed (%s)", exc)
@@ -575,6 +599,7 @@ def _refine_sides(
                 "iteration_error": res.iteration_error,
                 "wall_time": res.wall_time,
                 "reused_first_maps": res.reused_first_maps,
+                "resumed_at": res.resumed_at,
             }
         )
         m = _make_map(ws, lvl, tol, caps, refinements, t0)
@@ -858,6 +883,8 @@ class _Refinement:
                 self.done = self._certify(ns, est, levels)
                 if self.done:
                     return
+        if self.prev is not None:  # no longer a refinement's base: its first sweep's record
+            self.prev.first_maps, self.prev.first_snapshots = [], {}
         self.prev, self.prev_ns = res, ns
         self.solved += 1
 
