@@ -183,8 +183,11 @@ both): 50 obstacles 14.39 / 13.77 / 10.45 (28 of 51 graded solves of the refinem
 its re-solve 3.27 -> 2.92 s; levels 36 and 54 no longer solved), the default workspace to 1e-8
 0.69 / 0.64 / 0.49 and to 1e-10 1.01 / 0.89 / 0.81; two squares 0.01 apart and the shrunk
 workspace the same levels (8.88 / 8.67 / 8.65 and 2.50 / 2.40 / 2.41); every map tol_met with
-the same estimate. The targets: ``core_targets_round5.json`` at b225c32 (50 obstacles 10.30 s,
-10 s missed by 3 %).
+the same estimate. The re-solve's first sweep also starts from the base level's snapshot
+before the first refined boundary (:data:`REFINE_SNAPSHOTS`; ``core_profile_round5_snapshots.json``
+at eb65774, load 5.4-5.6: 50 obstacles 11.22 -> 10.94 s, the re-solve's map evaluations 0.57 ->
+0.41 s). The targets: ``core_targets_round5.json`` at b225c32 (load 1.8-2.8; 50 obstacles 10.30
+s, 10 s missed by 3 %) and ``core_targets_round5b.json`` at 61624a2 (load 5.5-6.6; 10.76 s).
 
 ``tol_met`` is true only if all are within ``tol`` and nothing is ``unverified``. A map that
 misses ``tol`` is returned with ``tol_met = False`` and an :class:`AccuracyWarning`; one whose
