@@ -230,15 +230,24 @@ def test_a_sharp_obstacle_tip_starts_the_ladder_higher(monkeypatch: pytest.Monke
     assert solver._mesh_levels(1e-8, None, None, sharp)[0] == 36
 
 
-def test_a_ladder_started_higher_certifies_on_the_same_three_levels() -> None:
+def test_a_ladder_started_higher_certifies_on_the_same_three_levels(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
     """The default workspace to 1e-8: started at 80 nodes per side, the estimate at 180
-    rests on 80, 120 and 180 as when started at 36 -- the same certificate."""
+    rests on 80, 120 and 180 as when started at 36 -- the same estimate, and the two maps
+    within it of each other."""
     m = _solve(default_workspace(), 1e-8)
     d = m.diagnostics
     assert d.tol_met, d.table()
     levels = [int(r["nodes_per_side"]) for r in d.refinements]
     assert levels[0] == 120 and d.nodes_per_side >= 180  # the first estimate: 120 against 80
-    assert d.error_estimate <= 1e-8
+    monkeypatch.setattr(solver, "START_BY_CORNERS", False)
+    low = _solve(default_workspace(), 1e-8)
+    assert low.diagnostics.tol_met
+    assert int(low.diagnostics.refinements[0]["nodes_per_side"]) == 54
+    assert low.diagnostics.nodes_per_side == d.nodes_per_side
+    assert d.error_estimate == pytest.approx(low.diagnostics.error_estimate, rel=1e-3)
+    assert _distance(m, low) <= d.error_estimate + low.diagnostics.error_estimate
 
 
 @pytest.mark.parametrize("refined", [3, 0])
