@@ -1104,7 +1104,7 @@ def target_rows(group: str) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]
 # 9. where the time goes (``--profile``): per mesh level, by solver stage
 # --------------------------------------------------------------------------------------------
 PROFILE_RESULTS = RESULTS.parent / "core_profile.json"
-PROFILE_CASES = ("shrunk", "mixed50", "default", "gap001")
+PROFILE_CASES = ("shrunk", "mixed50", "default", "gap001", "default8")
 #: Solver designs profiled side by side (module switches, as bench/bench_koebe.py DESIGNS).
 PROFILE_DESIGNS = ("before", "carry")
 
@@ -1119,6 +1119,8 @@ def _profile_ws(case: str) -> tuple[Any, float]:
         return mixed_obstacles(50, seed=0), 1e-8
     if case == "default":
         return default_workspace(), 1e-10
+    if case == "default8":  # the 4-obstacle scene of the 50-obstacle ratio (round 5)
+        return default_workspace(), 1e-8
     if case == "gap001":
         return mirror_squares(0.01), 1e-8
     raise ValueError(f"unknown profile case {case!r}")
@@ -1184,6 +1186,37 @@ def profile_case(case: str, design: str) -> dict[str, Any]:
     timed(so, "_make_map", "certificate_s")
     timed(so, "plan_boundaries", "meshing_s")
 
+    def split(
+        module: Any, name: str, key_of: Callable[[tuple[Any, ...], dict[str, Any]], str]
+    ) -> None:
+        """CPU seconds of a call under a key chosen from its arguments (by boundary kind)."""
+        real = getattr(module, name)
+
+        def wrapper(*args: Any, **kw: Any) -> Any:
+            c0 = time.process_time()
+            try:
+                return real(*args, **kw)
+            finally:
+                key = key_of(args, kw)
+                levels[-1][key] = levels[-1].get(key, 0.0) + time.process_time() - c0
+
+        patched.append((module, name, real))
+        setattr(module, name, wrapper)
+
+    # round 4: the same stages split by boundary kind (holes / the outer boundary) and mesh
+    # (the first sweep's graded polygon meshes / the smooth grids)
+    split(cd, "_apply", lambda a, kw: "map_eval_holes_s" if a[2] else "map_eval_outer_s")
+    split(
+        cd,
+        "exterior_map",
+        lambda a, kw: "gnk_holes_smooth_s" if kw.get("smooth") else "gnk_holes_graded_s",
+    )
+    split(
+        cd,
+        "interior_map",
+        lambda a, kw: "gnk_outer_smooth_s" if kw.get("smooth") else "gnk_outer_graded_s",
+    )
+
     def progress(msg: str) -> None:
         if msg.startswith("solving with") or msg.startswith("refining"):
             label = msg.split(" at ")[0].replace("solving with ", "")
@@ -1199,7 +1232,7 @@ def profile_case(case: str, design: str) -> dict[str, Any]:
             m = confnav.solve(ws, tol=tol, progress=progress)
     finally:
         gnk._Operator.__init__ = real_init  # type: ignore[method-assign]
-        for module, name, real in patched:
+        for module, name, real in reversed(patched):
             setattr(module, name, real)
     cpu = time.process_time() - c0
     ends = [lv.get("cpu_start", c0) for lv in levels[1:]] + [c0 + cpu]
@@ -1233,7 +1266,19 @@ def run_profile(out_path: Path, cases: list[str], designs: list[str], append: bo
     if append and out_path.exists():
         rows = json.loads(out_path.read_text())["rows"]
     keys = ("sweeps", "gnk_solves", "gmres_iterations", "gnk_dense", "gnk_matrix_free")
-    secs = ("gnk_assembly_s", "gnk_solve_s", "map_evaluation_s", "transplant_s", "certificate_s")
+    secs = (
+        "gnk_assembly_s",
+        "gnk_solve_s",
+        "map_evaluation_s",
+        "transplant_s",
+        "certificate_s",
+        "map_eval_holes_s",
+        "map_eval_outer_s",
+        "gnk_holes_graded_s",
+        "gnk_holes_smooth_s",
+        "gnk_outer_graded_s",
+        "gnk_outer_smooth_s",
+    )
     for case in cases:
         for design in designs:
             r = profile_case(case, design)

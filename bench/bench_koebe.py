@@ -68,7 +68,16 @@ from confnav.scenes.workspaces import (
 #: powers of two, from the rule for the band _tail reads (circledomain.TAIL_BAND; every other
 #: design: GRID_STEPS = 1, TAIL_BAND = 1). ``graded``: that and the smooth grids'
 #: Moebius grading strength searched between the listed ones (circledomain.GRADING_REFINE;
-#: every other design: the list alone).
+#: every other design: the list alone). ``modes2``: that and the extrapolation of two
+#: geometric modes (circledomain.EXTRAPOLATE_MODES = 2, minimal polynomial extrapolation from
+#: three grid-keeping sweeps; every other design: one mode, as before round 4), extrapolating
+#: from plain contractions above 0.5 as one mode does; ``modes2_low``: that from contractions
+#: above 0.2 (circledomain.RHO_EXTRAPOLATE_MIN_MODES). ``reuse`` (round 5): that and a
+#: per-side refinement's re-solve taking the base level's first-sweep maps whose equations
+#: are unchanged (solver.REFINE_REUSE); ``round5``: that and the ladder started higher for a
+#: workspace with an obstacle tip sharper than 60 degrees (solver.START_BY_CORNERS);
+#: ``round5s``: that and the re-solve's first sweep resumed from the base level's snapshot
+#: (solver.REFINE_SNAPSHOTS; the default).
 _LEAN = {"smooth_fmm": True, "carry": True, "corner": True, "blas1": True, "lean": True}
 DESIGNS: dict[str, dict[str, bool]] = {
     "before": {"smooth_fmm": False, "carry": False, "corner": False, "blas1": False},
@@ -95,6 +104,70 @@ DESIGNS: dict[str, dict[str, bool]] = {
         "second_sums": True,
         "fine_grids": True,
         "graded": True,
+    },
+    # round 4: the extrapolation removes two geometric modes (circledomain.EXTRAPOLATE_MODES;
+    # every design above: one)
+    "modes2": {
+        **_LEAN,
+        "once": True,
+        "interleaved": True,
+        "second_sums": True,
+        "fine_grids": True,
+        "graded": True,
+        "modes2": True,
+    },
+    # and extrapolating from plain contractions above 0.2 instead of 0.5 (the default)
+    "modes2_low": {
+        **_LEAN,
+        "once": True,
+        "interleaved": True,
+        "second_sums": True,
+        "fine_grids": True,
+        "graded": True,
+        "modes2": True,
+        "rho_low": True,
+    },
+    # round 5: a per-side refinement's re-solve reuses the base level's unchanged first-sweep
+    # maps (solver.REFINE_REUSE; every design above: off) ...
+    "reuse": {
+        **_LEAN,
+        "once": True,
+        "interleaved": True,
+        "second_sums": True,
+        "fine_grids": True,
+        "graded": True,
+        "modes2": True,
+        "rho_low": True,
+        "reuse": True,
+    },
+    # ... and a workspace with an obstacle tip sharper than 60 degrees starts the ladder
+    # higher (solver.START_BY_CORNERS; every design above: off): the default since round 5
+    "round5": {
+        **_LEAN,
+        "once": True,
+        "interleaved": True,
+        "second_sums": True,
+        "fine_grids": True,
+        "graded": True,
+        "modes2": True,
+        "rho_low": True,
+        "reuse": True,
+        "start": True,
+    },
+    # ... and the re-solve's first sweep resumed from the base level's snapshot before the
+    # first refined boundary (solver.REFINE_SNAPSHOTS; every design above: off)
+    "round5s": {
+        **_LEAN,
+        "once": True,
+        "interleaved": True,
+        "second_sums": True,
+        "fine_grids": True,
+        "graded": True,
+        "modes2": True,
+        "rho_low": True,
+        "reuse": True,
+        "start": True,
+        "snapshots": True,
     },
 }
 #: The solver's own setting (restored after :func:`fleet_step_rounding`).
@@ -155,7 +228,14 @@ def use_design(name: str) -> None:
     circledomain.GRID_STEPS = _GRID_STEPS if d.get("fine_grids", False) else 1
     circledomain.TAIL_BAND = _TAIL_BAND if d.get("fine_grids", False) else 1.0
     circledomain.GRADING_REFINE = _GRADING_REFINE if d.get("graded", False) else 0
+    circledomain.EXTRAPOLATE_MODES = _EXTRAPOLATE_MODES if d.get("modes2", False) else 1
+    circledomain.RHO_EXTRAPOLATE_MIN_MODES = (
+        _RHO_MIN_MODES if d.get("rho_low", False) else circledomain.RHO_EXTRAPOLATE_MIN
+    )
     setattr(ConformalMap, "boundary_residuals", _RESIDUALS if once else _residuals_every_call)  # noqa: B010
+    solver.REFINE_REUSE = d.get("reuse", False)
+    solver.START_BY_CORNERS = d.get("start", False)
+    solver.REFINE_SNAPSHOTS = d.get("snapshots", False)
 
 
 _SMOOTH_DEFAULT = gnk.SMOOTH_DENSE_MAX_NODES
@@ -165,6 +245,8 @@ _RESIDUALS = ConformalMap.boundary_residuals
 _GRID_STEPS = circledomain.GRID_STEPS
 _TAIL_BAND = circledomain.TAIL_BAND
 _GRADING_REFINE = circledomain.GRADING_REFINE
+_EXTRAPOLATE_MODES = circledomain.EXTRAPOLATE_MODES
+_RHO_MIN_MODES = circledomain.RHO_EXTRAPOLATE_MIN_MODES
 
 
 def asymmetry(m: ConformalMap) -> float:

@@ -80,7 +80,11 @@ def test_optimal_omega_is_young_s_formula() -> None:
     assert optimal_omega(float("nan")) == 1.0
 
 
-def test_extrapolation_reaches_the_plain_fixed_point(plain: CircleDomainResult) -> None:
+@pytest.mark.parametrize("modes", [1, 2])
+def test_extrapolation_reaches_the_plain_fixed_point(
+    plain: CircleDomainResult, monkeypatch: pytest.MonkeyPatch, modes: int
+) -> None:
+    monkeypatch.setattr(circledomain, "EXTRAPOLATE_MODES", modes)
     r = _run(squares(0.03), "extrapolate")
     assert r.extrapolations > 0 and r.converged
     assert r.sweeps < plain.sweeps
@@ -91,18 +95,32 @@ def test_extrapolation_reaches_the_plain_fixed_point(plain: CircleDomainResult) 
     assert r.circularity <= 10 * TOL
 
 
+@pytest.mark.parametrize("modes", [1, 2])
 def test_a_bad_extrapolation_is_rejected(
-    plain: CircleDomainResult, monkeypatch: pytest.MonkeyPatch
+    plain: CircleDomainResult, monkeypatch: pytest.MonkeyPatch, modes: int
 ) -> None:
     # an extrapolation four times too long overshoots: the next sweep's change grows, and
-    # the state before the extrapolation is restored
+    # the state before the extrapolation is restored (one mode: the tail's weight w; several
+    # modes: the step from the last state, sum_j gamma_j x_j - x_last, made four times longer)
+    monkeypatch.setattr(circledomain, "EXTRAPOLATE_MODES", modes)
     orig = circledomain.extrapolate_curve
 
     def overshoot(*args: Any) -> Any:
         *curves, w = args
         return orig(*curves, 4.0 * w)
 
+    orig_weights = circledomain._mpe_weights
+
+    def overshoot_weights(x: Any) -> Any:
+        gamma = orig_weights(x)
+        if gamma is None:
+            return None
+        last = np.zeros_like(gamma)
+        last[-1] = 1.0
+        return last + 4.0 * (gamma - last)
+
     monkeypatch.setattr(circledomain, "extrapolate_curve", overshoot)
+    monkeypatch.setattr(circledomain, "_mpe_weights", overshoot_weights)
     r = _run(squares(0.03), "extrapolate")
     assert r.rejected_extrapolations > 0
     assert r.converged
@@ -126,14 +144,75 @@ def test_where_nothing_triggers_the_run_is_the_plain_one() -> None:
         assert np.array_equal(r.radii, plain.radii) and np.array_equal(r.centers, plain.centers)
 
 
-@pytest.mark.parametrize(("rho", "extrapolates"), [(0.3, False), (0.45, False), (0.7, True)])
+@pytest.mark.parametrize(
+    ("modes", "rho", "extrapolates"),
+    [
+        (1, 0.3, False),
+        (1, 0.45, False),
+        (1, 0.7, True),
+        (2, 0.15, False),
+        (2, 0.3, True),
+        (2, 0.7, True),
+    ],
+)
 def test_extrapolation_starts_only_above_its_smallest_contraction(
-    rho: float, extrapolates: bool
+    modes: int, rho: float, extrapolates: bool, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """Two agreeing plain contraction ratios start an extrapolation only above
+    """One mode: two agreeing plain contraction ratios start an extrapolation only above
     RHO_EXTRAPOLATE_MIN (0.5): below it four plain sweeps gain rho^4 <= 0.06 anyway, and on the
-    shrunk workspace (rho ~0.23) extrapolating cost a sweep."""
+    shrunk workspace (rho ~0.23) extrapolating cost a sweep. Two modes: above
+    RHO_EXTRAPOLATE_MIN_MODES (0.2), as the cycle must pay anyway (next test)."""
+    monkeypatch.setattr(circledomain, "EXTRAPOLATE_MODES", modes)
     sched = circledomain._Schedule("extrapolate", tol=1e-12)
     sched.phase_history = [rho**k for k in range(5)]
     assert sched._start_extrapolation(sweep=6) is extrapolates
     assert (sched.phase == "material") is extrapolates
+
+
+def test_two_mode_extrapolation_starts_only_when_its_cycle_pays(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # rho 0.7, remaining error 0.24 * 0.7 / 0.3 = 0.56: three plain sweeps reach tol = 0.56 *
+    # 0.7^3, fewer than the cycle (three grid-keeping sweeps, the confirming one, two plain)
+    monkeypatch.setattr(circledomain, "EXTRAPOLATE_MODES", 2)
+    history = [0.7**k for k in range(5)]
+    rem = history[-1] * 0.7 / 0.3
+    for tol, starts in ((rem * 0.7**3, False), (rem * 0.7**9, True)):
+        sched = circledomain._Schedule("extrapolate", tol=tol)
+        sched.phase_history = list(history)
+        assert sched._start_extrapolation(sweep=6) is starts
+
+
+def test_mpe_is_exact_for_two_geometric_modes() -> None:
+    # x_j = x* + a 0.8^j v + b (-0.5)^j w (real-linear modes of a complex state): the weights
+    # from x_0 .. x_3 combine x_1 .. x_3 into x* to rounding, whatever the ratios
+    rng = np.random.default_rng(0)
+    xs, v, w = (rng.normal(size=50) + 1j * rng.normal(size=50) for _ in range(3))
+    x = [np.asarray(xs + 0.3 * 0.8**j * v + 0.2 * (-0.5) ** j * w, np.complex128) for j in range(4)]
+    gamma = circledomain._mpe_weights(x)
+    assert gamma is not None and gamma.sum() == pytest.approx(1.0)
+    limit = sum(g * xj for g, xj in zip(gamma, x[1:], strict=True))
+    assert np.max(np.abs(limit - xs)) <= 1e-12
+
+
+def test_mpe_refuses_a_mode_at_one() -> None:
+    # a mode that does not contract (the state drifting by the same step every sweep: a double
+    # root at 1): the polynomial's coefficients sum to ~0, no weights
+    rng = np.random.default_rng(1)
+    xs, v, w = (rng.normal(size=40) + 1j * rng.normal(size=40) for _ in range(3))
+    x = [np.asarray(xs + 0.3 * j * v + 0.2 * 0.5**j * w, np.complex128) for j in range(4)]
+    assert circledomain._mpe_weights(x) is None
+
+
+def test_two_modes_take_fewer_sweeps_to_the_same_fixed_point(
+    plain: CircleDomainResult, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(circledomain, "EXTRAPOLATE_MODES", 1)
+    one = _run(squares(0.03), "extrapolate")
+    monkeypatch.setattr(circledomain, "EXTRAPOLATE_MODES", 2)
+    two = _run(squares(0.03), "extrapolate")
+    assert two.converged and two.extrapolations > 0
+    assert two.sweeps <= one.sweeps
+    bound = two.iteration_error + plain.iteration_error
+    assert np.max(np.abs(two.radii - plain.radii)) <= bound
+    assert np.max(np.abs(two.centers - plain.centers)) <= bound

@@ -14,7 +14,12 @@ import pytest
 import confnav
 from confnav import ConformalMap, Workspace
 from confnav.conformal import solver
-from confnav.scenes.workspaces import mirror_squares
+from confnav.conformal.boundary import BoundaryMesh, graded_polygon
+from confnav.conformal.circledomain import _reusable, koebe_iteration
+from confnav.conformal.diskmap import exterior_map
+from confnav.conformal.meshing import PanelPlan, plan_boundaries
+from confnav.geometry import interior_point
+from confnav.scenes.workspaces import default_workspace, mirror_squares
 
 ROOM = [[-2, -2], [2, -2], [2, 2], [-2, 2]]
 
@@ -157,3 +162,124 @@ def test_boundary_residuals_are_evaluated_once_and_equal_a_fresh_evaluation(
     assert not calls and all(x is y for x, y in zip(again, first, strict=True))
     with pytest.raises(ValueError):
         again[1][0] = 0.0
+
+
+# ---------------------------------------------------------------- reused first-sweep maps
+def _level_meshes(plans: list[PanelPlan]) -> list[BoundaryMesh]:
+    return [graded_polygon(plans[0].vertices, plans[0].nodes)] + [
+        graded_polygon(p.vertices, p.nodes).reversed() for p in plans[1:]
+    ]
+
+
+def test_a_refined_re_solve_reuses_the_first_sweep_maps_before_the_refined_boundary() -> None:
+    """Round 5 (issue 24): the last hole's mesh refined, the first sweep's maps of the holes
+    before it are taken from the base solve (their equations are the same bit for bit), the
+    refined hole and the outer boundary (mapped after it) are solved anew, and the circle
+    domain is the one a re-solve without reuse gives, to the sweeps' tolerance."""
+    ws, tol = room(), 1e-8
+    coarse, fine = plan_boundaries(ws, 36, tol), plan_boundaries(ws, 54, tol)
+    holes = [interior_point(o) for o in ws.obstacles]
+    base = koebe_iteration(_level_meshes(coarse), holes, ws.anchor, 1e-9)
+    assert len(base.first_maps) == 4 and all(f is not None for f in base.first_maps)
+    assert base.reused_first_maps == 0
+    meshes = _level_meshes(coarse[:3] + fine[3:])  # the last hole refined
+    reused = koebe_iteration(meshes, holes, ws.anchor, 1e-9, reuse_first=base.first_maps)
+    fresh = koebe_iteration(meshes, holes, ws.anchor, 1e-9)
+    assert reused.reused_first_maps == 2
+    assert reused.first_maps[1] is base.first_maps[1]
+    assert reused.first_maps[2] is base.first_maps[2]
+    assert reused.first_maps[3] is not base.first_maps[3]
+    assert reused.first_maps[0] is not base.first_maps[0]
+    assert reused.converged and fresh.converged
+    dist = max(
+        np.max(np.abs(reused.centers - fresh.centers)), np.max(np.abs(reused.radii - fresh.radii))
+    )
+    assert dist <= 2e-9  # both within the sweeps' tolerance (1e-9) of one fixed point
+    # the refinement moved the circle domain by far more than the reuse did
+    assert np.max(np.abs(base.radii - fresh.radii)) > 10 * dist
+
+
+def test_a_map_of_another_curve_is_never_reused() -> None:
+    ws = room()
+    m = _level_meshes(plan_boundaries(ws, 36, 1e-8))[1]
+    c = complex(interior_point(ws.obstacles[0]))
+    cm = exterior_map(m.eta, m.deta, c, 1e-12)
+    assert _reusable(cm, m.eta, m.deta, c, True)
+    assert not _reusable(cm, m.eta, m.deta, c, False)
+    assert not _reusable(cm, m.eta, m.deta, c + 1e-15, True)
+    eta = m.eta.copy()
+    eta[3] += 1e-14
+    assert not _reusable(cm, eta, m.deta, c, True)
+
+
+# ---------------------------------------------------------------- where the ladder starts
+def test_a_sharp_obstacle_tip_starts_the_ladder_higher(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Round 5 (issue 24): the default workspace (a 47.6-degree tip: free-space angle 312.4)
+    starts at 80 nodes per side to 1e-8 and at 120 to 1e-10; two squares (270 at most) keep
+    the tolerance's start; a loose tolerance, a fixed mesh and the switch off are unchanged."""
+    sharp, blunt = default_workspace(), mirror_squares(0.1)
+    assert solver.largest_free_angle(sharp) == pytest.approx(312.4, abs=0.1)
+    assert solver.largest_free_angle(blunt) == pytest.approx(270.0)
+    assert solver._mesh_levels(1e-8, None, None, sharp)[0] == 80
+    assert solver._mesh_levels(1e-10, None, None, sharp)[0] == 120
+    assert solver._mesh_levels(1e-6, None, None, sharp)[0] == solver.LEVELS[0]
+    assert solver._mesh_levels(1e-8, None, None, blunt)[0] == 36
+    assert solver._mesh_levels(1e-10, None, None, blunt)[0] == 80
+    assert solver._mesh_levels(1e-8, 54, None, sharp) == [24, 36, 54]
+    monkeypatch.setattr(solver, "START_BY_CORNERS", False)
+    assert solver._mesh_levels(1e-8, None, None, sharp)[0] == 36
+
+
+def test_a_ladder_started_higher_certifies_on_the_same_three_levels(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The default workspace to 1e-8: started at 80 nodes per side, the estimate at 180
+    rests on 80, 120 and 180 as when started at 36 -- the same estimate, and the two maps
+    within it of each other."""
+    m = _solve(default_workspace(), 1e-8)
+    d = m.diagnostics
+    assert d.tol_met, d.table()
+    levels = [int(r["nodes_per_side"]) for r in d.refinements]
+    assert levels[0] == 120 and d.nodes_per_side >= 180  # the first estimate: 120 against 80
+    monkeypatch.setattr(solver, "START_BY_CORNERS", False)
+    low = _solve(default_workspace(), 1e-8)
+    assert low.diagnostics.tol_met
+    assert int(low.diagnostics.refinements[0]["nodes_per_side"]) == 54
+    assert low.diagnostics.nodes_per_side == d.nodes_per_side
+    assert d.error_estimate == pytest.approx(low.diagnostics.error_estimate, rel=1e-3)
+    assert _distance(m, low) <= d.error_estimate + low.diagnostics.error_estimate
+
+
+@pytest.mark.parametrize("refined", [3, 0])
+def test_a_first_sweep_resumed_from_a_snapshot_is_the_one_that_reapplies_the_maps(
+    refined: int,
+) -> None:
+    """The re-solve's first sweep started from the base's snapshot before the first refined
+    boundary (the last hole; the outer boundary, mapped last) gives the circle domain of the
+    one that applies the reused maps again, to rounding."""
+    ws, tol = room(), 1e-8
+    coarse, fine = plan_boundaries(ws, 36, tol), plan_boundaries(ws, 54, tol)
+    holes = [interior_point(o) for o in ws.obstacles]
+    base = koebe_iteration(_level_meshes(coarse), holes, ws.anchor, 1e-9, snapshots=True)
+    assert sorted(base.first_snapshots) == [1, 2, 3, 4]  # before each hole and the outer map
+    plans = list(coarse)
+    plans[refined] = fine[refined]
+    meshes = _level_meshes(plans)
+    again = koebe_iteration(meshes, holes, ws.anchor, 1e-9, reuse_first=base.first_maps)
+    resumed = koebe_iteration(
+        meshes,
+        holes,
+        ws.anchor,
+        1e-9,
+        reuse_first=base.first_maps,
+        reuse_snapshots=base.first_snapshots,
+    )
+    first = 3 if refined == 3 else 4
+    assert again.resumed_at == 1 and resumed.resumed_at == first
+    assert again.reused_first_maps == resumed.reused_first_maps == first - 1
+    assert resumed.sweeps == again.sweeps
+    dist = max(
+        np.max(np.abs(resumed.centers - again.centers)), np.max(np.abs(resumed.radii - again.radii))
+    )
+    assert dist <= 1e-13
+    assert max(np.max(np.abs(a - b)) for a, b in zip(resumed.W, again.W, strict=True)) <= 1e-12

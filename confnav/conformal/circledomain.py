@@ -69,6 +69,33 @@ least three plain sweeps whose own history gives the reported iteration error:
   geometric tail, Aitken's delta^2 on the slowest mode) is applied to the whole domain. The
   next plain sweep confirms it: if its change is not smaller than the extrapolating sweep's,
   the state before the extrapolation is restored (a tested safeguard).
+  Two modes (round 4, :data:`EXTRAPOLATE_MODES` = 2, the default): after one extrapolation of the
+  slowest mode the next-slowest dominated the plain ratios for a sweep or two and the slowest came
+  back (two squares 0.01 apart, traced in an ad-hoc run), so each cycle removed little more than
+  one plain sweep would. Now three sweeps keep their grids (states x_0 .. x_3, every grid point
+  the image of the same point) and the minimal polynomial extrapolation of degree 2
+  (:func:`_extrapolate_modes`, real weights summing to 1: again an analytic map of the whole
+  domain) removes both modes whatever their ratios; it starts once the plain sweeps left (from the
+  observed contraction) exceed its cycle of six, with the same confirmation, rejection and final
+  plain sweeps. Measured side by side (``bench/bench_koebe.py --gaps 0.01 0.03 --scenes default
+  shrunk mixed50 --case-tol default=1e-10 --accels extrapolate --designs graded modes2``,
+  ``bench/results/koebe_round4_modes2.json`` at e765f88, one run, load 5.5-9.2, CPU s, one mode /
+  two modes): two squares 0.01 apart 34/6/3/3 -> 25/8/3/3 sweeps per level (46 -> 39; the carried
+  level's floor contraction is now the 0.85 seen after the last extrapolation), FMM sums 758 ->
+  633, 10.6 -> 8.6 s, asymmetry 1.5e-12 / 8.9e-13 under the estimate 1.2e-9, the maps 4.4e-12
+  apart; 0.03 apart 31 -> 28 sweeps, 1.4 -> 1.2 s; the default workspace (1e-10), it shrunk by 0.2
+  m and 50 obstacles: nothing triggers, the runs are the same bit for bit. Three modes (four
+  grid-keeping sweeps) did no better on two squares 0.01 apart in an ad-hoc run (the fit's weights
+  exceeded :data:`GAMMA_MAX` and it fell back to one mode), so two it is. As the cycle must pay
+  anyway, two modes start from plain contractions above 0.2 (:data:`RHO_EXTRAPOLATE_MIN_MODES`;
+  one mode: 0.5). Side by side (``--gaps 0.01 0.03 0.1 --scenes room default shrunk mixed50
+  --designs graded modes2 modes2_low``, ``bench/results/koebe_round4_rho.json`` at ec05683, load
+  2.0-2.7, CPU s, one mode / two from 0.5 / two from 0.2): two squares 0.01 apart 46 / 39 / 39
+  sweeps (28/5/3/3 from 0.2), 10.2 / 8.7 / 8.7 s, asymmetry 1.5e-12 / 8.9e-13 / 2.0e-12 under
+  1.2e-9; 0.03 apart 31 / 28 / 25 sweeps; the default workspace shrunk by 0.2 m (rho ~0.23) 32 /
+  32 / 27 sweeps (its cold level 15 -> 10), 2.8 / 2.8 / 2.3 s, the maps 1.9e-15 apart; two squares
+  0.1 apart, a room with a pillar, the default workspace and 50 obstacles: the same sweeps in all
+  three.
 * ``"sor"``: over-relaxed hole maps ``(1 - omega) s_k (z - alpha_k) + omega F_k(z)`` with
   Young's omega from the observed plain contraction, halved when the change grows.
 
@@ -138,6 +165,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from math import factorial
+from typing import Any
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -174,6 +202,11 @@ RHO_EXTRAPOLATE = 0.95
 #: (rho ~0.23) extrapolating at RHO_MIN = 0.2 cost a sweep (33 against 32), on two squares
 #: 0.01 apart (rho 0.79) it saved 28 (46 against 74 sweeps).
 RHO_EXTRAPOLATE_MIN = 0.5
+#: The same for the multi-mode extrapolation (:data:`EXTRAPOLATE_MODES` > 1), which starts
+#: only when the plain sweeps left exceed its cycle anyway (:func:`_plain_sweeps_left`): on
+#: the default workspace shrunk by 0.2 m (rho ~0.23) it took the cold level from 15 to 10
+#: sweeps (bench/README.md "Round 4", ``koebe_round4_rho.json``).
+RHO_EXTRAPOLATE_MIN_MODES = 0.2
 EXTRAPOLATE_WAIT = 3
 #: Sweeps without any decrease of the change (below the best of the three before) after which
 #: the iteration counts as stalled: at the rounding floor, or not converging at all.
@@ -229,6 +262,16 @@ class CircleDomainResult:
     #: The first sweep's GNK solution of each boundary on its graded mesh (outer first): the
     #: next mesh level's first guess (:func:`confnav.conformal.boundary.resample`).
     first_mu: list[FloatArray | None] = field(default_factory=list)
+    #: The first sweep's own map of each boundary (outer first; None where it was a relaxed
+    #: map): a re-solve of the same level with some sides refined reuses those whose input --
+    #: the curve the map was solved on and its alpha -- is the same (``reuse_first``).
+    first_maps: list[CurveMap | None] = field(default_factory=list)
+    #: First-sweep maps taken from ``reuse_first`` instead of solved (their input identical).
+    reused_first_maps: int = 0
+    #: The first sweep's iterate before some of its maps (``snapshots=True``; :func:`_sweep`).
+    first_snapshots: dict[int, Any] = field(default_factory=dict)
+    #: The hole a first sweep resumed at from ``reuse_snapshots`` (1: none, :func:`_resume`).
+    resumed_at: int = 1
     #: Largest absolute GNK residual of any solve (:attr:`CurveMap.gmres_residual`).
     gmres_residual: float = 0.0
     #: Sweeps with over-relaxed hole maps (``accel="sor"``) and the last omega used.
@@ -285,13 +328,17 @@ class _Boundary:
         rtol: float,
         x0: FloatArray | None = None,
         corners: np.ndarray | None = None,
+        reuse: CurveMap | None = None,
     ) -> CurveMap:
         """Solve the disk map of this boundary's current image and move it onto |w| = 1.
 
         ``x0``: a first guess of the GNK solution, used in the first sweep (on the polygon's
         graded mesh; the previous mesh level's solution there); ``corners``: that mesh's
         vertex blocks (:meth:`~confnav.conformal.boundary.BoundaryMesh.corner_blocks`, the
-        first sweep's GMRES preconditioner).
+        first sweep's GMRES preconditioner); ``reuse``: a first-sweep map of a previous solve,
+        taken instead of solving if it was solved on this very curve (nodes and t-derivatives
+        equal bit for bit) with the same ``alpha`` -- the same GNK equation, solved to the same
+        GMRES tolerance (:func:`_reusable`).
 
         ``others`` are points of the other boundaries: if they have come closer to this curve
         than its smooth grid resolves, the grid is refined first (exact FFT upsampling of an
@@ -299,9 +346,12 @@ class _Boundary:
         """
         self._resolve(others)
         if self.S is None:  # first sweep: the polygon, on its graded mesh
-            cm = (exterior_map if self.hole else interior_map)(
-                self.P, self.dP, alpha, rtol, x0, corners=corners
-            )
+            if reuse is not None and _reusable(reuse, self.P, self.dP, alpha, self.hole):
+                cm = reuse
+            else:
+                cm = (exterior_map if self.hole else interior_map)(
+                    self.P, self.dP, alpha, rtol, x0, corners=corners
+                )
             sgn = -1.0 if self.hole else 1.0
             self.u = sgn * np.unwrap(np.angle(cm.f))
             self.u = self.u - 2 * np.pi * np.floor(self.u[0] / (2 * np.pi))
@@ -410,6 +460,20 @@ GRADING_RHO = (0.0, 0.5, 0.8, 0.9, 0.95, 0.98, 0.99, 0.995, 0.998, 0.999)
 #: holes a gap of 0.025 in the graded parameter (2235 points needed) where a strength between
 #: 0.95 and 0.98 leaves more (2048 laid).
 GRADING_REFINE = 8
+
+
+def _reusable(cm: CurveMap, P: ComplexArray, dP: ComplexArray, alpha: complex, hole: bool) -> bool:
+    """Whether ``cm`` solved this very first-sweep equation: the same curve nodes and
+    t-derivatives (bit for bit) and the same ``alpha`` and kind -- the GNK system is a function
+    of these alone (:func:`confnav.conformal.diskmap.exterior_map`), so ``cm`` is its solution
+    to the GMRES tolerance it was solved to."""
+    return (
+        cm.exterior == hole
+        and complex(cm.alpha) == complex(alpha)
+        and cm.eta.shape == P.shape
+        and bool(np.array_equal(cm.eta, P))
+        and bool(np.array_equal(cm.deta, dP))
+    )
 
 
 def _wrap(x: FloatArray) -> FloatArray:
@@ -610,10 +674,30 @@ class _Tally:
     first_mu: list[FloatArray | None]
     iterations: int = 0
     residual: float = 0.0
+    #: the first sweep's own maps (recorded) and those of a previous solve to reuse
+    first_maps: list[CurveMap | None] = field(default_factory=list)
+    reuse: list[CurveMap | None] = field(default_factory=list)
+    reused: int = 0
+    #: the first sweep's snapshots (recorded; None: not recorded) by position (:func:`_sweep`)
+    snapshots: dict[int, _Iterate] | None = None
 
     def add(self, cm: CurveMap | RelaxedMap) -> None:
         self.iterations += cm.gmres_iterations
         self.residual = max(self.residual, cm.gmres_residual)
+
+    def first(self, k: int, cm: CurveMap) -> None:
+        """Record boundary k's first-sweep map; its GMRES work counts once, where solved."""
+        self.first_mu[k] = cm.mu
+        if self.first_maps:
+            self.first_maps[k] = cm
+        if self.reuse and self.reuse[k] is cm:
+            self.reused += 1
+            self.residual = max(self.residual, cm.gmres_residual)
+        else:
+            self.add(cm)
+
+    def reusable(self, k: int, sweep: int) -> CurveMap | None:
+        return self.reuse[k] if sweep == 1 and self.reuse else None
 
 
 @dataclass
@@ -706,10 +790,20 @@ def _map_hole(
                 f"the relaxed map of {name} in sweep {sweep} produced non-finite boundary images"
             )
     else:
-        F = _own_map(b, it.c[k - 1], name, mesh, _curves(it.bnds, k), gmres_tol, guess)
-        tally.add(F)
+        F = _own_map(
+            b,
+            it.c[k - 1],
+            name,
+            mesh,
+            _curves(it.bnds, k),
+            gmres_tol,
+            guess,
+            tally.reusable(k, sweep),
+        )
         if sweep == 1:
-            tally.first_mu[k] = F.mu
+            tally.first(k, F)
+        else:
+            tally.add(F)
         out = _apply(F, it.bnds, k, others)
         _check_images(_curves(it.bnds, k), out[: others.size], True, name, sweep)
         _regrid(b, _curves(it.bnds, k), name, sweep)
@@ -737,10 +831,14 @@ def _map_outer(
     if phase == "material":
         f0 = b0.relaxed_map(it.a, _curves(it.bnds, 0), gmres_tol, 1.0)
     else:
-        f0 = _own_map(b0, it.a, name, mesh, _curves(it.bnds, 0), gmres_tol, guess)
-        if sweep == 1:
-            tally.first_mu[0] = f0.mu
-    tally.add(f0)
+        f0 = _own_map(
+            b0, it.a, name, mesh, _curves(it.bnds, 0), gmres_tol, guess, tally.reusable(0, sweep)
+        )
+    if phase != "material" and sweep == 1:
+        assert isinstance(f0, CurveMap)
+        tally.first(0, f0)
+    else:
+        tally.add(f0)
     out = _apply(f0, it.bnds, 0, it.c)
     _check_images(_curves(it.bnds, 0), out[: it.c.size], False, name, sweep)
     if phase != "material":
@@ -757,11 +855,90 @@ def _sweep(
     guess: list[FloatArray | None],
     tally: _Tally,
     gmres_tol: float,
+    first_hole: int = 1,
 ) -> None:
-    """One sweep of the iteration ([1], secs. 3-4): every hole's map, then the outer one."""
-    for k in range(1, len(it.bnds)):
-        _map_hole(it, k, sweep, phase, omega, meshes[k], guess[k], tally, gmres_tol)
+    """One sweep of the iteration ([1], secs. 3-4): every hole's map, then the outer one
+    (from hole ``first_hole`` on: a first sweep resumed from a snapshot, :func:`_resume`).
+    A recording first sweep keeps snapshots of the iterate before some of its maps
+    (:data:`SNAPSHOTS`)."""
+    M = len(it.bnds) - 1
+    for k in range(first_hole, M + 2):
+        if sweep == 1 and tally.snapshots is not None and k in _snapshot_positions(M):
+            tally.snapshots[k] = copy.deepcopy(it)
+        if k <= M:
+            _map_hole(it, k, sweep, phase, omega, meshes[k], guess[k], tally, gmres_tol)
     _map_outer(it, sweep, phase, meshes[0], guess[0], tally, gmres_tol)
+
+
+#: Snapshots of the first sweep's iterate kept for a re-solve of the same level with some
+#: sides refined (:func:`_resume`): before hole 1, every ``ceil(M / SNAPSHOTS)``-th hole and
+#: the outer boundary's map (position M + 1).
+SNAPSHOTS = 8
+
+
+def _snapshot_positions(M: int) -> set[int]:
+    step = max(1, -(-M // SNAPSHOTS))
+    return set(range(1, M + 1, step)) | {M + 1}
+
+
+def _changed(init: _Iterate, meshes: list[BoundaryMesh]) -> list[int]:
+    """Boundaries whose graded mesh differs from the snapshot's initial one (bit for bit)."""
+    return [
+        i
+        for i, (b, m) in enumerate(zip(init.bnds, meshes, strict=True))
+        if not (
+            b.P.shape == m.eta.shape
+            and bool(np.array_equal(b.P, m.eta))
+            and bool(np.array_equal(b.dP, m.deta))
+        )
+    ]
+
+
+def _resume(
+    it: _Iterate,
+    snapshots: dict[int, _Iterate],
+    reuse: list[CurveMap | None],
+    meshes: list[BoundaryMesh],
+    tally: _Tally,
+) -> int:
+    """Start a first sweep from a previous solve's snapshot (:data:`SNAPSHOTS`) instead of
+    the polygon domain, where every map before it is reused anyway (:func:`_reusable`): the
+    last snapshot at or before the first boundary (in the sweep's order) whose mesh changed.
+    The snapshot's iterate is the previous solve's state there; the changed boundaries' nodes
+    (not mapped yet at that point) are moved by the same maps the snapshot's boundaries were
+    moved by -- the reused ones, evaluated with their derivatives as :func:`_apply` does --
+    so the iterate is the one a first sweep through those maps gives. Returns the hole to go on
+    from (1: nothing resumed, ``it`` untouched)."""
+    init = snapshots.get(1)
+    M = len(it.bnds) - 1
+    if init is None or len(init.bnds) != M + 1 or not reuse:
+        return 1
+    if not (np.array_equal(init.c, it.c) and init.a == it.a and init.D == it.D):
+        return 1
+    changed = _changed(init, meshes)
+    order = [*range(1, M + 1), 0]
+    first = next((pos + 1 for pos, i in enumerate(order) if i in changed), M + 2)
+    p = max((k for k in snapshots if k <= first and k <= M + 1), default=1)
+    if p <= 1 or any(reuse[k] is None for k in range(1, p)):
+        return 1
+    state = copy.deepcopy(snapshots[p])
+    for i in changed:
+        fresh = it.bnds[i]
+        P, dP = fresh.P, fresh.dP
+        for k in range(1, p):
+            cm = reuse[k]
+            assert cm is not None
+            fz, dfz = cm.evaluate(P, derivative=True)
+            assert dfz is not None
+            P, dP = fz, dP * dfz
+        fresh.P, fresh.dP = np.asarray(P), np.asarray(dP)
+        state.bnds[i] = fresh
+    for k in range(1, p):
+        cm = reuse[k]
+        assert cm is not None
+        tally.first(k, cm)
+    it.bnds, it.c, it.a, it.D = state.bnds, state.c, state.a, state.D
+    return p
 
 
 @dataclass
@@ -833,6 +1010,97 @@ def _extrapolate_iterate(
     it.D = D_before * ((1.0 - w_ext) + w_ext * it.D / D_before)
 
 
+#: Geometric modes an extrapolation removes (1: the slowest, with the contraction observed
+#: on the changes, one sweep keeping its grids, :func:`_extrapolate_iterate`; k > 1:
+#: minimal polynomial extrapolation of degree k from k + 1 sweeps keeping their grids,
+#: :func:`_extrapolate_modes`).
+EXTRAPOLATE_MODES = 2
+#: Largest weight |gamma_j| a multi-mode extrapolation may put on one state (beyond it the
+#: fitted polynomial has a root near 1: the one-mode tail is used instead).
+GAMMA_MAX = 40.0
+
+
+def _plain_sweeps_left(remaining: float, rho: float, tol: float) -> float:
+    """Plain sweeps that would take a remaining error down to ``tol`` at contraction rho.
+    A multi-mode extrapolation is started only if more than its cycle (k + 1 sweeps keeping
+    their grids, the confirming one and the two plain ones that certify) would be needed."""
+    if remaining <= tol:
+        return 0.0
+    return float(np.log(tol / remaining) / np.log(rho))
+
+
+def _stack_states(
+    trail: list[tuple[list[tuple[ComplexArray, ComplexArray]], complex]], last: list[_Boundary]
+) -> list[list[tuple[ComplexArray, ComplexArray]]] | None:
+    """The grids of every state of ``trail`` and of the current one (``last``), each
+    boundary's upsampled to its current size (exact FFT interpolation); None if a grid
+    shrank."""
+    now = [(b.S, b.dS) for b in last if b.S is not None and b.dS is not None]
+    states: list[list[tuple[ComplexArray, ComplexArray]]] = []
+    for grids, _D in trail:
+        if len(grids) != len(now):
+            return None
+        row = []
+        for (S, dS), (S1, _dS1) in zip(grids, now, strict=True):
+            if S.size > S1.size:
+                return None
+            if S.size < S1.size:
+                S, dS = upsample(np.stack([S, dS]), S1.size)
+            row.append((S, dS))
+        states.append(row)
+    states.append(now)  # type: ignore[arg-type]
+    return states
+
+
+def _mpe_weights(x: list[ComplexArray]) -> FloatArray | None:
+    """MPE weights gamma_0 .. gamma_k (sum 1) of the states x_1 .. x_(k+1) from the states
+    x_0 .. x_(k+1) (:func:`_extrapolate_modes`); None if not usable."""
+    k = len(x) - 2
+    u = [x[j + 1] - x[j] for j in range(k + 1)]
+    A = np.stack([np.concatenate([v.real, v.imag]) for v in u[:k]], axis=1)
+    rhs = -np.concatenate([u[k].real, u[k].imag])
+    if not (np.all(np.isfinite(A)) and np.all(np.isfinite(rhs))):
+        return None
+    c = np.append(np.linalg.lstsq(A, rhs, rcond=None)[0], 1.0)
+    total = float(np.sum(c))
+    if not np.isfinite(total) or abs(total) < 1.0 / GAMMA_MAX:
+        return None
+    gamma = c / total
+    if float(np.max(np.abs(gamma))) > GAMMA_MAX:
+        return None
+    return np.asarray(gamma)
+
+
+def _extrapolate_modes(
+    it: _Iterate, trail: list[tuple[list[tuple[ComplexArray, ComplexArray]], complex]]
+) -> bool:
+    """Minimal polynomial extrapolation (MPE; A. Sidi, "Vector Extrapolation Methods with
+    Applications", SIAM 2017, ch. 1-2) of the states x_0 .. x_k (the trail, k of them) and
+    x_{k+1} (now), every grid point the image of the same point under the sweep map G: with
+    the differences u_j = x_{j+1} - x_j, real c_0 .. c_{k-1} minimise
+    ``|| sum_j c_j u_j + u_k ||`` (real least squares over the grid points: the linearised
+    sweep is real-linear, its modes real or conjugate pairs), ``gamma_j = c_j / sum c``
+    (c_k = 1), and the domain moves to ``H = sum_j gamma_j G^(j+1)`` applied to x_0: exact
+    for an error in k geometric modes, whatever their ratios. An affine combination of the
+    maps with real weights, so H is analytic wherever the G^j are (the iterate stays a
+    conformal image of the polygon domain, as for the one-mode tail), with derivative along
+    the curves ``sum gamma_j dS_(j+1)`` and ``D = sum gamma_j D_(j+1)``. False (nothing moved)
+    if the grids changed size or the weights are not usable (``sum c`` near 0, a mode at 1,
+    or some |gamma_j| above :data:`GAMMA_MAX`)."""
+    states = _stack_states(trail, it.bnds)
+    if states is None:
+        return False
+    gamma = _mpe_weights([np.concatenate([S for S, _ in st]) for st in states])
+    if gamma is None:
+        return False
+    Ds = [D for _g, D in trail[1:]] + [it.D]
+    for i, b in enumerate(b for b in it.bnds if b.S is not None and b.dS is not None):
+        b.S = np.asarray(sum(g * st[i][0] for g, st in zip(gamma, states[1:], strict=True)))
+        b.dS = np.asarray(sum(g * st[i][1] for g, st in zip(gamma, states[1:], strict=True)))
+    it.D = complex(sum(g * D for g, D in zip(gamma, Ds, strict=True)))
+    return True
+
+
 @dataclass
 class _Schedule:
     """Which kind of sweep comes next, and when the iteration stops.
@@ -859,6 +1127,13 @@ class _Schedule:
     prev_change: float = 0.0
     grids_before: list[tuple[ComplexArray, ComplexArray]] = field(default_factory=list)
     D_before: complex = 1.0 + 0j
+    #: The states before each material sweep of the current run (:data:`EXTRAPOLATE_MODES`
+    #: > 1): the grids (with their s-derivatives) and D.
+    trail: list[tuple[list[tuple[ComplexArray, ComplexArray]], complex]] = field(
+        default_factory=list
+    )
+    #: Extrapolations that fell back to the one-mode tail (the fitted polynomial unusable).
+    single_mode: int = 0
     snapshot: tuple[list[_Boundary], ComplexArray, complex] | None = None
     remaining: float = float("inf")
     converged: bool = False
@@ -882,6 +1157,7 @@ class _Schedule:
                 (b.S.copy(), b.dS.copy()) for b in it.bnds if b.S is not None and b.dS is not None
             ]
             self.D_before = it.D
+            self.trail.append((self.grids_before, it.D))
         by_position = (
             self.relaxing
             or self.phase == "confirm"
@@ -905,6 +1181,8 @@ class _Schedule:
     def after_sweep(self, it: _Iterate, sweep: int, change: float) -> bool:
         """Choose the next sweep's phase; True when the iteration stops."""
         if self.phase == "material":
+            if EXTRAPOLATE_MODES > 1 and len(self.trail) <= EXTRAPOLATE_MODES:
+                return False  # k modes need k + 1 sweeps keeping their grids
             self._extrapolate(it, change)
             return False
         if self.phase == "confirm":
@@ -928,7 +1206,11 @@ class _Schedule:
         before it; the next plain sweep must confirm it."""
         self.snapshot = (copy.deepcopy(it.bnds), it.c.copy(), it.D)
         self.prev_change = change
-        _extrapolate_iterate(it, self.grids_before, self.D_before, self.rho_ext)
+        trail, self.trail = self.trail, []
+        if len(trail) < 2 or not _extrapolate_modes(it, trail):
+            if len(trail) >= 2:
+                self.single_mode += 1
+            _extrapolate_iterate(it, self.grids_before, self.D_before, self.rho_ext)
         self.extrapolations += 1
         self.phase, self.phase_history = "confirm", []
 
@@ -956,11 +1238,12 @@ class _Schedule:
         r1 = h[-1] / max(h[-2], 1e-300)
         r0 = h[-2] / max(h[-3], 1e-300)
         rem, ok = _remaining_error(h)
-        if (
-            RHO_EXTRAPOLATE_MIN < r1 < RHO_MAX
-            and abs(r1 - r0) <= RATIO_AGREE * r1
-            and not (ok and rem <= self.tol)
-        ):
+        if EXTRAPOLATE_MODES > 1:  # the fit needs no agreeing ratios, but must pay
+            agree = ok and _plain_sweeps_left(rem, r1, self.tol) > EXTRAPOLATE_MODES + 4
+        else:
+            agree = abs(r1 - r0) <= RATIO_AGREE * r1
+        rho_min = RHO_EXTRAPOLATE_MIN if EXTRAPOLATE_MODES == 1 else RHO_EXTRAPOLATE_MIN_MODES
+        if rho_min < r1 < RHO_MAX and agree and not (ok and rem <= self.tol):
             self.rho_ext = min(r1, RHO_EXTRAPOLATE)
             self.phase = "material"
             return True
@@ -1067,6 +1350,9 @@ def _circle_domain(
         converged=converged,
         resolution_error=max(b.capped_tail for b in it.bnds),
         first_mu=tally.first_mu,
+        first_maps=tally.first_maps,
+        reused_first_maps=tally.reused,
+        first_snapshots=tally.snapshots or {},
         gmres_residual=tally.residual,
         relaxed_sweeps=sched.relaxed_sweeps,
         omega=sched.omega,
@@ -1300,6 +1586,9 @@ def koebe_iteration(
     start: StartImage | None = None,
     carry: LevelCarry | None = None,
     trace: bool = False,
+    reuse_first: list[CurveMap | None] | None = None,
+    snapshots: bool = False,
+    reuse_snapshots: dict[int, Any] | None = None,
 ) -> CircleDomainResult:
     """Run the iteration on graded meshes (outer counter-clockwise, holes clockwise).
 
@@ -1333,6 +1622,19 @@ def koebe_iteration(
     trace
         Record this level's map for the next level (the result's ``carry``; not with
         ``start``); the same sweeps as an untraced run (the tracers only follow them).
+    reuse_first
+        A previous solve's first-sweep maps (its result's ``first_maps``, outer first): each
+        boundary whose first-sweep equation is that solve's bit for bit (:func:`_reusable`:
+        the same graded mesh, and every map before it in the sweep the same) takes its map
+        instead of solving -- a re-solve of a level with some sides refined re-solves the
+        graded equations from the first refined boundary on only.
+    snapshots
+        Keep snapshots of the first sweep's iterate (the result's ``first_snapshots``,
+        :data:`SNAPSHOTS`; not with ``start``).
+    reuse_snapshots
+        A previous solve's ``first_snapshots`` (with its ``first_maps`` as ``reuse_first``):
+        the first sweep starts at the last snapshot before the first changed mesh
+        (:func:`_resume`) instead of applying the reused maps again.
     """
     accel = KOEBE_ACCEL if accel is None else accel
     if accel not in KOEBE_ACCELS:
@@ -1344,7 +1646,18 @@ def koebe_iteration(
     guess: list[FloatArray | None] = (
         list(first_guess) if first_guess is not None else [None] * (M + 1)
     )
-    tally = _Tally(first_mu=[None] * (M + 1))
+    tally = _Tally(
+        first_mu=[None] * (M + 1),
+        first_maps=[None] * (M + 1),
+        reuse=list(reuse_first) if reuse_first is not None and len(reuse_first) == M + 1 else [],
+        snapshots={} if snapshots and start is None and M > 0 else None,
+    )
+    resumed = 1
+    if reuse_snapshots and start is None and tally.reuse:
+        resumed = _resume(it, reuse_snapshots, tally.reuse, meshes, tally)
+        if tally.snapshots is not None:  # the positions skipped: the same states (the
+            # changed boundaries' nodes are replaced whenever a snapshot is resumed from)
+            tally.snapshots.update({k: v for k, v in reuse_snapshots.items() if k < resumed})
     sched = _Schedule(accel, tol)
     sweeps = 0
     traced: tuple[list[ComplexArray], list[complex], complex] | None = None
@@ -1352,7 +1665,17 @@ def koebe_iteration(
     for sweep in range(1, max_sweeps + 1):
         sweeps = sweep
         before = sched.before_sweep(it)
-        _sweep(it, sweep, sched.phase, sched.omega, meshes, guess, tally, gmres_tol)
+        _sweep(
+            it,
+            sweep,
+            sched.phase,
+            sched.omega,
+            meshes,
+            guess,
+            tally,
+            gmres_tol,
+            resumed if sweep == 1 else 1,
+        )
         radii = _circle_radii(it)
         change = _sweep_change(it, before, radii)
         sched.record(change)
@@ -1384,6 +1707,7 @@ def koebe_iteration(
         sched.converged = False  # sweep limit: the extrapolated remaining error is reported
     result = _circle_domain(it, tally, sched, sweeps, t0)
     result.transplanted = transplanted
+    result.resumed_at = resumed
     if traced is not None and result.converged:
         result.carry = _level_carry(it, sched, traced)
     return result
@@ -1492,11 +1816,12 @@ def _own_map(
     others: ComplexArray,
     rtol: float,
     x0: FloatArray | None = None,
+    reuse: CurveMap | None = None,
 ) -> CurveMap:
     """``b.own_map`` with failures reported against the boundary and its sharpest corner."""
     try:
         corners = mesh.corner_blocks() if b.S is None and b.P.size == mesh.n else None
-        return b.own_map(alpha, others, rtol, x0, corners)
+        return b.own_map(alpha, others, rtol, x0, corners, reuse)
     except ConvergenceError as exc:
         v = mesh.eta[mesh.tau == 0]
         turn = np.angle((np.roll(v, -1) - v) / (v - np.roll(v, 1)))

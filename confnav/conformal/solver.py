@@ -153,6 +153,42 @@ asymmetry 1.5e-12 under 1.2e-9.
 The targets before and after: bench/README.md, "Round 3" (``core_targets_interleaved.json``
 against ``core_targets_round3.json``).
 
+Round 4 (issue 24; bench/README.md "Round 4"). Profiled first at 85476d2
+(``bench/results/core_profile_round4_before.json``, load 1.0, CPU s; split by boundary kind in
+``core_profile_round4_split.json``): 50 obstacles 13.7 s, spread over six level solves (the
+per-side refinement's re-solve of all 51 boundaries 3.0 of it); the holes' maps evaluated on
+every other boundary 2.0 s, the outer map on the holes 1.1, the holes' graded GNK solves 2.8,
+the outer boundary's GNK solves 2.8, the certificate 1.5 -- so the quadratic term alone is not
+what keeps it above 10 s. Two squares 0.01 apart 10.5 s, the cold first level 7.2 of it (34
+sweeps). Built: the sweeps' extrapolation removes two geometric modes instead of one
+(:data:`~confnav.conformal.circledomain.EXTRAPOLATE_MODES`, minimal polynomial extrapolation
+from three grid-keeping sweeps). Side by side (``koebe_round4_modes2.json`` at e765f88, load
+5.5-9.2, CPU s): two squares 0.01 apart 10.6 -> 8.6 (sweeps 46 -> 39), 0.03 apart 1.4 -> 1.2;
+the other cases the same runs bit for bit. From plain contractions above 0.2 instead of 0.5
+(``koebe_round4_rho.json`` at ec05683, load 2.0-2.7): the default workspace shrunk by 0.2 m 2.8
+-> 2.3 s (sweeps 32 -> 27), two squares 0.01 apart 8.7 s either way. The targets:
+``core_targets_round4b.json`` at ae1e0e7 (two squares 0.01 apart 8.83 s, met; 50 obstacles 13.84
+s, missed).
+
+Round 5 (issue 24; bench/README.md "Round 5"). A per-side refinement's re-solve takes the base
+level's first-sweep maps of the boundaries whose first-sweep equations are unchanged bit for
+bit -- those before the first refined boundary in the sweep's order (:data:`REFINE_REUSE`,
+``reuse_first`` of :func:`~confnav.conformal.circledomain.koebe_iteration`); the refined
+boundaries and those after them are solved anew, and the estimate (base + change), iteration
+error and residual are computed on the map that comes out, as before. A workspace with an
+obstacle tip sharper than 60 degrees starts the ladder at 80 nodes per side to 1e-8 and at 120
+to 1e-10 (:data:`START_BY_CORNERS`): the certificate rests on the same three levels. Side by
+side (``core_profile_round5.json`` at a28254b, one run, load 2.8-4.2, CPU s, round 4 / reuse /
+both): 50 obstacles 14.39 / 13.77 / 10.45 (28 of 51 graded solves of the refinement reused:
+its re-solve 3.27 -> 2.92 s; levels 36 and 54 no longer solved), the default workspace to 1e-8
+0.69 / 0.64 / 0.49 and to 1e-10 1.01 / 0.89 / 0.81; two squares 0.01 apart and the shrunk
+workspace the same levels (8.88 / 8.67 / 8.65 and 2.50 / 2.40 / 2.41); every map tol_met with
+the same estimate. The re-solve's first sweep also starts from the base level's snapshot
+before the first refined boundary (:data:`REFINE_SNAPSHOTS`; ``core_profile_round5_snapshots.json``
+at eb65774, load 5.4-5.6: 50 obstacles 11.22 -> 10.94 s, the re-solve's map evaluations 0.57 ->
+0.41 s). The targets: ``core_targets_round5.json`` at b225c32 (load 1.8-2.8; 50 obstacles 10.30
+s, 10 s missed by 3 %) and ``core_targets_round5b.json`` at 61624a2 (load 5.5-6.6; 10.76 s).
+
 ``tol_met`` is true only if all are within ``tol`` and nothing is ``unverified``. A map that
 misses ``tol`` is returned with ``tol_met = False`` and an :class:`AccuracyWarning`; one whose
 estimate exceeds :data:`UNUSABLE_ERROR` (or the caller's ``max_error``) raises
@@ -183,6 +219,7 @@ from confnav.conformal.circledomain import (
 )
 from confnav.conformal.circular_map import METHODS, nasser_iteration
 from confnav.conformal.cmap import ConformalMap, SolveReport
+from confnav.conformal.diskmap import CurveMap
 from confnav.conformal.gnk import gmres_rtol
 from confnav.conformal.meshing import NODE_MULTIPLE, PanelPlan, plan_boundaries
 from confnav.errors import (
@@ -193,7 +230,7 @@ from confnav.errors import (
     UnresolvedCrowdingError,
     fmt_point,
 )
-from confnav.geometry import Workspace, interior_point
+from confnav.geometry import Workspace, interior_point, signed_area
 from confnav.types import CArray as ComplexArray
 from confnav.types import FArray as FloatArray
 
@@ -266,6 +303,8 @@ def _solve_level(
     accel: str | None = None,
     method: str = "koebe",
     carry: LevelCarry | None = None,
+    reuse_first: list[CurveMap | None] | None = None,
+    reuse_snapshots: dict[int, Any] | None = None,
 ) -> tuple[CircleDomainResult, list[BoundaryMesh]]:
     if plans is None:
         plans = plan_boundaries(ws, nodes_per_side, tol)
@@ -296,7 +335,17 @@ def _solve_level(
         res = nasser_iteration(meshes, holes, ws.anchor, **common)
     else:
         carried = carry if LEVEL_CARRY else None
-        res = koebe_iteration(meshes, holes, ws.anchor, **common, carry=carried, trace=LEVEL_CARRY)
+        res = koebe_iteration(
+            meshes,
+            holes,
+            ws.anchor,
+            **common,
+            carry=carried,
+            trace=LEVEL_CARRY,
+            reuse_first=reuse_first if REFINE_REUSE else None,
+            snapshots=REFINE_REUSE and REFINE_SNAPSHOTS,
+            reuse_snapshots=reuse_snapshots if REFINE_REUSE and REFINE_SNAPSHOTS else None,
+        )
     return res, meshes
 
 
@@ -432,6 +481,18 @@ LOCAL_REFINEMENT = True
 #: obstacles at 1e-8: base 8.0e-9, change 2.4e-9 -- the partial level met the residual
 #: (6.5e-9) but not the estimate (1.04e-8), and the full level had to follow (4.2 s lost).
 LOCAL_HEADROOM = 0.5
+#: A per-side refinement's re-solve takes the base level's first-sweep maps of every boundary
+#: whose first-sweep equation is unchanged (bit for bit: its graded mesh not refined, and every
+#: map before it in the sweep taken too; circledomain._reusable) instead of solving it again:
+#: the boundaries before the first refined one in the sweep's order keep the base level's
+#: solution, the refined ones and those after them are solved anew (their equations differ).
+#: The map is the same to the GMRES tolerance; its estimate, iteration error and residual are
+#: computed on it as before.
+REFINE_REUSE = True
+#: And the re-solve's first sweep starts from a snapshot of the base level's iterate before the
+#: first refined boundary (circledomain.SNAPSHOTS, ``_resume``) instead of applying the reused
+#: maps to every other boundary again.
+REFINE_SNAPSHOTS = True
 
 
 def _bad_sides(m: ConformalMap, plans: list[PanelPlan], tol: float) -> list[tuple[int, int]]:
@@ -485,6 +546,7 @@ def _refine_sides(
         return None
     level = [np.zeros(p.nodes.size, np.intp) for p in plans0]
     m = bad_map
+    last = res0  # the latest solve of this level: its first-sweep maps are reused
     for _round in range(LOCAL_ROUNDS):
         bad = _bad_sides(m, plans0, tol)
         if not bad:
@@ -512,11 +574,21 @@ def _refine_sides(
             progress(f"refining {n_ref} sides where the boundary residual asks")
         try:
             res, meshes = _solve_level(
-                ws, ns, tol, progress, warm, plans, accel, carry=base[0].carry
+                ws,
+                ns,
+                tol,
+                progress,
+                warm,
+                plans,
+                accel,
+                carry=base[0].carry,
+                reuse_first=last.first_maps,
+                reuse_snapshots=last.first_snapshots,
             )
         except ConvergenceError as exc:
             log.warning("local refinement failed (%s)", exc)
             return None
+        last = res
         diff = _difference(res, res0)
         est = est0 + diff
         eta, deta = [mm.eta for mm in meshes], [mm.deta for mm in meshes]
@@ -529,6 +601,8 @@ def _refine_sides(
                 "error_estimate": est,
                 "iteration_error": res.iteration_error,
                 "wall_time": res.wall_time,
+                "reused_first_maps": res.reused_first_maps,
+                "resumed_at": res.resumed_at,
             }
         )
         m = _make_map(ws, lvl, tol, caps, refinements, t0)
@@ -658,11 +732,58 @@ def _already_solved(
     return None
 
 
-def _mesh_levels(tol: float, nodes_per_side: int | None, initial: ConformalMap | None) -> list[int]:
+#: Start the ladder higher for a workspace with a sharp obstacle tip (round 5, issue 24):
+#: the levels a certificate at ``tol`` rests on are the last three solved, and on the scenes
+#: measured so far (bench/README.md "Round 5") the workspaces whose largest free-space angle
+#: exceeds :data:`SHARP_FREE_ANGLE` -- the default workspace (312 degrees) and 50 mixed
+#: obstacles (330) -- were certified only at 180 nodes per side to 1e-8 and at 256 to 1e-10,
+#: while those without (two squares, the default shrunk by 0.2 m: 270 at most) were certified
+#: at 80 and 120 to 1e-8. The map's leading singularity at a corner of free-space angle
+#: ``alpha pi`` is ``(z - v)^(1/alpha)`` (Henrici, "Applied and Computational Complex
+#: Analysis", Vol. 1, sec. 5.11): the sharper the tip, the more nodes a given accuracy needs
+#: at the same grading. Such a workspace starts at :data:`SHARP_START` instead (nodes per side
+#: by the tolerance's band, as :func:`_mesh_levels`); the estimate at the level that certifies
+#: rests on the same three levels as before, so the certificate is unchanged -- a sharp
+#: workspace that would have been certified lower pays one or two finer levels instead.
+START_BY_CORNERS = True
+SHARP_FREE_ANGLE = 300.0
+#: (smallest tol of the band, first level): tol >= 1e-7 keeps the default start.
+SHARP_START: tuple[tuple[float, int], ...] = ((1e-7, 0), (1e-9, 80), (0.0, 120))
+
+
+def largest_free_angle(ws: Workspace) -> float:
+    """The largest free-space angle (degrees) at a corner of any boundary: 360 minus the
+    sharpest obstacle tip, or a room corner's own angle."""
+    out = 0.0
+    for j, b in enumerate(ws.boundaries):
+        v = np.asarray(b)
+        if (signed_area(v) > 0) == (j > 0):
+            v = v[::-1]  # free space on the left: outer counter-clockwise, holes clockwise
+        turn = np.angle((np.roll(v, -1) - v) / (v - np.roll(v, 1)))
+        out = max(out, float(np.degrees(np.max(np.pi - turn))))
+    return out
+
+
+def _sharp_start(ws: Workspace | None, tol: float) -> int:
+    """Index into :data:`LEVELS` of :data:`SHARP_START` for a sharp workspace; 0 otherwise."""
+    if ws is None or not START_BY_CORNERS or largest_free_angle(ws) <= SHARP_FREE_ANGLE:
+        return 0
+    for low, ns in SHARP_START:
+        if tol >= low:
+            return LEVELS.index(ns) if ns else 0
+    return 0
+
+
+def _mesh_levels(
+    tol: float,
+    nodes_per_side: int | None,
+    initial: ConformalMap | None,
+    workspace: Workspace | None = None,
+) -> list[int]:
     """Nodes per side of the levels to solve, coarse to fine: :data:`LEVELS` from a start
-    that the tolerance sets (and a warm start raises, :func:`_warm_start_level`), or a fixed
-    mesh and the two next coarser ones (x1.5 steps), so that an estimate still rests on an
-    observed contraction."""
+    that the tolerance sets (a sharp obstacle tip raises, :data:`START_BY_CORNERS`, and a
+    warm start, :func:`_warm_start_level`), or a fixed mesh and the two next coarser ones
+    (x1.5 steps), so that an estimate still rests on an observed contraction."""
     if nodes_per_side is not None:
         if nodes_per_side < 8:
             raise SolverError("nodes_per_side must be at least 8")
@@ -671,6 +792,7 @@ def _mesh_levels(tol: float, nodes_per_side: int | None, initial: ConformalMap |
             | {nodes_per_side}
         )
     start = 0 if tol >= 1e-7 else (1 if tol >= 1e-9 else 3)
+    start = max(start, _sharp_start(workspace, tol))
     if initial is not None:
         start = max(start, _warm_start_level(initial, tol))
     return list(LEVELS[start:])
@@ -764,6 +886,8 @@ class _Refinement:
                 self.done = self._certify(ns, est, levels)
                 if self.done:
                     return
+        if self.prev is not None:  # no longer a refinement's base: its first sweep's record
+            self.prev.first_maps, self.prev.first_snapshots = [], {}
         self.prev, self.prev_ns = res, ns
         self.solved += 1
 
@@ -1039,7 +1163,7 @@ def solve(
             warm = _warm_solve(workspace, tol, initial, progress, koebe_accel, t0)
             if warm is not None:
                 return warm
-        levels = _mesh_levels(tol, nodes_per_side, initial)
+        levels = _mesh_levels(tol, nodes_per_side, initial, workspace)
         cmap = _Refinement(workspace, tol, max_error, progress, koebe_accel, t0, method).run(levels)
     _refuse_unusable(cmap, max_error)
     if not cmap.diagnostics.tol_met:
