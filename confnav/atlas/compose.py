@@ -251,6 +251,11 @@ class AtlasNavigator:
             raise NavigationError(f"cell {i}: no chart to install")
         self._nav_maps[i] = nav_map
 
+    @property
+    def nav_maps(self) -> tuple[Any, ...]:
+        """The charts' navigation maps the law drives on (None: not installed)."""
+        return tuple(self._nav_maps)
+
     def missing(self) -> list[int]:
         """The cells whose charts are not installed (empty on a complete atlas)."""
         return [i for i, m in enumerate(self._nav_maps) if m is None]
