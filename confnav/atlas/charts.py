@@ -28,7 +28,14 @@ import numpy as np
 import shapely
 from shapely.geometry import Polygon
 
-from confnav.atlas.decompose import Decomposition, Tile, bottleneck, decompose, elongation
+from confnav.atlas.decompose import (
+    Decomposition,
+    Tile,
+    bottleneck,
+    decompose,
+    elongation,
+    outer_depth,
+)
 from confnav.conformal.cmap import ConformalMap, SolveReport
 from confnav.conformal.solver import UNUSABLE_ERROR, AccuracyWarning, crowding_reason, solve
 from confnav.errors import ConfnavError, CrowdingError, SolverError, fmt_point
@@ -68,6 +75,15 @@ CROWDED_GAP = 1e-10
 #: 0.3 m (its single map crowded to 1.5e-12 after 7.5 min), 6.5-10.9 on a SLAM apartment shrunk
 #: by 0.3 m (GMRES failed on 18,360 nodes after 131 s), 21.9 for a pocket behind a 5 cm slit.
 BOTTLENECK_MAX_RATIO = 3.0
+
+#: :func:`confnav.atlas.decompose.outer_depth` below this: one map is not attempted (the
+#: first sweep would send an obstacle this close to the unit circle).  Measured at 10,000
+#: grid nodes (bench/results/outer_depth.json): 1.8e-10 on the clinic of the outside check
+#: (rooms behind 0.9 m doors, beds 0.2 m from two walls: its single map failed crowded
+#: after 12.6 s at load 10), 1.6e-5 on the README's office map and 1.0e-4 on the door scene
+#: (both solve as one map), 2.6e-1 on the default workspace; the README's office shrunk
+#: by 0.2 and 0.3 m (atlases, flagged as too elongated) 3.4e-8 and 3.4e-10.
+OUTER_DEPTH_MIN = 1e-8
 
 
 @dataclass(frozen=True)
@@ -296,9 +312,11 @@ def fmt_tile(t: Tile) -> str:
 
 def atlas_reason(ws: Workspace, *, loops: bool = False) -> str:
     """Why one map of ``ws`` would crowd, a priori ("" if nothing says so): the free space
-    too elongated (:func:`elongation`), or a region reached only through a long narrow
+    too elongated (:func:`elongation`), a region reached only through a long narrow
     passage (:func:`bottleneck`; found in 0.1-0.8 s, where a single map of such a floor plan
-    took 7.5 minutes to fail).
+    took 7.5 minutes to fail), or an obstacle the first sweep would send next to the unit
+    circle (:func:`confnav.atlas.decompose.outer_depth`, 0.02-0.09 s: rooms behind doors
+    with furniture near their walls, whose single map failed after 12.6 s under load).
 
     ``loops``: measure the elongation with the obstacles filled in.  A channel that loops
     around an obstacle is an annulus, conformally a ring of modulus ~ w/L, not a crowding
@@ -314,6 +332,13 @@ def atlas_reason(ws: Workspace, *, loops: bool = False) -> str:
         return (
             f"a region is reached only through a narrow passage at {fmt_point(where)} "
             f"(length / width >= {q:.3g}): one map crowds it"
+        )
+    g, where = outer_depth(ws)
+    if g < OUTER_DEPTH_MIN:
+        return (
+            f"the map of the outer boundary would send the obstacle at {fmt_point(where)} "
+            f"within about {g:.1g} of the unit circle (Green's function estimate): one map "
+            "crowds it"
         )
     return ""
 
