@@ -76,5 +76,5 @@ def test_a_door_between_two_rooms_is_one_map() -> None:
     stays a single map."""
     ws = Workspace(DOOR_OUTER, DOOR_OBSTACLES)
     g, _ = outer_depth(ws)
-    assert g > 100 * OUTER_DEPTH_MIN
+    assert g > 10 * OUTER_DEPTH_MIN
     assert atlas_reason(ws) == ""

@@ -77,13 +77,16 @@ CROWDED_GAP = 1e-10
 BOTTLENECK_MAX_RATIO = 3.0
 
 #: :func:`confnav.atlas.decompose.outer_depth` below this: one map is not attempted (the
-#: first sweep would send an obstacle this close to the unit circle).  Measured at 10,000
-#: grid nodes (bench/results/outer_depth.json): 1.8e-10 on the clinic of the outside check
-#: (rooms behind 0.9 m doors, beds 0.2 m from two walls: its single map failed crowded
-#: after 12.6 s at load 10), 1.6e-5 on the README's office map and 1.0e-4 on the door scene
-#: (both solve as one map), 2.6e-1 on the default workspace; the README's office shrunk
-#: by 0.2 and 0.3 m (atlases, flagged as too elongated) 3.4e-8 and 3.4e-10.
-OUTER_DEPTH_MIN = 1e-8
+#: first sweep would send an obstacle this close to the unit circle; 1e-6 is also where
+#: :func:`confnav.conformal.solver.crowding_reason` calls a boundary crowded).  Measured at
+#: 10,000 grid nodes against the single-map attempt at 1e-3 (bench/results/outer_depth.json):
+#: crowded at 1.8e-10 (the outside check's clinic: rooms behind 0.9 m doors, beds 0.2 m
+#: from two walls; no other test flagged it, its attempt failed after 1.1 s at load 5.6 and
+#: 12.6 s at load 10), 3.4e-8 (the README's office shrunk by 0.2 m), 1.1e-18 (the clinic
+#: shrunk by 0.3 m); solved at 1.0e-4 (the door scene), 3.9e-2 (the default workspace
+#: shrunk by 0.2 m), 3.4e-2 and 5.6e-2 (two SLAM maps).  Between 3.4e-8 and 1.0e-4 nothing
+#: was measured.
+OUTER_DEPTH_MIN = 1e-6
 
 
 @dataclass(frozen=True)
