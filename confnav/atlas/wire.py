@@ -194,8 +194,8 @@ def atlas_from_index(
     checked by the caller), e.g. the previous revision of a progressive atlas's round: its
     workspace, the cells whose chart did not change and the decomposition's overlaps,
     centres and shapes are reused, so a revision that adds charts costs their checks only
-    (rebuilding every cell and the overlaps took 0.1 s per revision of the warehouse's
-    74 cells idle, 5 times that under load, on the controller's interpreter)."""
+    (rebuilding every cell and the overlaps took 0.12-0.33 s per revision of the
+    warehouse's 74 cells at load 2-5, bench/results/atlas_install.json)."""
     if len(charts) != len(index.cells):
         raise NavigationError(
             f"atlas {index.ws_id!r}: {len(charts)} charts for {len(index.cells)} cells"
@@ -383,7 +383,7 @@ class AtlasMap:
         active chart and the chart laws it built (:meth:`confnav.atlas.compose.
         AtlasNavigator.install`, as :class:`ProgressiveController` does): a robot's swap to
         the next revision costs no plan and no chart law, where a new controller per robot
-        and revision rebuilt the law of its chart (0.1 s each idle)."""
+        and revision rebuilt the law of its chart (bench/results/atlas_install.json)."""
         law = getattr(ctrl, "controller", ctrl)
         nav = getattr(law, "nav", None)
         if not isinstance(law, AtlasController) or nav is None or not self.extends(old):
