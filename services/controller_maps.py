@@ -174,8 +174,12 @@ class MapsMixin(FootprintMixin, FlatMixin):
         self.swapped.set()
 
     def _extended(
-        self, cur: _Map | None, new: _Map, goal: Goal, ctrl: Any
-    ) -> tuple[Any, str] | None:
+        self,
+        cur: _Map | None,
+        new: _Map,
+        goal: Goal,
+        ctrl: navigation.ControllerLike | None,
+    ) -> tuple[navigation.ControllerLike, str] | None:
         """``ctrl``, a robot's law on the installed atlas revision ``cur``, extended with the
         new charts of ``new`` (:meth:`confnav.atlas.wire.AtlasMap.extend`) and cached as the
         law of ``goal`` on ``new``; None when ``new`` does not just add charts to ``cur`` (a

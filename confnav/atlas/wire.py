@@ -259,9 +259,7 @@ def is_pending(cell: Any) -> bool:
     return bool(getattr(cell, "pending", False))
 
 
-def atlas_map_of(
-    index: Any, maps: Mapping[str, Any], previous: AtlasMap | None = None
-) -> AtlasMap:
+def atlas_map_of(index: Any, maps: Mapping[str, Any], previous: AtlasMap | None = None) -> AtlasMap:
     """The :class:`AtlasMap` of an ``AtlasIndex`` whose charts' navigation maps are in ``maps``
     (by revision): what the controller installs and ``replay --check`` rebuilds. A partial
     revision's pending cells have no chart (robots hold there until a later revision).
