@@ -101,6 +101,7 @@ def test_revisions_of_a_round_extend_the_robots_law(make_bus: Callable[[], Any])
             server.publish(K.ws("pc", "atlas"), encode(idx))
             wait_for(lambda idx=idx: installed(idx.revision), timeout=60)  # type: ignore[misc]
             assert ctl._robots["r1"].ctrl is law  # the same law, extended
+            assert law.nav.atlas is ctl._maps["pc"].cmap.atlas  # type: ignore[attr-defined]
         assert ctl.counters["atlas_laws_extended"] == 2
         wait_for(lambda: robot.moving_commands(), timeout=30)  # it moves on the start chart
         # other cells: a new law

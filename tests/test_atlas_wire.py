@@ -300,7 +300,7 @@ def test_a_revision_that_adds_charts_reuses_the_cells_and_extends_the_laws(
         law = make_controller(second, goal)
         assert full.extend(law, second)
         nav = getattr(law, "controller", law).nav  # type: ignore[attr-defined]
-        assert nav.missing() == []
+        assert nav.missing() == [] and nav.atlas is full.atlas
         built = make_controller(fresh, goal)
         path = drive(make_controller(fresh, g), 0.3 + 0.4j)[:600]
         u1, c1 = commands(law, np.array(path))

@@ -394,6 +394,9 @@ class AtlasMap:
         for i, (a, b) in enumerate(zip(old.nav_maps, self.nav_maps, strict=True)):
             if a is None and b is not None and not nav.installed(i):
                 nav.install(i, b)
+        # the law now drives on this revision (same geometry: the plan stays valid); hosts
+        # find a law's atlas map by its atlas (the controller's chart warm-up)
+        nav.atlas, nav.cells = self.atlas, self.atlas.decomposition.cells
         return True
 
     def cold_charts(self) -> list[int]:
