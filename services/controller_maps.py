@@ -120,7 +120,7 @@ class MapsMixin(FootprintMixin, FlatMixin):
                 if r.goal and r.goal.ws_id == ws_id
             }
             # a progressive atlas's next revision (same cells, more charts): the robots' laws
-            # on the installed one take its new charts instead of being rebuilt
+            # on it are made from their laws on the installed one (plan and chart laws shared)
             laws = {
                 r.robot_id: r.ctrl
                 for r in self._robots.values()
@@ -180,10 +180,11 @@ class MapsMixin(FootprintMixin, FlatMixin):
         goal: Goal,
         ctrl: navigation.ControllerLike | None,
     ) -> tuple[navigation.ControllerLike, str] | None:
-        """``ctrl``, a robot's law on the installed atlas revision ``cur``, extended with the
-        new charts of ``new`` (:meth:`confnav.atlas.wire.AtlasMap.extend`) and cached as the
-        law of ``goal`` on ``new``; None when ``new`` does not just add charts to ``cur`` (a
-        new round, a refined atlas, a single map): then a law is built."""
+        """The law of ``goal`` on ``new`` made from ``ctrl``, the robot's law on the installed
+        atlas revision ``cur`` (:meth:`confnav.atlas.wire.AtlasMap.extend`: a new law that
+        shares ``ctrl``'s plan and chart laws), cached like a built one; None when ``new``
+        does not just add charts to ``cur`` (a new round, a refined atlas, a single map):
+        then a law is built."""
         old, am = None if cur is None else cur.cmap, new.cmap
         if ctrl is None or not isinstance(old, AtlasMap) or not isinstance(am, AtlasMap):
             return None
@@ -192,11 +193,12 @@ class MapsMixin(FootprintMixin, FlatMixin):
             key = (cur.revision, *navigation.goal_key(goal), goal.robot_id)
             if self._ctrl_cache.get(key) is not ctrl:  # not this goal's law on ``cur``
                 return None
-            if not am.extend(ctrl, old):
+            law: navigation.ControllerLike | None = am.extend(ctrl, old)
+            if law is None:
                 return None
-            self._ctrl_cache[(new.revision, *navigation.goal_key(goal), goal.robot_id)] = ctrl
+            self._ctrl_cache[(new.revision, *navigation.goal_key(goal), goal.robot_id)] = law
         self.count("atlas_laws_extended")
-        return ctrl, ""
+        return law, ""
 
     def _on_ws_status(self, key: str, payload: bytes) -> None:
         """A transform status: remember which revision is a coarse one being refined

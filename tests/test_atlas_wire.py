@@ -297,10 +297,13 @@ def test_a_revision_that_adds_charts_reuses_the_cells_and_extends_the_laws(
     g = Goal(robot_id="r", ws_id="pc", goal=(GOAL.real, GOAL.imag), v_max=1.0, tolerance=0.02)
     for drv in ({}, {"drive": "unicycle", "lookahead": 0.05}):
         goal = g.model_copy(update=drv)
-        law = make_controller(second, goal)
-        assert full.extend(law, second)
-        nav = getattr(law, "controller", law).nav  # type: ignore[attr-defined]
-        assert nav.missing() == [] and nav.atlas is full.atlas
+        before = make_controller(second, goal)
+        law = full.extend(before, second)
+        assert law is not None and type(law) is type(before)
+        nav = getattr(law, "controller", law).nav
+        old_nav = getattr(before, "controller", before).nav  # type: ignore[attr-defined]
+        assert nav.missing() == [] and nav.atlas is full.atlas and nav.plan is old_nav.plan
+        assert old_nav.missing() == [n - 1]  # the law on the previous revision is unchanged
         built = make_controller(fresh, goal)
         path = drive(make_controller(fresh, g), 0.3 + 0.4j)[:600]
         u1, c1 = commands(law, np.array(path))
@@ -308,6 +311,6 @@ def test_a_revision_that_adds_charts_reuses_the_cells_and_extends_the_laws(
         assert np.array_equal(u1, u2) and np.array_equal(c1, c2)
     # a law on another revision than the one named, or a revision of other cells: refused
     law = make_controller(first, g)
-    assert not full.extend(law, second)
+    assert full.extend(law, second) is None
     moved = index.model_copy(update={"margin": float(index.margin) * 0.999})
     assert not atlas_map_of(moved, maps).extends(first)

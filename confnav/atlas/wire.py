@@ -373,31 +373,31 @@ class AtlasMap:
             and all(a is None or a is b for a, b in zip(old.nav_maps, self.nav_maps, strict=True))
         )
 
-    def extend(self, ctrl: Any, old: AtlasMap) -> bool:
-        """Install this revision's new charts into ``ctrl``, a robot's law from
-        :meth:`controller` on ``old`` (an :class:`AtlasController`, or the look-ahead law
-        around one), if this revision :meth:`extends` ``old``; True if done (``ctrl`` then
-        drives on this revision). The law keeps its plan (the cells are the same), its
-        active chart and the chart laws it built (:meth:`confnav.atlas.compose.
-        AtlasNavigator.install`, as :class:`ProgressiveController` does): a robot's swap to
-        the next revision costs no plan and no chart law, where a new controller per robot
-        and revision rebuilt the law of its chart (bench/results/atlas_install.json)."""
+    def extend(self, ctrl: Any, old: AtlasMap) -> Any:
+        """A robot's law on this revision made from ``ctrl``, its law from :meth:`controller`
+        on ``old`` (an :class:`AtlasController`, or the look-ahead law around one), if this
+        revision :meth:`extends` ``old``; None otherwise. The new law is what
+        :meth:`controller` would build here (a fresh switching state: the robot re-enters
+        at its next pose, as after any revision, and ``replay --check`` rebuilds the same),
+        but it shares ``ctrl``'s plan and the chart laws it built
+        (:meth:`confnav.atlas.compose.AtlasNavigator.extended`): a robot's swap to the next
+        revision costs no plan and no chart law, where a new controller per robot and
+        revision rebuilt the law of its chart (bench/results/atlas_install.json)."""
         law = getattr(ctrl, "controller", ctrl)
         nav = getattr(law, "nav", None)
         if not isinstance(law, AtlasController) or nav is None or not self.extends(old):
-            return False
+            return None
         have = nav.nav_maps
         if len(have) != len(old.nav_maps) or any(
             a is not b for a, b in zip(have, old.nav_maps, strict=True)
         ):
-            return False  # a law of another revision than ``old``
-        for i, (a, b) in enumerate(zip(old.nav_maps, self.nav_maps, strict=True)):
-            if a is None and b is not None and not nav.installed(i):
-                nav.install(i, b)
-        # the law now drives on this revision (same geometry: the plan stays valid); hosts
-        # find a law's atlas map by its atlas (the controller's chart warm-up)
-        nav.atlas, nav.cells = self.atlas, self.atlas.decomposition.cells
-        return True
+            return None  # a law of another revision than ``old``
+        new = AtlasController(nav.extended(self.atlas, self.nav_maps))
+        if law is ctrl:
+            return new
+        if isinstance(ctrl, UnicycleController):
+            return UnicycleController(new, ctrl.d, v_max=ctrl.v_max, omega_max=ctrl.omega_max)
+        return None
 
     def cold_charts(self) -> list[int]:
         """The charts not warmed yet, in cell order."""
