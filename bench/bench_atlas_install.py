@@ -7,7 +7,8 @@ Solves a SLAM map's footprint atlas (``bench_slam``'s body: 0.22 m + 0.1 m look-
 turns each into the index and chart messages the transform service sends (encoded), then
 replays the controller's install of the revisions in order, twice: **before** (every revision
 rebuilt from its index, every robot's law built anew: main up to 85476d2) and **after**
-(``atlas_map_of(..., previous=)`` and ``AtlasMap.extend``), for 3 unicycle goals
+(``atlas_map_of(..., previous=)`` and ``AtlasMap.extend``: each robot's law made
+from its law on the previous revision), for 3 unicycle goals
 (``bench_slam_services``' pairs). Per revision and phase: decode of the new charts, their
 load (``load_map``), the atlas rebuild, the robots' laws, their first-chart preparation
 (``AtlasController.prepare``, as the controller's prime does). Fetching over the bus is not
@@ -100,16 +101,17 @@ def replay(
         row["atlas_s"] = time.perf_counter() - t
         known = am.known_charts()
         t = time.perf_counter()
-        if not (
-            after
-            and laws is not None
-            and prev is not None
-            and all(am.extend(c, prev) for c in laws)
-        ):
+        made = (
+            [am.extend(c, prev) for c in laws]
+            if after and laws is not None and prev is not None
+            else None
+        )
+        if made is not None and all(m is not None for m in made):
+            laws = made
+            row["laws"] = "extended"
+        else:
             laws = [make_controller(am, g) for g in goals]
             row["laws"] = "built"
-        else:
-            row["laws"] = "extended"
         row["laws_s"] = time.perf_counter() - t
         t = time.perf_counter()
         for law, (s, _, th) in zip(laws, pairs, strict=True):

@@ -194,8 +194,8 @@ def atlas_from_index(
     checked by the caller), e.g. the previous revision of a progressive atlas's round: its
     workspace, the cells whose chart did not change and the decomposition's overlaps,
     centres and shapes are reused, so a revision that adds charts costs their checks only
-    (rebuilding every cell and the overlaps took 0.12-0.33 s per revision of the
-    warehouse's 74 cells at load 2-5, bench/results/atlas_install.json)."""
+    (rebuilding every cell and the overlaps took 0.14-0.43 s per revision of the
+    warehouse's 74 cells at load 4-6, bench/results/atlas_install.json)."""
     if len(charts) != len(index.cells):
         raise NavigationError(
             f"atlas {index.ws_id!r}: {len(charts)} charts for {len(index.cells)} cells"
