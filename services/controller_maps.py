@@ -16,6 +16,7 @@ import numpy as np
 from confnav.schemas import (
     AtlasIndex,
     DecodeError,
+    Goal,
     MapQuery,
     RouteHint,
     TransformSolution,
@@ -25,6 +26,7 @@ from confnav.schemas import (
     encode,
 )
 from confnav.schemas.messages import MAX_ROUTES
+from confnav.services import navigation
 from confnav.services.atlas_client import fetch_atlas
 from confnav.services.controller_flat import FlatMixin
 from confnav.services.controller_footprint import (
@@ -117,8 +119,19 @@ class MapsMixin(FootprintMixin, FlatMixin):
                 for r in self._robots.values()
                 if r.goal and r.goal.ws_id == ws_id
             }
+            # a progressive atlas's next revision (same cells, more charts): the robots' laws
+            # on it are made from their laws on the installed one (plan and chart laws shared)
+            laws = {
+                r.robot_id: r.ctrl
+                for r in self._robots.values()
+                if cur is not None and r.ctrl is not None and r.ctrl_revision == cur.revision
+            }
         with self._goal_building():  # the robots' swap first, the atlas warm-up after
-            built = {rid: self._build(new, g) for rid, g in goals.items() if g}
+            built = {
+                rid: self._extended(cur, new, g, laws.get(rid)) or self._build(new, g)
+                for rid, g in goals.items()
+                if g
+            }
             for rid, (ctrl, _) in built.items():
                 prime(ctrl, self._robots[rid].position if rid in self._robots else None)
         with self._build_lock:
@@ -159,6 +172,33 @@ class MapsMixin(FootprintMixin, FlatMixin):
         self.count("maps_installed")
         log.info("workspace %r: map %s installed (%d robots)", ws_id, sol.revision[:12], len(goals))
         self.swapped.set()
+
+    def _extended(
+        self,
+        cur: _Map | None,
+        new: _Map,
+        goal: Goal,
+        ctrl: navigation.ControllerLike | None,
+    ) -> tuple[navigation.ControllerLike, str] | None:
+        """The law of ``goal`` on ``new`` made from ``ctrl``, the robot's law on the installed
+        atlas revision ``cur`` (:meth:`confnav.atlas.wire.AtlasMap.extend`: a new law that
+        shares ``ctrl``'s plan and chart laws), cached like a built one; None when ``new``
+        does not just add charts to ``cur`` (a new round, a refined atlas, a single map):
+        then a law is built."""
+        old, am = None if cur is None else cur.cmap, new.cmap
+        if ctrl is None or not isinstance(old, AtlasMap) or not isinstance(am, AtlasMap):
+            return None
+        with self._build_lock:
+            assert cur is not None
+            key = (cur.revision, *navigation.goal_key(goal), goal.robot_id)
+            if self._ctrl_cache.get(key) is not ctrl:  # not this goal's law on ``cur``
+                return None
+            law: navigation.ControllerLike | None = am.extend(ctrl, old)
+            if law is None:
+                return None
+            self._ctrl_cache[(new.revision, *navigation.goal_key(goal), goal.robot_id)] = law
+        self.count("atlas_laws_extended")
+        return law, ""
 
     def _on_ws_status(self, key: str, payload: bytes) -> None:
         """A transform status: remember which revision is a coarse one being refined
@@ -447,7 +487,15 @@ class MapsMixin(FootprintMixin, FlatMixin):
             # a progressive atlas: its charts loaded already
             known = getattr(cur.cmap, "known_charts", None) if cur is not None else None
             t0 = time.perf_counter()
-            am = fetch_atlas(self.bus, self.keys, ws_id, index, known=known() if known else None)
+            prev = cur.cmap if cur is not None and isinstance(cur.cmap, AtlasMap) else None
+            am = fetch_atlas(
+                self.bus,
+                self.keys,
+                ws_id,
+                index,
+                known=known() if known else None,
+                previous=prev,
+            )
             t1 = time.perf_counter()
             self._install(am)
             log.debug(

@@ -242,3 +242,75 @@ def test_revisions_rebuilt_from_their_indexes_share_one_workspace_and_safety_gri
     assert safety_filter(a.atlas.workspace, hold_time=defaults.HOLD_TIME).grid is grid
     other = Workspace([(0, 0), (3, 0), (3, 1), (0, 1)])
     assert shared_workspace(other) is other  # another geometry: its own object
+
+
+def _partial(index: AtlasIndex, pending: set[int]) -> AtlasIndex:
+    """``index`` as a progressive atlas's partial revision whose cells ``pending`` have no
+    chart yet (what :func:`messages_of` makes of a ``PartialAtlas``)."""
+    from confnav.services.atlas_transform import PENDING
+
+    from confnav.atlas.wire import atlas_revision
+
+    cells = [
+        c.model_copy(update={"pending": True, "chart_revision": PENDING})
+        if c.index in pending
+        else c
+        for c in index.cells
+    ]
+    return index.model_copy(
+        update={"cells": cells, "revision": atlas_revision([c.chart_revision for c in cells])}
+    )
+
+
+def test_a_revision_that_adds_charts_reuses_the_cells_and_extends_the_laws(
+    wire: tuple[AtlasIndex, list[TransformSolution]],
+) -> None:
+    """The next revision of a progressive atlas's round (same cells, more charts) rebuilt
+    with the installed one as ``previous`` is the atlas a fresh rebuild gives (same cells,
+    plan and overlaps; its cells and overlaps reused), and a robot's law on the installed
+    revision, extended with the new charts, commands bit for bit what a law built on the
+    new revision commands along the same poses."""
+    index, charts = wire
+    maps = {c.revision: ConformalMap.from_dict(c.coefficients) for c in charts}
+    n = len(index.cells)
+    assert n >= 3
+    first = atlas_map_of(_partial(index, set(range(1, n))), maps)
+    second = atlas_map_of(_partial(index, {n - 1}), maps, previous=first)
+    full = atlas_map_of(index, maps, previous=second)
+    fresh = atlas_map_of(index, maps)
+    assert first.pending == list(range(1, n)) and second.pending == [n - 1] and not full.pending
+    assert first.cells_key == second.cells_key == full.cells_key == fresh.cells_key
+    d1, d2, d3 = (m.atlas.decomposition for m in (first, second, full))
+    assert d2.cells[0] is d1.cells[0]  # the same cell with the same chart
+    assert d3.cells[0] is d1.cells[0] and d3.cells[1] is d2.cells[1]
+    assert d3.links is d1.links and full.links is first.links
+    for a, b in zip(d3.cells, fresh.atlas.decomposition.cells, strict=True):
+        assert a.polygon.equals_exact(b.polygon, 0.0) and a.cut.equals_exact(b.cut, 0.0)
+        assert a.workspace.content_hash == b.workspace.content_hash
+    assert d3.links == fresh.atlas.decomposition.links
+    p0, p1 = plan(full.atlas, GOAL, full.links), plan(fresh.atlas, GOAL, fresh.links)
+    assert np.array_equal(p0.rank, p1.rank) and np.array_equal(p0.next, p1.next)
+    assert np.array_equal(p0.local_goal, p1.local_goal)
+    assert second.extends(first) and full.extends(second) and full.extends(first)
+    assert not first.extends(second)  # a revision with fewer charts
+
+    g = Goal(robot_id="r", ws_id="pc", goal=(GOAL.real, GOAL.imag), v_max=1.0, tolerance=0.02)
+    for drv in ({}, {"drive": "unicycle", "lookahead": 0.05}):
+        goal = g.model_copy(update=drv)
+        before = make_controller(second, goal)
+        law = full.extend(before, second)
+        assert law is not None and type(law) is type(before)
+        nav = getattr(law, "controller", law).nav
+        old_nav = getattr(before, "controller", before).nav  # type: ignore[attr-defined]
+        assert nav.missing() == [] and nav.atlas is full.atlas and nav.plan is old_nav.plan
+        assert old_nav.missing() == [n - 1]  # the law on the previous revision is unchanged
+        built = make_controller(fresh, goal)
+        path = drive(make_controller(fresh, g), 0.3 + 0.4j)[:600]
+        u1, c1 = commands(law, np.array(path))
+        u2, c2 = commands(built, np.array(path))
+        assert np.array_equal(u1, u2) and np.array_equal(c1, c2)
+    # a law on another revision than the one named, or a revision of other cells: refused
+    law = make_controller(first, g)
+    assert full.extend(law, second) is None
+    moved = index.model_copy(update={"margin": float(index.margin) * 0.999})
+    assert not atlas_map_of(moved, maps).extends(first)

@@ -28,7 +28,14 @@ import numpy as np
 import shapely
 from shapely.geometry import Polygon
 
-from confnav.atlas.decompose import Decomposition, Tile, bottleneck, decompose, elongation
+from confnav.atlas.decompose import (
+    Decomposition,
+    Tile,
+    bottleneck,
+    decompose,
+    elongation,
+    outer_depth,
+)
 from confnav.conformal.cmap import ConformalMap, SolveReport
 from confnav.conformal.solver import UNUSABLE_ERROR, AccuracyWarning, crowding_reason, solve
 from confnav.errors import ConfnavError, CrowdingError, SolverError, fmt_point
@@ -68,6 +75,19 @@ CROWDED_GAP = 1e-10
 #: 0.3 m (its single map crowded to 1.5e-12 after 7.5 min), 6.5-10.9 on a SLAM apartment shrunk
 #: by 0.3 m (GMRES failed on 18,360 nodes after 131 s), 21.9 for a pocket behind a 5 cm slit.
 BOTTLENECK_MAX_RATIO = 3.0
+
+#: :func:`confnav.atlas.decompose.outer_depth` below this: one map is not attempted (the
+#: first sweep would send an obstacle this close to the unit circle; 1e-6 is also where
+#: :func:`confnav.conformal.solver.crowding_reason` calls a boundary crowded).  Measured at
+#: 10,000 grid nodes against the single-map attempt at 1e-3 (bench/results/outer_depth.json):
+#: crowded at 1.8e-10 (the outside check's clinic: rooms behind 0.9 m doors, beds 0.2 m
+#: from two walls; no other test flagged it, its attempt failed after 1.5 s at load 4.0 and
+#: 12.6 s at load 10), 3.4e-8 (the README's office shrunk by 0.2 m), 1.1e-18 (the clinic
+#: shrunk by 0.3 m); solved at 1.0e-4 (the door scene), 3.9e-2 (the default workspace
+#: shrunk by 0.2 m), 3.4e-2 and 5.6e-2 (two SLAM maps).  The README's office map reads
+#: 1.6e-5 and its single map crowds in a later sweep (flagged as too elongated): this test
+#: sees the first sweep only.
+OUTER_DEPTH_MIN = 1e-6
 
 
 @dataclass(frozen=True)
@@ -296,9 +316,11 @@ def fmt_tile(t: Tile) -> str:
 
 def atlas_reason(ws: Workspace, *, loops: bool = False) -> str:
     """Why one map of ``ws`` would crowd, a priori ("" if nothing says so): the free space
-    too elongated (:func:`elongation`), or a region reached only through a long narrow
+    too elongated (:func:`elongation`), a region reached only through a long narrow
     passage (:func:`bottleneck`; found in 0.1-0.8 s, where a single map of such a floor plan
-    took 7.5 minutes to fail).
+    took 7.5 minutes to fail), or an obstacle the first sweep would send next to the unit
+    circle (:func:`confnav.atlas.decompose.outer_depth`, 0.02-0.09 s: rooms behind doors
+    with furniture near their walls, whose single map failed after 12.6 s under load).
 
     ``loops``: measure the elongation with the obstacles filled in.  A channel that loops
     around an obstacle is an annulus, conformally a ring of modulus ~ w/L, not a crowding
@@ -314,6 +336,13 @@ def atlas_reason(ws: Workspace, *, loops: bool = False) -> str:
         return (
             f"a region is reached only through a narrow passage at {fmt_point(where)} "
             f"(length / width >= {q:.3g}): one map crowds it"
+        )
+    g, where = outer_depth(ws)
+    if g < OUTER_DEPTH_MIN:
+        return (
+            f"the map of the outer boundary would send the obstacle at {fmt_point(where)} "
+            f"within about {g:.1g} of the unit circle (Green's function estimate): one map "
+            "crowds it"
         )
     return ""
 

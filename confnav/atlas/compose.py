@@ -15,6 +15,7 @@ References
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -250,6 +251,27 @@ class AtlasNavigator:
         if nav_map is None:
             raise NavigationError(f"cell {i}: no chart to install")
         self._nav_maps[i] = nav_map
+
+    def extended(self, atlas: Atlas | PartialAtlas, nav_maps: Sequence[Any]) -> AtlasNavigator:
+        """This navigator on ``atlas``, a revision with the same cells whose charts are
+        ``nav_maps`` (every chart installed here among them, as the same objects): the
+        plan, the switching order and the chart laws built so far are shared (they depend
+        on the cells, the goal and each chart only), the charts are ``atlas``'s. What a
+        navigator built on ``atlas`` computes, without recomputing the plan or the laws."""
+        if len(nav_maps) != len(self._nav_maps) or any(
+            a is not None and a is not b for a, b in zip(self._nav_maps, nav_maps, strict=True)
+        ):
+            raise NavigationError("not a revision that extends this navigator's charts")
+        new = copy.copy(self)
+        new.atlas, new.cells = atlas, atlas.decomposition.cells
+        new._nav_maps = list(nav_maps)
+        new._controllers = dict(self._controllers)
+        return new
+
+    @property
+    def nav_maps(self) -> tuple[Any, ...]:
+        """The charts' navigation maps the law drives on (None: not installed)."""
+        return tuple(self._nav_maps)
 
     def missing(self) -> list[int]:
         """The cells whose charts are not installed (empty on a complete atlas)."""

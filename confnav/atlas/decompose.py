@@ -48,7 +48,7 @@ from functools import cached_property
 import numpy as np
 import shapely
 from numpy.typing import NDArray
-from shapely.geometry import MultiPolygon, Polygon, box
+from shapely.geometry import LineString, MultiPolygon, Polygon, box
 from shapely.geometry.base import BaseGeometry
 from shapely.ops import nearest_points, polylabel
 
@@ -116,6 +116,80 @@ def inscribed(poly: Polygon, rel_tol: float = 1e-3) -> tuple[complex, float]:
     x0, y0, x1, y1 = poly.bounds
     p = polylabel(poly, tolerance=rel_tol * max(x1 - x0, y1 - y0))
     return complex(p.x, p.y), float(poly.boundary.distance(p))
+
+
+#: Grid nodes of :func:`outer_depth`'s finite-difference Green's function (about 0.02 s).
+DEPTH_CELLS = 10_000
+
+
+def outer_depth(ws: Workspace, cells: int = DEPTH_CELLS) -> tuple[float, complex]:
+    """How close the first Koebe sweep maps an obstacle to the unit circle: ``(g, where)``,
+    the smallest value over the obstacles' boundaries of the Green's function ``g(z, a)`` of
+    the outer boundary's interior (the obstacles filled in) with its pole at the anchor
+    ``a``, and the point where it is smallest (``inf`` without obstacles).
+
+    The map ``f`` of a simply connected domain onto the unit disk with ``f(a) = 0`` has
+    ``|f(z)| = exp(-g(z, a))`` (Ahlfors, "Complex Analysis", 3rd ed., ch. 6.1; Henrici,
+    "Applied and Computational Complex Analysis" vol. 3, ch. 16.1), so ``1 - |f(z)| ~ g``:
+    an obstacle where ``g`` is tiny is sent next to the circle by the sweep that maps the
+    outer boundary, and a room behind a door with furniture near its walls is crowded this
+    way with no long channel anywhere (what :func:`bottleneck` and :func:`elongation` look
+    for). ``g`` comes from the five-point Laplacian on a grid of about ``cells`` nodes over
+    the outer boundary's box (LeVeque, "Finite Difference Methods for Ordinary and Partial
+    Differential Equations", SIAM 2007, ch. 3), the pole a unit source ``2 pi`` at the node
+    nearest the anchor, zero outside the outer boundary, read by bilinear interpolation at
+    points along the obstacles' boundaries (half a grid step apart). A coarse grid reads
+    ``g`` high near corners (at 10,000 nodes 1.0-3.0 times the 160,000-node value on the
+    workspaces of bench/results/outer_depth.json), so the test errs towards one map.
+    The threshold is :data:`confnav.atlas.charts.OUTER_DEPTH_MIN`."""
+    import scipy.sparse as sp
+    import scipy.sparse.linalg as spla
+    from scipy.interpolate import RegularGridInterpolator
+
+    holes = list(ws.polygon.interiors)
+    if not holes:
+        return float("inf"), complex("nan")
+    outer = Polygon(ws.polygon.exterior)
+    x0, y0, x1, y1 = outer.bounds
+    h = float(np.sqrt((x1 - x0) * (y1 - y0) / cells))
+    nx, ny = int(np.ceil((x1 - x0) / h)) + 1, int(np.ceil((y1 - y0) / h)) + 1
+    xs, ys = x0 + h * np.arange(nx), y0 + h * np.arange(ny)
+    gx, gy = np.meshgrid(xs, ys, indexing="ij")
+    shapely.prepare(outer)
+    inside = np.asarray(shapely.contains_xy(outer, gx, gy), dtype=bool)
+    n = int(inside.sum())
+    z = complex(ws.anchor)
+    if n == 0:
+        return float("inf"), complex("nan")
+    idx = np.full(inside.shape, -1, dtype=np.int64)
+    idx[inside] = np.arange(n)
+    ii, jj = np.nonzero(inside)
+    rows, cols, vals = [np.arange(n)], [np.arange(n)], [np.full(n, 4.0)]
+    for di, dj in ((1, 0), (-1, 0), (0, 1), (0, -1)):
+        a, b = ii + di, jj + dj
+        ok = (a >= 0) & (a < nx) & (b >= 0) & (b < ny)
+        ok[ok] = inside[a[ok], b[ok]]
+        rows.append(idx[ii[ok], jj[ok]])
+        cols.append(idx[a[ok], b[ok]])
+        vals.append(np.full(int(ok.sum()), -1.0))
+    lap = sp.csc_matrix(
+        (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(n, n)
+    )
+    k = int(np.argmin(np.abs(gx[inside] + 1j * gy[inside] - z)))  # the node nearest the anchor
+    rhs = np.zeros(n)
+    rhs[k] = 2 * np.pi  # -Laplacian(g) = 2 pi delta: g ~ log(1 / |z - a|) at the pole
+    grid = np.zeros(inside.shape)
+    grid[inside] = spla.spsolve(lap, rhs)
+    g = RegularGridInterpolator((xs, ys), grid, bounds_error=False, fill_value=0.0)
+    pts = []
+    for hole in holes:
+        line = LineString(hole.coords)
+        s = np.linspace(0.0, line.length, max(8, int(line.length / (h / 2))))
+        pts.append(shapely.get_coordinates(shapely.line_interpolate_point(line, s)))
+    p = np.concatenate(pts)
+    vals_at = g(p)
+    m = int(np.argmin(vals_at))
+    return float(vals_at[m]), complex(p[m, 0], p[m, 1])
 
 
 def bottleneck(poly: Polygon, levels: int = 28) -> tuple[float, complex]:
