@@ -537,16 +537,8 @@ def test_straight_node_laws_give_the_goal_leg_a_straight_fallback() -> None:
     fc = FleetCoordinator(c)
     goals = np.array([0.8 + 1.0j, 6.8 + 1.0j])
     p = np.array([1.0 + 0.6j, 6.5 + 0.6j])
-    t, plans = 0.0, []
-    for _ in range(100):  # teleported to their next nodes until robot a takes its goal leg
-        plans = fc.plan(t, ["a", "b"], p, goals, [1, 1])
-        if plans[0].goal_leg:
-            break
-        for i in range(2):
-            p[i] = c.roadmap.nodes[int(c.at[i] if c.mode[i] != ROAD else c.nxt[i])]
-        t += 0.2
-    pl = plans[0]
-    assert pl.goal_leg and pl.ctrl is None  # its own law drives it ...
+    t, plans = _on_goal_leg(c, fc, p, goals)
+    pl = plans[0]  # its own law drives it ...
     law = pl.fallback  # ... and this where its own has no value
     assert isinstance(law, LineLaw) and law.goal == goals[0]
     z0 = complex(c.roadmap.nodes[int(c.at[0])])  # its goal node: the leg's start
