@@ -1132,16 +1132,20 @@ def profile_case(case: str, design: str) -> dict[str, Any]:
     sums), the rest of the GNK solves (GMRES products, right-hand side, h), map evaluations
     on the other boundaries (``circledomain._apply``), the carried level's transplant, the
     certificate (``solver._make_map``: boundary residual, estimate) and meshing
-    (``meshing.plan_boundaries``); nodes, sweeps, GNK solves and GMRES iterations."""
+    (``meshing.plan_boundaries``); nodes, sweeps, GNK solves and GMRES iterations. The mesh
+    planner's memory of feature distances is emptied first (since round 6), so that every
+    case and design pays its meshing as the first solve of a process does."""
     from bench_koebe import use_design  # script mode: bench/ is on sys.path
 
     import confnav.conformal.circledomain as cd
     import confnav.conformal.diskmap as dm
     import confnav.conformal.gnk as gnk
+    import confnav.conformal.meshing as meshing
     import confnav.conformal.solver as so
 
     use_design(design)
     ws, tol = _profile_ws(case)
+    meshing._FEATURE_CACHE.clear()
     levels: list[dict[str, Any]] = []
     cur: dict[str, Any] = {"level": "setup"}
     levels.append(cur)
