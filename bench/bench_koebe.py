@@ -79,7 +79,10 @@ from confnav.scenes.workspaces import (
 #: ``round5s``: that and the re-solve's first sweep resumed from the base level's snapshot
 #: (solver.REFINE_SNAPSHOTS); ``round6``: that and the mesh planner's feature distances taken
 #: only to the features whose bounding boxes can be nearest (meshing.NEAR_FEATURES_FIRST;
-#: every other design: the distances to every feature, as before; the same plans bit for bit).
+#: every other design: the distances to every feature, as before; the same plans bit for bit)
+#: and the dense GNK matrices scanned for coincident nodes only where np.unique finds some
+#: (gnk.ZERO_SCAN_ALWAYS = False; every other design: every matrix scanned; the same
+#: matrices bit for bit).
 _LEAN = {"smooth_fmm": True, "carry": True, "corner": True, "blas1": True, "lean": True}
 DESIGNS: dict[str, dict[str, bool]] = {
     "before": {"smooth_fmm": False, "carry": False, "corner": False, "blas1": False},
@@ -254,6 +257,7 @@ def use_design(name: str) -> None:
     solver.START_BY_CORNERS = d.get("start", False)
     solver.REFINE_SNAPSHOTS = d.get("snapshots", False)
     meshing.NEAR_FEATURES_FIRST = _NEAR_FEATURES if d.get("prune", False) else 1 << 30
+    gnk.ZERO_SCAN_ALWAYS = not d.get("prune", False)
 
 
 _SMOOTH_DEFAULT = gnk.SMOOTH_DENSE_MAX_NODES

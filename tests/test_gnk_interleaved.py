@@ -62,3 +62,26 @@ def test_maps_equal_the_real_copies_path(monkeypatch: pytest.MonkeyPatch) -> Non
         assert abs(old.gmres_iterations - new.gmres_iterations) <= 1
         assert np.max(np.abs(old.f - new.f)) < 1e-13
         assert abs(old.scale - new.scale) < 1e-13 * old.scale
+
+
+@pytest.mark.parametrize("coincide", [False, True])
+def test_coincident_node_scan_only_where_nodes_coincide(
+    monkeypatch: pytest.MonkeyPatch, coincide: bool
+) -> None:
+    """``gnk.ZERO_SCAN_ALWAYS = False`` (round 6) scans a dense matrix for coincident nodes
+    only where ``np.unique`` finds some: the same matrix bit for bit as the scan of every
+    matrix, on distinct graded nodes and on nodes with an exact duplicate (no mutual term,
+    no inf or nan left)."""
+    mesh = graded_polygon(L_ROOM, 48)
+    eta, deta = mesh.eta.copy(), mesh.deta.copy()
+    if coincide:
+        eta[5] = eta[4]  # two image nodes merged into one point
+        deta[4] = deta[5] = 0.0  # both dead
+    A = eta - (0.5 + 0.5j)
+    monkeypatch.setattr(gnk, "ZERO_SCAN_ALWAYS", True)
+    every = gnk._Operator(eta, deta, A)
+    monkeypatch.setattr(gnk, "ZERO_SCAN_ALWAYS", False)
+    some = gnk._Operator(eta, deta, A)
+    assert every.K is not None and some.K is not None
+    assert np.array_equal(every.K, some.K)
+    assert np.all(np.isfinite(some.K))

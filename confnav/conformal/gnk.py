@@ -121,6 +121,12 @@ SMOOTH_DENSE_MAX_NODES = 1024
 #: BLAS kernels differs). False: two real copies (before).
 DENSE_INTERLEAVED = True
 
+#: Scan every dense GNK matrix for exactly coincident nodes (True: before round 6). False: only
+#: a curve whose nodes are not all distinct (``np.unique``, O(n log n)) is scanned -- the same
+#: matrices bit for bit; the n^2 scan was ~12 % of a 900-node assembly (bench/README.md,
+#: "Round 6").
+ZERO_SCAN_ALWAYS = False
+
 #: A node whose quadrature weight |eta'| 2pi/n is below this fraction of the curve's size lies
 #: within rounding of its neighbours (graded nodes next to a corner, and their images under maps
 #: that compress the corner); it carries no information as a source and is dropped as one.
@@ -167,7 +173,11 @@ class _Operator:
             # products: 3-5x faster than a complex division over n^2 entries, measured)
             K = np.subtract.outer(eta, eta)  # eta_i - eta_k
             np.fill_diagonal(K, np.inf)
-            K[K == 0] = np.inf  # coincident image nodes (both dead): no mutual term
+            # coincident image nodes (both dead) have no mutual term; eta_i - eta_k is exactly
+            # 0 only for equal nodes (a difference of distinct doubles is never 0, subnormals
+            # included), so the scan of the n^2 entries runs only where np.unique finds some
+            if ZERO_SCAN_ALWAYS or np.unique(eta).size < n:
+                K[K == 0] = np.inf
             np.reciprocal(K, out=K)
             K *= (-2.0 / n) * A[:, None]
             K *= self.q0[None, :]
