@@ -81,8 +81,9 @@ from confnav.scenes.workspaces import (
 #: only to the features whose bounding boxes can be nearest (meshing.NEAR_FEATURES_FIRST;
 #: every other design: the distances to every feature, as before; the same plans bit for bit)
 #: and the dense GNK matrices scanned for coincident nodes only where np.unique finds some
-#: (gnk.ZERO_SCAN_ALWAYS = False; every other design: every matrix scanned; the same
-#: matrices bit for bit).
+#: (gnk.ZERO_SCAN_ALWAYS = False; every other design: every matrix scanned) and assembled by
+#: blocks of rows (gnk.ASSEMBLY_BLOCK_BYTES; every other design: whole-matrix passes) -- the
+#: same matrices bit for bit.
 _LEAN = {"smooth_fmm": True, "carry": True, "corner": True, "blas1": True, "lean": True}
 DESIGNS: dict[str, dict[str, bool]] = {
     "before": {"smooth_fmm": False, "carry": False, "corner": False, "blas1": False},
@@ -258,6 +259,7 @@ def use_design(name: str) -> None:
     solver.REFINE_SNAPSHOTS = d.get("snapshots", False)
     meshing.NEAR_FEATURES_FIRST = _NEAR_FEATURES if d.get("prune", False) else 1 << 30
     gnk.ZERO_SCAN_ALWAYS = not d.get("prune", False)
+    gnk.ASSEMBLY_BLOCK_BYTES = _BLOCK_BYTES if d.get("prune", False) else 0
 
 
 _SMOOTH_DEFAULT = gnk.SMOOTH_DENSE_MAX_NODES
@@ -270,6 +272,7 @@ _GRADING_REFINE = circledomain.GRADING_REFINE
 _EXTRAPOLATE_MODES = circledomain.EXTRAPOLATE_MODES
 _RHO_MIN_MODES = circledomain.RHO_EXTRAPOLATE_MIN_MODES
 _NEAR_FEATURES = meshing.NEAR_FEATURES_FIRST
+_BLOCK_BYTES = gnk.ASSEMBLY_BLOCK_BYTES
 
 
 def asymmetry(m: ConformalMap) -> float:
