@@ -127,8 +127,7 @@ ASSEMBLY_BLOCK_BYTES = 1 << 22
 
 #: Scan every dense GNK matrix for exactly coincident nodes (True: before round 6). False: only
 #: a curve whose nodes are not all distinct (``np.unique``, O(n log n)) is scanned -- the same
-#: matrices bit for bit; the n^2 scan was ~12 % of a 900-node assembly (bench/README.md,
-#: "Round 6").
+#: matrices bit for bit (bench/README.md, "Round 6").
 ZERO_SCAN_ALWAYS = False
 
 #: A node whose quadrature weight |eta'| 2pi/n is below this fraction of the curve's size lies
@@ -167,9 +166,10 @@ def _assemble(eta: ComplexArray, a: ComplexArray, q0: ComplexArray) -> ComplexAr
     By blocks of :data:`ASSEMBLY_BLOCK_BYTES` of rows (round 6): each pass (difference,
     reciprocal, row and column scaling) runs over a block while it is in cache instead of over
     the whole matrix, the same operations on every entry in the same order -- the same matrix
-    bit for bit (``tests/test_gnk_interleaved.py``). 20-25 % less time than whole-matrix passes
-    from ~2000 nodes (the default workspace's graded meshes at 180-256 nodes per side, a
-    50-obstacle outer boundary's 3584), none at 900 (bench/README.md, "Round 6").
+    bit for bit (``tests/test_gnk_interleaved.py``). With the coincident-node scan skipped,
+    one operator's construction took 20-22 % less time at 2088 and 2968 nodes (the default
+    workspace's graded meshes at 180-256 nodes per side) and 12 % at 900 (a hole of 50
+    obstacles): bench/README.md, "Round 6"; bench/results/core_probes_round6.json.
     """
     n = eta.size
     # coincident image nodes (both dead) have no mutual term; eta_i - eta_k is exactly 0 only

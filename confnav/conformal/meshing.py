@@ -176,8 +176,8 @@ def _nearest_features(
     over the :data:`NEAR_FEATURES_FIRST` features with the nearest boxes -- is farther than
     ``U`` from every sample and side, so it is nobody's nearest (ties keep the first index, as
     ``argmin`` over all features did: a feature left out is strictly farther). On 50 obstacles
-    the 51 x 51 shapely distances were 0.45 s of a cold 10.3 s solve (bench/README.md,
-    "Round 6").
+    the 51 x 51 shapely distances were 0.42 s of a cold solve, now 0.11 s (bench/README.md,
+    "Round 6"; bench/results/core_profile_round6.json).
     """
     n = len(features)
     x0, y0, x1, y1 = (
