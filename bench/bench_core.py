@@ -1132,16 +1132,20 @@ def profile_case(case: str, design: str) -> dict[str, Any]:
     sums), the rest of the GNK solves (GMRES products, right-hand side, h), map evaluations
     on the other boundaries (``circledomain._apply``), the carried level's transplant, the
     certificate (``solver._make_map``: boundary residual, estimate) and meshing
-    (``meshing.plan_boundaries``); nodes, sweeps, GNK solves and GMRES iterations."""
+    (``meshing.plan_boundaries``); nodes, sweeps, GNK solves and GMRES iterations. The mesh
+    planner's memory of feature distances is emptied first (since round 6), so that every
+    case and design pays its meshing as the first solve of a process does."""
     from bench_koebe import use_design  # script mode: bench/ is on sys.path
 
     import confnav.conformal.circledomain as cd
     import confnav.conformal.diskmap as dm
     import confnav.conformal.gnk as gnk
+    import confnav.conformal.meshing as meshing
     import confnav.conformal.solver as so
 
     use_design(design)
     ws, tol = _profile_ws(case)
+    meshing._FEATURE_CACHE.clear()
     levels: list[dict[str, Any]] = []
     cur: dict[str, Any] = {"level": "setup"}
     levels.append(cur)
@@ -1364,6 +1368,88 @@ def run_targets(out_path: Path, groups: list[str], append: bool) -> int:
     return 0
 
 
+def run_probes(out_path: Path) -> int:
+    """``--probes`` (round 6): what the certificate's residual costs and how much a lower FMM
+    precision would move it, on the final 50-obstacle map (``mixed_obstacles(50)`` at 1e-8),
+    and the dense GNK assembly with and without round 6's blocks, CPU s (best of repeats)."""
+    import confnav.conformal.cauchy as ca
+    import confnav.conformal.gnk as gnk
+
+    info, code = machine_info(), code_info()
+    print(f"confnav round-6 probes, commit {code['commit'][:12]}, load {load1():.2f}", flush=True)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", AccuracyWarning)
+        m = confnav.solve(mixed_obstacles(50, seed=0), tol=1e-8)
+    eta, deta, W, dW = m._parts
+    residual: list[dict[str, Any]] = []
+    ref = None
+    for iprec in (4, 3):
+        ca.FMM_IPREC = iprec
+        best, res = float("inf"), np.zeros(0)
+        try:
+            for _ in range(2):
+                fresh = confnav.ConformalMap(
+                    m.workspace, eta, deta, W, dW, m.centers, m.radii, m.diagnostics
+                )
+                c0 = time.process_time()
+                z, res, _ = fresh._boundary_residuals()
+                best = min(best, time.process_time() - c0)
+        finally:
+            ca.FMM_IPREC = 4
+        if ref is None:
+            ref = res
+        residual.append(
+            {
+                "fmm_iprec": iprec,
+                "cpu_s": best,
+                "max_residual": float(np.max(res)),
+                "max_change_from_iprec4": float(np.max(np.abs(res - ref))),
+                "nodes": int(m.n_nodes),
+                "points": int(z.size),
+            }
+        )
+        print(f"  residual at FMM precision {iprec}: {residual[-1]}", flush=True)
+    assembly: list[dict[str, Any]] = []
+    rng = np.random.default_rng(0)
+    keep = (gnk.ASSEMBLY_BLOCK_BYTES, gnk.ZERO_SCAN_ALWAYS)
+    try:
+        for n in (900, 2088, 2968):
+            th = np.sort(rng.uniform(0, 2 * np.pi, n))
+            e = np.exp(1j * th) * (1 + 0.3 * np.cos(3 * th))
+            row: dict[str, Any] = {"nodes": n}
+            for name, (blocks, scan) in {"round5": (0, True), "round6": (keep[0], False)}.items():
+                gnk.ASSEMBLY_BLOCK_BYTES, gnk.ZERO_SCAN_ALWAYS = blocks, scan
+                best = float("inf")
+                for _ in range(5):
+                    c0 = time.process_time()
+                    gnk._Operator(e, 1j * e, e - 0.1)
+                    best = min(best, time.process_time() - c0)
+                row[f"{name}_cpu_s"] = best
+            assembly.append(row)
+            print(f"  dense GNK assembly: {row}", flush=True)
+    finally:
+        gnk.ASSEMBLY_BLOCK_BYTES, gnk.ZERO_SCAN_ALWAYS = keep
+    info["loadavg_end"] = list(os.getloadavg())
+    out_path.write_text(
+        json.dumps(
+            {
+                "note": "round 6 probes: the certificate's boundary residual of the final "
+                "50-obstacle map at FMM precision 4 (the solver's) and 3, and one dense GNK "
+                "operator's construction (round 5: whole-matrix passes, every matrix scanned; "
+                "round 6: blocks of rows, scanned where nodes coincide), CPU s, best of repeats",
+                "machine": info,
+                "code": code,
+                "residual": residual,
+                "assembly": assembly,
+            },
+            indent=1,
+        )
+        + "\n"
+    )
+    print(f"wrote {out_path}")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true", help="fewer tolerances/obstacles, 1 run")
@@ -1383,7 +1469,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--designs", nargs="+", default=list(PROFILE_DESIGNS), help="--profile: solver designs"
     )
+    ap.add_argument("--probes", action="store_true", help="round 6: certificate and assembly")
     args = ap.parse_args(argv)
+    if args.probes:
+        return run_probes(args.out or Path(__file__).parent / "results" / "core_probes_round6.json")
     if args.profile is not None:
         cases = list(args.profile) or ["shrunk", "mixed50"]
         return run_profile(args.out or PROFILE_RESULTS, cases, args.designs, args.append)

@@ -33,7 +33,7 @@ from bench_core import code_info, machine_info  # script mode: bench/ is on sys.
 
 import confnav
 from confnav import ConformalMap, Workspace
-from confnav.conformal import cauchy, circledomain, diskmap, gnk
+from confnav.conformal import cauchy, circledomain, diskmap, gnk, meshing
 from confnav.conformal.acceleration import KOEBE_ACCELS
 from confnav.conformal.circular_map import METHODS
 from confnav.maps.footprint import inflate
@@ -77,7 +77,13 @@ from confnav.scenes.workspaces import (
 #: are unchanged (solver.REFINE_REUSE); ``round5``: that and the ladder started higher for a
 #: workspace with an obstacle tip sharper than 60 degrees (solver.START_BY_CORNERS);
 #: ``round5s``: that and the re-solve's first sweep resumed from the base level's snapshot
-#: (solver.REFINE_SNAPSHOTS; the default).
+#: (solver.REFINE_SNAPSHOTS); ``round6``: that and the mesh planner's feature distances taken
+#: only to the features whose bounding boxes can be nearest (meshing.NEAR_FEATURES_FIRST;
+#: every other design: the distances to every feature, as before; the same plans bit for bit)
+#: and the dense GNK matrices scanned for coincident nodes only where np.unique finds some
+#: (gnk.ZERO_SCAN_ALWAYS = False; every other design: every matrix scanned) and assembled by
+#: blocks of rows (gnk.ASSEMBLY_BLOCK_BYTES; every other design: whole-matrix passes) -- the
+#: same matrices bit for bit.
 _LEAN = {"smooth_fmm": True, "carry": True, "corner": True, "blas1": True, "lean": True}
 DESIGNS: dict[str, dict[str, bool]] = {
     "before": {"smooth_fmm": False, "carry": False, "corner": False, "blas1": False},
@@ -169,6 +175,21 @@ DESIGNS: dict[str, dict[str, bool]] = {
         "start": True,
         "snapshots": True,
     },
+    # ... and the mesh planner's feature distances pruned by bounding boxes (the default)
+    "round6": {
+        **_LEAN,
+        "once": True,
+        "interleaved": True,
+        "second_sums": True,
+        "fine_grids": True,
+        "graded": True,
+        "modes2": True,
+        "rho_low": True,
+        "reuse": True,
+        "start": True,
+        "snapshots": True,
+        "prune": True,
+    },
 }
 #: The solver's own setting (restored after :func:`fleet_step_rounding`).
 DERIVATIVE_DEFAULT = diskmap.DERIVATIVE_FROM_SECOND_SUMS
@@ -236,6 +257,9 @@ def use_design(name: str) -> None:
     solver.REFINE_REUSE = d.get("reuse", False)
     solver.START_BY_CORNERS = d.get("start", False)
     solver.REFINE_SNAPSHOTS = d.get("snapshots", False)
+    meshing.NEAR_FEATURES_FIRST = _NEAR_FEATURES if d.get("prune", False) else 1 << 30
+    gnk.ZERO_SCAN_ALWAYS = not d.get("prune", False)
+    gnk.ASSEMBLY_BLOCK_BYTES = _BLOCK_BYTES if d.get("prune", False) else 0
 
 
 _SMOOTH_DEFAULT = gnk.SMOOTH_DENSE_MAX_NODES
@@ -247,6 +271,8 @@ _TAIL_BAND = circledomain.TAIL_BAND
 _GRADING_REFINE = circledomain.GRADING_REFINE
 _EXTRAPOLATE_MODES = circledomain.EXTRAPOLATE_MODES
 _RHO_MIN_MODES = circledomain.RHO_EXTRAPOLATE_MIN_MODES
+_NEAR_FEATURES = meshing.NEAR_FEATURES_FIRST
+_BLOCK_BYTES = gnk.ASSEMBLY_BLOCK_BYTES
 
 
 def asymmetry(m: ConformalMap) -> float:

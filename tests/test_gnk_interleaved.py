@@ -62,3 +62,51 @@ def test_maps_equal_the_real_copies_path(monkeypatch: pytest.MonkeyPatch) -> Non
         assert abs(old.gmres_iterations - new.gmres_iterations) <= 1
         assert np.max(np.abs(old.f - new.f)) < 1e-13
         assert abs(old.scale - new.scale) < 1e-13 * old.scale
+
+
+@pytest.mark.parametrize("coincide", [False, True])
+def test_coincident_node_scan_only_where_nodes_coincide(
+    monkeypatch: pytest.MonkeyPatch, coincide: bool
+) -> None:
+    """``gnk.ZERO_SCAN_ALWAYS = False`` (round 6) scans a dense matrix for coincident nodes
+    only where ``np.unique`` finds some: the same matrix bit for bit as the scan of every
+    matrix, on distinct graded nodes and on nodes with an exact duplicate (no mutual term,
+    no inf or nan left)."""
+    mesh = graded_polygon(L_ROOM, 48)
+    eta, deta = mesh.eta.copy(), mesh.deta.copy()
+    if coincide:
+        eta[5] = eta[4]  # two image nodes merged into one point
+        deta[4] = deta[5] = 0.0  # both dead
+    A = eta - (0.5 + 0.5j)
+    monkeypatch.setattr(gnk, "ZERO_SCAN_ALWAYS", True)
+    every = gnk._Operator(eta, deta, A)
+    monkeypatch.setattr(gnk, "ZERO_SCAN_ALWAYS", False)
+    some = gnk._Operator(eta, deta, A)
+    assert every.K is not None and some.K is not None
+    assert np.array_equal(every.K, some.K)
+    assert np.all(np.isfinite(some.K))
+
+
+@pytest.mark.parametrize("coincide", [False, True])
+def test_blocked_assembly_equals_whole_matrix_passes(
+    monkeypatch: pytest.MonkeyPatch, coincide: bool
+) -> None:
+    """The dense matrix assembled by blocks of rows (``gnk.ASSEMBLY_BLOCK_BYTES``, round 6)
+    equals the whole-matrix passes (0) bit for bit, and so do its row sums, with blocks of 8
+    rows (the ends not a multiple) and with coincident nodes."""
+    mesh = graded_polygon(L_ROOM, 61)
+    eta, deta = mesh.eta.copy(), mesh.deta.copy()
+    if coincide:
+        eta[13] = eta[12]
+        deta[12] = deta[13] = 0.0
+    A = eta - (0.5 + 0.5j)
+    monkeypatch.setattr(gnk, "ASSEMBLY_BLOCK_BYTES", 0)
+    monkeypatch.setattr(gnk, "ZERO_SCAN_ALWAYS", True)
+    whole = gnk._Operator(eta, deta, A)
+    monkeypatch.setattr(gnk, "ASSEMBLY_BLOCK_BYTES", 1)  # 8 rows per block
+    monkeypatch.setattr(gnk, "ZERO_SCAN_ALWAYS", False)
+    blocked = gnk._Operator(eta, deta, A)
+    assert whole.K is not None and blocked.K is not None and eta.size % 8 != 0
+    assert np.array_equal(whole.K, blocked.K)
+    assert np.array_equal(whole.rowr, blocked.rowr) and np.array_equal(whole.rowi, blocked.rowi)
+    assert np.all(np.isfinite(blocked.K))

@@ -36,3 +36,28 @@ def test_another_geometry_is_computed_afresh() -> None:
     alone = meshing.plan_boundaries(mirror_squares(0.01), 54, 1e-8)
     assert _same(narrow, alone)
     assert not _same(wide, narrow)
+
+
+def test_pruned_features_give_the_distances_of_all_features() -> None:
+    """Features bounded away by their boxes (meshing._nearest_features) change no distance
+    and no nearest feature: bit for bit the values of the distances to every feature, on a
+    workspace where most features are pruned (50 obstacles) and on two with few features."""
+    import shapely
+
+    from confnav.scenes.workspaces import mixed_obstacles
+
+    frac, _ = meshing._sample_taus()
+    for ws in (mixed_obstacles(50, seed=0), mirror_squares(0.01), default_workspace()):
+        rings = [shapely.LinearRing(np.column_stack([z.real, z.imag])) for z in ws.boundaries]
+        anchor = shapely.Point(ws.anchor.real, ws.anchor.imag)
+        for j, z in enumerate(ws.boundaries):
+            feats = [anchor, *(r for i, r in enumerate(rings) if i != j)]
+            fast = meshing._feature_distance(z, feats, frac)
+            old = meshing.NEAR_FEATURES_FIRST
+            meshing.NEAR_FEATURES_FIRST = len(feats)  # every feature's exact distance
+            try:
+                full = meshing._feature_distance(z, feats, frac)
+            finally:
+                meshing.NEAR_FEATURES_FIRST = old
+            assert np.array_equal(fast[0], full[0])
+            assert np.array_equal(fast[1], full[1])

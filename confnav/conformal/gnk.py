@@ -121,6 +121,15 @@ SMOOTH_DENSE_MAX_NODES = 1024
 #: BLAS kernels differs). False: two real copies (before).
 DENSE_INTERLEAVED = True
 
+#: Rows of a dense GNK matrix per block of its assembly (:func:`_assemble`), in bytes of the
+#: block; 0: whole-matrix passes (before round 6).
+ASSEMBLY_BLOCK_BYTES = 1 << 22
+
+#: Scan every dense GNK matrix for exactly coincident nodes (True: before round 6). False: only
+#: a curve whose nodes are not all distinct (``np.unique``, O(n log n)) is scanned -- the same
+#: matrices bit for bit (bench/README.md, "Round 6").
+ZERO_SCAN_ALWAYS = False
+
 #: A node whose quadrature weight |eta'| 2pi/n is below this fraction of the curve's size lies
 #: within rounding of its neighbours (graded nodes next to a corner, and their images under maps
 #: that compress the corner); it carries no information as a source and is dropped as one.
@@ -149,6 +158,39 @@ def alive_nodes(eta: ComplexArray, deta: ComplexArray) -> np.ndarray:
     return np.asarray(alive)
 
 
+def _assemble(eta: ComplexArray, a: ComplexArray, q0: ComplexArray) -> ComplexArray:
+    """The dense GNK matrix ``K_ik = a_i q0_k / (eta_i - eta_k)`` (0 on the diagonal and for
+    coincident nodes), built in place (in-place reciprocal and products: 3-5x faster than a
+    complex division over n^2 entries, measured).
+
+    By blocks of :data:`ASSEMBLY_BLOCK_BYTES` of rows (round 6): each pass (difference,
+    reciprocal, row and column scaling) runs over a block while it is in cache instead of over
+    the whole matrix, the same operations on every entry in the same order -- the same matrix
+    bit for bit (``tests/test_gnk_interleaved.py``). With the coincident-node scan skipped,
+    one operator's construction took 20-22 % less time at 2088 and 2968 nodes (the default
+    workspace's graded meshes at 180-256 nodes per side) and 12 % at 900 (a hole of 50
+    obstacles): bench/README.md, "Round 6"; bench/results/core_probes_round6.json.
+    """
+    n = eta.size
+    # coincident image nodes (both dead) have no mutual term; eta_i - eta_k is exactly 0 only
+    # for equal nodes (a difference of distinct doubles is never 0, subnormals included), so
+    # the scan for them runs only where np.unique finds some
+    scan = ZERO_SCAN_ALWAYS or np.unique(eta).size < n
+    rows = n if ASSEMBLY_BLOCK_BYTES <= 0 else max(8, ASSEMBLY_BLOCK_BYTES // (16 * max(n, 1)))
+    K = np.empty((n, n), np.complex128)
+    for r0 in range(0, n, rows):
+        r1 = min(n, r0 + rows)
+        B = K[r0:r1]
+        np.subtract.outer(eta[r0:r1], eta, out=B)  # eta_i - eta_k
+        B[np.arange(r1 - r0), np.arange(r0, r1)] = np.inf
+        if scan:
+            B[B == 0] = np.inf
+        np.reciprocal(B, out=B)
+        B *= a[r0:r1, None]
+        B *= q0[None, :]
+    return K
+
+
 class _Operator:
     """Discrete GNK operators for one curve: S(x) = sum_{k!=i} K_ik (x_k - x_i) etc."""
 
@@ -165,12 +207,7 @@ class _Operator:
         if self.dense:
             # K_ik = (2/n) A_i q0_k / (eta_k - eta_i), built in place (in-place reciprocal and
             # products: 3-5x faster than a complex division over n^2 entries, measured)
-            K = np.subtract.outer(eta, eta)  # eta_i - eta_k
-            np.fill_diagonal(K, np.inf)
-            K[K == 0] = np.inf  # coincident image nodes (both dead): no mutual term
-            np.reciprocal(K, out=K)
-            K *= (-2.0 / n) * A[:, None]
-            K *= self.q0[None, :]
+            K = _assemble(eta, (-2.0 / n) * A, self.q0)
             if DENSE_INTERLEAVED:
                 # kept complex; products through its float view (DENSE_INTERLEAVED)
                 self.K = K
@@ -285,7 +322,7 @@ class _CornerBlocks:
             B = -ki
             B[np.diag_indices_from(B)] += 2.0 + rowi[idx]
             self.blocks.append(np.ascontiguousarray(B))
-            self.inverses.append(np.linalg.inv(B))
+            self.inverses.append(np.asarray(np.linalg.inv(B), dtype=np.float64))
 
     @classmethod
     def build(cls, op: _Operator, labels: np.ndarray) -> _CornerBlocks | None:

@@ -189,6 +189,17 @@ at eb65774, load 5.4-5.6: 50 obstacles 11.22 -> 10.94 s, the re-solve's map eval
 0.41 s). The targets: ``core_targets_round5.json`` at b225c32 (load 1.8-2.8; 50 obstacles 10.30
 s, 10 s missed by 3 %) and ``core_targets_round5b.json`` at 61624a2 (load 5.5-6.6; 10.76 s).
 
+Round 6 (issue 24; bench/README.md "Round 6"): two exact cuts below this module, the same maps
+bit for bit -- the mesh planner's feature distances only to the features whose bounding boxes
+can be nearest (:func:`confnav.conformal.meshing._nearest_features`; 50 obstacles' meshing 0.42
+-> 0.11 s) and the dense GNK matrices assembled by blocks of rows, scanned for coincident
+nodes only where some coincide (:func:`confnav.conformal.gnk._assemble`). Side by side
+(``core_profile_round6.json`` at 1a7fe58, load 6.5-9.6): 50 obstacles 10.94 -> 10.59 s; the
+targets (``core_targets_round6.json`` at b755288, load 3.4-4.5): 50 obstacles 10.39 s (10 s
+missed), the default workspace to 1e-10 0.95 s (0.5 s missed). The certificates are unchanged:
+each is the boundary residual's two FMM sums at full precision (0.75 of its 0.79 s on 50
+obstacles); a lower FMM precision there moved the residual by 1.8e-11 and was not built.
+
 ``tol_met`` is true only if all are within ``tol`` and nothing is ``unverified``. A map that
 misses ``tol`` is returned with ``tol_met = False`` and an :class:`AccuracyWarning`; one whose
 estimate exceeds :data:`UNUSABLE_ERROR` (or the caller's ``max_error``) raises
