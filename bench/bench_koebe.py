@@ -85,6 +85,18 @@ from confnav.scenes.workspaces import (
 #: blocks of rows (gnk.ASSEMBLY_BLOCK_BYTES; every other design: whole-matrix passes) -- the
 #: same matrices bit for bit.
 _LEAN = {"smooth_fmm": True, "carry": True, "corner": True, "blas1": True, "lean": True}
+def _cumulative(
+    base: dict[str, bool], *steps: tuple[str, dict[str, bool]]
+) -> dict[str, dict[str, bool]]:
+    """Designs that each add their flags to the one before (the first to ``base``)."""
+    out: dict[str, dict[str, bool]] = {}
+    cur = dict(base)
+    for name, extra in steps:
+        cur = {**cur, **extra}
+        out[name] = cur
+    return out
+
+
 DESIGNS: dict[str, dict[str, bool]] = {
     "before": {"smooth_fmm": False, "carry": False, "corner": False, "blas1": False},
     "fmm_smooth": {"smooth_fmm": True, "carry": False, "corner": False, "blas1": False},
@@ -93,103 +105,31 @@ DESIGNS: dict[str, dict[str, bool]] = {
     "carry_blas1": {"smooth_fmm": True, "carry": True, "corner": False, "blas1": True},
     "corner_blas1": {"smooth_fmm": True, "carry": True, "corner": True, "blas1": True},
     "lean": _LEAN,
-    "once": {**_LEAN, "once": True},
-    "interleaved": {**_LEAN, "once": True, "interleaved": True},
-    "second_sums": {**_LEAN, "once": True, "interleaved": True, "second_sums": True},
-    "fine_grids": {
-        **_LEAN,
-        "once": True,
-        "interleaved": True,
-        "second_sums": True,
-        "fine_grids": True,
-    },
-    "graded": {
-        **_LEAN,
-        "once": True,
-        "interleaved": True,
-        "second_sums": True,
-        "fine_grids": True,
-        "graded": True,
-    },
-    # round 4: the extrapolation removes two geometric modes (circledomain.EXTRAPOLATE_MODES;
-    # every design above: one)
-    "modes2": {
-        **_LEAN,
-        "once": True,
-        "interleaved": True,
-        "second_sums": True,
-        "fine_grids": True,
-        "graded": True,
-        "modes2": True,
-    },
-    # and extrapolating from plain contractions above 0.2 instead of 0.5 (the default)
-    "modes2_low": {
-        **_LEAN,
-        "once": True,
-        "interleaved": True,
-        "second_sums": True,
-        "fine_grids": True,
-        "graded": True,
-        "modes2": True,
-        "rho_low": True,
-    },
-    # round 5: a per-side refinement's re-solve reuses the base level's unchanged first-sweep
-    # maps (solver.REFINE_REUSE; every design above: off) ...
-    "reuse": {
-        **_LEAN,
-        "once": True,
-        "interleaved": True,
-        "second_sums": True,
-        "fine_grids": True,
-        "graded": True,
-        "modes2": True,
-        "rho_low": True,
-        "reuse": True,
-    },
-    # ... and a workspace with an obstacle tip sharper than 60 degrees starts the ladder
-    # higher (solver.START_BY_CORNERS; every design above: off): the default since round 5
-    "round5": {
-        **_LEAN,
-        "once": True,
-        "interleaved": True,
-        "second_sums": True,
-        "fine_grids": True,
-        "graded": True,
-        "modes2": True,
-        "rho_low": True,
-        "reuse": True,
-        "start": True,
-    },
-    # ... and the re-solve's first sweep resumed from the base level's snapshot before the
-    # first refined boundary (solver.REFINE_SNAPSHOTS; every design above: off)
-    "round5s": {
-        **_LEAN,
-        "once": True,
-        "interleaved": True,
-        "second_sums": True,
-        "fine_grids": True,
-        "graded": True,
-        "modes2": True,
-        "rho_low": True,
-        "reuse": True,
-        "start": True,
-        "snapshots": True,
-    },
-    # ... and the mesh planner's feature distances pruned by bounding boxes (the default)
-    "round6": {
-        **_LEAN,
-        "once": True,
-        "interleaved": True,
-        "second_sums": True,
-        "fine_grids": True,
-        "graded": True,
-        "modes2": True,
-        "rho_low": True,
-        "reuse": True,
-        "start": True,
-        "snapshots": True,
-        "prune": True,
-    },
+    # each design below is the one before it plus what its name says
+    **_cumulative(
+        _LEAN,
+        ("once", {"once": True}),
+        ("interleaved", {"interleaved": True}),
+        ("second_sums", {"second_sums": True}),
+        ("fine_grids", {"fine_grids": True}),
+        ("graded", {"graded": True}),
+        # round 4: the extrapolation removes two geometric modes
+        # (circledomain.EXTRAPOLATE_MODES; every design above: one) ...
+        ("modes2", {"modes2": True}),
+        # ... from plain contractions above 0.2 instead of 0.5 (the default)
+        ("modes2_low", {"rho_low": True}),
+        # round 5: a per-side refinement's re-solve reuses the base level's unchanged
+        # first-sweep maps (solver.REFINE_REUSE; every design above: off) ...
+        ("reuse", {"reuse": True}),
+        # ... and a workspace with an obstacle tip sharper than 60 degrees starts the ladder
+        # higher (solver.START_BY_CORNERS; every design above: off): the default since round 5
+        ("round5", {"start": True}),
+        # ... and the re-solve's first sweep resumed from the base level's snapshot before the
+        # first refined boundary (solver.REFINE_SNAPSHOTS; every design above: off)
+        ("round5s", {"snapshots": True}),
+        # ... and the mesh planner's feature distances pruned by bounding boxes (the default)
+        ("round6", {"prune": True}),
+    ),
 }
 #: The solver's own setting (restored after :func:`fleet_step_rounding`).
 DERIVATIVE_DEFAULT = diskmap.DERIVATIVE_FROM_SECOND_SUMS
