@@ -85,6 +85,8 @@ from confnav.scenes.workspaces import (
 #: blocks of rows (gnk.ASSEMBLY_BLOCK_BYTES; every other design: whole-matrix passes) -- the
 #: same matrices bit for bit.
 _LEAN = {"smooth_fmm": True, "carry": True, "corner": True, "blas1": True, "lean": True}
+
+
 def _cumulative(
     base: dict[str, bool], *steps: tuple[str, dict[str, bool]]
 ) -> dict[str, dict[str, bool]]:
