@@ -1659,6 +1659,36 @@ def koebe_iteration(
             # changed boundaries' nodes are replaced whenever a snapshot is resumed from)
             tally.snapshots.update({k: v for k, v in reuse_snapshots.items() if k < resumed})
     sched = _Schedule(accel, tol)
+    sweeps, traced, transplanted = _run_sweeps(
+        it, sched, meshes, guess, tally, gmres_tol, resumed,
+        max_sweeps=max_sweeps, progress=progress, start=start, trace=trace, carry=carry,
+    )  # fmt: skip
+    result = _circle_domain(it, tally, sched, sweeps, t0)
+    result.transplanted = transplanted
+    result.resumed_at = resumed
+    if traced is not None and result.converged:
+        result.carry = _level_carry(it, sched, traced)
+    return result
+
+
+def _run_sweeps(
+    it: _Iterate,
+    sched: _Schedule,
+    meshes: list[BoundaryMesh],
+    guess: list[FloatArray | None],
+    tally: _Tally,
+    gmres_tol: float,
+    resumed: int,
+    *,
+    max_sweeps: int,
+    progress: Callable[[int, float], None] | None,
+    start: StartImage | None,
+    trace: bool,
+    carry: LevelCarry | None,
+) -> tuple[int, tuple[list[ComplexArray], list[complex], complex] | None, bool]:
+    """:func:`koebe_iteration`'s sweeps until ``sched`` stops them: the number of sweeps, the
+    tracers laid after the first (``trace``), and whether ``carry`` was transplanted."""
+    M = len(meshes) - 1
     sweeps = 0
     traced: tuple[list[ComplexArray], list[complex], complex] | None = None
     transplanted = False
@@ -1705,12 +1735,7 @@ def koebe_iteration(
             break
     else:
         sched.converged = False  # sweep limit: the extrapolated remaining error is reported
-    result = _circle_domain(it, tally, sched, sweeps, t0)
-    result.transplanted = transplanted
-    result.resumed_at = resumed
-    if traced is not None and result.converged:
-        result.carry = _level_carry(it, sched, traced)
-    return result
+    return sweeps, traced, transplanted
 
 
 def _consistent_tangents(it: _Iterate) -> None:
