@@ -576,8 +576,9 @@ class RoadmapCoordinator:
         ``leg_patience`` s later; latched until the leg ends.  Only with straight node laws
         (an atlas: :meth:`goal_law` exists).  Why: through the services (warehouse, seed 0) a
         unicycle's own atlas law near its goal, 0.06 m off the top aisle's wall, was
-        rounding noise (the chart's map derivative ~3e-7 there: the chart crowds, the goal
-        and the robot 1e-9 apart in its disk); the command's direction flipped from step to
+        rounding noise (the chart's map derivative 4.6e-7 there: the chart crowds, the goal
+        and the robot 2.5e-9 apart in its disk, bench/results/fleet_goal_leg.json); the
+        command's direction flipped from step to
         step, the robot turned on the spot 0.27 m from its goal from 311 s on and 10 robots
         queued behind it (bench/results/fleet_services_final_seed0.json); its own law had a
         value, so the NaN/ERROR fallback of the controller service never took over.  In seed
