@@ -185,6 +185,11 @@ def test_solver_failure_is_reported(mem_net: InMemoryNetwork) -> None:
         wait_for(lambda: svc.state_of("sq") == "failed")
         [r] = client.query(K.ws("sq", "transform"))
         assert not r.ok and "CrowdingError" in (r.error or "")
+        # the status message follows the state change: wait for it on the bus
+        wait_for(
+            lambda: decode(TransformStatus, rec.on(K.ws("sq", "status"))[-1]).state == "failed",
+            timeout=10,
+        )
         st = decode(TransformStatus, rec.on(K.ws("sq", "status"))[-1])
         assert st.state == "failed" and "double precision" in st.message
         wait_for(lambda: svc.health().state == "degraded")
@@ -312,7 +317,15 @@ def test_solve_timeout_fails_the_workspace(mem_net: InMemoryNetwork) -> None:
         client.publish(K.ws("sq", "definition"), encode(square_definition("sq")))
         wait_for(lambda: svc.state_of("sq") == "failed", timeout=20)
         assert time.monotonic() - t0 >= 0.4  # not before the timeout
-        st = decode(TransformStatus, rec.on(K.ws("sq", "status"))[-1])
+
+        def last_status() -> TransformStatus | None:
+            got = rec.on(K.ws("sq", "status"))
+            return decode(TransformStatus, got[-1]) if got else None
+
+        # the state flips under the lock and the status is published just after it
+        wait_for(lambda: (s := last_status()) is not None and s.state == "failed", timeout=5)
+        st = last_status()
+        assert st is not None
         assert "timed out after 0.4 s" in st.message
         gate.set()  # the late result is ignored
         time.sleep(0.2)
