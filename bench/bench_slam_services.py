@@ -31,6 +31,10 @@ goal's publication:
 - the route hints: the controller's ``route_hints_sent`` and the transform's
   ``route_hints`` counters (from their health).
 
+``--no-maps-ahead``: the simulator does not ask for its robots' footprint maps at start
+(``serve simulator --no-maps-ahead``), so the goals are their first use: the transform
+derives and solves ``{map}~r0.32`` from the goals on. By default it asks (as the service
+does), and the footprint map is solved during the settling time, beside the base map.
 ``--no-route-hints``: the controllers send no route hints (``serve controller
 --no-route-hints``): the transform solves the cells in its own order, for the ratio.
 ``--quick``: tb3_world and empty_room, 2 pairs. Load averages are recorded per map (a shared
@@ -298,6 +302,7 @@ def run_map(name: str, n_pairs: int, args: Any, tmp: Path) -> dict[str, Any]:
                 *robots,
                 "--rate",
                 "50",
+                *([] if args.maps_ahead else ["--no-maps-ahead"]),
                 log=logs / "simulator.log",
             )
         )
@@ -468,6 +473,14 @@ def main(argv: list[str]) -> int:
         default=True,
         help="--no-route-hints: the controller sends none (the transform's own order)",
     )
+    ap.add_argument(
+        "--maps-ahead",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="the simulator asks for its robots' footprint maps at start (the default, as "
+        "`serve simulator` does); --no-maps-ahead: the footprint map is first asked for by "
+        "the goals (its first use)",
+    )
     ap.add_argument("--out", type=Path, default=None)
     args = ap.parse_args(argv)
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(1))  # stop the services (finally)
@@ -486,6 +499,7 @@ def main(argv: list[str]) -> int:
         "pairs_per_map": n,
         "settle_s": args.settle,
         "route_hints": args.route_hints,
+        "maps_ahead": args.maps_ahead,
         "arrive_timeout_s": args.arrive_timeout,
         "target_first_cmd_s": READY_TARGET_S,
         "maps": [],

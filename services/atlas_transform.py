@@ -57,6 +57,7 @@ from confnav.atlas.charts import atlas_reason, solve_atlas
 from confnav.atlas.wire import ATLAS_MARKER, atlas_revision, chart_ws_id, index_fields
 from confnav.conformal.solver import crowding_reason, solve
 from confnav.errors import CrowdingError, SolverError, fmt_point
+from confnav.maps.footprint import parse_derived_ws_id
 
 if TYPE_CHECKING:
     from confnav.services.transform import TransformService
@@ -69,6 +70,9 @@ KEEP_ATLASES = 8
 #: Seconds between checks of the claims while waiting for a peer's chart (a claim that
 #: vanishes or a local solve that ends wakes the wait at once).
 POLL = 0.5
+#: s a background atlas's decomposition waits at most, per wait, for an atlas robots wait
+#: for to publish its first revision (:meth:`ChartShare.hold`)
+HOLD_MAX_S = 10.0
 
 
 def single_or_atlas(
@@ -144,6 +148,17 @@ class RouteBook:
         """Every kept (start, goal) pair of the workspaces ``ws_ids``, oldest first."""
         with self._lock:
             return [p for w in ws_ids for p in self._by_ws.get(w, {}).values()]
+
+    def waited_for(self, ws_ids: Iterable[str]) -> bool:
+        """Whether robots wait for the map of ``ws_ids`` (one definition's ids): a route of
+        one of them, unless every such id is a base map ``{ws}`` whose footprint map
+        ``{ws}~r{R}`` has routes too -- the robots with a body wait for their footprint map
+        and ask for the base only to drive on it meanwhile, which the footprint atlas,
+        solved first, makes moot (docs/SLAM.md "Background atlases")."""
+        with self._lock:
+            hinted = {w for w, book in self._by_ws.items() if book}
+        footprint_bases = {p[0] for h in hinted if (p := parse_derived_ws_id(h)) is not None}
+        return any(w in hinted and w not in footprint_bases for w in ws_ids)
 
     def forget(self, ws_id: str) -> None:
         with self._lock:
@@ -394,6 +409,9 @@ class ChartShare:
         #: atlas"); the default, ``serve transform --no-progressive-atlas`` turns it off (a
         #: consumer then sees one complete atlas revision per definition)
         self.progressive = True
+        #: atlases robots wait for whose first revision is not out yet: the background
+        #: atlases' decompositions hold meanwhile (:meth:`hold`)
+        self._starting: set[str] = set()
 
     def start(self) -> list[Closeable]:
         """Declare the chart queryable and the claim subscriber (the handles to close)."""
@@ -476,42 +494,101 @@ class ChartShare:
         ``COARSE_MAX_ERROR``) when the definition asks for a finer one, whose complete
         atlas is a revision too; then the atlas to the definition's ``tol``, returned (the
         final revision, :func:`finish_atlas`)."""
-        ex = SharedExecutor(self, h[:32], abandoned)
+        svc = self.svc
+
+        def ids() -> list[str]:
+            with svc._lock:
+                return [w for w, st in svc._ws.items() if st.definition_hash == h]
+
+        def background() -> bool:
+            """No robot waits for this atlas (:meth:`RouteBook.waited_for`): its charts go
+            to the background pool and its decomposition holds for those robots wait for."""
+            return not svc.routes.waited_for(ids())
+
+        ex = SharedExecutor(self, h[:32], abandoned, background)
         ws = workspace_of(defn)
-        workers = self.svc.workers
-        if not (self.progressive and getattr(self.svc, "progressive", False)):
-            return atlas_result(solve_atlas(ws, defn.tol, workers=workers, executor=ex))
+        workers = svc.workers
+        kw: dict[str, Any] = {"pause": lambda: self.hold(h, background, abandoned)}
+        if not (self.progressive and getattr(svc, "progressive", False)):
+            return atlas_result(solve_atlas(ws, defn.tol, workers=workers, executor=ex, **kw))
         sent: set[str] = set()
         checked: dict[tuple[complex, complex], bool] = {}
+        if not background():
+            self._started(h, True)
 
         def routes() -> list[tuple[complex, complex]]:
             """The route hints of every workspace waiting for ``h``, those in ``ws``."""
-            svc = self.svc
-            with svc._lock:
-                ids = [w for w, st in svc._ws.items() if st.definition_hash == h]
-            return valid_routes(ws, svc.routes.pairs(ids), checked)
+            return valid_routes(ws, svc.routes.pairs(ids()), checked)
 
         def publish(pa: Any) -> None:
+            self._started(h, False)
             if not abandoned():
-                publish_partial(self.svc, h, pa, sent)
+                publish_partial(svc, h, pa, sent)
 
+        try:
+            return self._solve_progressive(ws, defn, ex, routes, publish, kw)
+        finally:
+            self._started(h, False)
+
+    def _solve_progressive(
+        self,
+        ws: Any,
+        defn: Any,
+        ex: SharedExecutor,
+        routes: Callable[[], list[tuple[complex, complex]]],
+        publish: Callable[[Any], None],
+        kw: dict[str, Any],
+    ) -> dict[str, Any]:
+        """:meth:`solve`'s progressive atlas: a coarse atlas first when the definition asks
+        for a finer one, its charts published as they come, then the final atlas."""
+        workers = self.svc.workers
         first = LADDER[0]
         if defn.tol < first:
             try:
                 # its complete revision is the last partial one
                 solve_atlas(
                     ws, first, workers=workers, executor=ex, on_partial=publish, batch=workers,
-                    accept=max(first, COARSE_MAX_ERROR), priority=routes,
+                    accept=max(first, COARSE_MAX_ERROR), priority=routes, **kw,
                 )  # fmt: skip
             except SolverError as exc:  # the final atlas may still solve: go on to it
-                log.info("atlas %s: no coarse revision (%s)", h[:12], exc)
-            atlas = solve_atlas(ws, defn.tol, workers=workers, executor=ex)
+                log.info("atlas %s: no coarse revision (%s)", ex.atlas_key[:12], exc)
+            atlas = solve_atlas(ws, defn.tol, workers=workers, executor=ex, **kw)
         else:
             atlas = solve_atlas(
                 ws, defn.tol, workers=workers, executor=ex, on_partial=publish, batch=workers,
-                priority=routes,
+                priority=routes, **kw,
             )  # fmt: skip
         return atlas_result(atlas)
+
+    def _started(self, h: str, starting: bool) -> None:
+        """Mark the atlas ``h`` as one robots wait for whose first revision is not out yet
+        (``starting``), or no longer."""
+        with self._cond:
+            if starting:
+                self._starting.add(h)
+            elif h in self._starting:
+                self._starting.discard(h)
+                self._cond.notify_all()
+
+    def hold(self, h: str, background: Callable[[], bool], abandoned: Callable[[], bool]) -> None:
+        """``decompose``'s pause hook (between two tiles, a few ms apart): a background
+        atlas's decomposition waits while an atlas robots wait for has no revision out yet
+        (at most :data:`HOLD_MAX_S` per wait). Threads of one interpreter share it: the
+        footprint atlas's decomposition ran at half speed beside its base's (docs/SLAM.md
+        "Background atlases"). The decomposition does not depend on the wait."""
+        deadline = time.monotonic() + HOLD_MAX_S
+        held = False
+        with self._cond:
+            while (
+                self._starting - {h}
+                and time.monotonic() < deadline
+                and not abandoned()
+                and background()
+            ):
+                held = True
+                self._cond.wait(0.05)
+        if held:
+            self.svc.count("atlas_holds")
 
     def run(
         self,
@@ -519,9 +596,11 @@ class ChartShare:
         fn: Callable[..., ChartResult],
         jobs: list[tuple[Any, ...]],
         abandoned: Callable[[], bool],
+        background: Callable[[], bool] = lambda: False,
     ) -> list[ChartResult]:
         """Every job's result, in order: fetched from a peer, or solved on the service's
-        pool (at most ``workers`` at once) under a claim token."""
+        pool (at most ``workers`` at once) under a claim token; on the background pool
+        while ``background()`` (asked at each submission: no robot waits for the atlas)."""
         keys = [job_key(*args) for args in jobs]
         order = self._order(len(jobs))
         results: dict[int, ChartResult] = {}
@@ -550,7 +629,7 @@ class ChartShare:
                         svc.count("charts_fetched")
                         continue
                     tokens[i] = bus.declare_token(f"{self.prefix}/claim/{a}/{keys[i]}/{bus.zid}")
-                    fut = svc.submit_job(fn, *jobs[i])
+                    fut = svc.submit_job(fn, *jobs[i], background=background())
                     fut.add_done_callback(wake)
                     running[fut] = i
                     free -= 1
@@ -588,11 +667,18 @@ class SharedExecutor(cf.Executor):
     """The executor :func:`confnav.atlas.solve_atlas` solves one atlas's cells with: its
     ``map`` runs :meth:`ChartShare.run` (only ``map`` is provided)."""
 
-    def __init__(self, share: ChartShare, atlas_key: str, abandoned: Callable[[], bool]) -> None:
+    def __init__(
+        self,
+        share: ChartShare,
+        atlas_key: str,
+        abandoned: Callable[[], bool],
+        background: Callable[[], bool] = lambda: False,
+    ) -> None:
         self.share, self.atlas_key, self.abandoned = share, atlas_key, abandoned
+        self.background = background
 
     def map(  # type: ignore[override]
         self, fn: Callable[..., ChartResult], *iterables: Iterable[Any], **_kw: Any
     ) -> Iterator[ChartResult]:
         jobs = list(zip(*iterables, strict=True))
-        return iter(self.share.run(self.atlas_key, fn, jobs, self.abandoned))
+        return iter(self.share.run(self.atlas_key, fn, jobs, self.abandoned, self.background))

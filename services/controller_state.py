@@ -30,6 +30,8 @@ from confnav.services.keys import Keys
 from confnav.services.runtime import Service
 from confnav.services.shard import RobotSelector
 
+from confnav.atlas.wire import ATLAS_MARKER
+
 if TYPE_CHECKING:
     from confnav.services.neighbours import Neighbours
 
@@ -45,8 +47,10 @@ NO_ANSWER_YET = "waiting for the map"
 def map_being_solved(error: str) -> bool:
     """Whether a map error only says the map has no revision yet: the transform service's
     answer while it solves the workspace (``workspace 'x' is being solved; retry``,
-    docs/SERVICES.md) or no answer yet. Robots hold on it instead of stopping."""
-    return error == NO_ANSWER_YET or "is being solved" in error
+    docs/SERVICES.md), its answer that the workspace is an atlas (whose index and charts the
+    controller is fetching: ``atlas: ...``), or no answer yet. Robots hold on it instead of
+    stopping."""
+    return error == NO_ANSWER_YET or "is being solved" in error or error.startswith(ATLAS_MARKER)
 
 
 def waiting_note(ws_id: str) -> str:

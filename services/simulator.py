@@ -40,6 +40,7 @@ from confnav.schemas import (
     CollisionEvent,
     CommandBatch,
     DecodeError,
+    Goal,
     Pose,
     PoseBatch,
     SimControl,
@@ -50,12 +51,19 @@ from confnav.schemas import (
     encode,
 )
 from confnav.services.bus import Bus
-from confnav.services.definitions import load_definition, parse_sources, workspace_of
+from confnav.services.definitions import (
+    ask_for_maps,
+    footprint_of,
+    load_definition,
+    parse_sources,
+    workspace_of,
+)
 from confnav.services.keys import KeyError_, Keys, validate_id
 from confnav.services.runtime import Service, add_zenoh_args, run_until_signal
 from scipy.spatial import cKDTree
 
 from confnav.errors import fmt_point
+from confnav.maps.footprint import derived_ws_id
 from confnav.navigation import defaults
 from confnav.navigation.fleet import swept_min_distance
 from confnav.navigation.sim import _chord_check
@@ -121,9 +129,13 @@ class SimulatorService(Service):
         health_period: float = 1.0,
         max_cmd_age: float = defaults.HOLD_TIME,
         pose_batch: bool = False,
+        maps_ahead: bool = True,
     ) -> None:
         super().__init__(bus, keys, health_period)
         self.sim_id = validate_id(sim_id, "simulator id")
+        #: ask the transform service for the footprint maps of the robots given at start
+        #: (:meth:`_ask_maps`); ``serve simulator --no-maps-ahead``: on first use only
+        self.maps_ahead = maps_ahead
         # one PoseBatch per step on {prefix}/sim/{sim}/poses instead of a Pose per robot
         self.pose_batch = pose_batch
         self.rate_hz = rate_hz
@@ -192,6 +204,21 @@ class SimulatorService(Service):
         self._handles.append(self.bus.subscribe(k.sim(self.sim_id, "spawn"), self._on_spawn))
         self._handles.append(self.bus.subscribe(k.sim(self.sim_id, "control"), self._on_control))
         self.spawn(self._loop, "loop")
+        if self.maps_ahead:
+            self.spawn(self._ask_maps, "maps")
+
+    def _ask_maps(self) -> None:
+        """The robots given at start with a body: ask the transform service for the map of
+        each one's footprint ``{ws}~r{R}`` (R: its radius, plus the library's look-ahead for a
+        unicycle, as for a ``SpawnRequest``), so that it is solved before their goals come
+        (docs/SERVICES.md, "ahead of use"; the ROS 2 bridge does the same for its robots)."""
+        lookahead = float(Goal.model_fields["lookahead"].default)
+        with self._lock:
+            robots = list(self._robots.values())
+        bodies = [(r.ws_id, footprint_of(r.radius, r.drive, lookahead)) for r in robots]
+        ws_ids = [derived_ws_id(ws, radius) for ws, radius in bodies if radius > 0]
+        if ws_ids:
+            ask_for_maps(self.bus, self.keys, ws_ids, self._stop)
 
     def health_detail(self) -> tuple[str, str]:
         with self._lock:
@@ -612,6 +639,14 @@ def add_parser(sub: Any) -> None:
         help="publish one PoseBatch per step on {prefix}/sim/{sim}/poses instead of a Pose per "
         "robot (controllers answer with one CommandBatch; docs/SERVICES.md, Scale)",
     )
+    p.add_argument(
+        "--maps-ahead",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="ask the transform service for the footprint map {ws}~r{R} of every --robot with "
+        "a body at start, so that it is solved before its goal (the default); "
+        "--no-maps-ahead: solved when the first goal asks for it",
+    )
     p.set_defaults(func=main)
 
 
@@ -630,6 +665,7 @@ def main(args: argparse.Namespace) -> int:
             cmd_timeout=args.cmd_timeout,
             max_cmd_age=args.max_cmd_age,
             pose_batch=args.pose_batch,
+            maps_ahead=args.maps_ahead,
         ),
         args,
     )

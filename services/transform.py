@@ -113,8 +113,25 @@ def atlas_hash(h: str) -> str:
     return hashlib.sha256(f"{h}|atlas".encode()).hexdigest()
 
 
-def _worker_init(parent: int) -> None:
-    """In each solver process: exit when the service process dies (even by SIGKILL)."""
+#: Niceness of the background solver processes: the charts of atlases no robot waits for
+#: (:meth:`TransformService.submit_job`). Linux's scheduler weights a nice-0 process ~9x a
+#: nice-10 one [sched(7), "The nice value"], so the charts robots wait for are solved at
+#: nearly full speed while a base atlas nobody drives on yet keeps the rest of the CPU
+#: (docs/SLAM.md "Background atlases").
+BACKGROUND_NICE = 10
+
+
+def _warm_worker() -> None:
+    """A no-op job that starts a worker and imports the chart solver in it (the foreground
+    workers are started with the service, not when the first robot waits)."""
+    import confnav.atlas.charts  # noqa: F401
+
+
+def _worker_init(parent: int, nice: int = 0) -> None:
+    """In each solver process: exit when the service process dies (even by SIGKILL); a
+    background worker lowers its priority by ``nice``."""
+    if nice > 0 and hasattr(os, "nice"):  # lowering one's own priority is always allowed
+        os.nice(nice)
     try:  # Linux: the kernel sends SIGTERM when the parent exits
         import ctypes
         import signal
@@ -177,6 +194,8 @@ class TransformService(Service):
         self._workers = workers
         self._executor_kind = executor
         self._pool: cf.Executor | None = None
+        #: the background pool (niced workers): charts of atlases no robot waits for
+        self._bg_pool: cf.Executor | None = None
         self._lock = threading.RLock()  # submit_job is called with it held
         self._ws: dict[str, _WsState] = {}
         self.max_attempts = max_attempts
@@ -201,16 +220,24 @@ class TransformService(Service):
         return self._workers
 
     # lifecycle -------------------------------------------------------------------------
-    def _new_pool(self) -> cf.Executor:
+    def _new_pool(self, background: bool = False) -> cf.Executor:
         if self._executor_kind == "process":
             ctx = multiprocessing.get_context("spawn")  # never fork a process holding Zenoh
+            nice = BACKGROUND_NICE if background else 0
             return cf.ProcessPoolExecutor(
-                self._workers, mp_context=ctx, initializer=_worker_init, initargs=(os.getpid(),)
+                self._workers,
+                mp_context=ctx,
+                initializer=_worker_init,
+                initargs=(os.getpid(), nice),
             )
         return cf.ThreadPoolExecutor(self._workers, thread_name_prefix="solve")
 
     def _start(self) -> None:
         self._pool = self._new_pool()
+        self._bg_pool = self._new_pool(background=True)
+        if self._executor_kind == "process":  # the foreground workers start (and import) now
+            for _ in range(self._workers):
+                self._pool.submit(_warm_worker)
         self.spawn(self._timeout_loop, "timeouts")
         if self._cache_dir:
             self._cache_dir.mkdir(parents=True, exist_ok=True)
@@ -239,8 +266,9 @@ class TransformService(Service):
     def stop(self) -> None:
         super().stop()
         self._atlas_threads.shutdown(wait=False, cancel_futures=True)
-        if self._pool is not None:
-            self._pool.shutdown(wait=False, cancel_futures=True)
+        for pool in (self._pool, self._bg_pool):
+            if pool is not None:
+                pool.shutdown(wait=False, cancel_futures=True)
 
     def health_detail(self) -> tuple[str, str]:
         with self._lock:
@@ -398,10 +426,20 @@ class TransformService(Service):
             self._results.popitem(last=False)
             self.count("cache_evictions")
 
-    def submit_job(self, fn: Callable[..., Any], *args: Any) -> cf.Future[Any]:
-        """Run ``fn(*args)`` on the solver pool (a new pool if the current one is broken)."""
+    def submit_job(
+        self, fn: Callable[..., Any], *args: Any, background: bool = False
+    ) -> cf.Future[Any]:
+        """Run ``fn(*args)`` on the solver pool (a new pool if the current one is broken);
+        ``background``: on the background pool, whose workers run at :data:`BACKGROUND_NICE`
+        (the charts of an atlas no robot waits for, :meth:`ChartShare.run`)."""
         with self._lock:
             assert self._pool is not None, "service not started"
+            if background and self._bg_pool is not None:
+                try:
+                    return self._bg_pool.submit(fn, *args)
+                except (cf.BrokenExecutor, RuntimeError):  # a worker died: new pool
+                    self._rebuild_pool(background=True)
+                    return self._bg_pool.submit(fn, *args)
             try:
                 return self._pool.submit(fn, *args)
             except (cf.BrokenExecutor, RuntimeError):  # a worker died: new pool
@@ -458,10 +496,12 @@ class TransformService(Service):
             rung = self._rung.get(h, 0)
         fut.add_done_callback(lambda f: self._done(ws_id, h, defn, f, rung))
 
-    def _rebuild_pool(self) -> None:
+    def _rebuild_pool(self, background: bool = False) -> None:
         """Replace a broken pool (lock held)."""
-        old = self._pool
-        self._pool = self._new_pool()
+        if background:
+            old, self._bg_pool = self._bg_pool, self._new_pool(background=True)
+        else:
+            old, self._pool = self._pool, self._new_pool()
         self.count("pool_rebuilds")
         log.warning("solver pool broken: rebuilt")
         if old is not None:

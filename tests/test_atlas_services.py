@@ -343,6 +343,18 @@ def test_replayed_atlas_recording_drives_a_fresh_controller(tmp_path: Path) -> N
     with launched_system(record, tmp_path / "rec", prefix="cnr") as run:
         watch = RobotWatch()
         watch.attach(run.bus, run.keys)
+        busy: list[bool] = []  # per transform health: something solving or refining
+
+        def on_health(_key: str, payload: bytes) -> None:
+            d = json.loads(decode(ServiceHealth, payload).detail)
+            busy.append(bool(d.get("solving") or d.get("refining")))
+
+        run.bus.subscribe(f"{run.keys.prefix}/health/transform/*", on_health)
+        # the final atlas before the goal: a progressive atlas's partial revisions, installed
+        # while the robot drives, reach the replaying controller at other poses than they
+        # reached the recorded one (the replay republishes them at their recorded times),
+        # so the same pose could meet another revision; this test is about the replay
+        wait_for(lambda: busy and not busy[-1], timeout=120, interval=0.5)
         wait_for(
             lambda: [r for r in run.bus.query(run.keys.ws("corr", "atlas")) if r.ok],
             timeout=120,

@@ -291,6 +291,9 @@ def test_bad_inputs_never_crash_a_service(system: System) -> None:
 @pytest.mark.timeout(120)
 def test_mcap_holds_exactly_the_messages_published(system: System) -> None:
     k, bus = system.launcher.keys, system.bus
+    # a commanded robot of its own (the module's other tests may run on another xdist worker)
+    system.goal("r1", "room")
+    wait_for(lambda: system.obs.cmds["r1"], timeout=60)
     sent: Counter[str] = Counter()
     for i in range(400):
         for rid in ("ghost1", "ghost2", "ghost3"):

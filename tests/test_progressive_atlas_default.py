@@ -61,23 +61,23 @@ def test_first_command_before_the_atlas_is_solved_and_the_recording_replays(
     allowed = 0
     submit = tr.submit_job
 
-    def gated(fn: Callable[..., Any], *args: Any) -> Any:
+    def gated(fn: Callable[..., Any], *args: Any, **kw: Any) -> Any:
         """The first two chart jobs (one partial revision: a batch of ``workers`` charts)
         run at once; every other chart waits until the robot has moved."""
         nonlocal allowed
         if fn is tr._solve_fn:  # the workspace's single solve (it says: an atlas)
-            return submit(fn, *args)
+            return submit(fn, *args, **kw)
         with lock:
             free = allowed < 2
             allowed += 1
         if free:
-            return submit(fn, *args)
+            return submit(fn, *args, **kw)
 
         def later(*a: Any) -> Any:
             moved.wait(timeout=300)
             return fn(*a)
 
-        return submit(later, *args)
+        return submit(later, *args, **kw)
 
     tr.submit_job = gated  # type: ignore[method-assign]
 

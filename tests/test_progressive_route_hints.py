@@ -56,23 +56,23 @@ def _gate(tr: TransformService, until: Callable[[int], bool]) -> list[int]:
     def hints() -> int:
         return len(tr.routes.pairs(["corr"]))
 
-    def gated(fn: Callable[..., Any], *args: Any) -> Any:
+    def gated(fn: Callable[..., Any], *args: Any, **kw: Any) -> Any:
         if fn is tr._solve_fn:
 
             def single(*a: Any) -> Any:
                 wait_for(lambda: hints() >= 1, timeout=60)
                 return fn(*a)
 
-            return submit(single, *args)
+            return submit(single, *args, **kw)
         charts.append(len(charts))
         if len(charts) > 1:
-            return submit(fn, *args)
+            return submit(fn, *args, **kw)
 
         def first(*a: Any) -> Any:
             wait_for(lambda: until(hints()), timeout=60)
             return fn(*a)
 
-        return submit(first, *args)
+        return submit(first, *args, **kw)
 
     tr.submit_job = gated  # type: ignore[method-assign]
     return charts

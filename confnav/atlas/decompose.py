@@ -619,6 +619,7 @@ def decompose(
     fine: Iterable[complex] = (),
     fine_vertices: int = 24,
     on_pass: Callable[[Decomposition, float], None] | None = None,
+    pause: Callable[[], None] | None = None,
 ) -> Decomposition:
     """Overlapping cells covering the free space of ``ws`` (module docstring).
 
@@ -651,6 +652,10 @@ def decompose(
     on_pass : called with a pass's decomposition and the margin of the next pass when the
         derived margin is redone (``auto``); a progressive atlas starts its start cells'
         solves from it (a cell the next pass leaves unchanged has the same content hash).
+    pause : called before each tile of the quadtree is cut (a few ms of work apart); the
+        caller may block in it to yield the CPU to more urgent work (the transform service
+        holds a base atlas's decomposition there while a footprint atlas that robots wait
+        for is cut and solved, docs/SLAM.md "Round 5"). The result does not depend on it.
 
     Raises
     ------
@@ -672,7 +677,7 @@ def decompose(
         )
     params = _Params(
         tile, overlap, max_ratio, max_ratio_holes, max_obstacles, min_tile,
-        tuple(complex(z) for z in fine), int(fine_vertices),
+        tuple(complex(z) for z in fine), int(fine_vertices), pause,
     )  # fmt: skip
     forced = frozenset(split)
     floor = 1e-3 * 0.1 * r  # below this an automatic margin is a hairline, not a passage
@@ -714,6 +719,7 @@ class _Params:
     min_tile: float
     fine: tuple[complex, ...] = ()
     fine_vertices: int = 24
+    pause: Callable[[], None] | None = None  # see decompose's ``pause``
 
 
 def _too_many_corners(pieces: list[Polygon], core: Tile, p: _Params) -> bool:
@@ -848,6 +854,8 @@ def _decompose(
     ]
     polys: list[tuple[Polygon, Tile, float]] = []
     while todo:
+        if p.pause is not None:
+            p.pause()
         core = todo.pop(0)
         side = core[2] - core[0]
         band = max(overlap * side, 2 * margin)

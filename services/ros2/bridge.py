@@ -269,25 +269,14 @@ class Ros2Bridge(Service):
         exact shrunk geometry, until its footprint map is solved: docs/ROS2.md) and the map of
         its footprint ``{ws}~r{R}``; retried every 2 s while no transform service knows the
         workspace (at most 5 minutes)."""
-        from confnav.services.definitions import footprint_of
+        from confnav.services.definitions import ask_for_maps, footprint_of
 
         from confnav.maps.footprint import derived_ws_id
 
         c = self.config
         radius = footprint_of(c.robot_radius, c.drive, c.lookahead)
-        todo = sorted(
-            {s.ws_id for s in c.robots} | {derived_ws_id(s.ws_id, radius) for s in c.robots}
-        )
-        deadline = time.monotonic() + 300.0
-        while todo and not self._stop.is_set() and time.monotonic() < deadline:
-            for ws in list(todo):
-                try:
-                    replies = self.bus.query(self.keys.ws(ws, "transform"), timeout=2.0)
-                except Exception:
-                    continue
-                if any(r.ok or "unknown workspace" not in (r.error or "") for r in replies):
-                    todo.remove(ws)  # solved, or being solved
-            self._stop.wait(2.0)
+        ws_ids = {s.ws_id for s in c.robots} | {derived_ws_id(s.ws_id, radius) for s in c.robots}
+        ask_for_maps(self.bus, self.keys, sorted(ws_ids), self._stop)
 
     def _close_ros(self) -> None:
         """Stop every robot (a base without a cmd_vel timeout keeps its last command), then
