@@ -83,7 +83,9 @@ from confnav.scenes.workspaces import (
 #: and the dense GNK matrices scanned for coincident nodes only where np.unique finds some
 #: (gnk.ZERO_SCAN_ALWAYS = False; every other design: every matrix scanned) and assembled by
 #: blocks of rows (gnk.ASSEMBLY_BLOCK_BYTES; every other design: whole-matrix passes) -- the
-#: same matrices bit for bit.
+#: same matrices bit for bit. ``round7``: that and the holes swept in the order of their
+#: circles' change between the last two levels, smallest first (solver.SWEEP_ORDER; every
+#: other design: 1..M).
 _LEAN = {"smooth_fmm": True, "carry": True, "corner": True, "blas1": True, "lean": True}
 
 
@@ -129,8 +131,11 @@ DESIGNS: dict[str, dict[str, bool]] = {
         # ... and the re-solve's first sweep resumed from the base level's snapshot before the
         # first refined boundary (solver.REFINE_SNAPSHOTS; every design above: off)
         ("round5s", {"snapshots": True}),
-        # ... and the mesh planner's feature distances pruned by bounding boxes (the default)
+        # ... and the mesh planner's feature distances pruned by bounding boxes
         ("round6", {"prune": True}),
+        # round 7: the holes swept in the order of their change between the last two levels
+        # (solver.SWEEP_ORDER; every design above: 1..M)
+        ("round7", {"order": True}),
     ),
 }
 #: The solver's own setting (restored after :func:`fleet_step_rounding`).
@@ -200,6 +205,7 @@ def use_design(name: str) -> None:
     solver.START_BY_CORNERS = d.get("start", False)
     solver.REFINE_SNAPSHOTS = d.get("snapshots", False)
     meshing.NEAR_FEATURES_FIRST = _NEAR_FEATURES if d.get("prune", False) else 1 << 30
+    solver.SWEEP_ORDER = d.get("order", False)
     gnk.ZERO_SCAN_ALWAYS = not d.get("prune", False)
     gnk.ASSEMBLY_BLOCK_BYTES = _BLOCK_BYTES if d.get("prune", False) else 0
 

@@ -316,6 +316,7 @@ def _solve_level(
     carry: LevelCarry | None = None,
     reuse_first: list[CurveMap | None] | None = None,
     reuse_snapshots: dict[int, Any] | None = None,
+    order: list[int] | None = None,
 ) -> tuple[CircleDomainResult, list[BoundaryMesh]]:
     if plans is None:
         plans = plan_boundaries(ws, nodes_per_side, tol)
@@ -356,6 +357,7 @@ def _solve_level(
             reuse_first=reuse_first if REFINE_REUSE else None,
             snapshots=REFINE_REUSE and REFINE_SNAPSHOTS,
             reuse_snapshots=reuse_snapshots if REFINE_REUSE and REFINE_SNAPSHOTS else None,
+            order=order,
         )
     return res, meshes
 
@@ -506,6 +508,45 @@ REFINE_REUSE = True
 REFINE_SNAPSHOTS = True
 
 
+#: Sweep the holes in the order of their sharpest tips, bluntest first (:func:`_sweep_order`;
+#: round 7, issue 24); False: 1..M.
+SWEEP_ORDER = True
+#: Free-space angles within this many degrees count as equal (the natural order is kept among
+#: them, e.g. for the holes of a mirror-symmetric workspace, whose angles agree to rounding).
+SWEEP_ORDER_DEGREES = 1.0
+
+
+def _sweep_order(ws: Workspace) -> list[int] | None:
+    """The order in which every level's sweeps map the holes (:func:`koebe_iteration`'s
+    ``order``): by the largest free-space angle at a corner of each hole (360 degrees minus
+    its sharpest tip), smallest first, so that the holes with the sharpest tips come last;
+    None (1..M) with :data:`SWEEP_ORDER` off or fewer than two holes.
+
+    Why: a per-side refinement (:func:`_refine_sides`) re-solves the graded first-sweep
+    equations from its first refined boundary on in the sweep's order (those before it are
+    reused bit for bit, :data:`REFINE_REUSE`), and the sides its boundary residual names are
+    where the discretisation is worst: at the sharpest tips, where the map's leading
+    singularity ``(z - v)^(1/alpha)`` is strongest (Henrici, "Applied and Computational
+    Complex Analysis", Vol. 1, sec. 5.11; :data:`START_BY_CORNERS`). Measured on 50 mixed
+    obstacles to 1e-8 (bench/README.md "Round 7"): the eight boundaries with the largest
+    residual at 180 nodes per side were eight of the ten sharpest tips, the one refined (hole
+    28) the fourth sharpest; on 10 mixed obstacles the largest residual was at the sharpest.
+    The order is the workspace's, the same at every level: a carried level
+    (:data:`LEVEL_CARRY`) continues the previous level's map after its own first sweep, which
+    needs the first sweeps to compose the same maps in the same order (an order taken from
+    the level differences, known only from the third level on, cost 5 sweeps instead of 3 at
+    180 nodes per side on 50 obstacles). The order changes the first sweep's discretisation
+    path, not the fixed point the sweeps converge to for it (each map of a sweep is a
+    conformal image of the domain): the circle domain moves by an amount of the level's
+    discretisation error, which the three-level estimate and the boundary residual measure
+    as before."""
+    if not SWEEP_ORDER or ws.n_obstacles < 2:
+        return None
+    angles = free_angles(ws)[1:]
+    key = np.round(np.asarray(angles) / SWEEP_ORDER_DEGREES)
+    return [int(k) + 1 for k in np.argsort(key, kind="stable")]
+
+
 def _bad_sides(m: ConformalMap, plans: list[PanelPlan], tol: float) -> list[tuple[int, int]]:
     """(boundary, side of its plan) of every residual check point above ``tol``: the side
     nearest to the point (a point at a corner belongs to both its sides: both are returned)."""
@@ -595,6 +636,7 @@ def _refine_sides(
                 carry=base[0].carry,
                 reuse_first=last.first_maps,
                 reuse_snapshots=last.first_snapshots,
+                order=res0.order or None,
             )
         except ConvergenceError as exc:
             log.warning("local refinement failed (%s)", exc)
@@ -762,17 +804,23 @@ SHARP_FREE_ANGLE = 300.0
 SHARP_START: tuple[tuple[float, int], ...] = ((1e-7, 0), (1e-9, 80), (0.0, 120))
 
 
-def largest_free_angle(ws: Workspace) -> float:
-    """The largest free-space angle (degrees) at a corner of any boundary: 360 minus the
-    sharpest obstacle tip, or a room corner's own angle."""
-    out = 0.0
+def free_angles(ws: Workspace) -> list[float]:
+    """Per boundary (outer first), the largest free-space angle (degrees) at one of its
+    corners: 360 minus an obstacle's sharpest tip, or a room corner's own angle."""
+    out = []
     for j, b in enumerate(ws.boundaries):
         v = np.asarray(b)
         if (signed_area(v) > 0) == (j > 0):
             v = v[::-1]  # free space on the left: outer counter-clockwise, holes clockwise
         turn = np.angle((np.roll(v, -1) - v) / (v - np.roll(v, 1)))
-        out = max(out, float(np.degrees(np.max(np.pi - turn))))
+        out.append(float(np.degrees(np.max(np.pi - turn))))
     return out
+
+
+def largest_free_angle(ws: Workspace) -> float:
+    """The largest free-space angle (degrees) at a corner of any boundary: 360 minus the
+    sharpest obstacle tip, or a room corner's own angle."""
+    return max(free_angles(ws), default=0.0)
 
 
 def _sharp_start(ws: Workspace | None, tol: float) -> int:
@@ -870,6 +918,7 @@ class _Refinement:
         self.warm: _Warm | None = None
         self.carry: LevelCarry | None = None
         self.done = False
+        self.order = _sweep_order(workspace) if method == "koebe" else None
 
     def run(self, levels: list[int]) -> ConformalMap:
         """Refine through ``levels`` until one is certified or none is left; the best map."""
@@ -918,6 +967,7 @@ class _Refinement:
                 accel=self.accel,
                 method=self.method,
                 carry=self.carry,
+                order=self.order,
             )
         except GapError as exc:
             if self.best is None:
