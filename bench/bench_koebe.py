@@ -84,8 +84,10 @@ from confnav.scenes.workspaces import (
 #: (gnk.ZERO_SCAN_ALWAYS = False; every other design: every matrix scanned) and assembled by
 #: blocks of rows (gnk.ASSEMBLY_BLOCK_BYTES; every other design: whole-matrix passes) -- the
 #: same matrices bit for bit. ``round7``: that and the holes swept in the order of their
-#: circles' change between the last two levels, smallest first (solver.SWEEP_ORDER; every
-#: other design: 1..M).
+#: sharpest tips, bluntest first (solver.SWEEP_ORDER; every other design: 1..M);
+#: ``round7b``: that and the dense GNK matrices' real and imaginary parts written into two
+#: contiguous real matrices during the assembly (gnk.DENSE_SPLIT_ASSEMBLY; every other design:
+#: the complex matrix kept, DENSE_INTERLEAVED).
 _LEAN = {"smooth_fmm": True, "carry": True, "corner": True, "blas1": True, "lean": True}
 
 
@@ -136,6 +138,9 @@ DESIGNS: dict[str, dict[str, bool]] = {
         # round 7: the holes swept in the order of their change between the last two levels
         # (solver.SWEEP_ORDER; every design above: 1..M)
         ("round7", {"order": True}),
+        # ... and the dense GNK matrices' parts written into two contiguous real matrices
+        # during the assembly (gnk.DENSE_SPLIT_ASSEMBLY; every design above: kept complex)
+        ("round7b", {"split": True}),
     ),
 }
 #: The solver's own setting (restored after :func:`fleet_step_rounding`).
@@ -206,6 +211,7 @@ def use_design(name: str) -> None:
     solver.REFINE_SNAPSHOTS = d.get("snapshots", False)
     meshing.NEAR_FEATURES_FIRST = _NEAR_FEATURES if d.get("prune", False) else 1 << 30
     solver.SWEEP_ORDER = d.get("order", False)
+    gnk.DENSE_SPLIT_ASSEMBLY = d.get("split", False)
     gnk.ZERO_SCAN_ALWAYS = not d.get("prune", False)
     gnk.ASSEMBLY_BLOCK_BYTES = _BLOCK_BYTES if d.get("prune", False) else 0
 
