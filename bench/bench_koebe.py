@@ -87,7 +87,9 @@ from confnav.scenes.workspaces import (
 #: sharpest tips, bluntest first (solver.SWEEP_ORDER; every other design: 1..M);
 #: ``round7b``: that and the dense GNK matrices' real and imaginary parts written into two
 #: contiguous real matrices during the assembly (gnk.DENSE_SPLIT_ASSEMBLY; every other design:
-#: the complex matrix kept, DENSE_INTERLEAVED).
+#: the complex matrix kept, DENSE_INTERLEAVED); ``round7c``: that and smooth grids of up to
+#: 2048 nodes solved with dense GNK matrices (gnk.SMOOTH_DENSE_MAX_NODES; every other design
+#: with ``smooth_fmm``: 1024).
 _LEAN = {"smooth_fmm": True, "carry": True, "corner": True, "blas1": True, "lean": True}
 
 
@@ -141,6 +143,9 @@ DESIGNS: dict[str, dict[str, bool]] = {
         # ... and the dense GNK matrices' parts written into two contiguous real matrices
         # during the assembly (gnk.DENSE_SPLIT_ASSEMBLY; every design above: kept complex)
         ("round7b", {"split": True}),
+        # ... and smooth grids up to 2048 nodes solved densely (gnk.SMOOTH_DENSE_MAX_NODES;
+        # every design above: 1024)
+        ("round7c", {"smooth2048": True}),
     ),
 }
 #: The solver's own setting (restored after :func:`fleet_step_rounding`).
@@ -188,7 +193,8 @@ def use_design(name: str) -> None:
     from confnav.conformal import solver
 
     d = DESIGNS[name]
-    gnk.SMOOTH_DENSE_MAX_NODES = _SMOOTH_DEFAULT if d["smooth_fmm"] else gnk.DENSE_MAX_NODES
+    smooth = _SMOOTH_DEFAULT if d.get("smooth2048", False) else _SMOOTH_BEFORE_ROUND7
+    gnk.SMOOTH_DENSE_MAX_NODES = smooth if d["smooth_fmm"] else gnk.DENSE_MAX_NODES
     solver.LEVEL_CARRY = d["carry"]
     gnk.CORNER_PRECONDITIONER = d["corner"]
     solver.SOLVE_BLAS_THREADS = 1 if d["blas1"] else None
@@ -217,6 +223,7 @@ def use_design(name: str) -> None:
 
 
 _SMOOTH_DEFAULT = gnk.SMOOTH_DENSE_MAX_NODES
+_SMOOTH_BEFORE_ROUND7 = 1024
 _POWERS = cauchy._powers
 _GRID_SIZE = circledomain._local_grid_size
 _RESIDUALS = ConformalMap.boundary_residuals

@@ -106,7 +106,16 @@ DENSE_MAX_NODES = 3200
 #: Below ~1400 nodes the matrix-free product is a direct sum
 #: (:func:`confnav.conformal.cauchy.cauchy_self`), which rebuilds the kernel per product: the
 #: dense build wins there, hence the limit.
-SMOOTH_DENSE_MAX_NODES = 1024
+#: Round 7: 1024 -> 2048. Since round 3 the smooth grids take sizes in eighths of an octave
+#: (1117, 1218, 1328, ...: circledomain.GRID_STEPS), not only powers of two, and those between
+#: 1024 and ~1414 fell to the matrix-free *direct* sums (below cauchy.FMM_THRESHOLD) that
+#: rebuild the n^2 kernel at every product. Measured (a ``/tmp`` microbenchmark, an interior
+#: map of a smooth curve, one BLAS thread, 9 GMRES iterations, ms, matrix-free / dense with the
+#: split assembly, :data:`DENSE_SPLIT_ASSEMBLY`): 1100 nodes 136 / 13, 1280 175 / 18, 1600
+#: (FMM) 95 / 29, 2048 112 / 51, 2600 156 / 93, 3584 194 / 193; the default workspace shrunk
+#: by 0.2 m solves its outer boundary's 1280-point grid in every sweep (bench/README.md
+#: "Round 7").
+SMOOTH_DENSE_MAX_NODES = 2048
 
 #: Keep a dense GNK matrix complex and take its real and imaginary parts' products through
 #: its float view (the other part's slots multiplied by exact zeros) instead of copying the
