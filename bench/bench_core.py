@@ -1319,6 +1319,26 @@ def run_profile(out_path: Path, cases: list[str], designs: list[str], append: bo
     return 0
 
 
+def _warm_up() -> float:
+    """Round 7: an untimed solve of a one-box room before the first row (as the main
+    benchmark warms up before its rows): the first solve of a process pays imports, the FMM
+    library's and the BLAS thread pools' set-up (the default workspace to 1e-10 took 1.09 s
+    as the first row of ``core_targets_round7.json`` where the profile run had 0.67 s). The
+    mesh planner's memory is emptied afterwards, so no row finds its workspace planned.
+    Returns the warm-up's CPU seconds."""
+    import confnav.conformal.meshing as meshing
+
+    room = confnav.Workspace(
+        [[-1, -1], [1, -1], [1, 1], [-1, 1]], [[[0.2, 0.2], [0.5, 0.2], [0.5, 0.5], [0.2, 0.5]]]
+    )
+    c0 = time.process_time()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", AccuracyWarning)
+        confnav.solve(room, tol=1e-6)
+    meshing._FEATURE_CACHE.clear()
+    return time.process_time() - c0
+
+
 def run_targets(out_path: Path, groups: list[str], append: bool) -> int:
     """The issue-24 target rows at HEAD, one group after the other in this process (CPU
     seconds are what a row costs whatever the load; wall and load beside them)."""
@@ -1332,6 +1352,7 @@ def run_targets(out_path: Path, groups: list[str], append: bool) -> int:
     if append and out_path.exists():
         old = json.loads(out_path.read_text())
     runs = list(old.get("runs", []))
+    info["warm_up_cpu_s"] = _warm_up()
     for g in groups:
         rows, tg = target_rows(g)
         for r in rows:
@@ -1581,6 +1602,50 @@ def _split_rows() -> list[dict[str, Any]]:
     return rows
 
 
+def _certificate_rows() -> dict[str, Any]:
+    """Round 7: what the certificate's FMM sums cost on the final 50-obstacle map by the
+    number of targets (all check points, a tenth, a hundredth), and the denominator sums at
+    the refined boundary's check points by one FMM call against boundary by boundary (what
+    updating a refined map's residual from its base would take), CPU s, best of 2."""
+    import confnav.conformal.cauchy as ca
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", AccuracyWarning)
+        m = confnav.solve(mixed_obstacles(50, seed=0), tol=1e-8)
+    z, _res, owner = m.boundary_residuals()
+    eta, deta = m._parts[0], m._parts[1]
+
+    def best(f: Callable[[], Any]) -> float:
+        out = float("inf")
+        for _ in range(2):
+            c0 = time.process_time()
+            f()
+            out = min(out, time.process_time() - c0)
+        return out
+
+    rows: dict[str, Any] = {"nodes": int(m.n_nodes), "check_points": int(z.size)}
+    for share in (1, 10, 100):
+        pts = z[::share]
+        rows[f"fmm_targets_{pts.size}_cpu_s"] = best(lambda p=pts: ca._fmm(m._eta, m._q_deta, p))
+    from confnav.conformal.meshing import plan_boundaries
+
+    # the boundaries the per-side refinement re-meshed: node counts off the level's plan
+    plans = plan_boundaries(m.workspace, m.diagnostics.nodes_per_side, 1e-8)
+    refined = [j for j, p in enumerate(plans) if p.total != m.diagnostics.nodes[j]]
+    rows["refined_boundaries"] = refined
+    zc = z[np.isin(owner, refined)]
+    rows["changed_boundary_points"] = int(zc.size)
+    rows["denominator_one_call_cpu_s"] = best(lambda: ca.cauchy_sums(m._eta, [m._q_deta], zc))
+    rows["denominator_by_boundary_cpu_s"] = best(
+        lambda: [
+            ca.cauchy_sums(e, [(2 * np.pi / e.size) * d], zc)
+            for e, d in zip(eta, deta, strict=True)
+        ]
+    )
+    print(f"  certificate sums: {rows}", flush=True)
+    return rows
+
+
 def run_probes7(out_path: Path) -> int:
     """``--probes7`` (round 7): the sweep order side by side (:func:`_order_case`), the
     smooth grids' GNK solves dense or matrix-free (:func:`_smooth_rows`) and the dense
@@ -1589,6 +1654,7 @@ def run_probes7(out_path: Path) -> int:
     print(f"confnav round-7 probes, commit {code['commit'][:12]}, load {load1():.2f}", flush=True)
     with threadpool_limits(limits=1, user_api="blas"):  # as a solve runs its products
         smooth, split = _smooth_rows(), _split_rows()
+        cert = _certificate_rows()
     order = []
     for case in ("mixed50", "default8", "default", "shrunk", "gap001"):
         order.append(_order_case(case))
@@ -1606,6 +1672,7 @@ def run_probes7(out_path: Path) -> int:
                 "order": order,
                 "smooth": smooth,
                 "split": split,
+                "certificate": cert,
             },
             indent=1,
         )

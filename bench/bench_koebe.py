@@ -89,7 +89,9 @@ from confnav.scenes.workspaces import (
 #: contiguous real matrices during the assembly (gnk.DENSE_SPLIT_ASSEMBLY; every other design:
 #: the complex matrix kept, DENSE_INTERLEAVED); ``round7c``: that and smooth grids of up to
 #: 2048 nodes solved with dense GNK matrices (gnk.SMOOTH_DENSE_MAX_NODES; every other design
-#: with ``smooth_fmm``: 1024).
+#: with ``smooth_fmm``: 1024); ``round7d``: that and a per-side refinement's map taking the
+#: denominator sums of its residual from the map it refines where its nodes are the same
+#: (solver.REUSE_DENOMINATORS; every other design: summed afresh).
 _LEAN = {"smooth_fmm": True, "carry": True, "corner": True, "blas1": True, "lean": True}
 
 
@@ -146,6 +148,9 @@ DESIGNS: dict[str, dict[str, bool]] = {
         # ... and smooth grids up to 2048 nodes solved densely (gnk.SMOOTH_DENSE_MAX_NODES;
         # every design above: 1024)
         ("round7c", {"smooth2048": True}),
+        # ... and a refined map's residual taking its base's denominator sums where its nodes
+        # are the base's (solver.REUSE_DENOMINATORS; every design above: summed afresh)
+        ("round7d", {"denominators": True}),
     ),
 }
 #: The solver's own setting (restored after :func:`fleet_step_rounding`).
@@ -218,6 +223,7 @@ def use_design(name: str) -> None:
     meshing.NEAR_FEATURES_FIRST = _NEAR_FEATURES if d.get("prune", False) else 1 << 30
     solver.SWEEP_ORDER = d.get("order", False)
     gnk.DENSE_SPLIT_ASSEMBLY = d.get("split", False)
+    solver.REUSE_DENOMINATORS = d.get("denominators", False)
     gnk.ZERO_SCAN_ALWAYS = not d.get("prune", False)
     gnk.ASSEMBLY_BLOCK_BYTES = _BLOCK_BYTES if d.get("prune", False) else 0
 

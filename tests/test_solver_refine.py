@@ -338,3 +338,44 @@ def test_an_ordered_sweep_resumes_only_with_its_own_order() -> None:
     assert dist <= 1e-2 * change, (dist, change)
     with pytest.raises(ValueError, match="permutation"):
         koebe_iteration(meshes, holes, ws.anchor, 1e-9, order=[1, 2, 2])
+
+
+def test_a_refined_maps_residual_takes_the_base_denominators_to_rounding(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Round 7 (``solver.REUSE_DENOMINATORS``): a map with one hole re-meshed takes its
+    residual's denominator sums at the other boundaries' check points from the base map's,
+    corrected by the re-meshed hole's terms; its residual equals the one summed afresh to
+    rounding (the map is large enough for the FMM branch that keeps the sums)."""
+    ws, tol = room(), 1e-8
+    coarse, fine = plan_boundaries(ws, 180, tol), plan_boundaries(ws, 256, tol)
+    plans = list(coarse)
+    plans[2] = fine[2]
+
+    def level(ps: list[PanelPlan]) -> solver._Level:
+        res, meshes = solver._solve_level(ws, 180, tol, None, plans=ps)
+        return (res, [m.eta for m in meshes], [m.deta for m in meshes], 180, 0.0, [])
+
+    base = solver._make_map(ws, level(coarse), tol, [], [], 0.0)
+    assert base._denominators is not None  # the FMM branch: sums kept
+    refined = level(plans)
+    fresh = solver._make_map(ws, refined, tol, [], [], 0.0)
+    taken: list[bool] = []
+    real = ConformalMap._denominators_from
+
+    def spy(self: ConformalMap, targets: list[np.ndarray]) -> np.ndarray | None:
+        out = real(self, targets)
+        taken.append(out is not None)
+        return out
+
+    monkeypatch.setattr(ConformalMap, "_denominators_from", spy)
+    reused = solver._make_map(ws, refined, tol, [], [], 0.0, denominators_from=base)
+    assert taken == [True]
+    za, ra, oa = fresh.boundary_residuals()
+    zb, rb, ob = reused.boundary_residuals()
+    assert np.array_equal(za, zb) and np.array_equal(oa, ob)
+    assert np.all(np.isfinite(rb))
+    assert np.max(np.abs(ra - rb)) <= 1e-13
+    assert reused.diagnostics.boundary_residual == pytest.approx(
+        fresh.diagnostics.boundary_residual, rel=1e-6, abs=1e-14
+    )

@@ -200,6 +200,24 @@ missed), the default workspace to 1e-10 0.95 s (0.5 s missed). The certificates 
 each is the boundary residual's two FMM sums at full precision (0.75 of its 0.79 s on 50
 obstacles); a lower FMM precision there moved the residual by 1.8e-11 and was not built.
 
+Round 7 (issue 24; bench/README.md "Round 7"). Three changes, the certificate unchanged: the
+holes are swept bluntest tip first, sharpest last, at every level (:func:`_sweep_order`), so
+that a per-side refinement, which the residual asks for at the sharpest tips, re-solves the
+first sweep from late in the order (50 obstacles: 46 of 51 first-sweep maps reused instead of
+28, the maps 1.0e-11 apart; ``core_probes_round7.json``); the dense GNK matrices' real and
+imaginary parts are written into two contiguous real matrices during the assembly
+(:data:`confnav.conformal.gnk.DENSE_SPLIT_ASSEMBLY`: a GMRES product reads one part); smooth
+grids of up to 2048 nodes are solved densely
+(:data:`confnav.conformal.gnk.SMOOTH_DENSE_MAX_NODES`: grids of 1117-1414 nodes had fallen to
+matrix-free direct sums). Side by side (``core_profile_round7.json`` at a21ddac, load 3.2-3.8,
+CPU s, round 6 / the order / and the split): 50 obstacles 10.43 / 10.01 / 9.29, the default
+workspace to 1e-10 0.96 / 0.86 / 0.67; the dense smooth grids: the default shrunk by 0.2 m 2.26
+-> 1.54 s (``core_profile_round7c.json``). Every map tol_met with the same estimate. Levers
+measured and not built: the certificate's FMM sums are dominated by their 46,480 sources (one
+sum to 400 points costs half of one to 40,000), so fewer check points would save little; the
+parts of a refined map's residual that its unchanged boundaries determine (the denominator
+sums) cost about as much to update as to sum again.
+
 ``tol_met`` is true only if all are within ``tol`` and nothing is ``unverified``. A map that
 misses ``tol`` is returned with ``tol_met = False`` and an :class:`AccuracyWarning`; one whose
 estimate exceeds :data:`UNUSABLE_ERROR` (or the caller's ``max_error``) raises
@@ -374,8 +392,12 @@ def _make_map(
     caps: list[str],
     refinements: list[dict[str, float]],
     t0: float,
+    denominators_from: ConformalMap | None = None,
 ) -> ConformalMap:
-    """The map of one solved level with its full error budget (residual computed here)."""
+    """The map of one solved level with its full error budget (residual computed here);
+    ``denominators_from``: the map of the same level this one refines, whose residual's
+    denominator sums it may take where its nodes are the same
+    (:meth:`ConformalMap.reuse_denominators`, :data:`REUSE_DENOMINATORS`)."""
     res, eta, deta, ns, disc, unverified = level
     diag = SolveReport(
         tol=tol,
@@ -400,6 +422,8 @@ def _make_map(
         min_radius=float(np.min(res.radii)) if res.radii.size else 1.0,
     )
     m = ConformalMap(ws, eta, deta, res.W, res.dW, res.centers, res.radii, diag)
+    if denominators_from is not None and REUSE_DENOMINATORS:
+        m.reuse_denominators(denominators_from)
     diag.crowding = crowding(m)
     m.diagnostics = diag.with_residual(m.boundary_residual())
     m.diagnostics.wall_time = time.perf_counter() - t0
@@ -507,6 +531,12 @@ REFINE_REUSE = True
 #: maps to every other boundary again.
 REFINE_SNAPSHOTS = True
 
+
+#: A per-side refinement's map takes the denominator sums of its residual from the map it
+#: refines where its nodes are that map's (:meth:`ConformalMap.reuse_denominators`; round 7):
+#: on 50 obstacles one FMM sum over 46,480 nodes (0.36 s CPU) becomes ~0.1 s of sums from the
+#: one refined boundary (bench/README.md "Round 7"); the same sums to rounding.
+REUSE_DENOMINATORS = True
 
 #: Sweep the holes in the order of their sharpest tips, bluntest first (:func:`_sweep_order`;
 #: round 7, issue 24); False: 1..M.
@@ -658,7 +688,7 @@ def _refine_sides(
                 "resumed_at": res.resumed_at,
             }
         )
-        m = _make_map(ws, lvl, tol, caps, refinements, t0)
+        m = _make_map(ws, lvl, tol, caps, refinements, t0, denominators_from=m)
         refinements[-1]["boundary_residual"] = m.diagnostics.boundary_residual
         if m.diagnostics.tol_met:
             return m, lvl
