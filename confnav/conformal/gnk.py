@@ -109,12 +109,12 @@ DENSE_MAX_NODES = 3200
 #: Round 7: 1024 -> 2048. Since round 3 the smooth grids take sizes in eighths of an octave
 #: (1117, 1218, 1328, ...: circledomain.GRID_STEPS), not only powers of two, and those between
 #: 1024 and ~1414 fell to the matrix-free *direct* sums (below cauchy.FMM_THRESHOLD) that
-#: rebuild the n^2 kernel at every product. Measured (a ``/tmp`` microbenchmark, an interior
-#: map of a smooth curve, one BLAS thread, 9 GMRES iterations, ms, matrix-free / dense with the
-#: split assembly, :data:`DENSE_SPLIT_ASSEMBLY`): 1100 nodes 136 / 13, 1280 175 / 18, 1600
-#: (FMM) 95 / 29, 2048 112 / 51, 2600 156 / 93, 3584 194 / 193; the default workspace shrunk
-#: by 0.2 m solves its outer boundary's 1280-point grid in every sweep (bench/README.md
-#: "Round 7").
+#: rebuild the n^2 kernel at every product. Measured (bench/results/core_probes_round7.json,
+#: an interior map of a smooth curve, one BLAS thread, 9 GMRES iterations, ms, matrix-free /
+#: dense with the split assembly, :data:`DENSE_SPLIT_ASSEMBLY`): 1117 nodes 125 / 13, 1280
+#: 165 / 17, 1579 (FMM) 94 / 27, 2048 112 / 48, 2580 152 / 83, 3584 193 / 192; the default
+#: workspace shrunk by 0.2 m solves its outer boundary's 1280-point grid in every sweep:
+#: 2.40 -> 1.65 s CPU with the other round-7 changes (bench/README.md "Round 7").
 SMOOTH_DENSE_MAX_NODES = 2048
 
 #: Keep a dense GNK matrix complex and take its real and imaginary parts' products through
@@ -137,9 +137,10 @@ DENSE_INTERLEAVED = True
 #: ``I - N`` then reads one part (8 n^2 bytes) instead of the complex matrix with zeros in the
 #: other part's slots (16 n^2 bytes, twice the flops). The same entries bit for bit; the
 #: products equal the interleaved ones to rounding (BLAS summation order). Measured
-#: (a ``/tmp`` microbenchmark, one BLAS thread, load ~2.3, assembly + 8 products of ``I - N``
-#: + 2 of ``M``, as a graded solve does): 0.74 -> 0.60 ms at 300 nodes, 7.5 -> 6.5 at 900,
-#: 32.0 -> 24.6 at 1500, 126.8 -> 96.7 at 3000; in the solves: bench/README.md "Round 7".
+#: (bench/results/core_probes_round7.json, one BLAS thread, load 2.1-2.7, construction + 8
+#: products of ``I - N`` + 2 of ``M``, as a graded solve does, ms): 0.90 -> 0.82 at 300 nodes,
+#: 7.7 -> 6.9 at 900, 31.6 -> 20.6 at 1500, 134.1 -> 92.6 at 2968; in the solves:
+#: bench/README.md "Round 7".
 DENSE_SPLIT_ASSEMBLY = True
 
 #: Rows of a dense GNK matrix per block of its assembly (:func:`_assemble`), in bytes of the

@@ -200,7 +200,7 @@ missed), the default workspace to 1e-10 0.95 s (0.5 s missed). The certificates 
 each is the boundary residual's two FMM sums at full precision (0.75 of its 0.79 s on 50
 obstacles); a lower FMM precision there moved the residual by 1.8e-11 and was not built.
 
-Round 7 (issue 24; bench/README.md "Round 7"). Three changes, the certificate unchanged: the
+Round 7 (issue 24; bench/README.md "Round 7"). Four changes, the certificate unchanged: the
 holes are swept bluntest tip first, sharpest last, at every level (:func:`_sweep_order`), so
 that a per-side refinement, which the residual asks for at the sharpest tips, re-solves the
 first sweep from late in the order (50 obstacles: 46 of 51 first-sweep maps reused instead of
@@ -209,14 +209,16 @@ imaginary parts are written into two contiguous real matrices during the assembl
 (:data:`confnav.conformal.gnk.DENSE_SPLIT_ASSEMBLY`: a GMRES product reads one part); smooth
 grids of up to 2048 nodes are solved densely
 (:data:`confnav.conformal.gnk.SMOOTH_DENSE_MAX_NODES`: grids of 1117-1414 nodes had fallen to
-matrix-free direct sums). Side by side (``core_profile_round7.json`` at a21ddac, load 3.2-3.8,
-CPU s, round 6 / the order / and the split): 50 obstacles 10.43 / 10.01 / 9.29, the default
-workspace to 1e-10 0.96 / 0.86 / 0.67; the dense smooth grids: the default shrunk by 0.2 m 2.26
--> 1.54 s (``core_profile_round7c.json``). Every map tol_met with the same estimate. Levers
-measured and not built: the certificate's FMM sums are dominated by their 46,480 sources (one
-sum to 400 points costs half of one to 40,000), so fewer check points would save little; the
-parts of a refined map's residual that its unchanged boundaries determine (the denominator
-sums) cost about as much to update as to sum again.
+matrix-free direct sums); a refined map's residual takes the denominator sums of the map it
+refines where its nodes are the same (:data:`REUSE_DENOMINATORS`). Side by side
+(``core_profile_round7.json`` at a21ddac, load 3.2-3.8, CPU s, round 6 / the order / and the
+split): 50 obstacles 10.43 / 10.01 / 9.29, the default workspace to 1e-10 0.96 / 0.86 / 0.67;
+round 6 against all four (``core_profile_round7_final.json`` at 360a629, load 2.9-4.1): 50
+obstacles 10.09 -> 8.95 (the refined map's certificate 0.77 -> 0.43), the default workspace
+to 1e-10 0.91 -> 0.67, shrunk by 0.2 m 2.40 -> 1.65, two squares 0.01 apart 8.90 -> 7.99. Every
+map tol_met with the same estimate. Measured and not built: fewer check points -- the
+certificate's FMM sums are dominated by their 46,480 sources (one sum to a hundredth of the
+39,684 check points costs 0.23 s against 0.36 s; ``core_probes_round7.json``).
 
 ``tol_met`` is true only if all are within ``tol`` and nothing is ``unverified``. A map that
 misses ``tol`` is returned with ``tol_met = False`` and an :class:`AccuracyWarning`; one whose
@@ -534,8 +536,9 @@ REFINE_SNAPSHOTS = True
 
 #: A per-side refinement's map takes the denominator sums of its residual from the map it
 #: refines where its nodes are that map's (:meth:`ConformalMap.reuse_denominators`; round 7):
-#: on 50 obstacles one FMM sum over 46,480 nodes (0.36 s CPU) becomes ~0.1 s of sums from the
-#: one refined boundary (bench/README.md "Round 7"); the same sums to rounding.
+#: on 50 obstacles one FMM sum over 46,480 nodes (0.36 s CPU) becomes sums from and to the
+#: one refined boundary (0.03 s at its points, ``core_probes_round7.json``), the certificate
+#: 0.77 -> 0.43 s (bench/README.md "Round 7"); the same sums to rounding.
 REUSE_DENOMINATORS = True
 
 #: Sweep the holes in the order of their sharpest tips, bluntest first (:func:`_sweep_order`;
@@ -560,16 +563,16 @@ def _sweep_order(ws: Workspace) -> list[int] | None:
     Complex Analysis", Vol. 1, sec. 5.11; :data:`START_BY_CORNERS`). Measured on 50 mixed
     obstacles to 1e-8 (bench/README.md "Round 7"): the eight boundaries with the largest
     residual at 180 nodes per side were eight of the ten sharpest tips, the one refined (hole
-    28) the fourth sharpest; on 10 mixed obstacles the largest residual was at the sharpest.
-    The order is the workspace's, the same at every level: a carried level
-    (:data:`LEVEL_CARRY`) continues the previous level's map after its own first sweep, which
-    needs the first sweeps to compose the same maps in the same order (an order taken from
-    the level differences, known only from the third level on, cost 5 sweeps instead of 3 at
-    180 nodes per side on 50 obstacles). The order changes the first sweep's discretisation
-    path, not the fixed point the sweeps converge to for it (each map of a sweep is a
-    conformal image of the domain): the circle domain moves by an amount of the level's
-    discretisation error, which the three-level estimate and the boundary residual measure
-    as before."""
+    28) the fourth sharpest (``core_probes_round7.json``). The order is the workspace's, the
+    same at every level: a carried level (:data:`LEVEL_CARRY`) continues the previous level's
+    map after its own first sweep, which needs the first sweeps to compose the same maps in
+    the same order (an order taken from the level differences, known only from the third
+    level on, cost the 180 level extra sweeps on 50 obstacles: bench/README.md "Round 7").
+    The order changes the first sweep's discretisation path, not the fixed point the sweeps
+    converge to for it (each map of a sweep is a conformal image of the domain): the circle
+    domain moves by an amount of the level's discretisation error, which the three-level
+    estimate and the boundary residual measure as before (measured: 1.0e-11 on 50 obstacles
+    under an estimate of 9.1e-9, ``core_probes_round7.json``)."""
     if not SWEEP_ORDER or ws.n_obstacles < 2:
         return None
     angles = free_angles(ws)[1:]
