@@ -326,8 +326,9 @@ def test_an_ordered_sweep_resumes_only_with_its_own_order() -> None:
         np.max(np.abs(resumed.centers - again.centers)), np.max(np.abs(resumed.radii - again.radii))
     )
     assert dist <= 1e-13
-    natural = koebe_iteration(meshes, holes, ws.anchor, 1e-9, **kw)  # type: ignore[arg-type]
+    natural = koebe_iteration(meshes, holes, ws.anchor, 1e-9, snapshots=True, **kw)  # type: ignore[arg-type]
     assert natural.resumed_at == 1 and natural.reused_first_maps == 0  # hole 1 was not first
+    assert natural.first_snapshots[0] == (1, 2, 3)  # its own order, not the base's
     dist = max(
         np.max(np.abs(natural.centers - again.centers)), np.max(np.abs(natural.radii - again.radii))
     )

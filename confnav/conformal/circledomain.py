@@ -1673,7 +1673,7 @@ def koebe_iteration(
         resumed = _resume(it, reuse_snapshots, tally.reuse, meshes, tally, seq)
         if tally.snapshots is not None:  # the positions skipped: the same states (the
             # changed boundaries' nodes are replaced whenever a snapshot is resumed from)
-            tally.snapshots.update({k: v for k, v in reuse_snapshots.items() if k < resumed})
+            tally.snapshots.update({k: v for k, v in reuse_snapshots.items() if 0 < k < resumed})
     sched = _Schedule(accel, tol)
     sweeps, traced, transplanted = _run_sweeps(
         it, sched, meshes, guess, tally, gmres_tol, resumed, seq,
