@@ -45,6 +45,7 @@ from typing import Any
 import numpy as np
 import scipy
 from provenance import commit, git  # script mode: bench/ is on sys.path
+from threadpoolctl import threadpool_limits
 
 import confnav
 from confnav.conformal.solver import LEVELS, AccuracyWarning, _blas_threads, _solve_level
@@ -1318,6 +1319,26 @@ def run_profile(out_path: Path, cases: list[str], designs: list[str], append: bo
     return 0
 
 
+def _warm_up() -> float:
+    """Round 7: an untimed solve of a one-box room before the first row (as the main
+    benchmark warms up before its rows): the first solve of a process pays imports, the FMM
+    library's and the BLAS thread pools' set-up (the default workspace to 1e-10 took 1.09 s
+    as the first row of ``core_targets_round7.json`` where the profile run had 0.67 s). The
+    mesh planner's memory is emptied afterwards, so no row finds its workspace planned.
+    Returns the warm-up's CPU seconds."""
+    import confnav.conformal.meshing as meshing
+
+    room = confnav.Workspace(
+        [[-1, -1], [1, -1], [1, 1], [-1, 1]], [[[0.2, 0.2], [0.5, 0.2], [0.5, 0.5], [0.2, 0.5]]]
+    )
+    c0 = time.process_time()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", AccuracyWarning)
+        confnav.solve(room, tol=1e-6)
+    meshing._FEATURE_CACHE.clear()
+    return time.process_time() - c0
+
+
 def run_targets(out_path: Path, groups: list[str], append: bool) -> int:
     """The issue-24 target rows at HEAD, one group after the other in this process (CPU
     seconds are what a row costs whatever the load; wall and load beside them)."""
@@ -1331,6 +1352,7 @@ def run_targets(out_path: Path, groups: list[str], append: bool) -> int:
     if append and out_path.exists():
         old = json.loads(out_path.read_text())
     runs = list(old.get("runs", []))
+    info["warm_up_cpu_s"] = _warm_up()
     for g in groups:
         rows, tg = target_rows(g)
         for r in rows:
@@ -1450,6 +1472,220 @@ def run_probes(out_path: Path) -> int:
     return 0
 
 
+def _order_case(case: str) -> dict[str, Any]:
+    """Round 7: one workspace solved with the holes swept 1..M and in the solver's order
+    (``solver.SWEEP_ORDER``): CPU s, certificate, levels, the refinement's reuse, the maps'
+    distance; for the refined base level, its worst boundaries' residuals and free-space
+    angles (what the order is taken from)."""
+    import confnav.conformal.solver as so
+
+    ws, tol = _profile_ws(case)
+    keep, real = so.SWEEP_ORDER, so._make_map
+    certified: list[Any] = []
+
+    def record(*a: Any, **kw: Any) -> Any:
+        certified.append(real(*a, **kw))
+        return certified[-1]
+
+    row: dict[str, Any] = {"case": case, "tol": tol, "order": so._sweep_order(ws)}
+    maps = {}
+    so._make_map = record  # type: ignore[assignment]
+    try:
+        for flag in (False, True):
+            so.SWEEP_ORDER = flag
+            certified.clear()
+            c0 = time.process_time()
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", AccuracyWarning)
+                m = confnav.solve(ws, tol=tol)
+            d, key = m.diagnostics, "ordered" if flag else "natural"
+            maps[key] = m
+            row[key] = {
+                "cpu_s": time.process_time() - c0,
+                "load1": load1(),
+                "tol_met": bool(d.tol_met),
+                "error_estimate": float(d.error_estimate),
+                "boundary_residual": float(d.boundary_residual),
+                "levels": [int(r["nodes_per_side"]) for r in d.refinements],
+                "reused_first_maps": [
+                    int(r["reused_first_maps"]) for r in d.refinements if "refined_sides" in r
+                ],
+                "resumed_at": [int(r["resumed_at"]) for r in d.refinements if "refined_sides" in r],
+            }
+            if flag and len(certified) > 1:  # a refined base: its residual by boundary
+                _z, res, owner = certified[0].boundary_residuals()
+                worst = [float(np.max(res[owner == j])) for j in range(ws.n_obstacles + 1)]
+                angles = so.free_angles(ws)
+                rank = np.argsort(np.argsort(-np.asarray(angles[1:]))) + 1  # 1: the sharpest
+                top = np.argsort(worst)[::-1][:8]
+                row["base_worst_boundaries"] = [
+                    {
+                        "boundary": int(j),
+                        "residual": worst[j],
+                        "free_angle": angles[j],
+                        "sharpness_rank": int(rank[j - 1]) if j else None,
+                    }
+                    for j in top
+                ]
+    finally:
+        so.SWEEP_ORDER, so._make_map = keep, real  # type: ignore[assignment]
+    a, b = maps["natural"], maps["ordered"]
+    row["map_distance"] = float(
+        max(
+            np.max(np.abs(a.centers - b.centers), initial=0.0),
+            np.max(np.abs(a.radii - b.radii), initial=0.0),
+        )
+    )
+    return row
+
+
+def _smooth_rows() -> list[dict[str, Any]]:
+    """Round 7: an interior map of a smooth curve (a Koebe sweep's smooth grid) with the
+    GNK products matrix-free (limit 1024, the round-6 default: direct sums below 1415 nodes,
+    FMM above) and dense (split assembly), CPU ms, best of 3."""
+    import confnav.conformal.gnk as gnk
+    from confnav.conformal.diskmap import interior_map
+
+    keep, rows = gnk.SMOOTH_DENSE_MAX_NODES, []
+    try:
+        for n in (1117, 1280, 1579, 2048, 2580, 3584):
+            s = 2 * np.pi * np.arange(n) / n
+            r = 1 + 0.05 * np.cos(3 * s) + 0.02 * np.sin(7 * s)
+            eta = np.exp(1j * s) * r
+            deta = 1j * eta + np.exp(1j * s) * (-0.15 * np.sin(3 * s) + 0.14 * np.cos(7 * s))
+            row: dict[str, Any] = {"nodes": n}
+            for name, limit in (("matrix_free", 1024), ("dense", 4096)):
+                gnk.SMOOTH_DENSE_MAX_NODES = limit
+                best = float("inf")
+                for _ in range(3):
+                    c0 = time.process_time()
+                    f = interior_map(eta, deta, 0.05 + 0.02j, 1e-11, smooth=True)
+                    best = min(best, time.process_time() - c0)
+                row[f"{name}_ms"], row["gmres_iterations"] = 1e3 * best, f.gmres_iterations
+            rows.append(row)
+            print(f"  smooth interior map: {row}", flush=True)
+    finally:
+        gnk.SMOOTH_DENSE_MAX_NODES = keep
+    return rows
+
+
+def _split_rows() -> list[dict[str, Any]]:
+    """Round 7: one dense GNK operator's construction and the products of a graded solve
+    (8 of ``I - N``, 2 of ``M``), the complex matrix kept (round 6) against its parts split
+    during the assembly (``gnk.DENSE_SPLIT_ASSEMBLY``), CPU ms, best of 3."""
+    import confnav.conformal.gnk as gnk
+
+    keep, rows = gnk.DENSE_SPLIT_ASSEMBLY, []
+    rng = np.random.default_rng(0)
+    try:
+        for n in (300, 900, 1500, 2088, 2968):
+            th = np.sort(rng.uniform(0, 2 * np.pi, n))
+            e = np.exp(1j * th) * (1 + 0.3 * np.cos(3 * th))
+            x = rng.standard_normal(n)
+            row: dict[str, Any] = {"nodes": n}
+            for name, flag in (("complex", False), ("split", True)):
+                gnk.DENSE_SPLIT_ASSEMBLY = flag
+                best = float("inf")
+                for _ in range(3):
+                    c0 = time.process_time()
+                    op = gnk._Operator(e, 1j * e, e - 0.1)
+                    for _ in range(8):
+                        op.I_minus_N(x)
+                    op.M(x)
+                    op.M(x)
+                    best = min(best, time.process_time() - c0)
+                row[f"{name}_ms"] = 1e3 * best
+            rows.append(row)
+            print(f"  dense operator + 10 products: {row}", flush=True)
+    finally:
+        gnk.DENSE_SPLIT_ASSEMBLY = keep
+    return rows
+
+
+def _certificate_rows() -> dict[str, Any]:
+    """Round 7: what the certificate's FMM sums cost on the final 50-obstacle map by the
+    number of targets (all check points, a tenth, a hundredth), and the denominator sums at
+    the refined boundary's check points by one FMM call against boundary by boundary (what
+    updating a refined map's residual from its base would take), CPU s, best of 2."""
+    import confnav.conformal.cauchy as ca
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", AccuracyWarning)
+        m = confnav.solve(mixed_obstacles(50, seed=0), tol=1e-8)
+    z, _res, owner = m.boundary_residuals()
+    eta, deta = m._parts[0], m._parts[1]
+
+    def best(f: Callable[[], Any]) -> float:
+        out = float("inf")
+        for _ in range(2):
+            c0 = time.process_time()
+            f()
+            out = min(out, time.process_time() - c0)
+        return out
+
+    rows: dict[str, Any] = {"nodes": int(m.n_nodes), "check_points": int(z.size)}
+    for share in (1, 10, 100):
+        pts = z[::share]
+
+        def one_sum(p: np.ndarray = pts) -> Any:
+            return ca._fmm(m._eta, m._q_deta, p)
+
+        rows[f"fmm_targets_{pts.size}_cpu_s"] = best(one_sum)
+    from confnav.conformal.meshing import plan_boundaries
+
+    # the boundaries the per-side refinement re-meshed: node counts off the level's plan
+    plans = plan_boundaries(m.workspace, m.diagnostics.nodes_per_side, 1e-8)
+    refined = [j for j, p in enumerate(plans) if p.total != m.diagnostics.nodes[j]]
+    rows["refined_boundaries"] = refined
+    zc = z[np.isin(owner, refined)]
+    rows["changed_boundary_points"] = int(zc.size)
+    rows["denominator_one_call_cpu_s"] = best(lambda: ca.cauchy_sums(m._eta, [m._q_deta], zc))
+    rows["denominator_by_boundary_cpu_s"] = best(
+        lambda: [
+            ca.cauchy_sums(e, [(2 * np.pi / e.size) * d], zc)
+            for e, d in zip(eta, deta, strict=True)
+        ]
+    )
+    print(f"  certificate sums: {rows}", flush=True)
+    return rows
+
+
+def run_probes7(out_path: Path) -> int:
+    """``--probes7`` (round 7): the sweep order side by side (:func:`_order_case`), the
+    smooth grids' GNK solves dense or matrix-free (:func:`_smooth_rows`) and the dense
+    operators kept complex or split (:func:`_split_rows`)."""
+    info, code = machine_info(), code_info()
+    print(f"confnav round-7 probes, commit {code['commit'][:12]}, load {load1():.2f}", flush=True)
+    with threadpool_limits(limits=1, user_api="blas"):  # as a solve runs its products
+        smooth, split = _smooth_rows(), _split_rows()
+        cert = _certificate_rows()
+    order = []
+    for case in ("mixed50", "default8", "default", "shrunk", "gap001"):
+        order.append(_order_case(case))
+        print(f"  sweep order: {order[-1]}", flush=True)
+    info["loadavg_end"] = list(os.getloadavg())
+    out_path.write_text(
+        json.dumps(
+            {
+                "note": "round 7 probes: each case solved with the holes swept 1..M and in "
+                "the solver's order (sharpest tips last), CPU s, certificate, reuse, the maps' "
+                "distance; smooth interior maps matrix-free against dense; dense GNK operators "
+                "kept complex against split, CPU ms, best of 3, one BLAS thread",
+                "machine": info,
+                "code": code,
+                "order": order,
+                "smooth": smooth,
+                "split": split,
+                "certificate": cert,
+            },
+            indent=1,
+        )
+        + "\n"
+    )
+    print(f"wrote {out_path}")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true", help="fewer tolerances/obstacles, 1 run")
@@ -1470,7 +1706,11 @@ def main(argv: list[str] | None = None) -> int:
         "--designs", nargs="+", default=list(PROFILE_DESIGNS), help="--profile: solver designs"
     )
     ap.add_argument("--probes", action="store_true", help="round 6: certificate and assembly")
+    ap.add_argument("--probes7", action="store_true", help="round 7: order, smooth, split")
     args = ap.parse_args(argv)
+    if args.probes7:
+        out = args.out or Path(__file__).parent / "results" / "core_probes_round7.json"
+        return run_probes7(out)
     if args.probes:
         return run_probes(args.out or Path(__file__).parent / "results" / "core_probes_round6.json")
     if args.profile is not None:

@@ -83,7 +83,15 @@ from confnav.scenes.workspaces import (
 #: and the dense GNK matrices scanned for coincident nodes only where np.unique finds some
 #: (gnk.ZERO_SCAN_ALWAYS = False; every other design: every matrix scanned) and assembled by
 #: blocks of rows (gnk.ASSEMBLY_BLOCK_BYTES; every other design: whole-matrix passes) -- the
-#: same matrices bit for bit.
+#: same matrices bit for bit. ``round7``: that and the holes swept in the order of their
+#: sharpest tips, bluntest first (solver.SWEEP_ORDER; every other design: 1..M);
+#: ``round7b``: that and the dense GNK matrices' real and imaginary parts written into two
+#: contiguous real matrices during the assembly (gnk.DENSE_SPLIT_ASSEMBLY; every other design:
+#: the complex matrix kept, DENSE_INTERLEAVED); ``round7c``: that and smooth grids of up to
+#: 2048 nodes solved with dense GNK matrices (gnk.SMOOTH_DENSE_MAX_NODES; every other design
+#: with ``smooth_fmm``: 1024); ``round7d``: that and a per-side refinement's map taking the
+#: denominator sums of its residual from the map it refines where its nodes are the same
+#: (solver.REUSE_DENOMINATORS; every other design: summed afresh).
 _LEAN = {"smooth_fmm": True, "carry": True, "corner": True, "blas1": True, "lean": True}
 
 
@@ -129,8 +137,20 @@ DESIGNS: dict[str, dict[str, bool]] = {
         # ... and the re-solve's first sweep resumed from the base level's snapshot before the
         # first refined boundary (solver.REFINE_SNAPSHOTS; every design above: off)
         ("round5s", {"snapshots": True}),
-        # ... and the mesh planner's feature distances pruned by bounding boxes (the default)
+        # ... and the mesh planner's feature distances pruned by bounding boxes
         ("round6", {"prune": True}),
+        # round 7: the holes swept in the order of their change between the last two levels
+        # (solver.SWEEP_ORDER; every design above: 1..M)
+        ("round7", {"order": True}),
+        # ... and the dense GNK matrices' parts written into two contiguous real matrices
+        # during the assembly (gnk.DENSE_SPLIT_ASSEMBLY; every design above: kept complex)
+        ("round7b", {"split": True}),
+        # ... and smooth grids up to 2048 nodes solved densely (gnk.SMOOTH_DENSE_MAX_NODES;
+        # every design above: 1024)
+        ("round7c", {"smooth2048": True}),
+        # ... and a refined map's residual taking its base's denominator sums where its nodes
+        # are the base's (solver.REUSE_DENOMINATORS; every design above: summed afresh)
+        ("round7d", {"denominators": True}),
     ),
 }
 #: The solver's own setting (restored after :func:`fleet_step_rounding`).
@@ -178,7 +198,8 @@ def use_design(name: str) -> None:
     from confnav.conformal import solver
 
     d = DESIGNS[name]
-    gnk.SMOOTH_DENSE_MAX_NODES = _SMOOTH_DEFAULT if d["smooth_fmm"] else gnk.DENSE_MAX_NODES
+    smooth = _SMOOTH_DEFAULT if d.get("smooth2048", False) else _SMOOTH_BEFORE_ROUND7
+    gnk.SMOOTH_DENSE_MAX_NODES = smooth if d["smooth_fmm"] else gnk.DENSE_MAX_NODES
     solver.LEVEL_CARRY = d["carry"]
     gnk.CORNER_PRECONDITIONER = d["corner"]
     solver.SOLVE_BLAS_THREADS = 1 if d["blas1"] else None
@@ -200,11 +221,15 @@ def use_design(name: str) -> None:
     solver.START_BY_CORNERS = d.get("start", False)
     solver.REFINE_SNAPSHOTS = d.get("snapshots", False)
     meshing.NEAR_FEATURES_FIRST = _NEAR_FEATURES if d.get("prune", False) else 1 << 30
+    solver.SWEEP_ORDER = d.get("order", False)
+    gnk.DENSE_SPLIT_ASSEMBLY = d.get("split", False)
+    solver.REUSE_DENOMINATORS = d.get("denominators", False)
     gnk.ZERO_SCAN_ALWAYS = not d.get("prune", False)
     gnk.ASSEMBLY_BLOCK_BYTES = _BLOCK_BYTES if d.get("prune", False) else 0
 
 
 _SMOOTH_DEFAULT = gnk.SMOOTH_DENSE_MAX_NODES
+_SMOOTH_BEFORE_ROUND7 = 1024
 _POWERS = cauchy._powers
 _GRID_SIZE = circledomain._local_grid_size
 _RESIDUALS = ConformalMap.boundary_residuals

@@ -1,6 +1,8 @@
 """Dense GNK matrices kept complex (``gnk.DENSE_INTERLEAVED``, issue 24): the products, row
 sums, corner blocks and solutions equal those of the two real copies (the path before) to
-rounding, on a graded L-shaped room (a 270-degree corner) and on a hole's exterior map."""
+rounding, on a graded L-shaped room (a 270-degree corner) and on a hole's exterior map. Round
+7: the parts written into two contiguous real matrices during the assembly
+(``gnk.DENSE_SPLIT_ASSEMBLY``, the default) are the complex matrix's bit for bit."""
 
 from __future__ import annotations
 
@@ -12,6 +14,12 @@ from confnav.conformal.boundary import graded_polygon
 from confnav.conformal.diskmap import exterior_map, interior_map
 
 L_ROOM = np.array([0, 2, 2 + 1j, 1 + 1j, 1 + 2j, 2j]) + 0j
+
+
+@pytest.fixture(autouse=True)
+def _complex_kept(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The tests below compare the complex matrix's paths (round 7's split parts: last)."""
+    monkeypatch.setattr(gnk, "DENSE_SPLIT_ASSEMBLY", False)
 
 
 def _operators(
@@ -110,3 +118,55 @@ def test_blocked_assembly_equals_whole_matrix_passes(
     assert np.array_equal(whole.K, blocked.K)
     assert np.array_equal(whole.rowr, blocked.rowr) and np.array_equal(whole.rowi, blocked.rowi)
     assert np.all(np.isfinite(blocked.K))
+
+
+@pytest.mark.parametrize(("coincide", "block"), [(False, 1 << 22), (True, 1)])
+def test_split_assembly_writes_the_complex_matrix_parts_bit_for_bit(
+    monkeypatch: pytest.MonkeyPatch, coincide: bool, block: int
+) -> None:
+    """Round 7 (``gnk.DENSE_SPLIT_ASSEMBLY``): the real and imaginary parts written block by
+    block are the complex matrix's bit for bit (one block, and blocks of 8 rows with the end
+    not a multiple; with coincident nodes), and so are the row sums and corner blocks; the
+    products agree to rounding."""
+    mesh = graded_polygon(L_ROOM, 61)
+    eta, deta = mesh.eta.copy(), mesh.deta.copy()
+    if coincide:
+        eta[13] = eta[12]
+        deta[12] = deta[13] = 0.0
+    A = eta - (0.5 + 0.5j)
+    monkeypatch.setattr(gnk, "ASSEMBLY_BLOCK_BYTES", block)
+    kept = gnk._Operator(eta, deta, A)
+    monkeypatch.setattr(gnk, "DENSE_SPLIT_ASSEMBLY", True)
+    parts = gnk._Operator(eta, deta, A)
+    assert kept.K is not None and parts.K is None
+    assert parts.Kr.flags.c_contiguous and parts.Ki.flags.c_contiguous
+    assert np.array_equal(kept.K.real, parts.Kr) and np.array_equal(kept.K.imag, parts.Ki)
+    assert np.array_equal(kept.rowr, parts.rowr) and np.array_equal(kept.rowi, parts.rowi)
+    assert np.all(np.isfinite(parts.Kr)) and np.all(np.isfinite(parts.Ki))
+    x = np.random.default_rng(2).standard_normal(mesh.n)
+    scale = float(np.sum(np.abs(parts.Ki) * np.abs(x)[None, :], axis=1).max())
+    eps = 64 * np.finfo(float).eps * scale
+    assert np.max(np.abs(kept.I_minus_N(x) - parts.I_minus_N(x))) <= eps
+    assert np.max(np.abs(kept.M(x) - parts.M(x))) <= eps
+    assert np.max(np.abs(kept.S(x) - parts.S(x))) <= eps
+    labels = graded_polygon(L_ROOM, 61).corner_blocks()
+    a, b = gnk._CornerBlocks(kept, labels), gnk._CornerBlocks(parts, labels)
+    for u, v in zip(a.blocks, b.blocks, strict=True):
+        assert np.array_equal(u, v)
+
+
+def test_maps_of_the_split_assembly_equal_the_complex_ones(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Interior and exterior maps (corner blocks, GMRES to rounding) from the split parts
+    agree with those from the complex matrix to 1e-13."""
+    mesh = graded_polygon(L_ROOM, 80)
+    hole = mesh.reversed()
+    out = {}
+    for flag in (False, True):
+        monkeypatch.setattr(gnk, "DENSE_SPLIT_ASSEMBLY", flag)
+        f = interior_map(mesh.eta, mesh.deta, 0.5 + 0.5j, rtol=1e-14, corners=mesh.corner_blocks())
+        F = exterior_map(hole.eta, hole.deta, 0.5 + 0.5j, rtol=1e-14, corners=hole.corner_blocks())
+        out[flag] = (f, F)
+    for old, new in zip(out[False], out[True], strict=True):
+        assert abs(old.gmres_iterations - new.gmres_iterations) <= 1
+        assert np.max(np.abs(old.f - new.f)) < 1e-13
+        assert abs(old.scale - new.scale) < 1e-13 * old.scale

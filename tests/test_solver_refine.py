@@ -261,7 +261,9 @@ def test_a_first_sweep_resumed_from_a_snapshot_is_the_one_that_reapplies_the_map
     coarse, fine = plan_boundaries(ws, 36, tol), plan_boundaries(ws, 54, tol)
     holes = [interior_point(o) for o in ws.obstacles]
     base = koebe_iteration(_level_meshes(coarse), holes, ws.anchor, 1e-9, snapshots=True)
-    assert sorted(base.first_snapshots) == [1, 2, 3, 4]  # before each hole and the outer map
+    # before each hole and the outer map (key 0: the sweep's order of the holes)
+    assert sorted(base.first_snapshots) == [0, 1, 2, 3, 4]
+    assert base.first_snapshots[0] == (1, 2, 3) and base.order == [1, 2, 3]
     plans = list(coarse)
     plans[refined] = fine[refined]
     meshes = _level_meshes(plans)
@@ -283,3 +285,98 @@ def test_a_first_sweep_resumed_from_a_snapshot_is_the_one_that_reapplies_the_map
     )
     assert dist <= 1e-13
     assert max(np.max(np.abs(a - b)) for a, b in zip(resumed.W, again.W, strict=True)) <= 1e-12
+
+
+# ---------------------------------------------------------------- round 7: the sweep's order
+def test_the_sweep_order_puts_the_sharpest_tips_last_and_keeps_ties() -> None:
+    """Holes by their largest free-space angle, bluntest first; equal angles (the squares of
+    a mirror-symmetric workspace, up to rounding) keep their natural order."""
+    tri = [[0.5, 0.5], [0.9, 0.55], [0.5, 0.6]]  # a thin triangle: the sharpest tip
+    ws = Workspace(ROOM, [box(-1.5, -1.5), tri, box(-1.0, 0.8)], anchor=[0.0, 0.0])
+    assert solver._sweep_order(ws) == [1, 3, 2]
+    assert solver._sweep_order(mirror_squares(0.1)) == [1, 2]
+    assert solver._sweep_order(room()) == [1, 2, 3]
+
+
+def test_an_ordered_sweep_resumes_only_with_its_own_order() -> None:
+    """Round 7: the base swept its holes in the order 3, 1, 2 and the refined hole 2 comes
+    last: the re-solve in the same order reuses both holes before it and resumes from the
+    snapshot before it, the same circle domain as re-applying the maps. A re-solve in the
+    natural order reuses nothing (hole 1's first-sweep equation is not the base's: there it
+    came after hole 3's map) and does not resume from snapshots of another order; its circle
+    domain differs by far less than the level's discretisation error."""
+    ws, tol = room(), 1e-8
+    coarse, fine = plan_boundaries(ws, 36, tol), plan_boundaries(ws, 54, tol)
+    holes = [interior_point(o) for o in ws.obstacles]
+    order = [3, 1, 2]
+    base = koebe_iteration(
+        _level_meshes(coarse), holes, ws.anchor, 1e-9, snapshots=True, order=order
+    )
+    plans = list(coarse)
+    plans[2] = fine[2]
+    meshes = _level_meshes(plans)
+    kw = {"reuse_first": base.first_maps, "reuse_snapshots": base.first_snapshots}
+    resumed = koebe_iteration(meshes, holes, ws.anchor, 1e-9, order=order, **kw)  # type: ignore[arg-type]
+    again = koebe_iteration(
+        meshes, holes, ws.anchor, 1e-9, order=order, reuse_first=base.first_maps
+    )
+    assert resumed.resumed_at == 3 and resumed.reused_first_maps == 2
+    assert again.resumed_at == 1 and again.reused_first_maps == 2
+    dist = max(
+        np.max(np.abs(resumed.centers - again.centers)), np.max(np.abs(resumed.radii - again.radii))
+    )
+    assert dist <= 1e-13
+    natural = koebe_iteration(meshes, holes, ws.anchor, 1e-9, snapshots=True, **kw)  # type: ignore[arg-type]
+    assert natural.resumed_at == 1 and natural.reused_first_maps == 0  # hole 1 was not first
+    assert natural.first_snapshots[0] == (1, 2, 3)  # its own order, not the base's
+    dist = max(
+        np.max(np.abs(natural.centers - again.centers)), np.max(np.abs(natural.radii - again.radii))
+    )
+    change = max(
+        np.max(np.abs(base.centers - again.centers)), np.max(np.abs(base.radii - again.radii))
+    )
+    # another discretisation path of the same meshes: far within what refining one hole moved
+    assert dist <= 1e-2 * change, (dist, change)
+    with pytest.raises(ValueError, match="permutation"):
+        koebe_iteration(meshes, holes, ws.anchor, 1e-9, order=[1, 2, 2])
+
+
+def test_a_refined_maps_residual_takes_the_base_denominators_to_rounding(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Round 7 (``solver.REUSE_DENOMINATORS``): a map with one hole re-meshed takes its
+    residual's denominator sums at the other boundaries' check points from the base map's,
+    corrected by the re-meshed hole's terms; its residual equals the one summed afresh to
+    rounding (the map is large enough for the FMM branch that keeps the sums)."""
+    ws, tol = room(), 1e-8
+    coarse, fine = plan_boundaries(ws, 180, tol), plan_boundaries(ws, 256, tol)
+    plans = list(coarse)
+    plans[2] = fine[2]
+
+    def level(ps: list[PanelPlan]) -> solver._Level:
+        res, meshes = solver._solve_level(ws, 180, tol, None, plans=ps)
+        return (res, [m.eta for m in meshes], [m.deta for m in meshes], 180, 0.0, [])
+
+    base = solver._make_map(ws, level(coarse), tol, [], [], 0.0)
+    assert base._denominators is not None  # the FMM branch: sums kept
+    refined = level(plans)
+    fresh = solver._make_map(ws, refined, tol, [], [], 0.0)
+    taken: list[bool] = []
+    real = ConformalMap._denominators_from
+
+    def spy(self: ConformalMap, targets: list[np.ndarray]) -> np.ndarray | None:
+        out = real(self, targets)
+        taken.append(out is not None)
+        return out
+
+    monkeypatch.setattr(ConformalMap, "_denominators_from", spy)
+    reused = solver._make_map(ws, refined, tol, [], [], 0.0, denominators_from=base)
+    assert taken == [True]
+    za, ra, oa = fresh.boundary_residuals()
+    zb, rb, ob = reused.boundary_residuals()
+    assert np.array_equal(za, zb) and np.array_equal(oa, ob)
+    assert np.all(np.isfinite(rb))
+    assert np.max(np.abs(ra - rb)) <= 1e-13
+    assert reused.diagnostics.boundary_residual == pytest.approx(
+        fresh.diagnostics.boundary_residual, rel=1e-6, abs=1e-14
+    )

@@ -272,6 +272,10 @@ class CircleDomainResult:
     first_snapshots: dict[int, Any] = field(default_factory=dict)
     #: The hole a first sweep resumed at from ``reuse_snapshots`` (1: none, :func:`_resume`).
     resumed_at: int = 1
+    #: The order in which every sweep mapped the holes (1..M; ``order`` of
+    #: :func:`koebe_iteration`): a re-solve that reuses this solve's first-sweep maps and
+    #: snapshots must sweep in the same order.
+    order: list[int] = field(default_factory=list)
     #: Largest absolute GNK residual of any solve (:attr:`CurveMap.gmres_residual`).
     gmres_residual: float = 0.0
     #: Sweeps with over-relaxed hole maps (``accel="sor"``) and the last omega used.
@@ -679,7 +683,7 @@ class _Tally:
     reuse: list[CurveMap | None] = field(default_factory=list)
     reused: int = 0
     #: the first sweep's snapshots (recorded; None: not recorded) by position (:func:`_sweep`)
-    snapshots: dict[int, _Iterate] | None = None
+    snapshots: dict[int, Any] | None = None
 
     def add(self, cm: CurveMap | RelaxedMap) -> None:
         self.iterations += cm.gmres_iterations
@@ -856,23 +860,27 @@ def _sweep(
     tally: _Tally,
     gmres_tol: float,
     first_hole: int = 1,
+    order: list[int] | None = None,
 ) -> None:
-    """One sweep of the iteration ([1], secs. 3-4): every hole's map, then the outer one
-    (from hole ``first_hole`` on: a first sweep resumed from a snapshot, :func:`_resume`).
-    A recording first sweep keeps snapshots of the iterate before some of its maps
-    (:data:`SNAPSHOTS`)."""
+    """One sweep of the iteration ([1], secs. 3-4): every hole's map in ``order`` (default
+    1..M), then the outer one (from position ``first_hole`` of that order on: a first sweep
+    resumed from a snapshot, :func:`_resume`). A recording first sweep keeps snapshots of the
+    iterate before some of its maps (:data:`SNAPSHOTS`, by position in the order)."""
     M = len(it.bnds) - 1
-    for k in range(first_hole, M + 2):
-        if sweep == 1 and tally.snapshots is not None and k in _snapshot_positions(M):
-            tally.snapshots[k] = copy.deepcopy(it)
-        if k <= M:
+    seq = list(range(1, M + 1)) if order is None else order
+    for pos in range(first_hole, M + 2):
+        if sweep == 1 and tally.snapshots is not None and pos in _snapshot_positions(M):
+            tally.snapshots[pos] = copy.deepcopy(it)
+        if pos <= M:
+            k = seq[pos - 1]
             _map_hole(it, k, sweep, phase, omega, meshes[k], guess[k], tally, gmres_tol)
     _map_outer(it, sweep, phase, meshes[0], guess[0], tally, gmres_tol)
 
 
 #: Snapshots of the first sweep's iterate kept for a re-solve of the same level with some
-#: sides refined (:func:`_resume`): before hole 1, every ``ceil(M / SNAPSHOTS)``-th hole and
-#: the outer boundary's map (position M + 1).
+#: sides refined (:func:`_resume`): before the first hole, every ``ceil(M / SNAPSHOTS)``-th
+#: hole of the sweep's order and the outer boundary's map (position M + 1). Key 0 holds the
+#: order itself (a resume needs the same order).
 SNAPSHOTS = 8
 
 
@@ -896,37 +904,41 @@ def _changed(init: _Iterate, meshes: list[BoundaryMesh]) -> list[int]:
 
 def _resume(
     it: _Iterate,
-    snapshots: dict[int, _Iterate],
+    snapshots: dict[int, Any],
     reuse: list[CurveMap | None],
     meshes: list[BoundaryMesh],
     tally: _Tally,
+    order: list[int],
 ) -> int:
     """Start a first sweep from a previous solve's snapshot (:data:`SNAPSHOTS`) instead of
     the polygon domain, where every map before it is reused anyway (:func:`_reusable`): the
-    last snapshot at or before the first boundary (in the sweep's order) whose mesh changed.
+    last snapshot at or before the first boundary (in the sweep's ``order``, which must be the
+    previous solve's) whose mesh changed.
     The snapshot's iterate is the previous solve's state there; the changed boundaries' nodes
     (not mapped yet at that point) are moved by the same maps the snapshot's boundaries were
     moved by -- the reused ones, evaluated with their derivatives as :func:`_apply` does --
-    so the iterate is the one a first sweep through those maps gives. Returns the hole to go on
-    from (1: nothing resumed, ``it`` untouched)."""
+    so the iterate is the one a first sweep through those maps gives. Returns the position in
+    the order to go on from (1: nothing resumed, ``it`` untouched)."""
     init = snapshots.get(1)
     M = len(it.bnds) - 1
     if init is None or len(init.bnds) != M + 1 or not reuse:
         return 1
+    if snapshots.get(0) != tuple(order):
+        return 1
     if not (np.array_equal(init.c, it.c) and init.a == it.a and init.D == it.D):
         return 1
     changed = _changed(init, meshes)
-    order = [*range(1, M + 1), 0]
-    first = next((pos + 1 for pos, i in enumerate(order) if i in changed), M + 2)
-    p = max((k for k in snapshots if k <= first and k <= M + 1), default=1)
-    if p <= 1 or any(reuse[k] is None for k in range(1, p)):
+    seq = [*order, 0]  # the boundary mapped at each position 1..M + 1
+    first = next((pos + 1 for pos, i in enumerate(seq) if i in changed), M + 2)
+    p = max((k for k in snapshots if 1 <= k <= first and k <= M + 1), default=1)
+    if p <= 1 or any(reuse[seq[k - 1]] is None for k in range(1, p)):
         return 1
     state = copy.deepcopy(snapshots[p])
     for i in changed:
         fresh = it.bnds[i]
         P, dP = fresh.P, fresh.dP
         for k in range(1, p):
-            cm = reuse[k]
+            cm = reuse[seq[k - 1]]
             assert cm is not None
             fz, dfz = cm.evaluate(P, derivative=True)
             assert dfz is not None
@@ -934,9 +946,9 @@ def _resume(
         fresh.P, fresh.dP = np.asarray(P), np.asarray(dP)
         state.bnds[i] = fresh
     for k in range(1, p):
-        cm = reuse[k]
+        cm = reuse[seq[k - 1]]
         assert cm is not None
-        tally.first(k, cm)
+        tally.first(seq[k - 1], cm)
     it.bnds, it.c, it.a, it.D = state.bnds, state.c, state.a, state.D
     return p
 
@@ -1589,6 +1601,7 @@ def koebe_iteration(
     reuse_first: list[CurveMap | None] | None = None,
     snapshots: bool = False,
     reuse_snapshots: dict[int, Any] | None = None,
+    order: list[int] | None = None,
 ) -> CircleDomainResult:
     """Run the iteration on graded meshes (outer counter-clockwise, holes clockwise).
 
@@ -1635,6 +1648,8 @@ def koebe_iteration(
         A previous solve's ``first_snapshots`` (with its ``first_maps`` as ``reuse_first``):
         the first sweep starts at the last snapshot before the first changed mesh
         (:func:`_resume`) instead of applying the reused maps again.
+    order
+        The order in which every sweep maps the holes (:func:`_hole_order`).
     """
     accel = KOEBE_ACCEL if accel is None else accel
     if accel not in KOEBE_ACCELS:
@@ -1642,6 +1657,7 @@ def koebe_iteration(
     t0 = time.perf_counter()
     M = len(meshes) - 1
     trace = trace and start is None and M > 0
+    seq = _hole_order(order, M)
     it = _initial_iterate(meshes, hole_points, anchor, tol, start)
     guess: list[FloatArray | None] = (
         list(first_guess) if first_guess is not None else [None] * (M + 1)
@@ -1650,25 +1666,36 @@ def koebe_iteration(
         first_mu=[None] * (M + 1),
         first_maps=[None] * (M + 1),
         reuse=list(reuse_first) if reuse_first is not None and len(reuse_first) == M + 1 else [],
-        snapshots={} if snapshots and start is None and M > 0 else None,
+        snapshots={0: tuple(seq)} if snapshots and start is None and M > 0 else None,
     )
     resumed = 1
     if reuse_snapshots and start is None and tally.reuse:
-        resumed = _resume(it, reuse_snapshots, tally.reuse, meshes, tally)
+        resumed = _resume(it, reuse_snapshots, tally.reuse, meshes, tally, seq)
         if tally.snapshots is not None:  # the positions skipped: the same states (the
             # changed boundaries' nodes are replaced whenever a snapshot is resumed from)
-            tally.snapshots.update({k: v for k, v in reuse_snapshots.items() if k < resumed})
+            tally.snapshots.update({k: v for k, v in reuse_snapshots.items() if 0 < k < resumed})
     sched = _Schedule(accel, tol)
     sweeps, traced, transplanted = _run_sweeps(
-        it, sched, meshes, guess, tally, gmres_tol, resumed,
+        it, sched, meshes, guess, tally, gmres_tol, resumed, seq,
         max_sweeps=max_sweeps, progress=progress, start=start, trace=trace, carry=carry,
     )  # fmt: skip
     result = _circle_domain(it, tally, sched, sweeps, t0)
-    result.transplanted = transplanted
-    result.resumed_at = resumed
+    result.transplanted, result.resumed_at, result.order = transplanted, resumed, seq
     if traced is not None and result.converged:
         result.carry = _level_carry(it, sched, traced)
     return result
+
+
+def _hole_order(order: list[int] | None, M: int) -> list[int]:
+    """The holes in the order every sweep maps them: a permutation of 1..M (default 1..M).
+    The fixed point of the sweeps does not depend on it (each map is a conformal image of the
+    domain); a level's first sweep does, to its discretisation error, which the certificate
+    measures as before. A re-solve reusing first-sweep maps or snapshots must sweep in the
+    order of the solve it reuses (its result's ``order``; :func:`_resume` checks it)."""
+    seq = list(range(1, M + 1)) if order is None else [int(k) for k in order]
+    if sorted(seq) != list(range(1, M + 1)):
+        raise ValueError(f"order must be a permutation of the holes 1..{M}, got {order}")
+    return seq
 
 
 def _run_sweeps(
@@ -1679,6 +1706,7 @@ def _run_sweeps(
     tally: _Tally,
     gmres_tol: float,
     resumed: int,
+    order: list[int],
     *,
     max_sweeps: int,
     progress: Callable[[int, float], None] | None,
@@ -1705,6 +1733,7 @@ def _run_sweeps(
             tally,
             gmres_tol,
             resumed if sweep == 1 else 1,
+            order,
         )
         radii = _circle_radii(it)
         change = _sweep_change(it, before, radii)

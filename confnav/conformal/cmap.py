@@ -268,6 +268,10 @@ class ConformalMap:
         # :meth:`boundary_residuals`, computed once (the map's data do not change after
         # construction; the solver asks twice: the certificate, then the sides to refine)
         self._residuals: tuple[ComplexArray, FloatArray, NDArray[np.int_]] | None = None
+        # the residual's denominator sums by boundary (its check points and the raw sums), kept
+        # for a refined map of the same level (:meth:`reuse_denominators`), and that base
+        self._denominators: tuple[list[ComplexArray], list[ComplexArray]] | None = None
+        self._denominator_base: ConformalMap | None = None
 
     # ------------------------------------------------------------------ evaluation
     @property
@@ -590,8 +594,26 @@ class ConformalMap:
             self._residuals = (z, res, which)
         return self._residuals
 
+    def reuse_denominators(self, base: ConformalMap) -> None:
+        """Let :meth:`boundary_residuals` take the denominator sums of ``base`` (a map of the
+        same workspace and level whose residual was evaluated) on the boundaries whose nodes
+        are ``base``'s bit for bit (:meth:`_denominators_from`): a per-side refinement's
+        map. Call before the residual is first evaluated."""
+        self._denominator_base = base
+
     def _boundary_residuals(self) -> tuple[ComplexArray, FloatArray, NDArray[np.int_]]:
-        """:meth:`boundary_residuals`, evaluated."""
+        """:meth:`boundary_residuals`, evaluated.
+
+        T = N/D with N = sum q_W/(eta - z) and D = sum q_eta/(eta - z) over every node. D
+        depends on the nodes alone: above the FMM threshold its sums are kept by boundary,
+        and a map whose nodes differ from a ``base`` map's (:meth:`reuse_denominators`) on a
+        few boundaries only takes ``base``'s D at the other boundaries' check points (the same
+        points) corrected by the changed boundaries' terms, and sums D afresh only at the
+        changed boundaries' points, boundary by boundary (:meth:`_denominators_from`) -- the
+        same sums, another order of their rounding. Round 7 (bench/README.md "Round 7"): on
+        the refined 50-obstacle map the FMM sum of D (0.36 s CPU, dominated by its 46,480
+        sources, not by its 39,684 points; 0.03 s boundary by boundary at the refined hole's
+        points, bench/results/core_probes_round7.json) -- its certificate 0.77 -> 0.43 s."""
         eta = self._parts[0]
         targets, owner = [], []
         frac = np.array(CORNER_FRACTIONS)
@@ -608,12 +630,75 @@ class ConformalMap:
             owner.append(np.full(pts.size, j))
         z = np.concatenate(targets)
         which = np.concatenate(owner)
-        # points on the walls: no expansion covers them, so none is built for them (a build
-        # for a map of 50 obstacles costs more than the direct/FMM sums at these points)
-        w = self._forward(z, False, False, expand=False)[0]
+        if z.size * self._eta.size <= FMM_THRESHOLD:
+            # points on the walls: no expansion covers them, so none is built for them (a build
+            # for a map of 50 obstacles costs more than the direct/FMM sums at these points)
+            w = self._forward(z, False, False, expand=False)[0]
+        else:  # the sums _forward takes here, D kept by boundary
+            # a check point on a node (a side's midpoint can be one) gives 0/0 there, which
+            # _fix_nodes replaces by the node's value, as in _forward
+            with np.errstate(divide="ignore", invalid="ignore"):
+                D = self._denominators_from(targets)
+                if D is None:
+                    first = cauchy_sums2(self._eta, [self._q_W, self._q_deta], z, False)[0]
+                    N, D = first
+                else:
+                    N = cauchy_sums(self._eta, [self._q_W], z)[0]
+                w = N / D  # (-N) / (-D): cauchy_sums has the target first
+            ends = np.cumsum([t.size for t in targets])[:-1]
+            self._denominators = (targets, np.split(D, ends))
+            self._fix_nodes(z, np.arange(z.size), w, None)
         c = np.concatenate([[0j], self.centers])[which]
         r = np.concatenate([[1.0], self.radii])[which]
         return z, np.abs(np.abs(w - c) - r), which
+
+    def _denominators_from(self, targets: list[ComplexArray]) -> ComplexArray | None:
+        """The denominator sums at ``targets`` (by boundary) from the base map's
+        (:meth:`reuse_denominators`), or None if they do not apply: no base or no kept sums,
+        another boundary count, or half the nodes or more changed. For an unchanged boundary
+        (nodes and t-derivatives bit for bit the base's, hence its check points too) the
+        base's sums plus, for each changed boundary, its new terms minus its old ones; at a
+        changed boundary's points the sums over every boundary, one at a time (the
+        expansions of :func:`~confnav.conformal.cauchy.cauchy_sums` for the far ones)."""
+        base, self._denominator_base = self._denominator_base, None
+        if base is None or base._denominators is None:
+            return None
+        old_t, old_D = base._denominators
+        eta, deta = self._parts[0], self._parts[1]
+        beta, bdeta = base._parts[0], base._parts[1]
+        if len(beta) != len(eta) or len(old_t) != len(eta):
+            return None
+        changed = [
+            j
+            for j in range(len(eta))
+            if not (
+                eta[j].shape == beta[j].shape
+                and np.array_equal(eta[j], beta[j])
+                and np.array_equal(deta[j], bdeta[j])
+                and np.array_equal(targets[j], old_t[j])
+            )
+        ]
+        if not changed or 2 * sum(eta[j].size for j in changed) >= self._eta.size:
+            return None
+
+        def terms(e: ComplexArray, de: ComplexArray, pts: ComplexArray) -> ComplexArray:
+            return cauchy_sums(e, [(2 * np.pi / e.size) * de], pts)[0]
+
+        kept = [j for j in range(len(eta)) if j not in changed]
+        zk = np.concatenate([targets[j] for j in kept])
+        Dk = np.concatenate([old_D[j] for j in kept])
+        for c in changed:  # the changed boundaries' terms at the kept points: new minus old
+            Dk += terms(eta[c], deta[c], zk) - terms(beta[c], bdeta[c], zk)
+        zc = np.concatenate([targets[j] for j in changed])
+        Dc = np.zeros(zc.size, np.complex128)
+        for e, de in zip(eta, deta, strict=True):
+            Dc += terms(e, de, zc)
+        out: list[ComplexArray] = [np.empty(0, np.complex128)] * len(eta)
+        for group, values in ((kept, Dk), (changed, Dc)):
+            ends = np.cumsum([0] + [targets[j].size for j in group])
+            for i, j in enumerate(group):
+                out[j] = values[ends[i] : ends[i + 1]]
+        return np.concatenate(out)
 
     @property
     def n_nodes(self) -> int:

@@ -106,7 +106,16 @@ DENSE_MAX_NODES = 3200
 #: Below ~1400 nodes the matrix-free product is a direct sum
 #: (:func:`confnav.conformal.cauchy.cauchy_self`), which rebuilds the kernel per product: the
 #: dense build wins there, hence the limit.
-SMOOTH_DENSE_MAX_NODES = 1024
+#: Round 7: 1024 -> 2048. Since round 3 the smooth grids take sizes in eighths of an octave
+#: (1117, 1218, 1328, ...: circledomain.GRID_STEPS), not only powers of two, and those between
+#: 1024 and ~1414 fell to the matrix-free *direct* sums (below cauchy.FMM_THRESHOLD) that
+#: rebuild the n^2 kernel at every product. Measured (bench/results/core_probes_round7.json,
+#: an interior map of a smooth curve, one BLAS thread, 9 GMRES iterations, ms, matrix-free /
+#: dense with the split assembly, :data:`DENSE_SPLIT_ASSEMBLY`): 1117 nodes 125 / 13, 1280
+#: 165 / 17, 1579 (FMM) 94 / 27, 2048 112 / 48, 2580 152 / 83, 3584 193 / 192; the default
+#: workspace shrunk by 0.2 m solves its outer boundary's 1280-point grid in every sweep:
+#: 2.40 -> 1.65 s CPU with the other round-7 changes (bench/README.md "Round 7").
+SMOOTH_DENSE_MAX_NODES = 2048
 
 #: Keep a dense GNK matrix complex and take its real and imaginary parts' products through
 #: its float view (the other part's slots multiplied by exact zeros) instead of copying the
@@ -120,6 +129,19 @@ SMOOTH_DENSE_MAX_NODES = 1024
 #: within 4.9e-12. The products equal the copies' to rounding (the summation order of the
 #: BLAS kernels differs). False: two real copies (before).
 DENSE_INTERLEAVED = True
+
+#: Write a dense GNK matrix's real and imaginary parts into two contiguous real matrices block
+#: by block of its assembly, while each block is in cache (:func:`_assemble_parts`; round 7),
+#: instead of keeping it complex (:data:`DENSE_INTERLEAVED`) or copying the parts afterwards
+#: (the strided whole-matrix copies that made the interleaved layout win). A GMRES product of
+#: ``I - N`` then reads one part (8 n^2 bytes) instead of the complex matrix with zeros in the
+#: other part's slots (16 n^2 bytes, twice the flops). The same entries bit for bit; the
+#: products equal the interleaved ones to rounding (BLAS summation order). Measured
+#: (bench/results/core_probes_round7.json, one BLAS thread, load 2.1-2.7, construction + 8
+#: products of ``I - N`` + 2 of ``M``, as a graded solve does, ms): 0.90 -> 0.82 at 300 nodes,
+#: 7.7 -> 6.9 at 900, 31.6 -> 20.6 at 1500, 134.1 -> 92.6 at 2968; in the solves:
+#: bench/README.md "Round 7".
+DENSE_SPLIT_ASSEMBLY = True
 
 #: Rows of a dense GNK matrix per block of its assembly (:func:`_assemble`), in bytes of the
 #: block; 0: whole-matrix passes (before round 6).
@@ -172,23 +194,64 @@ def _assemble(eta: ComplexArray, a: ComplexArray, q0: ComplexArray) -> ComplexAr
     obstacles): bench/README.md, "Round 6"; bench/results/core_probes_round6.json.
     """
     n = eta.size
-    # coincident image nodes (both dead) have no mutual term; eta_i - eta_k is exactly 0 only
-    # for equal nodes (a difference of distinct doubles is never 0, subnormals included), so
-    # the scan for them runs only where np.unique finds some
-    scan = ZERO_SCAN_ALWAYS or np.unique(eta).size < n
-    rows = n if ASSEMBLY_BLOCK_BYTES <= 0 else max(8, ASSEMBLY_BLOCK_BYTES // (16 * max(n, 1)))
     K = np.empty((n, n), np.complex128)
-    for r0 in range(0, n, rows):
-        r1 = min(n, r0 + rows)
-        B = K[r0:r1]
-        np.subtract.outer(eta[r0:r1], eta, out=B)  # eta_i - eta_k
-        B[np.arange(r1 - r0), np.arange(r0, r1)] = np.inf
-        if scan:
-            B[B == 0] = np.inf
-        np.reciprocal(B, out=B)
-        B *= a[r0:r1, None]
-        B *= q0[None, :]
+    for r0, r1 in _blocks(eta):
+        _fill_block(eta, a, q0, r0, r1, K[r0:r1], _scan(eta))
     return K
+
+
+def _assemble_parts(
+    eta: ComplexArray, a: ComplexArray, q0: ComplexArray
+) -> tuple[FloatArray, FloatArray]:
+    """:func:`_assemble`'s matrix as its real and imaginary parts, two contiguous real
+    matrices written block by block from one block buffer (:data:`DENSE_SPLIT_ASSEMBLY`):
+    the same entries bit for bit."""
+    n = eta.size
+    Kr, Ki = np.empty((n, n)), np.empty((n, n))
+    blocks = _blocks(eta)
+    buf = np.empty((max(r1 - r0 for r0, r1 in blocks), n), np.complex128) if n else None
+    scan = _scan(eta)
+    for r0, r1 in blocks:
+        assert buf is not None
+        B = buf[: r1 - r0]
+        _fill_block(eta, a, q0, r0, r1, B, scan)
+        Kr[r0:r1] = B.real
+        Ki[r0:r1] = B.imag
+    return Kr, Ki
+
+
+def _scan(eta: ComplexArray) -> bool:
+    """Whether a matrix must be scanned for coincident nodes: eta_i - eta_k is exactly 0
+    only for equal nodes (a difference of distinct doubles is never 0, subnormals included),
+    so only where np.unique finds some (coincident image nodes, both dead, have no mutual
+    term)."""
+    return bool(ZERO_SCAN_ALWAYS or np.unique(eta).size < eta.size)
+
+
+def _blocks(eta: ComplexArray) -> list[tuple[int, int]]:
+    """Row ranges of the assembly's blocks (:data:`ASSEMBLY_BLOCK_BYTES`)."""
+    n = eta.size
+    rows = n if ASSEMBLY_BLOCK_BYTES <= 0 else max(8, ASSEMBLY_BLOCK_BYTES // (16 * max(n, 1)))
+    return [(r0, min(n, r0 + max(rows, 1))) for r0 in range(0, n, max(rows, 1))]
+
+
+def _fill_block(
+    eta: ComplexArray,
+    a: ComplexArray,
+    q0: ComplexArray,
+    r0: int,
+    r1: int,
+    B: ComplexArray,
+    scan: bool,
+) -> None:
+    """Rows ``r0:r1`` of the GNK matrix into ``B``, in place."""
+    np.subtract.outer(eta[r0:r1], eta, out=B)  # eta_i - eta_k
+    B[np.arange(r1 - r0), np.arange(r0, r1)] = np.inf
+    if scan:
+        B[B == 0] = np.inf
+    np.reciprocal(B, out=B)
+    B *= a[r0:r1, None]
+    B *= q0[None, :]
 
 
 class _Operator:
@@ -207,13 +270,16 @@ class _Operator:
         if self.dense:
             # K_ik = (2/n) A_i q0_k / (eta_k - eta_i), built in place (in-place reciprocal and
             # products: 3-5x faster than a complex division over n^2 entries, measured)
-            K = _assemble(eta, (-2.0 / n) * A, self.q0)
-            if DENSE_INTERLEAVED:
+            if DENSE_SPLIT_ASSEMBLY:
+                self.Kr, self.Ki = _assemble_parts(eta, (-2.0 / n) * A, self.q0)
+            elif DENSE_INTERLEAVED:
+                K = _assemble(eta, (-2.0 / n) * A, self.q0)
                 # kept complex; products through its float view (DENSE_INTERLEAVED)
                 self.K = K
                 self._Kf = K.view(np.float64)  # (n, 2n): Re K_ik, Im K_ik interleaved
                 self.Kr, self.Ki = K.real, K.imag  # strided views (blocks, row sums)
             else:
+                K = _assemble(eta, (-2.0 / n) * A, self.q0)
                 self.Kr = K.real.copy()
                 self.Ki = K.imag.copy()
             self.rowr = self.Kr.sum(axis=1)

@@ -200,6 +200,26 @@ missed), the default workspace to 1e-10 0.95 s (0.5 s missed). The certificates 
 each is the boundary residual's two FMM sums at full precision (0.75 of its 0.79 s on 50
 obstacles); a lower FMM precision there moved the residual by 1.8e-11 and was not built.
 
+Round 7 (issue 24; bench/README.md "Round 7"). Four changes, the certificate unchanged: the
+holes are swept bluntest tip first, sharpest last, at every level (:func:`_sweep_order`), so
+that a per-side refinement, which the residual asks for at the sharpest tips, re-solves the
+first sweep from late in the order (50 obstacles: 46 of 51 first-sweep maps reused instead of
+28, the maps 1.0e-11 apart; ``core_probes_round7.json``); the dense GNK matrices' real and
+imaginary parts are written into two contiguous real matrices during the assembly
+(:data:`confnav.conformal.gnk.DENSE_SPLIT_ASSEMBLY`: a GMRES product reads one part); smooth
+grids of up to 2048 nodes are solved densely
+(:data:`confnav.conformal.gnk.SMOOTH_DENSE_MAX_NODES`: grids of 1117-1414 nodes had fallen to
+matrix-free direct sums); a refined map's residual takes the denominator sums of the map it
+refines where its nodes are the same (:data:`REUSE_DENOMINATORS`). Side by side
+(``core_profile_round7.json`` at a21ddac, load 3.2-3.8, CPU s, round 6 / the order / and the
+split): 50 obstacles 10.43 / 10.01 / 9.29, the default workspace to 1e-10 0.96 / 0.86 / 0.67;
+round 6 against all four (``core_profile_round7_final.json`` at 360a629, load 2.9-4.1): 50
+obstacles 10.09 -> 8.95 (the refined map's certificate 0.77 -> 0.43), the default workspace
+to 1e-10 0.91 -> 0.67, shrunk by 0.2 m 2.40 -> 1.65, two squares 0.01 apart 8.90 -> 7.99. Every
+map tol_met with the same estimate. Measured and not built: fewer check points -- the
+certificate's FMM sums are dominated by their 46,480 sources (one sum to a hundredth of the
+39,684 check points costs 0.23 s against 0.36 s; ``core_probes_round7.json``).
+
 ``tol_met`` is true only if all are within ``tol`` and nothing is ``unverified``. A map that
 misses ``tol`` is returned with ``tol_met = False`` and an :class:`AccuracyWarning`; one whose
 estimate exceeds :data:`UNUSABLE_ERROR` (or the caller's ``max_error``) raises
@@ -316,6 +336,7 @@ def _solve_level(
     carry: LevelCarry | None = None,
     reuse_first: list[CurveMap | None] | None = None,
     reuse_snapshots: dict[int, Any] | None = None,
+    order: list[int] | None = None,
 ) -> tuple[CircleDomainResult, list[BoundaryMesh]]:
     if plans is None:
         plans = plan_boundaries(ws, nodes_per_side, tol)
@@ -356,6 +377,7 @@ def _solve_level(
             reuse_first=reuse_first if REFINE_REUSE else None,
             snapshots=REFINE_REUSE and REFINE_SNAPSHOTS,
             reuse_snapshots=reuse_snapshots if REFINE_REUSE and REFINE_SNAPSHOTS else None,
+            order=order,
         )
     return res, meshes
 
@@ -372,8 +394,12 @@ def _make_map(
     caps: list[str],
     refinements: list[dict[str, float]],
     t0: float,
+    denominators_from: ConformalMap | None = None,
 ) -> ConformalMap:
-    """The map of one solved level with its full error budget (residual computed here)."""
+    """The map of one solved level with its full error budget (residual computed here);
+    ``denominators_from``: the map of the same level this one refines, whose residual's
+    denominator sums it may take where its nodes are the same
+    (:meth:`ConformalMap.reuse_denominators`, :data:`REUSE_DENOMINATORS`)."""
     res, eta, deta, ns, disc, unverified = level
     diag = SolveReport(
         tol=tol,
@@ -398,6 +424,8 @@ def _make_map(
         min_radius=float(np.min(res.radii)) if res.radii.size else 1.0,
     )
     m = ConformalMap(ws, eta, deta, res.W, res.dW, res.centers, res.radii, diag)
+    if denominators_from is not None and REUSE_DENOMINATORS:
+        m.reuse_denominators(denominators_from)
     diag.crowding = crowding(m)
     m.diagnostics = diag.with_residual(m.boundary_residual())
     m.diagnostics.wall_time = time.perf_counter() - t0
@@ -506,6 +534,52 @@ REFINE_REUSE = True
 REFINE_SNAPSHOTS = True
 
 
+#: A per-side refinement's map takes the denominator sums of its residual from the map it
+#: refines where its nodes are that map's (:meth:`ConformalMap.reuse_denominators`; round 7):
+#: on 50 obstacles one FMM sum over 46,480 nodes (0.36 s CPU) becomes sums from and to the
+#: one refined boundary (0.03 s at its points, ``core_probes_round7.json``), the certificate
+#: 0.77 -> 0.43 s (bench/README.md "Round 7"); the same sums to rounding.
+REUSE_DENOMINATORS = True
+
+#: Sweep the holes in the order of their sharpest tips, bluntest first (:func:`_sweep_order`;
+#: round 7, issue 24); False: 1..M.
+SWEEP_ORDER = True
+#: Free-space angles within this many degrees count as equal (the natural order is kept among
+#: them, e.g. for the holes of a mirror-symmetric workspace, whose angles agree to rounding).
+SWEEP_ORDER_DEGREES = 1.0
+
+
+def _sweep_order(ws: Workspace) -> list[int] | None:
+    """The order in which every level's sweeps map the holes (:func:`koebe_iteration`'s
+    ``order``): by the largest free-space angle at a corner of each hole (360 degrees minus
+    its sharpest tip), smallest first, so that the holes with the sharpest tips come last;
+    None (1..M) with :data:`SWEEP_ORDER` off or fewer than two holes.
+
+    Why: a per-side refinement (:func:`_refine_sides`) re-solves the graded first-sweep
+    equations from its first refined boundary on in the sweep's order (those before it are
+    reused bit for bit, :data:`REFINE_REUSE`), and the sides its boundary residual names are
+    where the discretisation is worst: at the sharpest tips, where the map's leading
+    singularity ``(z - v)^(1/alpha)`` is strongest (Henrici, "Applied and Computational
+    Complex Analysis", Vol. 1, sec. 5.11; :data:`START_BY_CORNERS`). Measured on 50 mixed
+    obstacles to 1e-8 (bench/README.md "Round 7"): the eight boundaries with the largest
+    residual at 180 nodes per side were eight of the ten sharpest tips, the one refined (hole
+    28) the fourth sharpest (``core_probes_round7.json``). The order is the workspace's, the
+    same at every level: a carried level (:data:`LEVEL_CARRY`) continues the previous level's
+    map after its own first sweep, which needs the first sweeps to compose the same maps in
+    the same order (an order taken from the level differences, known only from the third
+    level on, cost the 180 level extra sweeps on 50 obstacles: bench/README.md "Round 7").
+    The order changes the first sweep's discretisation path, not the fixed point the sweeps
+    converge to for it (each map of a sweep is a conformal image of the domain): the circle
+    domain moves by an amount of the level's discretisation error, which the three-level
+    estimate and the boundary residual measure as before (measured: 1.0e-11 on 50 obstacles
+    under an estimate of 9.1e-9, ``core_probes_round7.json``)."""
+    if not SWEEP_ORDER or ws.n_obstacles < 2:
+        return None
+    angles = free_angles(ws)[1:]
+    key = np.round(np.asarray(angles) / SWEEP_ORDER_DEGREES)
+    return [int(k) + 1 for k in np.argsort(key, kind="stable")]
+
+
 def _bad_sides(m: ConformalMap, plans: list[PanelPlan], tol: float) -> list[tuple[int, int]]:
     """(boundary, side of its plan) of every residual check point above ``tol``: the side
     nearest to the point (a point at a corner belongs to both its sides: both are returned)."""
@@ -595,6 +669,7 @@ def _refine_sides(
                 carry=base[0].carry,
                 reuse_first=last.first_maps,
                 reuse_snapshots=last.first_snapshots,
+                order=res0.order or None,
             )
         except ConvergenceError as exc:
             log.warning("local refinement failed (%s)", exc)
@@ -616,7 +691,7 @@ def _refine_sides(
                 "resumed_at": res.resumed_at,
             }
         )
-        m = _make_map(ws, lvl, tol, caps, refinements, t0)
+        m = _make_map(ws, lvl, tol, caps, refinements, t0, denominators_from=m)
         refinements[-1]["boundary_residual"] = m.diagnostics.boundary_residual
         if m.diagnostics.tol_met:
             return m, lvl
@@ -762,17 +837,23 @@ SHARP_FREE_ANGLE = 300.0
 SHARP_START: tuple[tuple[float, int], ...] = ((1e-7, 0), (1e-9, 80), (0.0, 120))
 
 
-def largest_free_angle(ws: Workspace) -> float:
-    """The largest free-space angle (degrees) at a corner of any boundary: 360 minus the
-    sharpest obstacle tip, or a room corner's own angle."""
-    out = 0.0
+def free_angles(ws: Workspace) -> list[float]:
+    """Per boundary (outer first), the largest free-space angle (degrees) at one of its
+    corners: 360 minus an obstacle's sharpest tip, or a room corner's own angle."""
+    out = []
     for j, b in enumerate(ws.boundaries):
         v = np.asarray(b)
         if (signed_area(v) > 0) == (j > 0):
             v = v[::-1]  # free space on the left: outer counter-clockwise, holes clockwise
         turn = np.angle((np.roll(v, -1) - v) / (v - np.roll(v, 1)))
-        out = max(out, float(np.degrees(np.max(np.pi - turn))))
+        out.append(float(np.degrees(np.max(np.pi - turn))))
     return out
+
+
+def largest_free_angle(ws: Workspace) -> float:
+    """The largest free-space angle (degrees) at a corner of any boundary: 360 minus the
+    sharpest obstacle tip, or a room corner's own angle."""
+    return max(free_angles(ws), default=0.0)
 
 
 def _sharp_start(ws: Workspace | None, tol: float) -> int:
@@ -870,6 +951,7 @@ class _Refinement:
         self.warm: _Warm | None = None
         self.carry: LevelCarry | None = None
         self.done = False
+        self.order = _sweep_order(workspace) if method == "koebe" else None
 
     def run(self, levels: list[int]) -> ConformalMap:
         """Refine through ``levels`` until one is certified or none is left; the best map."""
@@ -918,6 +1000,7 @@ class _Refinement:
                 accel=self.accel,
                 method=self.method,
                 carry=self.carry,
+                order=self.order,
             )
         except GapError as exc:
             if self.best is None:
