@@ -605,6 +605,7 @@ class ChartShare:
         order = self._order(len(jobs))
         results: dict[int, ChartResult] = {}
         running: dict[cf.Future[ChartResult], int] = {}
+        on_bg: dict[cf.Future[ChartResult], bool] = {}  # submitted to the background pool
         tokens: dict[int, Closeable] = {}
         failures: defaultdict[int, int] = defaultdict(int)
         bus, svc = self.svc.bus, self.svc
@@ -617,7 +618,11 @@ class ChartShare:
             while len(results) < len(jobs):
                 if abandoned():
                     raise AtlasAbandoned(f"atlas {a}: abandoned")
-                free = svc.workers - len(running)
+                # at most ``workers`` at once on the pool in use: an atlas robots came to
+                # wait for starts its jobs on the normal pool beside those still running
+                # on the background pool (a footprint map solved ahead, then a goal)
+                bg = background()
+                free = svc.workers - sum(on_bg[f] == bg for f in running)
                 for i in order:
                     if free <= 0:
                         break
@@ -629,7 +634,8 @@ class ChartShare:
                         svc.count("charts_fetched")
                         continue
                     tokens[i] = bus.declare_token(f"{self.prefix}/claim/{a}/{keys[i]}/{bus.zid}")
-                    fut = svc.submit_job(fn, *jobs[i], background=background())
+                    fut = svc.submit_job(fn, *jobs[i], background=bg)
+                    on_bg[fut] = bg
                     fut.add_done_callback(wake)
                     running[fut] = i
                     free -= 1
@@ -640,6 +646,7 @@ class ChartShare:
                         self._cond.wait(POLL)
                 for fut in [f for f in running if f.done()]:
                     i = running.pop(fut)
+                    on_bg.pop(fut, None)
                     try:
                         res = fut.result()
                     except (cf.BrokenExecutor, cf.CancelledError) as exc:

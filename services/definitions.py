@@ -132,19 +132,27 @@ def footprint_of(robot_radius: float, drive: str, lookahead: float) -> float:
 
 
 def ask_for_maps(
-    bus: Any, keys: Any, ws_ids: list[str], stopped: Any, give_up_s: float = 300.0
+    bus: Any,
+    keys: Any,
+    ws_ids: list[str],
+    stopped: Any,
+    give_up_s: float = 300.0,
+    payloads: dict[str, bytes] | None = None,
 ) -> list[str]:
     """Query the transform service for the maps ``ws_ids`` once, so that they are solved
     before the first goal needs them (a query for a footprint map ``{ws}~r{R}`` makes the
     service derive and solve it: docs/SERVICES.md, "ahead of use"); a map no transform
     service knows yet is asked again every 2 s (at most ``give_up_s``). ``stopped`` is a
-    ``threading.Event`` that ends the wait. Returns the ids never answered."""
+    ``threading.Event`` that ends the wait; ``payloads``: a query's ``MapQuery`` per id (the
+    robots' starts, whose charts an atlas then solves first). Returns the ids never
+    answered."""
     todo = sorted(set(ws_ids))
     deadline = time.monotonic() + give_up_s
     while todo and not stopped.is_set() and time.monotonic() < deadline:
         for ws in list(todo):
             try:
-                replies = bus.query(keys.ws(ws, "transform"), timeout=2.0)
+                payload = (payloads or {}).get(ws)
+                replies = bus.query(keys.ws(ws, "transform"), timeout=2.0, payload=payload)
             except Exception:
                 continue
             if any(r.ok or "unknown workspace" not in (r.error or "") for r in replies):

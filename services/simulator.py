@@ -27,6 +27,7 @@ one ``PoseBatch`` on ``{prefix}/sim/{sim}/poses`` instead (controllers answer wi
 from __future__ import annotations
 
 import argparse
+import cmath
 import logging
 import math
 import threading
@@ -41,8 +42,10 @@ from confnav.schemas import (
     CommandBatch,
     DecodeError,
     Goal,
+    MapQuery,
     Pose,
     PoseBatch,
+    RouteHint,
     SimControl,
     SpawnRequest,
     VelocityCommand,
@@ -50,6 +53,7 @@ from confnav.schemas import (
     decode,
     encode,
 )
+from confnav.schemas.messages import MAX_ROUTES
 from confnav.services.bus import Bus
 from confnav.services.definitions import (
     ask_for_maps,
@@ -211,14 +215,28 @@ class SimulatorService(Service):
         """The robots given at start with a body: ask the transform service for the map of
         each one's footprint ``{ws}~r{R}`` (R: its radius, plus the library's look-ahead for a
         unicycle, as for a ``SpawnRequest``), so that it is solved before their goals come
-        (docs/SERVICES.md, "ahead of use"; the ROS 2 bridge does the same for its robots)."""
+        (docs/SERVICES.md, "ahead of use"; the ROS 2 bridge does the same for its robots).
+        The query carries each robot's start (its steered point, as the controller's route
+        hints: a route from the start to itself), so that an atlas solves the start cells
+        first and counts as one robots wait for (docs/SLAM.md "Background atlases")."""
         lookahead = float(Goal.model_fields["lookahead"].default)
         with self._lock:
             robots = list(self._robots.values())
-        bodies = [(r.ws_id, footprint_of(r.radius, r.drive, lookahead)) for r in robots]
-        ws_ids = [derived_ws_id(ws, radius) for ws, radius in bodies if radius > 0]
-        if ws_ids:
-            ask_for_maps(self.bus, self.keys, ws_ids, self._stop)
+        routes: dict[str, list[RouteHint]] = {}
+        for r in robots:
+            radius = footprint_of(r.radius, r.drive, lookahead)
+            if radius <= 0:
+                continue
+            z = r.z + (lookahead * cmath.exp(1j * r.theta) if r.drive == "unicycle" else 0)
+            start = (float(z.real), float(z.imag))
+            hint = RouteHint(robot_id=r.robot_id, start=start, goal=start)
+            routes.setdefault(derived_ws_id(r.ws_id, radius), []).append(hint)
+        payloads = {
+            ws: encode(MapQuery(stamp_ns=time.time_ns(), routes=hints[:MAX_ROUTES]))
+            for ws, hints in routes.items()
+        }
+        if routes:
+            ask_for_maps(self.bus, self.keys, list(routes), self._stop, payloads=payloads)
 
     def health_detail(self) -> tuple[str, str]:
         with self._lock:
