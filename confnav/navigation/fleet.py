@@ -447,9 +447,14 @@ def project_with_walls(
     on the workspace its point ``z[i]`` navigates in, e.g. ``Controller.safety``; robots
     sharing one are projected together), or None (pairwise rows and ``cap`` only:
     :func:`project_rows`).  The filter adds its wall rows and its held-command cap and solves
-    the joint QP (its ``extra_normals``/``extra_bounds``); where that has no solution the
-    robot gets :func:`project_rows`' least-violation command on the pairwise rows and cap.
-    Returns ``(u, feasible)``.
+    the joint QP (its ``extra_normals``/``extra_bounds``); where that has no solution (robots
+    pressing a robot against a wall) the walls come first: the robot gets
+    :func:`project_rows`' least-violation command on the pairwise rows and cap, filtered by
+    its walls alone (a robot inside the free space can always stop, so that filter has a
+    solution; the other robot's own row keeps the pair apart while this one does not close
+    in). A robot outside the free space keeps the least-violation command (it re-enters:
+    :func:`confnav.navigation.messages.reenter`). Returns ``(u, feasible)``; ``feasible`` is
+    False where the joint QP had no solution.
     """
     un = np.asarray(u_nom, dtype=np.complex128).reshape(-1)
     zz = np.asarray(z, dtype=np.complex128).reshape(-1)
@@ -465,6 +470,11 @@ def project_with_walls(
         good = ~np.asarray(pr.infeasible, dtype=bool)
         u[m[good]] = np.asarray(pr.u)[good]
         ok[m] = good
+        bad = m[~good]
+        if bad.size:  # walls first: a wall never moves, the other robot filters too
+            pw = f(zz[bad], u[bad], cap=cp[bad])  # type: ignore[operator]
+            inside = ~np.asarray(pw.infeasible, dtype=bool)
+            u[bad[inside]] = np.asarray(pw.u)[inside]
     return u, ok
 
 
