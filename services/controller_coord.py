@@ -32,6 +32,7 @@ and replayed robots are never coordinated: they stay neighbours of the safety fi
 from __future__ import annotations
 
 import logging
+import math
 import threading
 from typing import Any
 
@@ -164,12 +165,20 @@ class CoordMixin(ControllerCore):
                 if self.fleet_coordinator == "auto":
                     choice, width, where = choose_coordinator(coord, key[1])
                     self.count(f"fleet_auto_{choice}")
-                    log.info(
-                        "fleet coordinator auto for radius %g m: %s (narrowest passage for "
-                        "the robots' centres %.2f m at (%.2f, %.2f); single-lane below "
-                        "%.2f m)", key[1], choice, width, where.real, where.imag,
-                        LANE_FACTOR * key[1],
-                    )  # fmt: skip
+                    if not math.isfinite(width):  # no edge: nowhere to pass or wait aside
+                        log.warning(
+                            "fleet coordinator auto for radius %g m: %s (the roadmap has no "
+                            "edge: the free space is nowhere wide enough for two robots, %d "
+                            "nodes; robots whose routes meet head-on may block each other)",
+                            key[1], choice, coord.roadmap.size,
+                        )  # fmt: skip
+                    else:
+                        log.info(
+                            "fleet coordinator auto for radius %g m: %s (narrowest passage "
+                            "for the robots' centres %.2f m at (%.2f, %.2f); single-lane "
+                            "below %.2f m)", key[1], choice, width, where.real, where.imag,
+                            LANE_FACTOR * key[1],
+                        )  # fmt: skip
                     if choice == "local":
                         st["local"].add(key)
                         return
