@@ -86,6 +86,26 @@ def make_controller_on_base(cmap: Any, goal: Goal, shrunk: Any) -> navigation.Co
     return navigation.point_law(cmap, goal, shrunk)
 
 
+def base_charts_start(cmap: Any, z: complex | None) -> bool:
+    """Whether the base map can steer a robot whose reference point is ``z``: a single map
+    always; a partial atlas only if a chart of a cell holding ``z`` is out (else the robot
+    would hold for that chart on the base map, and building its law there cost the
+    controller's interpreter 0.5-0.9 s beside the footprint atlas's install: the warehouse,
+    docs/SLAM.md "Background atlases"). ``z`` None (no pose yet): assumed charted."""
+    if z is None or not getattr(cmap, "is_atlas", False):
+        return True
+    pending = set(getattr(cmap, "pending", ()))
+    if not pending:
+        return True
+    import shapely
+
+    pt = shapely.points(z.real, z.imag)
+    cells = cmap.atlas.decomposition.cells
+    return any(
+        i not in pending and bool(shapely.covers(c.polygon, pt)) for i, c in enumerate(cells)
+    )
+
+
 def base_workspace(cmap: Any) -> Any:
     """The exact workspace of a base map: a single map's, or an atlas's whole workspace."""
     if getattr(cmap, "is_atlas", False):
@@ -213,6 +233,9 @@ class FootprintMixin(ControllerCacheMixin, WarmMixin):
                 or (r.base_ws == base_ws and r.ctrl_revision == base.revision)
             ):
                 return
+        if not base_charts_start(base.cmap, self._reference_of(r, goal)):
+            self.count("base_uncharted_start")
+            return  # the robot holds for its footprint map (or a later base revision)
         with self._goal_building():
             ctrl, err, shrunk = self._build_on_base(base, goal)
             prime(ctrl, r.position)
@@ -226,6 +249,17 @@ class FootprintMixin(ControllerCacheMixin, WarmMixin):
                 "robot %r: driving on %r (revision %s) with the exact safety layer of %r "
                 "until its map is solved", r.robot_id, base_ws, base.revision[:12], goal.ws_id,
             )  # fmt: skip
+
+    @staticmethod
+    def _reference_of(r: _Robot, goal: Goal) -> complex | None:
+        """The point ``r``'s law would steer (its position, or a unicycle's look-ahead
+        point), None without a pose."""
+        with r.lock:
+            pos, theta = r.position, r.theta
+        if pos is None:
+            return None
+        d = goal.lookahead if goal.drive == "unicycle" else 0.0
+        return complex(pos[0], pos[1]) + d * cmath.exp(1j * theta)
 
     def _base_installed(self, ws_id: str, m: _Map) -> None:
         """A map of ``ws_id`` was installed: its robots still waiting for a footprint map

@@ -14,7 +14,7 @@ from confnav.schemas import (
 )
 from confnav.services import navigation
 from confnav.services.controller_flat import FlatMixin
-from confnav.services.controller_footprint import FootprintMixin, base_of
+from confnav.services.controller_footprint import FootprintMixin, base_charts_start, base_of
 from confnav.services.controller_warm import prime
 from confnav.services.keys import KeyError_
 
@@ -70,8 +70,12 @@ class GoalsMixin(FootprintMixin, FlatMixin):
             base = base_of(goal.ws_id)  # a footprint map being solved: drive on the base map
             bm = self._maps.get(base) if base is not None and m is None else None
             shrunk = None
-            if bm is not None and self._on_base_available(bm):  # built before the goal is set,
-                ctrl, err, shrunk = self._build_on_base(bm, goal)  # so no pose meets it without
+            if (
+                bm is not None
+                and self._on_base_available(bm)
+                and base_charts_start(bm.cmap, self._reference_of(r, goal))
+            ):  # built before the goal is set, so no pose meets it without
+                ctrl, err, shrunk = self._build_on_base(bm, goal)
             else:
                 bm = None
             prime(ctrl, r.position)  # an atlas: its starting chart's law and safety grid

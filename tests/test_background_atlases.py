@@ -126,3 +126,26 @@ def test_the_atlas_answer_holds_the_robot() -> None:
     assert map_being_solved("atlas: workspace 'wh~r0.32' is solved as an atlas of 2 charts")
     assert map_being_solved("workspace 'wh' is being solved; retry")
     assert not map_being_solved("unknown workspace 'wh'")
+
+
+def test_a_base_atlas_steers_only_where_it_has_a_chart() -> None:
+    """First move on the base map (docs/NAVIGATION.md): a partial base atlas is adopted only
+    where a chart of a cell holding the robot's reference point is out."""
+    from types import SimpleNamespace
+
+    from confnav.services.controller_footprint import base_charts_start
+    from shapely.geometry import box
+
+    cells = [SimpleNamespace(polygon=box(0, 0, 2, 1)), SimpleNamespace(polygon=box(1.5, 0, 4, 1))]
+    atlas = SimpleNamespace(
+        is_atlas=True,
+        pending=[1],  # the right cell's chart is still being solved
+        atlas=SimpleNamespace(decomposition=SimpleNamespace(cells=cells)),
+    )
+    assert base_charts_start(atlas, 0.5 + 0.5j)
+    assert base_charts_start(atlas, 1.8 + 0.5j)  # in both cells: the left one is charted
+    assert not base_charts_start(atlas, 3.0 + 0.5j)
+    assert base_charts_start(atlas, None)  # no pose yet: as before
+    assert base_charts_start(SimpleNamespace(is_atlas=False), 3.0 + 0.5j)  # one map
+    atlas.pending = []
+    assert base_charts_start(atlas, 3.0 + 0.5j)
