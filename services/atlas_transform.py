@@ -578,13 +578,11 @@ class ChartShare:
         "Background atlases"). The decomposition does not depend on the wait."""
         deadline = time.monotonic() + HOLD_MAX_S
         held = False
-        with self._cond:
-            while (
-                self._starting - {h}
-                and time.monotonic() < deadline
-                and not abandoned()
-                and background()
-            ):
+        while time.monotonic() < deadline and not abandoned() and background():
+            # background() takes the service's lock: asked outside this one's condition
+            with self._cond:
+                if not self._starting - {h}:
+                    break
                 held = True
                 self._cond.wait(0.05)
         if held:
