@@ -235,9 +235,10 @@ class TransformService(Service):
     def _start(self) -> None:
         self._pool = self._new_pool()
         self._bg_pool = self._new_pool(background=True)
-        if self._executor_kind == "process":  # the foreground workers start (and import) now
-            for _ in range(self._workers):
-                self._pool.submit(_warm_worker)
+        if self._executor_kind == "process":  # the workers start (and import) now: a chart
+            for pool in (self._pool, self._bg_pool):  # never waits for a worker's start
+                for _ in range(self._workers):
+                    pool.submit(_warm_worker)
         self.spawn(self._timeout_loop, "timeouts")
         if self._cache_dir:
             self._cache_dir.mkdir(parents=True, exist_ok=True)
