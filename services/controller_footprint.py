@@ -256,10 +256,7 @@ class FootprintMixin(ControllerCacheMixin, WarmMixin):
         point), None without a pose."""
         with r.lock:
             pos, theta = r.position, r.theta
-        if pos is None:
-            return None
-        d = goal.lookahead if goal.drive == "unicycle" else 0.0
-        return complex(pos[0], pos[1]) + d * cmath.exp(1j * theta)
+        return None if pos is None else navigation.steered_point(goal, pos[0], pos[1], theta)
 
     def _base_installed(self, ws_id: str, m: _Map) -> None:
         """A map of ``ws_id`` was installed: its robots still waiting for a footprint map

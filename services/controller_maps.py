@@ -4,7 +4,6 @@ services/controller.py)."""
 
 from __future__ import annotations
 
-import cmath
 import logging
 import math
 import time
@@ -366,9 +365,7 @@ class MapsMixin(FootprintMixin, FlatMixin):
                 wanted = goal is not None and ws_id in (goal.ws_id, r.atlas_ws, base_of(goal.ws_id))
             if not wanted or goal is None or pos is None:
                 continue
-            z = complex(pos[0], pos[1])
-            if goal.drive == "unicycle":
-                z += goal.lookahead * cmath.exp(1j * theta)
+            z = navigation.steered_point(goal, pos[0], pos[1], theta)
             key = (goal.goal, goal.ws_id)
             if only_new and sent.get(r.robot_id) == key:
                 continue

@@ -10,6 +10,7 @@ controllers' critical-point searches (:mod:`confnav.services.critical_search`).
 
 from __future__ import annotations
 
+import cmath
 import logging
 from typing import Any
 
@@ -178,6 +179,13 @@ def point_law(cmap: Any, goal: Goal, safety: Any = None) -> ControllerLike:
 
         return UnicycleController(ctrl, goal.lookahead, v_max=goal.v_max, omega_max=goal.omega_max)
     return ctrl
+
+
+def steered_point(goal: Goal, x: float, y: float, theta: float) -> complex:
+    """The point a robot's law steers at pose ``(x, y, theta)``: the position, or a
+    unicycle's look-ahead point ``x + d e^{i theta}`` (docs/NAVIGATION.md, unicycles)."""
+    d = goal.lookahead if goal.drive == "unicycle" else 0.0
+    return complex(x, y) + d * cmath.exp(1j * theta)
 
 
 def footprint_radius(goal: Goal) -> float:
