@@ -78,6 +78,7 @@ from confnav.navigation.navfn import CircleDomain, KoditschekRimon
 from confnav.navigation.roadmap import (
     Roadmap,
     build_roadmap,
+    free_path,
     passage_widths,
     segment_clearance,
     segment_segment_distance,
@@ -107,6 +108,9 @@ ROAD, GOAL_LEG, RETURN_LEG, PARKED = 0, 1, 2, 3
 #: m a robot on its goal leg must come nearer its goal within ``leg_patience`` s to count as
 #: progressing (:meth:`RoadmapCoordinator._stalled_legs`)
 LEG_PROGRESS = 0.02
+#: a corner of a return way round the walls (:meth:`RoadmapCoordinator.return_way`) counts
+#: as passed this near (m): the leg after it starts at the corner, where it is free
+WAY_TOL = 0.05
 #: how a robot drives the rest of its goal leg (:meth:`RoadmapCoordinator._stalled_legs`)
 OWN_LAW, STRAIGHT, VIA_NODE = 0, 1, 2
 
@@ -309,6 +313,8 @@ class RoadmapCoordinator:
     suspend_until: NDArray[np.float64] = field(init=False)
     origin: NDArray[np.intp] = field(init=False)  # the node a robot on its way comes from
     excursions: dict[int, _Excursion] = field(init=False)
+    #: robots on a return leg round the walls: the corners still ahead (the node last)
+    return_ways: dict[int, list[complex]] = field(init=False)
     ticks: int = 0
     reverts: int = 0
     excursions_done: int = 0
@@ -336,6 +342,8 @@ class RoadmapCoordinator:
         self._leg_way = np.zeros(n, dtype=np.int8)  # OWN_LAW, STRAIGHT or VIA_NODE
         self.origin = np.zeros(n, dtype=np.intp)
         self.excursions = {}
+        self.return_ways = {}
+        self._ways: dict[tuple[int, complex], list[complex] | None] = {}  # return_way cache
         self._rng = np.random.default_rng(self.seed)
         self._tie = self._rng.random(n) * 1e-3  # fixed random order between equal priorities
         lab = self.roadmap.components()
@@ -482,6 +490,9 @@ class RoadmapCoordinator:
         self.excursions = {
             (j if j < i else j - 1): ex for j, ex in self.excursions.items() if j != i
         }
+        self.return_ways = {
+            (j if j < i else j - 1): w for j, w in self.return_ways.items() if j != i
+        }
         self.n -= 1
 
     def goal_node_of(self, goal: complex) -> int:
@@ -521,7 +532,10 @@ class RoadmapCoordinator:
             if dn[i]:
                 continue
             if self.mode[i] == PARKED:  # given its goal again: arrival counts again
-                self.mode[i] = GOAL_LEG if gg[i] == self.goal_pt[i] else RETURN_LEG
+                if gg[i] == self.goal_pt[i]:
+                    self.mode[i] = GOAL_LEG
+                else:
+                    self._leave_goal(i)
                 self._start_leg(i, t)
             if gg[i] != self.goal_pt[i]:
                 self.goal_pt[i] = gg[i]
@@ -533,6 +547,7 @@ class RoadmapCoordinator:
         for i in np.flatnonzero(back).tolist():
             self.mode[i] = ROAD
             self.excursions.pop(i, None)
+            self.return_ways.pop(i, None)
         road = self.mode == ROAD
         gap = np.abs(pp - nodes[self.nxt])
         settled = gap <= self.node_tol
@@ -557,7 +572,7 @@ class RoadmapCoordinator:
             elif m in (GOAL_LEG, PARKED):
                 drive.append(None)
             elif m == RETURN_LEG:
-                drive.append(self.node_ctrls[int(self.at[i])])
+                drive.append(self._return_law(i, complex(pp[i])))
             else:
                 drive.append(self.node_ctrls[int(self.nxt[i])])
         return drive, self.mode == GOAL_LEG
@@ -647,7 +662,57 @@ class RoadmapCoordinator:
             nodes = ex.nodes | ends | {int(self.at[i])}
             nn = np.fromiter(nodes, dtype=np.intp)
             if nodes & chain or self._in_the_way(nn, active):
-                self.mode[i] = RETURN_LEG
+                self._leave_goal(i)
+
+    def _leave_goal(self, i: int) -> None:
+        """Parked robot ``i`` takes the return leg to its node, round the walls where the
+        straight way from its goal is not free (:meth:`return_way`)."""
+        self.mode[i] = RETURN_LEG
+        way = self.return_way(int(self.at[i]), complex(self.goal_pt[i]))
+        if way is not None and len(way) > 1:
+            self.return_ways[i] = list(way)
+        else:
+            self.return_ways.pop(i, None)
+
+    def return_way(self, v: int, goal: complex) -> list[complex] | None:
+        """The corners of the way back from ``goal`` to node ``v`` (the node last; cached):
+        with straight node laws (:class:`LineLaw`, an atlas) a free polyline round the walls
+        (:func:`~confnav.navigation.roadmap.free_path`) where the straight segment is not
+        free; None where it is, with conformal node laws (they go round walls themselves),
+        or where no way is found (the straight law then, as before).  A goal that no node
+        of the main component sees (:meth:`goal_node_of` then takes the nearest node) is
+        reached on the robot's own law round the walls; the straight law back held it at
+        the wall for good.  Why: on the TurtleBot3 sandbox (services, three unicycles,
+        filter radius 0.32 m) a done robot parked in the outer ring, called back to its
+        node across a pillar, stood at the pillar's wall while another robot waited for
+        that node until the end of the run."""
+        if not isinstance(self.node_ctrls[0], LineLaw) or np.isnan(goal.real):
+            return None
+        key = (int(v), complex(goal))
+        if key not in self._ways:
+            node = complex(self.roadmap.nodes[key[0]])
+            if segment_clearance(self._workspace(), np.array([goal]), np.array([node]))[0] > 0:
+                self._ways[key] = None
+            else:
+                w = free_path(self._workspace(), goal, node)
+                self._ways[key] = None if w is None else [complex(z) for z in w.tolist()]
+        return self._ways[key]
+
+    def _return_law(self, i: int, p: complex) -> Any:
+        """The law of robot ``i`` on its return leg at ``p``: the node's law, or the straight
+        law to the next corner of its way round the walls (passed within ``WAY_TOL``)."""
+        way = self.return_ways.get(i)
+        while way and len(way) > 1 and abs(p - way[0]) <= WAY_TOL:
+            way.pop(0)
+        if not way or len(way) <= 1:
+            return self.node_ctrls[int(self.at[i])]
+        law0 = self.node_ctrls[0]
+        key = complex(way[0])
+        law = self._goal_laws.get(key)
+        if law is None:
+            law = LineLaw(key, law0.safety, v_max=law0.v_max, gain=law0.gain)
+            self._goal_laws[key] = law
+        return law
 
     def _push_chains(self, active: NDArray[np.bool_]) -> set[int]:
         """The nodes an ``active`` robot's next move needs cleared: where its next node on a
@@ -1150,9 +1215,11 @@ class FleetCoordinator:
         if m == PARKED:
             return f"arrived; at its goal (off node {at}; leaves it when a robot needs the way)"
         if m == RETURN_LEG:
+            way = c.return_ways.get(i)
+            how = f" round the walls ({len(way) - 1} corners ahead)" if way else ""
             if parked:
-                return f"arrived; returning to roadmap node {at} to park off the goal"
-            return f"joining the roadmap at node {at}"
+                return f"arrived; returning to roadmap node {at}{how} to park off the goal"
+            return f"joining the roadmap at node {at}{how}"
         if parked:
             return f"arrived; parked on roadmap node {nxt}"
         g = int(c.goal_node[i])

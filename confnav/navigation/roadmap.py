@@ -27,14 +27,24 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.sparse import csr_matrix
-from scipy.sparse.csgraph import connected_components, shortest_path
+from scipy.sparse.csgraph import connected_components, dijkstra, shortest_path
 from scipy.spatial import Delaunay, cKDTree
 
 from confnav.errors import NavigationError
 from confnav.geometry import Workspace
 from confnav.types import CArray, FArray
 
-__all__ = ["Roadmap", "build_roadmap", "passage_widths", "segment_segment_distance"]
+__all__ = ["Roadmap", "build_roadmap", "free_path", "passage_widths", "segment_segment_distance"]
+
+#: the sampling step (m) of :func:`segment_clearance`
+SEGMENT_STEP = 0.02
+#: the edge clearance (m) of :func:`_tight_core`, for mazes whose pinch points are nearer the
+#: walls than the default comfort margin (at least the sampling bound of segment_clearance)
+TIGHT_EDGE_CLEARANCE = 0.01
+#: its candidate grid step (m): pinch points and short lanes need candidates on their axes
+TIGHT_GRID = 0.02
+#: the most candidates of that grid (bounding box / step^2); beyond, the caller's grid
+TIGHT_MAX_CANDIDATES = 400_000
 
 
 @dataclass(frozen=True)
@@ -102,7 +112,9 @@ def segment_segment_distance(a0: ArrayLike, a1: ArrayLike, b0: ArrayLike, b1: Ar
     return np.asarray(np.where(hit, 0.0, m))
 
 
-def segment_clearance(ws: Workspace, a: ArrayLike, b: ArrayLike, step: float = 0.02) -> FArray:
+def segment_clearance(
+    ws: Workspace, a: ArrayLike, b: ArrayLike, step: float = SEGMENT_STEP
+) -> FArray:
     """A lower bound of the wall clearance along each segment ``a[i]..b[i]``: the least exact
     clearance at points ``step`` apart less ``step / 2`` (the clearance is 1-Lipschitz)."""
     aa = np.atleast_1d(np.asarray(a, dtype=np.complex128))
@@ -135,7 +147,9 @@ def build_roadmap(
     ``max_edge``: longest edge (default ``1.6 spacing``); ``pass_gap``: least distance from
     an edge to a third node (default ``0.75 spacing``); ``grid``: the candidate grid's step;
     ``prune_leaves``: nodes of degree 0 or 1 are removed, repeatedly (the graph's 2-core:
-    no dead-end branches, where robots could only pass each other by backing out).
+    no dead-end branches, where robots could only pass each other by backing out); where that
+    keeps less than half of the nodes, the core of a tighter roadmap if it keeps more
+    (:func:`_tight_core`).
     Raises :class:`~confnav.errors.NavigationError` when no point has ``min_clearance``.
     """
     if not (spacing > 0 and grid > 0 and min_clearance >= 0):
@@ -151,6 +165,9 @@ def build_roadmap(
     n = nodes.size
     if prune_leaves:
         nodes, edges = _two_core(nodes, edges)
+        if 2 * nodes.size < n and ec > TIGHT_EDGE_CLEARANCE:
+            nodes, edges = _tight_core(workspace, spacing, min_clearance, grid, max_edge,
+                                       pass_gap, (nodes, edges))  # fmt: skip
         n = nodes.size
     nb: list[list[int]] = [[] for _ in range(n)]
     for u, v in edges.tolist():
@@ -245,6 +262,34 @@ def _free_edges(
     return edges
 
 
+def _tight_core(
+    ws: Workspace,
+    spacing: float,
+    min_clearance: float,
+    grid: float,
+    max_edge: float,
+    pass_gap: float,
+    core: tuple[CArray, NDArray[np.intp]],
+) -> tuple[CArray, NDArray[np.intp]]:
+    """The 2-core again with edges only :data:`TIGHT_EDGE_CLEARANCE` from the walls and
+    candidates on a :data:`TIGHT_GRID` grid (where the free space allows so many), if it
+    keeps more nodes than ``core`` (the default core), else ``core``.
+
+    :func:`build_roadmap` asks for it where the default edge clearance leaves less than half
+    of the nodes in the core: a maze of single-lane passages with pinch points nearer the
+    walls than that comfort margin (the TurtleBot3 sandbox for a 0.32 m filter radius: 13
+    nodes, 10 edges, an empty core, so the fleet had no roadmap and two robots met head-on
+    in a lane for good).  An edge that clear of the walls is still free: the sampled
+    clearance bounds the true one to ``step / 2`` (:func:`segment_clearance`), and the
+    controller's safety filter keeps the robots off the walls whatever the law."""
+    x0, y0, x1, y1 = ws.bounds
+    g = TIGHT_GRID if (x1 - x0) * (y1 - y0) / TIGHT_GRID**2 <= TIGHT_MAX_CANDIDATES else grid
+    nodes = _sample_nodes(ws, spacing, min_clearance, min(g, grid))
+    edges = _free_edges(ws, nodes, max_edge, TIGHT_EDGE_CLEARANCE, pass_gap)
+    tight = _two_core(nodes, edges)
+    return tight if tight[0].size > core[0].size else core
+
+
 def _two_core(nodes: CArray, edges: NDArray[np.intp]) -> tuple[CArray, NDArray[np.intp]]:
     """Nodes of degree <= 1 removed repeatedly; edges renumbered."""
     n = nodes.size
@@ -290,3 +335,110 @@ def passage_widths(
             live[np.flatnonzero(live)[stop]] = False
         width += np.minimum(t, cap)
     return width
+
+
+def free_path(
+    ws: Workspace,
+    a: complex,
+    b: complex,
+    *,
+    step: float = 0.02,
+    margin: float = 0.005,
+    pad: float = 1.0,
+    max_cells: int = 250_000,
+) -> CArray | None:
+    """The corners of a free polyline from ``a`` to ``b`` (``a`` not included, ``b`` last;
+    ``[b]`` where the segment is free), each leg at least ``margin`` from the walls (sampled:
+    :func:`segment_clearance`); None if there is none within the grid's reach.
+
+    A shortest path on the 8-neighbour grid of step ``step`` over the points of clearance at
+    least ``margin + step / sqrt 2`` (so the straight step between two neighbours is
+    ``margin`` clear: the clearance is 1-Lipschitz), Dijkstra (scipy.sparse.csgraph), in the
+    box round ``a`` and ``b`` grown by ``pad`` (doubled until a path is found, the box
+    covers the workspace, or it would hold more than ``max_cells`` points), then pulled
+    tight: from each corner, the farthest grid point of the path in free straight sight
+    (string pulling; a polyline no longer than the grid path).  For the fleet's return leg
+    round a wall (:meth:`~confnav.navigation.fleet_coord.RoadmapCoordinator.return_way`)."""
+    a, b = complex(a), complex(b)
+    if segment_clearance(ws, np.array([a]), np.array([b]))[0] >= margin:
+        return np.array([b])
+    x0, y0, x1, y1 = ws.bounds
+    reach = float(pad)
+    while True:
+        lo = complex(max(min(a.real, b.real) - reach, x0), max(min(a.imag, b.imag) - reach, y0))
+        hi = complex(min(max(a.real, b.real) + reach, x1), min(max(a.imag, b.imag) + reach, y1))
+        nx = int(np.floor((hi.real - lo.real) / step)) + 1
+        ny = int(np.floor((hi.imag - lo.imag) / step)) + 1
+        if nx * ny > max_cells:
+            return None
+        path = _grid_path(ws, a, b, lo, nx, ny, step, margin)
+        whole = lo.real <= x0 and lo.imag <= y0 and hi.real >= x1 and hi.imag >= y1
+        if path is not None or whole:
+            break
+        reach *= 2.0
+    if path is None:
+        return None
+    return _pull_tight(ws, a, np.concatenate([path, [b]]), margin)
+
+
+def _grid_path(
+    ws: Workspace, a: complex, b: complex, lo: complex, nx: int, ny: int, step: float,
+    margin: float,
+) -> CArray | None:  # fmt: skip
+    """:func:`free_path`'s grid path from the free grid point nearest ``a`` that ``a`` sees
+    to the one nearest ``b`` that ``b`` sees (both ends excluded), or None."""
+    ix, iy = np.meshgrid(np.arange(nx), np.arange(ny), indexing="ij")
+    z = (lo.real + step * ix + 1j * (lo.imag + step * iy)).ravel()
+    inside = np.asarray(ws.contains(z), dtype=bool)
+    ok = np.zeros(z.size, dtype=bool)
+    ok[inside] = np.asarray(ws.clearance(z[inside])) >= margin + step / np.sqrt(2.0)
+    idx = np.flatnonzero(ok)
+    if idx.size == 0:
+        return None
+    ends = [_seen_from(ws, e, z, idx, margin) for e in (a, b)]
+    if ends[0] is None or ends[1] is None:
+        return None
+    rows, cols, w = [], [], []
+    grid = ok.reshape(nx, ny)
+    flat = np.arange(nx * ny).reshape(nx, ny)
+    for dx, dy in ((1, 0), (0, 1), (1, 1), (1, -1)):
+        sx = slice(0, nx - dx)
+        sy = slice(max(0, -dy), ny - max(0, dy))
+        tx = slice(dx, nx)
+        ty = slice(max(0, dy), ny - max(0, -dy))
+        both = grid[sx, sy] & grid[tx, ty]
+        rows.append(flat[sx, sy][both])
+        cols.append(flat[tx, ty][both])
+        w.append(np.full(int(both.sum()), step * np.hypot(dx, dy)))
+    r, c, ww = np.concatenate(rows), np.concatenate(cols), np.concatenate(w)
+    g = csr_matrix((ww, (r, c)), shape=(nx * ny, nx * ny))
+    dist, pred = dijkstra(g, directed=False, indices=ends[0], return_predecessors=True)
+    if not np.isfinite(dist[ends[1]]):
+        return None
+    out = [ends[1]]
+    while out[-1] != ends[0]:
+        out.append(int(pred[out[-1]]))
+    return np.asarray(z[np.array(out[::-1])], dtype=np.complex128)
+
+
+def _seen_from(ws: Workspace, e: complex, z: CArray, idx: NDArray[np.intp], margin: float
+               ) -> int | None:  # fmt: skip
+    """The free grid point (of ``z[idx]``) nearest ``e`` whose segment from ``e`` is
+    ``margin`` clear (among the 16 nearest), or None."""
+    near = idx[np.argsort(np.abs(z[idx] - e))[:16]]
+    seen = segment_clearance(ws, np.full(near.size, e), z[near]) >= margin
+    return int(near[np.flatnonzero(seen)[0]]) if seen.any() else None
+
+
+def _pull_tight(ws: Workspace, a: complex, pts: CArray, margin: float) -> CArray:
+    """String pulling of the polyline ``a, pts...``: from each corner on, the farthest
+    point of ``pts`` in ``margin``-clear straight sight (:func:`segment_clearance`'s lower
+    bound); the next point always is (the grid's steps are, by construction)."""
+    out: list[complex] = []
+    cur, k = a, 0
+    while k < pts.size:
+        seen = segment_clearance(ws, np.full(pts.size - k, cur), pts[k:]) >= margin
+        j = k + (int(np.flatnonzero(seen)[-1]) if seen.any() else 0)
+        cur, k = complex(pts[j]), j + 1
+        out.append(cur)
+    return np.array(out, dtype=np.complex128)
