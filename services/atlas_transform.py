@@ -670,7 +670,13 @@ class ChartShare:
 
 class SharedExecutor(cf.Executor):
     """The executor :func:`confnav.atlas.solve_atlas` solves one atlas's cells with: its
-    ``map`` runs :meth:`ChartShare.run` (only ``map`` is provided)."""
+    ``map`` runs :meth:`ChartShare.run`; its ``submit`` runs one job the same way in a
+    thread (the robots' start cells, started while the decomposition's next pass is cut,
+    and a revision after each of their charts: :func:`confnav.atlas.charts._solve_streaming`).
+    """
+
+    #: :func:`confnav.atlas.charts._submits`: single charts go through :meth:`submit`
+    submits_charts = True
 
     def __init__(
         self,
@@ -687,3 +693,20 @@ class SharedExecutor(cf.Executor):
     ) -> Iterator[ChartResult]:
         jobs = list(zip(*iterables, strict=True))
         return iter(self.share.run(self.atlas_key, fn, jobs, self.abandoned, self.background))
+
+    def submit(  # type: ignore[override]
+        self, fn: Callable[..., ChartResult], /, *args: Any, **_kw: Any
+    ) -> cf.Future[ChartResult]:
+        fut: cf.Future[ChartResult] = cf.Future()
+
+        def work() -> None:
+            if not fut.set_running_or_notify_cancel():
+                return
+            try:
+                res = self.share.run(self.atlas_key, fn, [args], self.abandoned, self.background)
+                fut.set_result(res[0])
+            except BaseException as exc:  # the consumer's result() raises it
+                fut.set_exception(exc)
+
+        threading.Thread(target=work, name="chart-submit", daemon=True).start()
+        return fut

@@ -533,6 +533,14 @@ def solve_atlas(
                     rounds -= 1
                 batches = []
             for chunk in batches:
+                if isinstance(batches, _Batches) and batches.route and pool and _submits(pool):
+                    # the robots' cells: a revision after each chart, solves started early
+                    # (:func:`_early_starts`) taken over
+                    for i, got1 in _solve_streaming(pool, dec, keys, chunk, (tol, accept),
+                                                    pending, depths):  # fmt: skip
+                        failed += _collect(dec, keys, [i], [got1], done, records)
+                        partial()
+                    continue
                 got = _solve_chunk(pool, dec, chunk, tol, accept)
                 failed += _collect(dec, keys, chunk, got, done, records)
                 partial()
@@ -595,8 +603,8 @@ def _decompose_round(
     process pool, the start cells' solves start at each pass (:func:`_early_starts`) and
     ``on_partial`` previews the first pass's cells (:func:`_decompose_previewing`)."""
     early = (
-        _early_starts(pool, priority, tols, pending, depths)
-        if priority and on_partial is not None and isinstance(pool, ProcessPoolExecutor)
+        _early_starts(pool, priority, tols, pending, depths)  # type: ignore[arg-type]
+        if priority and on_partial is not None and _submits(pool)
         else None
     )
     if early is None or on_partial is None:
@@ -607,6 +615,43 @@ def _decompose_round(
         show(PartialAtlas(d, c, tols[0], rnd, time.perf_counter() - t0))
 
     return _decompose_previewing(ws, split, early, pending, preview, decompose_kw)
+
+
+def _submits(pool: Executor | None) -> bool:
+    """Whether ``pool`` solves single charts (``submit``) as well as lists: a process pool,
+    or an executor that says so (``submits_charts``: the transform service's, whose
+    ``submit`` runs one job through its chart share)."""
+    return isinstance(pool, ProcessPoolExecutor) or bool(getattr(pool, "submits_charts", False))
+
+
+def _solve_streaming(
+    pool: Executor,
+    dec: Decomposition,
+    keys: list[str],
+    chunk: list[int],
+    tols: tuple[float, float],
+    pending: dict[str, Future[tuple[str, float, str]]],
+    depths: dict[str, float],
+) -> Iterator[tuple[int, tuple[str, float, str]]]:
+    """The cells ``chunk`` solved at once on ``pool``, yielded as each is done: a solve
+    started early for a cell (``pending``, probed at this decomposition's margin) is taken
+    over, the others submitted.  For the robots' cells of a progressive atlas on an
+    executor that is not a process pool: before, the transform service published its first
+    revision once both workers' route cells were done, and started them only after the
+    decomposition's last pass (measured on the SLAM warehouse, first use: the first revision
+    1.46 s after the goals against 0.75 s in process with early starts and a revision per
+    chart)."""
+    tol, accept = tols
+    wait: dict[Future[tuple[str, float, str]], int] = {}
+    for i in chunk:
+        fut = pending.pop(keys[i], None)
+        if fut is None or depths.get(keys[i], dec.margin) != dec.margin or fut.cancelled():
+            job = dec.cells[i].workspace.to_json()
+            fut = pool.submit(_solve_one, job, tol, accept, dec.margin)
+        depths.pop(keys[i], None)
+        wait[fut] = i
+    for fut in as_completed(wait):
+        yield wait[fut], fut.result()
 
 
 def _early_starts(
@@ -776,6 +821,7 @@ class _Batches:
         self.dec, self.left, self.n_first = dec, list(todo), n_first
         self.pairs, self.routes = tuple(pairs), routes
         self.size, self.every = max(1, workers), max(1, every)
+        self.route = False  # the last chunk: robots' route cells
 
     def __iter__(self) -> Iterator[list[int]]:
         while self.left:
@@ -788,7 +834,8 @@ class _Batches:
                     log.info("atlas: %d route cells moved to the front", len(first))
                     self.left = first + [i for i in self.left if i not in set(first)]
                     self.n_first = len(first)
-            take = min(self.size, self.n_first) if self.n_first > 0 else self.every
+            self.route = self.n_first > 0
+            take = min(self.size, self.n_first) if self.route else self.every
             chunk, self.left = self.left[:take], self.left[take:]
             self.n_first = max(0, self.n_first - len(chunk))
             yield chunk
