@@ -6,6 +6,7 @@ stopping."""
 
 from __future__ import annotations
 
+import concurrent.futures as cf
 import itertools
 from types import SimpleNamespace
 
@@ -253,4 +254,48 @@ def test_routes_that_arrive_mid_solve_go_into_the_next_batch() -> None:
     # without the late route the known route's second cell would come next: a different one
     assert theirs[0] not in mine[:2]
     assert set(first[1].installed) - set(first[0].installed) == {theirs[0]}
+    assert revisions[-1].complete
+
+
+class _ChartExecutor(cf.Executor):
+    """An executor that is not a process pool but solves single charts (``submit``), as the
+    transform service's (services/atlas_transform.py, ``SharedExecutor``)."""
+
+    submits_charts = True
+
+    def __init__(self) -> None:
+        self.pool = cf.ProcessPoolExecutor(2)
+        self.submitted = 0
+
+    def submit(self, fn, /, *args, **kwargs):  # type: ignore[no-untyped-def,override]
+        self.submitted += 1
+        return self.pool.submit(fn, *args, **kwargs)
+
+    def map(self, fn, *iterables, **_kw):  # type: ignore[no-untyped-def,override]
+        return self.pool.map(fn, *iterables)
+
+    def shutdown(self, wait: bool = True, **_kw: object) -> None:
+        self.pool.shutdown(wait)
+
+
+def test_on_an_executor_that_submits_charts_each_robots_chart_is_a_revision() -> None:
+    """Two robots at the corridor's two ends, two workers: each of their start cells' charts
+    is a revision as it comes (before, on the transform service's executor, the first
+    revision waited for both: the robot whose chart came first waited for the other's), the
+    start cells solved through ``submit``; the result is the plain atlas."""
+    routes = [(START, GOAL), (GOAL, START)]
+    revisions: list[PartialAtlas] = []
+    ex = _ChartExecutor()
+    try:
+        atlas = solve_atlas(pillar_corridor(), TOL, workers=2, executor=ex, batch=2,
+                            priority=routes, on_partial=revisions.append)  # fmt: skip
+    finally:
+        ex.shutdown()
+    starts = [[route_order(r.decomposition, [rt])[0] for rt in routes] for r in revisions]
+    got = [sum(k in r.installed for k in s) for r, s in zip(revisions, starts, strict=True)]
+    first = next(k for k, n in enumerate(got) if n)
+    assert got[first] == 1, got  # one robot's chart, not both
+    assert max(got) == 2 and ex.submitted >= 2
+    plain = solve_atlas(pillar_corridor(), TOL, workers=1)
+    assert atlas.decomposition.keys == plain.decomposition.keys
     assert revisions[-1].complete
