@@ -39,6 +39,7 @@ from typing import Any
 from confnav.services import navigation
 from confnav.services.controller_state import ControllerCore, PoseLike, _Robot
 
+from confnav.geometry import Workspace
 from confnav.navigation.control import Controller
 from confnav.navigation.fleet_coord import (
     ALONE,
@@ -99,7 +100,10 @@ class CoordMixin(ControllerCore):
             else:  # an atlas (AtlasController): straight node laws on its workspace
                 cmap = getattr(getattr(law, "nav", None), "atlas", None)
             ws = getattr(cmap, "workspace", None)
-            if r.goal is None or r.base_ws or not hasattr(ws, "content_hash"):
+            # isinstance, not hasattr(ws, "content_hash"): that evaluated the property (a
+            # sha256 of the geometry's JSON) for every robot of every pose block, a quarter
+            # of the pose step's CPU with 200 robots (bench_controller.py --step)
+            if r.goal is None or r.base_ws or not isinstance(ws, Workspace):
                 continue  # no goal, on the base map, or no polygonal workspace (a test's map)
             d = float(getattr(ctrl, "d", 0.0)) if getattr(ctrl, "frame", "") == "body" else 0.0
             # one fleet per free space (not per map object: a re-solved map or an atlas
