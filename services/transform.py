@@ -238,7 +238,7 @@ class TransformService(Service):
         if self._executor_kind == "process":  # the workers start (and import) now: a chart
             for pool in (self._pool, self._bg_pool):  # never waits for a worker's start
                 for _ in range(self._workers):
-                    pool.submit(_warm_worker)
+                    pool.submit(_warm_worker).add_done_callback(self._warmed)
         self.spawn(self._timeout_loop, "timeouts")
         if self._cache_dir:
             self._cache_dir.mkdir(parents=True, exist_ok=True)
@@ -270,6 +270,12 @@ class TransformService(Service):
         for pool in (self._pool, self._bg_pool):
             if pool is not None:
                 pool.shutdown(wait=False, cancel_futures=True)
+
+    def _warmed(self, fut: cf.Future[None]) -> None:
+        """A worker started and imported the solver (health counter ``workers_warmed``: both
+        pools are ready at ``2 workers``)."""
+        if not fut.cancelled() and fut.exception() is None:
+            self.count("workers_warmed")
 
     def health_detail(self) -> tuple[str, str]:
         with self._lock:

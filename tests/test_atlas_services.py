@@ -277,6 +277,16 @@ def test_two_transform_instances_share_an_atlas(tmp_path: Path) -> None:
         sys_.bus.subscribe_liveliness(f"{sys_.keys.prefix}/claim/*/*/*", claims)
         sys_.bus.subscribe(f"{sys_.keys.prefix}/health/transform/*", on_health)
         sys_.bus.subscribe(sys_.keys.any_ws("status"), on_status)
+
+        def warmed() -> bool:  # both instances' workers started (two pools of two each):
+            # in a full run one instance's workers were still starting while the other
+            # claimed most jobs (a 16 / 4 split)
+            return all(
+                z in health and health[z].counters.get("workers_warmed", 0) >= 4
+                for z in zids.values()
+            )
+
+        wait_for(warmed, timeout=60, interval=0.1)
         sys_.bus.publish(sys_.keys.ws("pa", "definition"), encode(definition_of("pa", ws_a, tol)))
         ref_a = solve_atlas(ws_a, tol, workers=1)  # one instance alone (meanwhile)
         (index_a,) = wait_for(lambda: answers("pa", 2), timeout=60, interval=0.2)

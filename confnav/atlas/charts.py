@@ -532,18 +532,9 @@ def solve_atlas(
                     eager_left -= 1
                     rounds -= 1
                 batches = []
-            for chunk in batches:
-                if isinstance(batches, _Batches) and batches.route and pool and _submits(pool):
-                    # the robots' cells: a revision after each chart, solves started early
-                    # (:func:`_early_starts`) taken over
-                    for i, got1 in _solve_streaming(pool, dec, keys, chunk, (tol, accept),
-                                                    pending, depths):  # fmt: skip
-                        failed += _collect(dec, keys, [i], [got1], done, records)
-                        partial()
-                    continue
-                got = _solve_chunk(pool, dec, chunk, tol, accept)
-                failed += _collect(dec, keys, chunk, got, done, records)
-                partial()
+            failed += _solve_batches(
+                pool, dec, keys, batches, (tol, accept), pending, depths, done, records, partial
+            )
             if not failed:
                 charts = tuple(done[k] for k in keys)
                 return Atlas(dec, charts, tol, tuple(records), time.perf_counter() - t0, workers)
@@ -615,6 +606,34 @@ def _decompose_round(
         show(PartialAtlas(d, c, tols[0], rnd, time.perf_counter() - t0))
 
     return _decompose_previewing(ws, split, early, pending, preview, decompose_kw)
+
+
+def _solve_batches(
+    pool: Executor | None,
+    dec: Decomposition,
+    keys: list[str],
+    batches: Iterable[list[int]],
+    tols: tuple[float, float],
+    pending: dict[str, Future[tuple[str, float, str]]],
+    depths: dict[str, float],
+    done: dict[str, ConformalMap],
+    records: list[ChartRecord],
+    partial: Callable[[], None],
+) -> list[Tile]:
+    """:func:`solve_atlas`'s batches of one round (not chart by chart): each batch solved and
+    recorded, then ``partial``; the robots' cells on an executor that solves single charts
+    one revision per chart (:func:`_solve_streaming`). Returns the failed tiles."""
+    failed: list[Tile] = []
+    for chunk in batches:
+        if isinstance(batches, _Batches) and batches.route and pool and _submits(pool):
+            for i, got1 in _solve_streaming(pool, dec, keys, chunk, tols, pending, depths):
+                failed += _collect(dec, keys, [i], [got1], done, records)
+                partial()
+            continue
+        got = _solve_chunk(pool, dec, chunk, *tols)
+        failed += _collect(dec, keys, chunk, got, done, records)
+        partial()
+    return failed
 
 
 def _submits(pool: Executor | None) -> bool:
