@@ -10,11 +10,11 @@ from typing import Any
 
 import numpy as np
 import pytest
+from test_fleet_coord_async import _teleport  # robots that are where their plan sends them
 
 from confnav import Workspace, inflate
 from confnav.maps.occupancy import import_map
 from confnav.navigation.fleet_coord import (
-    GOAL_LEG,
     PARKED,
     RETURN_LEG,
     LineLaw,
@@ -108,25 +108,6 @@ def test_a_robot_parked_where_no_node_sees_its_goal_goes_back_round_the_walls(
         if done[1]:
             break
     assert left and done[1] and abs(p[1] - goals[1]) < 1e-12  # a left its goal, b arrived
-
-
-def _teleport(c: RoadmapCoordinator, p: np.ndarray, goals: np.ndarray, done: np.ndarray,
-              t: float) -> None:  # fmt: skip
-    """One step of robots that are where their plan sends them at once (as in
-    tests/test_fleet_coord_async.py)."""
-    c.update(t, p, goals, done)
-    for i in range(c.n):
-        m = int(c.mode[i])
-        if m == GOAL_LEG:
-            p[i] = goals[i]
-            c.reached(i)
-            done[i] = True
-        elif m == PARKED:
-            p[i] = goals[i]
-        elif m == RETURN_LEG:
-            p[i] = c.roadmap.nodes[int(c.at[i])]
-        else:
-            p[i] = c.roadmap.nodes[int(c.nxt[i])]
 
 
 def test_free_path_goes_round_a_wall_nearly_as_short_as_the_shortest_path() -> None:
