@@ -531,6 +531,16 @@ class Robots:
         back = next((i for i, z in enumerate(seq) if abs(z - start) < 0.05), None)
         return back is not None and any(abs(z - start) > 0.15 for z in seq[back:])
 
+    def moving(self, rid: str, within_ns: int = 200_000_000) -> bool:
+        """Whether the robot's last two poses differ and the last is stamped within
+        ``within_ns`` of now (it is moving at this moment)."""
+        with self.lock:
+            last = self.poses[rid][-2:]
+        if len(last) < 2:
+            return False
+        (_t0, z0, _s0), (_t1, z1, s1) = last
+        return abs(z1 - z0) > 1e-12 and time.time_ns() - s1 <= within_ns
+
     def stop_time(self, rid: str, from_ns: int, to_ns: int) -> int | None:
         """Publication time (the simulator's stamp, ns) of the last pose stamped in
         [from_ns, to_ns] that differs from the one before (None: it never moved there); the
@@ -620,6 +630,9 @@ def _kill_victim(
                 return p if p is not None and p.popen.poll() is None else None
 
             proc = wait(victim_up, 120, f"{victim} restarted")
+            # a stop latency needs a robot moving at the kill (in a full test run all four
+            # stood still by then, e.g. arrived while the restarted victim came up: 0.0 s)
+            wait(lambda: any(robots.moving(r) for r in starts), 60, "a robot moving")
             t_kill, t_kill_ns = time.monotonic(), time.time_ns()
             os.kill(proc.popen.pid, signal.SIGKILL)
             row: dict[str, Any] = {"victim": victim, "repeat": rep}
