@@ -640,11 +640,16 @@ class RoadmapCoordinator:
         law0 = self.node_ctrls[0] if self.node_ctrls else None
         if not isinstance(law0, LineLaw):
             return None
-        g = complex(self.goal_pt[i])
-        law = self._goal_laws.get(g)
+        return self._line_law(complex(self.goal_pt[i]))
+
+    def _line_law(self, point: complex) -> LineLaw:
+        """The straight law to ``point`` with the node laws' safety filter, speed and gain
+        (cached per point: goals and the corners of return ways)."""
+        law = self._goal_laws.get(point)
         if law is None:
-            law = LineLaw(g, law0.safety, v_max=law0.v_max, gain=law0.gain)
-            self._goal_laws[g] = law
+            law0 = self.node_ctrls[0]
+            law = LineLaw(point, law0.safety, v_max=law0.v_max, gain=law0.gain)
+            self._goal_laws[point] = law
         return law
 
     def _unpark(self, active: NDArray[np.bool_]) -> None:
@@ -706,13 +711,7 @@ class RoadmapCoordinator:
             way.pop(0)
         if not way or len(way) <= 1:
             return self.node_ctrls[int(self.at[i])]
-        law0 = self.node_ctrls[0]
-        key = complex(way[0])
-        law = self._goal_laws.get(key)
-        if law is None:
-            law = LineLaw(key, law0.safety, v_max=law0.v_max, gain=law0.gain)
-            self._goal_laws[key] = law
-        return law
+        return self._line_law(complex(way[0]))
 
     def _push_chains(self, active: NDArray[np.bool_]) -> set[int]:
         """The nodes an ``active`` robot's next move needs cleared: where its next node on a
