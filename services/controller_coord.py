@@ -38,6 +38,7 @@ from typing import Any
 
 from confnav.services import navigation
 from confnav.services.controller_state import ControllerCore, PoseLike, _Robot
+from confnav.services.roadmap_worker import build_in_child
 
 from confnav.geometry import Workspace
 from confnav.navigation.control import Controller
@@ -45,9 +46,10 @@ from confnav.navigation.fleet_coord import (
     ALONE,
     LANE_FACTOR,
     FleetCoordinator,
+    FleetRoadmap,
     Plan,
     RoadmapCoordinator,
-    choose_coordinator,
+    plan_fleet_roadmap,
 )
 from confnav.navigation.unicycle import UnicycleController
 
@@ -158,23 +160,20 @@ class CoordMixin(ControllerCore):
         def build() -> None:
             try:
                 single = hasattr(cmap, "T_and_dT")  # one map (else an atlas)
-                coord = RoadmapCoordinator.build(
-                    cmap if single else None,
-                    0,
-                    key[1],
-                    v_max=key[2],
-                    node_law="kr" if single else "line",
-                    workspace=cmap.workspace,
-                )
-                if self.fleet_coordinator == "auto":
-                    choice, width, where = choose_coordinator(coord, key[1])
+                auto = self.fleet_coordinator == "auto"
+                fr = _roadmap_off_the_gil(cmap.workspace, key[1], auto)
+                if auto:
+                    choice, width, where = fr.choice, fr.width, fr.where
                     self.count(f"fleet_auto_{choice}")
-                    if not math.isfinite(width):  # no edge: nowhere to pass or wait aside
+                    if key[1] <= 0.0:
+                        log.info("fleet coordinator auto for point robots: local (no passage "
+                                 "is single-lane for them)")  # fmt: skip
+                    elif not math.isfinite(width):  # no edge: nowhere to pass or wait aside
                         log.warning(
                             "fleet coordinator auto for radius %g m: %s (the roadmap has no "
-                            "edge: the free space is nowhere wide enough for two robots, %d "
-                            "nodes; robots whose routes meet head-on may block each other)",
-                            key[1], choice, coord.roadmap.size,
+                            "edge: the free space is nowhere wide enough for two robots; "
+                            "robots whose routes meet head-on may block each other)",
+                            key[1], choice,
                         )  # fmt: skip
                     else:
                         log.info(
@@ -186,6 +185,16 @@ class CoordMixin(ControllerCore):
                     if choice == "local":
                         st["local"].add(key)
                         return
+                assert fr.roadmap is not None  # a roadmap choice comes with its roadmap
+                coord = RoadmapCoordinator.on_roadmap(
+                    fr.roadmap,
+                    cmap if single else None,
+                    0,
+                    key[1],
+                    v_max=key[2],
+                    node_law="kr" if single else "line",
+                    workspace=cmap.workspace,
+                )
                 st["fleets"] = {  # fleets of maps no robot uses any more are dropped
                     k: f for k, f in list(st["fleets"].items()) if k in set(st["of"].values())
                 }
@@ -241,6 +250,17 @@ class CoordMixin(ControllerCore):
         if plan.parked:
             return navigation.Decision(d.u, "arrived", "arrived", note)
         return navigation.Decision(d.u, "navigating", d.reason, note)
+
+
+def _roadmap_off_the_gil(ws: Workspace, rho: float, decide: bool) -> FleetRoadmap:
+    """The fleet's roadmap (and ``auto``'s choice) built in a child process
+    (``services/roadmap_worker.py``: the pose path never waits for the GIL behind it); in
+    this thread only if no child can be started (said in the log)."""
+    try:
+        return build_in_child(ws, rho, decide)
+    except OSError as exc:
+        log.warning("no roadmap child process (%s): building it in the controller", exc)
+        return plan_fleet_roadmap(ws, rho, decide)
 
 
 def _space_of(cmap: Any) -> str:

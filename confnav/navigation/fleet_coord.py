@@ -94,16 +94,26 @@ __all__ = [
     "RETURN_LEG",
     "ROAD",
     "FleetCoordinator",
+    "FleetRoadmap",
     "LineLaw",
+    "NodeLaws",
     "Plan",
     "RoadmapCoordinator",
     "choose_coordinator",
+    "choose_on_roadmap",
+    "fleet_roadmap",
+    "main_component",
     "pibt_step",
+    "plan_fleet_roadmap",
 ]
 
 #: modes of a robot; PARKED: at the goal it reached, its excursion still closed to the others,
 #: until a robot's shortest way needs one of those nodes (then the return leg) or a new goal
 ROAD, GOAL_LEG, RETURN_LEG, PARKED = 0, 1, 2, 3
+
+#: the least default node spacing of a fleet roadmap (m): small robots' roadmaps would have
+#: nodes a few cm apart (``2 rho + margin``), tens of thousands in a warehouse
+MIN_SPACING = 0.25
 
 #: m a robot on its goal leg must come nearer its goal within ``leg_patience`` s to count as
 #: progressing (:meth:`RoadmapCoordinator._stalled_legs`)
@@ -262,6 +272,81 @@ class LineLaw:
         return LineOutput(u=np.asarray(pr.u).reshape(zz.shape), status=status.reshape(zz.shape))
 
 
+def fleet_roadmap(
+    ws: Any,
+    rho: float,
+    *,
+    spacing: float | None = None,
+    margin: float = 0.05,
+    edge_clearance: float = 0.03,
+    max_edge: float = 2.2,
+) -> Roadmap:
+    """The roadmap of a fleet of filter radius ``rho`` on ``ws`` (the free space shrunk by
+    ``rho``): nodes ``spacing`` apart (default ``gap / sin 60deg``, ``gap = 2 rho + margin``:
+    :meth:`RoadmapCoordinator.build`; at least :data:`MIN_SPACING`), edges at most
+    ``max_edge`` spacings long, no edge nearer than ``gap`` to a third node, its 2-core
+    (:func:`build_roadmap`).  Pure geometry: no map, so it can be built in another
+    process."""
+    gap = 2.0 * rho + margin
+    sp = max(gap / np.sqrt(0.75), MIN_SPACING) if spacing is None else float(spacing)
+    return build_roadmap(ws, sp, pass_gap=gap, edge_clearance=edge_clearance,
+                         max_edge=max_edge * sp, prune_leaves=True)  # fmt: skip
+
+
+class NodeLaws(Sequence[Any]):
+    """The node laws of a roadmap, each made by ``make(v, node)`` when first asked for and
+    kept (a robot drives to few of a large roadmap's nodes; the same law object each time)."""
+
+    def __init__(self, nodes: NDArray[np.complex128], make: Any) -> None:
+        self._nodes = nodes
+        self._make = make
+        self._laws: dict[int, Any] = {}
+
+    def __len__(self) -> int:
+        return int(self._nodes.size)
+
+    def __getitem__(self, v: Any) -> Any:
+        if isinstance(v, slice):
+            return [self[i] for i in range(len(self))[v]]
+        i = int(v)
+        if not -len(self) <= i < len(self):
+            raise IndexError(f"node {i} of {len(self)}")
+        i %= len(self)
+        law = self._laws.get(i)
+        if law is None:
+            law = self._laws[i] = self._make(i, complex(self._nodes[i]))
+        return law
+
+
+def _line_laws(ws: Any, v_max: float, gain: float) -> Any:
+    """``make`` of :class:`NodeLaws`: the straight law to a node on ``ws``'s safety filter
+    (built with the first law)."""
+    flt: list[Any] = []
+
+    def make(_: int, z: complex) -> LineLaw:
+        if not flt:
+            flt.append(safety_filter(ws))
+        return LineLaw(z, flt[0], v_max=v_max, gain=gain)
+
+    return make
+
+
+def _kr_laws(cmap: Any, k: float, v_max: float, gain: float) -> Any:
+    """``make`` of :class:`NodeLaws`: Koditschek-Rimon to a node on the conformal map
+    ``cmap`` (one ``k`` for all nodes: for k at or above the goal's threshold the function
+    is a navigation function, Koditschek and Rimon, "Robot navigation functions on manifolds
+    with boundary", Adv. Appl. Math. 11, 1990)."""
+    dom: list[CircleDomain] = []
+
+    def make(_: int, z: complex) -> Controller:
+        if not dom:
+            dom.append(CircleDomain.of(cmap))
+        w = complex(np.asarray(cmap.T_and_dT(np.array([z]))[0]).reshape(-1)[0])
+        return Controller(cmap, z, navfn=KoditschekRimon(dom[0], w, k), gain=gain, v_max=v_max)
+
+    return make
+
+
 @dataclass
 class _Excursion:
     nodes: frozenset[int]
@@ -280,7 +365,7 @@ class RoadmapCoordinator:
     :meth:`update` every control step and :meth:`reached` when a robot reaches its goal."""
 
     roadmap: Roadmap
-    node_ctrls: list[Any]  # Controller (one conformal map) or LineLaw (any workspace)
+    node_ctrls: Sequence[Any]  # Controller (one conformal map) or LineLaw; NodeLaws: lazily
     n: int
     gap: float
     workspace: Any = None  # the exact free space (None: the node controllers' map's)
@@ -346,9 +431,7 @@ class RoadmapCoordinator:
         self._ways: dict[tuple[int, complex], list[complex] | None] = {}  # return_way cache
         self._rng = np.random.default_rng(self.seed)
         self._tie = self._rng.random(n) * 1e-3  # fixed random order between equal priorities
-        lab = self.roadmap.components()
-        big = np.bincount(lab).argmax() if lab.size else 0
-        self.main = np.flatnonzero(lab == big).astype(np.intp)
+        self.main = main_component(self.roadmap)
         self._goal_cache: dict[complex, int] = {}
         self._goal_nodes_cache: dict[tuple[int, complex], NDArray[np.intp]] = {}
         self._goal_laws: dict[complex, LineLaw] = {}  # straight goal-leg laws (goal_law)
@@ -388,37 +471,43 @@ class RoadmapCoordinator:
         ws = getattr(cmap, "workspace", None) if workspace is None else workspace
         if ws is None:
             raise NavigationError("the coordinator needs a map with its workspace")
-        gap = 2.0 * rho + margin
-        sp = gap / np.sqrt(0.75) if spacing is None else float(spacing)
-        rm = build_roadmap(
-            ws,
-            sp,
-            pass_gap=gap,
-            edge_clearance=edge_clearance,
-            max_edge=max_edge * sp,
-            prune_leaves=True,
-        )
-        kw.setdefault("node_tol", sp - 2.0 * rho)
-        if node_law == "line":  # no conformal map needed (an atlas): straight along edges
-            flt = safety_filter(ws)
-            lines = [LineLaw(complex(z), flt, v_max=v_max, gain=node_gain)
-                     for z in rm.nodes.tolist()]  # fmt: skip
-            return cls(roadmap=rm, node_ctrls=lines, n=n, gap=gap, workspace=ws, **kw)  # type: ignore[arg-type]
-        if node_law != "kr":
+        rm = fleet_roadmap(ws, rho, spacing=spacing, margin=margin,
+                           edge_clearance=edge_clearance, max_edge=max_edge)  # fmt: skip
+        return cls.on_roadmap(rm, cmap, n, rho, k=k, node_gain=node_gain, margin=margin,
+                              v_max=v_max, node_law=node_law, workspace=ws, **kw)  # fmt: skip
+
+    @classmethod
+    def on_roadmap(
+        cls,
+        rm: Roadmap,
+        cmap: object,
+        n: int,
+        rho: float,
+        *,
+        k: float = 40.0,
+        node_gain: float = 4.0,
+        margin: float = 0.05,
+        v_max: float = V_MAX,
+        node_law: str = "kr",
+        workspace: Any = None,
+        **kw: float,
+    ) -> RoadmapCoordinator:
+        """The coordinator of :meth:`build` on a roadmap built already (:func:`fleet_roadmap`,
+        e.g. in another process: the controller service builds it in a child process so that
+        its pose path never shares the GIL with the build, ``services/roadmap_worker.py``).
+        The node laws are made when a robot first drives to their node
+        (:class:`NodeLaws`): a roadmap of 2,400 nodes (point robots in the default
+        workspace) costs a conformal-map evaluation and a hash per node otherwise, 1 s."""
+        ws = getattr(cmap, "workspace", None) if workspace is None else workspace
+        if ws is None:
+            raise NavigationError("the coordinator needs a map with its workspace")
+        if node_law not in ("kr", "line"):
             raise NavigationError(f"node_law must be 'kr' or 'line', got {node_law!r}")
-        dom = CircleDomain.of(cmap)  # type: ignore[arg-type]
-        w = np.asarray(cmap.T_and_dT(rm.nodes)[0], dtype=np.complex128)  # type: ignore[attr-defined]
-        ctrls = [
-            Controller(
-                cmap,  # type: ignore[arg-type]
-                complex(z),
-                navfn=KoditschekRimon(dom, complex(wz), k),
-                gain=node_gain,
-                v_max=v_max,
-            )
-            for z, wz in zip(rm.nodes.tolist(), w.tolist(), strict=True)
-        ]
-        return cls(roadmap=rm, node_ctrls=ctrls, n=n, gap=gap, workspace=ws, **kw)  # type: ignore[arg-type]
+        gap = 2.0 * rho + margin
+        kw.setdefault("node_tol", rm.spacing - 2.0 * rho)
+        laws = NodeLaws(rm.nodes, _line_laws(ws, v_max, node_gain) if node_law == "line"
+                        else _kr_laws(cmap, k, v_max, node_gain))  # fmt: skip
+        return cls(roadmap=rm, node_ctrls=laws, n=n, gap=gap, workspace=ws, **kw)  # type: ignore[arg-type]
 
     # -- set-up -----------------------------------------------------------------------------
     def start(self, p: ArrayLike) -> None:
@@ -1048,18 +1137,61 @@ def choose_coordinator(
     across which the free space is narrower than ``factor rho`` (:data:`LANE_FACTOR`;
     :func:`~confnav.navigation.roadmap.passage_widths`) -- else ``"local"``; with the
     narrowest width across an edge (m; ``inf``: no edge) and where (the edge's midpoint)."""
-    rm = coord.roadmap
+    return choose_on_roadmap(coord.roadmap, coord._workspace(), rho, factor)
+
+
+def main_component(rm: Roadmap) -> NDArray[np.intp]:
+    """The nodes of the roadmap's largest connected component (the coordinator's ``main``)."""
+    lab = rm.components()
+    big = np.bincount(lab).argmax() if lab.size else 0
+    return np.flatnonzero(lab == big).astype(np.intp)
+
+
+def choose_on_roadmap(
+    rm: Roadmap, ws: Any, rho: float, factor: float = LANE_FACTOR
+) -> tuple[str, float, complex]:
+    """:func:`choose_coordinator` on a roadmap with no coordinator (no node laws): the same
+    decision from the roadmap's main component and the free space ``ws``."""
     main = np.zeros(rm.size, dtype=bool)
-    main[coord.main] = True
+    main[main_component(rm)] = True
     keep = main[rm.edges[:, 0]] & main[rm.edges[:, 1]] if len(rm.edges) else np.zeros(0, bool)
     if not keep.any():
         return "local", float("inf"), complex(np.nan, np.nan)
     e = rm.edges[keep]
     sub = Roadmap(rm.nodes, e, rm.neighbours, rm.dist, rm.spacing, rm.min_clearance)
-    w = passage_widths(coord._workspace(), sub)
+    w = passage_widths(ws, sub)
     k = int(np.argmin(w))
     where = complex(0.5 * (rm.nodes[e[k, 0]] + rm.nodes[e[k, 1]]))
     return ("roadmap" if w[k] < factor * rho else "local"), float(w[k]), where
+
+
+@dataclass(frozen=True)
+class FleetRoadmap:
+    """A fleet's roadmap and, for ``auto``, the coordinator chosen on it
+    (:func:`plan_fleet_roadmap`): ``roadmap`` None when the choice is ``"local"`` (nothing
+    to coordinate on: not sent back from a child process); ``width`` and ``where`` as
+    :func:`choose_coordinator` gives them (NaN when not chosen)."""
+
+    roadmap: Roadmap | None
+    choice: str
+    width: float
+    where: complex
+
+
+def plan_fleet_roadmap(ws: Any, rho: float, decide: bool) -> FleetRoadmap:
+    """The roadmap of a fleet of filter radius ``rho`` on ``ws`` (:func:`fleet_roadmap`) and,
+    if ``decide`` (``auto``), the coordinator for it (:func:`choose_on_roadmap`).  Point
+    robots (``rho`` 0) are left to the local rules without a roadmap: no passage is
+    single-lane for them, and their roadmap would have nodes 6 cm apart (2,400 in the
+    default workspace, 21,000 and an all-pairs distance matrix of 3.7 GB in a small
+    warehouse)."""
+    if decide and not rho > 0.0:  # point robots: no passage is narrower than LANE_FACTOR 0
+        return FleetRoadmap(None, "local", float("nan"), complex(np.nan, np.nan))
+    rm = fleet_roadmap(ws, rho)
+    if not decide:
+        return FleetRoadmap(rm, "roadmap", float("nan"), complex(np.nan, np.nan))
+    choice, width, where = choose_on_roadmap(rm, ws, rho)
+    return FleetRoadmap(rm if choice == "roadmap" else None, choice, width, where)
 
 
 @dataclass(frozen=True)

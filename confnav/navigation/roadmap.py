@@ -22,6 +22,7 @@ All geometry is exact (the workspace's polygons); the conformal map is not invol
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 
 import numpy as np
@@ -248,16 +249,20 @@ def _free_edges(
         cand, a, b = cand[ok_c], a[ok_c], b[ok_c]
         # no third node near the edge
         tree = cKDTree(np.column_stack([nodes.real, nodes.imag]))
-        good = np.ones(len(cand), dtype=bool)
         mid = 0.5 * (a + b)
-        for e, near in enumerate(
-            tree.query_ball_point(np.column_stack([mid.real, mid.imag]), 0.5 * max_edge + pass_gap)
-        ):
-            others = [w for w in near if w != cand[e, 0] and w != cand[e, 1]]
-            if others:
-                dd = segment_segment_distance(nodes[others], nodes[others], a[e], b[e])
-                good[e] = bool(dd.min() >= pass_gap - 1e-9)
-        cand = cand[good]
+        near = tree.query_ball_point(
+            np.column_stack([mid.real, mid.imag]), 0.5 * max_edge + pass_gap
+        )
+        # every (edge, node near it) pair at once: a node is a segment of length 0
+        counts = np.fromiter(map(len, near), dtype=np.intp, count=len(near))
+        pe = np.repeat(np.arange(len(cand)), counts)
+        pw = np.fromiter(itertools.chain.from_iterable(near), dtype=np.intp, count=pe.size)
+        third = (pw != cand[pe, 0]) & (pw != cand[pe, 1])
+        pe, pw = pe[third], pw[third]
+        dd = segment_segment_distance(nodes[pw], nodes[pw], a[pe], b[pe])
+        least = np.full(len(cand), np.inf)
+        np.minimum.at(least, pe, dd)
+        cand = cand[least >= pass_gap - 1e-9]
     edges = np.asarray(cand, dtype=np.intp).reshape(-1, 2)
     return edges
 
