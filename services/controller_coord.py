@@ -255,7 +255,10 @@ class CoordMixin(ControllerCore):
 def _roadmap_off_the_gil(ws: Workspace, rho: float, decide: bool) -> FleetRoadmap:
     """The fleet's roadmap (and ``auto``'s choice) built in a child process
     (``services/roadmap_worker.py``: the pose path never waits for the GIL behind it); in
-    this thread only if no child can be started (said in the log)."""
+    this thread only if no child can be started (said in the log).  Point robots under
+    ``auto`` need no roadmap (:func:`plan_fleet_roadmap`): decided here, no child."""
+    if decide and not rho > 0.0:
+        return plan_fleet_roadmap(ws, rho, decide)
     try:
         return build_in_child(ws, rho, decide)
     except OSError as exc:

@@ -326,6 +326,9 @@ class PosesMixin(CoordMixin):
         and MOVING, before the fleet filter sees them. Robots outside their map are rare, so
         only the ERROR entries of a group are visited."""
         self._reentry_notes.clear()  # this step's (steps run one at a time)
+        codes_all = [np.ravel(res[1]) for _, res in results if not isinstance(res, Exception)]
+        if not codes_all or not (np.concatenate(codes_all) == navigation.ERROR).any():
+            return results  # nobody outside its map (one check, not one per goal's group)
         out: list[Any] = []
         for (ctrl, members), res in results:
             if isinstance(res, Exception):

@@ -5,6 +5,7 @@ together)."""
 from __future__ import annotations
 
 import logging
+import math
 import queue
 import re
 import threading
@@ -19,11 +20,10 @@ from confnav.schemas import (
     WAITING_FOR_MAP,
     CommandBatch,
     Goal,
-    RobotStatus,
     TransformSolution,
     encode,
 )
-from confnav.schemas.fast import velocity_command_json
+from confnav.schemas.fast import robot_status_json, velocity_command_json
 from confnav.services import navigation
 from confnav.services.bus import Bus
 from confnav.services.keys import Keys
@@ -242,6 +242,7 @@ class ControllerCore(Service):
         self._build_lock = threading.Lock()
         self._rids: dict[str, str] = {}  # pose key -> robot id
         self._cmd_keys: dict[str, str] = {}  # robot id -> cmd_vel key
+        self._status_keys: dict[str, str] = {}  # robot id -> status key
         self.swapped = threading.Event()  # set on each hot swap (tests)
         self.neighbours: Neighbours | None = None  # fleet hook (services/neighbours.py)
 
@@ -349,6 +350,7 @@ class ControllerCore(Service):
             r.status_key = ("", "", None, "")
             self._status(r, "idle", "no_goal", why, time.monotonic())
         self._cmd_keys.pop(rid, None)
+        self._status_keys.pop(rid, None)
         self.count("robots_forgotten")
 
     def _blocker(self, r: _Robot) -> tuple[str, str] | None:
@@ -476,19 +478,26 @@ class ControllerCore(Service):
         if r.position is not None and r.goal is not None:
             dx, dy = r.position[0] - r.goal.goal[0], r.position[1] - r.goal.goal[1]
             dist = (dx * dx + dy * dy) ** 0.5
-        status = RobotStatus(
-            robot_id=r.robot_id,
-            stamp_ns=time.time_ns(),
-            state=state,  # type: ignore[arg-type]
-            reason=reason,  # type: ignore[arg-type]
-            message=message[:4000],
-            ws_id=r.goal.ws_id if r.goal else None,
-            map_revision=r.ctrl_revision,
-            position=r.position,
-            distance_to_goal=dist,
-            chart=chart,
+        if dist is not None and not math.isfinite(dist):  # |x| near 1e154 or more: no figure
+            dist = None
+        # the wire bytes of RobotStatus written directly (schemas/fast.py: the same bytes as
+        # encode(RobotStatus(...)); our own values: a state and reason of the schema's)
+        payload = robot_status_json(
+            r.robot_id,
+            time.time_ns(),
+            state,
+            reason,
+            message[:4000],
+            r.goal.ws_id if r.goal else None,
+            r.ctrl_revision,
+            r.position,
+            dist,
+            chart,
         )
-        self._emit(self.keys.robot(r.robot_id, "status"), encode(status))
+        key = self._status_keys.get(r.robot_id)
+        if key is None:
+            key = self._status_keys[r.robot_id] = self.keys.robot(r.robot_id, "status")
+        self._emit(key, payload)
 
     def robot_state(self, rid: str) -> tuple[str, str] | None:
         """(state, reason) last published for a robot (tests)."""
