@@ -233,6 +233,27 @@ class PosesMixin(CoordMixin):
                 results, now, coordinated=plans, reentering=self._reentry_notes
             )
         # --- end fleet hook ---
+        batched = getattr(self._held, "batch", None) is not None
+        if batched:  # a pose batch: its CommandBatch goes out before the robots' statuses
+            self._defer_statuses(True)
+        try:
+            self._answer(results, plans, own, now)
+        finally:
+            if batched:
+                kept = self._defer_statuses(False)
+                self._send_commands()
+                for r, *args in kept:
+                    with r.lock:
+                        self._status(r, *args)
+
+    def _answer(
+        self,
+        results: list[Any],
+        plans: dict[str, Plan],
+        own: dict[str, navigation.ControllerLike],
+        now: float,
+    ) -> None:
+        """Each robot's command (or stop) of the step's results, and its status."""
         for (ctrl, members), res in results:
             if isinstance(res, Exception):
                 self.count("navigation_errors")

@@ -274,6 +274,21 @@ class ControllerCore(Service):
         if msgs:
             self._out.put(msgs)
 
+    def _send_commands(self) -> None:
+        """Queue the ``CommandBatch`` collected so far now, before the statuses of the step
+        (:meth:`_defer_statuses`): a robot's command waits for no one's status."""
+        batch = getattr(self._held, "batch", None)
+        if batch is not None and batch.robot_ids:
+            self._out.put([(batch.key, batch.payload())])
+            self._held.batch = _CmdBatch(batch.key, batch.sim_id)
+
+    def _defer_statuses(self, on: bool) -> list[tuple[Any, ...]]:
+        """From ``on``: :meth:`_status` calls of this thread are kept, not made; off: the kept
+        calls, to be made (each robot's command then goes out before its status)."""
+        kept: list[tuple[Any, ...]] = getattr(self._held, "statuses", None) or []
+        self._held.statuses = [] if on else None
+        return kept
+
     def _publish_loop(self) -> None:
         while True:
             try:
@@ -459,6 +474,10 @@ class ControllerCore(Service):
         self.count("commands")
 
     def _status(self, r: _Robot, state: str, reason: str, message: str, now: float) -> None:
+        kept = getattr(self._held, "statuses", None)
+        if kept is not None:  # a pose batch's step: after its commands (_defer_statuses)
+            kept.append((r, state, reason, message, now))
+            return
         chart = getattr(r.ctrl, "active_chart", None)
         # a message that differs only in its measured figures ("0.88 m off it") is the same
         # status: repeated once per period, not on every pose (docs/SERVICES.md, "Scale")
