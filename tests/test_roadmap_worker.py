@@ -8,6 +8,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from confnav.services.roadmap_worker import RoadmapBuildError, build_in_child
+from test_fleet_coord_async import DOOR, R  # the 0.9 m door, r 0.2
 
 from confnav import Workspace, inflate
 from confnav.errors import NavigationError
@@ -21,14 +22,6 @@ from confnav.navigation.fleet_coord import (
     plan_fleet_roadmap,
 )
 
-R = 0.2
-# a 6 x 3 m room split at x = 3 by a 0.2 m wall with a 0.9 m door: one robot at a time
-DOOR = Workspace(
-    [
-        (0, 0), (2.9, 0), (2.9, 1.05), (3.1, 1.05), (3.1, 0), (6, 0), (6, 3), (3.1, 3),
-        (3.1, 1.95), (2.9, 1.95), (2.9, 3), (0, 3),
-    ]
-)  # fmt: skip
 ROOM = Workspace([(0, 0), (6, 0), (6, 3), (0, 3)])
 
 
