@@ -281,9 +281,6 @@ class ControllerCore(Service):
         if batch is not None and batch.robot_ids:
             self._out.put([(batch.key, batch.payload())])
             self._held.batch = _CmdBatch(batch.key, batch.sim_id)
-            # the GIL to the publisher now: else it waits a switch interval (5 ms) for this
-            # thread, busy with the statuses, to be made to give it up
-            time.sleep(0)
 
     def _defer_statuses(self, on: bool) -> list[tuple[Any, ...]]:
         """From ``on``: :meth:`_status` calls of this thread are kept, not made; off: the kept
