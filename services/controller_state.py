@@ -275,11 +275,18 @@ class ControllerCore(Service):
             self._out.put(msgs)
 
     def _send_commands(self) -> None:
-        """Queue the ``CommandBatch`` collected so far now, before the statuses of the step
+        """Publish the ``CommandBatch`` collected so far now, before the statuses of the step
         (:meth:`_defer_statuses`): a robot's command waits for no one's status."""
         batch = getattr(self._held, "batch", None)
         if batch is not None and batch.robot_ids:
-            self._out.put([(batch.key, batch.payload())])
+            # published from this thread (Zenoh's put gives the GIL up meanwhile): queued, it
+            # waited for the publisher thread to get the GIL from this one, busy with the
+            # statuses, up to a switch interval (5 ms; p99 4.8-7.5 ms above the steps')
+            try:
+                self.bus.publish(batch.key, batch.payload())
+            except Exception:
+                self.count("publish_errors")
+                log.exception("publishing on %s failed", batch.key)
             self._held.batch = _CmdBatch(batch.key, batch.sim_id)
 
     def _defer_statuses(self, on: bool) -> list[tuple[Any, ...]]:
