@@ -124,6 +124,11 @@ BENCHMARKS: dict[str, Bench] = {
         "controller hot path: CPU per pose and latency, 50..400 robots at 20 Hz (issue 25)",
         quick=("--robots", "100", "--seconds", "3"),
     ),
+    "roadmap": Bench(
+        "bench_roadmap.py",
+        "roadmap_sizes.json",
+        "fleet roadmap sizes and build CPU per workspace and radius (issue 25)",
+    ),
     "firstmove": Bench(
         "bench_firstmove.py",
         "firstmove.json",

@@ -1,13 +1,14 @@
 """A fleet's roadmap built in a child process (``python -m confnav.services.roadmap_worker``).
 
 The controller service builds a fleet's roadmap the first time two robots share a map
-(``services/controller_coord.py``).  The build is pure Python and numpy for 0.1-1.5 s (the
-candidate grid, Delaunay edges checked against the walls and the other nodes, all-pairs
-shortest paths); in a thread of the controller it holds the GIL in turns with the pose step,
-and each time the pose step gives the GIL up (a Zenoh call, a lock) it waits a switch
-interval (5 ms) to get it back: with 200 robots at 20 Hz the steps during a 2.7 s build took
-0.2-0.9 s instead of 15 ms (``bench/bench_controller.py``, p99 230-850 ms against 19-21 ms
-without the build, bench/results/controller_200_s19_*.json).  In a process of its own, at a
+(``services/controller_coord.py``).  The build is Python and numpy (the candidate grid,
+Delaunay edges checked against the walls and the other nodes, all-pairs shortest paths; its
+CPU per workspace and radius: ``bench/bench_roadmap.py``); in a thread of the controller it
+holds the GIL in turns with the pose step, and each time the pose step gives the GIL up (a
+Zenoh call, a lock) it waits a switch interval (5 ms) to get it back: with 200 point robots at
+20 Hz, the default workspace's roadmap built in the window, the p99 was 233-658 ms with 3800-6200
+of 16000 poses superseded (``bench/bench_controller.py``,
+bench/results/controller_200_s19_before.json).  In a process of its own, at a
 lower priority, the build shares nothing with the pose path but the machine's cores.
 
 A fresh interpreter runs this module (not ``multiprocessing``'s spawn, which imports the

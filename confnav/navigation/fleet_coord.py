@@ -496,8 +496,9 @@ class RoadmapCoordinator:
         e.g. in another process: the controller service builds it in a child process so that
         its pose path never shares the GIL with the build, ``services/roadmap_worker.py``).
         The node laws are made when a robot first drives to their node
-        (:class:`NodeLaws`): a roadmap of 2,400 nodes (point robots in the default
-        workspace) costs a conformal-map evaluation and a hash per node otherwise, 1 s."""
+        (:class:`NodeLaws`): a roadmap of 2,407 nodes (point robots in the default
+        workspace) cost a conformal-map evaluation and a hash per node otherwise (about 1 s
+        under a profiler)."""
         ws = getattr(cmap, "workspace", None) if workspace is None else workspace
         if ws is None:
             raise NavigationError("the coordinator needs a map with its workspace")
@@ -1182,8 +1183,8 @@ def plan_fleet_roadmap(ws: Any, rho: float, decide: bool) -> FleetRoadmap:
     """The roadmap of a fleet of filter radius ``rho`` on ``ws`` (:func:`fleet_roadmap`) and,
     if ``decide`` (``auto``), the coordinator for it (:func:`choose_on_roadmap`).  Point
     robots (``rho`` 0) are left to the local rules without a roadmap: no passage is
-    single-lane for them, and their roadmap would have nodes 6 cm apart (2,400 in the
-    default workspace, 21,000 and an all-pairs distance matrix of 3.7 GB in a small
+    single-lane for them, and their roadmap would have nodes 6 cm apart (2,407 in the
+    default workspace, 21,455 and an all-pairs distance matrix of 3.7 GB in a small
     warehouse)."""
     if decide and not rho > 0.0:  # point robots: no passage is narrower than LANE_FACTOR 0
         return FleetRoadmap(None, "local", float("nan"), complex(np.nan, np.nan))
